@@ -1,0 +1,129 @@
+//! The command-line arguments shared by `lcrl graph` and
+//! `lcrl-graph-builder`, and the build-and-save run behind both.
+
+use std::path::{Path, PathBuf};
+
+use indicatif::{ProgressBar, ProgressStyle};
+use tempfile::NamedTempFile;
+
+use crate::{build_graph, plot, Cs3Config, GraphError, GraphOptions, GraphReport, Rule, EXACT_TOLERANCE};
+
+/// Build the LCRL connection graph G with CS3 (METHOD.md Algorithm 1).
+#[derive(Debug, Clone, clap::Args)]
+pub struct GraphArgs {
+    /// Environment: a registered name (lti-paper) or a path to a .toml file.
+    #[arg(long)]
+    pub env: String,
+    /// ST: CS3 samples per action component; more samples, steadier phi.
+    #[arg(long, default_value_t = 256)]
+    pub samples: usize,
+    /// T of eq. 7: keep action i for state j when phi(i,j) ≥ T × the mean
+    /// effect of all actions on j [default: 0.1, the publication's value].
+    #[arg(long, conflicts_with = "exact", allow_hyphen_values = true)]
+    pub threshold: Option<f64>,
+    /// Use eq. 6 (G_ij = 1 iff phi ≠ 0) instead of eq. 7; only sensible for
+    /// noise-free systems.
+    #[arg(long)]
+    pub exact: bool,
+    /// With --exact: phi counts as 0 below this fraction of the largest phi.
+    #[arg(long, default_value_t = EXACT_TOLERANCE, requires = "exact", allow_hyphen_values = true)]
+    pub tolerance: f64,
+    /// Seed of the CS3 sampling; the same seed gives the same graph.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Rollout threads (0: one per core); the result does not depend on it.
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Bootstrap resamples for each entry's stability (0 to skip).
+    #[arg(long, default_value_t = 200)]
+    pub bootstrap: usize,
+    /// Write the graph as JSON here (read back by `lcrl train --graph`).
+    #[arg(long, value_name = "FILE.json")]
+    pub out: Option<PathBuf>,
+    /// Draw the normalized-CS3 heatmap with G marked here (PNG).
+    #[arg(long, value_name = "FILE.png")]
+    pub plot: Option<PathBuf>,
+}
+
+impl GraphArgs {
+    pub fn options(&self) -> GraphOptions {
+        let rule = if self.exact {
+            Rule::Exact { tolerance: self.tolerance }
+        } else {
+            Rule::Threshold(self.threshold.unwrap_or(0.1))
+        };
+        GraphOptions {
+            cs3: Cs3Config { samples: self.samples, seed: self.seed, threads: self.threads },
+            rule,
+            bootstrap: self.bootstrap,
+        }
+    }
+
+    /// Checks everything that can be checked before the (possibly long)
+    /// build, makes the environment, builds the graph with a progress bar,
+    /// and writes the requested files (atomically: an old file is replaced
+    /// only by a complete new one).
+    pub fn run(&self) -> Result<GraphReport, GraphError> {
+        let options = self.options();
+        options.validate()?;
+        let env = lcrl_sim::make_env(&self.env)?;
+        let json_out = self.out.as_deref().map(|p| PendingFile::new(p, ".json")).transpose()?;
+        let plot_out = self.plot.as_deref().map(|p| PendingFile::new(p, ".png")).transpose()?;
+
+        let total = env.spec().action_dim() * self.samples;
+        let bar = ProgressBar::new(total as u64).with_message("CS3 rollouts");
+        if let Ok(style) = ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} samples, {elapsed} (eta {eta})") {
+            bar.set_style(style.progress_chars("=> "));
+        }
+        let report = build_graph(env.as_ref(), &options, &|| bar.inc(1));
+        bar.finish_and_clear();
+        let report = report?;
+
+        if let Some(file) = json_out {
+            report.write_json(file.temp.path())?;
+            file.commit()?;
+        }
+        if let Some(file) = plot_out {
+            plot::heatmap(&report, file.temp.path())?;
+            file.commit()?;
+        }
+        Ok(report)
+    }
+}
+
+/// An output file reserved before the work starts: a temporary file next to
+/// the target, renamed over it once complete. Creating it up front proves
+/// the directory is writable before any rollout runs.
+struct PendingFile {
+    target: PathBuf,
+    temp: NamedTempFile,
+}
+
+impl PendingFile {
+    fn new(target: &Path, suffix: &str) -> Result<Self, GraphError> {
+        let dir = match target.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        if target.is_dir() {
+            return Err(GraphError::Output { path: target.into(), message: "is a directory; give a file name".into() });
+        }
+        let mut builder = tempfile::Builder::new();
+        builder.prefix(".lcrl-").suffix(suffix);
+        // tempfile's 0600 is for secrets; results are ordinary files (umask applies).
+        #[cfg(unix)]
+        builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
+        let temp = builder
+            .tempfile_in(dir)
+            .map_err(|e| GraphError::Output { path: target.into(), message: e.to_string() })?;
+        Ok(PendingFile { target: target.into(), temp })
+    }
+
+    fn commit(self) -> Result<(), GraphError> {
+        let target = self.target;
+        self.temp
+            .persist(&target)
+            .map(|_| ())
+            .map_err(|e| GraphError::Output { path: target, message: e.error.to_string() })
+    }
+}

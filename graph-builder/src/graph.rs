@@ -1,0 +1,126 @@
+//! From phi to the connection graph G (METHOD.md §3, eqs. 6–7), and how
+//! stable each entry of G is under resampling.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::cs3::Cs3Samples;
+
+/// Which rule turns phi into G.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Rule {
+    /// Eq. 7: G_ij = 1 iff phi(i,j) ≥ T · (1/n) Σ_k phi(k,j).
+    Threshold(f64),
+    /// Eq. 6: G_ij = 1 iff phi(i,j) ≠ 0, read as phi(i,j) > tolerance ·
+    /// max phi, so floating-point dust does not count as an effect.
+    Exact { tolerance: f64 },
+}
+
+/// The default relative tolerance of [`Rule::Exact`].
+pub const EXACT_TOLERANCE: f64 = 1e-9;
+
+/// G (n × m, entries 0/1) and the state columns no action moves.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConnectionGraph {
+    pub g: Vec<Vec<u8>>,
+    /// Columns j with phi(·, j) = 0 for every action. Decision (METHOD.md §3):
+    /// such a column is all zeros, although eq. 7 read literally gives ones.
+    pub unmoved_states: Vec<usize>,
+}
+
+/// Applies `rule` to phi (n × m).
+pub fn connection_graph(phi: &[Vec<f64>], rule: Rule) -> ConnectionGraph {
+    let n = phi.len();
+    let m = phi.first().map_or(0, Vec::len);
+    let column = |j: usize| phi.iter().map(move |row| row[j]);
+    let max_phi = phi.iter().flatten().fold(0.0_f64, |a, &b| a.max(b));
+    let mut g = vec![vec![0u8; m]; n];
+    let mut unmoved_states = Vec::new();
+    for j in 0..m {
+        let unmoved = match rule {
+            Rule::Threshold(_) => column(j).all(|v| v == 0.0),
+            Rule::Exact { tolerance } => column(j).all(|v| v <= tolerance * max_phi),
+        };
+        if unmoved {
+            unmoved_states.push(j);
+            continue;
+        }
+        let cut = match rule {
+            Rule::Threshold(t) => t * column(j).sum::<f64>() / n as f64,
+            Rule::Exact { tolerance } => tolerance * max_phi,
+        };
+        for i in 0..n {
+            let keep = match rule {
+                Rule::Threshold(_) => phi[i][j] >= cut,
+                Rule::Exact { .. } => phi[i][j] > cut,
+            };
+            g[i][j] = u8::from(keep);
+        }
+    }
+    ConnectionGraph { g, unmoved_states }
+}
+
+/// "Normalized CS3": phi divided by its column sum (0 for an all-zero column).
+pub fn normalized(phi: &[Vec<f64>]) -> Vec<Vec<f64>> {
+    let m = phi.first().map_or(0, Vec::len);
+    let sums: Vec<f64> = (0..m).map(|j| phi.iter().map(|row| row[j]).sum()).collect();
+    phi.iter()
+        .map(|row| row.iter().zip(&sums).map(|(v, s)| if *s > 0.0 { v / s } else { 0.0 }).collect())
+        .collect()
+}
+
+/// For each entry, the share of `resamples` bootstrap resamples (the ST
+/// samples of every action drawn again with replacement) whose graph has
+/// the same G_ij as `reference`. 1.0 everywhere means a clear-cut graph;
+/// values near 0.5 mark borderline edges.
+pub fn stability(samples: &Cs3Samples, rule: Rule, reference: &ConnectionGraph, resamples: usize, seed: u64) -> Vec<Vec<f64>> {
+    let (n, m, st) = (samples.actions, samples.states, samples.samples);
+    let mut agree = vec![vec![0usize; m]; n];
+    if resamples == 0 {
+        return vec![vec![f64::NAN; m]; n];
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5EED_B007_5742_0000);
+    let mut picks = vec![vec![0usize; st]; n];
+    for _ in 0..resamples {
+        for row in picks.iter_mut() {
+            row.iter_mut().for_each(|k| *k = rng.random_range(0..st));
+        }
+        let g = connection_graph(&samples.phi_of(|i| &picks[i]), rule).g;
+        for i in 0..n {
+            for j in 0..m {
+                agree[i][j] += usize::from(g[i][j] == reference.g[i][j]);
+            }
+        }
+    }
+    agree.iter().map(|row| row.iter().map(|&c| c as f64 / resamples as f64).collect()).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn eq7_is_relative_to_the_column_mean() {
+        // Column 0: mean 4/3, cut 0.4 · 4/3 ≈ 0.53 → 0.5 is dropped, 1.0 kept.
+        // Column 1: all zero → unmoved, all zeros (the §3 decision).
+        // Column 2: scale is irrelevant: 1e-6 ≥ 0.4 · mean(1e-6, 1e-6, 0).
+        let phi = vec![vec![2.5, 0.0, 1e-6], vec![1.0, 0.0, 1e-6], vec![0.5, 0.0, 0.0]];
+        let graph = connection_graph(&phi, Rule::Threshold(0.4));
+        assert_eq!(graph.g, vec![vec![1, 0, 1], vec![1, 0, 1], vec![0, 0, 0]]);
+        assert_eq!(graph.unmoved_states, vec![1]);
+    }
+
+    #[test]
+    fn eq6_ignores_rounding_dust_but_keeps_small_real_effects() {
+        let phi = vec![vec![1.0, 1e-18], vec![1e-6, 0.0]];
+        let graph = connection_graph(&phi, Rule::Exact { tolerance: EXACT_TOLERANCE });
+        assert_eq!(graph.g, vec![vec![1, 0], vec![1, 0]]);
+        assert_eq!(graph.unmoved_states, vec![1]);
+    }
+
+    #[test]
+    fn normalized_columns_sum_to_one() {
+        let norm = normalized(&[vec![3.0, 0.0], vec![1.0, 0.0]]);
+        assert_eq!(norm, vec![vec![0.75, 0.0], vec![0.25, 0.0]]);
+    }
+}

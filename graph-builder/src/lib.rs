@@ -1,0 +1,118 @@
+//! CS3 and the LCRL connection graph (METHOD.md §2–4).
+//!
+//! - [`cs3`]: Algorithm 1's paired rollouts, in parallel and deterministic.
+//! - [`graph`]: eq. 7 / eq. 6 thresholding and per-entry stability.
+//! - [`lemma1`]: the closed-form graph of a linear system.
+//! - [`report`]: `graph.json`, the printed table, the gRPC message.
+//! - [`plot`]: the normalized-CS3 heatmap.
+//! - [`cli`]: the arguments shared by `lcrl graph` and `lcrl-graph-builder`.
+//! - [`service`]: the `lcrl.v1.Graph` gRPC service.
+
+pub mod cli;
+pub mod cs3;
+pub mod graph;
+pub mod lemma1;
+pub mod plot;
+pub mod report;
+pub mod service;
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use lcrl_sim::{Env, EnvError};
+
+pub use cs3::{Cs3Config, Cs3Error, Cs3Samples};
+pub use graph::{ConnectionGraph, Rule, EXACT_TOLERANCE};
+pub use report::GraphReport;
+
+/// How to build a graph: CS3 sampling, the rule, and the bootstrap size.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GraphOptions {
+    pub cs3: Cs3Config,
+    pub rule: Rule,
+    /// Bootstrap resamples for the stability of each entry (0: skip).
+    pub bootstrap: usize,
+}
+
+impl GraphOptions {
+    /// Rejects settings that cannot give a meaningful graph.
+    pub fn validate(&self) -> Result<(), GraphError> {
+        if self.cs3.samples == 0 {
+            return Err(GraphError::Cs3(Cs3Error::NoSamples));
+        }
+        match self.rule {
+            Rule::Threshold(t) if !(t.is_finite() && t > 0.0) => Err(GraphError::Threshold(t)),
+            Rule::Exact { tolerance } if !(tolerance.is_finite() && tolerance >= 0.0) => {
+                Err(GraphError::Tolerance(tolerance))
+            }
+            _ => Ok(()),
+        }
+    }
+}
+
+/// Algorithm 1 end to end: CS3 rollouts, the rule, normalized phi, stability.
+pub fn build_graph(env: &dyn Env, opts: &GraphOptions, on_sample: &(dyn Fn() + Sync)) -> Result<GraphReport, GraphError> {
+    opts.validate()?;
+    let started = Instant::now();
+    let samples = cs3::measure(env, &opts.cs3, on_sample)?;
+    let phi = samples.phi();
+    let graph = graph::connection_graph(&phi, opts.rule);
+    let stability = graph::stability(&samples, opts.rule, &graph, opts.bootstrap, opts.cs3.seed);
+    let spec = env.spec();
+    let (threshold, exact, tolerance) = match opts.rule {
+        Rule::Threshold(t) => (Some(t), false, None),
+        Rule::Exact { tolerance } => (None, true, Some(tolerance)),
+    };
+    Ok(GraphReport {
+        env: spec.name.clone(),
+        state_names: spec.state_names.clone(),
+        action_names: spec.action_names.clone(),
+        samples: opts.cs3.samples,
+        threshold,
+        exact,
+        tolerance,
+        seed: opts.cs3.seed,
+        threads: rayon_threads(opts.cs3.threads),
+        bootstrap_resamples: opts.bootstrap,
+        phi_normalized: graph::normalized(&phi),
+        phi,
+        g: graph.g,
+        stability,
+        unmoved_states: graph.unmoved_states,
+        elapsed_s: started.elapsed().as_secs_f64(),
+    })
+}
+
+fn rayon_threads(requested: usize) -> usize {
+    if requested == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        requested
+    }
+}
+
+/// Everything that can stop a graph from being built or saved.
+#[derive(Debug, thiserror::Error)]
+pub enum GraphError {
+    #[error(transparent)]
+    Env(#[from] EnvError),
+    #[error(transparent)]
+    Cs3(#[from] Cs3Error),
+    #[error("--threshold must be a finite number above 0 (the publication uses 0.1), got {0}")]
+    Threshold(f64),
+    #[error("--tolerance must be a finite number ≥ 0, got {0}")]
+    Tolerance(f64),
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("cannot write {path}: {message}")]
+    Output { path: PathBuf, message: String },
+    #[error("graph file {path} is not a valid graph.json: {message}")]
+    BadGraphFile { path: PathBuf, message: String },
+    #[error("cannot encode the graph as JSON: {0}")]
+    Json(String),
+    #[error("cannot draw {path}: {message}")]
+    Plot { path: PathBuf, message: String },
+}
+
+#[cfg(test)]
+mod tests;

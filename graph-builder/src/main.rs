@@ -1,0 +1,103 @@
+//! `lcrl-graph-builder`: builds the connection graph for one environment
+//! with parallel CS3 rollouts, then serves it over gRPC (`lcrl.v1.Graph`,
+//! grpc.health.v1, reflection) until SIGTERM or Ctrl-C.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+
+use anyhow::Context;
+use clap::Parser;
+use lcrl_graph_builder::cli::GraphArgs;
+use lcrl_graph_builder::service::{self, GraphState};
+use tokio::sync::watch;
+
+#[derive(Debug, Parser)]
+#[command(version, about = "Build the LCRL connection graph with CS3, then serve it over gRPC")]
+struct Args {
+    #[command(flatten)]
+    graph: GraphArgs,
+    /// Address to serve on; port 0 picks a free port (the chosen address is
+    /// printed as "listening on ADDR").
+    #[arg(long, default_value = "127.0.0.1:50051")]
+    listen: SocketAddr,
+}
+
+#[tokio::main]
+async fn main() -> std::process::ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match run(Args::parse()).await {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("lcrl-graph-builder: error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(args: Args) -> anyhow::Result<()> {
+    // Bad settings fail before the port is taken.
+    args.graph.options().validate()?;
+    lcrl_sim::make_env(&args.graph.env)?;
+    let listener = tokio::net::TcpListener::bind(args.listen)
+        .await
+        .with_context(|| format!("cannot listen on {}; is another process using it?", args.listen))?;
+    let addr = listener.local_addr()?;
+    println!("listening on {addr}");
+
+    let (state_tx, state_rx) = watch::channel(GraphState::Building);
+    let (stop_tx, mut stop_rx) = watch::channel(false);
+    let server = tokio::spawn(service::serve(listener, state_rx, async move {
+        let _ = stop_rx.wait_for(|stop| *stop).await;
+    }));
+
+    let graph_args = args.graph.clone();
+    let built = tokio::task::spawn_blocking(move || graph_args.run());
+    let report = tokio::select! {
+        built = built => built.context("the graph build panicked")??,
+        _ = shutdown_signal() => {
+            tracing::info!("stopped before the graph was built");
+            return Ok(());
+        }
+    };
+    tracing::info!(
+        env = %report.env,
+        edges = report.g.iter().flatten().filter(|&&v| v == 1).count(),
+        seconds = report.elapsed_s,
+        "graph built; serving it"
+    );
+    eprint!("{}", report.table());
+    state_tx.send_replace(GraphState::Ready(Arc::new((&report).into())));
+
+    shutdown_signal().await;
+    tracing::info!("shutting down");
+    let _ = stop_tx.send(true);
+    server.await.context("the gRPC server task panicked")?.context("the gRPC server failed")?;
+    Ok(())
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = ctrl_c => {},
+                    _ = term.recv() => {},
+                }
+            }
+            Err(_) => {
+                let _ = ctrl_c.await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = ctrl_c.await;
+    }
+}

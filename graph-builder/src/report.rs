@@ -1,0 +1,170 @@
+//! The built graph as users and other processes see it: `graph.json`, the
+//! terminal table, and the gRPC message.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::GraphError;
+
+/// Everything `lcrl graph` writes to its JSON file. The learner reads the
+/// same file back (`--graph graph.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GraphReport {
+    pub env: String,
+    pub state_names: Vec<String>,
+    pub action_names: Vec<String>,
+    /// ST, CS3 samples per action.
+    pub samples: usize,
+    /// T of eq. 7; null when the exact rule (eq. 6) was used.
+    pub threshold: Option<f64>,
+    /// True for eq. 6 with a relative tolerance.
+    pub exact: bool,
+    /// Relative tolerance of eq. 6 (null for eq. 7).
+    pub tolerance: Option<f64>,
+    pub seed: u64,
+    /// Rollout threads used (does not change the result).
+    pub threads: usize,
+    /// Bootstrap resamples behind `stability`.
+    pub bootstrap_resamples: usize,
+    /// phi(i, j) of eq. 5, n × m.
+    pub phi: Vec<Vec<f64>>,
+    /// phi divided by its column sum, n × m.
+    pub phi_normalized: Vec<Vec<f64>>,
+    /// G, n × m of 0/1 (action × state).
+    pub g: Vec<Vec<u8>>,
+    /// Share of bootstrap resamples that reproduce each G_ij, n × m.
+    pub stability: Vec<Vec<f64>>,
+    /// State columns no action moves (all zeros in G).
+    pub unmoved_states: Vec<usize>,
+    /// Wall time of CS3 and thresholding, seconds.
+    pub elapsed_s: f64,
+}
+
+impl GraphReport {
+    pub fn actions(&self) -> usize {
+        self.action_names.len()
+    }
+
+    pub fn states(&self) -> usize {
+        self.state_names.len()
+    }
+
+    /// Reads a `graph.json`, checking that its matrices have the shapes its
+    /// names announce and that G holds only 0 and 1.
+    pub fn load(path: &Path) -> Result<Self, GraphError> {
+        let text = std::fs::read_to_string(path).map_err(|source| GraphError::Io { path: path.into(), source })?;
+        let report: GraphReport = serde_json::from_str(&text)
+            .map_err(|e| GraphError::BadGraphFile { path: path.into(), message: e.to_string() })?;
+        let (n, m) = (report.actions(), report.states());
+        let bad = |message: String| GraphError::BadGraphFile { path: path.into(), message };
+        for (name, rows) in [("phi", report.phi.len()), ("g", report.g.len())] {
+            if rows != n {
+                return Err(bad(format!("`{name}` has {rows} rows, expected {n} (one per action name)")));
+            }
+        }
+        if let Some(i) = report.g.iter().position(|row| row.len() != m || row.iter().any(|&v| v > 1)) {
+            return Err(bad(format!("`g` row {} must hold {m} entries, each 0 or 1", i + 1)));
+        }
+        Ok(report)
+    }
+
+    /// Writes pretty JSON.
+    pub fn write_json(&self, path: &Path) -> Result<(), GraphError> {
+        let text = serde_json::to_string_pretty(self).map_err(|e| GraphError::Json(e.to_string()))?;
+        std::fs::write(path, text + "\n").map_err(|source| GraphError::Io { path: path.into(), source })
+    }
+
+    /// The rule, in words, for headings.
+    pub fn rule_text(&self) -> String {
+        match (self.exact, self.threshold) {
+            (true, _) => format!("eq. 6, exact (tolerance {:e} × max phi)", self.tolerance.unwrap_or(0.0)),
+            (false, Some(t)) => format!("eq. 7, T = {t}"),
+            (false, None) => "eq. 7".into(),
+        }
+    }
+
+    /// A labelled table: action rows, state columns, phi in every cell and
+    /// `*` where G = 1; then borderline edges and unmoved states.
+    pub fn table(&self) -> String {
+        let mut out = String::new();
+        let _ = writeln!(
+            out,
+            "CS3 connection graph of {} — ST = {}, {}, seed {}, {:.3} s",
+            self.env,
+            self.samples,
+            self.rule_text(),
+            self.seed,
+            self.elapsed_s
+        );
+        let _ = writeln!(out, "phi(i, j) (eq. 5); * marks G_ij = 1 (action i sees state j)");
+        let width = self.state_names.iter().map(|s| s.len()).max().unwrap_or(0).max(10) + 1;
+        let label = self.action_names.iter().map(|s| s.len()).max().unwrap_or(0);
+        let _ = write!(out, "{:<label$}", "");
+        for name in &self.state_names {
+            let _ = write!(out, " {name:>width$}");
+        }
+        out.push('\n');
+        for (i, name) in self.action_names.iter().enumerate() {
+            let _ = write!(out, "{name:<label$}");
+            for j in 0..self.states() {
+                let mark = if self.g[i][j] == 1 { '*' } else { ' ' };
+                let cell = format!("{}{}", format_phi(self.phi[i][j]), mark);
+                let _ = write!(out, " {cell:>width$}");
+            }
+            out.push('\n');
+        }
+        let _ = writeln!(out, "\nG (action × state):");
+        for (i, name) in self.action_names.iter().enumerate() {
+            let row: Vec<String> = self.g[i].iter().map(u8::to_string).collect();
+            let _ = writeln!(out, "{name:<label$} [{}]", row.join(", "));
+        }
+        let borderline: Vec<String> = (0..self.actions())
+            .flat_map(|i| (0..self.states()).map(move |j| (i, j)))
+            .filter(|&(i, j)| self.stability[i][j] < 0.95)
+            .map(|(i, j)| format!("{}→{} ({:.0}%)", self.action_names[i], self.state_names[j], 100.0 * self.stability[i][j]))
+            .collect();
+        if !borderline.is_empty() {
+            let _ = writeln!(out, "\nborderline entries (share of {} bootstrap resamples that agree): {}", self.bootstrap_resamples, borderline.join(", "));
+        }
+        if !self.unmoved_states.is_empty() {
+            let names: Vec<&str> = self.unmoved_states.iter().map(|&j| self.state_names[j].as_str()).collect();
+            let _ = writeln!(out, "\nno action moves: {} (their columns are all 0)", names.join(", "));
+        }
+        out
+    }
+}
+
+fn format_phi(v: f64) -> String {
+    if v == 0.0 {
+        "0".into()
+    } else if (1e-3..1e4).contains(&v.abs()) {
+        format!("{v:.4}")
+    } else {
+        format!("{v:.3e}")
+    }
+}
+
+impl From<&GraphReport> for lcrl_proto::v1::ConnectionGraph {
+    fn from(r: &GraphReport) -> Self {
+        let flat_f32 = |rows: &[Vec<f64>]| rows.iter().flatten().map(|&v| v as f32).collect();
+        lcrl_proto::v1::ConnectionGraph {
+            env: r.env.clone(),
+            state_names: r.state_names.clone(),
+            action_names: r.action_names.clone(),
+            actions: r.actions() as u32,
+            states: r.states() as u32,
+            g: r.g.iter().flatten().map(|&v| u32::from(v)).collect(),
+            phi: flat_f32(&r.phi),
+            phi_normalized: flat_f32(&r.phi_normalized),
+            stability: flat_f32(&r.stability),
+            samples: r.samples as u32,
+            threshold: r.threshold.unwrap_or(0.0),
+            exact: r.exact,
+            seed: r.seed,
+            unmoved_states: r.unmoved_states.iter().map(|&j| j as u32).collect(),
+            elapsed_s: r.elapsed_s,
+        }
+    }
+}

@@ -1,0 +1,94 @@
+//! The `lcrl.v1.Graph` gRPC service: a thin handler over the current
+//! [`GraphState`], plus health checking and server reflection.
+
+use std::future::Future;
+use std::sync::Arc;
+
+use lcrl_proto::v1::graph_server::{Graph, GraphServer};
+use lcrl_proto::v1::{ConnectionGraph, GetGraphRequest};
+use tokio::net::TcpListener;
+use tokio::sync::watch;
+use tokio_stream::wrappers::TcpListenerStream;
+use tonic::{Request, Response, Status};
+use tonic_health::ServingStatus;
+
+/// What the service has to offer right now.
+#[derive(Debug, Clone)]
+pub enum GraphState {
+    /// No graph and none coming (NOT_FOUND).
+    Empty,
+    /// CS3 is running (UNAVAILABLE).
+    Building,
+    Ready(Arc<ConnectionGraph>),
+}
+
+/// Answers `GetGraph` from a watch channel the builder writes to.
+#[derive(Debug, Clone)]
+pub struct GraphService {
+    state: watch::Receiver<GraphState>,
+}
+
+impl GraphService {
+    pub fn new(state: watch::Receiver<GraphState>) -> Self {
+        GraphService { state }
+    }
+}
+
+#[tonic::async_trait]
+impl Graph for GraphService {
+    #[tracing::instrument(skip_all, name = "GetGraph")]
+    async fn get_graph(&self, _request: Request<GetGraphRequest>) -> Result<Response<ConnectionGraph>, Status> {
+        let state = self.state.borrow().clone();
+        match state {
+            GraphState::Ready(graph) => Ok(Response::new((*graph).clone())),
+            GraphState::Building => Err(Status::unavailable("the connection graph is still being built; retry shortly")),
+            GraphState::Empty => Err(Status::not_found("this service holds no connection graph")),
+        }
+    }
+}
+
+/// Serves Graph, grpc.health.v1 and reflection on `listener` until
+/// `shutdown` resolves. Health reports NOT_SERVING (for "" and for
+/// lcrl.v1.Graph) until the state becomes Ready.
+pub async fn serve(
+    listener: TcpListener,
+    state: watch::Receiver<GraphState>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), tonic::transport::Error> {
+    let (health, health_service) = tonic_health::server::health_reporter();
+    let graph_name = <GraphServer<GraphService> as tonic::server::NamedService>::NAME;
+    let mut watcher = state.clone();
+    let ready = |w: &mut watch::Receiver<GraphState>| {
+        let status = matches!(*w.borrow_and_update(), GraphState::Ready(_));
+        if status { ServingStatus::Serving } else { ServingStatus::NotServing }
+    };
+    // Set before the first connection is accepted, so no client ever sees
+    // the reporter's default SERVING for "" while the graph is missing.
+    let status = ready(&mut watcher);
+    health.set_service_status("", status).await;
+    health.set_service_status(graph_name, status).await;
+    tokio::spawn(async move {
+        while watcher.changed().await.is_ok() {
+            let status = ready(&mut watcher);
+            health.set_service_status("", status).await;
+            health.set_service_status(graph_name, status).await;
+        }
+    });
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(lcrl_proto::v1::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()
+        .map_err(|e| {
+            // The descriptor sets are compiled in; failing here is a build bug.
+            tracing::error!("reflection descriptors are invalid: {e}");
+            e
+        });
+    let mut router = tonic::transport::Server::builder()
+        .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
+        .add_service(health_service)
+        .add_service(GraphServer::new(GraphService::new(state)));
+    if let Ok(reflection) = reflection {
+        router = router.add_service(reflection);
+    }
+    router.serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown).await
+}

@@ -1,0 +1,12 @@
+//! The `lcrl.v1` gRPC contract, generated from `proto/lcrl.proto`.
+//!
+//! The `.proto` file is the documentation of every field; this crate only
+//! re-exports what tonic/prost generate from it.
+
+/// Generated types and stubs of package `lcrl.v1`.
+pub mod v1 {
+    tonic::include_proto!("lcrl.v1");
+
+    /// Encoded file descriptor set, for gRPC server reflection.
+    pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("lcrl_descriptor");
+}

@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# One-time, idempotent set-up for building lcrl on a fresh machine.
+#
+# - libtorch: PyPI's torch==2.13.0 (the version tch 0.26 is built against)
+#   installed into a project-local venv (.venv). `.venv/libtorch` is a stable
+#   link to the wheel's torch/ folder; .cargo/config.toml points LIBTORCH at
+#   it, and the crates that link tch add an rpath to it (build.rs), so built
+#   binaries find libtorch without LD_LIBRARY_PATH.
+# - protoc: not needed; proto/build.rs uses the protoc shipped in the
+#   protoc-bin-vendored crate.
+#
+# A second run with everything in place takes about a second.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+TORCH_VERSION=2.13.0
+VENV=.venv
+PY=${PYTHON:-python3}
+
+if ! command -v "$PY" >/dev/null; then
+  echo "setup: python3 is needed to install libtorch (PyPI torch==$TORCH_VERSION); install it and retry" >&2
+  exit 1
+fi
+if ! command -v cargo >/dev/null; then
+  echo "setup: cargo is needed (install Rust with rustup) " >&2
+  exit 1
+fi
+
+if [ ! -x "$VENV/bin/python" ]; then
+  echo "setup: creating $VENV"
+  "$PY" -m venv "$VENV"
+fi
+
+have=$("$VENV/bin/python" -c 'import importlib.metadata as m; print(m.version("torch"))' 2>/dev/null || true)
+if [ "$have" != "$TORCH_VERSION" ]; then
+  echo "setup: installing torch==$TORCH_VERSION into $VENV (about 5 GB, a minute or two)"
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check "torch==$TORCH_VERSION"
+fi
+
+# find_spec locates the package without importing it (fast, no warnings).
+torch_dir=$("$VENV/bin/python" -c 'import importlib.util as u; print(u.find_spec("torch").submodule_search_locations[0])')
+if [ "$(readlink "$VENV/libtorch" 2>/dev/null || true)" != "$torch_dir" ]; then
+  ln -sfn "$torch_dir" "$VENV/libtorch"
+fi
+if [ ! -f "$VENV/libtorch/lib/libtorch_cpu.so" ]; then
+  echo "setup: $VENV/libtorch/lib/libtorch_cpu.so is missing; remove $VENV and rerun" >&2
+  exit 1
+fi
+echo "setup: libtorch $TORCH_VERSION at $VENV/libtorch"

@@ -1,0 +1,117 @@
+//! The environment contract shared by CS3, the learner and the actors.
+
+use thiserror::Error;
+
+/// What an environment is: its dimensions, names and action bounds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EnvSpec {
+    /// Registered name or the path of the file it came from.
+    pub name: String,
+    /// m names, one per state component (METHOD.md §1).
+    pub state_names: Vec<String>,
+    /// n names, one per action component.
+    pub action_names: Vec<String>,
+    /// Lower action bounds lb (length n). Each contains 0, the neutral action.
+    pub action_low: Vec<f64>,
+    /// Upper action bounds ub (length n).
+    pub action_high: Vec<f64>,
+}
+
+impl EnvSpec {
+    /// m, the state dimension.
+    pub fn state_dim(&self) -> usize {
+        self.state_names.len()
+    }
+
+    /// n, the action dimension.
+    pub fn action_dim(&self) -> usize {
+        self.action_names.len()
+    }
+
+    /// Rejects an action of the wrong length or with a non-finite component.
+    pub fn check_action(&self, action: &[f64]) -> Result<(), EnvError> {
+        if action.len() != self.action_dim() {
+            return Err(EnvError::ActionDim { expected: self.action_dim(), got: action.len() });
+        }
+        if let Some(index) = action.iter().position(|a| !a.is_finite()) {
+            return Err(EnvError::NonFiniteAction { index, value: action[index] });
+        }
+        Ok(())
+    }
+
+    /// Clips every component into [lb, ub].
+    pub fn clip_action(&self, action: &[f64]) -> Vec<f64> {
+        action
+            .iter()
+            .zip(self.action_low.iter().zip(&self.action_high))
+            .map(|(a, (lo, hi))| a.clamp(*lo, *hi))
+            .collect()
+    }
+}
+
+/// The outcome of one control step.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Step {
+    /// The next state s_{t+1} (length m).
+    pub state: Vec<f64>,
+    pub reward: f64,
+    /// The episode ended by the task itself (success or failure).
+    pub terminated: bool,
+    /// The episode was cut by the step cap.
+    pub truncated: bool,
+}
+
+/// An environment: a controlled system with bounded actions.
+///
+/// Contract:
+/// - `reset(seed)` draws a fresh initial state; equal seeds give equal
+///   episodes (together with equal actions).
+/// - `step` rejects a wrong-length or non-finite action with an error and
+///   leaves the environment unchanged; it clips finite actions to the bounds.
+/// - `snapshot` returns an exact copy: stepping the copy and the original
+///   with the same actions gives bit-identical results. CS3 runs its two
+///   branches on snapshots (METHOD.md §2).
+pub trait Env: Send + Sync {
+    fn spec(&self) -> &EnvSpec;
+    fn reset(&mut self, seed: u64) -> Vec<f64>;
+    fn state(&self) -> &[f64];
+    fn step(&mut self, action: &[f64]) -> Result<Step, EnvError>;
+    /// An exact, independent copy of the environment in its current state.
+    fn snapshot(&self) -> Box<dyn Env>;
+    /// Re-seeds the environment's own randomness (process noise) without
+    /// changing its physical state. Deterministic environments ignore it.
+    fn reseed_noise(&mut self, _seed: u64) {}
+    /// Whether steps draw randomness of their own (process noise).
+    fn is_stochastic(&self) -> bool {
+        false
+    }
+}
+
+impl Clone for Box<dyn Env> {
+    fn clone(&self) -> Self {
+        self.snapshot()
+    }
+}
+
+/// Everything that can go wrong when making or stepping an environment.
+#[derive(Debug, Error)]
+pub enum EnvError {
+    #[error("action has {got} components, the environment expects {expected}")]
+    ActionDim { expected: usize, got: usize },
+    #[error("action component {index} is {value}; actions must be finite")]
+    NonFiniteAction { index: usize, value: f64 },
+    #[error("unknown environment '{name}': use one of {known}, or a path to a .toml file")]
+    Unknown { name: String, known: String },
+    #[error("cannot read environment file {path}: {source}")]
+    Read { path: String, source: std::io::Error },
+    #[error("environment file {path}: {message}")]
+    Parse { path: String, message: String },
+    #[error("environment config, field `{field}`: {message}")]
+    Invalid { field: String, message: String },
+}
+
+impl EnvError {
+    pub(crate) fn invalid(field: impl Into<String>, message: impl Into<String>) -> Self {
+        EnvError::Invalid { field: field.into(), message: message.into() }
+    }
+}

@@ -1,0 +1,15 @@
+//! Environments for lcrl.
+//!
+//! - [`env`]: the [`Env`] contract every environment implements (dimensions,
+//!   bounds, names, reset/step with Gymnasium-style end flags, exact
+//!   snapshots for CS3's paired branches).
+//! - [`lti`]: linear time-invariant systems s' = E s + F a (+ noise), the
+//!   systems with a known connection graph (METHOD.md §4).
+//! - [`registry`]: environments by name or TOML file.
+
+pub mod env;
+pub mod lti;
+pub mod registry;
+
+pub use env::{Env, EnvError, EnvSpec, Step};
+pub use registry::{known_env_names, make_env};

@@ -1,0 +1,60 @@
+//! `lcrl bench`: performance figures, measured as ratios within one run
+//! because machine noise is large.
+
+use std::time::Instant;
+
+use clap::Subcommand;
+use lcrl_graph_builder::{build_graph, Cs3Config, GraphOptions, Rule};
+use lcrl_sim::lti::{LtiConfig, LtiEnv};
+use lcrl_sim::Env;
+
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// CS3 graph-build time for lti-paper and a random sparse 12-state,
+    /// 6-action linear system, with 1 thread and with every core.
+    Graph {
+        /// ST, CS3 samples per action.
+        #[arg(long, default_value_t = 256)]
+        samples: usize,
+        /// Timed repetitions per case (the median is reported).
+        #[arg(long, default_value_t = 5)]
+        repeats: usize,
+    },
+}
+
+pub fn run(command: BenchCommand) -> anyhow::Result<()> {
+    match command {
+        BenchCommand::Graph { samples, repeats } => bench_graph(samples, repeats.max(1)),
+    }
+}
+
+fn bench_graph(samples: usize, repeats: usize) -> anyhow::Result<()> {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let systems = [
+        ("lti-paper (3×3)", LtiEnv::new("lti-paper", &LtiConfig::paper_example())?),
+        ("random 12×6", LtiEnv::new("random-12x6", &LtiConfig::random_sparse(12, 6, 0.25, 42))?),
+    ];
+    println!("CS3 graph build, ST = {samples}, eq. 7, 200 bootstrap resamples; median of {repeats}");
+    println!("{:<18} {:>12} {:>12} {:>14}", "system", "1 thread", format!("{cores} threads"), "speed-up");
+    for (label, env) in &systems {
+        let time = |threads: usize| -> anyhow::Result<f64> {
+            let options = GraphOptions {
+                cs3: Cs3Config { samples, seed: 0, threads },
+                rule: Rule::Threshold(0.1),
+                bootstrap: 200,
+            };
+            let mut runs = Vec::with_capacity(repeats);
+            for _ in 0..repeats {
+                let started = Instant::now();
+                build_graph(env as &dyn Env, &options, &|| {})?;
+                runs.push(started.elapsed().as_secs_f64());
+            }
+            runs.sort_by(f64::total_cmp);
+            Ok(runs[runs.len() / 2])
+        };
+        let one = time(1)?;
+        let all = time(cores)?;
+        println!("{label:<18} {:>10.2}ms {:>10.2}ms {:>13.2}×", one * 1e3, all * 1e3, one / all);
+    }
+    Ok(())
+}

@@ -1,0 +1,70 @@
+//! `lcrl`: the command-line front end of Local Connection Reinforcement
+//! Learning. Each subcommand is a thin layer over a library crate.
+
+mod bench;
+mod doctor;
+
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+use lcrl_graph_builder::cli::GraphArgs;
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "lcrl",
+    version,
+    about = "Local Connection Reinforcement Learning for robot controllers",
+    long_about = "Local Connection Reinforcement Learning for robot controllers.\n\n\
+        LCRL measures which state components each action component moves (CS3),\n\
+        turns that into a connection graph G, and gives every action component a\n\
+        small policy that sees only its connected states. See METHOD.md."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Build the connection graph G of an environment with CS3 and print it.
+    Graph(GraphArgs),
+    /// Check the installation: libtorch loads and computes, threads, CUDA.
+    Doctor,
+    /// Measure performance figures (see `lcrl bench --help`).
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Graph(args) => run_graph(&args),
+        Command::Doctor => doctor::run(),
+        Command::Bench(command) => bench::run(command),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("lcrl: error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run_graph(args: &GraphArgs) -> anyhow::Result<()> {
+    let report = args.run()?;
+    print!("{}", report.table());
+    if let Some(path) = &args.out {
+        println!("\nwrote {}", path.display());
+    }
+    if let Some(path) = &args.plot {
+        println!("wrote {}", path.display());
+    }
+    Ok(())
+}

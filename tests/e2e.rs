@@ -1,0 +1,9 @@
+//! End-to-end tests: the real binaries as a user runs them. One test binary
+//! (modules below) keeps the build small.
+
+mod e2e {
+    pub mod common;
+    mod doctor;
+    mod graph_cli;
+    mod graph_service;
+}

@@ -1,0 +1,37 @@
+//! Helpers for running the project's binaries.
+
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+/// `lcrl`, built by cargo for this test binary.
+pub fn lcrl() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_lcrl"))
+}
+
+/// Another workspace binary (lcrl-graph-builder, ...). Cargo builds only this
+/// package's binaries for its tests, so the test command builds the whole
+/// workspace first (`cargo build --workspace --bins`).
+pub fn workspace_bin(name: &str) -> Command {
+    let dir = PathBuf::from(env!("CARGO_BIN_EXE_lcrl")).parent().expect("target dir").to_path_buf();
+    let path = dir.join(name);
+    assert!(path.is_file(), "{} is missing: run `cargo build --workspace --bins` before the tests", path.display());
+    Command::new(path)
+}
+
+pub fn stdout(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+pub fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// Asserts a failed run: non-zero exit, one clear `error:` line, no panic.
+pub fn assert_clean_failure(out: &Output, needle: &str) {
+    let err = stderr(out);
+    assert!(!out.status.success(), "expected failure, got success; stderr: {err}");
+    assert!(!err.contains("panicked"), "panicked instead of a clear error: {err}");
+    let lines: Vec<&str> = err.lines().filter(|l| l.contains("error")).collect();
+    assert_eq!(lines.len(), 1, "expected exactly one error line, got: {err}");
+    assert!(lines[0].contains(needle), "error line {:?} should mention {needle:?}", lines[0]);
+}
