@@ -76,28 +76,23 @@ impl Cs3Samples {
 }
 
 /// Runs Algorithm 1's rollouts on snapshots of `env` (its own state is not
-/// touched). `on_sample` is called once per finished sample (progress).
+/// touched), on the current rayon pool (see [`thread_pool`]). `on_sample` is
+/// called once per finished sample (progress).
 pub fn measure(env: &dyn Env, cfg: &Cs3Config, on_sample: &(dyn Fn() + Sync)) -> Result<Cs3Samples, Cs3Error> {
     if cfg.samples == 0 {
         return Err(Cs3Error::NoSamples);
     }
     let n = env.spec().action_dim();
     let m = env.spec().state_dim();
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(cfg.threads)
-        .build()
-        .map_err(|e| Cs3Error::ThreadPool(e.to_string()))?;
-    let per_sample: Vec<Result<Vec<f64>, EnvError>> = pool.install(|| {
-        (0..n * cfg.samples)
-            .into_par_iter()
-            .map(|index| {
-                let (i, k) = (index / cfg.samples, index % cfg.samples);
-                let result = paired_rollout(env, i, sample_seed(cfg.seed, i, k));
-                on_sample();
-                result
-            })
-            .collect()
-    });
+    let per_sample: Vec<Result<Vec<f64>, EnvError>> = (0..n * cfg.samples)
+        .into_par_iter()
+        .map(|index| {
+            let (i, k) = (index / cfg.samples, index % cfg.samples);
+            let result = paired_rollout(env, i, sample_seed(cfg.seed, i, k));
+            on_sample();
+            result
+        })
+        .collect();
     let mut values = Vec::with_capacity(n * cfg.samples * m);
     for sums in per_sample {
         values.extend(sums?);
@@ -148,9 +143,17 @@ fn paired_rollout(template: &dyn Env, i: usize, seed: u64) -> Result<Vec<f64>, E
     Ok(sums)
 }
 
+/// The pool the rollouts run on: `threads` workers, or one per core for 0.
+pub fn thread_pool(threads: usize) -> Result<rayon::ThreadPool, Cs3Error> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|e| Cs3Error::ThreadPool(e.to_string()))
+}
+
 /// A well-mixed seed for sample k of action i (SplitMix64 finalizer), so
 /// neighbouring samples get unrelated streams.
-pub(crate) fn sample_seed(seed: u64, i: usize, k: usize) -> u64 {
+pub fn sample_seed(seed: u64, i: usize, k: usize) -> u64 {
     let mut z = seed
         .wrapping_add((i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
         .wrapping_add((k as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));

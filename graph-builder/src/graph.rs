@@ -4,7 +4,9 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::cs3::Cs3Samples;
+use rayon::prelude::*;
+
+use crate::cs3::{sample_seed, Cs3Samples};
 
 /// Which rule turns phi into G.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -75,23 +77,31 @@ pub fn normalized(phi: &[Vec<f64>]) -> Vec<Vec<f64>> {
 /// values near 0.5 mark borderline edges.
 pub fn stability(samples: &Cs3Samples, rule: Rule, reference: &ConnectionGraph, resamples: usize, seed: u64) -> Vec<Vec<f64>> {
     let (n, m, st) = (samples.actions, samples.states, samples.samples);
-    let mut agree = vec![vec![0usize; m]; n];
     if resamples == 0 {
         return vec![vec![f64::NAN; m]; n];
     }
-    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5EED_B007_5742_0000);
-    let mut picks = vec![vec![0usize; st]; n];
-    for _ in 0..resamples {
-        for row in picks.iter_mut() {
-            row.iter_mut().for_each(|k| *k = rng.random_range(0..st));
-        }
-        let g = connection_graph(&samples.phi_of(|i| &picks[i]), rule).g;
-        for i in 0..n {
-            for j in 0..m {
-                agree[i][j] += usize::from(g[i][j] == reference.g[i][j]);
-            }
-        }
-    }
+    // Each resample has its own RNG (seeded from its index), so the result
+    // does not depend on how rayon splits the work.
+    let agree = (0..resamples)
+        .into_par_iter()
+        .map(|r| {
+            let mut rng = ChaCha8Rng::seed_from_u64(sample_seed(seed ^ 0x5EED_B007_5742_0000, usize::MAX, r));
+            let picks: Vec<Vec<usize>> = (0..n).map(|_| (0..st).map(|_| rng.random_range(0..st)).collect()).collect();
+            let g = connection_graph(&samples.phi_of(|i| &picks[i]), rule).g;
+            g.iter()
+                .zip(&reference.g)
+                .map(|(row, reference_row)| row.iter().zip(reference_row).map(|(a, b)| usize::from(a == b)).collect())
+                .collect::<Vec<Vec<usize>>>()
+        })
+        .reduce(
+            || vec![vec![0usize; m]; n],
+            |mut total, part| {
+                for (t, p) in total.iter_mut().flatten().zip(part.iter().flatten()) {
+                    *t += p;
+                }
+                total
+            },
+        );
     agree.iter().map(|row| row.iter().map(|&c| c as f64 / resamples as f64).collect()).collect()
 }
 

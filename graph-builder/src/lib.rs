@@ -54,10 +54,15 @@ impl GraphOptions {
 pub fn build_graph(env: &dyn Env, opts: &GraphOptions, on_sample: &(dyn Fn() + Sync)) -> Result<GraphReport, GraphError> {
     opts.validate()?;
     let started = Instant::now();
-    let samples = cs3::measure(env, &opts.cs3, on_sample)?;
-    let phi = samples.phi();
-    let graph = graph::connection_graph(&phi, opts.rule);
-    let stability = graph::stability(&samples, opts.rule, &graph, opts.bootstrap, opts.cs3.seed);
+    let pool = cs3::thread_pool(opts.cs3.threads)?;
+    let (samples, phi, graph, stability) = pool.install(|| -> Result<_, GraphError> {
+        let samples = cs3::measure(env, &opts.cs3, on_sample)?;
+        let phi = samples.phi();
+        let graph = graph::connection_graph(&phi, opts.rule);
+        let stability = graph::stability(&samples, opts.rule, &graph, opts.bootstrap, opts.cs3.seed);
+        Ok((samples, phi, graph, stability))
+    })?;
+    drop(samples);
     let spec = env.spec();
     let (threshold, exact, tolerance) = match opts.rule {
         Rule::Threshold(t) => (Some(t), false, None),
@@ -72,7 +77,7 @@ pub fn build_graph(env: &dyn Env, opts: &GraphOptions, on_sample: &(dyn Fn() + S
         exact,
         tolerance,
         seed: opts.cs3.seed,
-        threads: rayon_threads(opts.cs3.threads),
+        threads: pool.current_num_threads(),
         bootstrap_resamples: opts.bootstrap,
         phi_normalized: graph::normalized(&phi),
         phi,
@@ -81,14 +86,6 @@ pub fn build_graph(env: &dyn Env, opts: &GraphOptions, on_sample: &(dyn Fn() + S
         unmoved_states: graph.unmoved_states,
         elapsed_s: started.elapsed().as_secs_f64(),
     })
-}
-
-fn rayon_threads(requested: usize) -> usize {
-    if requested == 0 {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    } else {
-        requested
-    }
 }
 
 /// Everything that can stop a graph from being built or saved.
