@@ -85,6 +85,24 @@ pub trait Env: Send + Sync {
     fn is_stochastic(&self) -> bool {
         false
     }
+    /// The state scaled for learning (components of order 1). Identity
+    /// unless the environment knows better.
+    fn normalize_state(&self, state: &[f64]) -> Vec<f64> {
+        state.to_vec()
+    }
+    /// What the current episode achieved so far, where the task defines it.
+    fn episode_metrics(&self) -> EpisodeMetrics {
+        EpisodeMetrics::default()
+    }
+}
+
+/// Task-level figures of an episode; `None` where the task has no such notion.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct EpisodeMetrics {
+    pub success: Option<bool>,
+    pub peak_force_n: Option<f64>,
+    pub peak_moment_nm: Option<f64>,
+    pub max_penetration_mm: Option<f64>,
 }
 
 impl Clone for Box<dyn Env> {
@@ -100,6 +118,8 @@ pub enum EnvError {
     ActionDim { expected: usize, got: usize },
     #[error("action component {index} is {value}; actions must be finite")]
     NonFiniteAction { index: usize, value: f64 },
+    #[error("the episode has ended (terminated); call reset before stepping again")]
+    EpisodeOver,
     #[error("unknown environment '{name}': use one of {known}, or a path to a .toml file")]
     Unknown { name: String, known: String },
     #[error("cannot read environment file {path}: {source}")]

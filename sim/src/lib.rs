@@ -5,11 +5,13 @@
 //!   snapshots for CS3's paired branches).
 //! - [`lti`]: linear time-invariant systems s' = E s + F a (+ noise), the
 //!   systems with a known connection graph (METHOD.md §4).
+//! - [`peg`]: the peg-in-hole assembly simulator on rapier3d (METHOD.md §6).
 //! - [`registry`]: environments by name or TOML file.
 
 pub mod env;
 pub mod lti;
+pub mod peg;
 pub mod registry;
 
-pub use env::{Env, EnvError, EnvSpec, Step};
+pub use env::{Env, EnvError, EnvSpec, EpisodeMetrics, Step};
 pub use registry::{known_env_names, make_env};

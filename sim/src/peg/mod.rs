@@ -1,0 +1,255 @@
+//! Peg-in-hole assembly (METHOD.md §6): a square peg held by a robot with a
+//! wrist force/torque sensor, inserted into a square hole by the adaptive
+//! compliance controller whose revision factors are the action.
+//!
+//! State (eq. 14), in this order and these units:
+//! `[x, y, z, alpha, beta, gamma, Fx, Fy, Fz, Mx, My, Mz]`
+//! - x, y: peg-tip offset from the hole axis, mm;
+//! - z: remaining insertion depth (tip height above the target depth), mm;
+//! - alpha, beta, gamma: peg orientation, XYZ Euler angles, degrees;
+//! - F: contact force the hole exerts on the peg, N, hole-frame axes;
+//! - M: contact moment about the sensor origin (the flange, top-face centre
+//!   of the peg), N·m, hole-frame axes.
+//!
+//! Action (eq. 15): the six revision factors a of the compliance K.
+
+pub mod config;
+pub mod controller;
+pub mod world;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rapier3d_f64::math::{Pose, Rotation, Vector};
+
+use crate::env::{Env, EnvError, EnvSpec, EpisodeMetrics, Step};
+pub use config::PegConfig;
+use world::{angles_deg, pose_from, PegWorld};
+
+const STATE_NAMES: [&str; 12] = ["x", "y", "z", "alpha", "beta", "gamma", "Fx", "Fy", "Fz", "Mx", "My", "Mz"];
+const ACTION_NAMES: [&str; 6] = ["dx", "dy", "dz", "dalpha", "dbeta", "dgamma"];
+
+/// Why an episode ended early.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Outcome {
+    Running,
+    /// The target depth was reached.
+    Inserted,
+    /// ‖F‖ exceeded the force limit.
+    ForceLimit,
+    /// ‖M‖ exceeded the moment limit.
+    MomentLimit,
+}
+
+/// The peg-in-hole environment.
+#[derive(Clone)]
+pub struct PegEnv {
+    cfg: PegConfig,
+    spec: EnvSpec,
+    world: PegWorld,
+    /// Commanded tip pose (the robot's).
+    command: Pose,
+    /// Last sensor reading: force N, moment N·mm (the controller's units).
+    wrench: [f64; 6],
+    state: Vec<f64>,
+    steps: usize,
+    outcome: Outcome,
+    peak_force_n: f64,
+    peak_moment_nm: f64,
+    max_penetration_mm: f64,
+}
+
+impl PegEnv {
+    pub fn new(name: &str, cfg: PegConfig) -> Result<Self, EnvError> {
+        cfg.validate()?;
+        let k = &cfg.controller;
+        let spec = EnvSpec {
+            name: name.to_string(),
+            state_names: STATE_NAMES.iter().map(|s| s.to_string()).collect(),
+            action_names: ACTION_NAMES.iter().map(|s| s.to_string()).collect(),
+            action_low: k.action_low.to_vec(),
+            action_high: k.action_high.to_vec(),
+        };
+        let start = pose_from([0.0, 0.0, cfg.episode.start_height_mm], [0.0; 3]);
+        let mut env = PegEnv {
+            world: PegWorld::new(&cfg, start),
+            cfg,
+            spec,
+            command: start,
+            wrench: [0.0; 6],
+            state: vec![0.0; 12],
+            steps: 0,
+            outcome: Outcome::Running,
+            peak_force_n: 0.0,
+            peak_moment_nm: 0.0,
+            max_penetration_mm: 0.0,
+        };
+        env.start_at(start);
+        Ok(env)
+    }
+
+    pub fn config(&self) -> &PegConfig {
+        &self.cfg
+    }
+
+    pub fn outcome(&self) -> Outcome {
+        self.outcome
+    }
+
+    /// Starts an episode with the peg tip at an exact pose: position (mm)
+    /// and XYZ angles (degrees), at rest, commanded where it is.
+    pub fn reset_to(&mut self, position_mm: [f64; 3], angles_deg: [f64; 3]) -> Vec<f64> {
+        self.start_at(pose_from(position_mm, angles_deg));
+        self.state.clone()
+    }
+
+    fn start_at(&mut self, pose: Pose) {
+        self.world = PegWorld::new(&self.cfg, pose);
+        self.command = pose;
+        self.wrench = [0.0; 6];
+        self.steps = 0;
+        self.outcome = Outcome::Running;
+        self.peak_force_n = 0.0;
+        self.peak_moment_nm = 0.0;
+        self.max_penetration_mm = self.world.penetration_mm();
+        self.state = self.observe();
+    }
+
+    /// The state vector of eq. 14 from the world and the last reading.
+    fn observe(&self) -> Vec<f64> {
+        let tip = self.world.tip_pose();
+        let [a, b, c] = angles_deg(&tip.rotation);
+        let t = tip.translation;
+        let remaining = t.z + self.cfg.geometry.target_depth_mm;
+        let w = self.wrench;
+        vec![t.x, t.y, remaining, a, b, c, w[0], w[1], w[2], w[3] * 1e-3, w[4] * 1e-3, w[5] * 1e-3]
+    }
+
+    /// The tip's current pose (position mm, angles degrees), for tests and traces.
+    pub fn tip(&self) -> ([f64; 3], [f64; 3]) {
+        let tip = self.world.tip_pose();
+        (tip.translation.to_array(), angles_deg(&tip.rotation))
+    }
+
+    /// Penetration of the peg into the hole block right now, mm (parry).
+    pub fn penetration_mm(&self) -> f64 {
+        self.world.penetration_mm()
+    }
+}
+
+fn norm(v: &[f64]) -> f64 {
+    v.iter().map(|x| x * x).sum::<f64>().sqrt()
+}
+
+impl Env for PegEnv {
+    fn spec(&self) -> &EnvSpec {
+        &self.spec
+    }
+
+    /// Draws the initial pose error uniformly (±position_error_mm per axis,
+    /// ±angle_error_deg per angle) around the start pose above the hole.
+    fn reset(&mut self, seed: u64) -> Vec<f64> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let e = &self.cfg.episode;
+        let mut draw = |r: f64| if r > 0.0 { rng.random_range(-r..=r) } else { 0.0 };
+        let position = [draw(e.position_error_mm), draw(e.position_error_mm), e.start_height_mm + draw(e.position_error_mm)];
+        let angles = [draw(e.angle_error_deg), draw(e.angle_error_deg), draw(e.angle_error_deg)];
+        self.reset_to(position, angles)
+    }
+
+    fn state(&self) -> &[f64] {
+        &self.state
+    }
+
+    #[tracing::instrument(level = "trace", skip_all)]
+    fn step(&mut self, action: &[f64]) -> Result<Step, EnvError> {
+        self.spec.check_action(action)?;
+        if self.outcome != Outcome::Running {
+            return Err(EnvError::EpisodeOver);
+        }
+        let clipped = self.spec.clip_action(action);
+        let a: [f64; 6] = std::array::from_fn(|i| clipped[i]);
+        let depth = self.cfg.geometry.target_depth_mm;
+        let planned_left = self.command.translation.z + depth;
+        let change = controller::pose_change(&self.cfg.controller, depth, planned_left, &a, &self.wrench);
+        let [da, db, dc] = [change[3], change[4], change[5]].map(f64::to_radians);
+        let rotation = Rotation::from_euler(rapier3d_f64::glamx::EulerRot::XYZ, da, db, dc) * self.command.rotation;
+        let next = Pose::from_parts(self.command.translation + Vector::new(change[0], change[1], change[2]), rotation);
+
+        let reading = self.world.advance(&self.command, &next);
+        self.command = next;
+        let [fx, fy, fz] = reading.force_n;
+        let [mx, my, mz] = reading.moment_nmm;
+        self.wrench = [fx, fy, fz, mx, my, mz];
+        self.state = self.observe();
+        self.steps += 1;
+
+        let force = norm(&self.state[6..9]);
+        let moment = norm(&self.state[9..12]);
+        self.peak_force_n = self.peak_force_n.max(force);
+        self.peak_moment_nm = self.peak_moment_nm.max(moment);
+        self.max_penetration_mm = self.max_penetration_mm.max(self.world.penetration_mm());
+
+        let remaining = self.state[2];
+        let limits = &self.cfg.limits;
+        self.outcome = if force > limits.force_limit_n {
+            Outcome::ForceLimit
+        } else if moment > limits.moment_limit_nm {
+            Outcome::MomentLimit
+        } else if remaining <= limits.success_tolerance_mm {
+            Outcome::Inserted
+        } else {
+            Outcome::Running
+        };
+        // Eqs. 16–17; depth in cm (see config.rs for the units). Reaching the
+        // depth ends the episode at once, and exceeding a limit ends it as a
+        // failure, so an inserted episode stayed within limits throughout.
+        let r = &self.cfg.reward;
+        let mut reward = -r.h_z * remaining.max(0.0) / 10.0 - r.h_f * force - r.h_m * moment;
+        if self.outcome == Outcome::Inserted {
+            reward += r.r_s;
+        }
+        Ok(Step {
+            state: self.state.clone(),
+            reward,
+            terminated: self.outcome != Outcome::Running,
+            truncated: self.outcome == Outcome::Running && self.steps >= self.cfg.episode.max_steps,
+        })
+    }
+
+    fn snapshot(&self) -> Box<dyn Env> {
+        Box::new(self.clone())
+    }
+
+    /// Scales for learning: offsets by 0.5 mm, depth by L, angles by 1°,
+    /// force and moment by their limits, so typical values are O(1).
+    fn normalize_state(&self, state: &[f64]) -> Vec<f64> {
+        let l = &self.cfg.limits;
+        let scale = [
+            0.5,
+            0.5,
+            self.cfg.geometry.target_depth_mm,
+            1.0,
+            1.0,
+            1.0,
+            l.force_limit_n,
+            l.force_limit_n,
+            l.force_limit_n,
+            l.moment_limit_nm,
+            l.moment_limit_nm,
+            l.moment_limit_nm,
+        ];
+        state.iter().zip(scale).map(|(v, s)| v / s).collect()
+    }
+
+    fn episode_metrics(&self) -> EpisodeMetrics {
+        EpisodeMetrics {
+            success: Some(self.outcome == Outcome::Inserted),
+            peak_force_n: Some(self.peak_force_n),
+            peak_moment_nm: Some(self.peak_moment_nm),
+            max_penetration_mm: Some(self.max_penetration_mm),
+        }
+    }
+}
+
+#[cfg(test)]
+mod physics_tests;
