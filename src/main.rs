@@ -3,6 +3,8 @@
 
 mod bench;
 mod doctor;
+mod plots;
+mod sim_cmd;
 
 use std::process::ExitCode;
 
@@ -28,6 +30,8 @@ struct Cli {
 enum Command {
     /// Build the connection graph G of an environment with CS3 and print it.
     Graph(GraphArgs),
+    /// Run a controller on an environment: summary.json, trace.csv, trace.png.
+    Sim(sim_cmd::SimArgs),
     /// Check the installation: libtorch loads and computes, threads, CUDA.
     Doctor,
     /// Measure performance figures (see `lcrl bench --help`).
@@ -45,6 +49,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Graph(args) => run_graph(&args),
+        Command::Sim(args) => sim_cmd::run(&args),
         Command::Doctor => doctor::run(),
         Command::Bench(command) => bench::run(command),
     };

@@ -90,6 +90,10 @@ pub trait Env: Send + Sync {
     fn normalize_state(&self, state: &[f64]) -> Vec<f64> {
         state.to_vec()
     }
+    /// Seconds of simulated time per step (for traces).
+    fn control_period_s(&self) -> f64 {
+        1.0
+    }
     /// What the current episode achieved so far, where the task defines it.
     fn episode_metrics(&self) -> EpisodeMetrics {
         EpisodeMetrics::default()

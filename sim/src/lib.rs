@@ -6,9 +6,11 @@
 //! - [`lti`]: linear time-invariant systems s' = E s + F a (+ noise), the
 //!   systems with a known connection graph (METHOD.md §4).
 //! - [`peg`]: the peg-in-hole assembly simulator on rapier3d (METHOD.md §6).
+//! - [`evaluate`]: whole episodes with a policy, traces and summaries.
 //! - [`registry`]: environments by name or TOML file.
 
 pub mod env;
+pub mod evaluate;
 pub mod lti;
 pub mod peg;
 pub mod registry;

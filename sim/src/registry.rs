@@ -4,14 +4,18 @@ use std::path::Path;
 
 use crate::env::{Env, EnvError};
 use crate::lti::{LtiConfig, LtiEnv};
+use crate::peg::{PegConfig, PegEnv};
 
 /// The registered environment names, for help texts and error messages.
 pub fn known_env_names() -> Vec<&'static str> {
-    vec!["lti-paper"]
+    vec!["lti-paper", "peg-group1", "peg-group2", "peg-experiment"]
 }
 
 /// Makes an environment from a registered name or a path to a `.toml` file.
 pub fn make_env(name_or_path: &str) -> Result<Box<dyn Env>, EnvError> {
+    if let Some(cfg) = PegConfig::preset(name_or_path) {
+        return Ok(Box::new(PegEnv::new(name_or_path, cfg)?));
+    }
     match name_or_path {
         "lti-paper" => Ok(Box::new(LtiEnv::new("lti-paper", &LtiConfig::paper_example())?)),
         path if path.ends_with(".toml") || Path::new(path).is_file() => load_file(path),
@@ -29,7 +33,21 @@ fn load_file(path: &str) -> Result<Box<dyn Env>, EnvError> {
             let cfg: LtiConfig = toml::from_str(&text).map_err(parse_err)?;
             Ok(Box::new(LtiEnv::new(path, &cfg)?))
         }
-        Some(other) => Err(EnvError::invalid("kind", format!("unknown environment kind \"{other}\"; known: \"lti\""))),
+        Some("peg") => {
+            // A peg file starts from a preset and overrides sections of it.
+            let mut overrides = table;
+            overrides.remove("kind");
+            let preset = match overrides.remove("preset") {
+                Some(toml::Value::String(name)) => name,
+                Some(_) => return Err(EnvError::invalid("preset", "must be a string such as \"peg-group1\"")),
+                None => "peg-group1".to_string(),
+            };
+            let base = PegConfig::preset(&preset).ok_or_else(|| {
+                EnvError::invalid("preset", format!("unknown preset \"{preset}\"; use peg-group1, peg-group2 or peg-experiment"))
+            })?;
+            Ok(Box::new(PegEnv::new(path, base.with_overrides(&overrides, path)?)?))
+        }
+        Some(other) => Err(EnvError::invalid("kind", format!("unknown environment kind \"{other}\"; known: \"lti\", \"peg\""))),
         None => Err(EnvError::invalid("kind", "missing; say which environment the file describes, e.g. kind = \"lti\"")),
     }
 }
@@ -52,6 +70,22 @@ mod tests {
         assert_eq!(env.spec().state_dim(), 2);
         assert_eq!(env.spec().action_dim(), 1);
         assert!(env.is_stochastic());
+    }
+
+    #[test]
+    fn loads_peg_presets_and_override_files() {
+        for name in ["peg-group1", "peg-group2", "peg-experiment"] {
+            let env = make_env(name).unwrap();
+            assert_eq!((env.spec().state_dim(), env.spec().action_dim()), (12, 6));
+            assert_eq!(env.spec().action_high, vec![2.0, 2.0, 2.0, 4.0, 4.0, 4.0]);
+        }
+        let file = write("kind = \"peg\"\npreset = \"peg-group2\"\n[contact]\nfriction = 0.6\n");
+        assert_eq!(make_env(file.path().to_str().unwrap()).unwrap().spec().state_dim(), 12);
+        let file = write("kind = \"peg\"\n[geometry]\npeg_side_mm = 12.0\n");
+        let err = make_env(file.path().to_str().unwrap()).err().unwrap().to_string();
+        assert!(err.contains("geometry.peg_side_mm"), "{err}");
+        let file = write("kind = \"peg\"\npreset = \"peg-group9\"\n");
+        assert!(make_env(file.path().to_str().unwrap()).err().unwrap().to_string().contains("peg-group9"));
     }
 
     #[test]

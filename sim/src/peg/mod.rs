@@ -241,6 +241,10 @@ impl Env for PegEnv {
         state.iter().zip(scale).map(|(v, s)| v / s).collect()
     }
 
+    fn control_period_s(&self) -> f64 {
+        self.cfg.controller.control_period_s
+    }
+
     fn episode_metrics(&self) -> EpisodeMetrics {
         EpisodeMetrics {
             success: Some(self.outcome == Outcome::Inserted),

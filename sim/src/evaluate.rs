@@ -1,0 +1,178 @@
+//! Running whole episodes with a policy, recording traces, and summarizing
+//! them: what `lcrl sim` reports, for any environment.
+
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::env::{Env, EnvError, EpisodeMetrics};
+
+/// One control step of a recorded episode.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TraceRow {
+    pub step: usize,
+    /// Time at the end of the step, seconds (step × control period).
+    pub time_s: f64,
+    /// State after the step.
+    pub state: Vec<f64>,
+    /// Action as given to the environment (before clipping).
+    pub action: Vec<f64>,
+    pub reward: f64,
+}
+
+/// One finished episode.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpisodeRecord {
+    pub seed: u64,
+    pub steps: usize,
+    pub episode_return: f64,
+    pub terminated: bool,
+    pub metrics: EpisodeMetrics,
+    /// Initial state and every step, when recording was asked for.
+    pub initial_state: Vec<f64>,
+    pub trace: Vec<TraceRow>,
+}
+
+/// Runs one episode from `reset(seed)` until it terminates or is truncated.
+#[tracing::instrument(level = "debug", skip(env, policy))]
+pub fn run_episode(
+    env: &mut dyn Env,
+    seed: u64,
+    policy: &mut dyn FnMut(&[f64]) -> Vec<f64>,
+    record: bool,
+) -> Result<EpisodeRecord, EnvError> {
+    let initial_state = env.reset(seed);
+    let period = env.control_period_s();
+    let mut state = initial_state.clone();
+    let mut trace = Vec::new();
+    let mut episode_return = 0.0;
+    let mut steps = 0;
+    loop {
+        let action = policy(&state);
+        let step = env.step(&action)?;
+        steps += 1;
+        episode_return += step.reward;
+        if record {
+            trace.push(TraceRow { step: steps, time_s: steps as f64 * period, state: step.state.clone(), action, reward: step.reward });
+        }
+        state = step.state;
+        if step.terminated || step.truncated {
+            return Ok(EpisodeRecord {
+                seed,
+                steps,
+                episode_return,
+                terminated: step.terminated,
+                metrics: env.episode_metrics(),
+                initial_state: if record { initial_state } else { Vec::new() },
+                trace,
+            });
+        }
+    }
+}
+
+/// What `summary.json` holds. Task figures are null where the environment
+/// has no such notion (linear systems have no forces).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Summary {
+    pub env: String,
+    pub controller: String,
+    pub episodes: usize,
+    pub seed: u64,
+    pub success_rate: Option<f64>,
+    /// Mean episode length of the successful episodes.
+    pub mean_steps_to_insert: Option<f64>,
+    pub mean_steps: f64,
+    pub mean_peak_force_n: Option<f64>,
+    pub max_peak_force_n: Option<f64>,
+    pub mean_peak_moment_nm: Option<f64>,
+    pub max_penetration_mm: Option<f64>,
+    pub mean_return: f64,
+    pub min_return: f64,
+    pub max_return: f64,
+    /// Control steps per second of wall time, one thread, all physics
+    /// substeps included.
+    pub control_steps_per_sec: f64,
+    pub elapsed_s: f64,
+}
+
+/// Runs `episodes` episodes with seeds seed, seed+1, …; records the first.
+pub fn evaluate(
+    env: &mut dyn Env,
+    controller: &str,
+    episodes: usize,
+    seed: u64,
+    policy: &mut dyn FnMut(&[f64]) -> Vec<f64>,
+    on_episode: &mut dyn FnMut(&EpisodeRecord),
+) -> Result<(Summary, Vec<EpisodeRecord>), EnvError> {
+    let started = Instant::now();
+    let mut records = Vec::with_capacity(episodes);
+    for k in 0..episodes {
+        let record = run_episode(env, seed.wrapping_add(k as u64), policy, k == 0)?;
+        on_episode(&record);
+        records.push(record);
+    }
+    let elapsed = started.elapsed().as_secs_f64();
+    Ok((summarize(env.spec().name.clone(), controller, seed, &records, elapsed), records))
+}
+
+fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
+    let (sum, count) = values.fold((0.0, 0usize), |(s, c), v| (s + v, c + 1));
+    (count > 0).then(|| sum / count as f64)
+}
+
+/// Aggregates episode records.
+pub fn summarize(env: String, controller: &str, seed: u64, records: &[EpisodeRecord], elapsed_s: f64) -> Summary {
+    let n = records.len();
+    let all = |f: fn(&EpisodeMetrics) -> Option<f64>| -> Option<Vec<f64>> { records.iter().map(|r| f(&r.metrics)).collect() };
+    let successes: Option<Vec<bool>> = records.iter().map(|r| r.metrics.success).collect();
+    let peaks = all(|m| m.peak_force_n);
+    let total_steps: usize = records.iter().map(|r| r.steps).sum();
+    let returns = records.iter().map(|r| r.episode_return);
+    Summary {
+        env,
+        controller: controller.to_string(),
+        episodes: n,
+        seed,
+        success_rate: successes.as_ref().and_then(|s| mean(s.iter().map(|&ok| f64::from(u8::from(ok))))),
+        mean_steps_to_insert: successes
+            .as_ref()
+            .and_then(|s| mean(records.iter().zip(s).filter(|(_, &ok)| ok).map(|(r, _)| r.steps as f64))),
+        mean_steps: mean(records.iter().map(|r| r.steps as f64)).unwrap_or(0.0),
+        mean_peak_force_n: peaks.as_ref().and_then(|p| mean(p.iter().copied())),
+        max_peak_force_n: peaks.as_ref().and_then(|p| p.iter().copied().reduce(f64::max)),
+        mean_peak_moment_nm: all(|m| m.peak_moment_nm).and_then(|p| mean(p.into_iter())),
+        max_penetration_mm: all(|m| m.max_penetration_mm).and_then(|p| p.into_iter().reduce(f64::max)),
+        mean_return: mean(returns.clone()).unwrap_or(0.0),
+        min_return: returns.clone().fold(f64::INFINITY, f64::min),
+        max_return: returns.fold(f64::NEG_INFINITY, f64::max),
+        control_steps_per_sec: if elapsed_s > 0.0 { total_steps as f64 / elapsed_s } else { 0.0 },
+        elapsed_s,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::make_env;
+
+    #[test]
+    fn constant_controller_on_peg_group1_inserts_and_summary_adds_up() {
+        let mut env = make_env("peg-group1").unwrap();
+        let (summary, records) = evaluate(env.as_mut(), "constant", 3, 5, &mut |_| vec![0.0; 6], &mut |_| {}).unwrap();
+        assert_eq!(summary.episodes, 3);
+        assert_eq!(records[0].trace.len(), records[0].steps);
+        assert!(records[1].trace.is_empty());
+        let sum: f64 = records[0].trace.iter().map(|r| r.reward).sum();
+        assert!((sum - records[0].episode_return).abs() < 1e-9);
+        assert!(summary.success_rate.is_some() && summary.mean_peak_force_n.is_some());
+        assert!((records[0].trace[0].time_s - 0.02).abs() < 1e-12);
+    }
+
+    #[test]
+    fn linear_systems_have_no_task_figures() {
+        let mut env = make_env("lti-paper").unwrap();
+        let (summary, _) = evaluate(env.as_mut(), "zero", 2, 0, &mut |_| vec![0.0; 3], &mut |_| {}).unwrap();
+        assert_eq!((summary.success_rate, summary.mean_peak_force_n), (None, None));
+        assert_eq!(summary.mean_steps, 50.0);
+    }
+}

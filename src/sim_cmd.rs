@@ -1,0 +1,138 @@
+//! `lcrl sim`: runs a controller on an environment and writes
+//! summary.json, trace.csv and trace.png.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use indicatif::{ProgressBar, ProgressStyle};
+use lcrl_sim::evaluate::{evaluate, EpisodeRecord, Summary};
+use lcrl_sim::Env;
+
+use crate::plots::{line_panels, Panel};
+
+/// Run a controller on an environment and report what it achieved.
+#[derive(Debug, clap::Args)]
+pub struct SimArgs {
+    /// Environment: a registered name (peg-group1, peg-group2, peg-experiment,
+    /// lti-paper) or a path to a .toml file.
+    #[arg(long)]
+    pub env: String,
+    /// The controller: `constant` is the constant compliance controller
+    /// (a = 0, METHOD.md §6), the non-learning baseline.
+    #[arg(long, value_enum, default_value_t = Controller::Constant)]
+    pub controller: Controller,
+    /// Episodes to run; seeds are seed, seed+1, …
+    #[arg(long, default_value_t = 10)]
+    pub episodes: usize,
+    /// Seed of the first episode's initial pose error.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Directory for summary.json, trace.csv (first episode) and trace.png.
+    #[arg(long, default_value = "runs/sim")]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum Controller {
+    Constant,
+}
+
+pub fn run(args: &SimArgs) -> anyhow::Result<()> {
+    if args.episodes == 0 {
+        bail!("--episodes must be at least 1");
+    }
+    let mut env = lcrl_sim::make_env(&args.env)?;
+    prepare_out_dir(&args.out)?;
+    let n = env.spec().action_dim();
+    let bar = ProgressBar::new(args.episodes as u64);
+    if let Ok(style) = ProgressStyle::with_template("episodes [{bar:30}] {pos}/{len} {msg} ({elapsed})") {
+        bar.set_style(style.progress_chars("=> "));
+    }
+    let result = evaluate(env.as_mut(), "constant", args.episodes, args.seed, &mut |_| vec![0.0; n], &mut |r| {
+        bar.set_message(format!("return {:.2}", r.episode_return));
+        bar.inc(1);
+    });
+    bar.finish_and_clear();
+    let (summary, records) = result?;
+    write_outputs(env.as_ref(), &summary, &records[0], &args.out)?;
+    print_summary(&summary, &args.out);
+    Ok(())
+}
+
+/// Creates the directory and proves it writable before any episode runs.
+pub fn prepare_out_dir(dir: &Path) -> anyhow::Result<()> {
+    fs::create_dir_all(dir).with_context(|| format!("cannot create output directory {}", dir.display()))?;
+    tempfile::tempfile_in(dir).with_context(|| format!("output directory {} is not writable", dir.display()))?;
+    Ok(())
+}
+
+pub fn write_outputs(env: &dyn Env, summary: &Summary, first: &EpisodeRecord, dir: &Path) -> anyhow::Result<()> {
+    let path = dir.join("summary.json");
+    fs::write(&path, serde_json::to_string_pretty(summary)? + "\n").with_context(|| format!("writing {}", path.display()))?;
+    write_trace_csv(env, first, &dir.join("trace.csv"))?;
+    plot_trace(env, summary, first, &dir.join("trace.png"))
+}
+
+fn write_trace_csv(env: &dyn Env, record: &EpisodeRecord, path: &Path) -> anyhow::Result<()> {
+    let spec = env.spec();
+    let mut out = csv::Writer::from_path(path).with_context(|| format!("writing {}", path.display()))?;
+    let mut header = vec!["step".to_string(), "time_s".to_string()];
+    header.extend(spec.state_names.iter().cloned());
+    header.extend(spec.action_names.iter().map(|a| format!("action_{a}")));
+    header.push("reward".into());
+    out.write_record(&header)?;
+    let mut first = vec!["0".to_string(), "0".to_string()];
+    first.extend(record.initial_state.iter().map(f64::to_string));
+    first.extend(std::iter::repeat_n(String::new(), spec.action_dim() + 1));
+    out.write_record(&first)?;
+    for row in &record.trace {
+        let mut fields = vec![row.step.to_string(), row.time_s.to_string()];
+        fields.extend(row.state.iter().map(f64::to_string));
+        fields.extend(row.action.iter().map(f64::to_string));
+        fields.push(row.reward.to_string());
+        out.write_record(&fields)?;
+    }
+    out.flush().with_context(|| format!("writing {}", path.display()))
+}
+
+/// Force and moment over the insertion (depth, force, moment panels), as a
+/// robotics paper shows them; other environments get their states over time.
+fn plot_trace(env: &dyn Env, summary: &Summary, record: &EpisodeRecord, path: &Path) -> anyhow::Result<()> {
+    let names = &env.spec().state_names;
+    let column = |name: &str| names.iter().position(|n| n == name);
+    let series = |j: usize| -> Vec<f64> {
+        std::iter::once(record.initial_state[j]).chain(record.trace.iter().map(|r| r.state[j])).collect()
+    };
+    let time: Vec<f64> = std::iter::once(0.0).chain(record.trace.iter().map(|r| r.time_s)).collect();
+    let named = |labels: &[&str]| -> Option<Vec<(String, Vec<f64>)>> {
+        labels.iter().map(|l| column(l).map(|j| (l.to_string(), series(j)))).collect()
+    };
+    let title = format!("{} — {} controller, episode seed {}", summary.env, summary.controller, record.seed);
+    let panels = match (named(&["z"]), named(&["Fx", "Fy", "Fz"]), named(&["Mx", "My", "Mz"])) {
+        (Some(z), Some(f), Some(m)) => vec![
+            Panel { y_label: "remaining depth z [mm]".into(), series: z, band: None },
+            Panel { y_label: "contact force [N]".into(), series: f, band: None },
+            Panel { y_label: "contact moment [N·m]".into(), series: m, band: None },
+        ],
+        _ => vec![Panel {
+            y_label: "state".into(),
+            series: names.iter().enumerate().map(|(j, n)| (n.clone(), series(j))).collect(),
+            band: None,
+        }],
+    };
+    line_panels(path, &title, &time, "time [s]", &panels)
+}
+
+fn print_summary(s: &Summary, dir: &Path) {
+    let opt = |v: Option<f64>, unit: &str| v.map_or("n/a".to_string(), |v| format!("{v:.3}{unit}"));
+    println!("{} episodes of {} with the {} controller:", s.episodes, s.env, s.controller);
+    println!("  success rate          {}", s.success_rate.map_or("n/a".into(), |r| format!("{:.0}%", r * 100.0)));
+    println!("  mean steps to insert  {}", opt(s.mean_steps_to_insert, ""));
+    println!("  mean peak force       {}", opt(s.mean_peak_force_n, " N"));
+    println!("  mean peak moment      {}", opt(s.mean_peak_moment_nm, " N·m"));
+    println!("  max penetration       {}", opt(s.max_penetration_mm, " mm"));
+    println!("  mean return           {:.3} (min {:.3}, max {:.3})", s.mean_return, s.min_return, s.max_return);
+    println!("  control steps/s       {:.0}", s.control_steps_per_sec);
+    println!("wrote {}/summary.json, trace.csv, trace.png", dir.display());
+}
