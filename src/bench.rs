@@ -20,12 +20,39 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 5)]
         repeats: usize,
     },
+    /// Control steps per second of peg-group1 on one core.
+    Sim {
+        /// Episodes per setting.
+        #[arg(long, default_value_t = 100)]
+        episodes: usize,
+    },
 }
 
 pub fn run(command: BenchCommand) -> anyhow::Result<()> {
     match command {
         BenchCommand::Graph { samples, repeats } => bench_graph(samples, repeats.max(1)),
+        BenchCommand::Sim { episodes } => bench_sim(episodes.max(1)),
     }
+}
+
+/// Control steps per second of the constant controller on peg-group1 on
+/// one thread, at the default physics substeps and at half and double, to
+/// show how much of a control step is the physics.
+fn bench_sim(episodes: usize) -> anyhow::Result<()> {
+    use lcrl_sim::evaluate::evaluate;
+    use lcrl_sim::peg::{PegConfig, PegEnv};
+    let default = PegConfig::group1().physics.substeps;
+    println!("peg-group1, constant controller, {episodes} episodes, one thread");
+    println!("{:>9} {:>16} {:>14}", "substeps", "control steps/s", "µs per step");
+    for substeps in [default / 2, default, default * 2] {
+        let mut cfg = PegConfig::group1();
+        cfg.physics.substeps = substeps;
+        let mut env = PegEnv::new("peg-group1", cfg)?;
+        let (summary, _) = evaluate(&mut env, "constant", episodes, 0, &mut |_| vec![0.0; 6], &mut |_| {})?;
+        let per_step = 1e6 / summary.control_steps_per_sec;
+        println!("{substeps:>9} {:>16.0} {per_step:>14.1}", summary.control_steps_per_sec);
+    }
+    Ok(())
 }
 
 fn bench_graph(samples: usize, repeats: usize) -> anyhow::Result<()> {

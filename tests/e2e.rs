@@ -6,4 +6,5 @@ mod e2e {
     mod doctor;
     mod graph_cli;
     mod graph_service;
+    mod sim_cli;
 }
