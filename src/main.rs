@@ -5,6 +5,7 @@ mod bench;
 mod doctor;
 mod plots;
 mod sim_cmd;
+mod train_cmd;
 
 use std::process::ExitCode;
 
@@ -32,6 +33,8 @@ enum Command {
     Graph(GraphArgs),
     /// Run a controller on an environment: summary.json, trace.csv, trace.png.
     Sim(sim_cmd::SimArgs),
+    /// Train an actor (LCRL local, GCRL global, or full-subnets) with DDPG or PPO.
+    Train(train_cmd::TrainArgs),
     /// Check the installation: libtorch loads and computes, threads, CUDA.
     Doctor,
     /// Measure performance figures (see `lcrl bench --help`).
@@ -50,6 +53,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Graph(args) => run_graph(&args),
         Command::Sim(args) => sim_cmd::run(&args),
+        Command::Train(args) => train_cmd::run(&args),
         Command::Doctor => doctor::run(),
         Command::Bench(command) => bench::run(command),
     };

@@ -90,6 +90,11 @@ pub trait Env: Send + Sync {
     fn normalize_state(&self, state: &[f64]) -> Vec<f64> {
         state.to_vec()
     }
+    /// The linear system behind this environment, if it is one (for the
+    /// LQR reference).
+    fn as_lti(&self) -> Option<&crate::lti::LtiEnv> {
+        None
+    }
     /// Seconds of simulated time per step (for traces).
     fn control_period_s(&self) -> f64 {
         1.0

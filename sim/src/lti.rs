@@ -338,6 +338,10 @@ impl Env for LtiEnv {
     fn is_stochastic(&self) -> bool {
         self.system.noise_std > 0.0
     }
+
+    fn as_lti(&self) -> Option<&LtiEnv> {
+        Some(self)
+    }
 }
 
 #[cfg(test)]

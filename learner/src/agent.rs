@@ -1,0 +1,120 @@
+//! What the training loop needs from an algorithm, and the pieces DDPG and
+//! PPO share: building the actor and critics, and saving/restoring an RNG.
+
+use std::path::Path;
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use tch::nn;
+
+use crate::config::{Connection, NetworkConfig};
+use crate::nets::{ActorNet, Mlp, SubnetActor};
+use crate::LearnerError;
+
+/// One environment step as the learner sees it (normalized units).
+pub struct Transition<'a> {
+    pub obs: &'a [f32],
+    /// The normalized action the agent chose (before clipping to [−1, 1]
+    /// for PPO's Gaussian samples).
+    pub action: &'a [f32],
+    pub reward: f32,
+    pub next_obs: &'a [f32],
+    pub terminated: bool,
+    pub truncated: bool,
+}
+
+/// Counters carried across checkpoints.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Counters {
+    pub env_steps: u64,
+    /// Gradient steps of the actor.
+    pub updates: u64,
+}
+
+/// A training algorithm over a normalized action space [−1, 1]^n.
+pub trait Agent {
+    /// The action to take while training (with exploration).
+    fn explore(&mut self, obs: &[f32], episode: usize) -> Vec<f32>;
+    /// The deterministic action of the current policy.
+    fn act(&self, obs: &[f32]) -> Vec<f32>;
+    /// Records a transition and trains when it is time. Returns the seconds
+    /// spent optimizing.
+    fn observe(&mut self, transition: Transition) -> f64;
+    /// Tells the agent how far training is (0 at the start, 1 at the end),
+    /// for schedules such as PPO's learning-rate annealing.
+    fn set_progress(&mut self, _fraction: f64) {}
+    fn counters(&self) -> Counters;
+    /// Parameter counts of (actor, critic).
+    fn param_counts(&self) -> (usize, usize);
+    /// Writes everything needed to continue exactly (weights, optimizer
+    /// state, buffers, RNG) into `dir`.
+    fn save(&self, dir: &Path, include_buffer: bool) -> Result<(), LearnerError>;
+    fn load(&mut self, dir: &Path) -> Result<(), LearnerError>;
+    /// The actor's variables (for `lcrl sim --checkpoint` and policy serving).
+    fn actor(&self) -> &ActorNet;
+}
+
+/// Builds the actor for a connection pattern. `mask` is G (n × m) for
+/// `Local`; ignored otherwise.
+pub fn build_actor(path: &nn::Path, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, cfg: &NetworkConfig) -> ActorNet {
+    match connection {
+        Connection::Local => ActorNet::Subnets(SubnetActor::new(path, mask, &cfg.subnet_hidden, cfg.activation)),
+        Connection::FullSubnets => ActorNet::Subnets(SubnetActor::new(path, &vec![vec![1; m]; n], &cfg.subnet_hidden, cfg.activation)),
+        Connection::Global => {
+            let mut sizes = vec![m];
+            sizes.extend_from_slice(&cfg.global_hidden);
+            sizes.push(n);
+            ActorNet::Global(Mlp::new(path, &sizes, cfg.activation))
+        }
+    }
+}
+
+/// A globally connected critic with `inputs` inputs and one output.
+pub fn build_critic(path: &nn::Path, inputs: usize, cfg: &NetworkConfig) -> Mlp {
+    let mut sizes = vec![inputs];
+    sizes.extend_from_slice(&cfg.critic_hidden);
+    sizes.push(1);
+    Mlp::new(path, &sizes, cfg.activation)
+}
+
+/// An RNG's exact position, for checkpoints.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RngState {
+    seed: Vec<u8>,
+    stream: u64,
+    /// u128 as a decimal string (JSON numbers cannot hold it).
+    word_pos: String,
+}
+
+impl RngState {
+    pub fn of(rng: &ChaCha8Rng) -> Self {
+        RngState { seed: rng.get_seed().to_vec(), stream: rng.get_stream(), word_pos: rng.get_word_pos().to_string() }
+    }
+
+    pub fn restore(&self) -> Result<ChaCha8Rng, LearnerError> {
+        let seed: [u8; 32] = self.seed.as_slice().try_into().map_err(|_| LearnerError::Checkpoint("bad RNG seed".into()))?;
+        let word_pos: u128 = self.word_pos.parse().map_err(|_| LearnerError::Checkpoint("bad RNG position".into()))?;
+        let mut rng = ChaCha8Rng::from_seed(seed);
+        rng.set_stream(self.stream);
+        rng.set_word_pos(word_pos);
+        Ok(rng)
+    }
+}
+
+/// Saves named tensors as safetensors, mapping errors.
+pub fn write_tensors(path: &Path, named: &[(String, tch::Tensor)]) -> Result<(), LearnerError> {
+    tch::Tensor::write_safetensors(named, path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+}
+
+pub fn read_tensors(path: &Path) -> Result<Vec<(String, tch::Tensor)>, LearnerError> {
+    tch::Tensor::read_safetensors(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+}
+
+pub fn save_vs(vs: &nn::VarStore, path: &Path) -> Result<(), LearnerError> {
+    vs.save(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+}
+
+pub fn load_vs(vs: &mut nn::VarStore, path: &Path) -> Result<(), LearnerError> {
+    vs.load(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+}

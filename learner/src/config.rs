@@ -1,0 +1,302 @@
+//! Training configuration: one TOML file, every hyperparameter visible in
+//! one place (cleanRL style), checked on load.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::LearnerError;
+
+/// Which algorithm trains the actor.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Algo {
+    Ddpg,
+    Ppo,
+}
+
+/// How the actor is connected to the state (METHOD.md §5).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Connection {
+    /// LCRL: subnetwork i sees only the states with G_ij = 1 (eq. 8).
+    Local,
+    /// GCRL baseline: one MLP over the whole state.
+    Global,
+    /// Ablation: n subnetworks that all see the whole state.
+    FullSubnets,
+}
+
+/// The whole training configuration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainConfig {
+    pub network: NetworkConfig,
+    pub ddpg: DdpgConfig,
+    pub ppo: PpoConfig,
+    pub run: RunConfig,
+}
+
+/// Network sizes. The defaults give local and global actors comparable
+/// parameter counts on the 12-state, 6-action peg task (≈64k vs ≈71k).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct NetworkConfig {
+    /// Hidden layer widths of the global actor.
+    pub global_hidden: Vec<usize>,
+    /// Hidden layer widths of each subnetwork (local and full-subnets).
+    pub subnet_hidden: Vec<usize>,
+    /// Hidden layer widths of the critic (always globally connected).
+    pub critic_hidden: Vec<usize>,
+    /// relu, tanh or elu.
+    pub activation: Activation,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Activation {
+    Relu,
+    Tanh,
+    Elu,
+}
+
+/// DDPG (Algorithm 2). Defaults from METHOD.md Table I where it gives them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DdpgConfig {
+    pub actor_lr: f64,
+    pub critic_lr: f64,
+    /// Soft update rate of the target networks.
+    pub tau: f64,
+    pub gamma: f64,
+    pub batch_size: usize,
+    pub buffer_capacity: usize,
+    /// Environment steps with random actions before updates start.
+    pub warmup_steps: usize,
+    /// Gaussian exploration noise (normalized action units), decaying
+    /// linearly from start to end over `noise_decay_episodes`.
+    pub noise_start: f64,
+    pub noise_end: f64,
+    pub noise_decay_episodes: usize,
+    /// Update the actor (and targets) every this many critic updates; 1 is
+    /// Algorithm 2 as published, 2 is TD3's delayed policy update.
+    pub policy_delay: usize,
+    /// Weight of mean(raw²) on the actor's pre-tanh outputs in its loss:
+    /// keeps the actor out of tanh saturation, where its gradient vanishes
+    /// and a wrong early push can never be undone.
+    pub preactivation_l2: f64,
+    /// Std of clipped Gaussian noise on the target action (TD3's target
+    /// policy smoothing); 0 is plain DDPG.
+    pub target_noise: f64,
+}
+
+/// PPO with a Gaussian policy whose mean comes from the actor.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PpoConfig {
+    pub actor_lr: f64,
+    pub critic_lr: f64,
+    pub gamma: f64,
+    /// GAE λ.
+    pub gae_lambda: f64,
+    pub clip: f64,
+    /// Environment steps per rollout (policy update).
+    pub rollout_steps: usize,
+    pub epochs: usize,
+    pub minibatch_size: usize,
+    /// Initial state-independent log standard deviation.
+    pub log_std_init: f64,
+    pub entropy_coef: f64,
+    pub max_grad_norm: f64,
+    /// Anneal both learning rates linearly to 0 over the run (cleanRL's
+    /// default; steadies the end of training).
+    pub anneal_lr: bool,
+}
+
+/// Everything about the run that is not the algorithm.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RunConfig {
+    pub episodes: usize,
+    pub seed: u64,
+    /// libtorch intra-op threads.
+    pub threads: usize,
+    /// cpu or cuda.
+    pub device: String,
+    /// Write a checkpoint every this many episodes (and at the end).
+    pub checkpoint_every: usize,
+    /// Keep the replay buffer in checkpoints (exact DDPG resume; larger files).
+    pub save_replay: bool,
+    /// CS3 samples when the graph is built before training.
+    pub graph_samples: usize,
+    /// Episodes of the deterministic policy evaluated at the end.
+    pub eval_episodes: usize,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        TrainConfig { network: NetworkConfig::default(), ddpg: DdpgConfig::default(), ppo: PpoConfig::default(), run: RunConfig::default() }
+    }
+}
+
+impl Default for NetworkConfig {
+    fn default() -> Self {
+        NetworkConfig {
+            global_hidden: vec![256, 256],
+            subnet_hidden: vec![96, 96],
+            critic_hidden: vec![256, 256],
+            activation: Activation::Relu,
+        }
+    }
+}
+
+impl Default for DdpgConfig {
+    fn default() -> Self {
+        DdpgConfig {
+            actor_lr: 1e-3,
+            critic_lr: 1e-2,
+            tau: 1e-3,
+            gamma: 0.99,
+            batch_size: 256,
+            buffer_capacity: 1_000_000,
+            warmup_steps: 1000,
+            noise_start: 0.3,
+            noise_end: 0.05,
+            noise_decay_episodes: 150,
+            policy_delay: 1,
+            target_noise: 0.0,
+            preactivation_l2: 0.0,
+        }
+    }
+}
+
+impl Default for PpoConfig {
+    fn default() -> Self {
+        PpoConfig {
+            actor_lr: 1e-4,
+            critic_lr: 1e-3,
+            gamma: 0.99,
+            gae_lambda: 0.95,
+            clip: 0.2,
+            rollout_steps: 2048,
+            epochs: 10,
+            minibatch_size: 64,
+            log_std_init: -0.5,
+            entropy_coef: 0.0,
+            max_grad_norm: 0.5,
+            anneal_lr: true,
+        }
+    }
+}
+
+impl Default for RunConfig {
+    fn default() -> Self {
+        RunConfig {
+            episodes: 200,
+            seed: 0,
+            threads: 1,
+            device: "cpu".into(),
+            checkpoint_every: 50,
+            save_replay: true,
+            graph_samples: 64,
+            eval_episodes: 10,
+        }
+    }
+}
+
+impl TrainConfig {
+    /// Reads a TOML file (missing keys keep their defaults).
+    pub fn load(path: &Path) -> Result<Self, LearnerError> {
+        let text = std::fs::read_to_string(path).map_err(|source| LearnerError::Io { path: path.into(), source })?;
+        let cfg: TrainConfig =
+            toml::from_str(&text).map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Checks every value, naming the field.
+    pub fn validate(&self) -> Result<(), LearnerError> {
+        let bad = |field: &str, why: &str| Err(LearnerError::Config(format!("`{field}` {why}")));
+        let positive = [
+            ("ddpg.actor_lr", self.ddpg.actor_lr),
+            ("ddpg.critic_lr", self.ddpg.critic_lr),
+            ("ddpg.tau", self.ddpg.tau),
+            ("ppo.actor_lr", self.ppo.actor_lr),
+            ("ppo.critic_lr", self.ppo.critic_lr),
+            ("ppo.clip", self.ppo.clip),
+            ("ppo.max_grad_norm", self.ppo.max_grad_norm),
+        ];
+        for (field, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                return bad(field, &format!("must be a finite number > 0, got {v}"));
+            }
+        }
+        for (field, v) in [("ddpg.gamma", self.ddpg.gamma), ("ppo.gamma", self.ppo.gamma), ("ppo.gae_lambda", self.ppo.gae_lambda), ("ddpg.tau", self.ddpg.tau)] {
+            if !(0.0..=1.0).contains(&v) {
+                return bad(field, &format!("must be within [0, 1], got {v}"));
+            }
+        }
+        for (field, v) in [("ddpg.noise_start", self.ddpg.noise_start), ("ddpg.noise_end", self.ddpg.noise_end), ("ddpg.target_noise", self.ddpg.target_noise), ("ddpg.preactivation_l2", self.ddpg.preactivation_l2), ("ppo.entropy_coef", self.ppo.entropy_coef)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(field, &format!("must be a finite number ≥ 0, got {v}"));
+            }
+        }
+        if !self.ppo.log_std_init.is_finite() {
+            return bad("ppo.log_std_init", "must be finite");
+        }
+        let at_least_one = [
+            ("ddpg.batch_size", self.ddpg.batch_size),
+            ("ddpg.buffer_capacity", self.ddpg.buffer_capacity),
+            ("ddpg.policy_delay", self.ddpg.policy_delay),
+            ("ppo.rollout_steps", self.ppo.rollout_steps),
+            ("ppo.epochs", self.ppo.epochs),
+            ("ppo.minibatch_size", self.ppo.minibatch_size),
+            ("run.episodes", self.run.episodes),
+            ("run.threads", self.run.threads),
+            ("run.checkpoint_every", self.run.checkpoint_every),
+            ("run.graph_samples", self.run.graph_samples),
+        ];
+        for (field, v) in at_least_one {
+            if v == 0 {
+                return bad(field, "must be at least 1");
+            }
+        }
+        for (field, sizes) in [("network.global_hidden", &self.network.global_hidden), ("network.subnet_hidden", &self.network.subnet_hidden), ("network.critic_hidden", &self.network.critic_hidden)] {
+            if sizes.is_empty() || sizes.contains(&0) {
+                return bad(field, "must list at least one layer width, each at least 1");
+            }
+        }
+        if !matches!(self.run.device.as_str(), "cpu" | "cuda") {
+            return bad("run.device", &format!("must be \"cpu\" or \"cuda\", got \"{}\"", self.run.device));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_follow_table_1_and_validate() {
+        let cfg = TrainConfig::default();
+        cfg.validate().unwrap();
+        assert_eq!((cfg.ddpg.actor_lr, cfg.ddpg.critic_lr, cfg.ddpg.tau), (1e-3, 1e-2, 1e-3));
+        assert_eq!((cfg.ppo.actor_lr, cfg.ppo.critic_lr), (1e-4, 1e-3));
+    }
+
+    #[test]
+    fn bad_values_name_the_field() {
+        let err = |text: &str| -> String {
+            match toml::from_str::<TrainConfig>(text).map_err(|e| e.to_string()).and_then(|c| c.validate().map_err(|e| e.to_string())) {
+                Err(e) => e,
+                Ok(()) => panic!("accepted {text}"),
+            }
+        };
+        assert!(err("[ddpg]\nactor_lr = -0.001\n").contains("ddpg.actor_lr"));
+        assert!(err("[ppo]\ngamma = 1.5\n").contains("ppo.gamma"));
+        assert!(err("[network]\nsubnet_hidden = []\n").contains("network.subnet_hidden"));
+        assert!(err("[run]\ndevice = \"tpu\"\n").contains("run.device"));
+        assert!(err("[ddpg]\nactor_rate = 0.1\n").contains("actor_rate"));
+    }
+}

@@ -1,0 +1,44 @@
+//! The LCRL learner (METHOD.md §5): networks, DDPG and PPO, the replay
+//! buffer, checkpoints, and a single-process training loop. Everything is a
+//! plain Rust type that tests call directly; the distributed runtime wraps
+//! these later.
+//!
+//! - [`config`]: every hyperparameter, from one TOML file.
+//! - [`nets`]: locally connected (batched, masked), full-subnets and global actors; critics.
+//! - [`adam`]: Adam with savable state. [`replay`]: the replay buffer.
+//! - [`agent`]: the algorithm interface; [`ddpg`] and [`ppo`] implement it.
+//! - [`lqr`]: the LQR ceiling for linear environments.
+//! - [`trainer`]: episodes, metrics.csv, summary.json, checkpoints, resume.
+//! - [`policy`]: a trained actor loaded from a checkpoint.
+
+pub mod adam;
+pub mod agent;
+pub mod config;
+pub mod ddpg;
+pub mod lqr;
+pub mod nets;
+pub mod policy;
+pub mod ppo;
+pub mod replay;
+pub mod trainer;
+
+use std::path::PathBuf;
+
+pub use config::{Algo, Connection, TrainConfig};
+
+#[derive(Debug, thiserror::Error)]
+pub enum LearnerError {
+    #[error(transparent)]
+    Env(#[from] lcrl_sim::EnvError),
+    #[error(transparent)]
+    Graph(#[from] lcrl_graph_builder::GraphError),
+    #[error("training config: {0}")]
+    Config(String),
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("checkpoint: {0}")]
+    Checkpoint(String),
+    #[error("{0}")]
+    Mismatch(String),
+}
+#[cfg(test)] mod scratch_tests;

@@ -1,0 +1,171 @@
+//! The LQR reference for linear environments with quadratic cost: the
+//! ceiling a learned policy is measured against.
+//!
+//! The episode is a finite horizon of T steps with cost Σ sᵀQs + aᵀRa and no
+//! terminal cost, so the optimal controller is time-varying: backward
+//! Riccati recursion P_T = 0,
+//!   K_t = (R + FᵀP_{t+1}F)⁻¹ FᵀP_{t+1}E,
+//!   P_t = Q + EᵀP_{t+1}(E − F K_t),
+//! and a_t = −K_t s_t. Its return is measured by running it on the
+//! environment itself (same initial-state distribution, same action
+//! clipping, same noise), so saturation is accounted for honestly.
+
+use lcrl_sim::evaluate::run_episode;
+use lcrl_sim::lti::LtiEnv;
+use nalgebra::{DMatrix, DVector};
+
+/// The time-varying LQR gains K_0 … K_{T−1}.
+pub fn lqr_gains(e: &DMatrix<f64>, f: &DMatrix<f64>, q: &DMatrix<f64>, r: &DMatrix<f64>, horizon: usize) -> Option<Vec<DMatrix<f64>>> {
+    let mut p = DMatrix::zeros(e.nrows(), e.nrows());
+    let mut gains = Vec::with_capacity(horizon);
+    for _ in 0..horizon {
+        let k = (r + f.transpose() * &p * f).try_inverse()? * f.transpose() * &p * e;
+        p = q + e.transpose() * &p * (e - f * &k);
+        gains.push(k);
+    }
+    gains.reverse();
+    Some(gains)
+}
+
+/// Mean return of the LQR controller over `episodes` episodes seeded
+/// `seed`, `seed + 1`, …; None when the Riccati recursion is singular.
+pub fn lqr_return(env: &LtiEnv, episodes: usize, seed: u64) -> Option<f64> {
+    let system = env.system();
+    let gains = lqr_gains(&system.e, &system.f, &system.q, &system.r, system.episode_steps)?;
+    let mut env = env.clone();
+    let mut total = 0.0;
+    for k in 0..episodes {
+        let mut t = 0;
+        let mut policy = |s: &[f64]| {
+            let a = -&gains[t.min(gains.len() - 1)] * DVector::from_column_slice(s);
+            t += 1;
+            a.as_slice().to_vec()
+        };
+        total += run_episode(&mut env, seed.wrapping_add(k as u64), &mut policy, false).ok()?.episode_return;
+    }
+    Some(total / episodes.max(1) as f64)
+}
+
+/// Expected cost Σ_t E[sᵀQs + aᵀRa] over `horizon` steps of a = −K s, for
+/// s_0 with second moment `sigma0` (clipping ignored).
+fn linear_policy_cost(e: &DMatrix<f64>, f: &DMatrix<f64>, q: &DMatrix<f64>, r: &DMatrix<f64>, k: &DMatrix<f64>, sigma0: &DMatrix<f64>, horizon: usize) -> f64 {
+    let closed = e - f * k;
+    let stage = q + k.transpose() * r * k;
+    let mut sigma = sigma0.clone();
+    let mut cost = 0.0;
+    for _ in 0..horizon {
+        cost += (&stage * &sigma).trace();
+        sigma = &closed * sigma * closed.transpose();
+    }
+    cost
+}
+
+/// The best time-invariant linear controller a = −K s whose gain has the
+/// sparsity of G (K_ij = 0 where G_ij = 0): the ceiling of a locally
+/// connected actor, which cannot use states outside its row of G. Found by
+/// gradient descent (finite differences) on the exact expected cost from
+/// the initial-state distribution, starting from the masked LQR gain.
+pub fn masked_lqr_gain(env: &LtiEnv, mask: &[Vec<u8>]) -> Option<DMatrix<f64>> {
+    let s = env.system();
+    let horizon = s.episode_steps;
+    let m = s.e.nrows();
+    let sigma0 = DMatrix::from_fn(m, m, |i, j| {
+        let (lo, hi) = (s.initial_low[i], s.initial_high[i]);
+        let mean = |k: usize| (s.initial_low[k] + s.initial_high[k]) / 2.0;
+        if i == j { (hi - lo).powi(2) / 12.0 + mean(i).powi(2) } else { mean(i) * mean(j) }
+    });
+    let free: Vec<(usize, usize)> = (0..mask.len()).flat_map(|i| (0..m).map(move |j| (i, j))).filter(|&(i, j)| mask[i][j] == 1).collect();
+    let mut k = lqr_gains(&s.e, &s.f, &s.q, &s.r, horizon)?.into_iter().next()?;
+    for (i, row) in mask.iter().enumerate() {
+        for (j, &g) in row.iter().enumerate() {
+            if g == 0 {
+                k[(i, j)] = 0.0;
+            }
+        }
+    }
+    let cost = |k: &DMatrix<f64>| linear_policy_cost(&s.e, &s.f, &s.q, &s.r, k, &sigma0, horizon);
+    let mut step = 0.05;
+    let mut best = cost(&k);
+    for _ in 0..3000 {
+        let h = 1e-6;
+        let grad: Vec<f64> = free
+            .iter()
+            .map(|&(i, j)| {
+                let mut kp = k.clone();
+                kp[(i, j)] += h;
+                (cost(&kp) - best) / h
+            })
+            .collect();
+        let mut candidate = k.clone();
+        for (&(i, j), g) in free.iter().zip(&grad) {
+            candidate[(i, j)] -= step * g;
+        }
+        let c = cost(&candidate);
+        if c.is_finite() && c < best {
+            k = candidate;
+            best = c;
+            step *= 1.2;
+        } else {
+            step *= 0.5;
+            if step < 1e-12 {
+                break;
+            }
+        }
+    }
+    Some(k)
+}
+
+/// Mean return of the best G-structured linear controller, run on the
+/// environment like [`lqr_return`].
+pub fn masked_lqr_return(env: &LtiEnv, mask: &[Vec<u8>], episodes: usize, seed: u64) -> Option<f64> {
+    let k = masked_lqr_gain(env, mask)?;
+    let mut env = env.clone();
+    let mut total = 0.0;
+    for n in 0..episodes {
+        let mut policy = |s: &[f64]| (-&k * DVector::from_column_slice(s)).as_slice().to_vec();
+        total += run_episode(&mut env, seed.wrapping_add(n as u64), &mut policy, false).ok()?.episode_return;
+    }
+    Some(total / episodes.max(1) as f64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lcrl_sim::lti::LtiConfig;
+
+    #[test]
+    fn scalar_riccati_by_hand() {
+        // s' = s + a, cost s² + a², one step before the end: P = 0 → K = 0;
+        // two steps: P_1 = 1 → K_0 = 1/(1+1) = 0.5.
+        let one = DMatrix::from_element(1, 1, 1.0);
+        let gains = lqr_gains(&one, &one, &one, &one, 2).unwrap();
+        assert_eq!(gains[1][(0, 0)], 0.0);
+        assert!((gains[0][(0, 0)] - 0.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn masked_controller_respects_g_and_pays_for_it() {
+        let env = LtiEnv::new("lti-paper", &LtiConfig::paper_example()).unwrap();
+        let g = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
+        let k = masked_lqr_gain(&env, &g).unwrap();
+        assert_eq!((k[(0, 1)], k[(0, 2)], k[(1, 2)], k[(2, 0)], k[(2, 1)]), (0.0, 0.0, 0.0, 0.0, 0.0));
+        let full = lqr_return(&env, 200, 0).unwrap();
+        let local = masked_lqr_return(&env, &g, 200, 0).unwrap();
+        // a1 cannot see s2, which pushes s1 (s1' = −s1 + s2 + a1): the local
+        // ceiling is strictly lower, by about E[s2²] = 1/3 at the first step.
+        assert!(local < full - 0.15 && local > full - 0.6, "local {local} vs full {full}");
+        // With every state connected the masked optimum is the LQR optimum.
+        let everything = masked_lqr_return(&env, &vec![vec![1; 3]; 3], 200, 0).unwrap();
+        assert!((everything - full).abs() < 0.05 * full.abs(), "{everything} vs {full}");
+    }
+
+    #[test]
+    fn lqr_beats_doing_nothing_on_the_paper_example() {
+        let env = LtiEnv::new("lti-paper", &LtiConfig::paper_example()).unwrap();
+        let lqr = lqr_return(&env, 50, 0).unwrap();
+        let mut idle = env.clone();
+        let zero: f64 = (0..50u64).map(|k| run_episode(&mut idle, k, &mut |_| vec![0.0; 3], false).unwrap().episode_return).sum::<f64>() / 50.0;
+        assert!(lqr > 0.5 * zero, "LQR {lqr} vs zero action {zero}");
+        assert!(lqr < 0.0);
+    }
+}

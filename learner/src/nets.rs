@@ -1,0 +1,297 @@
+//! The networks: locally connected actor (LCRL, eq. 8), the full-subnets
+//! ablation, the globally connected actor (GCRL), and the global critics.
+//!
+//! Every actor maps a normalized observation [B, m] to a normalized action
+//! [B, n] in [−1, 1] (tanh); callers scale it to [lb, ub].
+//!
+//! The n subnetworks are computed at once as grouped (batched) matrix
+//! products: layer k holds weights [n, in, out], and the first layer's
+//! weights are multiplied by the mask G (as [n, m, 1]) on every forward
+//! pass. A masked weight is exactly zero in the product, so action i gets
+//! exactly zero gradient from every state j with G_ij = 0, and the result
+//! equals n separate subnetworks on the gathered inputs (tested below).
+
+use tch::nn::{self, Init};
+use tch::{Device, Kind, Tensor};
+
+use crate::config::Activation;
+
+fn activate(x: Tensor, act: Activation) -> Tensor {
+    match act {
+        Activation::Relu => x.relu(),
+        Activation::Tanh => x.tanh(),
+        Activation::Elu => x.elu(),
+    }
+}
+
+/// PyTorch's default linear init, U(−1/√fan_in, 1/√fan_in); the last layer
+/// of actors and critics gets U(±3e-3) so initial outputs are near 0
+/// (DDPG paper practice).
+fn uniform(bound: f64) -> Init {
+    Init::Uniform { lo: -bound, up: bound }
+}
+
+/// A plain MLP: linear layers with `act` between them.
+#[derive(Debug)]
+pub struct Mlp {
+    layers: Vec<(Tensor, Tensor)>,
+    act: Activation,
+}
+
+impl Mlp {
+    pub fn new(path: &nn::Path, sizes: &[usize], act: Activation) -> Self {
+        let last = sizes.len() - 2;
+        let layers = sizes
+            .windows(2)
+            .enumerate()
+            .map(|(k, w)| {
+                let bound = if k == last { 3e-3 } else { 1.0 / (w[0] as f64).sqrt() };
+                let weight = path.var(&format!("w{k}"), &[w[0] as i64, w[1] as i64], uniform(bound));
+                let bias = path.var(&format!("b{k}"), &[w[1] as i64], uniform(bound));
+                (weight, bias)
+            })
+            .collect();
+        Mlp { layers, act }
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Tensor {
+        let last = self.layers.len() - 1;
+        let mut h = x.shallow_clone();
+        for (k, (w, b)) in self.layers.iter().enumerate() {
+            h = h.matmul(w) + b;
+            if k < last {
+                h = activate(h, self.act);
+            }
+        }
+        h
+    }
+
+    pub fn param_count(&self) -> usize {
+        self.layers.iter().map(|(w, b)| w.numel() + b.numel()).sum()
+    }
+}
+
+/// n subnetworks as grouped matrix products, first layer masked by G.
+#[derive(Debug)]
+pub struct SubnetActor {
+    /// Per layer: weights [n, in, out] and biases [n, 1, out].
+    layers: Vec<(Tensor, Tensor)>,
+    /// G as [n, m, 1] (1.0 where action i sees state j).
+    mask: Tensor,
+    /// Inputs of each subnetwork (row sums of G).
+    inputs: Vec<usize>,
+    act: Activation,
+}
+
+impl SubnetActor {
+    /// `g` is the n × m 0/1 connection graph (all ones for full-subnets).
+    pub fn new(path: &nn::Path, g: &[Vec<u8>], hidden: &[usize], act: Activation) -> Self {
+        let n = g.len();
+        let m = g.first().map_or(0, Vec::len);
+        let inputs: Vec<usize> = g.iter().map(|row| row.iter().map(|&v| usize::from(v)).sum()).collect();
+        let mask_values: Vec<f32> = g.iter().flatten().map(|&v| f32::from(v)).collect();
+        let mask = Tensor::from_slice(&mask_values).view([n as i64, m as i64, 1]).to_device(path.device());
+        let mut sizes = vec![m];
+        sizes.extend_from_slice(hidden);
+        sizes.push(1);
+        let last = sizes.len() - 2;
+        let layers = sizes
+            .windows(2)
+            .enumerate()
+            .map(|(k, w)| {
+                let shape = [n as i64, w[0] as i64, w[1] as i64];
+                // Each subnetwork gets the init of its own fan-in: the first
+                // layer's fan-in is its number of connected states.
+                let bounds: Vec<f64> = (0..n)
+                    .map(|i| match k {
+                        _ if k == last => 3e-3,
+                        0 => 1.0 / (inputs[i].max(1) as f64).sqrt(),
+                        _ => 1.0 / (w[0] as f64).sqrt(),
+                    })
+                    .collect();
+                let scale = Tensor::from_slice(&bounds).to_kind(Kind::Float).view([n as i64, 1, 1]).to_device(path.device());
+                let weight = path.var(&format!("w{k}"), &shape, Init::Const(0.0));
+                let bias = path.var(&format!("b{k}"), &[n as i64, 1, w[1] as i64], Init::Const(0.0));
+                tch::no_grad(|| {
+                    let mut weight = weight.shallow_clone();
+                    weight.copy_(&((Tensor::rand(shape, (Kind::Float, path.device())) * 2.0 - 1.0) * &scale));
+                    let mut bias = bias.shallow_clone();
+                    bias.copy_(&((Tensor::rand([n as i64, 1, w[1] as i64], (Kind::Float, path.device())) * 2.0 - 1.0) * &scale));
+                });
+                (weight, bias)
+            })
+            .collect();
+        SubnetActor { layers, mask, inputs, act }
+    }
+
+    /// The raw outputs [B, n] (before tanh).
+    pub fn forward_raw(&self, x: &Tensor) -> Tensor {
+        let last = self.layers.len() - 1;
+        // [1, B, m] × [n, m, h] → [n, B, h]: every subnetwork sees the batch.
+        let mut h = x.unsqueeze(0);
+        for (k, (w, b)) in self.layers.iter().enumerate() {
+            let w = if k == 0 { w * &self.mask } else { w.shallow_clone() };
+            h = h.matmul(&w) + b;
+            if k < last {
+                h = activate(h, self.act);
+            }
+        }
+        // [n, B, 1] → [B, n]
+        h.squeeze_dim(-1).transpose(0, 1)
+    }
+
+    /// Parameters that can be non-zero: masked first-layer weights excluded.
+    pub fn param_count(&self) -> usize {
+        let hidden0 = self.layers[0].0.size()[2] as usize;
+        let first: usize = self.inputs.iter().map(|&m_i| m_i * hidden0).sum::<usize>() + self.layers[0].1.numel();
+        first + self.layers[1..].iter().map(|(w, b)| w.numel() + b.numel()).sum::<usize>()
+    }
+
+    /// Subnetwork i's parameters, with only its connected input rows of the
+    /// first layer: what a separate subnetwork i would hold (for tests and
+    /// for inspection).
+    pub fn subnet_params(&self, i: usize, connected: &[i64]) -> Vec<(Tensor, Tensor)> {
+        let index = Tensor::from_slice(connected).to_device(self.mask.device());
+        self.layers
+            .iter()
+            .enumerate()
+            .map(|(k, (w, b))| {
+                let w_i = w.get(i as i64);
+                let w_i = if k == 0 { w_i.index_select(0, &index) } else { w_i };
+                (w_i, b.get(i as i64).squeeze_dim(0))
+            })
+            .collect()
+    }
+
+    pub fn activation(&self) -> Activation {
+        self.act
+    }
+}
+
+/// The actor, in one of the three connection patterns.
+#[derive(Debug)]
+pub enum ActorNet {
+    Subnets(SubnetActor),
+    Global(Mlp),
+}
+
+impl ActorNet {
+    /// Normalized action in [−1, 1], [B, n].
+    pub fn forward(&self, obs: &Tensor) -> Tensor {
+        self.forward_raw(obs).tanh()
+    }
+
+    /// The pre-tanh outputs [B, n].
+    pub fn forward_raw(&self, obs: &Tensor) -> Tensor {
+        match self {
+            ActorNet::Subnets(net) => net.forward_raw(obs),
+            ActorNet::Global(net) => net.forward(obs),
+        }
+    }
+
+    pub fn param_count(&self) -> usize {
+        match self {
+            ActorNet::Subnets(net) => net.param_count(),
+            ActorNet::Global(net) => net.param_count(),
+        }
+    }
+}
+
+/// Parameters of a global actor with the configured hidden sizes for an
+/// environment of (m states, n actions): for comparing with a local actor.
+pub fn global_actor_params(cfg: &crate::config::NetworkConfig, (m, n): (usize, usize)) -> usize {
+    let mut sizes = vec![m];
+    sizes.extend_from_slice(&cfg.global_hidden);
+    sizes.push(n);
+    sizes.windows(2).map(|w| w[0] * w[1] + w[1]).sum()
+}
+
+/// A [B, width] tensor from flat f32 rows.
+pub fn batch(rows: &[f32], width: usize, device: Device) -> Tensor {
+    Tensor::from_slice(rows).view([(rows.len() / width.max(1)) as i64, width as i64]).to_device(device)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A graph with an empty row, a full row and a partial row.
+    fn graph() -> Vec<Vec<u8>> {
+        vec![vec![1, 0, 0, 1, 0], vec![1, 1, 1, 1, 1], vec![0, 0, 1, 0, 0], vec![0, 0, 0, 0, 0]]
+    }
+
+    /// Subnetwork i as a separate MLP on its gathered inputs.
+    fn separate(net: &SubnetActor, g: &[Vec<u8>], x: &Tensor) -> Tensor {
+        let columns: Vec<Tensor> = (0..g.len())
+            .map(|i| {
+                let connected: Vec<i64> = (0..g[i].len() as i64).filter(|&j| g[i][j as usize] == 1).collect();
+                let params = net.subnet_params(i, &connected);
+                let last = params.len() - 1;
+                let mut h = x.index_select(1, &Tensor::from_slice(&connected));
+                for (k, (w, b)) in params.iter().enumerate() {
+                    h = h.matmul(w) + b;
+                    if k < last {
+                        h = activate(h, net.activation());
+                    }
+                }
+                h
+            })
+            .collect();
+        Tensor::cat(&columns, 1)
+    }
+
+    #[test]
+    fn batched_actor_equals_separate_subnetworks() {
+        tch::manual_seed(1);
+        let vs = nn::VarStore::new(Device::Cpu);
+        let g = graph();
+        let net = SubnetActor::new(&vs.root(), &g, &[16, 8], Activation::Tanh);
+        let x = Tensor::randn([32, 5], (Kind::Float, Device::Cpu));
+        let batched = net.forward_raw(&x);
+        let reference = separate(&net, &g, &x);
+        assert_eq!(batched.size(), vec![32, 4]);
+        let diff = f64::try_from((batched - reference).abs().max()).unwrap();
+        assert!(diff < 1e-6, "max difference {diff}");
+    }
+
+    #[test]
+    fn masked_states_get_exactly_zero_gradient() {
+        tch::manual_seed(2);
+        let vs = nn::VarStore::new(Device::Cpu);
+        let g = graph();
+        let net = SubnetActor::new(&vs.root(), &g, &[16, 8], Activation::Relu);
+        let x = Tensor::randn([7, 5], (Kind::Float, Device::Cpu)).set_requires_grad(true);
+        let out = ActorNet::Subnets(net).forward(&x);
+        for (i, row) in g.iter().enumerate() {
+            let grads = Tensor::run_backward(&[out.select(1, i as i64).sum(Kind::Float)], &[&x], true, false);
+            let grad: Vec<f32> = Vec::try_from(grads[0].abs().sum_dim_intlist(0, false, Kind::Float)).unwrap();
+            for (j, &connected) in row.iter().enumerate() {
+                if connected == 0 {
+                    assert_eq!(grad[j], 0.0, "action {i} must not see state {j}");
+                } else {
+                    assert!(grad[j] > 0.0, "action {i} must see state {j}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn shapes_and_parameter_counts() {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let g = graph();
+        let local = SubnetActor::new(&vs.root().sub("local"), &g, &[16, 8], Activation::Relu);
+        // First layer: (2 + 5 + 1 + 0) connected inputs × 16, plus 4 × 16 biases;
+        // then 4 × (16·8 + 8) and 4 × (8·1 + 1).
+        assert_eq!(local.param_count(), 8 * 16 + 4 * 16 + 4 * (16 * 8 + 8) + 4 * (8 + 1));
+        let full = SubnetActor::new(&vs.root().sub("full"), &vec![vec![1; 5]; 4], &[16, 8], Activation::Relu);
+        assert_eq!(full.param_count(), 4 * (5 * 16 + 16 + 16 * 8 + 8 + 8 + 1));
+        let global = Mlp::new(&vs.root().sub("global"), &[5, 32, 32, 4], Activation::Relu);
+        assert_eq!(global.param_count(), 5 * 32 + 32 + 32 * 32 + 32 + 32 * 4 + 4);
+        let x = Tensor::randn([3, 5], (Kind::Float, Device::Cpu));
+        for actor in [ActorNet::Subnets(full), ActorNet::Global(global)] {
+            let a = actor.forward(&x);
+            assert_eq!(a.size(), vec![3, 4]);
+            assert!(f64::try_from(a.abs().max()).unwrap() <= 1.0);
+        }
+    }
+}

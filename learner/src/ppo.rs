@@ -1,0 +1,251 @@
+//! PPO with the LCRL actor (METHOD.md §5): a Gaussian policy whose mean
+//! for action i comes from subnetwork i (or the global MLP), with a
+//! state-independent log standard deviation; a global value network V(s).
+//!
+//! Collect `rollout_steps` transitions, then:
+//!   δ_t = r_t + γ (1 − terminated_t) V(s_{t+1}) − V(s_t)
+//!   A_t = δ_t + γλ (1 − end_t) A_{t+1}            (GAE; end = terminated or truncated)
+//!   R_t = A_t + V(s_t)
+//! and for `epochs` passes over shuffled minibatches:
+//!   ratio = exp(log π(u|s) − log π_old(u|s))
+//!   L_π = −mean min(ratio Â, clip(ratio, 1 ± ε) Â) − c_H · entropy
+//!   L_V = mean (V(s) − R)²
+
+use std::f64::consts::PI;
+use std::path::Path;
+use std::time::Instant;
+
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::{Deserialize, Serialize};
+use tch::{nn, Device, Kind, Tensor};
+
+use crate::adam::Adam;
+use crate::agent::{build_actor, build_critic, load_vs, read_tensors, save_vs, write_tensors, Agent, Counters, RngState, Transition};
+use crate::config::{Connection, NetworkConfig, PpoConfig};
+use crate::nets::{batch, ActorNet, Mlp};
+use crate::LearnerError;
+
+/// The transitions of the current rollout, flat f32 rows.
+#[derive(Debug, Default, Clone, Serialize, Deserialize)]
+struct Rollout {
+    obs: Vec<f32>,
+    actions: Vec<f32>,
+    log_probs: Vec<f32>,
+    values: Vec<f32>,
+    rewards: Vec<f32>,
+    next_values: Vec<f32>,
+    terminated: Vec<bool>,
+    ended: Vec<bool>,
+}
+
+pub struct Ppo {
+    cfg: PpoConfig,
+    obs_dim: usize,
+    action_dim: usize,
+    actor_vs: nn::VarStore,
+    actor: ActorNet,
+    log_std: Tensor,
+    critic_vs: nn::VarStore,
+    critic: Mlp,
+    actor_opt: Adam,
+    critic_opt: Adam,
+    rollout: Rollout,
+    /// log π and V of the last explored action, stored with its transition.
+    pending: (f32, f32),
+    rng: ChaCha8Rng,
+    counters: Counters,
+}
+
+#[derive(Serialize, Deserialize)]
+struct PpoState {
+    rng: RngState,
+    counters: Counters,
+    rollout: Rollout,
+}
+
+impl Ppo {
+    pub fn new(cfg: &PpoConfig, net: &NetworkConfig, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, seed: u64) -> Self {
+        let actor_vs = nn::VarStore::new(Device::Cpu);
+        let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net);
+        let log_std = actor_vs.root().var("log_std", &[n as i64], nn::Init::Const(cfg.log_std_init));
+        let critic_vs = nn::VarStore::new(Device::Cpu);
+        let critic = build_critic(&critic_vs.root(), m, net);
+        Ppo {
+            actor_opt: Adam::new(&actor_vs, cfg.actor_lr),
+            critic_opt: Adam::new(&critic_vs, cfg.critic_lr),
+            cfg: cfg.clone(),
+            obs_dim: m,
+            action_dim: n,
+            actor_vs,
+            actor,
+            log_std,
+            critic_vs,
+            critic,
+            rollout: Rollout::default(),
+            pending: (0.0, 0.0),
+            rng: ChaCha8Rng::seed_from_u64(seed ^ 0x0990),
+            counters: Counters::default(),
+        }
+    }
+
+    /// log π(u | s) for rows of u given the means, summed over components.
+    fn log_prob(&self, mean: &Tensor, actions: &Tensor) -> Tensor {
+        let std = self.log_std.exp();
+        let z = (actions - mean) / &std;
+        (z.square() * -0.5 - &self.log_std - 0.5 * (2.0 * PI).ln()).sum_dim_intlist(-1, false, Kind::Float)
+    }
+
+    fn value(&self, obs: &[f32]) -> f32 {
+        tch::no_grad(|| f32::try_from(self.critic.forward(&batch(obs, self.obs_dim, Device::Cpu)).flatten(0, -1).get(0)).unwrap_or(0.0))
+    }
+
+    /// GAE advantages and returns of the rollout.
+    fn advantages(&self) -> (Vec<f32>, Vec<f32>) {
+        let r = &self.rollout;
+        let (gamma, lambda) = (self.cfg.gamma as f32, self.cfg.gae_lambda as f32);
+        let mut advantages = vec![0.0f32; r.rewards.len()];
+        let mut next = 0.0f32;
+        for t in (0..r.rewards.len()).rev() {
+            let bootstrap = if r.terminated[t] { 0.0 } else { gamma * r.next_values[t] };
+            let delta = r.rewards[t] + bootstrap - r.values[t];
+            let carry = if r.ended[t] { 0.0 } else { gamma * lambda * next };
+            next = delta + carry;
+            advantages[t] = next;
+        }
+        let returns = advantages.iter().zip(&r.values).map(|(a, v)| a + v).collect();
+        (advantages, returns)
+    }
+
+    /// The PPO update on a full rollout.
+    fn update(&mut self) {
+        let (advantages, returns) = self.advantages();
+        let len = advantages.len();
+        let r = std::mem::take(&mut self.rollout);
+        let obs = batch(&r.obs, self.obs_dim, Device::Cpu);
+        let actions = batch(&r.actions, self.action_dim, Device::Cpu);
+        let old_log_probs = Tensor::from_slice(&r.log_probs);
+        let advantages = Tensor::from_slice(&advantages);
+        let returns = Tensor::from_slice(&returns);
+        let mut order: Vec<i64> = (0..len as i64).collect();
+        for _ in 0..self.cfg.epochs {
+            order.shuffle(&mut self.rng);
+            for chunk in order.chunks(self.cfg.minibatch_size) {
+                let index = Tensor::from_slice(chunk);
+                let adv = advantages.index_select(0, &index);
+                let adv = (&adv - adv.mean(Kind::Float)) / (adv.std(true) + 1e-8);
+                let mb_obs = obs.index_select(0, &index);
+                let log_probs = self.log_prob(&self.actor.forward(&mb_obs), &actions.index_select(0, &index));
+                let ratio = (log_probs - old_log_probs.index_select(0, &index)).exp();
+                let clipped = ratio.clamp(1.0 - self.cfg.clip, 1.0 + self.cfg.clip);
+                let entropy = (&self.log_std + 0.5 * (2.0 * PI * std::f64::consts::E).ln()).sum(Kind::Float);
+                let policy_loss = -(&ratio * &adv).minimum(&(clipped * &adv)).mean(Kind::Float) - self.cfg.entropy_coef * entropy;
+                self.actor_opt.zero_grad();
+                policy_loss.backward();
+                self.actor_opt.clip_grad_norm(self.cfg.max_grad_norm);
+                self.actor_opt.step();
+
+                let values = self.critic.forward(&mb_obs).flatten(0, -1);
+                let value_loss = (values - returns.index_select(0, &index)).square().mean(Kind::Float);
+                self.critic_opt.zero_grad();
+                value_loss.backward();
+                self.critic_opt.clip_grad_norm(self.cfg.max_grad_norm);
+                self.critic_opt.step();
+                self.counters.updates += 1;
+            }
+        }
+    }
+}
+
+impl Agent for Ppo {
+    fn explore(&mut self, obs: &[f32], _episode: usize) -> Vec<f32> {
+        let mean = self.act(obs);
+        let std: Vec<f32> = Vec::try_from(self.log_std.exp().detach()).unwrap_or_default();
+        let action: Vec<f32> = mean
+            .iter()
+            .zip(&std)
+            .map(|(m, s)| {
+                let z: f64 = StandardNormal.sample(&mut self.rng);
+                m + s * z as f32
+            })
+            .collect();
+        let log_prob = tch::no_grad(|| {
+            let mean = Tensor::from_slice(&mean).view([1, self.action_dim as i64]);
+            f32::try_from(self.log_prob(&mean, &Tensor::from_slice(&action).view([1, self.action_dim as i64])).get(0))
+        })
+        .unwrap_or(0.0);
+        self.pending = (log_prob, self.value(obs));
+        action
+    }
+
+    fn act(&self, obs: &[f32]) -> Vec<f32> {
+        tch::no_grad(|| Vec::<f32>::try_from(self.actor.forward(&batch(obs, self.obs_dim, Device::Cpu)).flatten(0, -1)).unwrap_or_default())
+    }
+
+    fn observe(&mut self, t: Transition) -> f64 {
+        let next_value = if t.terminated { 0.0 } else { self.value(t.next_obs) };
+        let r = &mut self.rollout;
+        r.obs.extend_from_slice(t.obs);
+        r.actions.extend_from_slice(t.action);
+        r.log_probs.push(self.pending.0);
+        r.values.push(self.pending.1);
+        r.rewards.push(t.reward);
+        r.next_values.push(next_value);
+        r.terminated.push(t.terminated);
+        r.ended.push(t.terminated || t.truncated);
+        self.counters.env_steps += 1;
+        if r.rewards.len() < self.cfg.rollout_steps {
+            return 0.0;
+        }
+        let started = Instant::now();
+        self.update();
+        started.elapsed().as_secs_f64()
+    }
+
+    fn set_progress(&mut self, fraction: f64) {
+        if self.cfg.anneal_lr {
+            let left = (1.0 - fraction).clamp(0.0, 1.0);
+            self.actor_opt.set_lr(self.cfg.actor_lr * left);
+            self.critic_opt.set_lr(self.cfg.critic_lr * left);
+        }
+    }
+
+    fn counters(&self) -> Counters {
+        self.counters
+    }
+
+    fn param_counts(&self) -> (usize, usize) {
+        (self.actor.param_count() + self.action_dim, self.critic.param_count())
+    }
+
+    fn save(&self, dir: &Path, _include_buffer: bool) -> Result<(), LearnerError> {
+        save_vs(&self.actor_vs, &dir.join("actor.safetensors"))?;
+        save_vs(&self.critic_vs, &dir.join("critic.safetensors"))?;
+        write_tensors(&dir.join("actor_optimizer.safetensors"), &self.actor_opt.state())?;
+        write_tensors(&dir.join("critic_optimizer.safetensors"), &self.critic_opt.state())?;
+        // The unfinished rollout is part of the state: PPO resumes mid-rollout.
+        let state = PpoState { rng: RngState::of(&self.rng), counters: self.counters, rollout: self.rollout.clone() };
+        let text = serde_json::to_string(&state).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+        std::fs::write(dir.join("agent.json"), text).map_err(|source| LearnerError::Io { path: dir.join("agent.json"), source })
+    }
+
+    fn load(&mut self, dir: &Path) -> Result<(), LearnerError> {
+        load_vs(&mut self.actor_vs, &dir.join("actor.safetensors"))?;
+        load_vs(&mut self.critic_vs, &dir.join("critic.safetensors"))?;
+        self.actor_opt.load_state(&read_tensors(&dir.join("actor_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
+        self.critic_opt.load_state(&read_tensors(&dir.join("critic_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
+        let path = dir.join("agent.json");
+        let text = std::fs::read_to_string(&path).map_err(|source| LearnerError::Io { path: path.clone(), source })?;
+        let state: PpoState = serde_json::from_str(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))?;
+        self.rng = state.rng.restore()?;
+        self.counters = state.counters;
+        self.rollout = state.rollout;
+        Ok(())
+    }
+
+    fn actor(&self) -> &ActorNet {
+        &self.actor
+    }
+}

@@ -1,0 +1,406 @@
+//! The single-process training loop: the environment runs inside the
+//! learner's process. It owns the run directory:
+//!
+//! ```text
+//! DIR/config.toml            resolved configuration (+ env, algo, connection)
+//! DIR/graph.json             connection graph (connection = local)
+//! DIR/metrics.csv            one row per episode
+//! DIR/summary.json           final figures
+//! DIR/checkpoints/epNNNNNN/  weights, optimizer state, replay, counters
+//! ```
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use lcrl_graph_builder::{build_graph, Cs3Config, GraphOptions, GraphReport, Rule};
+use lcrl_sim::evaluate::run_episode;
+use lcrl_sim::{make_env, Env};
+use serde::{Deserialize, Serialize};
+
+use crate::agent::Agent;
+use crate::config::{Algo, Connection, TrainConfig};
+use crate::ddpg::Ddpg;
+use crate::lqr::{lqr_return, masked_lqr_return};
+use crate::ppo::Ppo;
+use crate::LearnerError;
+
+/// What to train, and where.
+#[derive(Debug, Clone)]
+pub struct TrainRequest {
+    pub env: String,
+    pub algo: Algo,
+    pub connection: Connection,
+    /// A graph.json to use instead of building one (connection = local).
+    pub graph: Option<PathBuf>,
+    pub config: TrainConfig,
+    pub run_dir: PathBuf,
+    pub resume: bool,
+}
+
+/// One row of metrics.csv.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeRow {
+    pub episode: usize,
+    #[serde(rename = "return")]
+    pub episode_return: f64,
+    pub length: usize,
+    pub success: Option<bool>,
+    pub peak_force_n: Option<f64>,
+    pub peak_moment_nm: Option<f64>,
+    pub wall_s: f64,
+    pub optimization_s: f64,
+}
+
+/// What summary.json holds.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainSummary {
+    pub env: String,
+    pub algo: Algo,
+    pub connection: Connection,
+    pub seed: u64,
+    pub episodes: usize,
+    /// Mean return of the last 10 training episodes (with exploration).
+    pub final_return: f64,
+    /// Mean return of the deterministic policy over `eval_episodes` episodes.
+    pub eval_return: f64,
+    /// The LQR controller's mean return on the same evaluation episodes
+    /// (linear environments only).
+    pub lqr_return: Option<f64>,
+    /// The best controller with the actor's connection pattern (a = −K s
+    /// with K zero where the mask is): the ceiling of a local actor, which
+    /// may be below `lqr_return` when G hides states the optimum uses.
+    pub masked_lqr_return: Option<f64>,
+    pub graph_seconds: f64,
+    pub optimization_seconds: f64,
+    pub total_seconds: f64,
+    pub env_steps: u64,
+    pub updates: u64,
+    pub actor_params: usize,
+    pub critic_params: usize,
+}
+
+/// Written next to the tensors of every checkpoint.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct CheckpointMeta {
+    /// Episodes completed when the checkpoint was written.
+    pub episode: usize,
+    pub env: String,
+    pub algo: Algo,
+    pub connection: Connection,
+    pub state_dim: usize,
+    pub action_dim: usize,
+    /// The actor's connection mask (n × m).
+    pub mask: Vec<Vec<u8>>,
+    pub config: TrainConfig,
+    pub graph_seconds: f64,
+    pub optimization_seconds: f64,
+    pub elapsed_seconds: f64,
+}
+
+/// Per-episode progress for the caller's display.
+pub struct Progress<'a> {
+    pub row: &'a EpisodeRow,
+    pub episodes: usize,
+    pub moving_average: f64,
+    pub env_steps_per_sec: f64,
+}
+
+/// The result of a run: its summary and every metrics row.
+pub struct TrainOutcome {
+    pub summary: TrainSummary,
+    pub rows: Vec<EpisodeRow>,
+}
+
+/// The seed of training episode `episode`: distinct per episode, and
+/// disjoint from the evaluation seeds.
+fn episode_seed(seed: u64, episode: usize) -> u64 {
+    seed.wrapping_mul(1_000_003).wrapping_add(episode as u64)
+}
+
+fn eval_seed(seed: u64, k: usize) -> u64 {
+    (seed ^ 0xE7A1_0000_0000).wrapping_mul(7_919).wrapping_add(k as u64)
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
+    move |source| LearnerError::Io { path: path.to_path_buf(), source }
+}
+
+/// Maps a normalized action u ∈ [−1, 1] to the environment's bounds.
+pub fn to_env_action(env: &dyn Env, u: &[f32]) -> Vec<f64> {
+    let spec = env.spec();
+    u.iter()
+        .zip(spec.action_low.iter().zip(&spec.action_high))
+        .map(|(&u, (lo, hi))| lo + (f64::from(u).clamp(-1.0, 1.0) + 1.0) / 2.0 * (hi - lo))
+        .collect()
+}
+
+fn observe(env: &dyn Env, state: &[f64]) -> Vec<f32> {
+    env.normalize_state(state).iter().map(|&v| v as f32).collect()
+}
+
+/// Builds the agent for the request.
+pub fn make_agent(algo: Algo, connection: Connection, cfg: &TrainConfig, mask: &[Vec<u8>], m: usize, n: usize) -> Box<dyn Agent> {
+    tch::manual_seed(cfg.run.seed as i64);
+    match algo {
+        Algo::Ddpg => Box::new(Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed)),
+        Algo::Ppo => Box::new(Ppo::new(&cfg.ppo, &cfg.network, connection, mask, m, n, cfg.run.seed)),
+    }
+}
+
+/// The mask of the actor: G for local (loaded or built), ones otherwise.
+fn resolve_mask(req: &TrainRequest, env: &dyn Env) -> Result<(Vec<Vec<u8>>, f64, Option<GraphReport>), LearnerError> {
+    let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
+    if req.connection != Connection::Local {
+        return Ok((vec![vec![1; m]; n], 0.0, None));
+    }
+    let report = match &req.graph {
+        Some(path) => GraphReport::load(path)?,
+        None => {
+            let options = GraphOptions {
+                cs3: Cs3Config { samples: req.config.run.graph_samples, seed: req.config.run.seed, threads: 0 },
+                rule: Rule::Threshold(0.1),
+                bootstrap: 200,
+            };
+            build_graph(env, &options, &|| {})?
+        }
+    };
+    if report.actions() != n || report.states() != m {
+        return Err(LearnerError::Mismatch(format!(
+            "the graph is {}×{} (actions × states) but environment {} has {n} actions and {m} states; build the graph for this environment",
+            report.actions(),
+            report.states(),
+            env.spec().name
+        )));
+    }
+    let seconds = if req.graph.is_some() { 0.0 } else { report.elapsed_s };
+    Ok((report.g.clone(), seconds, Some(report)))
+}
+
+/// The newest complete checkpoint under `run_dir`, if any.
+pub fn latest_checkpoint(run_dir: &Path) -> Option<PathBuf> {
+    let mut dirs: Vec<PathBuf> = std::fs::read_dir(run_dir.join("checkpoints"))
+        .ok()?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.join("checkpoint.json").is_file())
+        .collect();
+    dirs.sort();
+    dirs.pop()
+}
+
+pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, LearnerError> {
+    let path = dir.join("checkpoint.json");
+    let text = std::fs::read_to_string(&path).map_err(io(&path))?;
+    serde_json::from_str(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+}
+
+/// Writes a checkpoint atomically: into a temporary folder, then renamed.
+fn write_checkpoint(run_dir: &Path, agent: &dyn Agent, meta: &CheckpointMeta) -> Result<PathBuf, LearnerError> {
+    let root = run_dir.join("checkpoints");
+    std::fs::create_dir_all(&root).map_err(io(&root))?;
+    let name = format!("ep{:06}", meta.episode);
+    let staging = root.join(format!(".{name}.partial"));
+    let _ = std::fs::remove_dir_all(&staging);
+    std::fs::create_dir_all(&staging).map_err(io(&staging))?;
+    agent.save(&staging, meta.config.run.save_replay)?;
+    let text = serde_json::to_string_pretty(meta).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    std::fs::write(staging.join("checkpoint.json"), text).map_err(io(&staging))?;
+    let target = root.join(name);
+    let _ = std::fs::remove_dir_all(&target);
+    std::fs::rename(&staging, &target).map_err(io(&target))?;
+    Ok(target)
+}
+
+fn read_rows(path: &Path, keep: usize) -> Result<Vec<EpisodeRow>, LearnerError> {
+    let mut reader = csv::Reader::from_path(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))?;
+    let rows: Result<Vec<EpisodeRow>, _> = reader.deserialize().take(keep).collect();
+    rows.map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+}
+
+fn write_rows(path: &Path, rows: &[EpisodeRow]) -> Result<csv::Writer<std::fs::File>, LearnerError> {
+    let file = std::fs::File::create(path).map_err(io(path))?;
+    let mut writer = csv::WriterBuilder::new().has_headers(true).from_writer(file);
+    if rows.is_empty() {
+        // serde writes the header with the first record; write it now so an
+        // interrupted run still leaves a well-formed file.
+        writer
+            .write_record(["episode", "return", "length", "success", "peak_force_n", "peak_moment_nm", "wall_s", "optimization_s"])
+            .map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    }
+    for row in rows {
+        writer.serialize(row).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    }
+    writer.flush().map_err(io(path))?;
+    Ok(writer)
+}
+
+/// Trains for `config.run.episodes` episodes (in total, counting resumed
+/// ones), writing the run directory as it goes.
+pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Result<TrainOutcome, LearnerError> {
+    let started = Instant::now();
+    let mut env = make_env(&req.env)?;
+    let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
+    std::fs::create_dir_all(&req.run_dir).map_err(io(&req.run_dir))?;
+    let existing = latest_checkpoint(&req.run_dir);
+    if existing.is_some() && !req.resume {
+        return Err(LearnerError::Mismatch(format!(
+            "{} already holds a run; pass --resume to continue it or choose another --run-dir",
+            req.run_dir.display()
+        )));
+    }
+
+    let mut cfg = req.config.clone();
+    let (mask, mut graph_seconds, mut prior_opt, mut prior_elapsed, mut rows, checkpoint) = match (req.resume, existing) {
+        (true, Some(dir)) => {
+            let meta = read_meta(&dir)?;
+            if meta.env != req.env || meta.algo != req.algo || meta.connection != req.connection {
+                return Err(LearnerError::Mismatch(format!(
+                    "{} was trained on {} with {:?}/{:?}; resume it with the same --env, --algo and --connection",
+                    dir.display(),
+                    meta.env,
+                    meta.algo,
+                    meta.connection
+                )));
+            }
+            let episodes = cfg.run.episodes;
+            cfg = meta.config.clone();
+            cfg.run.episodes = episodes.max(meta.episode);
+            let rows = read_rows(&req.run_dir.join("metrics.csv"), meta.episode)?;
+            (meta.mask.clone(), meta.graph_seconds, meta.optimization_seconds, meta.elapsed_seconds, rows, Some(dir))
+        }
+        _ => {
+            let (mask, seconds, report) = resolve_mask(req, env.as_ref())?;
+            if let Some(report) = report {
+                report.write_json(&req.run_dir.join("graph.json"))?;
+            }
+            (mask, seconds, 0.0, 0.0, Vec::new(), None)
+        }
+    };
+    cfg.validate()?;
+    if cfg.run.device == "cuda" && !tch::Cuda::is_available() {
+        return Err(LearnerError::Config("run.device = \"cuda\" but no CUDA device is available; use \"cpu\"".into()));
+    }
+    tch::set_num_threads(cfg.run.threads as i32);
+    let resolved = toml::to_string_pretty(&cfg).map_err(|e| LearnerError::Config(e.to_string()))?;
+    let header = format!("# resolved configuration\n# env = {:?}, algo = {:?}, connection = {:?}\n", req.env, req.algo, req.connection);
+    let config_path = req.run_dir.join("config.toml");
+    std::fs::write(&config_path, header + &resolved).map_err(io(&config_path))?;
+
+    let mut agent = make_agent(req.algo, req.connection, &cfg, &mask, m, n);
+    if let Some(dir) = &checkpoint {
+        agent.load(dir)?;
+    }
+    let metrics_path = req.run_dir.join("metrics.csv");
+    let mut metrics = write_rows(&metrics_path, &rows)?;
+    let run_started = Instant::now();
+    let mut optimization = prior_opt;
+    let meta_for = |episode: usize, optimization: f64, elapsed: f64| CheckpointMeta {
+        episode,
+        env: req.env.clone(),
+        algo: req.algo,
+        connection: req.connection,
+        state_dim: m,
+        action_dim: n,
+        mask: mask.clone(),
+        config: cfg.clone(),
+        graph_seconds,
+        optimization_seconds: optimization,
+        elapsed_seconds: elapsed,
+    };
+
+    for episode in rows.len()..cfg.run.episodes {
+        let episode_started = Instant::now();
+        agent.set_progress(episode as f64 / cfg.run.episodes as f64);
+        let steps_before = agent.counters().env_steps;
+        let mut state = env.reset(episode_seed(cfg.run.seed, episode));
+        let (mut total, mut length, mut opt_seconds) = (0.0, 0, 0.0);
+        loop {
+            let obs = observe(env.as_ref(), &state);
+            let u = agent.explore(&obs, episode);
+            let step = env.step(&to_env_action(env.as_ref(), &u))?;
+            let next_obs = observe(env.as_ref(), &step.state);
+            opt_seconds += agent.observe(crate::agent::Transition {
+                obs: &obs,
+                action: &u,
+                reward: step.reward as f32,
+                next_obs: &next_obs,
+                terminated: step.terminated,
+                truncated: step.truncated,
+            });
+            total += step.reward;
+            length += 1;
+            state = step.state;
+            if step.terminated || step.truncated {
+                break;
+            }
+        }
+        optimization += opt_seconds;
+        let metrics_now = env.episode_metrics();
+        let row = EpisodeRow {
+            episode: episode + 1,
+            episode_return: total,
+            length,
+            success: metrics_now.success,
+            peak_force_n: metrics_now.peak_force_n,
+            peak_moment_nm: metrics_now.peak_moment_nm,
+            wall_s: episode_started.elapsed().as_secs_f64(),
+            optimization_s: opt_seconds,
+        };
+        metrics.serialize(&row).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+        metrics.flush().map_err(io(&metrics_path))?;
+        rows.push(row);
+        let recent = &rows[rows.len().saturating_sub(10)..];
+        let steps = agent.counters().env_steps - steps_before;
+        on_episode(&Progress {
+            row: rows.last().unwrap_or(&rows[0]),
+            episodes: cfg.run.episodes,
+            moving_average: recent.iter().map(|r| r.episode_return).sum::<f64>() / recent.len() as f64,
+            env_steps_per_sec: steps as f64 / episode_started.elapsed().as_secs_f64().max(1e-9),
+        });
+        let done = episode + 1;
+        if done % cfg.run.checkpoint_every == 0 || done == cfg.run.episodes {
+            let elapsed = prior_elapsed + run_started.elapsed().as_secs_f64();
+            write_checkpoint(&req.run_dir, agent.as_ref(), &meta_for(done, optimization, elapsed))?;
+        }
+    }
+    prior_opt = optimization;
+    prior_elapsed += run_started.elapsed().as_secs_f64();
+
+    // The deterministic policy, and the LQR ceiling on the same episodes.
+    let episodes = cfg.run.eval_episodes.max(1);
+    let mut eval_total = 0.0;
+    for k in 0..episodes {
+        let env_ref = env.snapshot();
+        let mut policy = |s: &[f64]| to_env_action(env_ref.as_ref(), &agent.act(&observe(env_ref.as_ref(), s)));
+        eval_total += run_episode(env.as_mut(), eval_seed(cfg.run.seed, k), &mut policy, false)?.episode_return;
+    }
+    let lqr = env.as_lti().and_then(|lti| lqr_return(lti, episodes, eval_seed(cfg.run.seed, 0)));
+    let masked_lqr = env.as_lti().and_then(|lti| masked_lqr_return(lti, &mask, episodes, eval_seed(cfg.run.seed, 0)));
+    let recent = &rows[rows.len().saturating_sub(10)..];
+    let (actor_params, critic_params) = agent.param_counts();
+    let counters = agent.counters();
+    if req.resume && checkpoint.is_none() {
+        graph_seconds = 0.0;
+    }
+    let summary = TrainSummary {
+        env: req.env.clone(),
+        algo: req.algo,
+        connection: req.connection,
+        seed: cfg.run.seed,
+        episodes: rows.len(),
+        final_return: recent.iter().map(|r| r.episode_return).sum::<f64>() / recent.len().max(1) as f64,
+        eval_return: eval_total / episodes as f64,
+        lqr_return: lqr,
+        masked_lqr_return: masked_lqr,
+        graph_seconds,
+        optimization_seconds: prior_opt,
+        total_seconds: prior_elapsed + graph_seconds + (started.elapsed().as_secs_f64() - run_started.elapsed().as_secs_f64()).max(0.0),
+        env_steps: counters.env_steps,
+        updates: counters.updates,
+        actor_params,
+        critic_params,
+    };
+    let path = req.run_dir.join("summary.json");
+    let text = serde_json::to_string_pretty(&summary).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    std::fs::write(&path, text + "\n").map_err(io(&path))?;
+    Ok(TrainOutcome { summary, rows })
+}

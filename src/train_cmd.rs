@@ -1,0 +1,128 @@
+//! `lcrl train`: LCRL or the GCRL baseline, trained in one process.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use indicatif::{ProgressBar, ProgressStyle};
+use lcrl_learner::trainer::{train, EpisodeRow, TrainRequest};
+use lcrl_learner::{Algo, Connection, TrainConfig};
+
+use crate::plots::{line_panels, Panel};
+
+/// Train an actor with DDPG or PPO; the environment runs in this process.
+#[derive(Debug, clap::Args)]
+pub struct TrainArgs {
+    /// Environment: a registered name or a path to a .toml file.
+    #[arg(long)]
+    pub env: String,
+    #[arg(long, value_enum)]
+    pub algo: Algo,
+    /// local: LCRL (each action sees its connected states, eq. 8);
+    /// global: the GCRL baseline; full-subnets: the ablation.
+    #[arg(long, value_enum)]
+    pub connection: Connection,
+    /// Use this graph.json instead of building the graph first (local only).
+    #[arg(long, value_name = "graph.json")]
+    pub graph: Option<PathBuf>,
+    /// Episodes in total (overrides run.episodes of the config).
+    #[arg(long)]
+    pub episodes: Option<usize>,
+    /// Seed of networks, exploration and episodes (overrides run.seed).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// libtorch threads (overrides run.threads).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Training configuration (TOML); defaults follow METHOD.md Table I.
+    #[arg(long, value_name = "train.toml")]
+    pub config: Option<PathBuf>,
+    /// Run directory: config, graph, metrics.csv, summary.json, reward
+    /// curve, checkpoints.
+    #[arg(long, default_value = "runs/train")]
+    pub run_dir: PathBuf,
+    /// Continue the run in --run-dir from its newest checkpoint.
+    #[arg(long)]
+    pub resume: bool,
+}
+
+pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
+    let mut config = match &args.config {
+        Some(path) => TrainConfig::load(path)?,
+        None => TrainConfig::default(),
+    };
+    if let Some(episodes) = args.episodes {
+        config.run.episodes = episodes;
+    }
+    if let Some(seed) = args.seed {
+        config.run.seed = seed;
+    }
+    if let Some(threads) = args.threads {
+        config.run.threads = threads;
+    }
+    config.validate()?;
+    if args.graph.is_some() && args.connection != Connection::Local {
+        anyhow::bail!("--graph only applies to --connection local");
+    }
+    let request = TrainRequest {
+        env: args.env.clone(),
+        algo: args.algo,
+        connection: args.connection,
+        graph: args.graph.clone(),
+        config: config.clone(),
+        run_dir: args.run_dir.clone(),
+        resume: args.resume,
+    };
+    let bar = ProgressBar::new(config.run.episodes as u64);
+    if let Ok(style) = ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})") {
+        bar.set_style(style.progress_chars("=> "));
+    }
+    let outcome = train(&request, &mut |p| {
+        bar.set_length(p.episodes as u64);
+        bar.set_position(p.row.episode as u64);
+        bar.set_message(format!(
+            "return {:.2}, avg(10) {:.2}, {:.0} steps/s",
+            p.row.episode_return, p.moving_average, p.env_steps_per_sec
+        ));
+    });
+    bar.finish_and_clear();
+    let outcome = outcome?;
+    plot_rewards(&outcome.rows, &outcome.summary.env, args)?;
+    let s = &outcome.summary;
+    let global_equivalent = lcrl_learner::nets::global_actor_params(&config.network, args.env_state_dims(s)?);
+    println!("{:?} / {:?} on {} — {} episodes, {} env steps, {} updates", s.algo, s.connection, s.env, s.episodes, s.env_steps, s.updates);
+    println!("  actor parameters      {} (a global actor of the configured size: {})", s.actor_params, global_equivalent);
+    println!("  final return          {:.3} (mean of the last 10 episodes)", s.final_return);
+    println!("  eval return           {:.3} (deterministic policy)", s.eval_return);
+    if let Some(lqr) = s.lqr_return {
+        println!("  LQR return            {lqr:.3} (the optimum)");
+    }
+    if let (Some(masked), Connection::Local) = (s.masked_lqr_return, s.connection) {
+        println!("  masked LQR return     {masked:.3} (the best controller that sees only G's states)");
+    }
+    println!("  time: graph {:.2} s, optimization {:.2} s, total {:.2} s", s.graph_seconds, s.optimization_seconds, s.total_seconds);
+    println!("wrote {}", args.run_dir.display());
+    Ok(())
+}
+
+impl TrainArgs {
+    fn env_state_dims(&self, _s: &lcrl_learner::trainer::TrainSummary) -> anyhow::Result<(usize, usize)> {
+        let env = lcrl_sim::make_env(&self.env)?;
+        Ok((env.spec().state_dim(), env.spec().action_dim()))
+    }
+}
+
+/// Returns per episode with a 10-episode moving average.
+fn plot_rewards(rows: &[EpisodeRow], env: &str, args: &TrainArgs) -> anyhow::Result<()> {
+    let x: Vec<f64> = rows.iter().map(|r| r.episode as f64).collect();
+    let returns: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();
+    let average: Vec<f64> = (0..returns.len())
+        .map(|k| {
+            let window = &returns[k.saturating_sub(9)..=k];
+            window.iter().sum::<f64>() / window.len() as f64
+        })
+        .collect();
+    let title = format!("{env} — {:?} with {:?} connection", args.algo, args.connection);
+    let panel = Panel { y_label: "episode return".into(), series: vec![("return".into(), returns), ("moving average (10)".into(), average)], band: None };
+    let path = args.run_dir.join("reward_curve.png");
+    line_panels(&path, &title, &x, "episode", &[panel]).with_context(|| format!("drawing {}", path.display()))
+}
