@@ -71,6 +71,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         config: config.clone(),
         run_dir: args.run_dir.clone(),
         resume: args.resume,
+        stop_after: None,
     };
     let bar = ProgressBar::new(config.run.episodes as u64);
     if let Ok(style) = ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})") {

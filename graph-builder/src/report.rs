@@ -34,7 +34,9 @@ pub struct GraphReport {
     pub phi_normalized: Vec<Vec<f64>>,
     /// G, n × m of 0/1 (action × state).
     pub g: Vec<Vec<u8>>,
-    /// Share of bootstrap resamples that reproduce each G_ij, n × m.
+    /// Share of bootstrap resamples that reproduce each G_ij, n × m; null
+    /// (NaN) entries when the bootstrap was skipped.
+    #[serde(deserialize_with = "nullable_matrix")]
     pub stability: Vec<Vec<f64>>,
     /// State columns no action moves (all zeros in G).
     pub unmoved_states: Vec<usize>,
@@ -134,6 +136,12 @@ impl GraphReport {
         }
         out
     }
+}
+
+/// JSON has no NaN: serde_json writes it as null; read null back as NaN.
+fn nullable_matrix<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<Vec<f64>>, D::Error> {
+    let rows: Vec<Vec<Option<f64>>> = Deserialize::deserialize(d)?;
+    Ok(rows.into_iter().map(|row| row.into_iter().map(|v| v.unwrap_or(f64::NAN)).collect()).collect())
 }
 
 fn format_phi(v: f64) -> String {

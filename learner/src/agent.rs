@@ -57,25 +57,27 @@ pub trait Agent {
 
 /// Builds the actor for a connection pattern. `mask` is G (n × m) for
 /// `Local`; ignored otherwise.
-pub fn build_actor(path: &nn::Path, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, cfg: &NetworkConfig) -> ActorNet {
+/// Initial weights come from `seed` alone.
+pub fn build_actor(path: &nn::Path, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, cfg: &NetworkConfig, seed: u64) -> ActorNet {
+    let rng = &mut ChaCha8Rng::seed_from_u64(seed);
     match connection {
-        Connection::Local => ActorNet::Subnets(SubnetActor::new(path, mask, &cfg.subnet_hidden, cfg.activation)),
-        Connection::FullSubnets => ActorNet::Subnets(SubnetActor::new(path, &vec![vec![1; m]; n], &cfg.subnet_hidden, cfg.activation)),
+        Connection::Local => ActorNet::Subnets(SubnetActor::new(path, mask, &cfg.subnet_hidden, cfg.activation, rng)),
+        Connection::FullSubnets => ActorNet::Subnets(SubnetActor::new(path, &vec![vec![1; m]; n], &cfg.subnet_hidden, cfg.activation, rng)),
         Connection::Global => {
             let mut sizes = vec![m];
             sizes.extend_from_slice(&cfg.global_hidden);
             sizes.push(n);
-            ActorNet::Global(Mlp::new(path, &sizes, cfg.activation))
+            ActorNet::Global(Mlp::new(path, &sizes, cfg.activation, rng))
         }
     }
 }
 
 /// A globally connected critic with `inputs` inputs and one output.
-pub fn build_critic(path: &nn::Path, inputs: usize, cfg: &NetworkConfig) -> Mlp {
+pub fn build_critic(path: &nn::Path, inputs: usize, cfg: &NetworkConfig, seed: u64) -> Mlp {
     let mut sizes = vec![inputs];
     sizes.extend_from_slice(&cfg.critic_hidden);
     sizes.push(1);
-    Mlp::new(path, &sizes, cfg.activation)
+    Mlp::new(path, &sizes, cfg.activation, &mut ChaCha8Rng::seed_from_u64(seed))
 }
 
 /// An RNG's exact position, for checkpoints.

@@ -81,6 +81,10 @@ pub struct DdpgConfig {
     /// Update the actor (and targets) every this many critic updates; 1 is
     /// Algorithm 2 as published, 2 is TD3's delayed policy update.
     pub policy_delay: usize,
+    /// Critic loss: Huber with this δ (robust to the huge TD errors an early,
+    /// diverging policy leaves in the buffer); 0 means plain mean squared
+    /// error as in Algorithm 2.
+    pub huber_delta: f64,
     /// Weight of mean(raw²) on the actor's pre-tanh outputs in its loss:
     /// keeps the actor out of tanh saturation, where its gradient vanishes
     /// and a wrong early push can never be undone.
@@ -166,6 +170,7 @@ impl Default for DdpgConfig {
             policy_delay: 1,
             target_noise: 0.0,
             preactivation_l2: 0.0,
+            huber_delta: 0.0,
         }
     }
 }
@@ -236,7 +241,7 @@ impl TrainConfig {
                 return bad(field, &format!("must be within [0, 1], got {v}"));
             }
         }
-        for (field, v) in [("ddpg.noise_start", self.ddpg.noise_start), ("ddpg.noise_end", self.ddpg.noise_end), ("ddpg.target_noise", self.ddpg.target_noise), ("ddpg.preactivation_l2", self.ddpg.preactivation_l2), ("ppo.entropy_coef", self.ppo.entropy_coef)] {
+        for (field, v) in [("ddpg.noise_start", self.ddpg.noise_start), ("ddpg.noise_end", self.ddpg.noise_end), ("ddpg.target_noise", self.ddpg.target_noise), ("ddpg.preactivation_l2", self.ddpg.preactivation_l2), ("ddpg.huber_delta", self.ddpg.huber_delta), ("ppo.entropy_coef", self.ppo.entropy_coef)] {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(field, &format!("must be a finite number ≥ 0, got {v}"));
             }

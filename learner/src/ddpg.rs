@@ -61,13 +61,13 @@ impl Ddpg {
     pub fn new(cfg: &DdpgConfig, net: &NetworkConfig, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, seed: u64) -> Self {
         let device = Device::Cpu;
         let actor_vs = nn::VarStore::new(device);
-        let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net);
+        let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
         let mut actor_target_vs = nn::VarStore::new(device);
-        let actor_target = build_actor(&actor_target_vs.root(), connection, mask, m, n, net);
+        let actor_target = build_actor(&actor_target_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
         let critic_vs = nn::VarStore::new(device);
-        let critic = build_critic(&critic_vs.root(), m + n, net);
+        let critic = build_critic(&critic_vs.root(), m + n, net, seed ^ 0xC717);
         let mut critic_target_vs = nn::VarStore::new(device);
-        let critic_target = build_critic(&critic_target_vs.root(), m + n, net);
+        let critic_target = build_critic(&critic_target_vs.root(), m + n, net, seed ^ 0xC717);
         // Targets start as exact copies (same variable names by construction).
         let _ = actor_target_vs.copy(&actor_vs);
         let _ = critic_target_vs.copy(&critic_vs);
@@ -108,15 +108,6 @@ impl Ddpg {
         self.cfg.noise_start + (self.cfg.noise_end - self.cfg.noise_start) * progress
     }
 
-    /// ∂Q/∂a of the current critic at (obs, action) (diagnostics, tests).
-    pub fn critic_action_gradient(&self, obs: &[f32], action: &[f32]) -> Vec<f32> {
-        let o = batch(obs, self.obs_dim, Device::Cpu);
-        let a = batch(action, self.action_dim, Device::Cpu).set_requires_grad(true);
-        let q = self.critic.forward(&Tensor::cat(&[&o, &a], 1)).sum(Kind::Float);
-        let grads = Tensor::run_backward(&[q], &[&a], false, false);
-        Vec::try_from(grads[0].flatten(0, -1)).unwrap_or_default()
-    }
-
     pub fn replay_len(&self) -> usize {
         self.replay.len()
     }
@@ -127,14 +118,20 @@ impl Ddpg {
         let target: Tensor = tch::no_grad(|| {
             let mut next_action = self.actor_target.forward(&b.next_obs);
             if self.cfg.target_noise > 0.0 {
-                let noise = (next_action.randn_like() * self.cfg.target_noise).clamp(-0.5, 0.5);
+                let noise = Normal::new(0.0, self.cfg.target_noise).expect("validated target_noise");
+                let values: Vec<f32> = (0..next_action.numel()).map(|_| noise.sample(&mut self.rng).clamp(-0.5, 0.5) as f32).collect();
+                let noise = Tensor::from_slice(&values).view_as(&next_action);
                 next_action = (next_action + noise).clamp(-1.0, 1.0);
             }
             let next_q = self.critic_target.forward(&Tensor::cat(&[&b.next_obs, &next_action], 1));
             &b.reward + self.cfg.gamma * (1.0 - &b.done) * next_q
         });
         let q = self.critic.forward(&Tensor::cat(&[&b.obs, &b.action], 1));
-        let critic_loss = (q - target).square().mean(Kind::Float);
+        let critic_loss = if self.cfg.huber_delta > 0.0 {
+            q.huber_loss(&target, tch::Reduction::Mean, self.cfg.huber_delta)
+        } else {
+            (q - target).square().mean(Kind::Float)
+        };
         self.critic_opt.zero_grad();
         critic_loss.backward();
         self.critic_opt.step();
@@ -234,5 +231,37 @@ impl Agent for Ddpg {
 
     fn actor(&self) -> &ActorNet {
         &self.actor
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::TrainConfig;
+
+    /// The update rule, without the on-policy feedback loop: on exploratory
+    /// data of s' = s + a with r = −(s² + 0.1a²), DDPG's actor must move to
+    /// the optimal gain. With γ = 0.95 the Riccati solution is P ≈ 1.09 and
+    /// a* = −γP/(0.1 + γP)·s ≈ −0.91·s.
+    #[test]
+    fn update_rule_finds_the_optimal_gain_on_exploratory_data() {
+        let mut cfg = TrainConfig::default();
+        cfg.network.global_hidden = vec![64, 64];
+        cfg.network.critic_hidden = vec![64, 64];
+        let ddpg = DdpgConfig { actor_lr: 1e-3, critic_lr: 1e-3, tau: 0.01, gamma: 0.95, batch_size: 128, warmup_steps: 0, ..cfg.ddpg };
+        let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1]], 1, 1, 3);
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        for _ in 0..5000 {
+            let s: f32 = rng.random_range(-2.0..2.0);
+            let a: f32 = rng.random_range(-1.0..1.0);
+            agent.replay.push(&[s], &[a], -(s * s + 0.1 * a * a), &[s + a], false);
+        }
+        for _ in 0..4000 {
+            agent.update();
+        }
+        for s in [-0.5f32, -0.25, 0.25, 0.5] {
+            let a = agent.act(&[s])[0];
+            assert!((a + 0.91 * s).abs() < 0.1, "μ({s}) = {a}, optimum {}", -0.91 * s);
+        }
     }
 }

@@ -41,4 +41,5 @@ pub enum LearnerError {
     #[error("{0}")]
     Mismatch(String),
 }
-#[cfg(test)] mod scratch_tests;
+#[cfg(test)]
+mod tests;

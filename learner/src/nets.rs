@@ -11,8 +11,10 @@
 //! exactly zero gradient from every state j with G_ij = 0, and the result
 //! equals n separate subnetworks on the gathered inputs (tested below).
 
-use tch::nn::{self, Init};
-use tch::{Device, Kind, Tensor};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use tch::nn;
+use tch::{Device, Tensor};
 
 use crate::config::Activation;
 
@@ -24,11 +26,25 @@ fn activate(x: Tensor, act: Activation) -> Tensor {
     }
 }
 
-/// PyTorch's default linear init, U(−1/√fan_in, 1/√fan_in); the last layer
-/// of actors and critics gets U(±3e-3) so initial outputs are near 0
-/// (DDPG paper practice).
-fn uniform(bound: f64) -> Init {
-    Init::Uniform { lo: -bound, up: bound }
+/// A trainable variable drawn from U(−bound, bound) per row of `bounds`
+/// (one bound per leading index), from a seeded Rust RNG: initial weights
+/// depend on the seed alone, never on libtorch's global generator (which
+/// concurrent tests or threads would share).
+fn uniform_var(path: &nn::Path, name: &str, shape: &[i64], bounds: &[f64], rng: &mut ChaCha8Rng) -> Tensor {
+    let per_row = (shape.iter().product::<i64>() as usize) / bounds.len();
+    let values: Vec<f32> = bounds
+        .iter()
+        .flat_map(|&b| (0..per_row).map(move |_| b))
+        .map(|b| rng.random_range(-b..=b) as f32)
+        .collect();
+    let init = Tensor::from_slice(&values).view(shape).to_device(path.device());
+    path.var_copy(name, &init)
+}
+
+/// PyTorch's default linear init bound, 1/√fan_in; the last layer of actors
+/// and critics gets 3e-3 so initial outputs are near 0 (DDPG paper practice).
+fn init_bound(fan_in: usize, last: bool) -> f64 {
+    if last { 3e-3 } else { 1.0 / (fan_in.max(1) as f64).sqrt() }
 }
 
 /// A plain MLP: linear layers with `act` between them.
@@ -39,15 +55,15 @@ pub struct Mlp {
 }
 
 impl Mlp {
-    pub fn new(path: &nn::Path, sizes: &[usize], act: Activation) -> Self {
+    pub fn new(path: &nn::Path, sizes: &[usize], act: Activation, rng: &mut ChaCha8Rng) -> Self {
         let last = sizes.len() - 2;
         let layers = sizes
             .windows(2)
             .enumerate()
             .map(|(k, w)| {
-                let bound = if k == last { 3e-3 } else { 1.0 / (w[0] as f64).sqrt() };
-                let weight = path.var(&format!("w{k}"), &[w[0] as i64, w[1] as i64], uniform(bound));
-                let bias = path.var(&format!("b{k}"), &[w[1] as i64], uniform(bound));
+                let bound = [init_bound(w[0], k == last)];
+                let weight = uniform_var(path, &format!("w{k}"), &[w[0] as i64, w[1] as i64], &bound, rng);
+                let bias = uniform_var(path, &format!("b{k}"), &[w[1] as i64], &bound, rng);
                 (weight, bias)
             })
             .collect();
@@ -85,7 +101,7 @@ pub struct SubnetActor {
 
 impl SubnetActor {
     /// `g` is the n × m 0/1 connection graph (all ones for full-subnets).
-    pub fn new(path: &nn::Path, g: &[Vec<u8>], hidden: &[usize], act: Activation) -> Self {
+    pub fn new(path: &nn::Path, g: &[Vec<u8>], hidden: &[usize], act: Activation, rng: &mut ChaCha8Rng) -> Self {
         let n = g.len();
         let m = g.first().map_or(0, Vec::len);
         let inputs: Vec<usize> = g.iter().map(|row| row.iter().map(|&v| usize::from(v)).sum()).collect();
@@ -99,25 +115,11 @@ impl SubnetActor {
             .windows(2)
             .enumerate()
             .map(|(k, w)| {
-                let shape = [n as i64, w[0] as i64, w[1] as i64];
                 // Each subnetwork gets the init of its own fan-in: the first
                 // layer's fan-in is its number of connected states.
-                let bounds: Vec<f64> = (0..n)
-                    .map(|i| match k {
-                        _ if k == last => 3e-3,
-                        0 => 1.0 / (inputs[i].max(1) as f64).sqrt(),
-                        _ => 1.0 / (w[0] as f64).sqrt(),
-                    })
-                    .collect();
-                let scale = Tensor::from_slice(&bounds).to_kind(Kind::Float).view([n as i64, 1, 1]).to_device(path.device());
-                let weight = path.var(&format!("w{k}"), &shape, Init::Const(0.0));
-                let bias = path.var(&format!("b{k}"), &[n as i64, 1, w[1] as i64], Init::Const(0.0));
-                tch::no_grad(|| {
-                    let mut weight = weight.shallow_clone();
-                    weight.copy_(&((Tensor::rand(shape, (Kind::Float, path.device())) * 2.0 - 1.0) * &scale));
-                    let mut bias = bias.shallow_clone();
-                    bias.copy_(&((Tensor::rand([n as i64, 1, w[1] as i64], (Kind::Float, path.device())) * 2.0 - 1.0) * &scale));
-                });
+                let bounds: Vec<f64> = (0..n).map(|i| init_bound(if k == 0 { inputs[i] } else { w[0] }, k == last)).collect();
+                let weight = uniform_var(path, &format!("w{k}"), &[n as i64, w[0] as i64, w[1] as i64], &bounds, rng);
+                let bias = uniform_var(path, &format!("b{k}"), &[n as i64, 1, w[1] as i64], &bounds, rng);
                 (weight, bias)
             })
             .collect();
@@ -214,6 +216,12 @@ pub fn batch(rows: &[f32], width: usize, device: Device) -> Tensor {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rand::SeedableRng;
+    use tch::Kind;
+
+    fn rng() -> ChaCha8Rng {
+        ChaCha8Rng::seed_from_u64(7)
+    }
 
     /// A graph with an empty row, a full row and a partial row.
     fn graph() -> Vec<Vec<u8>> {
@@ -245,7 +253,7 @@ mod tests {
         tch::manual_seed(1);
         let vs = nn::VarStore::new(Device::Cpu);
         let g = graph();
-        let net = SubnetActor::new(&vs.root(), &g, &[16, 8], Activation::Tanh);
+        let net = SubnetActor::new(&vs.root(), &g, &[16, 8], Activation::Tanh, &mut rng());
         let x = Tensor::randn([32, 5], (Kind::Float, Device::Cpu));
         let batched = net.forward_raw(&x);
         let reference = separate(&net, &g, &x);
@@ -259,7 +267,7 @@ mod tests {
         tch::manual_seed(2);
         let vs = nn::VarStore::new(Device::Cpu);
         let g = graph();
-        let net = SubnetActor::new(&vs.root(), &g, &[16, 8], Activation::Relu);
+        let net = SubnetActor::new(&vs.root(), &g, &[16, 8], Activation::Relu, &mut rng());
         let x = Tensor::randn([7, 5], (Kind::Float, Device::Cpu)).set_requires_grad(true);
         let out = ActorNet::Subnets(net).forward(&x);
         for (i, row) in g.iter().enumerate() {
@@ -279,13 +287,13 @@ mod tests {
     fn shapes_and_parameter_counts() {
         let vs = nn::VarStore::new(Device::Cpu);
         let g = graph();
-        let local = SubnetActor::new(&vs.root().sub("local"), &g, &[16, 8], Activation::Relu);
+        let local = SubnetActor::new(&vs.root().sub("local"), &g, &[16, 8], Activation::Relu, &mut rng());
         // First layer: (2 + 5 + 1 + 0) connected inputs × 16, plus 4 × 16 biases;
         // then 4 × (16·8 + 8) and 4 × (8·1 + 1).
         assert_eq!(local.param_count(), 8 * 16 + 4 * 16 + 4 * (16 * 8 + 8) + 4 * (8 + 1));
-        let full = SubnetActor::new(&vs.root().sub("full"), &vec![vec![1; 5]; 4], &[16, 8], Activation::Relu);
+        let full = SubnetActor::new(&vs.root().sub("full"), &vec![vec![1; 5]; 4], &[16, 8], Activation::Relu, &mut rng());
         assert_eq!(full.param_count(), 4 * (5 * 16 + 16 + 16 * 8 + 8 + 8 + 1));
-        let global = Mlp::new(&vs.root().sub("global"), &[5, 32, 32, 4], Activation::Relu);
+        let global = Mlp::new(&vs.root().sub("global"), &[5, 32, 32, 4], Activation::Relu, &mut rng());
         assert_eq!(global.param_count(), 5 * 32 + 32 + 32 * 32 + 32 + 32 * 4 + 4);
         let x = Tensor::randn([3, 5], (Kind::Float, Device::Cpu));
         for actor in [ActorNet::Subnets(full), ActorNet::Global(global)] {

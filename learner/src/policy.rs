@@ -29,7 +29,8 @@ impl Policy {
         };
         let meta = read_meta(&dir)?;
         let mut vs = nn::VarStore::new(tch::Device::Cpu);
-        let actor = build_actor(&vs.root(), meta.connection, &meta.mask, meta.state_dim, meta.action_dim, &meta.config.network);
+        // The weights are overwritten by the checkpoint; the seed is irrelevant.
+        let actor = build_actor(&vs.root(), meta.connection, &meta.mask, meta.state_dim, meta.action_dim, &meta.config.network, 0);
         load_vs(&mut vs, &dir.join("actor.safetensors"))?;
         Ok(Policy { meta, _vs: vs, actor })
     }

@@ -69,10 +69,10 @@ struct PpoState {
 impl Ppo {
     pub fn new(cfg: &PpoConfig, net: &NetworkConfig, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, seed: u64) -> Self {
         let actor_vs = nn::VarStore::new(Device::Cpu);
-        let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net);
+        let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
         let log_std = actor_vs.root().var("log_std", &[n as i64], nn::Init::Const(cfg.log_std_init));
         let critic_vs = nn::VarStore::new(Device::Cpu);
-        let critic = build_critic(&critic_vs.root(), m, net);
+        let critic = build_critic(&critic_vs.root(), m, net, seed ^ 0xC717);
         Ppo {
             actor_opt: Adam::new(&actor_vs, cfg.actor_lr),
             critic_opt: Adam::new(&critic_vs, cfg.critic_lr),

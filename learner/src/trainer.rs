@@ -35,6 +35,9 @@ pub struct TrainRequest {
     pub config: TrainConfig,
     pub run_dir: PathBuf,
     pub resume: bool,
+    /// Stop (with a checkpoint) after this many episodes, as an interruption
+    /// would, keeping every schedule of the full run. None: run to the end.
+    pub stop_after: Option<usize>,
 }
 
 /// One row of metrics.csv.
@@ -140,7 +143,6 @@ fn observe(env: &dyn Env, state: &[f64]) -> Vec<f32> {
 
 /// Builds the agent for the request.
 pub fn make_agent(algo: Algo, connection: Connection, cfg: &TrainConfig, mask: &[Vec<u8>], m: usize, n: usize) -> Box<dyn Agent> {
-    tch::manual_seed(cfg.run.seed as i64);
     match algo {
         Algo::Ddpg => Box::new(Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed)),
         Algo::Ppo => Box::new(Ppo::new(&cfg.ppo, &cfg.network, connection, mask, m, n, cfg.run.seed)),
@@ -194,7 +196,7 @@ pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, LearnerError> {
 }
 
 /// Writes a checkpoint atomically: into a temporary folder, then renamed.
-fn write_checkpoint(run_dir: &Path, agent: &dyn Agent, meta: &CheckpointMeta) -> Result<PathBuf, LearnerError> {
+pub fn write_checkpoint(run_dir: &Path, agent: &dyn Agent, meta: &CheckpointMeta) -> Result<PathBuf, LearnerError> {
     let root = run_dir.join("checkpoints");
     std::fs::create_dir_all(&root).map_err(io(&root))?;
     let name = format!("ep{:06}", meta.episode);
@@ -218,14 +220,12 @@ fn read_rows(path: &Path, keep: usize) -> Result<Vec<EpisodeRow>, LearnerError> 
 
 fn write_rows(path: &Path, rows: &[EpisodeRow]) -> Result<csv::Writer<std::fs::File>, LearnerError> {
     let file = std::fs::File::create(path).map_err(io(path))?;
-    let mut writer = csv::WriterBuilder::new().has_headers(true).from_writer(file);
-    if rows.is_empty() {
-        // serde writes the header with the first record; write it now so an
-        // interrupted run still leaves a well-formed file.
-        writer
-            .write_record(["episode", "return", "length", "success", "peak_force_n", "peak_moment_nm", "wall_s", "optimization_s"])
-            .map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    }
+    // The header is written by hand, now, so an interrupted run still leaves
+    // a well-formed file (serde's automatic header waits for a first row).
+    let mut writer = csv::WriterBuilder::new().has_headers(false).from_writer(file);
+    writer
+        .write_record(["episode", "return", "length", "success", "peak_force_n", "peak_moment_nm", "wall_s", "optimization_s"])
+        .map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
     for row in rows {
         writer.serialize(row).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
     }
@@ -307,7 +307,8 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         elapsed_seconds: elapsed,
     };
 
-    for episode in rows.len()..cfg.run.episodes {
+    let last_episode = req.stop_after.map_or(cfg.run.episodes, |stop| stop.min(cfg.run.episodes));
+    for episode in rows.len()..last_episode {
         let episode_started = Instant::now();
         agent.set_progress(episode as f64 / cfg.run.episodes as f64);
         let steps_before = agent.counters().env_steps;
@@ -357,7 +358,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
             env_steps_per_sec: steps as f64 / episode_started.elapsed().as_secs_f64().max(1e-9),
         });
         let done = episode + 1;
-        if done % cfg.run.checkpoint_every == 0 || done == cfg.run.episodes {
+        if done % cfg.run.checkpoint_every == 0 || done == last_episode {
             let elapsed = prior_elapsed + run_started.elapsed().as_secs_f64();
             write_checkpoint(&req.run_dir, agent.as_ref(), &meta_for(done, optimization, elapsed))?;
         }

@@ -1,0 +1,183 @@
+//! Training-level tests: learning quality against the LQR ceilings,
+//! checkpoint round trips, exact resume, determinism.
+
+use std::path::Path;
+
+use lcrl_sim::make_env;
+
+use crate::config::{Algo, Connection, TrainConfig};
+use crate::policy::Policy;
+use crate::trainer::{make_agent, train, write_checkpoint, CheckpointMeta, EpisodeRow, TrainOutcome, TrainRequest};
+
+fn lti_fast() -> TrainConfig {
+    TrainConfig::load(Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../configs/lti-fast.toml"))).unwrap()
+}
+
+/// A very small DDPG setting for mechanics tests (not learning quality).
+fn tiny() -> TrainConfig {
+    let mut cfg = lti_fast();
+    cfg.ddpg.warmup_steps = 40;
+    cfg.ddpg.batch_size = 16;
+    cfg.ppo.rollout_steps = 64;
+    cfg.ppo.minibatch_size = 16;
+    cfg.ppo.epochs = 2;
+    cfg.run.episodes = 4;
+    cfg.run.checkpoint_every = 2;
+    cfg.run.eval_episodes = 2;
+    cfg
+}
+
+fn run(algo: Algo, connection: Connection, cfg: TrainConfig, dir: &Path, resume: bool) -> TrainOutcome {
+    run_until(algo, connection, cfg, dir, resume, None)
+}
+
+fn run_until(algo: Algo, connection: Connection, cfg: TrainConfig, dir: &Path, resume: bool, stop_after: Option<usize>) -> TrainOutcome {
+    let request = TrainRequest { env: "lti-paper".into(), algo, connection, graph: None, config: cfg, run_dir: dir.into(), resume, stop_after };
+    train(&request, &mut |_| {}).unwrap()
+}
+
+/// Rows without their wall-clock columns.
+fn timeless(rows: &[EpisodeRow]) -> Vec<(usize, f64, usize)> {
+    rows.iter().map(|r| (r.episode, r.episode_return, r.length)).collect()
+}
+
+fn within(value: f64, reference: f64, share: f64) -> bool {
+    (value - reference).abs() <= share * reference.abs()
+}
+
+/// Budget: 1000 episodes of 50 steps (50k environment steps), ≈8 s each.
+/// The global actor can represent the LQR controller, so it is held to
+/// 10% of lqr_return (deterministic policy, 100 evaluation episodes).
+#[test]
+fn ppo_global_reaches_lqr() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = lti_fast();
+    cfg.run.episodes = 1000;
+    let s = run(Algo::Ppo, Connection::Global, cfg, dir.path(), false).summary;
+    let lqr = s.lqr_return.unwrap();
+    assert!(within(s.eval_return, lqr, 0.10), "eval {} vs LQR {lqr}", s.eval_return);
+}
+
+/// The local actor cannot see s2 from a1 (G of eq. 10), and the LQR gain
+/// uses it, so its ceiling is the best G-structured controller
+/// (masked_lqr_return, about 26% below lqr_return here). Held to 10% of it.
+#[test]
+fn ppo_local_reaches_the_g_structured_optimum() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = lti_fast();
+    cfg.run.episodes = 1000;
+    let s = run(Algo::Ppo, Connection::Local, cfg, dir.path(), false).summary;
+    let masked = s.masked_lqr_return.unwrap();
+    assert!(within(s.eval_return, masked, 0.10), "eval {} vs masked LQR {masked}", s.eval_return);
+    assert!(masked < s.lqr_return.unwrap());
+}
+
+#[test]
+fn checkpoint_round_trip_gives_identical_actions() {
+    for algo in [Algo::Ddpg, Algo::Ppo] {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = tiny();
+        let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
+        let mut agent = make_agent(algo, Connection::Local, &cfg, &mask, 3, 3);
+        // Some training so the weights are not the initial ones.
+        let obs = [0.3f32, -0.2, 0.5];
+        for k in 0..80 {
+            let u = agent.explore(&obs, k);
+            let next = [obs[0] * 0.9, obs[1] + 0.01 * k as f32, -obs[2]];
+            agent.observe(crate::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &next, terminated: false, truncated: k % 50 == 49 });
+        }
+        let meta = CheckpointMeta {
+            episode: 1,
+            env: "lti-paper".into(),
+            algo,
+            connection: Connection::Local,
+            state_dim: 3,
+            action_dim: 3,
+            mask: mask.clone(),
+            config: cfg.clone(),
+            graph_seconds: 0.0,
+            optimization_seconds: 0.0,
+            elapsed_seconds: 0.0,
+        };
+        let saved = write_checkpoint(dir.path(), agent.as_ref(), &meta).unwrap();
+        let policy = Policy::load(&saved).unwrap();
+        let mut restored = make_agent(algo, Connection::Local, &cfg, &mask, 3, 3);
+        restored.load(&saved).unwrap();
+        let env = make_env("lti-paper").unwrap();
+        for probe in [[0.1f32, 0.2, 0.3], [-1.0, 0.5, 0.0]] {
+            assert_eq!(agent.act(&probe), restored.act(&probe), "{algo:?}");
+            let state: Vec<f64> = probe.iter().map(|&v| f64::from(v)).collect();
+            let expected: Vec<f64> = agent.act(&probe).iter().map(|&u| f64::from(u)).collect();
+            assert_eq!(policy.act(env.as_ref(), &state), expected, "{algo:?}");
+        }
+        assert_eq!(agent.counters(), restored.counters());
+    }
+}
+
+/// 4 episodes straight, or interrupted after 2 then --resume: the same rows,
+/// counters and final policy (one thread, same seed).
+#[test]
+fn resumed_run_continues_exactly() {
+    for algo in [Algo::Ddpg, Algo::Ppo] {
+        let straight_dir = tempfile::tempdir().unwrap();
+        let straight = run(algo, Connection::Local, tiny(), straight_dir.path(), false);
+        let resumed_dir = tempfile::tempdir().unwrap();
+        run_until(algo, Connection::Local, tiny(), resumed_dir.path(), false, Some(2));
+        let resumed = run(algo, Connection::Local, tiny(), resumed_dir.path(), true);
+        assert_eq!(timeless(&straight.rows), timeless(&resumed.rows), "{algo:?}");
+        assert_eq!((straight.summary.env_steps, straight.summary.updates), (resumed.summary.env_steps, resumed.summary.updates));
+        assert_eq!(straight.summary.eval_return, resumed.summary.eval_return, "{algo:?}: final policies differ");
+    }
+}
+
+#[test]
+fn same_seed_gives_identical_metrics() {
+    let a = tempfile::tempdir().unwrap();
+    let b = tempfile::tempdir().unwrap();
+    let first = run(Algo::Ddpg, Connection::Global, tiny(), a.path(), false);
+    let second = run(Algo::Ddpg, Connection::Global, tiny(), b.path(), false);
+    assert_eq!(timeless(&first.rows), timeless(&second.rows));
+    let mut other = tiny();
+    other.run.seed = 1;
+    let third = run(Algo::Ddpg, Connection::Global, other, tempfile::tempdir().unwrap().path(), false);
+    assert_ne!(timeless(&first.rows), timeless(&third.rows));
+}
+
+#[test]
+fn refuses_to_overwrite_a_run_and_rejects_mismatched_graphs() {
+    let dir = tempfile::tempdir().unwrap();
+    run(Algo::Ddpg, Connection::Global, tiny(), dir.path(), false);
+    let request = TrainRequest {
+        env: "lti-paper".into(),
+        algo: Algo::Ddpg,
+        connection: Connection::Global,
+        graph: None,
+        config: tiny(),
+        run_dir: dir.path().into(),
+        resume: false,
+        stop_after: None,
+    };
+    let err = train(&request, &mut |_| {}).err().unwrap().to_string();
+    assert!(err.contains("--resume"), "{err}");
+    let resume_other = TrainRequest { algo: Algo::Ppo, resume: true, ..request.clone() };
+    assert!(train(&resume_other, &mut |_| {}).err().unwrap().to_string().contains("same --env, --algo"));
+
+    // A graph built for lti-paper (3×3) does not fit peg-group1 (6×12).
+    let graph = dir.path().join("graph.json");
+    let options = lcrl_graph_builder::GraphOptions {
+        cs3: lcrl_graph_builder::Cs3Config { samples: 8, seed: 0, threads: 1 },
+        rule: lcrl_graph_builder::Rule::Threshold(0.1),
+        bootstrap: 0,
+    };
+    let env = make_env("lti-paper").unwrap();
+    lcrl_graph_builder::build_graph(env.as_ref(), &options, &|| {}).unwrap().write_json(&graph).unwrap();
+    let peg = TrainRequest {
+        env: "peg-group1".into(),
+        connection: Connection::Local,
+        graph: Some(graph),
+        run_dir: dir.path().join("peg"),
+        ..request
+    };
+    let err = train(&peg, &mut |_| {}).err().unwrap().to_string();
+    assert!(err.contains("3×3") && err.contains("6 actions"), "{err}");
+}
