@@ -20,6 +20,12 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 5)]
         repeats: usize,
     },
+    /// DDPG update and PPO update time, local vs global actor.
+    Learner {
+        /// DDPG updates to time per actor.
+        #[arg(long, default_value_t = 300)]
+        updates: usize,
+    },
     /// Control steps per second of peg-group1 on one core.
     Sim {
         /// Episodes per setting.
@@ -32,7 +38,60 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
     match command {
         BenchCommand::Graph { samples, repeats } => bench_graph(samples, repeats.max(1)),
         BenchCommand::Sim { episodes } => bench_sim(episodes.max(1)),
+        BenchCommand::Learner { updates } => bench_learner(updates.max(1)),
     }
+}
+
+/// One DDPG update (batch 256, default sizes) and one PPO update (a 2048-step
+/// rollout: 10 epochs of 64-transition minibatches), local vs global actor,
+/// at the peg task's size with its CS3 graph, one libtorch thread.
+fn bench_learner(updates: usize) -> anyhow::Result<()> {
+    use lcrl_learner::agent::Transition;
+    use lcrl_learner::trainer::make_agent;
+    use lcrl_learner::{Algo, Connection, TrainConfig};
+    use rand::{Rng, SeedableRng};
+
+    tch::set_num_threads(1);
+    let env = lcrl_sim::make_env("peg-group1")?;
+    let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
+    let options = GraphOptions { cs3: Cs3Config { samples: 32, seed: 0, threads: 0 }, rule: Rule::Threshold(0.1), bootstrap: 0 };
+    let mask = build_graph(env.as_ref(), &options, &|| {})?.g;
+    let edges: usize = mask.iter().flatten().map(|&v| usize::from(v)).sum();
+    println!("peg-group1 ({m} states, {n} actions, {edges} of {} edges in G), one libtorch thread", m * n);
+    let mut cfg = TrainConfig::default();
+    cfg.ddpg.warmup_steps = 0;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+    let mut random = |len: usize| -> Vec<f32> { (0..len).map(|_| rng.random_range(-1.0..1.0)).collect() };
+    let mut results = Vec::new();
+    for connection in [Connection::Global, Connection::Local, Connection::FullSubnets] {
+        let mut ddpg = make_agent(Algo::Ddpg, connection, &cfg, &mask, m, n);
+        let mut ddpg_seconds = 0.0;
+        for k in 0..(updates + cfg.ddpg.batch_size) {
+            let (obs, action, next) = (random(m), random(n), random(m));
+            let t = Transition { obs: &obs, action: &action, reward: -1.0, next_obs: &next, terminated: false, truncated: false };
+            let spent = ddpg.observe(t);
+            if k >= cfg.ddpg.batch_size {
+                ddpg_seconds += spent;
+            }
+        }
+        let mut ppo = make_agent(Algo::Ppo, connection, &cfg, &mask, m, n);
+        let mut ppo_seconds = 0.0;
+        for _ in 0..cfg.ppo.rollout_steps {
+            let obs = random(m);
+            let action = ppo.explore(&obs, 0);
+            let next = random(m);
+            ppo_seconds += ppo.observe(Transition { obs: &obs, action: &action, reward: -1.0, next_obs: &next, terminated: false, truncated: false });
+        }
+        let params = ddpg.param_counts().0;
+        results.push((connection, params, ddpg_seconds / updates as f64, ppo_seconds));
+    }
+    println!("{:<14} {:>13} {:>16} {:>12} {:>18}", "actor", "actor params", "DDPG update ms", "updates/s", "PPO update (10 ep) s");
+    for (connection, params, ddpg, ppo) in &results {
+        println!("{:<14} {params:>13} {:>16.3} {:>12.0} {ppo:>18.3}", format!("{connection:?}"), ddpg * 1e3, 1.0 / ddpg);
+    }
+    let (global, local) = (&results[0], &results[1]);
+    println!("local / global: DDPG update {:.2}×, PPO update {:.2}× (target ≤ 1.3×)", local.2 / global.2, local.3 / global.3);
+    Ok(())
 }
 
 /// Control steps per second of the constant controller on peg-group1 on

@@ -15,9 +15,14 @@ use crate::plots::{line_panels, Panel};
 #[derive(Debug, clap::Args)]
 pub struct SimArgs {
     /// Environment: a registered name (peg-group1, peg-group2, peg-experiment,
-    /// lti-paper) or a path to a .toml file.
-    #[arg(long)]
-    pub env: String,
+    /// lti-paper) or a path to a .toml file. With --checkpoint it defaults
+    /// to the environment the policy was trained on.
+    #[arg(long, required_unless_present = "checkpoint")]
+    pub env: Option<String>,
+    /// Evaluate a trained policy instead: a checkpoint folder
+    /// (RUN/checkpoints/epNNNNNN) or a run directory (its newest checkpoint).
+    #[arg(long, value_name = "DIR", conflicts_with = "controller")]
+    pub checkpoint: Option<PathBuf>,
     /// The controller: `constant` is the constant compliance controller
     /// (a = 0, METHOD.md §6), the non-learning baseline.
     #[arg(long, value_enum, default_value_t = Controller::Constant)]
@@ -42,14 +47,33 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
     if args.episodes == 0 {
         bail!("--episodes must be at least 1");
     }
-    let mut env = lcrl_sim::make_env(&args.env)?;
+    let policy = args.checkpoint.as_deref().map(lcrl_learner::policy::Policy::load).transpose()?;
+    let env_name = match (&args.env, &policy) {
+        (Some(name), _) => name.clone(),
+        (None, Some(policy)) => policy.meta.env.clone(),
+        (None, None) => bail!("--env is required without --checkpoint"),
+    };
+    let mut env = lcrl_sim::make_env(&env_name)?;
+    if let Some(policy) = &policy {
+        policy.check_env(env.as_ref())?;
+    }
     prepare_out_dir(&args.out)?;
     let n = env.spec().action_dim();
+    // The policy normalizes states with the environment's scales; a snapshot
+    // serves that while `evaluate` steps the environment itself.
+    let scales = env.snapshot();
+    let (label, mut act): (String, Box<dyn FnMut(&[f64]) -> Vec<f64>>) = match &policy {
+        Some(policy) => (
+            format!("{:?}/{:?} policy (episode {})", policy.meta.algo, policy.meta.connection, policy.meta.episode).to_lowercase(),
+            Box::new(move |s: &[f64]| policy.act(scales.as_ref(), s)),
+        ),
+        None => ("constant".to_string(), Box::new(move |_: &[f64]| vec![0.0; n])),
+    };
     let bar = ProgressBar::new(args.episodes as u64);
     if let Ok(style) = ProgressStyle::with_template("episodes [{bar:30}] {pos}/{len} {msg} ({elapsed})") {
         bar.set_style(style.progress_chars("=> "));
     }
-    let result = evaluate(env.as_mut(), "constant", args.episodes, args.seed, &mut |_| vec![0.0; n], &mut |r| {
+    let result = evaluate(env.as_mut(), &label, args.episodes, args.seed, &mut act, &mut |r| {
         bar.set_message(format!("return {:.2}", r.episode_return));
         bar.inc(1);
     });

@@ -7,4 +7,5 @@ mod e2e {
     mod graph_cli;
     mod graph_service;
     mod sim_cli;
+    mod train_cli;
 }

@@ -1,0 +1,121 @@
+//! `lcrl train` and `lcrl sim --checkpoint` as a user runs them.
+
+use std::fs;
+use std::path::Path;
+
+use serde_json::Value;
+
+use super::common::{assert_clean_failure, lcrl, stdout};
+
+const TINY: &str = "[network]\nglobal_hidden = [16, 16]\nsubnet_hidden = [8, 8]\ncritic_hidden = [16, 16]\n\
+[ddpg]\nwarmup_steps = 20\nbatch_size = 16\n[run]\nepisodes = 3\ncheckpoint_every = 1\neval_episodes = 2\ngraph_samples = 16\n";
+
+fn train(dir: &Path, config: &Path, extra: &[&str]) -> std::process::Output {
+    lcrl()
+        .args(["train", "--env", "lti-paper", "--algo", "ddpg", "--connection", "local", "--config"])
+        .arg(config)
+        .arg("--run-dir")
+        .arg(dir)
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
+fn json(path: &Path) -> Value {
+    serde_json::from_str(&fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// metrics.csv without the wall-clock columns.
+fn timeless_metrics(path: &Path) -> Vec<String> {
+    fs::read_to_string(path).unwrap().lines().map(|l| l.split(',').take(6).collect::<Vec<_>>().join(",")).collect()
+}
+
+#[test]
+fn train_writes_the_run_directory_resumes_and_evaluates() {
+    let work = tempfile::tempdir().unwrap();
+    let config = work.path().join("tiny.toml");
+    fs::write(&config, TINY).unwrap();
+    let run = work.path().join("run");
+    let out = train(&run, &config, &[]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout(&out).contains("actor parameters"), "{}", stdout(&out));
+    for file in ["config.toml", "graph.json", "metrics.csv", "summary.json", "reward_curve.png"] {
+        assert!(run.join(file).is_file(), "{file} missing");
+    }
+    let summary = json(&run.join("summary.json"));
+    for key in ["final_return", "episodes", "graph_seconds", "optimization_seconds", "total_seconds", "lqr_return"] {
+        assert!(summary.get(key).is_some_and(|v| !v.is_null()), "summary.json lacks {key}");
+    }
+    assert_eq!(summary["episodes"], 3);
+    assert_eq!(fs::read_to_string(run.join("metrics.csv")).unwrap().lines().count(), 4);
+    let checkpoint = run.join("checkpoints/ep000003");
+    for file in ["actor.safetensors", "critic.safetensors", "actor_target.safetensors", "actor_optimizer.safetensors", "replay.safetensors", "checkpoint.json"] {
+        assert!(checkpoint.join(file).is_file(), "checkpoint lacks {file}");
+    }
+
+    // Running again into the same directory needs --resume.
+    assert_clean_failure(&train(&run, &config, &[]), "--resume");
+    let out = train(&run, &config, &["--resume", "--episodes", "5"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(json(&run.join("summary.json"))["episodes"], 5);
+    assert_eq!(fs::read_to_string(run.join("metrics.csv")).unwrap().lines().count(), 6);
+
+    // The trained policy, evaluated with the same outputs as the constant controller.
+    let sim = work.path().join("sim");
+    let out = lcrl().args(["sim", "--episodes", "2", "--checkpoint"]).arg(&run).arg("--out").arg(&sim).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let summary = json(&sim.join("summary.json"));
+    assert!(summary["controller"].as_str().unwrap().contains("ddpg/local"), "{summary}");
+    assert!(sim.join("trace.csv").is_file() && sim.join("trace.png").is_file());
+    // A checkpoint does not fit another environment.
+    let out = lcrl().args(["sim", "--env", "peg-group1", "--checkpoint"]).arg(&run).arg("--out").arg(&sim).output().unwrap();
+    assert_clean_failure(&out, "peg-group1");
+}
+
+#[test]
+fn same_seed_one_thread_gives_identical_metrics() {
+    let work = tempfile::tempdir().unwrap();
+    let config = work.path().join("tiny.toml");
+    fs::write(&config, TINY).unwrap();
+    let (a, b) = (work.path().join("a"), work.path().join("b"));
+    for dir in [&a, &b] {
+        let out = train(dir, &config, &["--seed", "3", "--threads", "1"]);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    }
+    assert_eq!(timeless_metrics(&a.join("metrics.csv")), timeless_metrics(&b.join("metrics.csv")));
+}
+
+#[test]
+fn bad_input_fails_cleanly() {
+    let work = tempfile::tempdir().unwrap();
+    let config = work.path().join("tiny.toml");
+    fs::write(&config, TINY).unwrap();
+    let bad = work.path().join("bad.toml");
+    fs::write(&bad, "[ddpg]\nactor_lr = -0.001\n").unwrap();
+    assert_clean_failure(&train(&work.path().join("r1"), &bad, &[]), "ddpg.actor_lr");
+
+    let out = lcrl().args(["train", "--env", "lti-paper", "--algo", "sac", "--connection", "local"]).output().unwrap();
+    assert_clean_failure(&out, "sac");
+
+    // A graph of lti-paper (3×3) used for peg-group1 (6 actions × 12 states).
+    let graph = work.path().join("graph.json");
+    let out = lcrl().args(["graph", "--env", "lti-paper", "--samples", "8", "--out"]).arg(&graph).output().unwrap();
+    assert!(out.status.success());
+    let out = lcrl()
+        .args(["train", "--env", "peg-group1", "--algo", "ddpg", "--connection", "local", "--config"])
+        .arg(&config)
+        .arg("--graph")
+        .arg(&graph)
+        .arg("--run-dir")
+        .arg(work.path().join("r2"))
+        .output()
+        .unwrap();
+    assert_clean_failure(&out, "3×3");
+
+    let out = lcrl()
+        .args(["train", "--env", "lti-paper", "--algo", "ppo", "--connection", "global", "--graph"])
+        .arg(&graph)
+        .output()
+        .unwrap();
+    assert_clean_failure(&out, "--graph only applies");
+}
