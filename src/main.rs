@@ -2,6 +2,7 @@
 //! Learning. Each subcommand is a thin layer over a library crate.
 
 mod bench;
+mod compare_cmd;
 mod doctor;
 mod plots;
 mod sim_cmd;
@@ -35,6 +36,8 @@ enum Command {
     Sim(sim_cmd::SimArgs),
     /// Train an actor (LCRL local, GCRL global, or full-subnets) with DDPG or PPO.
     Train(train_cmd::TrainArgs),
+    /// Compare training runs: time split, final returns, reward curves.
+    Compare(compare_cmd::CompareArgs),
     /// Check the installation: libtorch loads and computes, threads, CUDA.
     Doctor,
     /// Measure performance figures (see `lcrl bench --help`).
@@ -54,6 +57,7 @@ fn main() -> ExitCode {
         Command::Graph(args) => run_graph(&args),
         Command::Sim(args) => sim_cmd::run(&args),
         Command::Train(args) => train_cmd::run(&args),
+        Command::Compare(args) => compare_cmd::run(&args),
         Command::Doctor => doctor::run(),
         Command::Bench(command) => bench::run(command),
     };

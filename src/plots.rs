@@ -56,8 +56,9 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
         }
         for (k, (name, values)) in panel.series.iter().enumerate() {
             let color = COLORS[k % COLORS.len()];
+            let points = x.iter().copied().zip(values.iter().copied()).filter(|(_, y)| y.is_finite());
             chart
-                .draw_series(LineSeries::new(x.iter().copied().zip(values.iter().copied()), color.stroke_width(2)))
+                .draw_series(LineSeries::new(points, color.stroke_width(2)))
                 .map_err(|e| draw_err(&e))?
                 .label(name.as_str())
                 .legend(move |(lx, ly)| PathElement::new(vec![(lx, ly), (lx + 18, ly)], color.stroke_width(2)));

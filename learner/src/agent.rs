@@ -120,3 +120,17 @@ pub fn save_vs(vs: &nn::VarStore, path: &Path) -> Result<(), LearnerError> {
 pub fn load_vs(vs: &mut nn::VarStore, path: &Path) -> Result<(), LearnerError> {
     vs.load(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
 }
+
+/// Writes an agent's non-tensor state (RNG, counters, …) as `agent.json`.
+pub fn write_agent_state<T: Serialize>(dir: &Path, state: &T) -> Result<(), LearnerError> {
+    let path = dir.join("agent.json");
+    let text = serde_json::to_string(state).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    std::fs::write(&path, text).map_err(|source| LearnerError::Io { path, source })
+}
+
+/// Reads what [`write_agent_state`] wrote.
+pub fn read_agent_state<T: serde::de::DeserializeOwned>(dir: &Path) -> Result<T, LearnerError> {
+    let path = dir.join("agent.json");
+    let text = std::fs::read_to_string(&path).map_err(|source| LearnerError::Io { path: path.clone(), source })?;
+    serde_json::from_str(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+}

@@ -21,7 +21,7 @@ use serde::{Deserialize, Serialize};
 use tch::{nn, Device, Kind, Tensor};
 
 use crate::adam::Adam;
-use crate::agent::{build_actor, build_critic, load_vs, read_tensors, save_vs, write_tensors, Agent, Counters, RngState, Transition};
+use crate::agent::{build_actor, build_critic, load_vs, read_agent_state, read_tensors, save_vs, write_agent_state, write_tensors, Agent, Counters, RngState, Transition};
 use crate::config::{Connection, DdpgConfig, NetworkConfig};
 use crate::nets::{batch, ActorNet, Mlp};
 use crate::replay::ReplayBuffer;
@@ -204,8 +204,7 @@ impl Agent for Ddpg {
             write_tensors(&dir.join("replay.safetensors"), &self.replay.to_tensors())?;
         }
         let state = DdpgState { rng: RngState::of(&self.rng), counters: self.counters, critic_updates: self.critic_updates };
-        let text = serde_json::to_string_pretty(&state).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-        std::fs::write(dir.join("agent.json"), text).map_err(|source| LearnerError::Io { path: dir.join("agent.json"), source })
+        write_agent_state(dir, &state)
     }
 
     fn load(&mut self, dir: &Path) -> Result<(), LearnerError> {
@@ -220,9 +219,7 @@ impl Agent for Ddpg {
             self.replay = ReplayBuffer::from_tensors(self.cfg.buffer_capacity, self.obs_dim, self.action_dim, &read_tensors(&replay)?)
                 .map_err(LearnerError::Checkpoint)?;
         }
-        let path = dir.join("agent.json");
-        let text = std::fs::read_to_string(&path).map_err(|source| LearnerError::Io { path: path.clone(), source })?;
-        let state: DdpgState = serde_json::from_str(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))?;
+        let state: DdpgState = read_agent_state(dir)?;
         self.rng = state.rng.restore()?;
         self.counters = state.counters;
         self.critic_updates = state.critic_updates;

@@ -23,7 +23,7 @@ use serde::{Deserialize, Serialize};
 use tch::{nn, Device, Kind, Tensor};
 
 use crate::adam::Adam;
-use crate::agent::{build_actor, build_critic, load_vs, read_tensors, save_vs, write_tensors, Agent, Counters, RngState, Transition};
+use crate::agent::{build_actor, build_critic, load_vs, read_agent_state, read_tensors, save_vs, write_agent_state, write_tensors, Agent, Counters, RngState, Transition};
 use crate::config::{Connection, NetworkConfig, PpoConfig};
 use crate::nets::{batch, ActorNet, Mlp};
 use crate::LearnerError;
@@ -227,8 +227,7 @@ impl Agent for Ppo {
         write_tensors(&dir.join("critic_optimizer.safetensors"), &self.critic_opt.state())?;
         // The unfinished rollout is part of the state: PPO resumes mid-rollout.
         let state = PpoState { rng: RngState::of(&self.rng), counters: self.counters, rollout: self.rollout.clone() };
-        let text = serde_json::to_string(&state).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-        std::fs::write(dir.join("agent.json"), text).map_err(|source| LearnerError::Io { path: dir.join("agent.json"), source })
+        write_agent_state(dir, &state)
     }
 
     fn load(&mut self, dir: &Path) -> Result<(), LearnerError> {
@@ -236,9 +235,7 @@ impl Agent for Ppo {
         load_vs(&mut self.critic_vs, &dir.join("critic.safetensors"))?;
         self.actor_opt.load_state(&read_tensors(&dir.join("actor_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
         self.critic_opt.load_state(&read_tensors(&dir.join("critic_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
-        let path = dir.join("agent.json");
-        let text = std::fs::read_to_string(&path).map_err(|source| LearnerError::Io { path: path.clone(), source })?;
-        let state: PpoState = serde_json::from_str(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))?;
+        let state: PpoState = read_agent_state(dir)?;
         self.rng = state.rng.restore()?;
         self.counters = state.counters;
         self.rollout = state.rollout;

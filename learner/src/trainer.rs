@@ -97,6 +97,7 @@ pub struct CheckpointMeta {
     pub config: TrainConfig,
     pub graph_seconds: f64,
     pub optimization_seconds: f64,
+    /// Wall time of the run so far (graph, set-up, training), seconds.
     pub elapsed_seconds: f64,
 }
 
@@ -249,7 +250,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     }
 
     let mut cfg = req.config.clone();
-    let (mask, mut graph_seconds, mut prior_opt, mut prior_elapsed, mut rows, checkpoint) = match (req.resume, existing) {
+    let (mask, graph_seconds, mut prior_opt, prior_elapsed, mut rows, checkpoint) = match (req.resume, existing) {
         (true, Some(dir)) => {
             let meta = read_meta(&dir)?;
             if meta.env != req.env || meta.algo != req.algo || meta.connection != req.connection {
@@ -291,7 +292,6 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     }
     let metrics_path = req.run_dir.join("metrics.csv");
     let mut metrics = write_rows(&metrics_path, &rows)?;
-    let run_started = Instant::now();
     let mut optimization = prior_opt;
     let meta_for = |episode: usize, optimization: f64, elapsed: f64| CheckpointMeta {
         episode,
@@ -359,12 +359,11 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         });
         let done = episode + 1;
         if done % cfg.run.checkpoint_every == 0 || done == last_episode {
-            let elapsed = prior_elapsed + run_started.elapsed().as_secs_f64();
+            let elapsed = prior_elapsed + started.elapsed().as_secs_f64();
             write_checkpoint(&req.run_dir, agent.as_ref(), &meta_for(done, optimization, elapsed))?;
         }
     }
     prior_opt = optimization;
-    prior_elapsed += run_started.elapsed().as_secs_f64();
 
     // The deterministic policy, and the LQR ceiling on the same episodes.
     let episodes = cfg.run.eval_episodes.max(1);
@@ -379,9 +378,6 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     let recent = &rows[rows.len().saturating_sub(10)..];
     let (actor_params, critic_params) = agent.param_counts();
     let counters = agent.counters();
-    if req.resume && checkpoint.is_none() {
-        graph_seconds = 0.0;
-    }
     let summary = TrainSummary {
         env: req.env.clone(),
         algo: req.algo,
@@ -394,7 +390,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         masked_lqr_return: masked_lqr,
         graph_seconds,
         optimization_seconds: prior_opt,
-        total_seconds: prior_elapsed + graph_seconds + (started.elapsed().as_secs_f64() - run_started.elapsed().as_secs_f64()).max(0.0),
+        total_seconds: prior_elapsed + started.elapsed().as_secs_f64(),
         env_steps: counters.env_steps,
         updates: counters.updates,
         actor_params,

@@ -202,11 +202,20 @@ impl Env for PegEnv {
         };
         // Eqs. 16–17; depth in cm (see config.rs for the units). Reaching the
         // depth ends the episode at once, and exceeding a limit ends it as a
-        // failure, so an inserted episode stayed within limits throughout.
+        // failure, so an inserted episode stayed within limits throughout and
+        // earns r_s.
         let r = &self.cfg.reward;
-        let mut reward = -r.h_z * remaining.max(0.0) / 10.0 - r.h_f * force - r.h_m * moment;
-        if self.outcome == Outcome::Inserted {
-            reward += r.r_s;
+        let depth_cost = r.h_z * remaining.max(0.0) / 10.0;
+        let mut reward = -depth_cost - r.h_f * force - r.h_m * moment;
+        match self.outcome {
+            Outcome::Inserted => reward += r.r_s,
+            // Dense rewards are negative, so ending early would pay: a jam at
+            // step 5 would out-score a clean insertion. A failure is charged
+            // the depth cost of staying stuck until the step cap instead.
+            Outcome::ForceLimit | Outcome::MomentLimit => {
+                reward -= depth_cost * self.cfg.episode.max_steps.saturating_sub(self.steps) as f64;
+            }
+            Outcome::Running => {}
         }
         Ok(Step {
             state: self.state.clone(),

@@ -140,6 +140,12 @@ fn jamming_ends_on_the_force_limit() {
     assert!(matches!(env.outcome(), Outcome::ForceLimit | Outcome::MomentLimit), "{:?}", env.outcome());
     assert!(last.state[2] > 5.0, "jammed near the entrance, not inserted: z = {}", last.state[2]);
     assert!(env.episode_metrics().peak_force_n.unwrap() > 20.0);
+    // Failing early must not pay: the jam costs more than a clean insertion.
+    let jam_return: f64 = steps.iter().map(|s| s.reward).sum();
+    let mut clean = PegEnv::new("peg-test", PegConfig::group1()).unwrap();
+    clean.reset_to([0.0, 0.0, 0.5], [0.0; 3]);
+    let clean_return: f64 = run(&mut clean, [0.0; 6]).iter().map(|s| s.reward).sum();
+    assert!(jam_return < 2.0 * clean_return, "jam {jam_return} vs clean {clean_return}");
     assert_eq!(env.step(&[0.0; 6]).unwrap_err().to_string(), EnvError::EpisodeOver.to_string());
 }
 
