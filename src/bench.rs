@@ -64,7 +64,7 @@ fn bench_learner(updates: usize) -> anyhow::Result<()> {
     let mut random = |len: usize| -> Vec<f32> { (0..len).map(|_| rng.random_range(-1.0..1.0)).collect() };
     let mut results = Vec::new();
     for connection in [Connection::Global, Connection::Local, Connection::FullSubnets] {
-        let mut ddpg = make_agent(Algo::Ddpg, connection, &cfg, &mask, m, n);
+        let mut ddpg = make_agent(Algo::Ddpg, connection, &cfg, &mask, m, n)?;
         let mut ddpg_seconds = 0.0;
         for k in 0..(updates + cfg.ddpg.batch_size) {
             let (obs, action, next) = (random(m), random(n), random(m));
@@ -74,7 +74,7 @@ fn bench_learner(updates: usize) -> anyhow::Result<()> {
                 ddpg_seconds += spent;
             }
         }
-        let mut ppo = make_agent(Algo::Ppo, connection, &cfg, &mask, m, n);
+        let mut ppo = make_agent(Algo::Ppo, connection, &cfg, &mask, m, n)?;
         let mut ppo_seconds = 0.0;
         for _ in 0..cfg.ppo.rollout_steps {
             let obs = random(m);

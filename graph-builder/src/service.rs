@@ -5,7 +5,9 @@ use std::future::Future;
 use std::sync::Arc;
 
 use lcrl_proto::v1::graph_server::{Graph, GraphServer};
-use lcrl_proto::v1::{ConnectionGraph, GetGraphRequest};
+use lcrl_proto::v1::{ConnectionGraph, GetGraphRequest, WatchGraphRequest};
+use tokio_stream::wrappers::WatchStream;
+use tokio_stream::{Stream, StreamExt};
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio_stream::wrappers::TcpListenerStream;
@@ -34,8 +36,22 @@ impl GraphService {
     }
 }
 
+/// The stream of `WatchGraph`: each Ready state of the watch channel.
+pub type GraphStream = std::pin::Pin<Box<dyn Stream<Item = Result<ConnectionGraph, Status>> + Send>>;
+
 #[tonic::async_trait]
 impl Graph for GraphService {
+    type WatchGraphStream = GraphStream;
+
+    #[tracing::instrument(skip_all, name = "WatchGraph")]
+    async fn watch_graph(&self, _request: Request<WatchGraphRequest>) -> Result<Response<GraphStream>, Status> {
+        let stream = WatchStream::new(self.state.clone()).filter_map(|state| match state {
+            GraphState::Ready(graph) => Some(Ok((*graph).clone())),
+            _ => None,
+        });
+        Ok(Response::new(Box::pin(stream)))
+    }
+
     #[tracing::instrument(skip_all, name = "GetGraph")]
     async fn get_graph(&self, _request: Request<GetGraphRequest>) -> Result<Response<ConnectionGraph>, Status> {
         let state = self.state.borrow().clone();

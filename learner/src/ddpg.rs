@@ -29,6 +29,7 @@ use crate::LearnerError;
 
 pub struct Ddpg {
     cfg: DdpgConfig,
+    device: Device,
     obs_dim: usize,
     action_dim: usize,
     actor_vs: nn::VarStore,
@@ -58,8 +59,8 @@ struct DdpgState {
 }
 
 impl Ddpg {
-    pub fn new(cfg: &DdpgConfig, net: &NetworkConfig, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, seed: u64) -> Self {
-        let device = Device::Cpu;
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(cfg: &DdpgConfig, net: &NetworkConfig, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, seed: u64, device: Device) -> Self {
         let actor_vs = nn::VarStore::new(device);
         let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
         let mut actor_target_vs = nn::VarStore::new(device);
@@ -84,6 +85,7 @@ impl Ddpg {
             actor_opt: Adam::new(&actor_vs, cfg.actor_lr),
             critic_opt: Adam::new(&critic_vs, cfg.critic_lr),
             cfg: cfg.clone(),
+            device,
             obs_dim: m,
             action_dim: n,
             actor_vs,
@@ -114,13 +116,13 @@ impl Ddpg {
 
     /// One DDPG update on a minibatch from the replay buffer.
     fn update(&mut self) {
-        let b = self.replay.sample(self.cfg.batch_size, &mut self.rng);
+        let b = self.replay.sample(self.cfg.batch_size, &mut self.rng).to_device(self.device);
         let target: Tensor = tch::no_grad(|| {
             let mut next_action = self.actor_target.forward(&b.next_obs);
             if self.cfg.target_noise > 0.0 {
                 let noise = Normal::new(0.0, self.cfg.target_noise).expect("validated target_noise");
                 let values: Vec<f32> = (0..next_action.numel()).map(|_| noise.sample(&mut self.rng).clamp(-0.5, 0.5) as f32).collect();
-                let noise = Tensor::from_slice(&values).view_as(&next_action);
+                let noise = Tensor::from_slice(&values).to_device(self.device).view_as(&next_action);
                 next_action = (next_action + noise).clamp(-1.0, 1.0);
             }
             let next_q = self.critic_target.forward(&Tensor::cat(&[&b.next_obs, &next_action], 1));
@@ -171,7 +173,10 @@ impl Agent for Ddpg {
     }
 
     fn act(&self, obs: &[f32]) -> Vec<f32> {
-        tch::no_grad(|| Vec::<f32>::try_from(self.actor.forward(&batch(obs, self.obs_dim, Device::Cpu)).flatten(0, -1)).unwrap_or_default())
+        tch::no_grad(|| {
+            let action = self.actor.forward(&batch(obs, self.obs_dim, self.device));
+            Vec::<f32>::try_from(action.flatten(0, -1).to_device(Device::Cpu)).unwrap_or_default()
+        })
     }
 
     fn observe(&mut self, t: Transition) -> f64 {
@@ -246,7 +251,7 @@ mod tests {
         cfg.network.global_hidden = vec![64, 64];
         cfg.network.critic_hidden = vec![64, 64];
         let ddpg = DdpgConfig { actor_lr: 1e-3, critic_lr: 1e-3, tau: 0.01, gamma: 0.95, batch_size: 128, warmup_steps: 0, ..cfg.ddpg };
-        let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1]], 1, 1, 3);
+        let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1]], 1, 1, 3, Device::Cpu);
         let mut rng = ChaCha8Rng::seed_from_u64(4);
         for _ in 0..5000 {
             let s: f32 = rng.random_range(-2.0..2.0);

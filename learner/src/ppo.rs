@@ -43,6 +43,7 @@ struct Rollout {
 
 pub struct Ppo {
     cfg: PpoConfig,
+    device: Device,
     obs_dim: usize,
     action_dim: usize,
     actor_vs: nn::VarStore,
@@ -67,16 +68,18 @@ struct PpoState {
 }
 
 impl Ppo {
-    pub fn new(cfg: &PpoConfig, net: &NetworkConfig, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, seed: u64) -> Self {
-        let actor_vs = nn::VarStore::new(Device::Cpu);
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(cfg: &PpoConfig, net: &NetworkConfig, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, seed: u64, device: Device) -> Self {
+        let actor_vs = nn::VarStore::new(device);
         let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
         let log_std = actor_vs.root().var("log_std", &[n as i64], nn::Init::Const(cfg.log_std_init));
-        let critic_vs = nn::VarStore::new(Device::Cpu);
+        let critic_vs = nn::VarStore::new(device);
         let critic = build_critic(&critic_vs.root(), m, net, seed ^ 0xC717);
         Ppo {
             actor_opt: Adam::new(&actor_vs, cfg.actor_lr),
             critic_opt: Adam::new(&critic_vs, cfg.critic_lr),
             cfg: cfg.clone(),
+            device,
             obs_dim: m,
             action_dim: n,
             actor_vs,
@@ -99,7 +102,10 @@ impl Ppo {
     }
 
     fn value(&self, obs: &[f32]) -> f32 {
-        tch::no_grad(|| f32::try_from(self.critic.forward(&batch(obs, self.obs_dim, Device::Cpu)).flatten(0, -1).get(0)).unwrap_or(0.0))
+        tch::no_grad(|| {
+            let value = self.critic.forward(&batch(obs, self.obs_dim, self.device));
+            f32::try_from(value.flatten(0, -1).get(0).to_device(Device::Cpu)).unwrap_or(0.0)
+        })
     }
 
     /// GAE advantages and returns of the rollout.
@@ -124,16 +130,16 @@ impl Ppo {
         let (advantages, returns) = self.advantages();
         let len = advantages.len();
         let r = std::mem::take(&mut self.rollout);
-        let obs = batch(&r.obs, self.obs_dim, Device::Cpu);
-        let actions = batch(&r.actions, self.action_dim, Device::Cpu);
-        let old_log_probs = Tensor::from_slice(&r.log_probs);
-        let advantages = Tensor::from_slice(&advantages);
-        let returns = Tensor::from_slice(&returns);
+        let obs = batch(&r.obs, self.obs_dim, self.device);
+        let actions = batch(&r.actions, self.action_dim, self.device);
+        let old_log_probs = Tensor::from_slice(&r.log_probs).to_device(self.device);
+        let advantages = Tensor::from_slice(&advantages).to_device(self.device);
+        let returns = Tensor::from_slice(&returns).to_device(self.device);
         let mut order: Vec<i64> = (0..len as i64).collect();
         for _ in 0..self.cfg.epochs {
             order.shuffle(&mut self.rng);
             for chunk in order.chunks(self.cfg.minibatch_size) {
-                let index = Tensor::from_slice(chunk);
+                let index = Tensor::from_slice(chunk).to_device(self.device);
                 let adv = advantages.index_select(0, &index);
                 let adv = (&adv - adv.mean(Kind::Float)) / (adv.std(true) + 1e-8);
                 let mb_obs = obs.index_select(0, &index);
@@ -162,7 +168,7 @@ impl Ppo {
 impl Agent for Ppo {
     fn explore(&mut self, obs: &[f32], _episode: usize) -> Vec<f32> {
         let mean = self.act(obs);
-        let std: Vec<f32> = Vec::try_from(self.log_std.exp().detach()).unwrap_or_default();
+        let std: Vec<f32> = Vec::try_from(self.log_std.exp().detach().to_device(Device::Cpu)).unwrap_or_default();
         let action: Vec<f32> = mean
             .iter()
             .zip(&std)
@@ -172,8 +178,9 @@ impl Agent for Ppo {
             })
             .collect();
         let log_prob = tch::no_grad(|| {
-            let mean = Tensor::from_slice(&mean).view([1, self.action_dim as i64]);
-            f32::try_from(self.log_prob(&mean, &Tensor::from_slice(&action).view([1, self.action_dim as i64])).get(0))
+            let mean = batch(&mean, self.action_dim, self.device);
+            let sample = batch(&action, self.action_dim, self.device);
+            f32::try_from(self.log_prob(&mean, &sample).get(0).to_device(Device::Cpu))
         })
         .unwrap_or(0.0);
         self.pending = (log_prob, self.value(obs));
@@ -181,7 +188,10 @@ impl Agent for Ppo {
     }
 
     fn act(&self, obs: &[f32]) -> Vec<f32> {
-        tch::no_grad(|| Vec::<f32>::try_from(self.actor.forward(&batch(obs, self.obs_dim, Device::Cpu)).flatten(0, -1)).unwrap_or_default())
+        tch::no_grad(|| {
+            let mean = self.actor.forward(&batch(obs, self.obs_dim, self.device));
+            Vec::<f32>::try_from(mean.flatten(0, -1).to_device(Device::Cpu)).unwrap_or_default()
+        })
     }
 
     fn observe(&mut self, t: Transition) -> f64 {

@@ -15,6 +15,18 @@ pub struct Batch {
     pub done: Tensor,
 }
 
+impl Batch {
+    pub fn to_device(self, device: tch::Device) -> Batch {
+        Batch {
+            obs: self.obs.to_device(device),
+            action: self.action.to_device(device),
+            reward: self.reward.to_device(device),
+            next_obs: self.next_obs.to_device(device),
+            done: self.done.to_device(device),
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq)]
 pub struct ReplayBuffer {
     capacity: usize,

@@ -78,7 +78,7 @@ fn checkpoint_round_trip_gives_identical_actions() {
         let dir = tempfile::tempdir().unwrap();
         let cfg = tiny();
         let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
-        let mut agent = make_agent(algo, Connection::Local, &cfg, &mask, 3, 3);
+        let mut agent = make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
         // Some training so the weights are not the initial ones.
         let obs = [0.3f32, -0.2, 0.5];
         for k in 0..80 {
@@ -101,7 +101,7 @@ fn checkpoint_round_trip_gives_identical_actions() {
         };
         let saved = write_checkpoint(dir.path(), agent.as_ref(), &meta).unwrap();
         let policy = Policy::load(&saved).unwrap();
-        let mut restored = make_agent(algo, Connection::Local, &cfg, &mask, 3, 3);
+        let mut restored = make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
         restored.load(&saved).unwrap();
         let env = make_env("lti-paper").unwrap();
         for probe in [[0.1f32, 0.2, 0.3], [-1.0, 0.5, 0.0]] {

@@ -142,12 +142,22 @@ fn observe(env: &dyn Env, state: &[f64]) -> Vec<f32> {
     env.normalize_state(state).iter().map(|&v| v as f32).collect()
 }
 
-/// Builds the agent for the request.
-pub fn make_agent(algo: Algo, connection: Connection, cfg: &TrainConfig, mask: &[Vec<u8>], m: usize, n: usize) -> Box<dyn Agent> {
-    match algo {
-        Algo::Ddpg => Box::new(Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed)),
-        Algo::Ppo => Box::new(Ppo::new(&cfg.ppo, &cfg.network, connection, mask, m, n, cfg.run.seed)),
+/// The libtorch device of `run.device` (validated: "cpu" or "cuda").
+pub fn device(cfg: &TrainConfig) -> Result<tch::Device, LearnerError> {
+    match cfg.run.device.as_str() {
+        "cuda" if tch::Cuda::is_available() => Ok(tch::Device::Cuda(0)),
+        "cuda" => Err(LearnerError::Config("run.device = \"cuda\" but no CUDA device is available; use \"cpu\"".into())),
+        _ => Ok(tch::Device::Cpu),
     }
+}
+
+/// Builds the agent for the request on `run.device`.
+pub fn make_agent(algo: Algo, connection: Connection, cfg: &TrainConfig, mask: &[Vec<u8>], m: usize, n: usize) -> Result<Box<dyn Agent>, LearnerError> {
+    let device = device(cfg)?;
+    Ok(match algo {
+        Algo::Ddpg => Box::new(Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
+        Algo::Ppo => Box::new(Ppo::new(&cfg.ppo, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
+    })
 }
 
 /// The mask of the actor: G for local (loaded or built), ones otherwise.
@@ -277,16 +287,13 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         }
     };
     cfg.validate()?;
-    if cfg.run.device == "cuda" && !tch::Cuda::is_available() {
-        return Err(LearnerError::Config("run.device = \"cuda\" but no CUDA device is available; use \"cpu\"".into()));
-    }
     tch::set_num_threads(cfg.run.threads as i32);
     let resolved = toml::to_string_pretty(&cfg).map_err(|e| LearnerError::Config(e.to_string()))?;
     let header = format!("# resolved configuration\n# env = {:?}, algo = {:?}, connection = {:?}\n", req.env, req.algo, req.connection);
     let config_path = req.run_dir.join("config.toml");
     std::fs::write(&config_path, header + &resolved).map_err(io(&config_path))?;
 
-    let mut agent = make_agent(req.algo, req.connection, &cfg, &mask, m, n);
+    let mut agent = make_agent(req.algo, req.connection, &cfg, &mask, m, n)?;
     if let Some(dir) = &checkpoint {
         agent.load(dir)?;
     }

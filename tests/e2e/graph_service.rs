@@ -62,6 +62,10 @@ async fn serves_the_graph_and_health_once_built() {
     assert_eq!(graph.g, vec![1, 0, 0, 1, 1, 0, 0, 0, 1]);
     assert_eq!(graph.state_names, vec!["s1", "s2", "s3"]);
     assert_eq!(graph.samples, 64);
+    // WatchGraph delivers the built graph at once.
+    let mut watch = client.watch_graph(lcrl_proto::v1::WatchGraphRequest {}).await.unwrap().into_inner();
+    let first = tokio::time::timeout(Duration::from_secs(10), watch.message()).await.unwrap().unwrap().unwrap();
+    assert_eq!(first.g, graph.g);
 }
 
 #[tokio::test]
