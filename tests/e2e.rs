@@ -8,4 +8,5 @@ mod e2e {
     mod graph_service;
     mod sim_cli;
     mod train_cli;
+    mod distributed;
 }

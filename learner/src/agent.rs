@@ -33,14 +33,23 @@ pub struct Counters {
 }
 
 /// A training algorithm over a normalized action space [−1, 1]^n.
-pub trait Agent {
+pub trait Agent: Send {
     /// The action to take while training (with exploration).
     fn explore(&mut self, obs: &[f32], episode: usize) -> Vec<f32>;
     /// The deterministic action of the current policy.
     fn act(&self, obs: &[f32]) -> Vec<f32>;
-    /// Records a transition and trains when it is time. Returns the seconds
-    /// spent optimizing.
-    fn observe(&mut self, transition: Transition) -> f64;
+    /// Stores a transition (replay buffer or rollout) without training.
+    fn store(&mut self, transition: Transition);
+    /// Trains once if it is time (DDPG: one update once warm; PPO: the PPO
+    /// update once a rollout is full). Returns the seconds spent.
+    fn train_step(&mut self) -> f64;
+    /// Single-process Algorithm 2: store, then train once.
+    fn observe(&mut self, transition: Transition) -> f64 {
+        self.store(transition);
+        self.train_step()
+    }
+    /// Transitions held (replay size, or the current rollout's length).
+    fn stored(&self) -> usize;
     /// Tells the agent how far training is (0 at the start, 1 at the end),
     /// for schedules such as PPO's learning-rate annealing.
     fn set_progress(&mut self, _fraction: f64) {}
@@ -53,6 +62,8 @@ pub trait Agent {
     fn load(&mut self, dir: &Path) -> Result<(), LearnerError>;
     /// The actor's variables (for `lcrl sim --checkpoint` and policy serving).
     fn actor(&self) -> &ActorNet;
+    /// The actor's named variables, for publishing the policy.
+    fn actor_variables(&self) -> Vec<(String, tch::Tensor)>;
 }
 
 /// Builds the actor for a connection pattern. `mask` is G (n × m) for

@@ -179,15 +179,22 @@ impl Agent for Ddpg {
         })
     }
 
-    fn observe(&mut self, t: Transition) -> f64 {
+    fn store(&mut self, t: Transition) {
         self.replay.push(t.obs, t.action, t.reward, t.next_obs, t.terminated);
         self.counters.env_steps += 1;
+    }
+
+    fn train_step(&mut self) -> f64 {
         if self.replay.len() < self.cfg.warmup_steps.max(self.cfg.batch_size) {
             return 0.0;
         }
         let started = Instant::now();
         self.update();
         started.elapsed().as_secs_f64()
+    }
+
+    fn stored(&self) -> usize {
+        self.replay.len()
     }
 
     fn counters(&self) -> Counters {
@@ -233,6 +240,12 @@ impl Agent for Ddpg {
 
     fn actor(&self) -> &ActorNet {
         &self.actor
+    }
+
+    fn actor_variables(&self) -> Vec<(String, Tensor)> {
+        let mut named: Vec<(String, Tensor)> = self.actor_vs.variables().into_iter().collect();
+        named.sort_by(|a, b| a.0.cmp(&b.0));
+        named
     }
 }
 

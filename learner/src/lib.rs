@@ -9,7 +9,9 @@
 //! - [`agent`]: the algorithm interface; [`ddpg`] and [`ppo`] implement it.
 //! - [`lqr`]: the LQR ceiling for linear environments.
 //! - [`trainer`]: episodes, metrics.csv, summary.json, checkpoints, resume.
-//! - [`policy`]: a trained actor loaded from a checkpoint.
+//! - [`policy`]: a trained actor loaded from a checkpoint or a snapshot.
+//! - [`snapshot`]: a policy on the wire (architecture + safetensors weights).
+//! - [`service`]: the distributed learner (`lcrl-learner`): ingestion, training thread, gRPC.
 
 pub mod adam;
 pub mod agent;
@@ -20,6 +22,8 @@ pub mod nets;
 pub mod policy;
 pub mod ppo;
 pub mod replay;
+pub mod service;
+pub mod snapshot;
 pub mod trainer;
 
 use std::path::PathBuf;

@@ -1,4 +1,5 @@
-//! A trained actor loaded from a checkpoint, for evaluation and serving.
+//! A trained actor, loaded from a checkpoint or a published snapshot, for
+//! evaluation, serving (`Policy.Act`) and actors.
 
 use std::path::Path;
 
@@ -7,50 +8,108 @@ use tch::nn;
 
 use crate::agent::{build_actor, load_vs};
 use crate::nets::{batch, ActorNet};
-use crate::trainer::{read_meta, CheckpointMeta};
+use crate::snapshot::{decode_weights, Architecture};
+use crate::trainer::{latest_checkpoint, read_meta};
 use crate::LearnerError;
 
-/// The deterministic policy of a checkpoint.
+/// The deterministic policy of a checkpoint or snapshot.
 pub struct Policy {
-    pub meta: CheckpointMeta,
-    _vs: nn::VarStore,
+    pub architecture: Architecture,
+    /// Training episodes behind a checkpoint (None for a snapshot).
+    pub episode: Option<usize>,
+    /// Policy version (0 for a checkpoint of a single-process run).
+    pub version: u64,
+    vs: nn::VarStore,
     actor: ActorNet,
+    /// PPO: the Gaussian policy's log standard deviation, if the snapshot has one.
+    log_std: Option<Vec<f32>>,
 }
 
 impl Policy {
+    fn empty(architecture: Architecture) -> (nn::VarStore, ActorNet, Architecture) {
+        let vs = nn::VarStore::new(tch::Device::Cpu);
+        let a = &architecture;
+        // The weights are overwritten right after; the seed is irrelevant.
+        let actor = build_actor(&vs.root(), a.connection, &a.mask, a.state_dim, a.action_dim, &a.network, 0);
+        (vs, actor, architecture)
+    }
+
     /// Loads `dir` (a `checkpoints/epNNNNNN` folder, or a run directory,
     /// meaning its newest checkpoint).
     pub fn load(dir: &Path) -> Result<Self, LearnerError> {
         let dir = if dir.join("checkpoint.json").is_file() {
             dir.to_path_buf()
         } else {
-            crate::trainer::latest_checkpoint(dir)
-                .ok_or_else(|| LearnerError::Checkpoint(format!("{} holds no checkpoint (checkpoint.json)", dir.display())))?
+            latest_checkpoint(dir).ok_or_else(|| LearnerError::Checkpoint(format!("{} holds no checkpoint (checkpoint.json)", dir.display())))?
         };
         let meta = read_meta(&dir)?;
-        let mut vs = nn::VarStore::new(tch::Device::Cpu);
-        // The weights are overwritten by the checkpoint; the seed is irrelevant.
-        let actor = build_actor(&vs.root(), meta.connection, &meta.mask, meta.state_dim, meta.action_dim, &meta.config.network, 0);
+        let architecture = Architecture {
+            env: meta.env.clone(),
+            algo: meta.algo,
+            connection: meta.connection,
+            state_dim: meta.state_dim,
+            action_dim: meta.action_dim,
+            mask: meta.mask.clone(),
+            network: meta.config.network.clone(),
+        };
+        let (mut vs, actor, architecture) = Self::empty(architecture);
         load_vs(&mut vs, &dir.join("actor.safetensors"))?;
-        Ok(Policy { meta, _vs: vs, actor })
+        Ok(Policy { architecture, episode: Some(meta.episode), version: meta.policy_version, vs, actor, log_std: None })
+    }
+
+    /// Builds the policy of a published snapshot.
+    pub fn from_snapshot(architecture_json: &str, weights: &[u8], version: u64) -> Result<Self, LearnerError> {
+        let architecture: Architecture =
+            serde_json::from_str(architecture_json).map_err(|e| LearnerError::Checkpoint(format!("policy architecture: {e}")))?;
+        let (vs, actor, architecture) = Self::empty(architecture);
+        let mut policy = Policy { architecture, episode: None, version, vs, actor, log_std: None };
+        policy.update(weights, version)?;
+        Ok(policy)
+    }
+
+    /// Replaces the weights with those of a newer snapshot of the same actor.
+    pub fn update(&mut self, weights: &[u8], version: u64) -> Result<(), LearnerError> {
+        let named = decode_weights(weights)?;
+        self.log_std = named.iter().find(|(n, _)| n == "log_std").and_then(|(_, t)| Vec::<f32>::try_from(t).ok());
+        let mut variables = self.vs.variables();
+        for (name, target) in variables.iter_mut() {
+            let source = named.iter().find(|(n, _)| n == name).map(|(_, t)| t).ok_or_else(|| LearnerError::Checkpoint(format!("snapshot lacks weights {name}")))?;
+            if source.size() != target.size() {
+                return Err(LearnerError::Checkpoint(format!("snapshot weights {name} have shape {:?}, expected {:?}", source.size(), target.size())));
+            }
+            tch::no_grad(|| target.copy_(source));
+        }
+        self.version = version;
+        Ok(())
+    }
+
+    /// PPO's exploration standard deviations (normalized action units).
+    pub fn exploration_std(&self) -> Option<Vec<f32>> {
+        self.log_std.as_ref().map(|l| l.iter().map(|v| v.exp()).collect())
+    }
+
+    /// Normalized actions in [−1, 1] for rows of normalized observations.
+    pub fn act_normalized(&self, obs: &[f32]) -> Vec<f32> {
+        tch::no_grad(|| {
+            let out = self.actor.forward(&batch(obs, self.architecture.state_dim, tch::Device::Cpu));
+            Vec::<f32>::try_from(out.flatten(0, -1)).unwrap_or_default()
+        })
     }
 
     /// The action for a raw environment state, in the environment's bounds.
     pub fn act(&self, env: &dyn Env, state: &[f64]) -> Vec<f64> {
         let obs: Vec<f32> = env.normalize_state(state).iter().map(|&v| v as f32).collect();
-        let u: Vec<f32> = tch::no_grad(|| {
-            Vec::<f32>::try_from(self.actor.forward(&batch(&obs, self.meta.state_dim, tch::Device::Cpu)).flatten(0, -1)).unwrap_or_default()
-        });
-        crate::trainer::to_env_action(env, &u)
+        crate::trainer::to_env_action(env, &self.act_normalized(&obs))
     }
 
-    /// Checks that the checkpoint fits `env`.
+    /// Checks that the policy fits `env`.
     pub fn check_env(&self, env: &dyn Env) -> Result<(), LearnerError> {
         let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
-        if (m, n) != (self.meta.state_dim, self.meta.action_dim) {
+        let a = &self.architecture;
+        if (m, n) != (a.state_dim, a.action_dim) {
             return Err(LearnerError::Mismatch(format!(
-                "the checkpoint was trained on {} ({} states, {} actions); {} has {m} states and {n} actions",
-                self.meta.env, self.meta.state_dim, self.meta.action_dim, env.spec().name
+                "the policy was trained on {} ({} states, {} actions); {} has {m} states and {n} actions",
+                a.env, a.state_dim, a.action_dim, env.spec().name
             )));
         }
         Ok(())

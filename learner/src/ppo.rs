@@ -54,8 +54,6 @@ pub struct Ppo {
     actor_opt: Adam,
     critic_opt: Adam,
     rollout: Rollout,
-    /// log π and V of the last explored action, stored with its transition.
-    pending: (f32, f32),
     rng: ChaCha8Rng,
     counters: Counters,
 }
@@ -88,7 +86,6 @@ impl Ppo {
             critic_vs,
             critic,
             rollout: Rollout::default(),
-            pending: (0.0, 0.0),
             rng: ChaCha8Rng::seed_from_u64(seed ^ 0x0990),
             counters: Counters::default(),
         }
@@ -169,22 +166,13 @@ impl Agent for Ppo {
     fn explore(&mut self, obs: &[f32], _episode: usize) -> Vec<f32> {
         let mean = self.act(obs);
         let std: Vec<f32> = Vec::try_from(self.log_std.exp().detach().to_device(Device::Cpu)).unwrap_or_default();
-        let action: Vec<f32> = mean
-            .iter()
+        mean.iter()
             .zip(&std)
             .map(|(m, s)| {
                 let z: f64 = StandardNormal.sample(&mut self.rng);
                 m + s * z as f32
             })
-            .collect();
-        let log_prob = tch::no_grad(|| {
-            let mean = batch(&mean, self.action_dim, self.device);
-            let sample = batch(&action, self.action_dim, self.device);
-            f32::try_from(self.log_prob(&mean, &sample).get(0).to_device(Device::Cpu))
-        })
-        .unwrap_or(0.0);
-        self.pending = (log_prob, self.value(obs));
-        action
+            .collect()
     }
 
     fn act(&self, obs: &[f32]) -> Vec<f32> {
@@ -194,24 +182,41 @@ impl Agent for Ppo {
         })
     }
 
-    fn observe(&mut self, t: Transition) -> f64 {
+    /// log π_old(u|s) and V(s) are evaluated here with the current networks:
+    /// in one process that is the policy that just acted; for a distributed
+    /// actor, the learner keeps only transitions of recent enough versions.
+    fn store(&mut self, t: Transition) {
         let next_value = if t.terminated { 0.0 } else { self.value(t.next_obs) };
+        let log_prob = tch::no_grad(|| {
+            let mean = self.actor.forward(&batch(t.obs, self.obs_dim, self.device));
+            let sample = batch(t.action, self.action_dim, self.device);
+            f32::try_from(self.log_prob(&mean, &sample).get(0).to_device(Device::Cpu))
+        })
+        .unwrap_or(0.0);
+        let value = self.value(t.obs);
         let r = &mut self.rollout;
         r.obs.extend_from_slice(t.obs);
         r.actions.extend_from_slice(t.action);
-        r.log_probs.push(self.pending.0);
-        r.values.push(self.pending.1);
+        r.log_probs.push(log_prob);
+        r.values.push(value);
         r.rewards.push(t.reward);
         r.next_values.push(next_value);
         r.terminated.push(t.terminated);
         r.ended.push(t.terminated || t.truncated);
         self.counters.env_steps += 1;
-        if r.rewards.len() < self.cfg.rollout_steps {
+    }
+
+    fn train_step(&mut self) -> f64 {
+        if self.rollout.rewards.len() < self.cfg.rollout_steps {
             return 0.0;
         }
         let started = Instant::now();
         self.update();
         started.elapsed().as_secs_f64()
+    }
+
+    fn stored(&self) -> usize {
+        self.rollout.rewards.len()
     }
 
     fn set_progress(&mut self, fraction: f64) {
@@ -254,5 +259,11 @@ impl Agent for Ppo {
 
     fn actor(&self) -> &ActorNet {
         &self.actor
+    }
+
+    fn actor_variables(&self) -> Vec<(String, Tensor)> {
+        let mut named: Vec<(String, Tensor)> = self.actor_vs.variables().into_iter().collect();
+        named.sort_by(|a, b| a.0.cmp(&b.0));
+        named
     }
 }

@@ -98,6 +98,8 @@ fn checkpoint_round_trip_gives_identical_actions() {
             graph_seconds: 0.0,
             optimization_seconds: 0.0,
             elapsed_seconds: 0.0,
+            policy_version: 0,
+            actor_sequences: Default::default(),
         };
         let saved = write_checkpoint(dir.path(), agent.as_ref(), &meta).unwrap();
         let policy = Policy::load(&saved).unwrap();

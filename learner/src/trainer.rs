@@ -99,6 +99,13 @@ pub struct CheckpointMeta {
     pub optimization_seconds: f64,
     /// Wall time of the run so far (graph, set-up, training), seconds.
     pub elapsed_seconds: f64,
+    /// Distributed runs: the policy version at the checkpoint.
+    #[serde(default)]
+    pub policy_version: u64,
+    /// Distributed runs: the highest batch sequence stored per actor, so a
+    /// restarted learner still rejects replayed batches.
+    #[serde(default)]
+    pub actor_sequences: std::collections::HashMap<String, u64>,
 }
 
 /// Per-episode progress for the caller's display.
@@ -220,7 +227,28 @@ pub fn write_checkpoint(run_dir: &Path, agent: &dyn Agent, meta: &CheckpointMeta
     let target = root.join(name);
     let _ = std::fs::remove_dir_all(&target);
     std::fs::rename(&staging, &target).map_err(io(&target))?;
+    prune_checkpoints(&root, KEEP_CHECKPOINTS);
     Ok(target)
+}
+
+/// Checkpoints kept per run: each can hold a replay buffer of hundreds of
+/// megabytes, so only the newest few stay.
+pub const KEEP_CHECKPOINTS: usize = 3;
+
+/// Deletes all but the newest `keep` complete checkpoints.
+fn prune_checkpoints(root: &Path, keep: usize) {
+    let Ok(entries) = std::fs::read_dir(root) else { return };
+    let mut complete: Vec<PathBuf> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.join("checkpoint.json").is_file())
+        .collect();
+    complete.sort();
+    let excess = complete.len().saturating_sub(keep);
+    for old in &complete[..excess] {
+        if let Err(e) = std::fs::remove_dir_all(old) {
+            tracing::warn!("cannot remove old checkpoint {}: {e}", old.display());
+        }
+    }
 }
 
 fn read_rows(path: &Path, keep: usize) -> Result<Vec<EpisodeRow>, LearnerError> {
@@ -312,6 +340,8 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         graph_seconds,
         optimization_seconds: optimization,
         elapsed_seconds: elapsed,
+        policy_version: 0,
+        actor_sequences: Default::default(),
     };
 
     let last_episode = req.stop_after.map_or(cfg.run.episodes, |stop| stop.min(cfg.run.episodes));

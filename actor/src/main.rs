@@ -1,0 +1,331 @@
+//! `lcrl-actor`: runs K environments with its local copy of the newest
+//! policy plus exploration noise, and streams their transitions to the
+//! learner in batches. It waits for the learner at start (until a
+//! deadline), reconnects with backoff when the learner goes away, picks up
+//! new policy versions without stopping, and never queues without bound:
+//! the worker blocks when a few batches are waiting.
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use clap::Parser;
+use lcrl_learner::policy::Policy;
+use lcrl_proto::v1::learner_client::LearnerClient;
+use lcrl_proto::v1::{EpisodeSummary, GetPolicyRequest, PolicySnapshot, Transition, TransitionBatch, WatchPolicyRequest};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use tokio::sync::{mpsc, watch};
+use tokio_stream::wrappers::ReceiverStream;
+use tokio_stream::StreamExt;
+use tonic::transport::Channel;
+
+/// Batches in flight or waiting: the bound on what an actor holds.
+const MAX_PENDING_BATCHES: usize = 8;
+
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+enum Transport {
+    /// gRPC to the learner's URL (any host).
+    Grpc,
+    /// iceoryx2 shared memory (same host) — not built yet; see the README.
+    Shm,
+}
+
+#[derive(Debug, Parser)]
+#[command(version, about = "An LCRL actor: simulators streaming transitions to the learner")]
+struct Args {
+    /// The learner's gRPC URL.
+    #[arg(long, default_value = "http://127.0.0.1:50052")]
+    learner: String,
+    #[arg(long, value_enum, default_value_t = Transport::Grpc)]
+    transport: Transport,
+    /// Environment instances in this process.
+    #[arg(long, default_value_t = 1)]
+    envs: usize,
+    /// The run to join (must match the learner's --run-id).
+    #[arg(long, default_value = "default")]
+    run_id: String,
+    /// This actor's name (default: host name and process id).
+    #[arg(long)]
+    actor_id: Option<String>,
+    /// Transitions per batch.
+    #[arg(long, default_value_t = 64)]
+    batch: usize,
+    /// Exploration noise std in normalized action units (DDPG; PPO uses the
+    /// policy's own std).
+    #[arg(long, default_value_t = 0.1)]
+    noise: f64,
+    /// Seed of episodes and noise.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Give up when the learner stays unreachable this long, seconds (at
+    /// start and after losing it).
+    #[arg(long, default_value_t = 120)]
+    connect_deadline: u64,
+    /// Stop after this many episodes in total (default: run until stopped).
+    #[arg(long)]
+    episodes: Option<u64>,
+}
+
+fn main() -> std::process::ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .init();
+    let args = Args::parse();
+    let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build() {
+        Ok(runtime) => runtime,
+        Err(e) => {
+            eprintln!("lcrl-actor: error: cannot start the async runtime: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    match runtime.block_on(run(args)) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("lcrl-actor: error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+/// Connects, retrying with backoff until `deadline`.
+async fn connect(url: &str, deadline: Duration) -> anyhow::Result<LearnerClient<Channel>> {
+    let give_up = Instant::now() + deadline;
+    let mut delay = Duration::from_millis(100);
+    loop {
+        match LearnerClient::connect(url.to_string()).await {
+            Ok(client) => return Ok(client.max_decoding_message_size(16 << 20).max_encoding_message_size(16 << 20)),
+            Err(e) if Instant::now() < give_up => {
+                tracing::warn!("learner at {url} unreachable ({e}); retrying in {:.1} s", delay.as_secs_f64());
+                tokio::time::sleep(delay).await;
+                delay = (delay * 2).min(Duration::from_secs(5));
+            }
+            Err(e) => bail!("the learner at {url} stayed unreachable for {} s ({e}); is lcrl-learner running?", deadline.as_secs()),
+        }
+    }
+}
+
+async fn run(args: Args) -> anyhow::Result<()> {
+    if matches!(args.transport, Transport::Shm) {
+        bail!("--transport shm is not available yet; use --transport grpc");
+    }
+    if args.envs == 0 || args.batch == 0 {
+        bail!("--envs and --batch must be at least 1");
+    }
+    let deadline = Duration::from_secs(args.connect_deadline);
+    let mut client = connect(&args.learner, deadline).await?;
+    let first = client.get_policy(GetPolicyRequest {}).await.context("asking the learner for its policy")?.into_inner();
+    tracing::info!(version = first.version, learner = %args.learner, "connected");
+    let (policy_tx, policy_rx) = watch::channel(Arc::new(first));
+    tokio::spawn(watch_policy(args.learner.clone(), policy_tx));
+
+    let (batches_tx, batches_rx) = mpsc::channel::<TransitionBatch>(2);
+    let stop = Arc::new(AtomicBool::new(false));
+    let actor_id = args.actor_id.clone().unwrap_or_else(|| format!("{}-{}", hostname(), std::process::id()));
+    let worker = {
+        let stop = stop.clone();
+        let settings = WorkerSettings { envs: args.envs, batch: args.batch, noise: args.noise, seed: args.seed, episodes: args.episodes, run_id: args.run_id.clone(), actor_id };
+        std::thread::Builder::new().name("envs".into()).spawn(move || work(settings, policy_rx, batches_tx, stop))?
+    };
+    let sender = tokio::spawn(send_batches(args.learner.clone(), client, batches_rx, deadline));
+    tokio::select! {
+        result = sender => result.context("the sender task panicked")??,
+        _ = shutdown_signal() => {
+            tracing::info!("stopping");
+            stop.store(true, Ordering::Relaxed);
+        }
+    }
+    stop.store(true, Ordering::Relaxed);
+    worker.join().map_err(|_| anyhow::anyhow!("the environment thread panicked"))??;
+    Ok(())
+}
+
+fn hostname() -> String {
+    std::fs::read_to_string("/etc/hostname").map(|h| h.trim().to_string()).unwrap_or_else(|_| "actor".into())
+}
+
+/// Keeps `policy` at the learner's newest version, reconnecting forever.
+async fn watch_policy(url: String, policy: watch::Sender<Arc<PolicySnapshot>>) {
+    loop {
+        let after = policy.borrow().version;
+        let stream = async { LearnerClient::connect(url.clone()).await?.max_decoding_message_size(16 << 20).watch_policy(WatchPolicyRequest { after_version: after }).await.map_err(anyhow::Error::from) };
+        match stream.await {
+            Ok(response) => {
+                let mut updates = response.into_inner();
+                while let Some(Ok(snapshot)) = updates.next().await {
+                    if snapshot.version > policy.borrow().version {
+                        policy.send_replace(Arc::new(snapshot));
+                    }
+                }
+            }
+            Err(e) => tracing::debug!("policy watch: {e}"),
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+}
+
+/// Streams batches to the learner; resends unacknowledged ones after a
+/// reconnect (the learner drops duplicates). Returns when the worker is done
+/// and every batch is acknowledged, or fails after `deadline` without a
+/// learner.
+async fn send_batches(url: String, mut client: LearnerClient<Channel>, mut batches: mpsc::Receiver<TransitionBatch>, deadline: Duration) -> anyhow::Result<()> {
+    let mut pending: VecDeque<TransitionBatch> = VecDeque::new();
+    let mut worker_done = false;
+    loop {
+        let (requests, request_rx) = mpsc::channel::<TransitionBatch>(MAX_PENDING_BATCHES);
+        for batch in &pending {
+            let _ = requests.try_send(batch.clone());
+        }
+        let acks = match client.stream_transitions(ReceiverStream::new(request_rx)).await {
+            Ok(response) => Some(response.into_inner()),
+            Err(status) => {
+                tracing::warn!("cannot stream to the learner: {status}");
+                None
+            }
+        };
+        if let Some(mut acks) = acks {
+            loop {
+                if worker_done && pending.is_empty() {
+                    return Ok(());
+                }
+                tokio::select! {
+                    batch = batches.recv(), if !worker_done && pending.len() < MAX_PENDING_BATCHES => match batch {
+                        Some(batch) => {
+                            pending.push_back(batch.clone());
+                            if requests.send(batch).await.is_err() {
+                                break;
+                            }
+                        }
+                        None => worker_done = true,
+                    },
+                    ack = acks.next() => match ack {
+                        Some(Ok(ack)) => {
+                            pending.retain(|b| b.sequence > ack.sequence);
+                            if ack.outcome != "stored" {
+                                tracing::debug!(sequence = ack.sequence, outcome = %ack.outcome, "batch not stored");
+                            }
+                        }
+                        Some(Err(status)) if status.code() == tonic::Code::InvalidArgument => {
+                            // The learner will never take this batch; drop it and go on.
+                            tracing::error!("the learner rejected a batch: {}", status.message());
+                            pending.pop_front();
+                            break;
+                        }
+                        Some(Err(status)) => {
+                            tracing::warn!("lost the learner: {status}");
+                            break;
+                        }
+                        None => break,
+                    },
+                }
+            }
+        }
+        if worker_done && pending.is_empty() {
+            return Ok(());
+        }
+        client = connect(&url, deadline).await?;
+    }
+}
+
+struct WorkerSettings {
+    envs: usize,
+    batch: usize,
+    noise: f64,
+    seed: u64,
+    episodes: Option<u64>,
+    run_id: String,
+    actor_id: String,
+}
+
+/// The environment loop (blocking thread).
+fn work(s: WorkerSettings, mut policy_rx: watch::Receiver<Arc<PolicySnapshot>>, batches: mpsc::Sender<TransitionBatch>, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
+    tch::set_num_threads(1);
+    let snapshot = policy_rx.borrow_and_update().clone();
+    let mut policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
+    let env_name = policy.architecture.env.clone();
+    let mut envs: Vec<Box<dyn lcrl_sim::Env>> = (0..s.envs).map(|_| lcrl_sim::make_env(&env_name)).collect::<Result<_, _>>()?;
+    policy.check_env(envs[0].as_ref())?;
+    let mut rng = ChaCha8Rng::seed_from_u64(s.seed ^ std::process::id() as u64);
+    let mut episode_seed = s.seed.wrapping_mul(1_000_003) ^ ((std::process::id() as u64) << 20);
+    let mut states: Vec<Vec<f64>> = envs.iter_mut().map(|env| { episode_seed += 1; env.reset(episode_seed) }).collect();
+    let mut returns = vec![0.0f64; s.envs];
+    let mut lengths = vec![0u32; s.envs];
+    let (mut sequence, mut episodes_done) = (0u64, 0u64);
+    let mut batch = TransitionBatch { run_id: s.run_id.clone(), actor_id: s.actor_id.clone(), ..Default::default() };
+    while !stop.load(Ordering::Relaxed) && s.episodes.is_none_or(|limit| episodes_done < limit) {
+        if policy_rx.has_changed().unwrap_or(false) {
+            let newest = policy_rx.borrow_and_update().clone();
+            policy.update(&newest.weights, newest.version)?;
+        }
+        let std: Vec<f64> = policy.exploration_std().map(|v| v.iter().map(|&x| f64::from(x)).collect()).unwrap_or_else(|| vec![s.noise; policy.architecture.action_dim]);
+        for (k, env) in envs.iter_mut().enumerate() {
+            let obs: Vec<f32> = env.normalize_state(&states[k]).iter().map(|&v| v as f32).collect();
+            let u: Vec<f32> = policy
+                .act_normalized(&obs)
+                .iter()
+                .zip(&std)
+                .map(|(&a, &sd)| {
+                    let noise = Normal::new(0.0, sd.max(1e-9)).map(|n| n.sample(&mut rng)).unwrap_or(0.0);
+                    (f64::from(a) + noise).clamp(-1.0, 1.0) as f32
+                })
+                .collect();
+            let action = lcrl_learner::trainer::to_env_action(env.as_ref(), &u);
+            let step = env.step(&action)?;
+            returns[k] += step.reward;
+            lengths[k] += 1;
+            batch.transitions.push(Transition {
+                state: states[k].iter().map(|&v| v as f32).collect(),
+                action: action.iter().map(|&v| v as f32).collect(),
+                reward: step.reward as f32,
+                next_state: step.state.iter().map(|&v| v as f32).collect(),
+                terminated: step.terminated,
+                // A batch boundary is not an episode end, but each env's
+                // stream is cut there for PPO's advantage estimates.
+                truncated: step.truncated,
+            });
+            if step.terminated || step.truncated {
+                batch.episodes.push(EpisodeSummary { episode_return: returns[k], length: lengths[k], success: env.episode_metrics().success });
+                episodes_done += 1;
+                returns[k] = 0.0;
+                lengths[k] = 0;
+                episode_seed += 1;
+                states[k] = env.reset(episode_seed);
+            } else {
+                states[k] = step.state;
+            }
+        }
+        let done = s.episodes.is_some_and(|limit| episodes_done >= limit);
+        if batch.transitions.len() >= s.batch || (done && !batch.transitions.is_empty()) {
+            sequence += 1;
+            batch.sequence = sequence;
+            batch.episode_id = episodes_done;
+            batch.policy_version = policy.version;
+            let full = std::mem::replace(&mut batch, TransitionBatch { run_id: s.run_id.clone(), actor_id: s.actor_id.clone(), ..Default::default() });
+            // Blocks while the sender holds its maximum: bounded memory.
+            if batches.blocking_send(full).is_err() {
+                break;
+            }
+        }
+    }
+    Ok(())
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+        Ok(mut term) => {
+            tokio::select! {
+                _ = ctrl_c => {},
+                _ = term.recv() => {},
+            }
+        }
+        Err(_) => {
+            let _ = ctrl_c.await;
+        }
+    }
+}

@@ -1,0 +1,302 @@
+//! `lcrl-learner`: the learner process of a distributed run. Actors stream
+//! transitions in over gRPC; the training thread learns; new policy
+//! versions go out over `WatchPolicy`; `Policy.Act` serves the newest
+//! policy. Checkpoints periodically and on SIGTERM/Ctrl-C, and resumes from
+//! its newest checkpoint when started again on the same run directory.
+
+use std::collections::VecDeque;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU32, AtomicU64};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use clap::Parser;
+use lcrl_learner::config::{Algo, Connection, TrainConfig};
+use lcrl_learner::service::ingest::Ingest;
+use lcrl_learner::service::runtime::{run_training, snapshot, Schedule, Shared};
+use lcrl_learner::service::server::{LearnerService, PolicyService};
+use lcrl_learner::snapshot::Architecture;
+use lcrl_learner::trainer::{latest_checkpoint, make_agent, read_meta, CheckpointMeta};
+use lcrl_proto::v1::graph_client::GraphClient;
+use lcrl_proto::v1::learner_server::LearnerServer;
+use lcrl_proto::v1::policy_server::PolicyServer;
+use tokio::sync::{mpsc, watch};
+
+/// Message size limit of every service: a policy snapshot is ~0.3 MB at the
+/// default sizes and a batch of 1000 peg transitions ~0.15 MB; 16 MB leaves
+/// room for larger networks without accepting unbounded messages.
+const MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
+
+#[derive(Debug, Parser)]
+#[command(version, about = "The LCRL learner process: ingests actors' transitions, trains, publishes policies")]
+struct Args {
+    /// Environment (registered name or .toml path); actors run the same one.
+    #[arg(long)]
+    env: String,
+    #[arg(long, value_enum)]
+    algo: Algo,
+    #[arg(long, value_enum)]
+    connection: Connection,
+    /// Training configuration (TOML); defaults follow METHOD.md Table I.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Run directory: graph.json, checkpoints; resumed if it holds one.
+    #[arg(long, default_value = "runs/learner")]
+    run_dir: PathBuf,
+    /// Run id: actors must present it; keeps runs on one host apart.
+    #[arg(long, default_value = "default")]
+    run_id: String,
+    /// Address to serve on (port 0: any free port; printed as "listening on").
+    #[arg(long, default_value = "127.0.0.1:50052")]
+    listen: SocketAddr,
+    /// Connection local: the graph as a graph.json file.
+    #[arg(long, conflicts_with = "graph_builder")]
+    graph: Option<PathBuf>,
+    /// Connection local: fetch the graph from this graph builder (gRPC URL).
+    #[arg(long)]
+    graph_builder: Option<String>,
+    /// How long to wait for the graph builder, seconds.
+    #[arg(long, default_value_t = 300)]
+    graph_timeout: u64,
+    /// DDPG: publish a new policy version every this many updates.
+    #[arg(long, default_value_t = 100)]
+    publish_every: u64,
+    /// PPO: discard batches more than this many versions older than the newest.
+    #[arg(long, default_value_t = 1)]
+    max_staleness: u64,
+    /// Checkpoint at this interval, seconds (and on SIGTERM/Ctrl-C); the
+    /// newest 3 checkpoints are kept.
+    #[arg(long, default_value_t = 60.0)]
+    checkpoint_secs: f64,
+    /// Log as JSON lines instead of human-readable text.
+    #[arg(long)]
+    log_json: bool,
+}
+
+fn main() -> std::process::ExitCode {
+    let args = Args::parse();
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
+    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()));
+    if args.log_json {
+        builder.json().init();
+    } else {
+        builder.init();
+    }
+    let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build() {
+        Ok(runtime) => runtime,
+        Err(e) => {
+            eprintln!("lcrl-learner: error: cannot start the async runtime: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    match runtime.block_on(run(args)) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("lcrl-learner: error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+/// G from a graph builder, retrying while it is unreachable or building.
+async fn fetch_graph(url: &str, timeout: Duration, n: usize, m: usize) -> anyhow::Result<Vec<Vec<u8>>> {
+    let deadline = Instant::now() + timeout;
+    let mut delay = Duration::from_millis(200);
+    loop {
+        let attempt = async {
+            let mut client = GraphClient::connect(url.to_string()).await?;
+            let graph = client.get_graph(lcrl_proto::v1::GetGraphRequest {}).await?.into_inner();
+            anyhow::Ok(graph)
+        };
+        match attempt.await {
+            Ok(graph) => {
+                if (graph.actions as usize, graph.states as usize) != (n, m) {
+                    bail!("the graph builder's graph is {}×{} but this environment needs {n}×{m}", graph.actions, graph.states);
+                }
+                return Ok(graph.g.chunks(m).map(|row| row.iter().map(|&v| u8::from(v == 1)).collect()).collect());
+            }
+            Err(e) if Instant::now() < deadline => {
+                tracing::info!("waiting for the graph builder at {url}: {e}");
+                tokio::time::sleep(delay).await;
+                delay = (delay * 2).min(Duration::from_secs(5));
+            }
+            Err(e) => bail!("no graph from {url} within {} s (last error: {e}); is lcrl-graph-builder running?", timeout.as_secs()),
+        }
+    }
+}
+
+async fn run(args: Args) -> anyhow::Result<()> {
+    let env = lcrl_sim::make_env(&args.env)?;
+    let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
+    std::fs::create_dir_all(&args.run_dir).with_context(|| format!("creating {}", args.run_dir.display()))?;
+    let resume = latest_checkpoint(&args.run_dir).map(|dir| read_meta(&dir).map(|meta| (dir, meta))).transpose()?;
+    let (config, mask, meta) = match &resume {
+        Some((dir, meta)) => {
+            if meta.env != args.env || meta.algo != args.algo || meta.connection != args.connection {
+                bail!("{} holds a run of {} with {:?}/{:?}; start with the same --env, --algo and --connection, or another --run-dir", dir.display(), meta.env, meta.algo, meta.connection);
+            }
+            tracing::info!(checkpoint = %dir.display(), episodes = meta.episode, "resuming");
+            (meta.config.clone(), meta.mask.clone(), meta.clone())
+        }
+        None => {
+            let config = match &args.config {
+                Some(path) => TrainConfig::load(path)?,
+                None => TrainConfig::default(),
+            };
+            let mask = match (args.connection, &args.graph, &args.graph_builder) {
+                (Connection::Local, Some(path), _) => {
+                    let report = lcrl_graph_builder::GraphReport::load(path)?;
+                    if (report.actions(), report.states()) != (n, m) {
+                        bail!("{} is {}×{} but {} needs {n}×{m}", path.display(), report.actions(), report.states(), args.env);
+                    }
+                    report.g
+                }
+                (Connection::Local, None, Some(url)) => fetch_graph(url, Duration::from_secs(args.graph_timeout), n, m).await?,
+                (Connection::Local, None, None) => {
+                    let options = lcrl_graph_builder::GraphOptions {
+                        cs3: lcrl_graph_builder::Cs3Config { samples: config.run.graph_samples, seed: config.run.seed, threads: 0 },
+                        rule: lcrl_graph_builder::Rule::Threshold(0.1),
+                        bootstrap: 200,
+                    };
+                    let report = lcrl_graph_builder::build_graph(env.as_ref(), &options, &|| {})?;
+                    report.write_json(&args.run_dir.join("graph.json"))?;
+                    report.g
+                }
+                _ => vec![vec![1; m]; n],
+            };
+            let meta = CheckpointMeta {
+                episode: 0,
+                env: args.env.clone(),
+                algo: args.algo,
+                connection: args.connection,
+                state_dim: m,
+                action_dim: n,
+                mask: mask.clone(),
+                config: config.clone(),
+                graph_seconds: 0.0,
+                optimization_seconds: 0.0,
+                elapsed_seconds: 0.0,
+                policy_version: 0,
+                actor_sequences: Default::default(),
+            };
+            (config, mask, meta)
+        }
+    };
+    tch::set_num_threads(config.run.threads as i32);
+    let mut agent = make_agent(args.algo, args.connection, &config, &mask, m, n)?;
+    if let Some((dir, _)) = &resume {
+        agent.load(dir)?;
+    }
+    let architecture = Architecture { env: args.env.clone(), algo: args.algo, connection: args.connection, state_dim: m, action_dim: n, mask, network: config.network.clone() };
+    let (policy, _) = watch::channel(Arc::new(snapshot(agent.as_ref(), &architecture, meta.policy_version)?));
+    let staleness = (args.algo == Algo::Ppo).then_some(args.max_staleness);
+    let counters = agent.counters();
+    let shared = Arc::new(Shared {
+        run_id: args.run_id.clone(),
+        algo: args.algo,
+        connection: args.connection,
+        architecture,
+        env_steps: AtomicU64::new(counters.env_steps),
+        updates: AtomicU64::new(counters.updates),
+        replay_size: AtomicU64::new(agent.stored() as u64),
+        episodes: AtomicU64::new(meta.episode as u64),
+        connected_actors: AtomicU32::new(0),
+        recent_returns: Mutex::new(VecDeque::new()),
+        ingest: Mutex::new(Ingest::new(&args.run_id, lcrl_sim::make_env(&args.env)?, staleness).with_sequences(meta.actor_sequences.clone())),
+        policy,
+        shutdown: watch::channel(false).0,
+    });
+    let (commands, inbox) = mpsc::channel(64);
+    if !(args.checkpoint_secs.is_finite() && args.checkpoint_secs > 0.0) {
+        bail!("--checkpoint-secs must be a positive number of seconds");
+    }
+    let schedule = Schedule {
+        publish_every: args.publish_every.max(1),
+        checkpoint_interval: Duration::from_secs_f64(args.checkpoint_secs),
+        run_dir: args.run_dir.clone(),
+        meta,
+    };
+    let trainer_shared = shared.clone();
+    // A failed training thread stops the server too: a learner that cannot
+    // learn should exit with the error, not keep accepting transitions.
+    let (trainer_failed, mut trainer_failure) = tokio::sync::oneshot::channel::<String>();
+    let trainer = std::thread::Builder::new()
+        .name("training".into())
+        .spawn(move || {
+            let result = run_training(agent, inbox, trainer_shared, schedule);
+            if let Err(e) = &result {
+                tracing::error!("training stopped: {e}");
+                let _ = trainer_failed.send(e.to_string());
+            }
+            result
+        })
+        .context("cannot start the training thread")?;
+
+    let listener = tokio::net::TcpListener::bind(args.listen).await.with_context(|| format!("cannot listen on {}; is another process using it?", args.listen))?;
+    let addr = listener.local_addr()?;
+    println!("listening on {addr}");
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health.set_serving::<LearnerServer<LearnerService>>().await;
+    health.set_serving::<PolicyServer<PolicyService>>().await;
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(lcrl_proto::v1::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()?;
+    let stopper = shared.clone();
+    let learner = LearnerServer::new(LearnerService { shared: shared.clone(), commands: commands.clone() })
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let policy = PolicyServer::new(PolicyService { shared: shared.clone(), env: Mutex::new(lcrl_sim::make_env(&args.env)?), serving: Mutex::new(None) })
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
+    let mut server = tokio::spawn(
+        tonic::transport::Server::builder()
+            .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
+            .add_service(health_service)
+            .add_service(reflection)
+            .add_service(learner)
+            .add_service(policy)
+            .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(listener), async move {
+                let _ = server_stopped.await;
+            }),
+    );
+    tokio::select! {
+        _ = shutdown_signal() => {}
+        _ = &mut trainer_failure => {}
+        result = &mut server => {
+            result.context("the gRPC server task panicked")?.context("the gRPC server failed")?;
+        }
+    }
+    // Long-lived streams end now; connections still open after a grace
+    // period (an actor mid-reconnect, say) are dropped rather than waited on.
+    stopper.shutdown.send_replace(true);
+    let _ = stop_server.send(());
+    if tokio::time::timeout(Duration::from_secs(5), &mut server).await.is_err() {
+        tracing::warn!("connections still open after 5 s; closing them");
+        server.abort();
+    }
+    tracing::info!("stopping: writing a checkpoint");
+    let _ = commands.send(lcrl_learner::service::runtime::Command::Stop).await;
+    drop(commands);
+    trainer.join().map_err(|_| anyhow::anyhow!("the training thread panicked"))??;
+    Ok(())
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+        Ok(mut term) => {
+            tokio::select! {
+                _ = ctrl_c => {},
+                _ = term.recv() => {},
+            }
+        }
+        Err(_) => {
+            let _ = ctrl_c.await;
+        }
+    }
+}

@@ -1,0 +1,197 @@
+//! What the learner accepts from actors: transition batches checked for
+//! run id, dimensions and finiteness, deduplicated by (actor, sequence),
+//! filtered for staleness (PPO), and converted to the agent's normalized
+//! units. Plain Rust; the gRPC and shared-memory front ends both call it.
+
+use std::collections::{BTreeMap, HashMap};
+
+use lcrl_proto::v1::{EpisodeSummary, TransitionBatch};
+use lcrl_sim::Env;
+
+/// A transition in the agent's units (normalized state, action in [−1, 1]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct AgentTransition {
+    pub obs: Vec<f32>,
+    pub action: Vec<f32>,
+    pub reward: f32,
+    pub next_obs: Vec<f32>,
+    pub terminated: bool,
+    pub truncated: bool,
+}
+
+/// An accepted batch, ready for the training thread.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Accepted {
+    pub transitions: Vec<AgentTransition>,
+    pub episodes: Vec<EpisodeSummary>,
+}
+
+/// The outcome of checking one batch.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Verdict {
+    Accept(Accepted),
+    /// (actor_id, sequence) was stored before: acknowledged, not stored.
+    Duplicate,
+    /// PPO: produced by a policy older than the staleness bound; discarded.
+    Stale,
+    /// Malformed: rejected with INVALID_ARGUMENT. `reason` is the status key.
+    Reject { reason: &'static str, message: String },
+}
+
+/// The ingestion state of a run.
+pub struct Ingest {
+    run_id: String,
+    env: Box<dyn Env>,
+    /// Highest sequence stored per actor; sequences increase per actor.
+    last_sequence: HashMap<String, u64>,
+    /// Maximum accepted age (in policy versions) of a batch; None: any.
+    max_staleness: Option<u64>,
+    /// Transitions rejected or dropped, by reason.
+    pub rejected: BTreeMap<String, u64>,
+}
+
+impl Ingest {
+    pub fn new(run_id: &str, env: Box<dyn Env>, max_staleness: Option<u64>) -> Self {
+        Ingest { run_id: run_id.to_string(), env, last_sequence: HashMap::new(), max_staleness, rejected: BTreeMap::new() }
+    }
+
+    /// Resumes deduplication from a checkpoint.
+    pub fn with_sequences(mut self, last_sequence: HashMap<String, u64>) -> Self {
+        self.last_sequence = last_sequence;
+        self
+    }
+
+    pub fn sequences(&self) -> &HashMap<String, u64> {
+        &self.last_sequence
+    }
+
+    fn count(&mut self, reason: &str, transitions: usize) {
+        *self.rejected.entry(reason.to_string()).or_insert(0) += transitions.max(1) as u64;
+    }
+
+    /// Checks `batch` against the run and the current policy version.
+    pub fn check(&mut self, batch: &TransitionBatch, policy_version: u64) -> Verdict {
+        let count = batch.transitions.len();
+        if batch.run_id != self.run_id {
+            self.count("unknown_run", count);
+            return Verdict::Reject {
+                reason: "unknown_run",
+                message: format!("run id '{}' is not this learner's run ('{}')", batch.run_id, self.run_id),
+            };
+        }
+        let (m, n) = (self.env.spec().state_dim(), self.env.spec().action_dim());
+        for (k, t) in batch.transitions.iter().enumerate() {
+            if t.state.len() != m || t.next_state.len() != m || t.action.len() != n {
+                self.count("dimensions", count);
+                return Verdict::Reject {
+                    reason: "dimensions",
+                    message: format!(
+                        "transition {k}: state {}, next_state {}, action {}; this run needs states of {m} and actions of {n}",
+                        t.state.len(),
+                        t.next_state.len(),
+                        t.action.len()
+                    ),
+                };
+            }
+            let all = t.state.iter().chain(&t.next_state).chain(&t.action).chain(std::iter::once(&t.reward));
+            if all.clone().any(|v| !v.is_finite()) {
+                self.count("non_finite", count);
+                return Verdict::Reject { reason: "non_finite", message: format!("transition {k} holds a non-finite number") };
+            }
+        }
+        if self.last_sequence.get(&batch.actor_id).is_some_and(|&last| batch.sequence <= last) {
+            self.count("duplicate", count);
+            return Verdict::Duplicate;
+        }
+        self.last_sequence.insert(batch.actor_id.clone(), batch.sequence);
+        if self.max_staleness.is_some_and(|bound| policy_version.saturating_sub(batch.policy_version) > bound) {
+            self.count("stale", count);
+            return Verdict::Stale;
+        }
+        let spec = self.env.spec();
+        let to_action = |a: &[f32]| -> Vec<f32> {
+            a.iter()
+                .zip(spec.action_low.iter().zip(&spec.action_high))
+                .map(|(&a, (lo, hi))| ((2.0 * (f64::from(a) - lo) / (hi - lo) - 1.0).clamp(-1.0, 1.0)) as f32)
+                .collect()
+        };
+        let to_obs = |s: &[f32]| -> Vec<f32> {
+            let raw: Vec<f64> = s.iter().map(|&v| f64::from(v)).collect();
+            self.env.normalize_state(&raw).iter().map(|&v| v as f32).collect()
+        };
+        let transitions = batch
+            .transitions
+            .iter()
+            .map(|t| AgentTransition {
+                obs: to_obs(&t.state),
+                action: to_action(&t.action),
+                reward: t.reward,
+                next_obs: to_obs(&t.next_state),
+                terminated: t.terminated,
+                truncated: t.truncated,
+            })
+            .collect();
+        Verdict::Accept(Accepted { transitions, episodes: batch.episodes.clone() })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lcrl_proto::v1::Transition;
+
+    fn batch(actor: &str, sequence: u64, state: Vec<f32>) -> TransitionBatch {
+        TransitionBatch {
+            run_id: "run-a".into(),
+            actor_id: actor.into(),
+            sequence,
+            episode_id: 1,
+            policy_version: 3,
+            transitions: vec![Transition { state: state.clone(), action: vec![0.5, -1.0, 1.0], reward: -1.0, next_state: state, terminated: false, truncated: false }],
+            episodes: vec![],
+        }
+    }
+
+    fn ingest(staleness: Option<u64>) -> Ingest {
+        Ingest::new("run-a", lcrl_sim::make_env("lti-paper").unwrap(), staleness)
+    }
+
+    #[test]
+    fn accepts_and_normalizes() {
+        let mut ingest = ingest(None);
+        match ingest.check(&batch("a1", 1, vec![0.1, 0.2, 0.3]), 3) {
+            Verdict::Accept(accepted) => {
+                assert_eq!(accepted.transitions[0].action, vec![0.5, -1.0, 1.0]); // bounds are ±1
+                assert_eq!(accepted.transitions[0].obs, vec![0.1, 0.2, 0.3]);
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(ingest.rejected.is_empty());
+    }
+
+    #[test]
+    fn rejects_bad_batches_and_counts_them() {
+        let mut ingest = ingest(None);
+        let mut wrong_run = batch("a1", 1, vec![0.0; 3]);
+        wrong_run.run_id = "run-b".into();
+        assert!(matches!(ingest.check(&wrong_run, 3), Verdict::Reject { reason: "unknown_run", .. }));
+        assert!(matches!(ingest.check(&batch("a1", 2, vec![0.0; 4]), 3), Verdict::Reject { reason: "dimensions", .. }));
+        assert!(matches!(ingest.check(&batch("a1", 3, vec![0.0, f32::NAN, 0.0]), 3), Verdict::Reject { reason: "non_finite", .. }));
+        assert_eq!(ingest.rejected.values().sum::<u64>(), 3);
+        // A rejected batch does not consume its sequence number.
+        assert!(matches!(ingest.check(&batch("a1", 1, vec![0.0; 3]), 3), Verdict::Accept(_)));
+    }
+
+    #[test]
+    fn duplicates_and_stale_batches_are_not_stored() {
+        let mut ingest = ingest(Some(1));
+        assert!(matches!(ingest.check(&batch("a1", 5, vec![0.0; 3]), 3), Verdict::Accept(_)));
+        assert_eq!(ingest.check(&batch("a1", 5, vec![0.0; 3]), 3), Verdict::Duplicate);
+        assert_eq!(ingest.check(&batch("a1", 4, vec![0.0; 3]), 3), Verdict::Duplicate);
+        assert!(matches!(ingest.check(&batch("a2", 5, vec![0.0; 3]), 3), Verdict::Accept(_)));
+        // Version 3 batches are two versions old at version 5: beyond the bound.
+        assert_eq!(ingest.check(&batch("a1", 6, vec![0.0; 3]), 5), Verdict::Stale);
+        assert_eq!(ingest.rejected.get("duplicate"), Some(&2));
+        assert_eq!(ingest.rejected.get("stale"), Some(&1));
+    }
+}

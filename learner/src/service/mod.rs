@@ -1,0 +1,10 @@
+//! The distributed learner: actors stream transitions in, the training
+//! thread learns from them, and new policy versions go back out.
+//!
+//! - [`ingest`]: checks, deduplicates and normalizes batches (plain Rust).
+//! - [`runtime`]: shared counters and the training thread.
+//! - [`server`]: the `lcrl.v1.Learner` and `lcrl.v1.Policy` gRPC handlers.
+
+pub mod ingest;
+pub mod runtime;
+pub mod server;

@@ -1,0 +1,207 @@
+//! Thin gRPC handlers over [`Shared`] and the training thread's channel.
+
+use std::pin::Pin;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex};
+
+use lcrl_proto::v1::learner_server::Learner;
+use lcrl_proto::v1::policy_server::Policy as PolicyApi;
+use lcrl_proto::v1::{
+    ActBatchRequest, ActBatchResponse, ActRequest, ActResponse, BatchAck, GetPolicyRequest, GetStatusRequest, LearnerStatus,
+    PolicySnapshot, TransitionBatch, WatchPolicyRequest,
+};
+use lcrl_sim::Env;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::{ReceiverStream, WatchStream};
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Request, Response, Status, Streaming};
+
+use crate::policy::Policy;
+use crate::service::ingest::Verdict;
+use crate::service::runtime::{Command, Shared};
+
+type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
+
+/// `lcrl.v1.Learner`.
+pub struct LearnerService {
+    pub shared: Arc<Shared>,
+    pub commands: mpsc::Sender<Command>,
+}
+
+/// Counts a connected actor for as long as its stream lives.
+struct Connected(Arc<Shared>);
+
+impl Drop for Connected {
+    fn drop(&mut self) {
+        self.0.connected_actors.fetch_sub(1, Ordering::Relaxed);
+    }
+}
+
+#[tonic::async_trait]
+impl Learner for LearnerService {
+    type StreamTransitionsStream = BoxStream<BatchAck>;
+    type WatchPolicyStream = BoxStream<PolicySnapshot>;
+
+    async fn stream_transitions(&self, request: Request<Streaming<TransitionBatch>>) -> Result<Response<Self::StreamTransitionsStream>, Status> {
+        let mut inbound = request.into_inner();
+        let (acks, out) = mpsc::channel(16);
+        let shared = self.shared.clone();
+        let commands = self.commands.clone();
+        shared.connected_actors.fetch_add(1, Ordering::Relaxed);
+        tokio::spawn(async move {
+            let _connected = Connected(shared.clone());
+            let stopping = shared.stopping();
+            tokio::pin!(stopping);
+            loop {
+                let batch = tokio::select! {
+                    batch = inbound.next() => batch,
+                    _ = &mut stopping => {
+                        let _ = acks.send(Err(Status::unavailable("the learner is shutting down"))).await;
+                        break;
+                    }
+                };
+                let Some(batch) = batch else { break };
+                let batch = match batch {
+                    Ok(batch) => batch,
+                    Err(status) => {
+                        tracing::debug!(%status, "actor stream ended");
+                        break;
+                    }
+                };
+                let span = tracing::debug_span!("batch", actor = %batch.actor_id, sequence = batch.sequence);
+                let _entered = span.enter();
+                let version = shared.policy_version();
+                let verdict = match shared.ingest.lock() {
+                    Ok(mut ingest) => ingest.check(&batch, version),
+                    Err(_) => Verdict::Reject { reason: "internal", message: "ingestion state poisoned".into() },
+                };
+                let (stored, outcome) = match verdict {
+                    Verdict::Accept(accepted) => {
+                        let stored = accepted.transitions.len() as u32;
+                        if commands.send(Command::Batch(accepted)).await.is_err() {
+                            let _ = acks.send(Err(Status::unavailable("the learner is shutting down"))).await;
+                            break;
+                        }
+                        (stored, "stored")
+                    }
+                    Verdict::Duplicate => (0, "duplicate"),
+                    Verdict::Stale => (0, "stale"),
+                    Verdict::Reject { reason, message } => {
+                        tracing::warn!(reason, %message, "batch rejected");
+                        let _ = acks.send(Err(Status::invalid_argument(message))).await;
+                        break;
+                    }
+                };
+                let ack = BatchAck { sequence: batch.sequence, stored, outcome: outcome.into(), policy_version: shared.policy_version() };
+                if acks.send(Ok(ack)).await.is_err() {
+                    break;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(out))))
+    }
+
+    async fn get_policy(&self, _request: Request<GetPolicyRequest>) -> Result<Response<PolicySnapshot>, Status> {
+        Ok(Response::new((**self.shared.policy.borrow()).clone()))
+    }
+
+    async fn watch_policy(&self, request: Request<WatchPolicyRequest>) -> Result<Response<Self::WatchPolicyStream>, Status> {
+        let after = request.into_inner().after_version;
+        let mut versions = WatchStream::new(self.shared.policy.subscribe())
+            .filter(move |snapshot| snapshot.version > after || (after == 0 && snapshot.version == 0));
+        // Forwarded by a task that ends at shutdown, so the stream ends too.
+        let (out, stream) = mpsc::channel(2);
+        let stopping = self.shared.stopping();
+        tokio::spawn(async move {
+            tokio::pin!(stopping);
+            loop {
+                tokio::select! {
+                    next = versions.next() => match next {
+                        Some(snapshot) if out.send(Ok((*snapshot).clone())).await.is_ok() => {}
+                        _ => break,
+                    },
+                    _ = &mut stopping => break,
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(stream))))
+    }
+
+    async fn get_status(&self, _request: Request<GetStatusRequest>) -> Result<Response<LearnerStatus>, Status> {
+        let s = &self.shared;
+        let rejected = s.ingest.lock().map(|i| i.rejected.clone().into_iter().collect()).unwrap_or_default();
+        Ok(Response::new(LearnerStatus {
+            run_id: s.run_id.clone(),
+            algo: format!("{:?}", s.algo).to_lowercase(),
+            connection: format!("{:?}", s.connection).to_lowercase(),
+            episodes: s.episodes.load(Ordering::Relaxed),
+            env_steps: s.env_steps.load(Ordering::Relaxed),
+            updates: s.updates.load(Ordering::Relaxed),
+            replay_size: s.replay_size.load(Ordering::Relaxed),
+            policy_version: s.policy_version(),
+            connected_actors: s.connected_actors.load(Ordering::Relaxed),
+            rejected,
+            recent_return: s.recent_return(),
+        }))
+    }
+}
+
+/// `lcrl.v1.Policy`: the newest policy, rebuilt when a new version appears.
+pub struct PolicyService {
+    pub shared: Arc<Shared>,
+    pub env: Mutex<Box<dyn Env>>,
+    pub serving: Mutex<Option<Policy>>,
+}
+
+impl PolicyService {
+    /// Runs `f` with the newest policy (rebuilding it if outdated).
+    fn with_policy<T>(&self, f: impl FnOnce(&Policy, &dyn Env) -> T) -> Result<(T, u64), Status> {
+        let snapshot = self.shared.policy.borrow().clone();
+        let mut serving = self.serving.lock().map_err(|_| Status::internal("policy state poisoned"))?;
+        let stale = serving.as_ref().is_none_or(|p| p.version != snapshot.version);
+        if stale {
+            let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)
+                .map_err(|e| Status::internal(e.to_string()))?;
+            *serving = Some(policy);
+        }
+        let policy = serving.as_ref().ok_or_else(|| Status::internal("no policy"))?;
+        let env = self.env.lock().map_err(|_| Status::internal("environment state poisoned"))?;
+        Ok((f(policy, env.as_ref()), snapshot.version))
+    }
+
+    fn check_states(&self, states: &[f32], count: usize) -> Result<usize, Status> {
+        let m = self.shared.architecture.state_dim;
+        if count == 0 || states.len() != count * m {
+            return Err(Status::invalid_argument(format!("expected {count} state(s) of {m} numbers, got {} numbers", states.len())));
+        }
+        if states.iter().any(|v| !v.is_finite()) {
+            return Err(Status::invalid_argument("states must be finite"));
+        }
+        Ok(m)
+    }
+}
+
+#[tonic::async_trait]
+impl PolicyApi for PolicyService {
+    #[tracing::instrument(skip_all, name = "Act")]
+    async fn act(&self, request: Request<ActRequest>) -> Result<Response<ActResponse>, Status> {
+        let state = request.into_inner().state;
+        self.check_states(&state, 1)?;
+        let raw: Vec<f64> = state.iter().map(|&v| f64::from(v)).collect();
+        let (action, version) = self.with_policy(|policy, env| policy.act(env, &raw))?;
+        Ok(Response::new(ActResponse { action: action.iter().map(|&a| a as f32).collect(), policy_version: version }))
+    }
+
+    #[tracing::instrument(skip_all, name = "ActBatch")]
+    async fn act_batch(&self, request: Request<ActBatchRequest>) -> Result<Response<ActBatchResponse>, Status> {
+        let request = request.into_inner();
+        let m = self.check_states(&request.states, request.count as usize)?;
+        let (actions, version) = self.with_policy(|policy, env| {
+            request.states.chunks(m).flat_map(|row| {
+                let raw: Vec<f64> = row.iter().map(|&v| f64::from(v)).collect();
+                policy.act(env, &raw)
+            }).map(|a| a as f32).collect::<Vec<f32>>()
+        })?;
+        Ok(Response::new(ActBatchResponse { actions, policy_version: version }))
+    }
+}

@@ -1,0 +1,227 @@
+//! The distributed runtime as real processes on loopback: lcrl-learner and
+//! lcrl-actor over gRPC, with the faults a cluster sees.
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use lcrl_proto::v1::learner_client::LearnerClient;
+use lcrl_proto::v1::policy_client::PolicyClient;
+use lcrl_proto::v1::{ActBatchRequest, ActRequest, GetStatusRequest, LearnerStatus, Transition, TransitionBatch};
+
+use super::common::workspace_bin;
+
+const SMALL: &str = "[network]\nglobal_hidden = [32, 32]\nsubnet_hidden = [16, 16]\ncritic_hidden = [32, 32]\n\
+[ddpg]\nwarmup_steps = 100\nbatch_size = 32\n[run]\ngraph_samples = 16\n";
+
+/// A child process killed (SIGKILL) when dropped.
+struct Proc(Child);
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl Proc {
+    fn signal(&self, signal: &str) {
+        let _ = Command::new("kill").args([format!("-{signal}"), self.0.id().to_string()]).status();
+    }
+}
+
+/// A free loopback port (bound, then released for the learner to take).
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+fn learner(run_dir: &Path, run_id: &str, port: u16) -> (Proc, String) {
+    let config = run_dir.with_extension("toml");
+    std::fs::write(&config, SMALL).unwrap();
+    let mut child = workspace_bin("lcrl-learner")
+        .args(["--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--publish-every", "20", "--checkpoint-secs", "0.5", "--run-id", run_id])
+        .arg("--config")
+        .arg(&config)
+        .arg("--run-dir")
+        .arg(run_dir)
+        .args(["--listen", &format!("127.0.0.1:{port}")])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    assert!(line.starts_with("listening on"), "learner said {line:?}");
+    (Proc(child), format!("http://127.0.0.1:{port}"))
+}
+
+fn actor(url: &str, run_id: &str) -> Proc {
+    Proc(
+        workspace_bin("lcrl-actor")
+            .args(["--learner", url, "--run-id", run_id, "--envs", "2", "--batch", "25", "--connect-deadline", "30"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    )
+}
+
+async fn status(url: &str) -> Option<LearnerStatus> {
+    let mut client = LearnerClient::connect(url.to_string()).await.ok()?;
+    Some(client.get_status(GetStatusRequest {}).await.ok()?.into_inner())
+}
+
+/// Polls the learner's status until `ready` holds (or fails after 60 s).
+async fn wait_for(url: &str, what: &str, ready: impl Fn(&LearnerStatus) -> bool) -> LearnerStatus {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        if let Some(s) = status(url).await {
+            if ready(&s) {
+                return s;
+            }
+        }
+        assert!(Instant::now() < deadline, "timed out waiting for {what}; last status {:?}", status(url).await);
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+fn batch(run_id: &str, sequence: u64, state_len: usize, value: f32) -> TransitionBatch {
+    TransitionBatch {
+        run_id: run_id.into(),
+        actor_id: "test".into(),
+        sequence,
+        episode_id: 0,
+        policy_version: 0,
+        transitions: vec![Transition { state: vec![value; state_len], action: vec![0.1; 3], reward: -1.0, next_state: vec![0.0; state_len], terminated: false, truncated: false }; 4],
+        episodes: vec![],
+    }
+}
+
+/// Sends one batch on a fresh stream; returns the first ack or the error.
+async fn send(url: &str, batch: TransitionBatch) -> Result<lcrl_proto::v1::BatchAck, tonic::Status> {
+    let mut client = LearnerClient::connect(url.to_string()).await.unwrap();
+    let mut acks = client.stream_transitions(tokio_stream::iter(vec![batch])).await?.into_inner();
+    acks.message().await?.ok_or_else(|| tonic::Status::unknown("no ack"))
+}
+
+#[tokio::test]
+async fn actors_train_the_learner_which_serves_the_policy() {
+    let dir = tempfile::tempdir().unwrap();
+    let (learner_proc, url) = learner(&dir.path().join("run"), "r1", free_port());
+    let _actor = actor(&url, "r1");
+    let s = wait_for(&url, "updates and a published policy", |s| s.updates > 50 && s.policy_version >= 1 && s.connected_actors == 1).await;
+    assert!(s.env_steps >= s.updates, "DDPG keeps at most one update per step");
+
+    let mut policy = PolicyClient::connect(url.clone()).await.unwrap();
+    let act = policy.act(ActRequest { state: vec![0.5, -0.2, 0.1] }).await.unwrap().into_inner();
+    assert_eq!(act.action.len(), 3);
+    assert!(act.action.iter().all(|a| (-1.0..=1.0).contains(a)) && act.policy_version >= 1);
+    let many = policy.act_batch(ActBatchRequest { count: 2, states: vec![0.5, -0.2, 0.1, 0.0, 0.0, 0.0] }).await.unwrap().into_inner();
+    assert_eq!(many.actions.len(), 6);
+    assert_eq!(&many.actions[..3], &act.action[..], "same state, same deterministic action");
+    let wrong = policy.act(ActRequest { state: vec![0.5, -0.2] }).await.unwrap_err();
+    assert_eq!(wrong.code(), tonic::Code::InvalidArgument);
+    let nan = policy.act(ActRequest { state: vec![0.5, f32::NAN, 0.1] }).await.unwrap_err();
+    assert_eq!(nan.code(), tonic::Code::InvalidArgument);
+
+    // SIGTERM: the learner checkpoints and exits cleanly.
+    let episodes = status(&url).await.unwrap().episodes;
+    learner_proc.signal("TERM");
+    let mut learner_proc = learner_proc;
+    let code = learner_proc.0.wait().unwrap();
+    assert!(code.success(), "learner exit {code:?}");
+    let newest = lcrl_learner::trainer::latest_checkpoint(&dir.path().join("run")).expect("a checkpoint on SIGTERM");
+    assert!(lcrl_learner::trainer::read_meta(&newest).unwrap().episode >= episodes as usize);
+}
+
+#[tokio::test]
+async fn bad_batches_are_rejected_counted_and_never_stored() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_learner, url) = learner(&dir.path().join("run"), "r2", free_port());
+    for (bad, reason) in [(batch("r2", 1, 4, 0.0), "dimensions"), (batch("r2", 1, 3, f32::INFINITY), "non_finite"), (batch("other-run", 1, 3, 0.0), "unknown_run")] {
+        let err = send(&url, bad).await.unwrap_err();
+        assert_eq!(err.code(), tonic::Code::InvalidArgument, "{reason}: {err:?}");
+        let s = status(&url).await.unwrap();
+        assert_eq!(s.rejected.get(reason), Some(&4), "{reason}: {:?}", s.rejected);
+    }
+    let s = status(&url).await.unwrap();
+    assert_eq!((s.env_steps, s.replay_size), (0, 0));
+
+    // A replayed batch (same actor, same sequence) is stored once.
+    assert_eq!(send(&url, batch("r2", 7, 3, 0.2)).await.unwrap().outcome, "stored");
+    assert_eq!(send(&url, batch("r2", 7, 3, 0.2)).await.unwrap().outcome, "duplicate");
+    let s = wait_for(&url, "the stored batch", |s| s.env_steps == 4).await;
+    assert_eq!(s.rejected.get("duplicate"), Some(&4));
+}
+
+#[tokio::test]
+async fn a_killed_actor_can_rejoin() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_learner, url) = learner(&dir.path().join("run"), "r3", free_port());
+    let first = actor(&url, "r3");
+    wait_for(&url, "first actor's transitions", |s| s.env_steps > 500).await;
+    first.signal("KILL");
+    drop(first);
+    let after_kill = wait_for(&url, "the stream to close", |s| s.connected_actors == 0).await;
+    let _second = actor(&url, "r3");
+    let s = wait_for(&url, "the new actor's transitions", |s| s.env_steps > after_kill.env_steps + 200 && s.connected_actors == 1).await;
+    assert!(s.updates >= after_kill.updates);
+}
+
+#[tokio::test]
+async fn a_killed_learner_resumes_and_actors_reconnect() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let port = free_port();
+    let (first, url) = learner(&run, "r4", port);
+    let _actor = actor(&url, "r4");
+    wait_for(&url, "training", |s| s.episodes >= 15 && s.policy_version >= 1).await;
+    // Wait for a checkpoint on disk that holds that progress.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let saved = loop {
+        let meta = lcrl_learner::trainer::latest_checkpoint(&run).and_then(|dir| lcrl_learner::trainer::read_meta(&dir).ok());
+        match meta {
+            Some(meta) if meta.episode >= 15 && meta.policy_version >= 1 => break meta,
+            _ => {
+                assert!(Instant::now() < deadline, "no checkpoint with progress");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+    };
+    first.signal("KILL");
+    drop(first);
+    let (_second, url) = learner(&run, "r4", port);
+    let resumed = status(&url).await.unwrap();
+    assert!(resumed.episodes as usize >= saved.episode && resumed.policy_version >= saved.policy_version, "{resumed:?} vs {saved:?}");
+    assert!(resumed.env_steps > 0, "the replay buffer came back");
+    // The actor finds the new learner by itself.
+    wait_for(&url, "the actor to reconnect", |s| s.connected_actors == 1 && s.env_steps > resumed.env_steps + 100).await;
+}
+
+#[test]
+fn an_unreachable_learner_stops_the_actor_after_its_deadline() {
+    let started = Instant::now();
+    let out = workspace_bin("lcrl-actor")
+        .args(["--learner", &format!("http://127.0.0.1:{}", free_port()), "--connect-deadline", "2"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("retrying"), "a clear retry line: {err}");
+    assert!(err.contains("stayed unreachable for 2 s"), "{err}");
+    assert!(started.elapsed() < Duration::from_secs(20));
+}
+
+#[tokio::test]
+async fn runs_with_different_ids_do_not_mix() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_a, url_a) = learner(&dir.path().join("a"), "run-a", free_port());
+    let (_b, url_b) = learner(&dir.path().join("b"), "run-b", free_port());
+    // An actor of run-a pointed at run-b's learner: every batch is refused.
+    let _stray = actor(&url_b, "run-a");
+    let _proper = actor(&url_a, "run-a");
+    wait_for(&url_a, "run-a's transitions", |s| s.env_steps > 200).await;
+    let b = wait_for(&url_b, "run-b's refusals", |s| s.rejected.get("unknown_run").copied().unwrap_or(0) > 0).await;
+    assert_eq!(b.env_steps, 0, "nothing of run-a reached run-b");
+}
