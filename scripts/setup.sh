@@ -47,3 +47,16 @@ if [ ! -f "$VENV/libtorch/lib/libtorch_cpu.so" ]; then
   exit 1
 fi
 echo "setup: libtorch $TORCH_VERSION at $VENV/libtorch"
+
+# The Python gRPC client (clients/python): grpcio, and stubs generated from
+# the contract itself, so they can never drift from proto/lcrl.proto.
+if ! "$VENV/bin/python" -c 'import grpc, grpc_tools, grpc_health' 2>/dev/null; then
+  echo "setup: installing grpcio, grpcio-tools, grpcio-health-checking into $VENV"
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check grpcio grpcio-tools grpcio-health-checking
+fi
+stubs=clients/python/lcrl_stubs
+if [ ! -f "$stubs/lcrl_pb2.py" ] || [ proto/lcrl.proto -nt "$stubs/lcrl_pb2.py" ]; then
+  mkdir -p "$stubs"
+  "$VENV/bin/python" -m grpc_tools.protoc -I proto --python_out="$stubs" --grpc_python_out="$stubs" proto/lcrl.proto
+  echo "setup: generated Python stubs in $stubs"
+fi

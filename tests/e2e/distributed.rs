@@ -225,3 +225,27 @@ async fn runs_with_different_ids_do_not_mix() {
     let b = wait_for(&url_b, "run-b's refusals", |s| s.rejected.get("unknown_run").copied().unwrap_or(0) > 0).await;
     assert_eq!(b.env_steps, 0, "nothing of run-a reached run-b");
 }
+
+/// The Python client (grpcio, stubs generated from proto/lcrl.proto by
+/// scripts/setup.sh) checks health and gets an action from a real learner.
+#[test]
+fn python_client_queries_the_policy() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port();
+    let (_learner, _url) = learner(&dir.path().join("run"), "py", port);
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let python = root.join(".venv/bin/python");
+    assert!(python.is_file(), "run scripts/setup.sh first (it installs grpcio and generates the stubs)");
+    let script = root.join("clients/python/lcrl_client.py");
+    let run = |state: &[&str]| Command::new(&python).arg(&script).args(["--target", &format!("127.0.0.1:{port}"), "--state"]).args(state).output().unwrap();
+    let out = run(&["0.1", "0.2", "0.3"]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(text.contains("health lcrl.v1.Policy: SERVING"), "{text}");
+    let action: Vec<f64> = text.lines().find_map(|l| l.strip_prefix("action ")).unwrap().split_whitespace().map(|v| v.parse().unwrap()).collect();
+    assert_eq!(action.len(), 3);
+    assert!(action.iter().all(|a| (-1.0..=1.0).contains(a)));
+    let wrong = run(&["0.1", "0.2"]);
+    assert_eq!(wrong.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&wrong.stderr).contains("INVALID_ARGUMENT"));
+}
