@@ -26,6 +26,13 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 300)]
         updates: usize,
     },
+    /// gRPC ingestion rate, Policy.Act latency, and end-to-end environment
+    /// steps/s with 1 and 2 actors (real lcrl-learner / lcrl-actor processes).
+    Transport {
+        /// Seconds per measurement.
+        #[arg(long, default_value_t = 5.0)]
+        seconds: f64,
+    },
     /// Control steps per second of peg-group1 on one core.
     Sim {
         /// Episodes per setting.
@@ -39,6 +46,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Graph { samples, repeats } => bench_graph(samples, repeats.max(1)),
         BenchCommand::Sim { episodes } => bench_sim(episodes.max(1)),
         BenchCommand::Learner { updates } => bench_learner(updates.max(1)),
+        BenchCommand::Transport { seconds } => crate::bench_transport::run(seconds.max(1.0)),
     }
 }
 

@@ -2,6 +2,7 @@
 //! Learning. Each subcommand is a thin layer over a library crate.
 
 mod bench;
+mod bench_transport;
 mod compare_cmd;
 mod doctor;
 mod plots;

@@ -70,6 +70,9 @@ struct Args {
     /// newest 3 checkpoints are kept.
     #[arg(long, default_value_t = 60.0)]
     checkpoint_secs: f64,
+    /// Store transitions but never train (for ingestion benchmarks).
+    #[arg(long)]
+    no_train: bool,
     /// Log as JSON lines instead of human-readable text.
     #[arg(long)]
     log_json: bool,
@@ -218,6 +221,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         checkpoint_interval: Duration::from_secs_f64(args.checkpoint_secs),
         run_dir: args.run_dir.clone(),
         meta,
+        train: !args.no_train,
     };
     let trainer_shared = shared.clone();
     // A failed training thread stops the server too: a learner that cannot
@@ -260,7 +264,12 @@ async fn run(args: Args) -> anyhow::Result<()> {
             .add_service(reflection)
             .add_service(learner)
             .add_service(policy)
-            .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(listener), async move {
+            // Small request/response messages: no Nagle delay on accepted sockets.
+            .serve_with_incoming_shutdown(tokio_stream::StreamExt::map(tokio_stream::wrappers::TcpListenerStream::new(listener), |conn| {
+                conn.inspect(|stream| {
+                    let _ = stream.set_nodelay(true);
+                })
+            }), async move {
                 let _ = server_stopped.await;
             }),
     );

@@ -74,6 +74,8 @@ pub struct Schedule {
     pub checkpoint_interval: std::time::Duration,
     pub run_dir: PathBuf,
     pub meta: CheckpointMeta,
+    /// False: store only, never train (ingestion benchmarks).
+    pub train: bool,
 }
 
 /// Encodes the agent's actor as the next policy version.
@@ -120,7 +122,7 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
         let before = agent.counters();
         // DDPG keeps at most one update per stored environment step (Algorithm
         // 2's ratio); PPO trains whenever a rollout is full.
-        let may_train = shared.algo == Algo::Ppo || before.updates < before.env_steps;
+        let may_train = schedule.train && (shared.algo == Algo::Ppo || before.updates < before.env_steps);
         if may_train {
             agent.train_step();
         }
