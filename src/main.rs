@@ -6,6 +6,7 @@ mod bench_transport;
 mod compare_cmd;
 mod doctor;
 mod plots;
+mod run_cmd;
 mod sim_cmd;
 mod train_cmd;
 
@@ -31,6 +32,8 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Run graph builder, learner and actors from one preset (configs/).
+    Run(run_cmd::RunArgs),
     /// Build the connection graph G of an environment with CS3 and print it.
     Graph(GraphArgs),
     /// Run a controller on an environment: summary.json, trace.csv, trace.png.
@@ -57,6 +60,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Graph(args) => run_graph(&args),
+        Command::Run(args) => run_cmd::run(&args),
         Command::Sim(args) => sim_cmd::run(&args),
         Command::Train(args) => train_cmd::run(&args),
         Command::Compare(args) => compare_cmd::run(&args),

@@ -9,4 +9,5 @@ mod e2e {
     mod sim_cli;
     mod train_cli;
     mod distributed;
+    mod run_cli;
 }

@@ -257,6 +257,9 @@ fn work(s: WorkerSettings, mut policy_rx: watch::Receiver<Arc<PolicySnapshot>>, 
     let mut lengths = vec![0u32; s.envs];
     let (mut sequence, mut episodes_done) = (0u64, 0u64);
     let mut batch = TransitionBatch { run_id: s.run_id.clone(), actor_id: s.actor_id.clone(), ..Default::default() };
+    // Each environment's transitions stay contiguous in a batch, its last
+    // one marked as a cut, so the learner sees whole trajectory segments.
+    let mut segments: Vec<Vec<Transition>> = vec![Vec::new(); s.envs];
     while !stop.load(Ordering::Relaxed) && s.episodes.is_none_or(|limit| episodes_done < limit) {
         if policy_rx.has_changed().unwrap_or(false) {
             let newest = policy_rx.borrow_and_update().clone();
@@ -278,7 +281,7 @@ fn work(s: WorkerSettings, mut policy_rx: watch::Receiver<Arc<PolicySnapshot>>, 
             let step = env.step(&action)?;
             returns[k] += step.reward;
             lengths[k] += 1;
-            batch.transitions.push(Transition {
+            segments[k].push(Transition {
                 state: states[k].iter().map(|&v| v as f32).collect(),
                 action: action.iter().map(|&v| v as f32).collect(),
                 reward: step.reward as f32,
@@ -300,7 +303,14 @@ fn work(s: WorkerSettings, mut policy_rx: watch::Receiver<Arc<PolicySnapshot>>, 
             }
         }
         let done = s.episodes.is_some_and(|limit| episodes_done >= limit);
-        if batch.transitions.len() >= s.batch || (done && !batch.transitions.is_empty()) {
+        let collected: usize = segments.iter().map(Vec::len).sum();
+        if collected >= s.batch || (done && collected > 0) {
+            for segment in segments.iter_mut() {
+                if let Some(last) = segment.last_mut() {
+                    last.truncated |= !last.terminated;
+                }
+                batch.transitions.append(segment);
+            }
             sequence += 1;
             batch.sequence = sequence;
             batch.episode_id = episodes_done;

@@ -211,6 +211,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         ingest: Mutex::new(Ingest::new(&args.run_id, lcrl_sim::make_env(&args.env)?, staleness).with_sequences(meta.actor_sequences.clone())),
         policy,
         shutdown: watch::channel(false).0,
+        run_dir: args.run_dir.clone(),
     });
     let (commands, inbox) = mpsc::channel(64);
     if !(args.checkpoint_secs.is_finite() && args.checkpoint_secs > 0.0) {
@@ -222,6 +223,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         run_dir: args.run_dir.clone(),
         meta,
         train: !args.no_train,
+        max_staleness: staleness,
     };
     let trainer_shared = shared.clone();
     // A failed training thread stops the server too: a learner that cannot

@@ -24,6 +24,8 @@ pub struct AgentTransition {
 pub struct Accepted {
     pub transitions: Vec<AgentTransition>,
     pub episodes: Vec<EpisodeSummary>,
+    /// The policy version that produced the batch.
+    pub policy_version: u64,
 }
 
 /// The outcome of checking one batch.
@@ -131,7 +133,7 @@ impl Ingest {
                 truncated: t.truncated,
             })
             .collect();
-        Verdict::Accept(Accepted { transitions, episodes: batch.episodes.clone() })
+        Verdict::Accept(Accepted { transitions, episodes: batch.episodes.clone(), policy_version: batch.policy_version })
     }
 }
 

@@ -42,6 +42,8 @@ pub struct Shared {
     /// Set when the learner shuts down: long-lived streams end then, so the
     /// server's graceful shutdown does not wait on them forever.
     pub shutdown: watch::Sender<bool>,
+    /// Where metrics.csv goes.
+    pub run_dir: PathBuf,
 }
 
 impl Shared {
@@ -76,7 +78,15 @@ pub struct Schedule {
     pub meta: CheckpointMeta,
     /// False: store only, never train (ingestion benchmarks).
     pub train: bool,
+    /// PPO: batches more than this many versions behind the newest policy
+    /// are dropped when they reach the training thread (they may have
+    /// waited in the queue through an update). None: keep everything.
+    pub max_staleness: Option<u64>,
 }
+
+/// Batches stored per loop turn before training gets its turn: with fast
+/// actors the queue is never empty, and training must not starve.
+const BATCHES_PER_TURN: usize = 8;
 
 /// Encodes the agent's actor as the next policy version.
 pub fn snapshot(agent: &dyn Agent, architecture: &Architecture, version: u64) -> Result<PolicySnapshot, LearnerError> {
@@ -103,11 +113,11 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
     loop {
         let mut stop = false;
         let mut received = false;
-        loop {
+        for _ in 0..BATCHES_PER_TURN {
             match commands.try_recv() {
                 Ok(Command::Batch(batch)) => {
                     received = true;
-                    store(agent.as_mut(), &shared, batch);
+                    store(agent.as_mut(), &shared, &schedule, batch);
                 }
                 Ok(Command::Stop) | Err(mpsc::error::TryRecvError::Disconnected) => {
                     stop = true;
@@ -150,7 +160,7 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
             // checkpoint is due).
             let wait = schedule.checkpoint_interval.saturating_sub(last_checkpoint.elapsed()).max(std::time::Duration::from_millis(10));
             match recv_timeout(&mut commands, wait) {
-                Some(Some(Command::Batch(batch))) => store(agent.as_mut(), &shared, batch),
+                Some(Some(Command::Batch(batch))) => store(agent.as_mut(), &shared, &schedule, batch),
                 Some(Some(Command::Stop)) | Some(None) => return checkpoint(agent.as_ref(), &shared, &schedule),
                 None => {}
             }
@@ -172,8 +182,32 @@ fn recv_timeout(commands: &mut mpsc::Receiver<Command>, timeout: std::time::Dura
     }
 }
 
-fn store(agent: &mut dyn Agent, shared: &Shared, batch: Accepted) {
-    for t in &batch.transitions {
+/// Appends the actors' finished episodes to `metrics.csv` (episode, return,
+/// length, success), the file `lcrl compare` and the reward curve read.
+fn log_episodes(run_dir: &std::path::Path, first: u64, episodes: &[lcrl_proto::v1::EpisodeSummary]) -> std::io::Result<()> {
+    use std::io::Write;
+    let path = run_dir.join("metrics.csv");
+    let new = !path.exists();
+    let mut file = std::fs::OpenOptions::new().create(true).append(true).open(&path)?;
+    if new {
+        writeln!(file, "episode,return,length,success,peak_force_n,peak_moment_nm,wall_s,optimization_s")?;
+    }
+    for (k, e) in episodes.iter().enumerate() {
+        let success = e.success.map_or(String::new(), |s| s.to_string());
+        writeln!(file, "{},{},{},{success},,,,", first + k as u64 + 1, e.episode_return, e.length)?;
+    }
+    Ok(())
+}
+
+fn store(agent: &mut dyn Agent, shared: &Shared, schedule: &Schedule, batch: Accepted) {
+    let newest = shared.policy_version();
+    let stale = schedule.max_staleness.is_some_and(|bound| newest.saturating_sub(batch.policy_version) > bound);
+    if stale {
+        if let Ok(mut ingest) = shared.ingest.lock() {
+            *ingest.rejected.entry("stale".into()).or_insert(0) += batch.transitions.len() as u64;
+        }
+    }
+    for t in batch.transitions.iter().filter(|_| !stale) {
         agent.store(Transition {
             obs: &t.obs,
             action: &t.action,
@@ -184,7 +218,12 @@ fn store(agent: &mut dyn Agent, shared: &Shared, batch: Accepted) {
         });
     }
     shared.env_steps.store(agent.counters().env_steps, Ordering::Relaxed);
-    shared.episodes.fetch_add(batch.episodes.len() as u64, Ordering::Relaxed);
+    let first = shared.episodes.fetch_add(batch.episodes.len() as u64, Ordering::Relaxed);
+    if !batch.episodes.is_empty() {
+        if let Err(e) = log_episodes(&shared.run_dir, first, &batch.episodes) {
+            tracing::warn!("cannot append to metrics.csv: {e}");
+        }
+    }
     if let Ok(mut returns) = shared.recent_returns.lock() {
         for episode in &batch.episodes {
             returns.push_back(episode.episode_return);

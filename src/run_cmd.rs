@@ -1,0 +1,293 @@
+//! `lcrl run`: a whole distributed run on this machine from one preset —
+//! graph builder, learner and actors as child processes.
+
+use std::fs;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use indicatif::{ProgressBar, ProgressStyle};
+use lcrl_learner::{Algo, Connection, TrainConfig};
+use lcrl_proto::v1::learner_client::LearnerClient;
+use lcrl_proto::v1::GetStatusRequest;
+use serde::Deserialize;
+
+/// Run graph builder, learner and actors on this machine until the episode
+/// budget is reached (or Ctrl-C), collecting everything in the run directory.
+#[derive(Debug, clap::Args)]
+pub struct RunArgs {
+    /// Preset: a training config (TOML) with a [job] section; see configs/.
+    #[arg(long)]
+    pub config: PathBuf,
+    /// Actor processes (overrides job.actors).
+    #[arg(long)]
+    pub actors: Option<usize>,
+    /// Episode budget (overrides job.episodes).
+    #[arg(long)]
+    pub episodes: Option<u64>,
+    /// Transport between actors and learner.
+    #[arg(long, value_enum, default_value_t = TransportArg::Grpc)]
+    pub transport: TransportArg,
+    /// Where everything goes (default: runs/<preset name>).
+    #[arg(long)]
+    pub run_dir: Option<PathBuf>,
+}
+
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum TransportArg {
+    /// gRPC on loopback.
+    Grpc,
+    /// iceoryx2 shared memory (not built yet).
+    Shm,
+}
+
+/// The [job] section of a preset.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Job {
+    env: String,
+    algo: Algo,
+    connection: Connection,
+    /// Episode budget of the whole run.
+    episodes: u64,
+    #[serde(default = "one")]
+    actors: usize,
+    #[serde(default = "one")]
+    envs_per_actor: usize,
+}
+
+fn one() -> usize {
+    1
+}
+
+/// A child process, stopped (SIGTERM, then SIGKILL after a grace period)
+/// when dropped, so no run leaves orphans behind.
+struct Managed {
+    name: String,
+    child: Child,
+}
+
+impl Managed {
+    /// Starts `command` with stderr to logs/NAME.log. A server prints
+    /// "listening on ADDR" as its first line; with `server` that address is
+    /// read and returned.
+    fn spawn(name: &str, mut command: Command, logs: &Path, server: bool) -> anyhow::Result<(Managed, Option<String>)> {
+        let log = fs::File::create(logs.join(format!("{name}.log")))?;
+        let stdout = if server { Stdio::piped() } else { Stdio::null() };
+        let child = command.stdout(stdout).stderr(log).spawn().with_context(|| format!("starting {name}"))?;
+        let mut managed = Managed { name: name.to_string(), child };
+        let mut address = None;
+        if let Some(stdout) = managed.child.stdout.take() {
+            let mut line = String::new();
+            if BufReader::new(stdout).read_line(&mut line).is_ok() {
+                address = line.trim().strip_prefix("listening on ").map(|a| a.trim().to_string());
+            }
+        }
+        Ok((managed, address))
+    }
+
+    fn stop(&mut self, grace: Duration) {
+        if matches!(self.child.try_wait(), Ok(Some(_))) {
+            return;
+        }
+        let _ = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status();
+        let deadline = Instant::now() + grace;
+        while Instant::now() < deadline {
+            if matches!(self.child.try_wait(), Ok(Some(_))) {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        tracing::warn!("{} did not stop within {} s; killing it", self.name, grace.as_secs());
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Managed {
+    fn drop(&mut self) {
+        self.stop(Duration::from_secs(10));
+    }
+}
+
+fn sibling(name: &str) -> anyhow::Result<PathBuf> {
+    let path = std::env::current_exe()?.with_file_name(name);
+    if !path.is_file() {
+        bail!("{} is missing; build it with `cargo build --workspace --bins`", path.display());
+    }
+    Ok(path)
+}
+
+async fn wait_healthy(url: &str, service: &str, what: &str, timeout: Duration) -> anyhow::Result<()> {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    use tonic_health::pb::{health_client::HealthClient, HealthCheckRequest};
+    let deadline = Instant::now() + timeout;
+    loop {
+        let check = async {
+            let channel = tonic::transport::Channel::from_shared(url.to_string())?.connect().await?;
+            let status = HealthClient::new(channel).check(HealthCheckRequest { service: service.into() }).await?.into_inner().status;
+            anyhow::Ok(status == ServingStatus::Serving as i32)
+        };
+        if let Ok(true) = check.await {
+            return Ok(());
+        }
+        if Instant::now() > deadline {
+            bail!("{what} did not become healthy within {} s; see its log", timeout.as_secs());
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+pub fn run(args: &RunArgs) -> anyhow::Result<()> {
+    if matches!(args.transport, TransportArg::Shm) {
+        bail!("--transport shm is not available yet (iceoryx2 transport is pending); use --transport grpc");
+    }
+    let text = fs::read_to_string(&args.config).with_context(|| format!("reading {}", args.config.display()))?;
+    let mut table: toml::Table = toml::from_str(&text).with_context(|| format!("parsing {}", args.config.display()))?;
+    let job_value = table.remove("job").with_context(|| format!("{} has no [job] section (env, algo, connection, episodes)", args.config.display()))?;
+    let mut job: Job = job_value.try_into().with_context(|| format!("{}: [job]", args.config.display()))?;
+    let train: TrainConfig = toml::Value::Table(table).try_into().with_context(|| format!("{}: training sections", args.config.display()))?;
+    train.validate()?;
+    if let Some(actors) = args.actors {
+        job.actors = actors;
+    }
+    if let Some(episodes) = args.episodes {
+        job.episodes = episodes;
+    }
+    if job.actors == 0 || job.envs_per_actor == 0 || job.episodes == 0 {
+        bail!("job.actors, job.envs_per_actor and job.episodes must be at least 1");
+    }
+    lcrl_sim::make_env(&job.env)?;
+    let name = args.config.file_stem().and_then(|s| s.to_str()).unwrap_or("run");
+    let run_dir = args.run_dir.clone().unwrap_or_else(|| PathBuf::from("runs").join(name));
+    let logs = run_dir.join("logs");
+    fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
+    fs::write(run_dir.join("config.toml"), &text)?;
+    let train_path = run_dir.join("train.toml");
+    fs::write(&train_path, toml::to_string_pretty(&train)?)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
+    let summary = runtime.block_on(orchestrate(&job, &train, &train_path, &run_dir, &logs))?;
+    println!("{summary}");
+    Ok(())
+}
+
+async fn orchestrate(job: &Job, train: &TrainConfig, train_path: &Path, run_dir: &Path, logs: &Path) -> anyhow::Result<String> {
+    let started = Instant::now();
+    let run_id = format!("{}-{}", std::process::id(), started.elapsed().as_nanos() % 1_000_000);
+    let mut graph_builder = None;
+    let mut learner_cmd = Command::new(sibling("lcrl-learner")?);
+    learner_cmd
+        .args(["--env", &job.env, "--listen", "127.0.0.1:0", "--run-id", &run_id, "--checkpoint-secs", "30"])
+        .args(["--algo", &format!("{:?}", job.algo).to_lowercase(), "--connection", &kebab(job.connection)])
+        .arg("--config")
+        .arg(train_path)
+        .arg("--run-dir")
+        .arg(run_dir.join("learner"));
+    if job.connection == Connection::Local {
+        let mut cmd = Command::new(sibling("lcrl-graph-builder")?);
+        cmd.args(["--env", &job.env, "--listen", "127.0.0.1:0", "--samples", &train.run.graph_samples.to_string(), "--seed", &train.run.seed.to_string()])
+            .arg("--out")
+            .arg(run_dir.join("graph.json"))
+            .arg("--plot")
+            .arg(run_dir.join("graph.png"));
+        let (process, address) = Managed::spawn("graph-builder", cmd, logs, true)?;
+        let url = format!("http://{}", address.context("the graph builder did not start; see logs/graph-builder.log")?);
+        eprintln!("graph builder at {url}: building the connection graph");
+        wait_healthy(&url, "lcrl.v1.Graph", "the graph builder", Duration::from_secs(600)).await?;
+        learner_cmd.args(["--graph-builder", &url]);
+        graph_builder = Some(process);
+    }
+    let (mut learner, address) = Managed::spawn("learner", learner_cmd, logs, true)?;
+    let url = format!("http://{}", address.context("the learner did not start; see logs/learner.log")?);
+    wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120)).await?;
+    eprintln!("learner at {url}; starting {} actor(s)", job.actors);
+    let mut actors = Vec::new();
+    for k in 0..job.actors {
+        let mut cmd = Command::new(sibling("lcrl-actor")?);
+        cmd.args(["--learner", &url, "--run-id", &run_id, "--envs", &job.envs_per_actor.to_string(), "--actor-id", &format!("actor-{k}"), "--seed", &(train.run.seed + k as u64).to_string()]);
+        actors.push(Managed::spawn(&format!("actor-{k}"), cmd, logs, false)?.0);
+    }
+
+    let bar = ProgressBar::new(job.episodes);
+    if let Ok(style) = ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})") {
+        bar.set_style(style.progress_chars("=> "));
+    }
+    let mut client = LearnerClient::connect(url.clone()).await?;
+    let (mut last_steps, mut last_updates, mut last_time) = (0u64, 0u64, Instant::now());
+    let interrupted = loop {
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => break true,
+            _ = tokio::time::sleep(Duration::from_millis(500)) => {}
+        }
+        let status = match client.get_status(GetStatusRequest {}).await {
+            Ok(s) => s.into_inner(),
+            Err(e) => bail!("lost the learner ({e}); see {}/learner.log", logs.display()),
+        };
+        let dt = last_time.elapsed().as_secs_f64().max(1e-9);
+        bar.set_position(status.episodes.min(job.episodes));
+        bar.set_message(format!(
+            "avg return {:.2}, {:.0} steps/s, {:.0} updates/s, policy v{}",
+            status.recent_return,
+            (status.env_steps - last_steps.min(status.env_steps)) as f64 / dt,
+            (status.updates - last_updates.min(status.updates)) as f64 / dt,
+            status.policy_version
+        ));
+        (last_steps, last_updates, last_time) = (status.env_steps, status.updates, Instant::now());
+        if status.episodes >= job.episodes {
+            break false;
+        }
+    };
+    bar.finish_and_clear();
+    let final_status = client.get_status(GetStatusRequest {}).await.map(|s| s.into_inner()).ok();
+    // Actors first (they would only reconnect), then the learner (it
+    // checkpoints on SIGTERM), then the graph builder.
+    for actor in actors.iter_mut() {
+        actor.stop(Duration::from_secs(10));
+    }
+    learner.stop(Duration::from_secs(30));
+    if let Some(mut g) = graph_builder {
+        g.stop(Duration::from_secs(5));
+    }
+    let curve = run_dir.join("reward_curve.png");
+    plot_curve(&run_dir.join("learner/metrics.csv"), &curve, &job.env)?;
+    let s = final_status.unwrap_or_default();
+    Ok(format!(
+        "{}{} episodes, {} env steps, {} updates, policy v{}, recent average return {:.3}, {:.1} s\nresults in {}: config.toml, graph.json/graph.png, learner/metrics.csv, learner/checkpoints/, reward_curve.png, logs/",
+        if interrupted { "interrupted: " } else { "" },
+        s.episodes,
+        s.env_steps,
+        s.updates,
+        s.policy_version,
+        s.recent_return,
+        started.elapsed().as_secs_f64(),
+        run_dir.display()
+    ))
+}
+
+fn kebab(connection: Connection) -> String {
+    match connection {
+        Connection::Local => "local",
+        Connection::Global => "global",
+        Connection::FullSubnets => "full-subnets",
+    }
+    .into()
+}
+
+fn plot_curve(metrics: &Path, out: &Path, env: &str) -> anyhow::Result<()> {
+    let Ok(mut reader) = csv::Reader::from_path(metrics) else { return Ok(()) };
+    let returns: Vec<f64> = reader.records().filter_map(|r| r.ok()?.get(1)?.parse().ok()).collect();
+    if returns.is_empty() {
+        return Ok(());
+    }
+    let x: Vec<f64> = (1..=returns.len()).map(|e| e as f64).collect();
+    let average: Vec<f64> = (0..returns.len())
+        .map(|k| {
+            let w = &returns[k.saturating_sub(19)..=k];
+            w.iter().sum::<f64>() / w.len() as f64
+        })
+        .collect();
+    let panel = crate::plots::Panel { y_label: "episode return".into(), series: vec![("return".into(), returns), ("moving average (20)".into(), average)], band: None };
+    crate::plots::line_panels(out, &format!("{env} — distributed run"), &x, "episode (as reported by actors)", &[panel])
+}

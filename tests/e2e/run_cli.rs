@@ -1,0 +1,52 @@
+//! `lcrl run`: the whole system from one preset.
+
+use std::fs;
+use std::path::Path;
+
+use super::common::{assert_clean_failure, lcrl, stdout};
+
+/// Processes whose command line mentions `needle` (other than this test).
+fn processes_mentioning(needle: &str) -> Vec<String> {
+    let mut found = Vec::new();
+    for entry in fs::read_dir("/proc").unwrap().flatten() {
+        if let Ok(cmdline) = fs::read(entry.path().join("cmdline")) {
+            let text = String::from_utf8_lossy(&cmdline).replace('\0', " ");
+            if text.contains(needle) && !text.contains("e2e") {
+                found.push(text);
+            }
+        }
+    }
+    found
+}
+
+#[test]
+fn run_on_the_linear_preset_finishes_with_every_artifact_and_no_leftovers() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let preset = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/lti-paper.toml");
+    let out = lcrl().args(["run", "--episodes", "300", "--config"]).arg(&preset).arg("--run-dir").arg(&run).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout(&out).contains("results in"), "{}", stdout(&out));
+    let graph: serde_json::Value = serde_json::from_str(&fs::read_to_string(run.join("graph.json")).unwrap()).unwrap();
+    assert_eq!(graph["g"], serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]]));
+    let metrics = fs::read_to_string(run.join("learner/metrics.csv")).unwrap();
+    assert!(metrics.lines().count() > 300, "{} rows", metrics.lines().count());
+    assert!(metrics.lines().nth(1).unwrap().split(',').nth(1).unwrap().parse::<f64>().is_ok());
+    let checkpoint = lcrl_learner::trainer::latest_checkpoint(&run.join("learner")).expect("a final checkpoint");
+    assert!(lcrl_learner::trainer::read_meta(&checkpoint).unwrap().episode >= 300);
+    for file in ["config.toml", "train.toml", "graph.png", "reward_curve.png", "logs/learner.log", "logs/actor-0.log", "logs/graph-builder.log"] {
+        assert!(run.join(file).is_file(), "{file} missing");
+    }
+    assert!(fs::read(run.join("reward_curve.png")).unwrap().starts_with(b"\x89PNG"));
+    assert_eq!(processes_mentioning(run.to_str().unwrap()), Vec::<String>::new(), "processes left behind");
+}
+
+#[test]
+fn bad_presets_fail_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let preset = dir.path().join("p.toml");
+    fs::write(&preset, "[ppo]\nclip = 0.2\n").unwrap();
+    assert_clean_failure(&lcrl().args(["run", "--config"]).arg(&preset).output().unwrap(), "[job]");
+    fs::write(&preset, "[job]\nenv = \"nope\"\nalgo = \"ppo\"\nconnection = \"local\"\nepisodes = 10\n").unwrap();
+    assert_clean_failure(&lcrl().args(["run", "--config"]).arg(&preset).output().unwrap(), "unknown environment 'nope'");
+}
