@@ -33,6 +33,9 @@ pub struct RunArgs {
     /// Where everything goes (default: runs/<preset name>).
     #[arg(long)]
     pub run_dir: Option<PathBuf>,
+    /// Only check the preset (and its environment) and exit.
+    #[arg(long)]
+    pub check: bool,
 }
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -160,6 +163,10 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         bail!("job.actors, job.envs_per_actor and job.episodes must be at least 1");
     }
     lcrl_sim::make_env(&job.env)?;
+    if args.check {
+        println!("{}: {} with {:?}/{:?}, {} episodes, {} actor(s) — ok", args.config.display(), job.env, job.algo, job.connection, job.episodes, job.actors);
+        return Ok(());
+    }
     let name = args.config.file_stem().and_then(|s| s.to_str()).unwrap_or("run");
     let run_dir = args.run_dir.clone().unwrap_or_else(|| PathBuf::from("runs").join(name));
     let logs = run_dir.join("logs");

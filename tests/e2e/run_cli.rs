@@ -50,3 +50,20 @@ fn bad_presets_fail_cleanly() {
     fs::write(&preset, "[job]\nenv = \"nope\"\nalgo = \"ppo\"\nconnection = \"local\"\nepisodes = 10\n").unwrap();
     assert_clean_failure(&lcrl().args(["run", "--config"]).arg(&preset).output().unwrap(), "unknown environment 'nope'");
 }
+
+#[test]
+fn every_shipped_preset_is_valid() {
+    let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    let mut checked = 0;
+    for entry in fs::read_dir(&configs).unwrap().flatten() {
+        let path = entry.path();
+        let text = fs::read_to_string(&path).unwrap();
+        if !text.contains("[job]") {
+            continue; // a training-only config (lcrl train --config)
+        }
+        let out = lcrl().args(["run", "--check", "--config"]).arg(&path).output().unwrap();
+        assert!(out.status.success(), "{}: {}", path.display(), String::from_utf8_lossy(&out.stderr));
+        checked += 1;
+    }
+    assert!(checked >= 9, "expected the 8 peg presets and the linear one, found {checked}");
+}
