@@ -12,6 +12,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use clap::Parser;
+use lcrl_graph_builder::service::shutdown_signal;
 use lcrl_learner::policy::Policy;
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::{EpisodeSummary, GetPolicyRequest, PolicySnapshot, Transition, TransitionBatch, WatchPolicyRequest};
@@ -323,19 +324,4 @@ fn work(s: WorkerSettings, mut policy_rx: watch::Receiver<Arc<PolicySnapshot>>, 
         }
     }
     Ok(())
-}
-
-async fn shutdown_signal() {
-    let ctrl_c = tokio::signal::ctrl_c();
-    match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-        Ok(mut term) => {
-            tokio::select! {
-                _ = ctrl_c => {},
-                _ = term.recv() => {},
-            }
-        }
-        Err(_) => {
-            let _ = ctrl_c.await;
-        }
-    }
 }

@@ -108,3 +108,19 @@ pub async fn serve(
     }
     router.serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown).await
 }
+
+/// Resolves on SIGTERM or Ctrl-C: how every lcrl server and actor stops.
+pub async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+        Ok(mut term) => {
+            tokio::select! {
+                _ = ctrl_c => {},
+                _ = term.recv() => {},
+            }
+        }
+        Err(_) => {
+            let _ = ctrl_c.await;
+        }
+    }
+}

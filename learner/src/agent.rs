@@ -145,3 +145,10 @@ pub fn read_agent_state<T: serde::de::DeserializeOwned>(dir: &Path) -> Result<T,
     let text = std::fs::read_to_string(&path).map_err(|source| LearnerError::Io { path: path.clone(), source })?;
     serde_json::from_str(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
 }
+
+/// A VarStore's variables sorted by name (stable order for publishing).
+pub fn sorted_variables(vs: &nn::VarStore) -> Vec<(String, tch::Tensor)> {
+    let mut named: Vec<(String, tch::Tensor)> = vs.variables().into_iter().collect();
+    named.sort_by(|a, b| a.0.cmp(&b.0));
+    named
+}

@@ -243,9 +243,7 @@ impl Agent for Ddpg {
     }
 
     fn actor_variables(&self) -> Vec<(String, Tensor)> {
-        let mut named: Vec<(String, Tensor)> = self.actor_vs.variables().into_iter().collect();
-        named.sort_by(|a, b| a.0.cmp(&b.0));
-        named
+        crate::agent::sorted_variables(&self.actor_vs)
     }
 }
 

@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use clap::Parser;
+use lcrl_graph_builder::service::shutdown_signal;
 use lcrl_learner::config::{Algo, Connection, TrainConfig};
 use lcrl_learner::service::ingest::Ingest;
 use lcrl_learner::service::runtime::{run_training, snapshot, Schedule, Shared};
@@ -295,19 +296,4 @@ async fn run(args: Args) -> anyhow::Result<()> {
     drop(commands);
     trainer.join().map_err(|_| anyhow::anyhow!("the training thread panicked"))??;
     Ok(())
-}
-
-async fn shutdown_signal() {
-    let ctrl_c = tokio::signal::ctrl_c();
-    match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-        Ok(mut term) => {
-            tokio::select! {
-                _ = ctrl_c => {},
-                _ = term.recv() => {},
-            }
-        }
-        Err(_) => {
-            let _ = ctrl_c.await;
-        }
-    }
 }

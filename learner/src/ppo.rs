@@ -262,8 +262,6 @@ impl Agent for Ppo {
     }
 
     fn actor_variables(&self) -> Vec<(String, Tensor)> {
-        let mut named: Vec<(String, Tensor)> = self.actor_vs.variables().into_iter().collect();
-        named.sort_by(|a, b| a.0.cmp(&b.0));
-        named
+        crate::agent::sorted_variables(&self.actor_vs)
     }
 }
