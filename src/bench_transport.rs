@@ -49,6 +49,7 @@ pub fn run(seconds: f64) -> anyhow::Result<()> {
     runtime.block_on(async move {
         let work = tempfile::tempdir()?;
         ingest(work.path(), seconds).await?;
+        ingest_shm(work.path(), seconds).await?;
         act_latency(work.path()).await?;
         end_to_end(work.path(), seconds).await
     })
@@ -101,6 +102,40 @@ async fn ingest(dir: &std::path::Path, seconds: f64) -> anyhow::Result<()> {
     }
     let elapsed = started.elapsed().as_secs_f64();
     println!("gRPC ingestion (learner storing only, {streams} streams, batches of {per_batch}): {:.0} transitions/s", stored as f64 / elapsed);
+    Ok(())
+}
+
+/// Transitions per second into a learner that only ingests, from two
+/// shared-memory publisher threads (batches of 64, the sample's maximum).
+async fn ingest_shm(dir: &std::path::Path, seconds: f64) -> anyhow::Result<()> {
+    let run_id = format!("bench-{}", std::process::id());
+    let (_learner, url) = learner(&dir.join("ingest-shm"), "peg-group1", &["--no-train", "--run-id", &run_id])?;
+    let mut client = LearnerClient::connect(url).await?;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let transition = Transition { state: vec![0.1; 12], action: vec![0.5; 6], reward: -1.0, next_state: vec![0.2; 12], terminated: false, truncated: false };
+    let first = client.get_status(GetStatusRequest {}).await?.into_inner().env_steps;
+    let started = Instant::now();
+    let publishers: Vec<_> = (0..2)
+        .map(|p| {
+            let (run_id, transition) = (run_id.clone(), transition.clone());
+            std::thread::spawn(move || -> Result<(), String> {
+                let publisher = lcrl_learner::service::shm::ShmPublisher::open(&run_id)?;
+                let mut sequence = 0;
+                while started.elapsed().as_secs_f64() < seconds {
+                    sequence += 1;
+                    let batch = TransitionBatch { run_id: run_id.clone(), actor_id: format!("shm-bench-{p}"), sequence, transitions: vec![transition.clone(); 64], ..Default::default() };
+                    publisher.send(&batch)?;
+                }
+                Ok(())
+            })
+        })
+        .collect();
+    for p in publishers {
+        p.join().map_err(|_| anyhow::anyhow!("publisher panicked"))?.map_err(anyhow::Error::msg)?;
+    }
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let stored = client.get_status(GetStatusRequest {}).await?.into_inner().env_steps - first;
+    println!("iceoryx2 ingestion (learner storing only, 2 publishers, batches of 64): {:.0} transitions/s", stored as f64 / started.elapsed().as_secs_f64());
     Ok(())
 }
 

@@ -27,8 +27,8 @@ pub struct RunArgs {
     /// Episode budget (overrides job.episodes).
     #[arg(long)]
     pub episodes: Option<u64>,
-    /// Transport between actors and learner.
-    #[arg(long, value_enum, default_value_t = TransportArg::Grpc)]
+    /// Transport between actors and learner (all on this machine).
+    #[arg(long, value_enum, default_value_t = TransportArg::Shm)]
     pub transport: TransportArg,
     /// Where everything goes (default: runs/<preset name>).
     #[arg(long)]
@@ -42,7 +42,7 @@ pub struct RunArgs {
 pub enum TransportArg {
     /// gRPC on loopback.
     Grpc,
-    /// iceoryx2 shared memory (not built yet).
+    /// iceoryx2 shared memory.
     Shm,
 }
 
@@ -144,9 +144,6 @@ async fn wait_healthy(url: &str, service: &str, what: &str, timeout: Duration) -
 }
 
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
-    if matches!(args.transport, TransportArg::Shm) {
-        bail!("--transport shm is not available yet (iceoryx2 transport is pending); use --transport grpc");
-    }
     let text = fs::read_to_string(&args.config).with_context(|| format!("reading {}", args.config.display()))?;
     let mut table: toml::Table = toml::from_str(&text).with_context(|| format!("parsing {}", args.config.display()))?;
     let job_value = table.remove("job").with_context(|| format!("{} has no [job] section (env, algo, connection, episodes)", args.config.display()))?;
@@ -175,12 +172,16 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let train_path = run_dir.join("train.toml");
     fs::write(&train_path, toml::to_string_pretty(&train)?)?;
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
-    let summary = runtime.block_on(orchestrate(&job, &train, &train_path, &run_dir, &logs))?;
+    let transport = match args.transport {
+        TransportArg::Grpc => "grpc",
+        TransportArg::Shm => "shm",
+    };
+    let summary = runtime.block_on(orchestrate(&job, &train, &train_path, &run_dir, &logs, transport))?;
     println!("{summary}");
     Ok(())
 }
 
-async fn orchestrate(job: &Job, train: &TrainConfig, train_path: &Path, run_dir: &Path, logs: &Path) -> anyhow::Result<String> {
+async fn orchestrate(job: &Job, train: &TrainConfig, train_path: &Path, run_dir: &Path, logs: &Path, transport: &str) -> anyhow::Result<String> {
     let started = Instant::now();
     let run_id = format!("{}-{}", std::process::id(), started.elapsed().as_nanos() % 1_000_000);
     let mut graph_builder = None;
@@ -209,11 +210,11 @@ async fn orchestrate(job: &Job, train: &TrainConfig, train_path: &Path, run_dir:
     let (mut learner, address) = Managed::spawn("learner", learner_cmd, logs, true)?;
     let url = format!("http://{}", address.context("the learner did not start; see logs/learner.log")?);
     wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120)).await?;
-    eprintln!("learner at {url}; starting {} actor(s)", job.actors);
+    eprintln!("learner at {url}; starting {} actor(s) over {transport}", job.actors);
     let mut actors = Vec::new();
     for k in 0..job.actors {
         let mut cmd = Command::new(sibling("lcrl-actor")?);
-        cmd.args(["--learner", &url, "--run-id", &run_id, "--envs", &job.envs_per_actor.to_string(), "--actor-id", &format!("actor-{k}"), "--seed", &(train.run.seed + k as u64).to_string()]);
+        cmd.args(["--learner", &url, "--run-id", &run_id, "--transport", transport, "--envs", &job.envs_per_actor.to_string(), "--actor-id", &format!("actor-{k}"), "--seed", &(train.run.seed + k as u64).to_string()]);
         actors.push(Managed::spawn(&format!("actor-{k}"), cmd, logs, false)?.0);
     }
 

@@ -31,7 +31,7 @@ const MAX_PENDING_BATCHES: usize = 8;
 enum Transport {
     /// gRPC to the learner's URL (any host).
     Grpc,
-    /// iceoryx2 shared memory (same host) — not built yet; see the README.
+    /// iceoryx2 shared memory (same host; the policy still comes over gRPC).
     Shm,
 }
 
@@ -112,11 +112,11 @@ async fn connect(url: &str, deadline: Duration) -> anyhow::Result<LearnerClient<
 }
 
 async fn run(args: Args) -> anyhow::Result<()> {
-    if matches!(args.transport, Transport::Shm) {
-        bail!("--transport shm is not available yet; use --transport grpc");
-    }
     if args.envs == 0 || args.batch == 0 {
         bail!("--envs and --batch must be at least 1");
+    }
+    if matches!(args.transport, Transport::Shm) && args.batch > lcrl_learner::service::shm::MAX_TRANSITIONS {
+        bail!("--transport shm carries at most {} transitions per batch; lower --batch", lcrl_learner::service::shm::MAX_TRANSITIONS);
     }
     let deadline = Duration::from_secs(args.connect_deadline);
     let mut client = connect(&args.learner, deadline).await?;
@@ -125,21 +125,34 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let (policy_tx, policy_rx) = watch::channel(Arc::new(first));
     tokio::spawn(watch_policy(args.learner.clone(), policy_tx));
 
-    let (batches_tx, batches_rx) = mpsc::channel::<TransitionBatch>(2);
     let stop = Arc::new(AtomicBool::new(false));
+    let finished = Arc::new(AtomicBool::new(false));
     let actor_id = args.actor_id.clone().unwrap_or_else(|| format!("{}-{}", hostname(), std::process::id()));
-    let worker = {
-        let stop = stop.clone();
-        let settings = WorkerSettings { envs: args.envs, batch: args.batch, noise: args.noise, seed: args.seed, episodes: args.episodes, run_id: args.run_id.clone(), actor_id };
-        std::thread::Builder::new().name("envs".into()).spawn(move || work(settings, policy_rx, batches_tx, stop))?
-    };
-    let sender = tokio::spawn(send_batches(args.learner.clone(), client, batches_rx, deadline));
-    tokio::select! {
-        result = sender => result.context("the sender task panicked")??,
-        _ = shutdown_signal() => {
-            tracing::info!("stopping");
-            stop.store(true, Ordering::Relaxed);
+    let (sink, sender) = match args.transport {
+        Transport::Grpc => {
+            let (batches_tx, batches_rx) = mpsc::channel::<TransitionBatch>(2);
+            (Sink::Grpc(batches_tx), Some(tokio::spawn(send_batches(args.learner.clone(), client, batches_rx, deadline))))
         }
+        Transport::Shm => (Sink::Shm(args.run_id.clone()), None),
+    };
+    let worker = {
+        let (stop, finished) = (stop.clone(), finished.clone());
+        let settings = WorkerSettings { envs: args.envs, batch: args.batch, noise: args.noise, seed: args.seed, episodes: args.episodes, run_id: args.run_id.clone(), actor_id };
+        std::thread::Builder::new().name("envs".into()).spawn(move || {
+            let result = work(settings, policy_rx, sink, stop);
+            finished.store(true, Ordering::Relaxed);
+            result
+        })?
+    };
+    match sender {
+        Some(sender) => tokio::select! {
+            result = sender => result.context("the sender task panicked")??,
+            _ = shutdown_signal() => tracing::info!("stopping"),
+        },
+        None => tokio::select! {
+            _ = async { while !finished.load(Ordering::Relaxed) { tokio::time::sleep(Duration::from_millis(100)).await } } => {},
+            _ = shutdown_signal() => tracing::info!("stopping"),
+        },
     }
     stop.store(true, Ordering::Relaxed);
     worker.join().map_err(|_| anyhow::anyhow!("the environment thread panicked"))??;
@@ -233,6 +246,20 @@ async fn send_batches(url: String, mut client: LearnerClient<Channel>, mut batch
     }
 }
 
+/// Where the worker's batches go.
+enum Sink {
+    /// To the gRPC sender task (bounded channel).
+    Grpc(mpsc::Sender<TransitionBatch>),
+    /// Straight into the run's shared-memory service.
+    Shm(String),
+}
+
+/// The worker thread's open end of its sink.
+enum Out {
+    Grpc(mpsc::Sender<TransitionBatch>),
+    Shm(lcrl_learner::service::shm::ShmPublisher),
+}
+
 struct WorkerSettings {
     envs: usize,
     batch: usize,
@@ -244,8 +271,13 @@ struct WorkerSettings {
 }
 
 /// The environment loop (blocking thread).
-fn work(s: WorkerSettings, mut policy_rx: watch::Receiver<Arc<PolicySnapshot>>, batches: mpsc::Sender<TransitionBatch>, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
+fn work(s: WorkerSettings, mut policy_rx: watch::Receiver<Arc<PolicySnapshot>>, sink: Sink, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
     tch::set_num_threads(1);
+    // iceoryx2 ports stay on the thread that made them.
+    let out = match sink {
+        Sink::Grpc(batches) => Out::Grpc(batches),
+        Sink::Shm(run_id) => Out::Shm(lcrl_learner::service::shm::ShmPublisher::open(&run_id).map_err(anyhow::Error::msg)?),
+    };
     let snapshot = policy_rx.borrow_and_update().clone();
     let mut policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
     let env_name = policy.architecture.env.clone();
@@ -317,9 +349,14 @@ fn work(s: WorkerSettings, mut policy_rx: watch::Receiver<Arc<PolicySnapshot>>, 
             batch.episode_id = episodes_done;
             batch.policy_version = policy.version;
             let full = std::mem::replace(&mut batch, TransitionBatch { run_id: s.run_id.clone(), actor_id: s.actor_id.clone(), ..Default::default() });
-            // Blocks while the sender holds its maximum: bounded memory.
-            if batches.blocking_send(full).is_err() {
-                break;
+            // Both sinks block while the learner is behind: bounded memory.
+            match &out {
+                Out::Shm(publisher) => publisher.send(&full).map_err(anyhow::Error::msg)?,
+                Out::Grpc(batches) => {
+                    if batches.blocking_send(full).is_err() {
+                        break;
+                    }
+                }
             }
         }
     }

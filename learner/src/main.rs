@@ -242,6 +242,17 @@ async fn run(args: Args) -> anyhow::Result<()> {
         })
         .context("cannot start the training thread")?;
 
+    // Same-host actors may stream over shared memory instead of gRPC.
+    let shm_shared = shared.clone();
+    let shm_commands = commands.clone();
+    let shm = std::thread::Builder::new()
+        .name("shm-ingest".into())
+        .spawn(move || {
+            if let Err(e) = lcrl_learner::service::shm::run_subscriber(shm_shared, shm_commands) {
+                tracing::warn!("shared-memory transport unavailable: {e}");
+            }
+        })
+        .context("cannot start the shared-memory thread")?;
     let listener = tokio::net::TcpListener::bind(args.listen).await.with_context(|| format!("cannot listen on {}; is another process using it?", args.listen))?;
     let addr = listener.local_addr()?;
     println!("listening on {addr}");
@@ -291,6 +302,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         tracing::warn!("connections still open after 5 s; closing them");
         server.abort();
     }
+    let _ = tokio::task::spawn_blocking(move || shm.join()).await;
     tracing::info!("stopping: writing a checkpoint");
     let _ = commands.send(lcrl_learner::service::runtime::Command::Stop).await;
     drop(commands);

@@ -57,9 +57,13 @@ fn learner(run_dir: &Path, run_id: &str, port: u16) -> (Proc, String) {
 }
 
 fn actor(url: &str, run_id: &str) -> Proc {
+    actor_over(url, run_id, "grpc")
+}
+
+fn actor_over(url: &str, run_id: &str, transport: &str) -> Proc {
     Proc(
         workspace_bin("lcrl-actor")
-            .args(["--learner", url, "--run-id", run_id, "--envs", "2", "--batch", "25", "--connect-deadline", "30"])
+            .args(["--learner", url, "--run-id", run_id, "--envs", "2", "--batch", "25", "--connect-deadline", "30", "--transport", transport])
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .spawn()
@@ -248,4 +252,25 @@ fn python_client_queries_the_policy() {
     let wrong = run(&["0.1", "0.2"]);
     assert_eq!(wrong.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&wrong.stderr).contains("INVALID_ARGUMENT"));
+}
+
+/// Same-host actors over iceoryx2: transitions flow, a SIGKILLed actor's
+/// shared memory is cleaned up and a new one flows again, and another run's
+/// actor publishes into its own service, never this learner's.
+#[tokio::test]
+async fn shared_memory_actors_feed_their_own_run_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let (id_a, id_b) = (format!("shm-a-{}", std::process::id()), format!("shm-b-{}", std::process::id()));
+    let (_a, url_a) = learner(&dir.path().join("a"), &id_a, free_port());
+    let (_b, url_b) = learner(&dir.path().join("b"), &id_b, free_port());
+    let first = actor_over(&url_a, &id_a, "shm");
+    let s = wait_for(&url_a, "shared-memory transitions", |s| s.env_steps > 500 && s.updates > 0).await;
+    assert_eq!(s.rejected.values().sum::<u64>(), 0);
+    first.signal("KILL");
+    drop(first);
+    let after = status(&url_a).await.unwrap().env_steps;
+    let _second = actor_over(&url_a, &id_a, "shm");
+    wait_for(&url_a, "the restarted actor's transitions", |s| s.env_steps > after + 500).await;
+    let b = status(&url_b).await.unwrap();
+    assert_eq!((b.env_steps, b.episodes), (0, 0), "run B saw run A's transitions");
 }

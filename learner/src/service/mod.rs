@@ -4,7 +4,9 @@
 //! - [`ingest`]: checks, deduplicates and normalizes batches (plain Rust).
 //! - [`runtime`]: shared counters and the training thread.
 //! - [`server`]: the `lcrl.v1.Learner` and `lcrl.v1.Policy` gRPC handlers.
+//! - [`shm`]: the same-host transport over iceoryx2 shared memory.
 
 pub mod ingest;
 pub mod runtime;
 pub mod server;
+pub mod shm;

@@ -1,0 +1,259 @@
+//! The same-host transport: transition batches as fixed-size `#[repr(C)]`
+//! samples in iceoryx2 shared memory, one publish-subscribe service per run
+//! (`lcrl/<run id>/transitions`), so two runs on one host never meet. A
+//! sample converts to the same `TransitionBatch` the gRPC path carries and
+//! goes through the same ingestion checks. Publishers block while the
+//! learner's buffer is full: nothing is dropped and nothing queues without
+//! bound. Policies still reach shared-memory actors over `WatchPolicy`.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use iceoryx2::prelude::*;
+use lcrl_proto::v1::{EpisodeSummary, Transition, TransitionBatch};
+use tokio::sync::mpsc;
+
+use crate::service::ingest::Verdict;
+use crate::service::runtime::{Command, Shared};
+
+/// Limits of one sample: state and action lengths, transitions per batch,
+/// episodes per batch, and bytes of the actor id.
+pub const MAX_STATE: usize = 32;
+pub const MAX_ACTION: usize = 16;
+pub const MAX_TRANSITIONS: usize = 64;
+pub const MAX_EPISODES: usize = 64;
+const ID_BYTES: usize = 64;
+
+/// One batch of transitions, laid out flat (row-major per transition).
+#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[repr(C)]
+pub struct TransitionSample {
+    pub actor_id: [u8; ID_BYTES],
+    pub sequence: u64,
+    pub episode_id: u64,
+    pub policy_version: u64,
+    pub count: u32,
+    pub state_dim: u32,
+    pub action_dim: u32,
+    pub episode_count: u32,
+    pub states: [f32; MAX_TRANSITIONS * MAX_STATE],
+    pub next_states: [f32; MAX_TRANSITIONS * MAX_STATE],
+    pub actions: [f32; MAX_TRANSITIONS * MAX_ACTION],
+    pub rewards: [f32; MAX_TRANSITIONS],
+    /// bit 0: terminated, bit 1: truncated.
+    pub flags: [u8; MAX_TRANSITIONS],
+    pub episode_returns: [f64; MAX_EPISODES],
+    pub episode_lengths: [u32; MAX_EPISODES],
+    /// −1: unknown, 0: failed, 1: succeeded.
+    pub episode_success: [i8; MAX_EPISODES],
+}
+
+impl TransitionSample {
+    /// Packs a batch; fails when it exceeds the sample's limits.
+    pub fn from_batch(batch: &TransitionBatch) -> Result<Self, String> {
+        let first = batch.transitions.first();
+        let (m, n) = (first.map_or(0, |t| t.state.len()), first.map_or(0, |t| t.action.len()));
+        if batch.transitions.len() > MAX_TRANSITIONS || batch.episodes.len() > MAX_EPISODES || m > MAX_STATE || n > MAX_ACTION {
+            return Err(format!(
+                "a shared-memory batch holds at most {MAX_TRANSITIONS} transitions of states ≤ {MAX_STATE} and actions ≤ {MAX_ACTION}, and {MAX_EPISODES} episodes"
+            ));
+        }
+        if batch.actor_id.len() > ID_BYTES {
+            return Err(format!("actor ids over shared memory are at most {ID_BYTES} bytes"));
+        }
+        let mut s = TransitionSample {
+            actor_id: [0; ID_BYTES],
+            sequence: batch.sequence,
+            episode_id: batch.episode_id,
+            policy_version: batch.policy_version,
+            count: batch.transitions.len() as u32,
+            state_dim: m as u32,
+            action_dim: n as u32,
+            episode_count: batch.episodes.len() as u32,
+            states: [0.0; MAX_TRANSITIONS * MAX_STATE],
+            next_states: [0.0; MAX_TRANSITIONS * MAX_STATE],
+            actions: [0.0; MAX_TRANSITIONS * MAX_ACTION],
+            rewards: [0.0; MAX_TRANSITIONS],
+            flags: [0; MAX_TRANSITIONS],
+            episode_returns: [0.0; MAX_EPISODES],
+            episode_lengths: [0; MAX_EPISODES],
+            episode_success: [-1; MAX_EPISODES],
+        };
+        s.actor_id[..batch.actor_id.len()].copy_from_slice(batch.actor_id.as_bytes());
+        for (k, t) in batch.transitions.iter().enumerate() {
+            if t.state.len() != m || t.next_state.len() != m || t.action.len() != n {
+                return Err("every transition of a batch must have the same dimensions".into());
+            }
+            s.states[k * m..(k + 1) * m].copy_from_slice(&t.state);
+            s.next_states[k * m..(k + 1) * m].copy_from_slice(&t.next_state);
+            s.actions[k * n..(k + 1) * n].copy_from_slice(&t.action);
+            s.rewards[k] = t.reward;
+            s.flags[k] = u8::from(t.terminated) | (u8::from(t.truncated) << 1);
+        }
+        for (k, e) in batch.episodes.iter().enumerate() {
+            s.episode_returns[k] = e.episode_return;
+            s.episode_lengths[k] = e.length;
+            s.episode_success[k] = e.success.map_or(-1, i8::from);
+        }
+        Ok(s)
+    }
+
+    /// Unpacks into the batch the ingestion checks take (counts clamped to
+    /// the sample's limits, whatever a peer wrote).
+    pub fn to_batch(&self, run_id: &str) -> TransitionBatch {
+        let (m, n) = ((self.state_dim as usize).min(MAX_STATE), (self.action_dim as usize).min(MAX_ACTION));
+        let count = (self.count as usize).min(MAX_TRANSITIONS);
+        let id_len = self.actor_id.iter().position(|&b| b == 0).unwrap_or(ID_BYTES);
+        TransitionBatch {
+            run_id: run_id.to_string(),
+            actor_id: String::from_utf8_lossy(&self.actor_id[..id_len]).into_owned(),
+            sequence: self.sequence,
+            episode_id: self.episode_id,
+            policy_version: self.policy_version,
+            transitions: (0..count)
+                .map(|k| Transition {
+                    state: self.states[k * m..(k + 1) * m].to_vec(),
+                    action: self.actions[k * n..(k + 1) * n].to_vec(),
+                    reward: self.rewards[k],
+                    next_state: self.next_states[k * m..(k + 1) * m].to_vec(),
+                    terminated: self.flags[k] & 1 != 0,
+                    truncated: self.flags[k] & 2 != 0,
+                })
+                .collect(),
+            episodes: (0..(self.episode_count as usize).min(MAX_EPISODES))
+                .map(|k| EpisodeSummary {
+                    episode_return: self.episode_returns[k],
+                    length: self.episode_lengths[k],
+                    success: (self.episode_success[k] >= 0).then_some(self.episode_success[k] == 1),
+                })
+                .collect(),
+        }
+    }
+}
+
+/// The service of a run's transitions.
+pub fn service_name(run_id: &str) -> String {
+    format!("lcrl/{run_id}/transitions")
+}
+
+/// iceoryx2 logs to stderr on its own; keep it to errors (the default
+/// configuration is intended, so its "no config file" warning is noise).
+fn quiet_iceoryx2() {
+    set_log_level_from_env_or(LogLevel::Error);
+}
+
+/// Removes what crashed peers left in shared memory (iceoryx2's dead-node
+/// cleanup); returns how many nodes were cleaned.
+pub fn remove_dead_nodes() -> usize {
+    quiet_iceoryx2();
+    let mut removed = 0;
+    let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
+        if let NodeState::Dead(view) = state {
+            if view.try_remove_stale_resources().is_ok() {
+                removed += 1;
+            }
+        }
+        CallbackProgression::Continue
+    });
+    removed
+}
+
+type Service = iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, TransitionSample, ()>;
+
+fn open_service(node: &Node<ipc::Service>, run_id: &str) -> Result<Service, String> {
+    let name: ServiceName = service_name(run_id).as_str().try_into().map_err(|e| format!("service name: {e:?}"))?;
+    node.service_builder(&name)
+        .publish_subscribe::<TransitionSample>()
+        .enable_safe_overflow(false)
+        .subscriber_max_buffer_size(64)
+        .max_publishers(64)
+        .open_or_create()
+        .map_err(|e| format!("cannot open the shared-memory service {}: {e:?}", service_name(run_id)))
+}
+
+/// An actor's end: publishes batches, blocking while the learner is behind.
+pub struct ShmPublisher {
+    publisher: iceoryx2::port::publisher::Publisher<ipc::Service, TransitionSample, ()>,
+    _service: Service,
+    _node: Node<ipc::Service>,
+}
+
+impl ShmPublisher {
+    pub fn open(run_id: &str) -> Result<Self, String> {
+        remove_dead_nodes();
+        let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
+        let service = open_service(&node, run_id)?;
+        let publisher = service
+            .publisher_builder()
+            .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
+            .create()
+            .map_err(|e| format!("iceoryx2 publisher: {e:?}"))?;
+        Ok(ShmPublisher { publisher, _service: service, _node: node })
+    }
+
+    pub fn send(&self, batch: &TransitionBatch) -> Result<(), String> {
+        let sample = TransitionSample::from_batch(batch)?;
+        let slot = self.publisher.loan_uninit().map_err(|e| format!("loan: {e:?}"))?;
+        slot.write_payload(sample).send().map(|_| ()).map_err(|e| format!("send: {e:?}"))
+    }
+}
+
+/// The learner's end, on its own thread: receives samples, checks them like
+/// gRPC batches and hands them to the training thread, until shutdown.
+pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>) -> Result<(), String> {
+    let cleaned = remove_dead_nodes();
+    if cleaned > 0 {
+        tracing::info!(cleaned, "removed shared-memory resources of crashed processes");
+    }
+    let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
+    let service = open_service(&node, &shared.run_id)?;
+    let subscriber = service.subscriber_builder().create().map_err(|e| format!("iceoryx2 subscriber: {e:?}"))?;
+    tracing::info!(service = %service_name(&shared.run_id), "shared-memory transport ready");
+    let stop = shared.shutdown.subscribe();
+    while !*stop.borrow() {
+        let sample = match subscriber.receive() {
+            Ok(Some(sample)) => sample,
+            Ok(None) => {
+                std::thread::sleep(Duration::from_micros(200));
+                continue;
+            }
+            Err(e) => return Err(format!("receiving from shared memory: {e:?}")),
+        };
+        let batch = sample.payload().to_batch(&shared.run_id);
+        drop(sample);
+        let version = shared.policy_version();
+        let verdict = shared.ingest.lock().map_err(|_| "ingestion state poisoned".to_string())?.check(&batch, version);
+        match verdict {
+            Verdict::Accept(accepted) => {
+                if commands.blocking_send(Command::Batch(accepted)).is_err() {
+                    break;
+                }
+            }
+            Verdict::Reject { reason, message } => tracing::warn!(reason, %message, "shared-memory batch rejected"),
+            Verdict::Duplicate | Verdict::Stale => {}
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sample_round_trips_a_batch() {
+        let t = |v: f32| Transition { state: vec![v; 12], action: vec![-v; 6], reward: v, next_state: vec![v + 1.0; 12], terminated: v > 2.0, truncated: v < 1.0 };
+        let batch = TransitionBatch {
+            run_id: "r".into(),
+            actor_id: "actor-7".into(),
+            sequence: 9,
+            episode_id: 3,
+            policy_version: 2,
+            transitions: vec![t(0.5), t(1.5), t(2.5)],
+            episodes: vec![EpisodeSummary { episode_return: -4.5, length: 50, success: Some(true) }, EpisodeSummary { episode_return: -1.0, length: 3, success: None }],
+        };
+        assert_eq!(TransitionSample::from_batch(&batch).unwrap().to_batch("r"), batch);
+        let too_long = TransitionBatch { transitions: vec![t(0.1); MAX_TRANSITIONS + 1], ..batch };
+        assert!(TransitionSample::from_batch(&too_long).is_err());
+    }
+}
