@@ -31,7 +31,8 @@ const MAX_PENDING_BATCHES: usize = 8;
 enum Transport {
     /// gRPC to the learner's URL (any host).
     Grpc,
-    /// iceoryx2 shared memory (same host; the policy still comes over gRPC).
+    /// iceoryx2 shared memory (same host): transitions out and policies in,
+    /// no network; --learner is not used.
     Shm,
 }
 
@@ -119,27 +120,34 @@ async fn run(args: Args) -> anyhow::Result<()> {
         bail!("--transport shm carries at most {} transitions per batch; lower --batch", lcrl_learner::service::shm::MAX_TRANSITIONS);
     }
     let deadline = Duration::from_secs(args.connect_deadline);
-    let mut client = connect(&args.learner, deadline).await?;
-    let first = client.get_policy(GetPolicyRequest {}).await.context("asking the learner for its policy")?.into_inner();
-    tracing::info!(version = first.version, learner = %args.learner, "connected");
-    let (policy_tx, policy_rx) = watch::channel(Arc::new(first));
-    tokio::spawn(watch_policy(args.learner.clone(), policy_tx));
-
+    // gRPC actors get the policy from the learner's URL; shared-memory
+    // actors from the run's broadcast, without any network.
+    let (client, policy_source) = match args.transport {
+        Transport::Grpc => {
+            let mut client = connect(&args.learner, deadline).await?;
+            let first = client.get_policy(GetPolicyRequest {}).await.context("asking the learner for its policy")?.into_inner();
+            tracing::info!(version = first.version, learner = %args.learner, "connected");
+            let (policy_tx, policy_rx) = watch::channel(Arc::new(first));
+            tokio::spawn(watch_policy(args.learner.clone(), policy_tx));
+            (Some(client), PolicySource::Grpc(policy_rx))
+        }
+        Transport::Shm => (None, PolicySource::Shm(args.run_id.clone(), deadline)),
+    };
     let stop = Arc::new(AtomicBool::new(false));
     let finished = Arc::new(AtomicBool::new(false));
     let actor_id = args.actor_id.clone().unwrap_or_else(|| format!("{}-{}", hostname(), std::process::id()));
-    let (sink, sender) = match args.transport {
-        Transport::Grpc => {
+    let (sink, sender) = match client {
+        Some(client) => {
             let (batches_tx, batches_rx) = mpsc::channel::<TransitionBatch>(2);
             (Sink::Grpc(batches_tx), Some(tokio::spawn(send_batches(args.learner.clone(), client, batches_rx, deadline))))
         }
-        Transport::Shm => (Sink::Shm(args.run_id.clone()), None),
+        None => (Sink::Shm(args.run_id.clone()), None),
     };
     let worker = {
         let (stop, finished) = (stop.clone(), finished.clone());
         let settings = WorkerSettings { envs: args.envs, batch: args.batch, noise: args.noise, seed: args.seed, episodes: args.episodes, run_id: args.run_id.clone(), actor_id };
         std::thread::Builder::new().name("envs".into()).spawn(move || {
-            let result = work(settings, policy_rx, sink, stop);
+            let result = work(settings, policy_source, sink, stop);
             finished.store(true, Ordering::Relaxed);
             result
         })?
@@ -246,6 +254,53 @@ async fn send_batches(url: String, mut client: LearnerClient<Channel>, mut batch
     }
 }
 
+/// Where the worker's policy comes from.
+enum PolicySource {
+    /// Kept current by the WatchPolicy task.
+    Grpc(watch::Receiver<Arc<PolicySnapshot>>),
+    /// The run's shared-memory broadcast; wait at most this long for it.
+    Shm(String, Duration),
+}
+
+/// The worker thread's open end of its policy source.
+enum Feed {
+    Grpc(watch::Receiver<Arc<PolicySnapshot>>),
+    Shm(lcrl_learner::service::shm::PolicySubscriber),
+}
+
+/// Opens the source and returns it with the first policy.
+fn open_feed(source: PolicySource, stop: &AtomicBool) -> anyhow::Result<(Feed, Policy)> {
+    match source {
+        PolicySource::Grpc(mut rx) => {
+            let snapshot = rx.borrow_and_update().clone();
+            let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
+            Ok((Feed::Grpc(rx), policy))
+        }
+        PolicySource::Shm(run_id, deadline) => {
+            let subscriber = lcrl_learner::service::shm::PolicySubscriber::open(&run_id).map_err(anyhow::Error::msg)?;
+            let started = Instant::now();
+            let mut last_log = Instant::now() - Duration::from_secs(10);
+            loop {
+                if let Some((version, architecture, weights)) = subscriber.newest().map_err(anyhow::Error::msg)? {
+                    tracing::info!(version, "policy received over shared memory");
+                    return Ok((Feed::Shm(subscriber), Policy::from_snapshot(&architecture, &weights, version)?));
+                }
+                if stop.load(Ordering::Relaxed) {
+                    bail!("stopped while waiting for the policy");
+                }
+                if started.elapsed() > deadline {
+                    bail!("no policy of run '{run_id}' on shared memory within {} s; is lcrl-learner running on this host with --run-id {run_id}?", deadline.as_secs());
+                }
+                if last_log.elapsed() > Duration::from_secs(2) {
+                    tracing::warn!("waiting for the policy of run '{run_id}' on shared memory; retrying");
+                    last_log = Instant::now();
+                }
+                std::thread::sleep(Duration::from_millis(50));
+            }
+        }
+    }
+}
+
 /// Where the worker's batches go.
 enum Sink {
     /// To the gRPC sender task (bounded channel).
@@ -271,15 +326,14 @@ struct WorkerSettings {
 }
 
 /// The environment loop (blocking thread).
-fn work(s: WorkerSettings, mut policy_rx: watch::Receiver<Arc<PolicySnapshot>>, sink: Sink, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
+fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
     tch::set_num_threads(1);
     // iceoryx2 ports stay on the thread that made them.
     let out = match sink {
         Sink::Grpc(batches) => Out::Grpc(batches),
         Sink::Shm(run_id) => Out::Shm(lcrl_learner::service::shm::ShmPublisher::open(&run_id).map_err(anyhow::Error::msg)?),
     };
-    let snapshot = policy_rx.borrow_and_update().clone();
-    let mut policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
+    let (mut feed, mut policy) = open_feed(source, &stop)?;
     let env_name = policy.architecture.env.clone();
     let mut envs: Vec<Box<dyn lcrl_sim::Env>> = (0..s.envs).map(|_| lcrl_sim::make_env(&env_name)).collect::<Result<_, _>>()?;
     policy.check_env(envs[0].as_ref())?;
@@ -294,9 +348,20 @@ fn work(s: WorkerSettings, mut policy_rx: watch::Receiver<Arc<PolicySnapshot>>, 
     // one marked as a cut, so the learner sees whole trajectory segments.
     let mut segments: Vec<Vec<Transition>> = vec![Vec::new(); s.envs];
     while !stop.load(Ordering::Relaxed) && s.episodes.is_none_or(|limit| episodes_done < limit) {
-        if policy_rx.has_changed().unwrap_or(false) {
-            let newest = policy_rx.borrow_and_update().clone();
-            policy.update(&newest.weights, newest.version)?;
+        match &mut feed {
+            Feed::Grpc(rx) => {
+                if rx.has_changed().unwrap_or(false) {
+                    let newest = rx.borrow_and_update().clone();
+                    policy.update(&newest.weights, newest.version)?;
+                }
+            }
+            Feed::Shm(subscriber) => {
+                if let Some((version, _, weights)) = subscriber.newest().map_err(anyhow::Error::msg)? {
+                    if version > policy.version {
+                        policy.update(&weights, version)?;
+                    }
+                }
+            }
         }
         let std: Vec<f64> = policy.exploration_std().map(|v| v.iter().map(|&x| f64::from(x)).collect()).unwrap_or_else(|| vec![s.noise; policy.architecture.action_dim]);
         for (k, env) in envs.iter_mut().enumerate() {

@@ -253,6 +253,15 @@ async fn run(args: Args) -> anyhow::Result<()> {
             }
         })
         .context("cannot start the shared-memory thread")?;
+    let publisher_shared = shared.clone();
+    let policy_broadcast = std::thread::Builder::new()
+        .name("shm-policy".into())
+        .spawn(move || {
+            if let Err(e) = lcrl_learner::service::shm::run_policy_publisher(publisher_shared) {
+                tracing::warn!("shared-memory policy broadcast unavailable: {e}");
+            }
+        })
+        .context("cannot start the policy broadcast thread")?;
     let listener = tokio::net::TcpListener::bind(args.listen).await.with_context(|| format!("cannot listen on {}; is another process using it?", args.listen))?;
     let addr = listener.local_addr()?;
     println!("listening on {addr}");
@@ -302,7 +311,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         tracing::warn!("connections still open after 5 s; closing them");
         server.abort();
     }
-    let _ = tokio::task::spawn_blocking(move || shm.join()).await;
+    let _ = tokio::task::spawn_blocking(move || (shm.join(), policy_broadcast.join())).await;
     tracing::info!("stopping: writing a checkpoint");
     let _ = commands.send(lcrl_learner::service::runtime::Command::Stop).await;
     drop(commands);

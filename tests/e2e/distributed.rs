@@ -37,10 +37,14 @@ fn free_port() -> u16 {
 }
 
 fn learner(run_dir: &Path, run_id: &str, port: u16) -> (Proc, String) {
+    learner_with(run_dir, run_id, port, "ddpg")
+}
+
+fn learner_with(run_dir: &Path, run_id: &str, port: u16, algo: &str) -> (Proc, String) {
     let config = run_dir.with_extension("toml");
-    std::fs::write(&config, SMALL).unwrap();
+    std::fs::write(&config, format!("{SMALL}[ppo]\nrollout_steps = 500\nminibatch_size = 100\n")).unwrap();
     let mut child = workspace_bin("lcrl-learner")
-        .args(["--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--publish-every", "20", "--checkpoint-secs", "0.5", "--run-id", run_id])
+        .args(["--env", "lti-paper", "--algo", algo, "--connection", "global", "--publish-every", "20", "--checkpoint-secs", "0.5", "--run-id", run_id])
         .arg("--config")
         .arg(&config)
         .arg("--run-dir")
@@ -273,4 +277,17 @@ async fn shared_memory_actors_feed_their_own_run_only() {
     wait_for(&url_a, "the restarted actor's transitions", |s| s.env_steps > after + 500).await;
     let b = status(&url_b).await.unwrap();
     assert_eq!((b.env_steps, b.episodes), (0, 0), "run B saw run A's transitions");
+}
+
+/// PPO keeps only batches at most one version old, so the learner can get
+/// several versions ahead only if the shared-memory actor receives each new
+/// policy from the broadcast.
+#[tokio::test]
+async fn shared_memory_actor_follows_new_policies() {
+    let dir = tempfile::tempdir().unwrap();
+    let run_id = format!("shm-ppo-{}", std::process::id());
+    let (_learner, url) = learner_with(&dir.path().join("run"), &run_id, free_port(), "ppo");
+    let _actor = actor_over(&url, &run_id, "shm");
+    let s = wait_for(&url, "several PPO policy versions", |s| s.policy_version >= 4).await;
+    assert!(s.env_steps > 4 * 500);
 }

@@ -9,6 +9,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
+use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
 use lcrl_proto::v1::{EpisodeSummary, Transition, TransitionBatch};
 use tokio::sync::mpsc;
@@ -234,6 +235,114 @@ pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>) -> R
         }
     }
     Ok(())
+}
+
+/// Largest policy weights (safetensors bytes) and architecture (JSON) a
+/// broadcast sample carries: 2 MiB is ~500k f32 parameters, eight times the
+/// default peg actor; a larger actor needs a larger constant.
+pub const MAX_POLICY_BYTES: usize = 2 << 20;
+pub const MAX_ARCHITECTURE_BYTES: usize = 16 << 10;
+
+/// A policy version in shared memory (`lcrl/<run id>/policy`).
+#[derive(Debug, Clone, Copy, ZeroCopySend)]
+#[repr(C)]
+pub struct PolicySample {
+    pub version: u64,
+    pub weights_len: u32,
+    pub architecture_len: u32,
+    pub architecture: [u8; MAX_ARCHITECTURE_BYTES],
+    pub weights: [u8; MAX_POLICY_BYTES],
+}
+
+type PolicyService = iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, PolicySample, ()>;
+
+fn open_policy_service(node: &Node<ipc::Service>, run_id: &str) -> Result<PolicyService, String> {
+    let name = format!("lcrl/{run_id}/policy");
+    let service_name: ServiceName = name.as_str().try_into().map_err(|e| format!("service name: {e:?}"))?;
+    // Only the newest version matters: overwrite, and keep one for late joiners.
+    node.service_builder(&service_name)
+        .publish_subscribe::<PolicySample>()
+        .enable_safe_overflow(true)
+        .history_size(1)
+        .subscriber_max_buffer_size(1)
+        .max_subscribers(64)
+        .open_or_create()
+        .map_err(|e| format!("cannot open the shared-memory service {name}: {e:?}"))
+}
+
+/// The learner's policy broadcaster, on its own thread: publishes every new
+/// version of `shared.policy` until shutdown.
+pub fn run_policy_publisher(shared: Arc<Shared>) -> Result<(), String> {
+    quiet_iceoryx2();
+    let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
+    let service = open_policy_service(&node, &shared.run_id)?;
+    let publisher = service.publisher_builder().create().map_err(|e| format!("iceoryx2 publisher: {e:?}"))?;
+    let mut versions = shared.policy.subscribe();
+    let stop = shared.shutdown.subscribe();
+    tracing::info!(service = %format!("lcrl/{}/policy", shared.run_id), "shared-memory policy broadcast ready");
+    let mut first = true;
+    while !*stop.borrow() {
+        if !first && !versions.has_changed().unwrap_or(false) {
+            // Actors that subscribe later get the newest version (history)
+            // only when the publisher refreshes its connections.
+            if let Err(e) = publisher.update_connections() {
+                tracing::debug!("updating shared-memory connections: {e:?}");
+            }
+            std::thread::sleep(Duration::from_millis(5));
+            continue;
+        }
+        first = false;
+        let snapshot = versions.borrow_and_update().clone();
+        if snapshot.weights.len() > MAX_POLICY_BYTES || snapshot.architecture.len() > MAX_ARCHITECTURE_BYTES {
+            return Err(format!("policy of {} bytes exceeds the shared-memory sample ({MAX_POLICY_BYTES}); use gRPC actors", snapshot.weights.len()));
+        }
+        let mut slot = publisher.loan_uninit().map_err(|e| format!("loan: {e:?}"))?;
+        // Zero the whole sample in place (2 MiB never lives on a stack),
+        // then fill it: every byte is initialized before assume_init.
+        let payload = slot.payload_mut().as_mut_ptr();
+        let sample = unsafe {
+            std::ptr::write_bytes(payload, 0, 1);
+            (*payload).version = snapshot.version;
+            (*payload).weights_len = snapshot.weights.len() as u32;
+            (*payload).architecture_len = snapshot.architecture.len() as u32;
+            (&mut (*payload).weights)[..snapshot.weights.len()].copy_from_slice(&snapshot.weights);
+            (&mut (*payload).architecture)[..snapshot.architecture.len()].copy_from_slice(snapshot.architecture.as_bytes());
+            slot.assume_init()
+        };
+        sample.send().map_err(|e| format!("send: {e:?}"))?;
+        tracing::debug!(version = snapshot.version, bytes = snapshot.weights.len(), "policy broadcast on shared memory");
+    }
+    Ok(())
+}
+
+/// An actor's view of the broadcast policy.
+pub struct PolicySubscriber {
+    subscriber: iceoryx2::port::subscriber::Subscriber<ipc::Service, PolicySample, ()>,
+    _service: PolicyService,
+    _node: Node<ipc::Service>,
+}
+
+impl PolicySubscriber {
+    pub fn open(run_id: &str) -> Result<Self, String> {
+        quiet_iceoryx2();
+        let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
+        let service = open_policy_service(&node, run_id)?;
+        let subscriber = service.subscriber_builder().create().map_err(|e| format!("iceoryx2 subscriber: {e:?}"))?;
+        Ok(PolicySubscriber { subscriber, _service: service, _node: node })
+    }
+
+    /// The newest version received since the last call: (version,
+    /// architecture JSON, weights).
+    pub fn newest(&self) -> Result<Option<(u64, String, Vec<u8>)>, String> {
+        let mut newest = None;
+        while let Some(sample) = self.subscriber.receive().map_err(|e| format!("receive: {e:?}"))? {
+            let p = sample.payload();
+            let weights = p.weights[..(p.weights_len as usize).min(MAX_POLICY_BYTES)].to_vec();
+            let arch = String::from_utf8_lossy(&p.architecture[..(p.architecture_len as usize).min(MAX_ARCHITECTURE_BYTES)]).into_owned();
+            newest = Some((p.version, arch, weights));
+        }
+        Ok(newest)
+    }
 }
 
 #[cfg(test)]
