@@ -157,6 +157,17 @@ async fn act_latency(dir: &std::path::Path) -> anyhow::Result<()> {
     micros.sort_by(f64::total_cmp);
     let pct = |p: f64| micros[((micros.len() as f64 - 1.0) * p) as usize];
     println!("Policy.Act over gRPC loopback (peg-group1, default actor): p50 {:.0} µs, p99 {:.0} µs", pct(0.5), pct(0.99));
+    // The floor: a trivial call (health check) on the same server.
+    let channel = tonic::transport::Channel::from_shared(url.clone())?.connect().await?;
+    let mut health = tonic_health::pb::health_client::HealthClient::new(channel);
+    let mut floor: Vec<f64> = Vec::with_capacity(2000);
+    for _ in 0..2000 {
+        let started = Instant::now();
+        health.check(tonic_health::pb::HealthCheckRequest { service: String::new() }).await?;
+        floor.push(started.elapsed().as_secs_f64() * 1e6);
+    }
+    floor.sort_by(f64::total_cmp);
+    println!("  a trivial call on the same server (grpc.health.v1.Health/Check): p50 {:.0} µs", floor[floor.len() / 2]);
     // The same work without the network: what the handler itself costs.
     let mut learner_client = LearnerClient::connect(url_of(&mut client)).await?.max_decoding_message_size(16 << 20);
     let snapshot = learner_client.get_policy(lcrl_proto::v1::GetPolicyRequest {}).await?.into_inner();

@@ -211,11 +211,18 @@ pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>) -> R
     let subscriber = service.subscriber_builder().create().map_err(|e| format!("iceoryx2 subscriber: {e:?}"))?;
     tracing::info!(service = %service_name(&shared.run_id), "shared-memory transport ready");
     let stop = shared.shutdown.subscribe();
+    // Poll fast while data flows, back off to 2 ms when idle, so an idle
+    // learner does not keep a core busy with wake-ups.
+    let mut idle = Duration::from_micros(200);
     while !*stop.borrow() {
         let sample = match subscriber.receive() {
-            Ok(Some(sample)) => sample,
+            Ok(Some(sample)) => {
+                idle = Duration::from_micros(200);
+                sample
+            }
             Ok(None) => {
-                std::thread::sleep(Duration::from_micros(200));
+                std::thread::sleep(idle);
+                idle = (idle * 2).min(Duration::from_millis(2));
                 continue;
             }
             Err(e) => return Err(format!("receiving from shared memory: {e:?}")),
