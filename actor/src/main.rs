@@ -325,6 +325,17 @@ struct WorkerSettings {
     actor_id: String,
 }
 
+/// Exploration noise per action component: the policy's own std (PPO) or
+/// `noise` (DDPG), in normalized action units.
+fn exploration_normals(policy: &Policy, noise: f64) -> Vec<Normal<f64>> {
+    let std: Vec<f64> = policy.exploration_std().map_or_else(|| vec![noise; policy.architecture.action_dim], |v| v.iter().map(|&x| f64::from(x)).collect());
+    // A non-finite or non-positive std (a diverged policy, a bad flag) acts
+    // greedily rather than failing; the argument below is then always valid.
+    std.iter()
+        .map(|&sd| Normal::new(0.0, if sd.is_finite() && sd > 0.0 { sd } else { 1e-9 }).expect("finite positive std"))
+        .collect()
+}
+
 /// The environment loop (blocking thread).
 fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBool>) -> anyhow::Result<()> {
     tch::set_num_threads(1);
@@ -334,6 +345,7 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
         Sink::Shm(run_id) => Out::Shm(lcrl_learner::service::shm::ShmPublisher::open(&run_id).map_err(anyhow::Error::msg)?),
     };
     let (mut feed, mut policy) = open_feed(source, &stop)?;
+    let mut exploration = exploration_normals(&policy, s.noise);
     let env_name = policy.architecture.env.clone();
     let mut envs: Vec<Box<dyn lcrl_sim::Env>> = (0..s.envs).map(|_| lcrl_sim::make_env(&env_name)).collect::<Result<_, _>>()?;
     policy.check_env(envs[0].as_ref())?;
@@ -348,6 +360,7 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
     // one marked as a cut, so the learner sees whole trajectory segments.
     let mut segments: Vec<Vec<Transition>> = vec![Vec::new(); s.envs];
     while !stop.load(Ordering::Relaxed) && s.episodes.is_none_or(|limit| episodes_done < limit) {
+        let version = policy.version;
         match &mut feed {
             Feed::Grpc(rx) => {
                 if rx.has_changed().unwrap_or(false) {
@@ -363,17 +376,16 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
                 }
             }
         }
-        let std: Vec<f64> = policy.exploration_std().map(|v| v.iter().map(|&x| f64::from(x)).collect()).unwrap_or_else(|| vec![s.noise; policy.architecture.action_dim]);
+        if policy.version != version {
+            exploration = exploration_normals(&policy, s.noise);
+        }
         for (k, env) in envs.iter_mut().enumerate() {
-            let obs: Vec<f32> = env.normalize_state(&states[k]).iter().map(|&v| v as f32).collect();
+            let obs = lcrl_learner::trainer::observe(env.as_ref(), &states[k]);
             let u: Vec<f32> = policy
                 .act_normalized(&obs)
                 .iter()
-                .zip(&std)
-                .map(|(&a, &sd)| {
-                    let noise = Normal::new(0.0, sd.max(1e-9)).map(|n| n.sample(&mut rng)).unwrap_or(0.0);
-                    (f64::from(a) + noise).clamp(-1.0, 1.0) as f32
-                })
+                .zip(&exploration)
+                .map(|(&a, noise)| (f64::from(a) + noise.sample(&mut rng)).clamp(-1.0, 1.0) as f32)
                 .collect();
             let action = lcrl_learner::trainer::to_env_action(env.as_ref(), &u);
             let step = env.step(&action)?;

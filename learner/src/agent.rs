@@ -60,8 +60,6 @@ pub trait Agent: Send {
     /// state, buffers, RNG) into `dir`.
     fn save(&self, dir: &Path, include_buffer: bool) -> Result<(), LearnerError>;
     fn load(&mut self, dir: &Path) -> Result<(), LearnerError>;
-    /// The actor's variables (for `lcrl sim --checkpoint` and policy serving).
-    fn actor(&self) -> &ActorNet;
     /// The actor's named variables, for publishing the policy.
     fn actor_variables(&self) -> Vec<(String, tch::Tensor)>;
 }
@@ -130,6 +128,18 @@ pub fn save_vs(vs: &nn::VarStore, path: &Path) -> Result<(), LearnerError> {
 
 pub fn load_vs(vs: &mut nn::VarStore, path: &Path) -> Result<(), LearnerError> {
     vs.load(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+}
+
+/// Saves the actor and critic optimizers' state next to the weights.
+pub fn save_optimizers(dir: &Path, actor: &crate::adam::Adam, critic: &crate::adam::Adam) -> Result<(), LearnerError> {
+    write_tensors(&dir.join("actor_optimizer.safetensors"), &actor.state())?;
+    write_tensors(&dir.join("critic_optimizer.safetensors"), &critic.state())
+}
+
+/// Restores what [`save_optimizers`] wrote.
+pub fn load_optimizers(dir: &Path, actor: &mut crate::adam::Adam, critic: &mut crate::adam::Adam) -> Result<(), LearnerError> {
+    actor.load_state(&read_tensors(&dir.join("actor_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
+    critic.load_state(&read_tensors(&dir.join("critic_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)
 }
 
 /// Writes an agent's non-tensor state (RNG, counters, …) as `agent.json`.

@@ -21,7 +21,10 @@ use serde::{Deserialize, Serialize};
 use tch::{nn, Device, Kind, Tensor};
 
 use crate::adam::Adam;
-use crate::agent::{build_actor, build_critic, load_vs, read_agent_state, read_tensors, save_vs, write_agent_state, write_tensors, Agent, Counters, RngState, Transition};
+use crate::agent::{
+    build_actor, build_critic, load_optimizers, load_vs, read_agent_state, read_tensors, save_optimizers, save_vs, write_agent_state, write_tensors, Agent,
+    Counters, RngState, Transition,
+};
 use crate::config::{Connection, DdpgConfig, NetworkConfig};
 use crate::nets::{batch, ActorNet, Mlp};
 use crate::replay::ReplayBuffer;
@@ -108,10 +111,6 @@ impl Ddpg {
     pub fn noise_std(&self, episode: usize) -> f64 {
         let progress = (episode as f64 / self.cfg.noise_decay_episodes.max(1) as f64).min(1.0);
         self.cfg.noise_start + (self.cfg.noise_end - self.cfg.noise_start) * progress
-    }
-
-    pub fn replay_len(&self) -> usize {
-        self.replay.len()
     }
 
     /// One DDPG update on a minibatch from the replay buffer.
@@ -210,8 +209,7 @@ impl Agent for Ddpg {
         save_vs(&self.actor_target_vs, &dir.join("actor_target.safetensors"))?;
         save_vs(&self.critic_vs, &dir.join("critic.safetensors"))?;
         save_vs(&self.critic_target_vs, &dir.join("critic_target.safetensors"))?;
-        write_tensors(&dir.join("actor_optimizer.safetensors"), &self.actor_opt.state())?;
-        write_tensors(&dir.join("critic_optimizer.safetensors"), &self.critic_opt.state())?;
+        save_optimizers(dir, &self.actor_opt, &self.critic_opt)?;
         if include_buffer {
             write_tensors(&dir.join("replay.safetensors"), &self.replay.to_tensors())?;
         }
@@ -224,8 +222,7 @@ impl Agent for Ddpg {
         load_vs(&mut self.actor_target_vs, &dir.join("actor_target.safetensors"))?;
         load_vs(&mut self.critic_vs, &dir.join("critic.safetensors"))?;
         load_vs(&mut self.critic_target_vs, &dir.join("critic_target.safetensors"))?;
-        self.actor_opt.load_state(&read_tensors(&dir.join("actor_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
-        self.critic_opt.load_state(&read_tensors(&dir.join("critic_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
+        load_optimizers(dir, &mut self.actor_opt, &mut self.critic_opt)?;
         let replay = dir.join("replay.safetensors");
         if replay.is_file() {
             self.replay = ReplayBuffer::from_tensors(self.cfg.buffer_capacity, self.obs_dim, self.action_dim, &read_tensors(&replay)?)
@@ -236,10 +233,6 @@ impl Agent for Ddpg {
         self.counters = state.counters;
         self.critic_updates = state.critic_updates;
         Ok(())
-    }
-
-    fn actor(&self) -> &ActorNet {
-        &self.actor
     }
 
     fn actor_variables(&self) -> Vec<(String, Tensor)> {

@@ -18,7 +18,6 @@ use lcrl_learner::config::{Algo, Connection, TrainConfig};
 use lcrl_learner::service::ingest::Ingest;
 use lcrl_learner::service::runtime::{run_training, snapshot, Schedule, Shared};
 use lcrl_learner::service::server::{LearnerService, PolicyService};
-use lcrl_learner::snapshot::Architecture;
 use lcrl_learner::trainer::{latest_checkpoint, make_agent, read_meta, CheckpointMeta};
 use lcrl_proto::v1::graph_client::GraphClient;
 use lcrl_proto::v1::learner_server::LearnerServer;
@@ -194,7 +193,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     if let Some((dir, _)) = &resume {
         agent.load(dir)?;
     }
-    let architecture = Architecture { env: args.env.clone(), algo: args.algo, connection: args.connection, state_dim: m, action_dim: n, mask, network: config.network.clone() };
+    let architecture = meta.architecture();
     let (policy, _) = watch::channel(Arc::new(snapshot(agent.as_ref(), &architecture, meta.policy_version)?));
     let staleness = (args.algo == Algo::Ppo).then_some(args.max_staleness);
     let counters = agent.counters();

@@ -43,16 +43,7 @@ impl Policy {
             latest_checkpoint(dir).ok_or_else(|| LearnerError::Checkpoint(format!("{} holds no checkpoint (checkpoint.json)", dir.display())))?
         };
         let meta = read_meta(&dir)?;
-        let architecture = Architecture {
-            env: meta.env.clone(),
-            algo: meta.algo,
-            connection: meta.connection,
-            state_dim: meta.state_dim,
-            action_dim: meta.action_dim,
-            mask: meta.mask.clone(),
-            network: meta.config.network.clone(),
-        };
-        let (mut vs, actor, architecture) = Self::empty(architecture);
+        let (mut vs, actor, architecture) = Self::empty(meta.architecture());
         load_vs(&mut vs, &dir.join("actor.safetensors"))?;
         Ok(Policy { architecture, episode: Some(meta.episode), version: meta.policy_version, vs, actor, log_std: None })
     }
@@ -98,8 +89,7 @@ impl Policy {
 
     /// The action for a raw environment state, in the environment's bounds.
     pub fn act(&self, env: &dyn Env, state: &[f64]) -> Vec<f64> {
-        let obs: Vec<f32> = env.normalize_state(state).iter().map(|&v| v as f32).collect();
-        crate::trainer::to_env_action(env, &self.act_normalized(&obs))
+        crate::trainer::to_env_action(env, &self.act_normalized(&crate::trainer::observe(env, state)))
     }
 
     /// Checks that the policy fits `env`.

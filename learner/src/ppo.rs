@@ -23,7 +23,10 @@ use serde::{Deserialize, Serialize};
 use tch::{nn, Device, Kind, Tensor};
 
 use crate::adam::Adam;
-use crate::agent::{build_actor, build_critic, load_vs, read_agent_state, read_tensors, save_vs, write_agent_state, write_tensors, Agent, Counters, RngState, Transition};
+use crate::agent::{
+    build_actor, build_critic, load_optimizers, load_vs, read_agent_state, save_optimizers, save_vs, write_agent_state, Agent,
+    Counters, RngState, Transition,
+};
 use crate::config::{Connection, NetworkConfig, PpoConfig};
 use crate::nets::{batch, ActorNet, Mlp};
 use crate::LearnerError;
@@ -238,8 +241,7 @@ impl Agent for Ppo {
     fn save(&self, dir: &Path, _include_buffer: bool) -> Result<(), LearnerError> {
         save_vs(&self.actor_vs, &dir.join("actor.safetensors"))?;
         save_vs(&self.critic_vs, &dir.join("critic.safetensors"))?;
-        write_tensors(&dir.join("actor_optimizer.safetensors"), &self.actor_opt.state())?;
-        write_tensors(&dir.join("critic_optimizer.safetensors"), &self.critic_opt.state())?;
+        save_optimizers(dir, &self.actor_opt, &self.critic_opt)?;
         // The unfinished rollout is part of the state: PPO resumes mid-rollout.
         let state = PpoState { rng: RngState::of(&self.rng), counters: self.counters, rollout: self.rollout.clone() };
         write_agent_state(dir, &state)
@@ -248,17 +250,12 @@ impl Agent for Ppo {
     fn load(&mut self, dir: &Path) -> Result<(), LearnerError> {
         load_vs(&mut self.actor_vs, &dir.join("actor.safetensors"))?;
         load_vs(&mut self.critic_vs, &dir.join("critic.safetensors"))?;
-        self.actor_opt.load_state(&read_tensors(&dir.join("actor_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
-        self.critic_opt.load_state(&read_tensors(&dir.join("critic_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
+        load_optimizers(dir, &mut self.actor_opt, &mut self.critic_opt)?;
         let state: PpoState = read_agent_state(dir)?;
         self.rng = state.rng.restore()?;
         self.counters = state.counters;
         self.rollout = state.rollout;
         Ok(())
-    }
-
-    fn actor(&self) -> &ActorNet {
-        &self.actor
     }
 
     fn actor_variables(&self) -> Vec<(String, Tensor)> {

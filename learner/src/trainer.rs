@@ -108,6 +108,21 @@ pub struct CheckpointMeta {
     pub actor_sequences: std::collections::HashMap<String, u64>,
 }
 
+impl CheckpointMeta {
+    /// The actor's architecture, as a published policy describes it.
+    pub fn architecture(&self) -> crate::snapshot::Architecture {
+        crate::snapshot::Architecture {
+            env: self.env.clone(),
+            algo: self.algo,
+            connection: self.connection,
+            state_dim: self.state_dim,
+            action_dim: self.action_dim,
+            mask: self.mask.clone(),
+            network: self.config.network.clone(),
+        }
+    }
+}
+
 /// Per-episode progress for the caller's display.
 pub struct Progress<'a> {
     pub row: &'a EpisodeRow,
@@ -145,7 +160,8 @@ pub fn to_env_action(env: &dyn Env, u: &[f32]) -> Vec<f64> {
         .collect()
 }
 
-fn observe(env: &dyn Env, state: &[f64]) -> Vec<f32> {
+/// A raw state as the agent's input: normalized, f32.
+pub fn observe(env: &dyn Env, state: &[f64]) -> Vec<f32> {
     env.normalize_state(state).iter().map(|&v| v as f32).collect()
 }
 
