@@ -5,7 +5,10 @@ mod bench;
 mod bench_transport;
 mod compare_cmd;
 mod doctor;
+mod probe_cmd;
+mod launch_cmd;
 mod plots;
+mod preset;
 mod run_cmd;
 mod sim_cmd;
 mod train_cmd;
@@ -34,6 +37,12 @@ struct Cli {
 enum Command {
     /// Run graph builder, learner and actors from one preset (configs/).
     Run(run_cmd::RunArgs),
+    /// Start one role of a run from a preset (for containers and pods).
+    Launch(launch_cmd::LaunchArgs),
+    /// Probe a server's gRPC health service (exit 0 when SERVING).
+    Health(probe_cmd::HealthArgs),
+    /// Print a learner's status (GetStatus) as one JSON line.
+    Status(probe_cmd::StatusArgs),
     /// Build the connection graph G of an environment with CS3 and print it.
     Graph(GraphArgs),
     /// Run a controller on an environment: summary.json, trace.csv, trace.png.
@@ -61,6 +70,9 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Graph(args) => run_graph(&args),
         Command::Run(args) => run_cmd::run(&args),
+        Command::Launch(args) => launch_cmd::run(&args),
+        Command::Health(args) => probe_cmd::health(&args),
+        Command::Status(args) => probe_cmd::status(&args),
         Command::Sim(args) => sim_cmd::run(&args),
         Command::Train(args) => train_cmd::run(&args),
         Command::Compare(args) => compare_cmd::run(&args),

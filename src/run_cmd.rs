@@ -9,10 +9,11 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use indicatif::{ProgressBar, ProgressStyle};
-use lcrl_learner::{Algo, Connection, TrainConfig};
+use lcrl_learner::Connection;
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::GetStatusRequest;
-use serde::Deserialize;
+
+use crate::preset::{sibling, Preset};
 
 /// Run graph builder, learner and actors on this machine until the episode
 /// budget is reached (or Ctrl-C), collecting everything in the run directory.
@@ -44,25 +45,6 @@ pub enum TransportArg {
     Grpc,
     /// iceoryx2 shared memory.
     Shm,
-}
-
-/// The [job] section of a preset.
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Job {
-    env: String,
-    algo: Algo,
-    connection: Connection,
-    /// Episode budget of the whole run.
-    episodes: u64,
-    #[serde(default = "one")]
-    actors: usize,
-    #[serde(default = "one")]
-    envs_per_actor: usize,
-}
-
-fn one() -> usize {
-    1
 }
 
 /// A child process, stopped (SIGTERM, then SIGKILL after a grace period)
@@ -115,25 +97,10 @@ impl Drop for Managed {
     }
 }
 
-fn sibling(name: &str) -> anyhow::Result<PathBuf> {
-    let path = std::env::current_exe()?.with_file_name(name);
-    if !path.is_file() {
-        bail!("{} is missing; build it with `cargo build --workspace --bins`", path.display());
-    }
-    Ok(path)
-}
-
 async fn wait_healthy(url: &str, service: &str, what: &str, timeout: Duration) -> anyhow::Result<()> {
-    use tonic_health::pb::health_check_response::ServingStatus;
-    use tonic_health::pb::{health_client::HealthClient, HealthCheckRequest};
     let deadline = Instant::now() + timeout;
     loop {
-        let check = async {
-            let channel = tonic::transport::Channel::from_shared(url.to_string())?.connect().await?;
-            let status = HealthClient::new(channel).check(HealthCheckRequest { service: service.into() }).await?.into_inner().status;
-            anyhow::Ok(status == ServingStatus::Serving as i32)
-        };
-        if let Ok(true) = check.await {
+        if let Ok(true) = crate::probe_cmd::is_serving(url, service).await {
             return Ok(());
         }
         if Instant::now() > deadline {
@@ -144,22 +111,15 @@ async fn wait_healthy(url: &str, service: &str, what: &str, timeout: Duration) -
 }
 
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
-    let text = fs::read_to_string(&args.config).with_context(|| format!("reading {}", args.config.display()))?;
-    let mut table: toml::Table = toml::from_str(&text).with_context(|| format!("parsing {}", args.config.display()))?;
-    let job_value = table.remove("job").with_context(|| format!("{} has no [job] section (env, algo, connection, episodes)", args.config.display()))?;
-    let mut job: Job = job_value.try_into().with_context(|| format!("{}: [job]", args.config.display()))?;
-    let train: TrainConfig = toml::Value::Table(table).try_into().with_context(|| format!("{}: training sections", args.config.display()))?;
-    train.validate()?;
+    let mut preset = Preset::load(&args.config)?;
     if let Some(actors) = args.actors {
-        job.actors = actors;
+        preset.job.actors = actors;
     }
     if let Some(episodes) = args.episodes {
-        job.episodes = episodes;
+        preset.job.episodes = episodes;
     }
-    if job.actors == 0 || job.envs_per_actor == 0 || job.episodes == 0 {
-        bail!("job.actors, job.envs_per_actor and job.episodes must be at least 1");
-    }
-    lcrl_sim::make_env(&job.env)?;
+    preset.check()?;
+    let job = &preset.job;
     if args.check {
         println!("{}: {} with {:?}/{:?}, {} episodes, {} actor(s) — ok", args.config.display(), job.env, job.algo, job.connection, job.episodes, job.actors);
         return Ok(());
@@ -168,45 +128,37 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let run_dir = args.run_dir.clone().unwrap_or_else(|| PathBuf::from("runs").join(name));
     let logs = run_dir.join("logs");
     fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
-    fs::write(run_dir.join("config.toml"), &text)?;
+    fs::write(run_dir.join("config.toml"), &preset.text)?;
     let train_path = run_dir.join("train.toml");
-    fs::write(&train_path, toml::to_string_pretty(&train)?)?;
+    preset.write_train_config(&train_path)?;
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
     let transport = match args.transport {
         TransportArg::Grpc => "grpc",
         TransportArg::Shm => "shm",
     };
-    let summary = runtime.block_on(orchestrate(&job, &train, &train_path, &run_dir, &logs, transport))?;
+    let summary = runtime.block_on(orchestrate(&preset, &train_path, &run_dir, &logs, transport))?;
     println!("{summary}");
     Ok(())
 }
 
-async fn orchestrate(job: &Job, train: &TrainConfig, train_path: &Path, run_dir: &Path, logs: &Path, transport: &str) -> anyhow::Result<String> {
+async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &Path, transport: &str) -> anyhow::Result<String> {
+    let job = &preset.job;
     let started = Instant::now();
     let run_id = format!("{}-{}", std::process::id(), started.elapsed().as_nanos() % 1_000_000);
     let mut graph_builder = None;
-    let mut learner_cmd = Command::new(sibling("lcrl-learner")?);
-    learner_cmd
-        .args(["--env", &job.env, "--listen", "127.0.0.1:0", "--run-id", &run_id, "--checkpoint-secs", "30"])
-        .args(["--algo", &format!("{:?}", job.algo).to_lowercase(), "--connection", &kebab(job.connection)])
-        .arg("--config")
-        .arg(train_path)
-        .arg("--run-dir")
-        .arg(run_dir.join("learner"));
+    let mut graph_url = None;
     if job.connection == Connection::Local {
         let mut cmd = Command::new(sibling("lcrl-graph-builder")?);
-        cmd.args(["--env", &job.env, "--listen", "127.0.0.1:0", "--samples", &train.run.graph_samples.to_string(), "--seed", &train.run.seed.to_string()])
-            .arg("--out")
-            .arg(run_dir.join("graph.json"))
-            .arg("--plot")
-            .arg(run_dir.join("graph.png"));
+        cmd.args(preset.graph_builder_args("127.0.0.1:0", run_dir));
         let (process, address) = Managed::spawn("graph-builder", cmd, logs, true)?;
         let url = format!("http://{}", address.context("the graph builder did not start; see logs/graph-builder.log")?);
         eprintln!("graph builder at {url}: building the connection graph");
         wait_healthy(&url, "lcrl.v1.Graph", "the graph builder", Duration::from_secs(600)).await?;
-        learner_cmd.args(["--graph-builder", &url]);
+        graph_url = Some(url);
         graph_builder = Some(process);
     }
+    let mut learner_cmd = Command::new(sibling("lcrl-learner")?);
+    learner_cmd.args(preset.learner_args("127.0.0.1:0", &run_id, train_path, &run_dir.join("learner"), graph_url.as_deref())?);
     let (mut learner, address) = Managed::spawn("learner", learner_cmd, logs, true)?;
     let url = format!("http://{}", address.context("the learner did not start; see logs/learner.log")?);
     wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120)).await?;
@@ -214,7 +166,7 @@ async fn orchestrate(job: &Job, train: &TrainConfig, train_path: &Path, run_dir:
     let mut actors = Vec::new();
     for k in 0..job.actors {
         let mut cmd = Command::new(sibling("lcrl-actor")?);
-        cmd.args(["--learner", &url, "--run-id", &run_id, "--transport", transport, "--envs", &job.envs_per_actor.to_string(), "--actor-id", &format!("actor-{k}"), "--seed", &(train.run.seed + k as u64).to_string()]);
+        cmd.args(preset.actor_args(&url, &run_id, transport, Some(&format!("actor-{k}")), k as u64));
         actors.push(Managed::spawn(&format!("actor-{k}"), cmd, logs, false)?.0);
     }
 
@@ -272,15 +224,6 @@ async fn orchestrate(job: &Job, train: &TrainConfig, train_path: &Path, run_dir:
         started.elapsed().as_secs_f64(),
         run_dir.display()
     ))
-}
-
-fn kebab(connection: Connection) -> String {
-    match connection {
-        Connection::Local => "local",
-        Connection::Global => "global",
-        Connection::FullSubnets => "full-subnets",
-    }
-    .into()
 }
 
 fn plot_curve(metrics: &Path, out: &Path, env: &str) -> anyhow::Result<()> {

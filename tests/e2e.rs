@@ -9,5 +9,7 @@ mod e2e {
     mod sim_cli;
     mod train_cli;
     mod distributed;
+    mod observability;
+    mod deploy;
     mod run_cli;
 }

@@ -10,6 +10,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+mod metrics;
+
 use anyhow::{bail, Context};
 use clap::Parser;
 use lcrl_graph_builder::service::shutdown_signal;
@@ -70,15 +72,18 @@ struct Args {
     /// Stop after this many episodes in total (default: run until stopped).
     #[arg(long)]
     episodes: Option<u64>,
+    /// Serve Prometheus metrics on http://ADDR/metrics (port 0: any free
+    /// port, printed as "metrics on ADDR").
+    #[arg(long, value_name = "ADDR")]
+    metrics_listen: Option<std::net::SocketAddr>,
+    /// Log as JSON lines instead of human-readable text (level: RUST_LOG).
+    #[arg(long)]
+    log_json: bool,
 }
 
 fn main() -> std::process::ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
-        .with_writer(std::io::stderr)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .init();
     let args = Args::parse();
+    lcrl_graph_builder::service::init_logging(args.log_json);
     let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build() {
         Ok(runtime) => runtime,
         Err(e) => {
@@ -120,6 +125,18 @@ async fn run(args: Args) -> anyhow::Result<()> {
         bail!("--transport shm carries at most {} transitions per batch; lower --batch", lcrl_learner::service::shm::MAX_TRANSITIONS);
     }
     let deadline = Duration::from_secs(args.connect_deadline);
+    let metrics = metrics::ActorMetrics::default();
+    if let Some(addr) = args.metrics_listen {
+        let registry = Arc::new(metrics.registry());
+        let (listener, bound) = lcrl_learner::service::metrics::bind(addr).await.with_context(|| format!("cannot serve metrics on {addr}; is another process using it?"))?;
+        // Not println!: a launcher may have stopped reading stdout.
+        let _ = std::io::Write::write_fmt(&mut std::io::stdout(), format_args!("metrics on {bound}\n"));
+        tokio::spawn(async move {
+            if let Err(e) = lcrl_learner::service::metrics::serve(listener, registry, std::future::pending()).await {
+                tracing::warn!("metrics endpoint stopped: {e}");
+            }
+        });
+    }
     // gRPC actors get the policy from the learner's URL; shared-memory
     // actors from the run's broadcast, without any network.
     let (client, policy_source) = match args.transport {
@@ -139,13 +156,13 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let (sink, sender) = match client {
         Some(client) => {
             let (batches_tx, batches_rx) = mpsc::channel::<TransitionBatch>(2);
-            (Sink::Grpc(batches_tx), Some(tokio::spawn(send_batches(args.learner.clone(), client, batches_rx, deadline))))
+            (Sink::Grpc(batches_tx), Some(tokio::spawn(send_batches(args.learner.clone(), client, batches_rx, deadline, metrics.clone()))))
         }
         None => (Sink::Shm(args.run_id.clone()), None),
     };
     let worker = {
         let (stop, finished) = (stop.clone(), finished.clone());
-        let settings = WorkerSettings { envs: args.envs, batch: args.batch, noise: args.noise, seed: args.seed, episodes: args.episodes, run_id: args.run_id.clone(), actor_id };
+        let settings = WorkerSettings { envs: args.envs, batch: args.batch, noise: args.noise, seed: args.seed, episodes: args.episodes, run_id: args.run_id.clone(), actor_id, metrics: metrics.clone() };
         std::thread::Builder::new().name("envs".into()).spawn(move || {
             let result = work(settings, policy_source, sink, stop);
             finished.store(true, Ordering::Relaxed);
@@ -195,7 +212,7 @@ async fn watch_policy(url: String, policy: watch::Sender<Arc<PolicySnapshot>>) {
 /// reconnect (the learner drops duplicates). Returns when the worker is done
 /// and every batch is acknowledged, or fails after `deadline` without a
 /// learner.
-async fn send_batches(url: String, mut client: LearnerClient<Channel>, mut batches: mpsc::Receiver<TransitionBatch>, deadline: Duration) -> anyhow::Result<()> {
+async fn send_batches(url: String, mut client: LearnerClient<Channel>, mut batches: mpsc::Receiver<TransitionBatch>, deadline: Duration, metrics: metrics::ActorMetrics) -> anyhow::Result<()> {
     let mut pending: VecDeque<TransitionBatch> = VecDeque::new();
     let mut worker_done = false;
     loop {
@@ -219,6 +236,7 @@ async fn send_batches(url: String, mut client: LearnerClient<Channel>, mut batch
                     batch = batches.recv(), if !worker_done && pending.len() < MAX_PENDING_BATCHES => match batch {
                         Some(batch) => {
                             pending.push_back(batch.clone());
+                            metrics.pending_batches.set(pending.len() as i64);
                             if requests.send(batch).await.is_err() {
                                 break;
                             }
@@ -228,6 +246,7 @@ async fn send_batches(url: String, mut client: LearnerClient<Channel>, mut batch
                     ack = acks.next() => match ack {
                         Some(Ok(ack)) => {
                             pending.retain(|b| b.sequence > ack.sequence);
+                            metrics.pending_batches.set(pending.len() as i64);
                             if ack.outcome != "stored" {
                                 tracing::debug!(sequence = ack.sequence, outcome = %ack.outcome, "batch not stored");
                             }
@@ -251,6 +270,7 @@ async fn send_batches(url: String, mut client: LearnerClient<Channel>, mut batch
             return Ok(());
         }
         client = connect(&url, deadline).await?;
+        metrics.reconnects.inc();
     }
 }
 
@@ -323,6 +343,7 @@ struct WorkerSettings {
     episodes: Option<u64>,
     run_id: String,
     actor_id: String,
+    metrics: metrics::ActorMetrics,
 }
 
 /// Exploration noise per action component: the policy's own std (PPO) or
@@ -346,11 +367,20 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
     };
     let (mut feed, mut policy) = open_feed(source, &stop)?;
     let mut exploration = exploration_normals(&policy, s.noise);
+    s.metrics.policy_version.set(policy.version as i64);
     let env_name = policy.architecture.env.clone();
     let mut envs: Vec<Box<dyn lcrl_sim::Env>> = (0..s.envs).map(|_| lcrl_sim::make_env(&env_name)).collect::<Result<_, _>>()?;
     policy.check_env(envs[0].as_ref())?;
-    let mut rng = ChaCha8Rng::seed_from_u64(s.seed ^ std::process::id() as u64);
-    let mut episode_seed = s.seed.wrapping_mul(1_000_003) ^ ((std::process::id() as u64) << 20);
+    // Actors differ by name (container replicas all run as process 1), and
+    // the same name and seed give the same episodes.
+    let salt = {
+        use std::hash::{Hash, Hasher};
+        let mut hasher = std::collections::hash_map::DefaultHasher::new();
+        s.actor_id.hash(&mut hasher);
+        hasher.finish()
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(s.seed ^ salt);
+    let mut episode_seed = s.seed.wrapping_mul(1_000_003) ^ (salt << 20);
     let mut states: Vec<Vec<f64>> = envs.iter_mut().map(|env| { episode_seed += 1; env.reset(episode_seed) }).collect();
     let mut returns = vec![0.0f64; s.envs];
     let mut lengths = vec![0u32; s.envs];
@@ -378,6 +408,7 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
         }
         if policy.version != version {
             exploration = exploration_normals(&policy, s.noise);
+            s.metrics.policy_version.set(policy.version as i64);
         }
         for (k, env) in envs.iter_mut().enumerate() {
             let obs = lcrl_learner::trainer::observe(env.as_ref(), &states[k]);
@@ -391,6 +422,7 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
             let step = env.step(&action)?;
             returns[k] += step.reward;
             lengths[k] += 1;
+            s.metrics.env_steps.inc();
             segments[k].push(Transition {
                 state: states[k].iter().map(|&v| v as f32).collect(),
                 action: action.iter().map(|&v| v as f32).collect(),
@@ -404,6 +436,7 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
             if step.terminated || step.truncated {
                 batch.episodes.push(EpisodeSummary { episode_return: returns[k], length: lengths[k], success: env.episode_metrics().success });
                 episodes_done += 1;
+                s.metrics.episodes.inc();
                 returns[k] = 0.0;
                 lengths[k] = 0;
                 episode_seed += 1;
@@ -426,6 +459,8 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
             batch.episode_id = episodes_done;
             batch.policy_version = policy.version;
             let full = std::mem::replace(&mut batch, TransitionBatch { run_id: s.run_id.clone(), actor_id: s.actor_id.clone(), ..Default::default() });
+            s.metrics.batches_sent.inc();
+            s.metrics.transitions_sent.inc_by(full.transitions.len() as u64);
             // Both sinks block while the learner is behind: bounded memory.
             match &out {
                 Out::Shm(publisher) => publisher.send(&full).map_err(anyhow::Error::msg)?,

@@ -21,18 +21,16 @@ struct Args {
     /// printed as "listening on ADDR").
     #[arg(long, default_value = "127.0.0.1:50051")]
     listen: SocketAddr,
+    /// Log as JSON lines instead of human-readable text (level: RUST_LOG).
+    #[arg(long)]
+    log_json: bool,
 }
 
 #[tokio::main]
 async fn main() -> std::process::ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .init();
-    match run(Args::parse()).await {
+    let args = Args::parse();
+    service::init_logging(args.log_json);
+    match run(args).await {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("lcrl-graph-builder: error: {e:#}");

@@ -73,21 +73,18 @@ struct Args {
     /// Store transitions but never train (for ingestion benchmarks).
     #[arg(long)]
     no_train: bool,
-    /// Log as JSON lines instead of human-readable text.
+    /// Serve Prometheus metrics on http://ADDR/metrics (port 0: any free
+    /// port, logged as "metrics on").
+    #[arg(long, value_name = "ADDR")]
+    metrics_listen: Option<SocketAddr>,
+    /// Log as JSON lines instead of human-readable text (level: RUST_LOG).
     #[arg(long)]
     log_json: bool,
 }
 
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
-    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()));
-    if args.log_json {
-        builder.json().init();
-    } else {
-        builder.init();
-    }
+    lcrl_graph_builder::service::init_logging(args.log_json);
     let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build() {
         Ok(runtime) => runtime,
         Err(e) => {
@@ -275,7 +272,21 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let learner = LearnerServer::new(LearnerService { shared: shared.clone(), commands: commands.clone() })
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
-    let policy = PolicyServer::new(PolicyService { shared: shared.clone(), env: Mutex::new(lcrl_sim::make_env(&args.env)?), serving: Mutex::new(None) })
+    let act_latency = lcrl_learner::service::metrics::act_latency_histogram();
+    if let Some(addr) = args.metrics_listen {
+        let registry = Arc::new(lcrl_learner::service::metrics::learner_registry(shared.clone(), commands.clone(), act_latency.clone()));
+        let (listener, bound) = lcrl_learner::service::metrics::bind(addr).await.with_context(|| format!("cannot serve metrics on {addr}; is another process using it?"))?;
+        // Second line of stdout, after "listening on", for launchers and tests.
+        // Not println!: a launcher may have stopped reading stdout.
+        let _ = std::io::Write::write_fmt(&mut std::io::stdout(), format_args!("metrics on {bound}\n"));
+        let stopping = shared.stopping();
+        tokio::spawn(async move {
+            if let Err(e) = lcrl_learner::service::metrics::serve(listener, registry, stopping).await {
+                tracing::warn!("metrics endpoint stopped: {e}");
+            }
+        });
+    }
+    let policy = PolicyServer::new(PolicyService { shared: shared.clone(), env: Mutex::new(lcrl_sim::make_env(&args.env)?), serving: Mutex::new(None), act_latency })
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();

@@ -16,7 +16,7 @@ const SMALL: &str = "[network]\nglobal_hidden = [32, 32]\nsubnet_hidden = [16, 1
 [ddpg]\nwarmup_steps = 100\nbatch_size = 32\n[run]\ngraph_samples = 16\n";
 
 /// A child process killed (SIGKILL) when dropped.
-struct Proc(Child);
+pub(super) struct Proc(Child);
 
 impl Drop for Proc {
     fn drop(&mut self) {
@@ -32,7 +32,7 @@ impl Proc {
 }
 
 /// A free loopback port (bound, then released for the learner to take).
-fn free_port() -> u16 {
+pub(super) fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
 }
 
@@ -41,6 +41,11 @@ fn learner(run_dir: &Path, run_id: &str, port: u16) -> (Proc, String) {
 }
 
 fn learner_with(run_dir: &Path, run_id: &str, port: u16, algo: &str) -> (Proc, String) {
+    learner_with_args(run_dir, run_id, port, algo, &[])
+}
+
+/// A small-network learner on lti-paper (global connection) with `extra` flags.
+pub(super) fn learner_with_args(run_dir: &Path, run_id: &str, port: u16, algo: &str, extra: &[&str]) -> (Proc, String) {
     let config = run_dir.with_extension("toml");
     std::fs::write(&config, format!("{SMALL}[ppo]\nrollout_steps = 500\nminibatch_size = 100\n")).unwrap();
     let mut child = workspace_bin("lcrl-learner")
@@ -50,6 +55,7 @@ fn learner_with(run_dir: &Path, run_id: &str, port: u16, algo: &str) -> (Proc, S
         .arg("--run-dir")
         .arg(run_dir)
         .args(["--listen", &format!("127.0.0.1:{port}")])
+        .args(extra)
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
@@ -65,9 +71,15 @@ fn actor(url: &str, run_id: &str) -> Proc {
 }
 
 fn actor_over(url: &str, run_id: &str, transport: &str) -> Proc {
+    actor_with_args(url, run_id, &["--transport", transport])
+}
+
+/// An actor with 2 envs and batches of 25, with `extra` flags.
+pub(super) fn actor_with_args(url: &str, run_id: &str, extra: &[&str]) -> Proc {
     Proc(
         workspace_bin("lcrl-actor")
-            .args(["--learner", url, "--run-id", run_id, "--envs", "2", "--batch", "25", "--connect-deadline", "30", "--transport", transport])
+            .args(["--learner", url, "--run-id", run_id, "--envs", "2", "--batch", "25", "--connect-deadline", "30"])
+            .args(extra)
             .stdout(Stdio::null())
             .stderr(Stdio::null())
             .spawn()
@@ -75,13 +87,13 @@ fn actor_over(url: &str, run_id: &str, transport: &str) -> Proc {
     )
 }
 
-async fn status(url: &str) -> Option<LearnerStatus> {
+pub(super) async fn status(url: &str) -> Option<LearnerStatus> {
     let mut client = LearnerClient::connect(url.to_string()).await.ok()?;
     Some(client.get_status(GetStatusRequest {}).await.ok()?.into_inner())
 }
 
 /// Polls the learner's status until `ready` holds (or fails after 60 s).
-async fn wait_for(url: &str, what: &str, ready: impl Fn(&LearnerStatus) -> bool) -> LearnerStatus {
+pub(super) async fn wait_for(url: &str, what: &str, ready: impl Fn(&LearnerStatus) -> bool) -> LearnerStatus {
     let deadline = Instant::now() + Duration::from_secs(60);
     loop {
         if let Some(s) = status(url).await {
@@ -94,7 +106,7 @@ async fn wait_for(url: &str, what: &str, ready: impl Fn(&LearnerStatus) -> bool)
     }
 }
 
-fn batch(run_id: &str, sequence: u64, state_len: usize, value: f32) -> TransitionBatch {
+pub(super) fn batch(run_id: &str, sequence: u64, state_len: usize, value: f32) -> TransitionBatch {
     TransitionBatch {
         run_id: run_id.into(),
         actor_id: "test".into(),
@@ -107,7 +119,7 @@ fn batch(run_id: &str, sequence: u64, state_len: usize, value: f32) -> Transitio
 }
 
 /// Sends one batch on a fresh stream; returns the first ack or the error.
-async fn send(url: &str, batch: TransitionBatch) -> Result<lcrl_proto::v1::BatchAck, tonic::Status> {
+pub(super) async fn send(url: &str, batch: TransitionBatch) -> Result<lcrl_proto::v1::BatchAck, tonic::Status> {
     let mut client = LearnerClient::connect(url.to_string()).await.unwrap();
     let mut acks = client.stream_transitions(tokio_stream::iter(vec![batch])).await?.into_inner();
     acks.message().await?.ok_or_else(|| tonic::Status::unknown("no ack"))

@@ -50,11 +50,13 @@ pub struct Ingest {
     max_staleness: Option<u64>,
     /// Transitions rejected or dropped, by reason.
     pub rejected: BTreeMap<String, u64>,
+    /// Transitions accepted (handed to the training thread).
+    pub accepted: u64,
 }
 
 impl Ingest {
     pub fn new(run_id: &str, env: Box<dyn Env>, max_staleness: Option<u64>) -> Self {
-        Ingest { run_id: run_id.to_string(), env, last_sequence: HashMap::new(), max_staleness, rejected: BTreeMap::new() }
+        Ingest { run_id: run_id.to_string(), env, last_sequence: HashMap::new(), max_staleness, rejected: BTreeMap::new(), accepted: 0 }
     }
 
     /// Resumes deduplication from a checkpoint.
@@ -132,7 +134,8 @@ impl Ingest {
                 terminated: t.terminated,
                 truncated: t.truncated,
             })
-            .collect();
+            .collect::<Vec<_>>();
+        self.accepted += transitions.len() as u64;
         Verdict::Accept(Accepted { transitions, episodes: batch.episodes.clone(), policy_version: batch.policy_version })
     }
 }

@@ -4,9 +4,11 @@
 //! - [`ingest`]: checks, deduplicates and normalizes batches (plain Rust).
 //! - [`runtime`]: shared counters and the training thread.
 //! - [`server`]: the `lcrl.v1.Learner` and `lcrl.v1.Policy` gRPC handlers.
+//! - [`metrics`]: Prometheus `/metrics` for learner and actors.
 //! - [`shm`]: the same-host transport over iceoryx2 shared memory.
 
 pub mod ingest;
+pub mod metrics;
 pub mod runtime;
 pub mod server;
 pub mod shm;

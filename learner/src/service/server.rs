@@ -151,6 +151,8 @@ pub struct PolicyService {
     pub shared: Arc<Shared>,
     pub env: Mutex<Box<dyn Env>>,
     pub serving: Mutex<Option<Policy>>,
+    /// Handling time of Act/ActBatch, for `/metrics`.
+    pub act_latency: prometheus_client::metrics::histogram::Histogram,
 }
 
 impl PolicyService {
@@ -185,15 +187,18 @@ impl PolicyService {
 impl PolicyApi for PolicyService {
     #[tracing::instrument(skip_all, name = "Act")]
     async fn act(&self, request: Request<ActRequest>) -> Result<Response<ActResponse>, Status> {
+        let started = std::time::Instant::now();
         let state = request.into_inner().state;
         self.check_states(&state, 1)?;
         let raw: Vec<f64> = state.iter().map(|&v| f64::from(v)).collect();
         let (action, version) = self.with_policy(|policy, env| policy.act(env, &raw))?;
+        self.act_latency.observe(started.elapsed().as_secs_f64());
         Ok(Response::new(ActResponse { action: action.iter().map(|&a| a as f32).collect(), policy_version: version }))
     }
 
     #[tracing::instrument(skip_all, name = "ActBatch")]
     async fn act_batch(&self, request: Request<ActBatchRequest>) -> Result<Response<ActBatchResponse>, Status> {
+        let started = std::time::Instant::now();
         let request = request.into_inner();
         let m = self.check_states(&request.states, request.count as usize)?;
         let (actions, version) = self.with_policy(|policy, env| {
@@ -202,6 +207,7 @@ impl PolicyApi for PolicyService {
                 policy.act(env, &raw)
             }).map(|a| a as f32).collect::<Vec<f32>>()
         })?;
+        self.act_latency.observe(started.elapsed().as_secs_f64());
         Ok(Response::new(ActBatchResponse { actions, policy_version: version }))
     }
 }

@@ -1,0 +1,33 @@
+//! The actor's Prometheus metrics (served by `--metrics-listen`).
+
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::registry::Registry;
+
+/// Counters the worker thread and the sender task update as they go.
+/// Cloning shares the same counters.
+#[derive(Debug, Clone, Default)]
+pub struct ActorMetrics {
+    pub env_steps: Counter,
+    pub episodes: Counter,
+    pub batches_sent: Counter,
+    pub transitions_sent: Counter,
+    pub reconnects: Counter,
+    pub policy_version: Gauge,
+    /// Batches handed to the sender and not yet acknowledged (gRPC).
+    pub pending_batches: Gauge,
+}
+
+impl ActorMetrics {
+    pub fn registry(&self) -> Registry {
+        let mut registry = Registry::with_prefix("lcrl_actor");
+        registry.register("env_steps", "Environment steps taken", self.env_steps.clone());
+        registry.register("episodes", "Episodes finished", self.episodes.clone());
+        registry.register("batches_sent", "Transition batches handed to the transport", self.batches_sent.clone());
+        registry.register("transitions_sent", "Transitions handed to the transport", self.transitions_sent.clone());
+        registry.register("reconnects", "Reconnections to the learner after losing it", self.reconnects.clone());
+        registry.register("policy_version", "Version of the policy acting now", self.policy_version.clone());
+        registry.register("pending_batches", "Batches sent but not yet acknowledged by the learner (gRPC)", self.pending_batches.clone());
+        registry
+    }
+}

@@ -1,0 +1,97 @@
+//! `lcrl launch ROLE --config PRESET`: starts one role of a run (graph
+//! builder, learner or actor) from a preset, replacing this process, so a
+//! container or pod runs exactly one server with the same preset `lcrl run`
+//! uses. Addresses come from flags (service names in compose/Kubernetes).
+
+use std::ffi::OsString;
+use std::os::unix::process::CommandExt;
+use std::path::PathBuf;
+use std::process::Command;
+
+use anyhow::Context;
+
+use crate::preset::{sibling, Preset};
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Role {
+    /// lcrl-graph-builder: CS3 graph of the preset's environment, served.
+    GraphBuilder,
+    /// lcrl-learner: networks, replay, training, Policy service.
+    Learner,
+    /// lcrl-actor: job.envs_per_actor simulators streaming over gRPC.
+    Actor,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct LaunchArgs {
+    #[arg(value_enum)]
+    pub role: Role,
+    /// Preset (configs/*.toml).
+    #[arg(long)]
+    pub config: PathBuf,
+    /// Address to serve on (graph builder: 0.0.0.0:50051, learner: 0.0.0.0:50052).
+    #[arg(long)]
+    pub listen: Option<String>,
+    /// Learner, connection local: the graph builder's URL.
+    #[arg(long, default_value = "http://graph-builder:50051")]
+    pub graph_builder: String,
+    /// Actor: the learner's URL.
+    #[arg(long, default_value = "http://learner:50052")]
+    pub learner: String,
+    /// Shared run directory (graph.json, train.toml, learner/).
+    #[arg(long, default_value = "/runs")]
+    pub run_dir: PathBuf,
+    /// Run id: the learner and its actors must agree.
+    #[arg(long, default_value = "default")]
+    pub run_id: String,
+    /// Learner and actor: serve Prometheus metrics on this address.
+    #[arg(long)]
+    pub metrics_listen: Option<String>,
+    /// Log as JSON lines.
+    #[arg(long)]
+    pub log_json: bool,
+    /// Print the command line instead of running it.
+    #[arg(long)]
+    pub dry_run: bool,
+}
+
+/// The binary and arguments `args` stands for.
+pub fn command_line(args: &LaunchArgs) -> anyhow::Result<(&'static str, Vec<OsString>)> {
+    let preset = Preset::load(&args.config)?;
+    let (binary, mut argv) = match args.role {
+        Role::GraphBuilder => {
+            let listen = args.listen.as_deref().unwrap_or("0.0.0.0:50051");
+            ("lcrl-graph-builder", preset.graph_builder_args(listen, &args.run_dir))
+        }
+        Role::Learner => {
+            let listen = args.listen.as_deref().unwrap_or("0.0.0.0:50052");
+            std::fs::create_dir_all(&args.run_dir).with_context(|| format!("creating {}", args.run_dir.display()))?;
+            let train = args.run_dir.join("train.toml");
+            preset.write_train_config(&train)?;
+            let graph_builder = Some(args.graph_builder.as_str());
+            ("lcrl-learner", preset.learner_args(listen, &args.run_id, &train, &args.run_dir.join("learner"), graph_builder)?)
+        }
+        // Replicas name themselves (host name), which also sets their seeds apart.
+        Role::Actor => ("lcrl-actor", preset.actor_args(&args.learner, &args.run_id, "grpc", None, 0)),
+    };
+    if let (Some(addr), Role::Learner | Role::Actor) = (&args.metrics_listen, args.role) {
+        argv.extend([OsString::from("--metrics-listen"), OsString::from(addr)]);
+    }
+    if args.log_json {
+        argv.push("--log-json".into());
+    }
+    Ok((binary, argv))
+}
+
+pub fn run(args: &LaunchArgs) -> anyhow::Result<()> {
+    let (binary, argv) = command_line(args)?;
+    if args.dry_run {
+        let words: Vec<String> = argv.iter().map(|a| a.to_string_lossy().into_owned()).collect();
+        println!("{binary} {}", words.join(" "));
+        return Ok(());
+    }
+    let path = sibling(binary)?;
+    // exec: signals (docker stop, kubelet) reach the server itself.
+    let error = Command::new(&path).args(&argv).exec();
+    Err(error).with_context(|| format!("cannot start {}", path.display()))
+}

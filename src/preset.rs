@@ -1,0 +1,134 @@
+//! Presets (configs/*.toml): a training config plus a `[job]` section, and
+//! the one place that turns a preset into the command lines of the graph
+//! builder, the learner and the actors. `lcrl run` (one machine) and
+//! `lcrl launch` (one role per container or pod) both start processes from
+//! here, so a preset means the same run everywhere.
+
+use std::ffi::OsString;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use lcrl_learner::{Algo, Connection, TrainConfig};
+use serde::Deserialize;
+
+/// The [job] section of a preset.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Job {
+    /// Environment: a registered name or a .toml path.
+    pub env: String,
+    pub algo: Algo,
+    pub connection: Connection,
+    /// Episode budget of the whole run (`lcrl run`).
+    pub episodes: u64,
+    #[serde(default = "one")]
+    pub actors: usize,
+    #[serde(default = "one")]
+    pub envs_per_actor: usize,
+}
+
+fn one() -> usize {
+    1
+}
+
+/// A loaded, checked preset.
+#[derive(Debug, Clone)]
+pub struct Preset {
+    pub job: Job,
+    pub train: TrainConfig,
+    /// The file as written, kept in the run directory as config.toml.
+    pub text: String,
+}
+
+impl Preset {
+    /// Reads and checks a preset, its environment included.
+    pub fn load(path: &Path) -> anyhow::Result<Preset> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let mut table: toml::Table = toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+        let job_value = table.remove("job").with_context(|| format!("{} has no [job] section (env, algo, connection, episodes)", path.display()))?;
+        let job: Job = job_value.try_into().with_context(|| format!("{}: [job]", path.display()))?;
+        let train: TrainConfig = toml::Value::Table(table).try_into().with_context(|| format!("{}: training sections", path.display()))?;
+        train.validate()?;
+        let preset = Preset { job, train, text };
+        preset.check()?;
+        Ok(preset)
+    }
+
+    /// Checks what the sections cannot check alone (after overrides too).
+    pub fn check(&self) -> anyhow::Result<()> {
+        let job = &self.job;
+        if job.actors == 0 || job.envs_per_actor == 0 || job.episodes == 0 {
+            bail!("job.actors, job.envs_per_actor and job.episodes must be at least 1");
+        }
+        lcrl_sim::make_env(&job.env)?;
+        Ok(())
+    }
+
+    /// Writes the training sections alone (what `lcrl-learner --config`
+    /// reads) to `path`.
+    pub fn write_train_config(&self, path: &Path) -> anyhow::Result<()> {
+        std::fs::write(path, toml::to_string_pretty(&self.train)?).with_context(|| format!("writing {}", path.display()))
+    }
+
+    /// `lcrl-graph-builder`'s arguments: CS3 samples and seed from [run];
+    /// graph.json and graph.png into `run_dir`.
+    pub fn graph_builder_args(&self, listen: &str, run_dir: &Path) -> Vec<OsString> {
+        let mut args = os(&["--env", &self.job.env, "--listen", listen]);
+        args.extend(os(&["--samples", &self.train.run.graph_samples.to_string(), "--seed", &self.train.run.seed.to_string()]));
+        args.extend([OsString::from("--out"), run_dir.join("graph.json").into(), OsString::from("--plot"), run_dir.join("graph.png").into()]);
+        args
+    }
+
+    /// `lcrl-learner`'s arguments; the graph (connection local) comes from
+    /// `graph_builder`, a gRPC URL.
+    pub fn learner_args(&self, listen: &str, run_id: &str, train_config: &Path, learner_dir: &Path, graph_builder: Option<&str>) -> anyhow::Result<Vec<OsString>> {
+        let mut args = os(&["--env", &self.job.env, "--listen", listen, "--run-id", run_id, "--checkpoint-secs", "30"]);
+        args.extend(os(&["--algo", algo_name(self.job.algo), "--connection", connection_name(self.job.connection)]));
+        args.extend([OsString::from("--config"), train_config.into(), OsString::from("--run-dir"), learner_dir.into()]);
+        match (self.job.connection, graph_builder) {
+            (Connection::Local, Some(url)) => args.extend(os(&["--graph-builder", url])),
+            (Connection::Local, None) => bail!("connection local needs the graph builder's URL (--graph-builder)"),
+            _ => {}
+        }
+        Ok(args)
+    }
+
+    /// `lcrl-actor`'s arguments. `actor_id` None: the actor names itself
+    /// (host name and process id), as replicas in containers must.
+    pub fn actor_args(&self, learner: &str, run_id: &str, transport: &str, actor_id: Option<&str>, seed_offset: u64) -> Vec<OsString> {
+        let mut args = os(&["--learner", learner, "--run-id", run_id, "--transport", transport]);
+        args.extend(os(&["--envs", &self.job.envs_per_actor.to_string(), "--seed", &(self.train.run.seed + seed_offset).to_string()]));
+        if let Some(id) = actor_id {
+            args.extend(os(&["--actor-id", id]));
+        }
+        args
+    }
+}
+
+fn os(args: &[&str]) -> Vec<OsString> {
+    args.iter().map(OsString::from).collect()
+}
+
+fn algo_name(algo: Algo) -> &'static str {
+    match algo {
+        Algo::Ddpg => "ddpg",
+        Algo::Ppo => "ppo",
+    }
+}
+
+fn connection_name(connection: Connection) -> &'static str {
+    match connection {
+        Connection::Local => "local",
+        Connection::Global => "global",
+        Connection::FullSubnets => "full-subnets",
+    }
+}
+
+/// A workspace binary next to this one (`lcrl-learner`, ...).
+pub fn sibling(name: &str) -> anyhow::Result<PathBuf> {
+    let path = std::env::current_exe()?.with_file_name(name);
+    if !path.is_file() {
+        bail!("{} is missing; build it with `cargo build --workspace --bins`", path.display());
+    }
+    Ok(path)
+}

@@ -1,0 +1,78 @@
+//! `lcrl health` and `lcrl status`: probes for scripts and container health
+//! checks. `health` asks grpc.health.v1 (exit 0 when SERVING); `status`
+//! prints a learner's GetStatus as JSON.
+
+use std::time::Duration;
+
+use anyhow::{bail, Context};
+use tonic_health::pb::health_check_response::ServingStatus;
+use tonic_health::pb::{health_client::HealthClient, HealthCheckRequest};
+
+#[derive(Debug, clap::Args)]
+pub struct HealthArgs {
+    /// The server's gRPC URL, e.g. http://127.0.0.1:50052.
+    pub url: String,
+    /// The service to ask about (lcrl.v1.Graph, lcrl.v1.Learner,
+    /// lcrl.v1.Policy); empty: the server as a whole.
+    #[arg(long, default_value = "")]
+    pub service: String,
+    /// Give up after this many seconds.
+    #[arg(long, default_value_t = 5.0)]
+    pub timeout: f64,
+}
+
+/// Whether `service` at `url` reports SERVING.
+pub async fn is_serving(url: &str, service: &str) -> anyhow::Result<bool> {
+    let channel = tonic::transport::Channel::from_shared(url.to_string())
+        .with_context(|| format!("{url} is not a URL (expected e.g. http://127.0.0.1:50052)"))?
+        .connect()
+        .await
+        .with_context(|| format!("cannot connect to {url}"))?;
+    let status = HealthClient::new(channel).check(HealthCheckRequest { service: service.into() }).await?.into_inner().status;
+    Ok(status == ServingStatus::Serving as i32)
+}
+
+pub fn health(args: &HealthArgs) -> anyhow::Result<()> {
+    if !(args.timeout.is_finite() && args.timeout > 0.0) {
+        bail!("--timeout must be a positive number of seconds");
+    }
+    let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    let what = if args.service.is_empty() { args.url.clone() } else { format!("{} at {}", args.service, args.url) };
+    match runtime.block_on(async { tokio::time::timeout(Duration::from_secs_f64(args.timeout), is_serving(&args.url, &args.service)).await }) {
+        Ok(Ok(true)) => {
+            println!("{what}: SERVING");
+            Ok(())
+        }
+        Ok(Ok(false)) => bail!("{what}: not serving (yet)"),
+        Ok(Err(e)) => Err(e),
+        Err(_) => bail!("{what}: no answer within {} s", args.timeout),
+    }
+}
+
+#[derive(Debug, clap::Args)]
+pub struct StatusArgs {
+    /// The learner's gRPC URL, e.g. http://127.0.0.1:50052.
+    pub url: String,
+}
+
+/// `lcrl status`: the learner's GetStatus as one JSON line, for scripts.
+pub fn status(args: &StatusArgs) -> anyhow::Result<()> {
+    use lcrl_proto::v1::{learner_client::LearnerClient, GetStatusRequest};
+    let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    let s = runtime.block_on(async {
+        let fetch = async {
+            let mut client = LearnerClient::connect(args.url.clone()).await.with_context(|| format!("cannot connect to the learner at {}", args.url))?;
+            anyhow::Ok(client.get_status(GetStatusRequest {}).await?.into_inner())
+        };
+        tokio::time::timeout(Duration::from_secs(10), fetch).await.map_err(|_| anyhow::anyhow!("no answer from {} within 10 s", args.url))?
+    })?;
+    let json = serde_json::json!({
+        "run_id": s.run_id, "algo": s.algo, "connection": s.connection,
+        "episodes": s.episodes, "env_steps": s.env_steps, "updates": s.updates,
+        "replay_size": s.replay_size, "policy_version": s.policy_version,
+        "connected_actors": s.connected_actors, "rejected": s.rejected,
+        "recent_return": s.recent_return,
+    });
+    println!("{json}");
+    Ok(())
+}
