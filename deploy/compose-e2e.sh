@@ -88,7 +88,9 @@ docker start "$victim" >/dev/null
 wait_until 120 "the restarted actor rejoins" actors_are 2
 steps=$(field env_steps)
 wait_until 60 "env steps grow after the rejoin" steps_above "$steps"
-docker logs "$victim" 2>&1 | grep -q "connected" || fail "the restarted actor's log shows no connection"
+[ "$(docker logs "$victim" 2>&1 | grep -c "connected")" -ge 2 ] || fail "the restarted actor's log shows no second connection"
+# Same container, same host name: its new batches must not pass for replays.
+[ "$(status | python3 -c "import json,sys; print(json.load(sys.stdin)['rejected'].get('duplicate', 0))")" = 0 ] || fail "the restarted actor's batches were taken for duplicates"
 echo "compose-e2e: restarted actor rejoined: $(status)"
 
 size=$(docker image inspect lcrl:local --format '{{.Size}}')

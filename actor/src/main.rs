@@ -384,7 +384,12 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
     let mut states: Vec<Vec<f64>> = envs.iter_mut().map(|env| { episode_seed += 1; env.reset(episode_seed) }).collect();
     let mut returns = vec![0.0f64; s.envs];
     let mut lengths = vec![0u32; s.envs];
-    let (mut sequence, mut episodes_done) = (0u64, 0u64);
+    // The learner keeps the highest sequence per actor id and drops what is
+    // not above it. Starting from the clock (µs) keeps a restarted actor
+    // with the same id (a container restart: same host name, process 1)
+    // above everything its previous life sent.
+    let mut sequence = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64);
+    let mut episodes_done = 0u64;
     let mut batch = TransitionBatch { run_id: s.run_id.clone(), actor_id: s.actor_id.clone(), ..Default::default() };
     // Each environment's transitions stay contiguous in a batch, its last
     // one marked as a cut, so the learner sees whole trajectory segments.

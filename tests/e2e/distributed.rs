@@ -179,14 +179,16 @@ async fn bad_batches_are_rejected_counted_and_never_stored() {
 async fn a_killed_actor_can_rejoin() {
     let dir = tempfile::tempdir().unwrap();
     let (_learner, url) = learner(&dir.path().join("run"), "r3", free_port());
-    let first = actor(&url, "r3");
+    // The same actor id before and after, as a restarted container has.
+    let first = actor_with_args(&url, "r3", &["--actor-id", "worker-1"]);
     wait_for(&url, "first actor's transitions", |s| s.env_steps > 500).await;
     first.signal("KILL");
     drop(first);
     let after_kill = wait_for(&url, "the stream to close", |s| s.connected_actors == 0).await;
-    let _second = actor(&url, "r3");
+    let _second = actor_with_args(&url, "r3", &["--actor-id", "worker-1"]);
     let s = wait_for(&url, "the new actor's transitions", |s| s.env_steps > after_kill.env_steps + 200 && s.connected_actors == 1).await;
     assert!(s.updates >= after_kill.updates);
+    assert_eq!(s.rejected.get("duplicate"), None, "the restarted actor's batches are new, not replays");
 }
 
 #[tokio::test]
