@@ -24,6 +24,7 @@ pub mod ppo;
 pub mod replay;
 pub mod service;
 pub mod snapshot;
+pub mod tensorboard;
 pub mod trainer;
 
 use std::path::PathBuf;

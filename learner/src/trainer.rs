@@ -5,6 +5,7 @@
 //! DIR/config.toml            resolved configuration (+ env, algo, connection)
 //! DIR/graph.json             connection graph (connection = local)
 //! DIR/metrics.csv            one row per episode
+//! DIR/events.out.tfevents.*  the same as TensorBoard scalars
 //! DIR/summary.json           final figures
 //! DIR/checkpoints/epNNNNNN/  weights, optimizer state, replay, counters
 //! ```
@@ -343,6 +344,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     }
     let metrics_path = req.run_dir.join("metrics.csv");
     let mut metrics = write_rows(&metrics_path, &rows)?;
+    let mut tensorboard = crate::tensorboard::EventWriter::create(&req.run_dir).map_err(io(&req.run_dir))?;
     let mut optimization = prior_opt;
     let meta_for = |episode: usize, optimization: f64, elapsed: f64| CheckpointMeta {
         episode,
@@ -401,6 +403,10 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         };
         metrics.serialize(&row).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
         metrics.flush().map_err(io(&metrics_path))?;
+        let mut scalars = vec![("episode/return", row.episode_return), ("episode/length", row.length as f64), ("time/optimization_s", row.optimization_s)];
+        scalars.extend(row.peak_force_n.map(|f| ("episode/peak_force_n", f)));
+        scalars.extend(row.success.map(|s| ("episode/success", f64::from(u8::from(s)))));
+        tensorboard.scalars(row.episode as i64, &scalars).and_then(|()| tensorboard.flush()).map_err(io(tensorboard.path()))?;
         rows.push(row);
         let recent = &rows[rows.len().saturating_sub(10)..];
         let steps = agent.counters().env_steps - steps_before;

@@ -32,6 +32,7 @@ fn run_on_the_linear_preset_finishes_with_every_artifact_and_no_leftovers() {
     let metrics = fs::read_to_string(run.join("learner/metrics.csv")).unwrap();
     assert!(metrics.lines().count() > 300, "{} rows", metrics.lines().count());
     assert!(metrics.lines().nth(1).unwrap().split(',').nth(1).unwrap().parse::<f64>().is_ok());
+    assert_eq!(super::train_cli::tensorboard_returns(&run.join("learner")).len(), metrics.lines().count() - 1, "TensorBoard has every episode");
     let checkpoint = lcrl_learner::trainer::latest_checkpoint(&run.join("learner")).expect("a final checkpoint");
     assert!(lcrl_learner::trainer::read_meta(&checkpoint).unwrap().episode >= 300);
     for file in ["config.toml", "train.toml", "graph.png", "reward_curve.png", "logs/learner.log", "logs/actor-0.log", "logs/graph-builder.log"] {

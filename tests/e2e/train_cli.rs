@@ -25,6 +25,22 @@ fn json(path: &Path) -> Value {
     serde_json::from_str(&fs::read_to_string(path).unwrap()).unwrap()
 }
 
+/// (step, value) of every `episode/return` scalar in the run's event files.
+pub(super) fn tensorboard_returns(run: &Path) -> Vec<(i64, f32)> {
+    let mut returns = Vec::new();
+    for entry in fs::read_dir(run).unwrap() {
+        let path = entry.unwrap().path();
+        if path.file_name().unwrap().to_string_lossy().starts_with("events.out.tfevents.") {
+            for event in lcrl_learner::tensorboard::read_events(&path).unwrap() {
+                let values = event.summary.map(|s| s.value).unwrap_or_default();
+                returns.extend(values.iter().filter(|v| v.tag == "episode/return").filter_map(|v| Some((event.step, v.simple_value?))));
+            }
+        }
+    }
+    returns.sort_by_key(|r| r.0);
+    returns
+}
+
 /// metrics.csv without the wall-clock columns.
 fn timeless_metrics(path: &Path) -> Vec<String> {
     fs::read_to_string(path).unwrap().lines().map(|l| l.split(',').take(6).collect::<Vec<_>>().join(",")).collect()
@@ -48,6 +64,10 @@ fn train_writes_the_run_directory_resumes_and_evaluates() {
     }
     assert_eq!(summary["episodes"], 3);
     assert_eq!(fs::read_to_string(run.join("metrics.csv")).unwrap().lines().count(), 4);
+    let returns = tensorboard_returns(&run);
+    assert_eq!(returns.len(), 3, "one TensorBoard return per episode");
+    let csv_first: f64 = fs::read_to_string(run.join("metrics.csv")).unwrap().lines().nth(1).unwrap().split(',').nth(1).unwrap().parse().unwrap();
+    assert_eq!(returns[0], (1, csv_first as f32), "TensorBoard and metrics.csv agree");
     let checkpoint = run.join("checkpoints/ep000003");
     for file in ["actor.safetensors", "critic.safetensors", "actor_target.safetensors", "actor_optimizer.safetensors", "replay.safetensors", "checkpoint.json"] {
         assert!(checkpoint.join(file).is_file(), "checkpoint lacks {file}");

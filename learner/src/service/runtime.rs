@@ -110,6 +110,7 @@ fn checkpoint(agent: &dyn Agent, shared: &Shared, schedule: &Schedule) -> Result
 pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Command>, shared: Arc<Shared>, schedule: Schedule) -> Result<(), LearnerError> {
     let mut last_published = agent.counters().updates;
     let mut last_checkpoint = std::time::Instant::now();
+    let mut log = EpisodeLog::open(&shared.run_dir);
     loop {
         let mut stop = false;
         let mut received = false;
@@ -117,7 +118,7 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
             match commands.try_recv() {
                 Ok(Command::Batch(batch)) => {
                     received = true;
-                    store(agent.as_mut(), &shared, &schedule, batch);
+                    store(agent.as_mut(), &shared, &schedule, &mut log, batch);
                 }
                 Ok(Command::Stop) | Err(mpsc::error::TryRecvError::Disconnected) => {
                     stop = true;
@@ -160,7 +161,7 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
             // checkpoint is due).
             let wait = schedule.checkpoint_interval.saturating_sub(last_checkpoint.elapsed()).max(std::time::Duration::from_millis(10));
             match recv_timeout(&mut commands, wait) {
-                Some(Some(Command::Batch(batch))) => store(agent.as_mut(), &shared, &schedule, batch),
+                Some(Some(Command::Batch(batch))) => store(agent.as_mut(), &shared, &schedule, &mut log, batch),
                 Some(Some(Command::Stop)) | Some(None) => return checkpoint(agent.as_ref(), &shared, &schedule),
                 None => {}
             }
@@ -182,24 +183,51 @@ fn recv_timeout(commands: &mut mpsc::Receiver<Command>, timeout: std::time::Dura
     }
 }
 
-/// Appends the actors' finished episodes to `metrics.csv` (episode, return,
-/// length, success), the file `lcrl compare` and the reward curve read.
-fn log_episodes(run_dir: &std::path::Path, first: u64, episodes: &[lcrl_proto::v1::EpisodeSummary]) -> std::io::Result<()> {
-    use std::io::Write;
-    let path = run_dir.join("metrics.csv");
-    let new = !path.exists();
-    let mut file = std::fs::OpenOptions::new().create(true).append(true).open(&path)?;
-    if new {
-        writeln!(file, "episode,return,length,success,peak_force_n,peak_moment_nm,wall_s,optimization_s")?;
-    }
-    for (k, e) in episodes.iter().enumerate() {
-        let success = e.success.map_or(String::new(), |s| s.to_string());
-        writeln!(file, "{},{},{},{success},,,,", first + k as u64 + 1, e.episode_return, e.length)?;
-    }
-    Ok(())
+/// Where finished episodes are recorded: metrics.csv (episode, return,
+/// length, success; what `lcrl compare` and the reward curve read) and
+/// TensorBoard scalars beside it.
+struct EpisodeLog {
+    csv: std::path::PathBuf,
+    tensorboard: Option<crate::tensorboard::EventWriter>,
 }
 
-fn store(agent: &mut dyn Agent, shared: &Shared, schedule: &Schedule, batch: Accepted) {
+impl EpisodeLog {
+    fn open(run_dir: &std::path::Path) -> EpisodeLog {
+        let tensorboard = crate::tensorboard::EventWriter::create(run_dir)
+            .map_err(|e| tracing::warn!("no TensorBoard events in {}: {e}", run_dir.display()))
+            .ok();
+        EpisodeLog { csv: run_dir.join("metrics.csv"), tensorboard }
+    }
+
+    fn append(&mut self, first: u64, episodes: &[lcrl_proto::v1::EpisodeSummary], shared: &Shared) -> std::io::Result<()> {
+        use std::io::Write;
+        let new = !self.csv.exists();
+        let mut file = std::fs::OpenOptions::new().create(true).append(true).open(&self.csv)?;
+        if new {
+            writeln!(file, "episode,return,length,success,peak_force_n,peak_moment_nm,wall_s,optimization_s")?;
+        }
+        for (k, e) in episodes.iter().enumerate() {
+            let success = e.success.map_or(String::new(), |s| s.to_string());
+            writeln!(file, "{},{},{},{success},,,,", first + k as u64 + 1, e.episode_return, e.length)?;
+        }
+        if let Some(tb) = &mut self.tensorboard {
+            for (k, e) in episodes.iter().enumerate() {
+                tb.scalars((first + k as u64 + 1) as i64, &[("episode/return", e.episode_return), ("episode/length", f64::from(e.length))])?;
+            }
+            let step = (first + episodes.len() as u64) as i64;
+            let learner = [
+                ("learner/env_steps", shared.env_steps.load(Ordering::Relaxed) as f64),
+                ("learner/updates", shared.updates.load(Ordering::Relaxed) as f64),
+                ("learner/policy_version", shared.policy_version() as f64),
+            ];
+            tb.scalars(step, &learner)?;
+            tb.flush()?;
+        }
+        Ok(())
+    }
+}
+
+fn store(agent: &mut dyn Agent, shared: &Shared, schedule: &Schedule, log: &mut EpisodeLog, batch: Accepted) {
     let newest = shared.policy_version();
     let stale = schedule.max_staleness.is_some_and(|bound| newest.saturating_sub(batch.policy_version) > bound);
     if stale {
@@ -220,8 +248,8 @@ fn store(agent: &mut dyn Agent, shared: &Shared, schedule: &Schedule, batch: Acc
     shared.env_steps.store(agent.counters().env_steps, Ordering::Relaxed);
     let first = shared.episodes.fetch_add(batch.episodes.len() as u64, Ordering::Relaxed);
     if !batch.episodes.is_empty() {
-        if let Err(e) = log_episodes(&shared.run_dir, first, &batch.episodes) {
-            tracing::warn!("cannot append to metrics.csv: {e}");
+        if let Err(e) = log.append(first, &batch.episodes, shared) {
+            tracing::warn!("cannot record episodes in {}: {e}", shared.run_dir.display());
         }
     }
     if let Ok(mut returns) = shared.recent_returns.lock() {
