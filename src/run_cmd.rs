@@ -214,7 +214,7 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     plot_curve(&run_dir.join("learner/metrics.csv"), &curve, &job.env)?;
     let s = final_status.unwrap_or_default();
     Ok(format!(
-        "{}{} episodes, {} env steps, {} updates, policy v{}, recent average return {:.3}, {:.1} s\nresults in {}: config.toml, graph.json/graph.png, learner/metrics.csv, learner/checkpoints/, reward_curve.png, logs/",
+        "{}run {run_id}: {} episodes, {} env steps, {} updates, policy v{}, recent average return {:.3}, {:.1} s\nresults in {}: config.toml, graph.json/graph.png, learner/metrics.csv (and TensorBoard events), learner/checkpoints/, reward_curve.png, logs/",
         if interrupted { "interrupted: " } else { "" },
         s.episodes,
         s.env_steps,

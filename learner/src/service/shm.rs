@@ -159,6 +159,22 @@ pub fn remove_dead_nodes() -> usize {
     removed
 }
 
+/// The names of the shared-memory services of `run_id` that still exist
+/// (after dead-node cleanup): empty once every process of a run is gone.
+pub fn services_of(run_id: &str) -> Vec<String> {
+    remove_dead_nodes();
+    let prefix = format!("lcrl/{run_id}/");
+    let mut names = Vec::new();
+    let _ = <ipc::Service as iceoryx2::service::Service>::list(Config::global_config(), |service| {
+        let name = service.static_details.name().to_string();
+        if name.starts_with(&prefix) {
+            names.push(name);
+        }
+        CallbackProgression::Continue
+    });
+    names
+}
+
 type Service = iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, TransitionSample, ()>;
 
 fn open_service(node: &Node<ipc::Service>, run_id: &str) -> Result<Service, String> {
