@@ -89,6 +89,10 @@ pub struct DdpgConfig {
     /// keeps the actor out of tanh saturation, where its gradient vanishes
     /// and a wrong early push can never be undone.
     pub preactivation_l2: f64,
+    /// Lower `preactivation_l2` linearly to zero over the run: the penalty
+    /// steadies the start but biases actions toward zero, so it is gone by
+    /// the end.
+    pub preactivation_anneal: bool,
     /// Std of clipped Gaussian noise on the target action (TD3's target
     /// policy smoothing); 0 is plain DDPG.
     pub target_noise: f64,
@@ -170,6 +174,7 @@ impl Default for DdpgConfig {
             policy_delay: 1,
             target_noise: 0.0,
             preactivation_l2: 0.0,
+            preactivation_anneal: false,
             huber_delta: 0.0,
         }
     }

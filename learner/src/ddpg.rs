@@ -51,6 +51,8 @@ pub struct Ddpg {
     rng: ChaCha8Rng,
     counters: Counters,
     critic_updates: u64,
+    /// Share of the run done (0..1), for annealed settings.
+    progress: f64,
 }
 
 /// What state.json of a DDPG checkpoint holds besides tensors.
@@ -104,6 +106,7 @@ impl Ddpg {
             rng: ChaCha8Rng::seed_from_u64(seed ^ 0xDD96),
             counters: Counters::default(),
             critic_updates: 0,
+            progress: 0.0,
         }
     }
 
@@ -143,7 +146,8 @@ impl Ddpg {
 
         let raw = self.actor.forward_raw(&b.obs);
         let q = self.critic.forward(&Tensor::cat(&[&b.obs, &raw.tanh()], 1));
-        let actor_loss = -q.mean(Kind::Float) + self.cfg.preactivation_l2 * raw.square().mean(Kind::Float);
+        let l2 = if self.cfg.preactivation_anneal { self.cfg.preactivation_l2 * (1.0 - self.progress) } else { self.cfg.preactivation_l2 };
+        let actor_loss = -q.mean(Kind::Float) + l2 * raw.square().mean(Kind::Float);
         self.actor_opt.zero_grad();
         actor_loss.backward();
         self.actor_opt.step();
@@ -194,6 +198,10 @@ impl Agent for Ddpg {
 
     fn stored(&self) -> usize {
         self.replay.len()
+    }
+
+    fn set_progress(&mut self, fraction: f64) {
+        self.progress = fraction.clamp(0.0, 1.0);
     }
 
     fn counters(&self) -> Counters {
@@ -271,3 +279,4 @@ mod tests {
         }
     }
 }
+
