@@ -61,7 +61,8 @@ fn kubernetes_manifests_reference_each_other_consistently() {
             let path = k8s.join(file.as_str().unwrap());
             let name = path.file_name().unwrap().to_string_lossy().into_owned();
             let original = repo().join("configs").join(&name);
-            assert_eq!(std::fs::read(&path).ok(), std::fs::read(&original).ok(), "{} differs from {} (copy configs/ into deploy/k8s/presets/)", path.display(), original.display());
+            let same = std::fs::read(&path).ok() == std::fs::read(&original).ok();
+            assert!(same, "{} differs from {} (copy configs/ into deploy/k8s/presets/)", path.display(), original.display());
             keys.insert(name);
         }
         for literal in seq(generator, "literals") {
@@ -69,9 +70,13 @@ fn kubernetes_manifests_reference_each_other_consistently() {
         }
     }
     let presets = &config_maps["lcrl-presets"];
+    // Every preset (a config with a [job] section) is in the ConfigMap.
     for entry in std::fs::read_dir(repo().join("configs")).unwrap() {
-        let name = entry.unwrap().file_name().to_string_lossy().into_owned();
-        assert!(presets.contains(&name), "configs/{name} is not in the lcrl-presets ConfigMap");
+        let path = entry.unwrap().path();
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        if std::fs::read_to_string(&path).unwrap().contains("[job]") {
+            assert!(presets.contains(&name), "configs/{name} is not in the lcrl-presets ConfigMap");
+        }
     }
     let literals: BTreeMap<&str, &str> = seq(&seq(kustomization, "configMapGenerator")[1], "literals").iter().filter_map(|l| l.as_str()?.split_once('=')).collect();
     assert!(presets.contains(literals["preset"]), "lcrl-run's preset {} is not a preset", literals["preset"]);
