@@ -96,6 +96,14 @@ pub struct DdpgConfig {
     /// Std of clipped Gaussian noise on the target action (TD3's target
     /// policy smoothing); 0 is plain DDPG.
     pub target_noise: f64,
+    /// TD3's clipped double-Q: a second critic, and targets from the
+    /// smaller of the two target critics.
+    pub twin_critics: bool,
+    /// Anneal both learning rates linearly to 0 over the run (as PPO's
+    /// `anneal_lr`): the final policy settles instead of jittering with the
+    /// last minibatches, which matters where the return is decided by a
+    /// few steps of each episode.
+    pub anneal_lr: bool,
 }
 
 /// PPO with a Gaussian policy whose mean comes from the actor.
@@ -175,6 +183,8 @@ impl Default for DdpgConfig {
             target_noise: 0.0,
             preactivation_l2: 0.0,
             preactivation_anneal: false,
+            twin_critics: false,
+            anneal_lr: false,
             huber_delta: 0.0,
         }
     }

@@ -7,9 +7,12 @@
 //!   L_μ    = −mean Q(s, μ(s))
 //!   θ'     ← τ θ + (1 − τ) θ'            (both targets)
 //!
-//! Two optional stabilizers from TD3, off by default (Algorithm 2 as
-//! published): `policy_delay` (actor and targets updated every d-th step)
-//! and `target_noise` (clipped noise on μ'(s') in y).
+//! Optional stabilizers from TD3, off by default (Algorithm 2 as
+//! published): `policy_delay` (actor and targets updated every d-th step),
+//! `target_noise` (clipped noise on μ'(s') in y) and `twin_critics`
+//! (y uses min(Q₁', Q₂'), against the overestimation that drives the actor
+//! to saturated actions). `anneal_lr` lowers both learning rates to 0 over
+//! the run.
 
 use std::path::Path;
 use std::time::Instant;
@@ -53,6 +56,29 @@ pub struct Ddpg {
     critic_updates: u64,
     /// Share of the run done (0..1), for annealed settings.
     progress: f64,
+    /// TD3's second critic (with `twin_critics`).
+    twin: Option<TwinCritic>,
+}
+
+/// The second critic of clipped double-Q learning, with its target and
+/// optimizer.
+struct TwinCritic {
+    vs: nn::VarStore,
+    net: Mlp,
+    target_vs: nn::VarStore,
+    target: Mlp,
+    opt: Adam,
+}
+
+impl TwinCritic {
+    fn new(cfg: &DdpgConfig, net: &NetworkConfig, inputs: usize, seed: u64, device: Device) -> Self {
+        let vs = nn::VarStore::new(device);
+        let critic = build_critic(&vs.root(), inputs, net, seed);
+        let mut target_vs = nn::VarStore::new(device);
+        let target = build_critic(&target_vs.root(), inputs, net, seed);
+        let _ = target_vs.copy(&vs);
+        TwinCritic { opt: Adam::new(&vs, cfg.critic_lr), vs, net: critic, target_vs, target }
+    }
 }
 
 /// What state.json of a DDPG checkpoint holds besides tensors.
@@ -77,8 +103,13 @@ impl Ddpg {
         // Targets start as exact copies (same variable names by construction).
         let _ = actor_target_vs.copy(&actor_vs);
         let _ = critic_target_vs.copy(&critic_vs);
+        let twin = cfg.twin_critics.then(|| TwinCritic::new(cfg, net, m + n, seed ^ 0xC718, device));
         let mut soft_pairs = Vec::new();
-        for (target, source) in [(&actor_target_vs, &actor_vs), (&critic_target_vs, &critic_vs)] {
+        let mut stores = vec![(&actor_target_vs, &actor_vs), (&critic_target_vs, &critic_vs)];
+        if let Some(t) = &twin {
+            stores.push((&t.target_vs, &t.vs));
+        }
+        for (target, source) in stores {
             let sources = source.variables();
             for (name, t) in target.variables() {
                 if let Some(s) = sources.get(&name) {
@@ -107,6 +138,7 @@ impl Ddpg {
             counters: Counters::default(),
             critic_updates: 0,
             progress: 0.0,
+            twin,
         }
     }
 
@@ -127,18 +159,31 @@ impl Ddpg {
                 let noise = Tensor::from_slice(&values).to_device(self.device).view_as(&next_action);
                 next_action = (next_action + noise).clamp(-1.0, 1.0);
             }
-            let next_q = self.critic_target.forward(&Tensor::cat(&[&b.next_obs, &next_action], 1));
+            let next_input = Tensor::cat(&[&b.next_obs, &next_action], 1);
+            let mut next_q = self.critic_target.forward(&next_input);
+            if let Some(twin) = &self.twin {
+                next_q = next_q.minimum(&twin.target.forward(&next_input));
+            }
             &b.reward + self.cfg.gamma * (1.0 - &b.done) * next_q
         });
-        let q = self.critic.forward(&Tensor::cat(&[&b.obs, &b.action], 1));
-        let critic_loss = if self.cfg.huber_delta > 0.0 {
-            q.huber_loss(&target, tch::Reduction::Mean, self.cfg.huber_delta)
-        } else {
-            (q - target).square().mean(Kind::Float)
+        let input = Tensor::cat(&[&b.obs, &b.action], 1);
+        let loss = |q: Tensor| {
+            if self.cfg.huber_delta > 0.0 {
+                q.huber_loss(&target, tch::Reduction::Mean, self.cfg.huber_delta)
+            } else {
+                (q - &target).square().mean(Kind::Float)
+            }
         };
+        let critic_loss = loss(self.critic.forward(&input));
         self.critic_opt.zero_grad();
         critic_loss.backward();
         self.critic_opt.step();
+        if let Some(twin) = &mut self.twin {
+            let twin_loss = loss(twin.net.forward(&input));
+            twin.opt.zero_grad();
+            twin_loss.backward();
+            twin.opt.step();
+        }
         self.critic_updates += 1;
         if self.critic_updates % self.cfg.policy_delay as u64 != 0 {
             return;
@@ -202,6 +247,14 @@ impl Agent for Ddpg {
 
     fn set_progress(&mut self, fraction: f64) {
         self.progress = fraction.clamp(0.0, 1.0);
+        if self.cfg.anneal_lr {
+            let left = 1.0 - self.progress;
+            self.actor_opt.set_lr(self.cfg.actor_lr * left);
+            self.critic_opt.set_lr(self.cfg.critic_lr * left);
+            if let Some(twin) = &mut self.twin {
+                twin.opt.set_lr(self.cfg.critic_lr * left);
+            }
+        }
     }
 
     fn counters(&self) -> Counters {
@@ -218,6 +271,11 @@ impl Agent for Ddpg {
         save_vs(&self.critic_vs, &dir.join("critic.safetensors"))?;
         save_vs(&self.critic_target_vs, &dir.join("critic_target.safetensors"))?;
         save_optimizers(dir, &self.actor_opt, &self.critic_opt)?;
+        if let Some(twin) = &self.twin {
+            save_vs(&twin.vs, &dir.join("critic2.safetensors"))?;
+            save_vs(&twin.target_vs, &dir.join("critic2_target.safetensors"))?;
+            write_tensors(&dir.join("critic2_optimizer.safetensors"), &twin.opt.state())?;
+        }
         if include_buffer {
             write_tensors(&dir.join("replay.safetensors"), &self.replay.to_tensors())?;
         }
@@ -231,6 +289,11 @@ impl Agent for Ddpg {
         load_vs(&mut self.critic_vs, &dir.join("critic.safetensors"))?;
         load_vs(&mut self.critic_target_vs, &dir.join("critic_target.safetensors"))?;
         load_optimizers(dir, &mut self.actor_opt, &mut self.critic_opt)?;
+        if let Some(twin) = &mut self.twin {
+            load_vs(&mut twin.vs, &dir.join("critic2.safetensors"))?;
+            load_vs(&mut twin.target_vs, &dir.join("critic2_target.safetensors"))?;
+            twin.opt.load_state(&read_tensors(&dir.join("critic2_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
+        }
         let replay = dir.join("replay.safetensors");
         if replay.is_file() {
             self.replay = ReplayBuffer::from_tensors(self.cfg.buffer_capacity, self.obs_dim, self.action_dim, &read_tensors(&replay)?)
