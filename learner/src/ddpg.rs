@@ -319,27 +319,33 @@ mod tests {
     /// The update rule, without the on-policy feedback loop: on exploratory
     /// data of s' = s + a with r = −(s² + 0.1a²), DDPG's actor must move to
     /// the optimal gain. With γ = 0.95 the Riccati solution is P ≈ 1.09 and
-    /// a* = −γP/(0.1 + γP)·s ≈ −0.91·s.
+    /// a* = −γP/(0.1 + γP)·s ≈ −0.91·s. Also with twin critics: the minimum
+    /// of two critics in y must not bias the gain away from the optimum.
     #[test]
     fn update_rule_finds_the_optimal_gain_on_exploratory_data() {
-        let mut cfg = TrainConfig::default();
-        cfg.network.global_hidden = vec![64, 64];
-        cfg.network.critic_hidden = vec![64, 64];
-        let ddpg = DdpgConfig { actor_lr: 1e-3, critic_lr: 1e-3, tau: 0.01, gamma: 0.95, batch_size: 128, warmup_steps: 0, ..cfg.ddpg };
-        let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1]], 1, 1, 3, Device::Cpu);
-        let mut rng = ChaCha8Rng::seed_from_u64(4);
-        for _ in 0..5000 {
-            let s: f32 = rng.random_range(-2.0..2.0);
-            let a: f32 = rng.random_range(-1.0..1.0);
-            agent.replay.push(&[s], &[a], -(s * s + 0.1 * a * a), &[s + a], false);
-        }
-        for _ in 0..4000 {
-            agent.update();
-        }
-        for s in [-0.5f32, -0.25, 0.25, 0.5] {
-            let a = agent.act(&[s])[0];
-            assert!((a + 0.91 * s).abs() < 0.1, "μ({s}) = {a}, optimum {}", -0.91 * s);
+        // One intra-op thread, as training runs use: libtorch's default (one
+        // per core) spin-waits against the other test process on 2 cores.
+        tch::set_num_threads(1);
+        for twin_critics in [false, true] {
+            let mut cfg = TrainConfig::default();
+            cfg.network.global_hidden = vec![64, 64];
+            cfg.network.critic_hidden = vec![64, 64];
+            let ddpg = DdpgConfig { actor_lr: 1e-3, critic_lr: 1e-3, tau: 0.01, gamma: 0.95, batch_size: 128, warmup_steps: 0, twin_critics, ..cfg.ddpg };
+            let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1]], 1, 1, 3, Device::Cpu);
+            assert_eq!(agent.twin.is_some(), twin_critics);
+            let mut rng = ChaCha8Rng::seed_from_u64(4);
+            for _ in 0..5000 {
+                let s: f32 = rng.random_range(-2.0..2.0);
+                let a: f32 = rng.random_range(-1.0..1.0);
+                agent.replay.push(&[s], &[a], -(s * s + 0.1 * a * a), &[s + a], false);
+            }
+            for _ in 0..4000 {
+                agent.update();
+            }
+            for s in [-0.5f32, -0.25, 0.25, 0.5] {
+                let a = agent.act(&[s])[0];
+                assert!((a + 0.91 * s).abs() < 0.1, "twin critics {twin_critics}: μ({s}) = {a}, optimum {}", -0.91 * s);
+            }
         }
     }
 }
-

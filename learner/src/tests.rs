@@ -72,29 +72,28 @@ fn ppo_local_reaches_the_g_structured_optimum() {
     assert!(masked < s.lqr_return.unwrap());
 }
 
-/// DDPG, 1000 episodes (50k steps, ≈30 s). Not yet the 10% bar of the
-/// issue: with configs/lti-fast.toml the global actor reaches ≈15% of
-/// lqr_return and the local one ≈38% of its G-structured ceiling (seed 0).
-/// These bounds guard that level; before the fading pre-tanh penalty,
-/// every DDPG setting tried ended between −20 and −1500 (LQR −1.12).
+/// DDPG, same budget as PPO: 1000 episodes (50k steps, ≈35 s each). Held
+/// to the same bars: the global actor within 10% of lqr_return, the local
+/// one within 10% of its G-structured optimum. Seeds 0–4 with
+/// configs/lti-fast.toml end within 3.6% (global) and 2.9% (local).
 #[test]
-fn ddpg_global_approaches_lqr() {
+fn ddpg_global_reaches_lqr() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = lti_fast();
     cfg.run.episodes = 1000;
     let s = run(Algo::Ddpg, Connection::Global, cfg, dir.path(), false).summary;
     let lqr = s.lqr_return.unwrap();
-    assert!(within(s.eval_return, lqr, 0.25), "eval {} vs LQR {lqr}", s.eval_return);
+    assert!(within(s.eval_return, lqr, 0.10), "eval {} vs LQR {lqr}", s.eval_return);
 }
 
 #[test]
-fn ddpg_local_approaches_the_g_structured_optimum() {
+fn ddpg_local_reaches_the_g_structured_optimum() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = lti_fast();
     cfg.run.episodes = 1000;
     let s = run(Algo::Ddpg, Connection::Local, cfg, dir.path(), false).summary;
     let masked = s.masked_lqr_return.unwrap();
-    assert!(within(s.eval_return, masked, 0.5), "eval {} vs masked LQR {masked}", s.eval_return);
+    assert!(within(s.eval_return, masked, 0.10), "eval {} vs masked LQR {masked}", s.eval_return);
 }
 
 #[test]
@@ -142,15 +141,23 @@ fn checkpoint_round_trip_gives_identical_actions() {
 }
 
 /// 4 episodes straight, or interrupted after 2 then --resume: the same rows,
-/// counters and final policy (one thread, same seed).
+/// counters and final policy (one thread, same seed). DDPG also with twin
+/// critics and annealed learning rates, whose second critic, its optimizer
+/// and the schedules must come back from the checkpoint as well.
 #[test]
 fn resumed_run_continues_exactly() {
-    for algo in [Algo::Ddpg, Algo::Ppo] {
+    let mut td3 = tiny();
+    td3.ddpg.twin_critics = true;
+    td3.ddpg.anneal_lr = true;
+    for (algo, cfg) in [(Algo::Ddpg, tiny()), (Algo::Ddpg, td3), (Algo::Ppo, tiny())] {
         let straight_dir = tempfile::tempdir().unwrap();
-        let straight = run(algo, Connection::Local, tiny(), straight_dir.path(), false);
+        let straight = run(algo, Connection::Local, cfg.clone(), straight_dir.path(), false);
         let resumed_dir = tempfile::tempdir().unwrap();
-        run_until(algo, Connection::Local, tiny(), resumed_dir.path(), false, Some(2));
-        let resumed = run(algo, Connection::Local, tiny(), resumed_dir.path(), true);
+        run_until(algo, Connection::Local, cfg.clone(), resumed_dir.path(), false, Some(2));
+        if cfg.ddpg.twin_critics {
+            assert!(crate::trainer::latest_checkpoint(resumed_dir.path()).unwrap().join("critic2.safetensors").is_file());
+        }
+        let resumed = run(algo, Connection::Local, cfg, resumed_dir.path(), true);
         assert_eq!(timeless(&straight.rows), timeless(&resumed.rows), "{algo:?}");
         assert_eq!((straight.summary.env_steps, straight.summary.updates), (resumed.summary.env_steps, resumed.summary.updates));
         assert_eq!(straight.summary.eval_return, resumed.summary.eval_return, "{algo:?}: final policies differ");
