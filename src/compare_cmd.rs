@@ -18,8 +18,8 @@ pub struct CompareArgs {
     /// Moving-average window of the plotted returns, in episodes.
     #[arg(long, default_value_t = 10)]
     pub window: usize,
-    /// Where to draw the reward curves.
-    #[arg(long, default_value = "compare.png")]
+    /// Where to draw the reward curves (a .png file).
+    #[arg(long, value_name = "FILE.png", default_value = "compare.png", value_parser = lcrl_graph_builder::plot::png_path)]
     pub out: PathBuf,
 }
 

@@ -8,6 +8,17 @@ use plotters::style::FontStyle;
 use crate::report::GraphReport;
 use crate::GraphError;
 
+/// Command-line check for a plot file: plots are PNG, and the drawing
+/// backend picks the format from the extension, so a name without `.png`
+/// would only fail after the work is done, with a backend error.
+pub fn png_path(arg: &str) -> Result<std::path::PathBuf, String> {
+    let path = std::path::PathBuf::from(arg);
+    match path.extension().and_then(|e| e.to_str()) {
+        Some(ext) if ext.eq_ignore_ascii_case("png") => Ok(path),
+        _ => Err(format!("plots are PNG images: give a file name ending in .png (e.g. {arg}.png)")),
+    }
+}
+
 /// Registers the embedded DejaVu Sans as plotters' "sans-serif", so plots
 /// never depend on fonts installed on the machine.
 pub fn register_fonts() {

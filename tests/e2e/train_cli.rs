@@ -105,6 +105,48 @@ fn same_seed_one_thread_gives_identical_metrics() {
     assert_eq!(timeless_metrics(&a.join("metrics.csv")), timeless_metrics(&b.join("metrics.csv")));
 }
 
+/// `lcrl compare`: Table II's time split for each run, the reward curves in
+/// one PNG, and clear refusals before any work for a plot name that is not
+/// .png or a directory that holds no finished run.
+#[test]
+fn compare_tabulates_runs_and_refuses_bad_paths() {
+    let work = tempfile::tempdir().unwrap();
+    let config = work.path().join("tiny.toml");
+    fs::write(&config, TINY).unwrap();
+    let (local, global) = (work.path().join("local"), work.path().join("global"));
+    assert!(train(&local, &config, &[]).status.success());
+    let out = lcrl()
+        .args(["train", "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--config"])
+        .arg(&config)
+        .arg("--run-dir")
+        .arg(&global)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+
+    let plot = work.path().join("curves.png");
+    let out = lcrl().arg("compare").arg(&local).arg(&global).arg("--out").arg(&plot).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let table = stdout(&out);
+    // Each run's row carries its own summary.json figures (Table II columns).
+    for (label, dir) in [("ddpg/local", &local), ("ddpg/global", &global)] {
+        let summary = json(&dir.join("summary.json"));
+        let row = table.lines().find(|l| l.starts_with(label)).unwrap_or_else(|| panic!("no {label} row in {table}"));
+        let cells: Vec<&str> = row.rsplit(')').next().unwrap().split_whitespace().collect();
+        let expected: Vec<String> = ["graph_seconds", "optimization_seconds", "total_seconds"].iter().map(|k| format!("{:.2}", summary[*k].as_f64().unwrap())).collect();
+        assert_eq!(cells[0], "3", "{row}");
+        assert_eq!(&cells[1..4], &expected[..], "{row}");
+    }
+    assert_eq!(&fs::read(&plot).unwrap()[1..4], b"PNG");
+
+    let out = lcrl().arg("compare").arg(&local).arg("--out").arg(work.path().join("curves")).output().unwrap();
+    assert_clean_failure(&out, ".png");
+    let out = lcrl().arg("compare").arg(&local).arg(work.path()).arg("--out").arg(&plot).output().unwrap();
+    assert_clean_failure(&out, "not a finished run");
+    let out = lcrl().args(["graph", "--env", "lti-paper", "--samples", "8", "--plot", "g.svg"]).output().unwrap();
+    assert_clean_failure(&out, ".png");
+}
+
 #[test]
 fn bad_input_fails_cleanly() {
     let work = tempfile::tempdir().unwrap();
