@@ -25,8 +25,8 @@ use tch::{nn, Device, Kind, Tensor};
 
 use crate::adam::Adam;
 use crate::agent::{
-    build_actor, build_critic, load_optimizers, load_vs, read_agent_state, read_tensors, save_optimizers, save_vs, write_agent_state, write_tensors, Agent,
-    Counters, RngState, Transition,
+    build_actor, build_critic, load_vs, read_agent_state, read_tensors, save_vs, write_agent_state, write_tensors, Agent, Counters, RngState,
+    Transition,
 };
 use crate::config::{Connection, DdpgConfig, NetworkConfig};
 use crate::nets::{batch, ActorNet, Mlp};
@@ -42,12 +42,10 @@ pub struct Ddpg {
     actor: ActorNet,
     actor_target_vs: nn::VarStore,
     actor_target: ActorNet,
-    critic_vs: nn::VarStore,
-    critic: Mlp,
-    critic_target_vs: nn::VarStore,
-    critic_target: Mlp,
     actor_opt: Adam,
-    critic_opt: Adam,
+    /// Q(s, a): one critic (Algorithm 2), or two with `twin_critics`. The
+    /// actor follows the first.
+    critics: Vec<Critic>,
     /// (target, source) variable pairs for the soft update.
     soft_pairs: Vec<(Tensor, Tensor)>,
     replay: ReplayBuffer,
@@ -56,13 +54,13 @@ pub struct Ddpg {
     critic_updates: u64,
     /// Share of the run done (0..1), for annealed settings.
     progress: f64,
-    /// TD3's second critic (with `twin_critics`).
-    twin: Option<TwinCritic>,
 }
 
-/// The second critic of clipped double-Q learning, with its target and
-/// optimizer.
-struct TwinCritic {
+/// A global critic Q(s, a) with its target network and optimizer, saved as
+/// `{name}.safetensors`, `{name}_target.safetensors` and
+/// `{name}_optimizer.safetensors`.
+struct Critic {
+    name: &'static str,
     vs: nn::VarStore,
     net: Mlp,
     target_vs: nn::VarStore,
@@ -70,14 +68,27 @@ struct TwinCritic {
     opt: Adam,
 }
 
-impl TwinCritic {
-    fn new(cfg: &DdpgConfig, net: &NetworkConfig, inputs: usize, seed: u64, device: Device) -> Self {
+impl Critic {
+    fn new(name: &'static str, cfg: &DdpgConfig, net: &NetworkConfig, inputs: usize, seed: u64, device: Device) -> Self {
         let vs = nn::VarStore::new(device);
         let critic = build_critic(&vs.root(), inputs, net, seed);
         let mut target_vs = nn::VarStore::new(device);
         let target = build_critic(&target_vs.root(), inputs, net, seed);
+        // The target starts as an exact copy (same variable names by construction).
         let _ = target_vs.copy(&vs);
-        TwinCritic { opt: Adam::new(&vs, cfg.critic_lr), vs, net: critic, target_vs, target }
+        Critic { name, opt: Adam::new(&vs, cfg.critic_lr), vs, net: critic, target_vs, target }
+    }
+
+    fn save(&self, dir: &Path) -> Result<(), LearnerError> {
+        save_vs(&self.vs, &dir.join(format!("{}.safetensors", self.name)))?;
+        save_vs(&self.target_vs, &dir.join(format!("{}_target.safetensors", self.name)))?;
+        write_tensors(&dir.join(format!("{}_optimizer.safetensors", self.name)), &self.opt.state())
+    }
+
+    fn load(&mut self, dir: &Path) -> Result<(), LearnerError> {
+        load_vs(&mut self.vs, &dir.join(format!("{}.safetensors", self.name)))?;
+        load_vs(&mut self.target_vs, &dir.join(format!("{}_target.safetensors", self.name)))?;
+        self.opt.load_state(&read_tensors(&dir.join(format!("{}_optimizer.safetensors", self.name)))?).map_err(LearnerError::Checkpoint)
     }
 }
 
@@ -96,19 +107,14 @@ impl Ddpg {
         let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
         let mut actor_target_vs = nn::VarStore::new(device);
         let actor_target = build_actor(&actor_target_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
-        let critic_vs = nn::VarStore::new(device);
-        let critic = build_critic(&critic_vs.root(), m + n, net, seed ^ 0xC717);
-        let mut critic_target_vs = nn::VarStore::new(device);
-        let critic_target = build_critic(&critic_target_vs.root(), m + n, net, seed ^ 0xC717);
-        // Targets start as exact copies (same variable names by construction).
+        // The target starts as an exact copy (same variable names by construction).
         let _ = actor_target_vs.copy(&actor_vs);
-        let _ = critic_target_vs.copy(&critic_vs);
-        let twin = cfg.twin_critics.then(|| TwinCritic::new(cfg, net, m + n, seed ^ 0xC718, device));
-        let mut soft_pairs = Vec::new();
-        let mut stores = vec![(&actor_target_vs, &actor_vs), (&critic_target_vs, &critic_vs)];
-        if let Some(t) = &twin {
-            stores.push((&t.target_vs, &t.vs));
+        let mut critics = vec![Critic::new("critic", cfg, net, m + n, seed ^ 0xC717, device)];
+        if cfg.twin_critics {
+            critics.push(Critic::new("critic2", cfg, net, m + n, seed ^ 0xC718, device));
         }
+        let mut soft_pairs = Vec::new();
+        let stores = std::iter::once((&actor_target_vs, &actor_vs)).chain(critics.iter().map(|c| (&c.target_vs, &c.vs)));
         for (target, source) in stores {
             let sources = source.variables();
             for (name, t) in target.variables() {
@@ -119,7 +125,6 @@ impl Ddpg {
         }
         Ddpg {
             actor_opt: Adam::new(&actor_vs, cfg.actor_lr),
-            critic_opt: Adam::new(&critic_vs, cfg.critic_lr),
             cfg: cfg.clone(),
             device,
             obs_dim: m,
@@ -128,17 +133,13 @@ impl Ddpg {
             actor,
             actor_target_vs,
             actor_target,
-            critic_vs,
-            critic,
-            critic_target_vs,
-            critic_target,
+            critics,
             soft_pairs,
             replay: ReplayBuffer::new(cfg.buffer_capacity, m, n),
             rng: ChaCha8Rng::seed_from_u64(seed ^ 0xDD96),
             counters: Counters::default(),
             critic_updates: 0,
             progress: 0.0,
-            twin,
         }
     }
 
@@ -159,30 +160,22 @@ impl Ddpg {
                 let noise = Tensor::from_slice(&values).to_device(self.device).view_as(&next_action);
                 next_action = (next_action + noise).clamp(-1.0, 1.0);
             }
+            // With twin critics, the smaller of the two target values (TD3).
             let next_input = Tensor::cat(&[&b.next_obs, &next_action], 1);
-            let mut next_q = self.critic_target.forward(&next_input);
-            if let Some(twin) = &self.twin {
-                next_q = next_q.minimum(&twin.target.forward(&next_input));
-            }
+            let next_q = self.critics.iter().map(|c| c.target.forward(&next_input)).reduce(|a, b| a.minimum(&b)).expect("at least one critic");
             &b.reward + self.cfg.gamma * (1.0 - &b.done) * next_q
         });
         let input = Tensor::cat(&[&b.obs, &b.action], 1);
-        let loss = |q: Tensor| {
-            if self.cfg.huber_delta > 0.0 {
+        for critic in &mut self.critics {
+            let q = critic.net.forward(&input);
+            let loss = if self.cfg.huber_delta > 0.0 {
                 q.huber_loss(&target, tch::Reduction::Mean, self.cfg.huber_delta)
             } else {
                 (q - &target).square().mean(Kind::Float)
-            }
-        };
-        let critic_loss = loss(self.critic.forward(&input));
-        self.critic_opt.zero_grad();
-        critic_loss.backward();
-        self.critic_opt.step();
-        if let Some(twin) = &mut self.twin {
-            let twin_loss = loss(twin.net.forward(&input));
-            twin.opt.zero_grad();
-            twin_loss.backward();
-            twin.opt.step();
+            };
+            critic.opt.zero_grad();
+            loss.backward();
+            critic.opt.step();
         }
         self.critic_updates += 1;
         if self.critic_updates % self.cfg.policy_delay as u64 != 0 {
@@ -190,7 +183,7 @@ impl Ddpg {
         }
 
         let raw = self.actor.forward_raw(&b.obs);
-        let q = self.critic.forward(&Tensor::cat(&[&b.obs, &raw.tanh()], 1));
+        let q = self.critics[0].net.forward(&Tensor::cat(&[&b.obs, &raw.tanh()], 1));
         let l2 = if self.cfg.preactivation_anneal { self.cfg.preactivation_l2 * (1.0 - self.progress) } else { self.cfg.preactivation_l2 };
         let actor_loss = -q.mean(Kind::Float) + l2 * raw.square().mean(Kind::Float);
         self.actor_opt.zero_grad();
@@ -250,9 +243,8 @@ impl Agent for Ddpg {
         if self.cfg.anneal_lr {
             let left = 1.0 - self.progress;
             self.actor_opt.set_lr(self.cfg.actor_lr * left);
-            self.critic_opt.set_lr(self.cfg.critic_lr * left);
-            if let Some(twin) = &mut self.twin {
-                twin.opt.set_lr(self.cfg.critic_lr * left);
+            for critic in &mut self.critics {
+                critic.opt.set_lr(self.cfg.critic_lr * left);
             }
         }
     }
@@ -262,19 +254,15 @@ impl Agent for Ddpg {
     }
 
     fn param_counts(&self) -> (usize, usize) {
-        (self.actor.param_count(), self.critic.param_count())
+        (self.actor.param_count(), self.critics[0].net.param_count())
     }
 
     fn save(&self, dir: &Path, include_buffer: bool) -> Result<(), LearnerError> {
         save_vs(&self.actor_vs, &dir.join("actor.safetensors"))?;
         save_vs(&self.actor_target_vs, &dir.join("actor_target.safetensors"))?;
-        save_vs(&self.critic_vs, &dir.join("critic.safetensors"))?;
-        save_vs(&self.critic_target_vs, &dir.join("critic_target.safetensors"))?;
-        save_optimizers(dir, &self.actor_opt, &self.critic_opt)?;
-        if let Some(twin) = &self.twin {
-            save_vs(&twin.vs, &dir.join("critic2.safetensors"))?;
-            save_vs(&twin.target_vs, &dir.join("critic2_target.safetensors"))?;
-            write_tensors(&dir.join("critic2_optimizer.safetensors"), &twin.opt.state())?;
+        write_tensors(&dir.join("actor_optimizer.safetensors"), &self.actor_opt.state())?;
+        for critic in &self.critics {
+            critic.save(dir)?;
         }
         if include_buffer {
             write_tensors(&dir.join("replay.safetensors"), &self.replay.to_tensors())?;
@@ -286,13 +274,9 @@ impl Agent for Ddpg {
     fn load(&mut self, dir: &Path) -> Result<(), LearnerError> {
         load_vs(&mut self.actor_vs, &dir.join("actor.safetensors"))?;
         load_vs(&mut self.actor_target_vs, &dir.join("actor_target.safetensors"))?;
-        load_vs(&mut self.critic_vs, &dir.join("critic.safetensors"))?;
-        load_vs(&mut self.critic_target_vs, &dir.join("critic_target.safetensors"))?;
-        load_optimizers(dir, &mut self.actor_opt, &mut self.critic_opt)?;
-        if let Some(twin) = &mut self.twin {
-            load_vs(&mut twin.vs, &dir.join("critic2.safetensors"))?;
-            load_vs(&mut twin.target_vs, &dir.join("critic2_target.safetensors"))?;
-            twin.opt.load_state(&read_tensors(&dir.join("critic2_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
+        self.actor_opt.load_state(&read_tensors(&dir.join("actor_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
+        for critic in &mut self.critics {
+            critic.load(dir)?;
         }
         let replay = dir.join("replay.safetensors");
         if replay.is_file() {
@@ -332,7 +316,7 @@ mod tests {
             cfg.network.critic_hidden = vec![64, 64];
             let ddpg = DdpgConfig { actor_lr: 1e-3, critic_lr: 1e-3, tau: 0.01, gamma: 0.95, batch_size: 128, warmup_steps: 0, twin_critics, ..cfg.ddpg };
             let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1]], 1, 1, 3, Device::Cpu);
-            assert_eq!(agent.twin.is_some(), twin_critics);
+            assert_eq!(agent.critics.len(), if twin_critics { 2 } else { 1 });
             let mut rng = ChaCha8Rng::seed_from_u64(4);
             for _ in 0..5000 {
                 let s: f32 = rng.random_range(-2.0..2.0);

@@ -1,7 +1,7 @@
 //! `lcrl train` and `lcrl sim --checkpoint` as a user runs them.
 
 use std::fs;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde_json::Value;
 
@@ -10,9 +10,21 @@ use super::common::{assert_clean_failure, lcrl, stdout};
 const TINY: &str = "[network]\nglobal_hidden = [16, 16]\nsubnet_hidden = [8, 8]\ncritic_hidden = [16, 16]\n\
 [ddpg]\nwarmup_steps = 20\nbatch_size = 16\n[run]\nepisodes = 3\ncheckpoint_every = 1\neval_episodes = 2\ngraph_samples = 16\n";
 
+/// TINY written into `work`, for `--config`.
+fn tiny_config(work: &Path) -> PathBuf {
+    let config = work.join("tiny.toml");
+    fs::write(&config, TINY).unwrap();
+    config
+}
+
+/// `lcrl train` of DDPG with the locally connected actor on lti-paper.
 fn train(dir: &Path, config: &Path, extra: &[&str]) -> std::process::Output {
+    train_connected("local", dir, config, extra)
+}
+
+fn train_connected(connection: &str, dir: &Path, config: &Path, extra: &[&str]) -> std::process::Output {
     lcrl()
-        .args(["train", "--env", "lti-paper", "--algo", "ddpg", "--connection", "local", "--config"])
+        .args(["train", "--env", "lti-paper", "--algo", "ddpg", "--connection", connection, "--config"])
         .arg(config)
         .arg("--run-dir")
         .arg(dir)
@@ -49,8 +61,7 @@ fn timeless_metrics(path: &Path) -> Vec<String> {
 #[test]
 fn train_writes_the_run_directory_resumes_and_evaluates() {
     let work = tempfile::tempdir().unwrap();
-    let config = work.path().join("tiny.toml");
-    fs::write(&config, TINY).unwrap();
+    let config = tiny_config(work.path());
     let run = work.path().join("run");
     let out = train(&run, &config, &[]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
@@ -95,8 +106,7 @@ fn train_writes_the_run_directory_resumes_and_evaluates() {
 #[test]
 fn same_seed_one_thread_gives_identical_metrics() {
     let work = tempfile::tempdir().unwrap();
-    let config = work.path().join("tiny.toml");
-    fs::write(&config, TINY).unwrap();
+    let config = tiny_config(work.path());
     let (a, b) = (work.path().join("a"), work.path().join("b"));
     for dir in [&a, &b] {
         let out = train(dir, &config, &["--seed", "3", "--threads", "1"]);
@@ -111,18 +121,11 @@ fn same_seed_one_thread_gives_identical_metrics() {
 #[test]
 fn compare_tabulates_runs_and_refuses_bad_paths() {
     let work = tempfile::tempdir().unwrap();
-    let config = work.path().join("tiny.toml");
-    fs::write(&config, TINY).unwrap();
+    let config = tiny_config(work.path());
     let (local, global) = (work.path().join("local"), work.path().join("global"));
-    assert!(train(&local, &config, &[]).status.success());
-    let out = lcrl()
-        .args(["train", "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--config"])
-        .arg(&config)
-        .arg("--run-dir")
-        .arg(&global)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    for out in [train(&local, &config, &[]), train_connected("global", &global, &config, &[])] {
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    }
 
     let plot = work.path().join("curves.png");
     let out = lcrl().arg("compare").arg(&local).arg(&global).arg("--out").arg(&plot).output().unwrap();
@@ -150,8 +153,7 @@ fn compare_tabulates_runs_and_refuses_bad_paths() {
 #[test]
 fn bad_input_fails_cleanly() {
     let work = tempfile::tempdir().unwrap();
-    let config = work.path().join("tiny.toml");
-    fs::write(&config, TINY).unwrap();
+    let config = tiny_config(work.path());
     let bad = work.path().join("bad.toml");
     fs::write(&bad, "[ddpg]\nactor_lr = -0.001\n").unwrap();
     assert_clean_failure(&train(&work.path().join("r1"), &bad, &[]), "ddpg.actor_lr");
