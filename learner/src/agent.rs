@@ -132,14 +132,24 @@ pub fn load_vs(vs: &mut nn::VarStore, path: &Path) -> Result<(), LearnerError> {
 
 /// Saves the actor and critic optimizers' state next to the weights.
 pub fn save_optimizers(dir: &Path, actor: &crate::adam::Adam, critic: &crate::adam::Adam) -> Result<(), LearnerError> {
-    write_tensors(&dir.join("actor_optimizer.safetensors"), &actor.state())?;
-    write_tensors(&dir.join("critic_optimizer.safetensors"), &critic.state())
+    save_optimizer(dir, "actor", actor)?;
+    save_optimizer(dir, "critic", critic)
 }
 
 /// Restores what [`save_optimizers`] wrote.
 pub fn load_optimizers(dir: &Path, actor: &mut crate::adam::Adam, critic: &mut crate::adam::Adam) -> Result<(), LearnerError> {
-    actor.load_state(&read_tensors(&dir.join("actor_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
-    critic.load_state(&read_tensors(&dir.join("critic_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)
+    load_optimizer(dir, "actor", actor)?;
+    load_optimizer(dir, "critic", critic)
+}
+
+/// Writes one optimizer's state as `{name}_optimizer.safetensors`.
+pub fn save_optimizer(dir: &Path, name: &str, opt: &crate::adam::Adam) -> Result<(), LearnerError> {
+    write_tensors(&dir.join(format!("{name}_optimizer.safetensors")), &opt.state())
+}
+
+/// Restores what [`save_optimizer`] wrote.
+pub fn load_optimizer(dir: &Path, name: &str, opt: &mut crate::adam::Adam) -> Result<(), LearnerError> {
+    opt.load_state(&read_tensors(&dir.join(format!("{name}_optimizer.safetensors")))?).map_err(LearnerError::Checkpoint)
 }
 
 /// Writes an agent's non-tensor state (RNG, counters, …) as `agent.json`.

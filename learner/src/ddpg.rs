@@ -25,8 +25,8 @@ use tch::{nn, Device, Kind, Tensor};
 
 use crate::adam::Adam;
 use crate::agent::{
-    build_actor, build_critic, load_vs, read_agent_state, read_tensors, save_vs, write_agent_state, write_tensors, Agent, Counters, RngState,
-    Transition,
+    build_actor, build_critic, load_optimizer, load_vs, read_agent_state, read_tensors, save_optimizer, save_vs, write_agent_state, write_tensors, Agent,
+    Counters, RngState, Transition,
 };
 use crate::config::{Connection, DdpgConfig, NetworkConfig};
 use crate::nets::{batch, ActorNet, Mlp};
@@ -82,13 +82,13 @@ impl Critic {
     fn save(&self, dir: &Path) -> Result<(), LearnerError> {
         save_vs(&self.vs, &dir.join(format!("{}.safetensors", self.name)))?;
         save_vs(&self.target_vs, &dir.join(format!("{}_target.safetensors", self.name)))?;
-        write_tensors(&dir.join(format!("{}_optimizer.safetensors", self.name)), &self.opt.state())
+        save_optimizer(dir, self.name, &self.opt)
     }
 
     fn load(&mut self, dir: &Path) -> Result<(), LearnerError> {
         load_vs(&mut self.vs, &dir.join(format!("{}.safetensors", self.name)))?;
         load_vs(&mut self.target_vs, &dir.join(format!("{}_target.safetensors", self.name)))?;
-        self.opt.load_state(&read_tensors(&dir.join(format!("{}_optimizer.safetensors", self.name)))?).map_err(LearnerError::Checkpoint)
+        load_optimizer(dir, self.name, &mut self.opt)
     }
 }
 
@@ -260,7 +260,7 @@ impl Agent for Ddpg {
     fn save(&self, dir: &Path, include_buffer: bool) -> Result<(), LearnerError> {
         save_vs(&self.actor_vs, &dir.join("actor.safetensors"))?;
         save_vs(&self.actor_target_vs, &dir.join("actor_target.safetensors"))?;
-        write_tensors(&dir.join("actor_optimizer.safetensors"), &self.actor_opt.state())?;
+        save_optimizer(dir, "actor", &self.actor_opt)?;
         for critic in &self.critics {
             critic.save(dir)?;
         }
@@ -274,7 +274,7 @@ impl Agent for Ddpg {
     fn load(&mut self, dir: &Path) -> Result<(), LearnerError> {
         load_vs(&mut self.actor_vs, &dir.join("actor.safetensors"))?;
         load_vs(&mut self.actor_target_vs, &dir.join("actor_target.safetensors"))?;
-        self.actor_opt.load_state(&read_tensors(&dir.join("actor_optimizer.safetensors"))?).map_err(LearnerError::Checkpoint)?;
+        load_optimizer(dir, "actor", &mut self.actor_opt)?;
         for critic in &mut self.critics {
             critic.load(dir)?;
         }
