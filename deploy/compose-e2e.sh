@@ -7,6 +7,8 @@
 # engine or docker-compose is available.
 #   bash deploy/compose-e2e.sh
 set -euo pipefail
+# A command failing under set -e says where, before the logs (cleanup).
+trap 'echo "compose-e2e: failed at line $LINENO: $BASH_COMMAND" >&2' ERR
 cd "$(dirname "$0")/.."
 started=$(date +%s)
 if ! command -v docker >/dev/null || ! docker info >/dev/null 2>&1; then
@@ -74,7 +76,10 @@ for name in ("lcrl_learner_env_steps_total", "lcrl_learner_updates_total", "lcrl
 PY
 echo "compose-e2e: training: $(status)"
 
-victim=$(dc ps -q actor | head -1)
+# sed, not head: head exits after one line, and under pipefail a compose
+# still writing the next one dies of SIGPIPE and fails the pipeline.
+victim=$(dc ps -q actor | sed -n 1p)
+[ -n "$victim" ] || fail "no actor container is listed"
 docker kill "$victim" >/dev/null
 echo "compose-e2e: killed actor container ${victim:0:12}"
 wait_until 60 "the learner notices the lost actor" actors_are 1
