@@ -12,6 +12,7 @@ mod preset;
 mod run_cmd;
 mod sim_cmd;
 mod train_cmd;
+mod tune_cmd;
 
 use std::process::ExitCode;
 
@@ -47,6 +48,8 @@ enum Command {
     Graph(GraphArgs),
     /// Run a controller on an environment: summary.json, trace.csv, trace.png.
     Sim(sim_cmd::SimArgs),
+    /// Find the best constant action (CMA-ES): the bar a trained agent must beat.
+    Tune(tune_cmd::TuneArgs),
     /// Train an actor (LCRL local, GCRL global, or full-subnets) with DDPG or PPO.
     Train(train_cmd::TrainArgs),
     /// Compare training runs: time split, final returns, reward curves.
@@ -74,6 +77,7 @@ fn main() -> ExitCode {
         Command::Health(args) => probe_cmd::health(&args),
         Command::Status(args) => probe_cmd::status(&args),
         Command::Sim(args) => sim_cmd::run(&args),
+        Command::Tune(args) => tune_cmd::run(&args),
         Command::Train(args) => train_cmd::run(&args),
         Command::Compare(args) => compare_cmd::run(&args),
         Command::Doctor => doctor::run(),

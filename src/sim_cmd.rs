@@ -27,6 +27,11 @@ pub struct SimArgs {
     /// (a = 0, METHOD.md §6), the non-learning baseline.
     #[arg(long, value_enum, default_value_t = Controller::Constant)]
     pub controller: Controller,
+    /// Run this constant action instead of a = 0: n comma-separated
+    /// revision factors (peg: dx,dy,dz,dalpha,dbeta,dgamma within
+    /// [−1,2]³×[−1,4]³), e.g. the `action` of a best_constant.json.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, num_args = 1.., conflicts_with = "checkpoint", value_name = "A1,…,An")]
+    pub action: Option<Vec<f64>>,
     /// Episodes to run; seeds are seed, seed+1, …
     #[arg(long, default_value_t = 10)]
     pub episodes: usize,
@@ -59,6 +64,21 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
     }
     prepare_out_dir(&args.out)?;
     let n = env.spec().action_dim();
+    let constant = match &args.action {
+        Some(action) => {
+            env.spec().check_action(action).with_context(|| format!("--action for {env_name}"))?;
+            let clipped = env.spec().clip_action(action);
+            if clipped != *action {
+                bail!(
+                    "--action {action:?} lies outside the action box [{:?}, {:?}] of {env_name}",
+                    env.spec().action_low,
+                    env.spec().action_high
+                );
+            }
+            action.clone()
+        }
+        None => vec![0.0; n],
+    };
     // The policy normalizes states with the environment's scales; a snapshot
     // serves that while `evaluate` steps the environment itself.
     let scales = env.snapshot();
@@ -67,7 +87,10 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
             format!("{:?}/{:?} policy (episode {})", policy.architecture.algo, policy.architecture.connection, policy.episode.unwrap_or(0)).to_lowercase(),
             Box::new(move |s: &[f64]| policy.act(scales.as_ref(), s)),
         ),
-        None => ("constant".to_string(), Box::new(move |_: &[f64]| vec![0.0; n])),
+        None => {
+            let label = if args.action.is_some() { format!("constant a = {constant:?}") } else { "constant".to_string() };
+            (label, Box::new(move |_: &[f64]| constant.clone()))
+        }
     };
     let bar = ProgressBar::new(args.episodes as u64);
     if let Ok(style) = ProgressStyle::with_template("episodes [{bar:30}] {pos}/{len} {msg} ({elapsed})") {
@@ -157,6 +180,14 @@ fn print_summary(s: &Summary, dir: &Path) {
     println!("  mean peak moment      {}", opt(s.mean_peak_moment_nm, " N·m"));
     println!("  max penetration       {}", opt(s.max_penetration_mm, " mm"));
     println!("  mean return           {:.3} (min {:.3}, max {:.3})", s.mean_return, s.min_return, s.max_return);
+    print_terms(&s.terms);
     println!("  control steps/s       {:.0}", s.control_steps_per_sec);
     println!("wrote {}/summary.json, trace.csv, trace.png", dir.display());
+}
+
+/// The return split into its terms, where the task has them.
+pub fn print_terms(t: &lcrl_sim::ReturnColumns) {
+    if let (Some(d), Some(f), Some(m), Some(b), Some(x)) = (t.return_depth, t.return_force, t.return_moment, t.return_bonus, t.return_failure) {
+        println!("    = depth {d:.3} + force {f:.3} + moment {m:.3} + bonus {b:.3} + failure {x:.3}");
+    }
 }

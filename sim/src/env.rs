@@ -112,6 +112,89 @@ pub struct EpisodeMetrics {
     pub peak_force_n: Option<f64>,
     pub peak_moment_nm: Option<f64>,
     pub max_penetration_mm: Option<f64>,
+    /// The episode's return split into its reward terms, where the task's
+    /// reward has terms (peg-in-hole, docs/method.md eqs. 16–17).
+    pub return_terms: Option<ReturnTerms>,
+}
+
+/// An episode's return as the sum of its reward terms (docs/peg.md): each
+/// field is that term summed over the episode, with its sign, so the five
+/// add up to the return.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ReturnTerms {
+    /// −h_z Σ z (remaining depth, m).
+    pub depth: f64,
+    /// −h_F Σ ‖F‖ (N).
+    pub force: f64,
+    /// −h_M Σ ‖M‖ (N·m).
+    pub moment: f64,
+    /// +r_s on a successful insertion.
+    pub bonus: f64,
+    /// The failure charge when a force or moment limit was exceeded.
+    pub failure: f64,
+}
+
+/// Return terms as the named columns of summary.json (`return_depth`, …),
+/// null where the task's reward has no terms.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ReturnColumns {
+    #[serde(default)]
+    pub return_depth: Option<f64>,
+    #[serde(default)]
+    pub return_force: Option<f64>,
+    #[serde(default)]
+    pub return_moment: Option<f64>,
+    #[serde(default)]
+    pub return_bonus: Option<f64>,
+    #[serde(default)]
+    pub return_failure: Option<f64>,
+}
+
+impl From<Option<ReturnTerms>> for ReturnColumns {
+    fn from(terms: Option<ReturnTerms>) -> Self {
+        match terms {
+            Some(t) => ReturnColumns {
+                return_depth: Some(t.depth),
+                return_force: Some(t.force),
+                return_moment: Some(t.moment),
+                return_bonus: Some(t.bonus),
+                return_failure: Some(t.failure),
+            },
+            None => ReturnColumns::default(),
+        }
+    }
+}
+
+impl ReturnTerms {
+    pub fn total(&self) -> f64 {
+        self.depth + self.force + self.moment + self.bonus + self.failure
+    }
+
+    /// Component-wise sum (accumulating steps, or averaging episodes).
+    pub fn add(&self, other: &ReturnTerms) -> ReturnTerms {
+        ReturnTerms {
+            depth: self.depth + other.depth,
+            force: self.force + other.force,
+            moment: self.moment + other.moment,
+            bonus: self.bonus + other.bonus,
+            failure: self.failure + other.failure,
+        }
+    }
+
+    pub fn scale(&self, k: f64) -> ReturnTerms {
+        ReturnTerms { depth: self.depth * k, force: self.force * k, moment: self.moment * k, bonus: self.bonus * k, failure: self.failure * k }
+    }
+
+    /// The mean of several episodes' terms; None when any has none.
+    pub fn mean<'a>(terms: impl Iterator<Item = Option<&'a ReturnTerms>>) -> Option<ReturnTerms> {
+        let all: Option<Vec<&ReturnTerms>> = terms.collect();
+        let all = all?;
+        if all.is_empty() {
+            return None;
+        }
+        let sum = all.iter().fold(ReturnTerms::default(), |acc, t| acc.add(t));
+        Some(sum.scale(1.0 / all.len() as f64))
+    }
 }
 
 impl Clone for Box<dyn Env> {

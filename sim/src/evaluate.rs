@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::env::{Env, EnvError, EpisodeMetrics};
+use crate::env::{Env, EnvError, EpisodeMetrics, ReturnColumns, ReturnTerms};
 
 /// One control step of a recorded episode.
 #[derive(Debug, Clone, PartialEq)]
@@ -72,7 +72,7 @@ pub fn run_episode(
 
 /// What `summary.json` holds. Task figures are null where the environment
 /// has no such notion (linear systems have no forces).
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct Summary {
     pub env: String,
     pub controller: String,
@@ -89,6 +89,9 @@ pub struct Summary {
     pub mean_return: f64,
     pub min_return: f64,
     pub max_return: f64,
+    /// The mean return split into its reward terms (peg tasks; docs/peg.md).
+    #[serde(flatten)]
+    pub terms: ReturnColumns,
     /// Control steps per second of wall time, one thread, all physics
     /// substeps included.
     pub control_steps_per_sec: f64,
@@ -145,6 +148,7 @@ pub fn summarize(env: String, controller: &str, seed: u64, records: &[EpisodeRec
         mean_return: mean(returns.clone()).unwrap_or(0.0),
         min_return: returns.clone().fold(f64::INFINITY, f64::min),
         max_return: returns.fold(f64::NEG_INFINITY, f64::max),
+        terms: ReturnTerms::mean(records.iter().map(|r| r.metrics.return_terms.as_ref())).into(),
         control_steps_per_sec: if elapsed_s > 0.0 { total_steps as f64 / elapsed_s } else { 0.0 },
         elapsed_s,
     }

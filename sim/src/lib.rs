@@ -8,12 +8,14 @@
 //! - [`peg`]: the peg-in-hole assembly simulator on rapier3d (METHOD.md §6).
 //! - [`evaluate`]: whole episodes with a policy, traces and summaries.
 //! - [`registry`]: environments by name or TOML file.
+//! - [`tune`]: the best constant action (CMA-ES), the bar for learned agents.
 
 pub mod env;
 pub mod evaluate;
 pub mod lti;
 pub mod peg;
 pub mod registry;
+pub mod tune;
 
-pub use env::{Env, EnvError, EnvSpec, EpisodeMetrics, Step};
+pub use env::{Env, EnvError, EnvSpec, EpisodeMetrics, ReturnColumns, ReturnTerms, Step};
 pub use registry::{known_env_names, make_env};

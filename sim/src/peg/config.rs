@@ -6,9 +6,10 @@
 //!   in newton-millimetres (N·mm) inside the controller and N·m in the state;
 //! - compliance k̂ (eq. 20): translational mm/N, rotational deg/(N·mm), so
 //!   p_c = K·F moves the pose by millimetres and degrees per control step;
-//! - reward (eqs. 16–17): depth z in centimetres, force in N, moment in N·m,
-//!   which keeps the three dense terms of comparable size (a few units at
-//!   most per step) so neither depth nor contact dominates.
+//! - reward (eqs. 16–17): SI units, depth z in metres, force in N, moment
+//!   in N·m, as the publication's reward magnitudes imply (docs/peg.md): the
+//!   depth term then costs about 1 per episode, and the return is decided by
+//!   the contact terms, which the actions change.
 
 use serde::{Deserialize, Serialize};
 
@@ -228,6 +229,34 @@ impl PegConfig {
             .map_err(|e: toml::de::Error| EnvError::Parse { path: source.to_string(), message: e.to_string() })?;
         cfg.validate()?;
         Ok(cfg)
+    }
+
+    /// The largest remaining depth any episode can start from, mm: the
+    /// start height plus its error plus L. The depth term of the reward is
+    /// clamped to [0, this], which bounds every dense step cost.
+    pub fn max_depth_mm(&self) -> f64 {
+        self.episode.start_height_mm + self.episode.position_error_mm + self.geometry.target_depth_mm
+    }
+
+    /// The remaining depth z (mm) as the reward counts it: metres, clamped
+    /// to [0, max_depth_mm].
+    pub fn clamped_depth_m(&self, remaining_mm: f64) -> f64 {
+        remaining_mm.clamp(0.0, self.max_depth_mm()) * 1e-3
+    }
+
+    /// The most one step within the limits can cost:
+    /// c_max = h_z·z_max + h_F·F_limit + h_M·M_limit (SI units).
+    pub fn max_step_cost(&self) -> f64 {
+        let r = &self.reward;
+        r.h_z * self.clamped_depth_m(self.max_depth_mm()) + r.h_f * self.limits.force_limit_n + r.h_m * self.limits.moment_limit_nm
+    }
+
+    /// The failure charge C = max_steps · c_max. A successful episode has at
+    /// most max_steps steps, each within the limits, so it loses at most C
+    /// to the dense terms and scores at least r_s − C; a failed one scores
+    /// at most −C minus its own (positive) costs. Failure never pays.
+    pub fn failure_charge(&self) -> f64 {
+        self.episode.max_steps as f64 * self.max_step_cost()
     }
 
     /// Checks every value, naming the field of the first bad one.

@@ -21,7 +21,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rapier3d_f64::math::{Pose, Rotation, Vector};
 
-use crate::env::{Env, EnvError, EnvSpec, EpisodeMetrics, Step};
+use crate::env::{Env, EnvError, EnvSpec, EpisodeMetrics, ReturnTerms, Step};
 pub use config::PegConfig;
 use world::{angles_deg, pose_from, PegWorld};
 
@@ -56,6 +56,8 @@ pub struct PegEnv {
     peak_force_n: f64,
     peak_moment_nm: f64,
     max_penetration_mm: f64,
+    /// The reward terms of the episode so far.
+    terms: ReturnTerms,
 }
 
 impl PegEnv {
@@ -82,6 +84,7 @@ impl PegEnv {
             peak_force_n: 0.0,
             peak_moment_nm: 0.0,
             max_penetration_mm: 0.0,
+            terms: ReturnTerms::default(),
         };
         env.start_at(start);
         Ok(env)
@@ -111,6 +114,7 @@ impl PegEnv {
         self.peak_force_n = 0.0;
         self.peak_moment_nm = 0.0;
         self.max_penetration_mm = self.world.penetration_mm();
+        self.terms = ReturnTerms::default();
         self.state = self.observe();
     }
 
@@ -200,23 +204,23 @@ impl Env for PegEnv {
         } else {
             Outcome::Running
         };
-        // Eqs. 16–17; depth in cm (see config.rs for the units). Reaching the
-        // depth ends the episode at once, and exceeding a limit ends it as a
-        // failure, so an inserted episode stayed within limits throughout and
-        // earns r_s.
+        // Eqs. 16–17 in SI units (depth m, force N, moment N·m; docs/peg.md).
+        // Reaching the depth ends the episode at once, and exceeding a limit
+        // ends it as a failure, so an inserted episode stayed within limits
+        // throughout and earns r_s.
         let r = &self.cfg.reward;
-        let depth_cost = r.h_z * remaining.max(0.0) / 10.0;
-        let mut reward = -depth_cost - r.h_f * force - r.h_m * moment;
-        match self.outcome {
-            Outcome::Inserted => reward += r.r_s,
-            // Dense rewards are negative, so ending early would pay: a jam at
-            // step 5 would out-score a clean insertion. A failure is charged
-            // the depth cost of staying stuck until the step cap instead.
-            Outcome::ForceLimit | Outcome::MomentLimit => {
-                reward -= depth_cost * self.cfg.episode.max_steps.saturating_sub(self.steps) as f64;
-            }
-            Outcome::Running => {}
-        }
+        let terms = ReturnTerms {
+            depth: -r.h_z * self.cfg.clamped_depth_m(remaining),
+            force: -r.h_f * force,
+            moment: -r.h_m * moment,
+            bonus: if self.outcome == Outcome::Inserted { r.r_s } else { 0.0 },
+            // Failure must never pay (docs/peg.md, "the failure rule"): the
+            // charge is the most any episode can lose to the dense terms, so
+            // a failed episode scores below every successful one.
+            failure: if matches!(self.outcome, Outcome::ForceLimit | Outcome::MomentLimit) { -self.cfg.failure_charge() } else { 0.0 },
+        };
+        self.terms = self.terms.add(&terms);
+        let reward = terms.total();
         Ok(Step {
             state: self.state.clone(),
             reward,
@@ -260,6 +264,7 @@ impl Env for PegEnv {
             peak_force_n: Some(self.peak_force_n),
             peak_moment_nm: Some(self.peak_moment_nm),
             max_penetration_mm: Some(self.max_penetration_mm),
+            return_terms: Some(self.terms),
         }
     }
 }

@@ -140,12 +140,6 @@ fn jamming_ends_on_the_force_limit() {
     assert!(matches!(env.outcome(), Outcome::ForceLimit | Outcome::MomentLimit), "{:?}", env.outcome());
     assert!(last.state[2] > 5.0, "jammed near the entrance, not inserted: z = {}", last.state[2]);
     assert!(env.episode_metrics().peak_force_n.unwrap() > 20.0);
-    // Failing early must not pay: the jam costs more than a clean insertion.
-    let jam_return: f64 = steps.iter().map(|s| s.reward).sum();
-    let mut clean = PegEnv::new("peg-test", PegConfig::group1()).unwrap();
-    clean.reset_to([0.0, 0.0, 0.5], [0.0; 3]);
-    let clean_return: f64 = run(&mut clean, [0.0; 6]).iter().map(|s| s.reward).sum();
-    assert!(jam_return < 2.0 * clean_return, "jam {jam_return} vs clean {clean_return}");
     assert_eq!(env.step(&[0.0; 6]).unwrap_err().to_string(), EnvError::EpisodeOver.to_string());
 }
 
@@ -182,17 +176,82 @@ fn same_seed_same_episode_and_bad_actions_change_nothing() {
 }
 
 #[test]
-fn reward_follows_eqs_16_and_17() {
+fn reward_follows_eqs_16_and_17_in_si_units() {
     let mut env = env(PegConfig::group1());
     env.reset_to([0.0, 0.0, 1.0], [0.0; 3]);
     let step = env.step(&[0.0; 6]).unwrap();
-    // No contact yet: only the depth term, z in cm with h_z = 1.
-    assert!((step.reward + step.state[2] / 10.0).abs() < 1e-12);
+    // No contact yet: only the depth term, z in metres with h_z = 1.
+    assert!((step.reward + step.state[2] * 1e-3).abs() < 1e-15);
     let steps = run(&mut env, [0.0; 6]);
     let last = steps.last().unwrap();
+    assert!(last.terminated && env.outcome() == Outcome::Inserted, "the a = 0 controller inserts from a centred start");
     let s = &last.state;
     let force = (s[6] * s[6] + s[7] * s[7] + s[8] * s[8]).sqrt();
     let moment = (s[9] * s[9] + s[10] * s[10] + s[11] * s[11]).sqrt();
-    let expected = -s[2].max(0.0) / 10.0 - 0.1 * force - moment + 2.0;
+    let expected = -s[2].max(0.0) * 1e-3 - 0.1 * force - moment + 2.0;
     assert!((last.reward - expected).abs() < 1e-12, "{} vs {expected}", last.reward);
+    // The terms add up to the return, and the bonus is r_s once.
+    let terms = env.episode_metrics().return_terms.unwrap();
+    let total: f64 = step.reward + steps.iter().map(|s| s.reward).sum::<f64>();
+    assert!((terms.total() - total).abs() < 1e-9, "{terms:?} vs {total}");
+    assert_eq!((terms.bonus, terms.failure), (2.0, 0.0));
+    assert!(terms.depth < 0.0 && terms.force < 0.0 && terms.moment < 0.0);
 }
+
+/// Failure never pays: a policy that jams on purpose (lateral compliance
+/// off, rotational compliance at its maximum, so the peg cannot slide into
+/// the hole and tips over on the chamfer until it wedges) exceeds a limit
+/// and scores below every successful episode from the same start, however
+/// quickly it failed.
+#[test]
+fn jamming_on_purpose_scores_below_every_success_from_the_same_start() {
+    let mut jammed = 0;
+    for seed in 0..12 {
+        let mut jam_env = env(PegConfig::group1());
+        jam_env.reset(seed);
+        let jam_steps = run(&mut jam_env, [-1.0, -1.0, 2.0, 4.0, 4.0, 4.0]);
+        let jam_return: f64 = jam_steps.iter().map(|s| s.reward).sum();
+        if !matches!(jam_env.outcome(), Outcome::ForceLimit | Outcome::MomentLimit) {
+            continue;
+        }
+        jammed += 1;
+        let terms = jam_env.episode_metrics().return_terms.unwrap();
+        assert_eq!(terms.failure, -jam_env.config().failure_charge());
+        assert_eq!(terms.bonus, 0.0);
+        // Successful controllers from the same start: nominal and doubled
+        // lateral compliance.
+        for action in [[0.0; 6], [2.0, 2.0, 0.0, 0.0, 0.0, 0.0], [2.0, 2.0, 2.0, 4.0, 4.0, 4.0], [-1.0; 6]] {
+            let mut ok_env = env(PegConfig::group1());
+            ok_env.reset(seed);
+            let ok_return: f64 = run(&mut ok_env, action).iter().map(|s| s.reward).sum();
+            if ok_env.outcome() == Outcome::Inserted {
+                assert!(jam_return < ok_return, "seed {seed}: jam {jam_return} ≥ success {ok_return} with {action:?}");
+            }
+        }
+    }
+    assert!(jammed >= 8, "the jamming policy should fail from most starts, failed {jammed} of 12");
+}
+
+/// The bound behind the failure rule: no step within the limits costs more
+/// than c_max, so C = max_steps · c_max covers any successful episode.
+#[test]
+fn failure_charge_bounds_every_step_within_limits() {
+    let cfg = PegConfig::group1();
+    let c_max = cfg.max_step_cost();
+    // 31.2 mm · 1 + 50 N · 0.1 + 1.5 N·m · 1.
+    assert!((c_max - (0.0312 + 5.0 + 1.5)).abs() < 1e-12, "{c_max}");
+    assert!((cfg.failure_charge() - 100.0 * c_max).abs() < 1e-9);
+    for action in [[0.0; 6], [2.0, 2.0, 2.0, 4.0, 4.0, 4.0], [-0.5; 6]] {
+        for seed in 0..4 {
+            let mut e = env(cfg.clone());
+            e.reset(seed);
+            let steps = run(&mut e, action);
+            let failed = matches!(e.outcome(), Outcome::ForceLimit | Outcome::MomentLimit);
+            let within = if failed { &steps[..steps.len() - 1] } else { &steps[..] };
+            for step in within {
+                assert!(step.reward >= -c_max, "{} < −c_max = {}", step.reward, -c_max);
+            }
+        }
+    }
+}
+

@@ -1,0 +1,243 @@
+//! The best constant action: the bar any learned agent must clear.
+//!
+//! A constant action a is a controller of its own (on the peg tasks a = 0
+//! is the constant compliance controller, docs/method.md §6). `tune`
+//! searches the action box for the constant with the highest mean return
+//! on a fixed set of episode starts, with CMA-ES (the `cmaes` crate), and
+//! then evaluates the winner on a separate set of starts, the same ones
+//! `lcrl sim --seed` uses, so its figures are comparable with any policy's.
+//!
+//! The search runs in u ∈ [−1, 1]ⁿ, the box mapped linearly onto
+//! [lb, ub] (so every component has the same scale); CMA-ES samples outside
+//! the box are clipped onto it. The start is a = 0, and a = 0 itself is
+//! always a candidate, so the bar is never worse than the untrained
+//! controller on the tuning starts.
+
+use std::time::Instant;
+
+use cmaes::{CMAESOptions, DVector};
+use serde::Serialize;
+
+use crate::env::{Env, EnvError, EnvSpec};
+use crate::evaluate::{evaluate, run_episode, Summary};
+
+/// How the search runs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TuneOptions {
+    /// Episodes per candidate (the fixed tuning starts).
+    pub episodes: usize,
+    /// Seed of the first tuning start; starts are seed, seed+1, …
+    pub seed: u64,
+    /// Candidates CMA-ES may evaluate in total.
+    pub evaluations: usize,
+    /// Initial CMA-ES step size in u units (the box is 2 wide).
+    pub sigma: f64,
+    /// Episodes of the final evaluation of a = 0 and the winner.
+    pub eval_episodes: usize,
+    /// Seed of the first evaluation start (as `lcrl sim --seed`).
+    pub eval_seed: u64,
+}
+
+impl Default for TuneOptions {
+    fn default() -> Self {
+        TuneOptions { episodes: 32, seed: 1_000_000, evaluations: 300, sigma: 0.3, eval_episodes: 100, eval_seed: 0 }
+    }
+}
+
+/// A controller's figures on the evaluation starts, as best_constant.json
+/// reports them.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ConstantResult {
+    pub action: Vec<f64>,
+    /// Mean return on the tuning starts.
+    pub tuning_return: f64,
+    /// Everything `lcrl sim` reports, on the evaluation starts.
+    pub eval: Summary,
+}
+
+/// What `lcrl tune` writes: the best constant and a = 0 beside it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TuneReport {
+    pub env: String,
+    pub action_names: Vec<String>,
+    /// The best constant action found.
+    pub action: Vec<f64>,
+    /// Its figures on the evaluation starts (the bar).
+    pub mean_return: f64,
+    pub success_rate: Option<f64>,
+    pub mean_peak_force_n: Option<f64>,
+    #[serde(flatten)]
+    pub terms: crate::env::ReturnColumns,
+    pub best: ConstantResult,
+    /// The constant compliance controller (a = 0) on the same starts.
+    pub zero_action: ConstantResult,
+    pub tuning_episodes: usize,
+    pub tuning_seed: u64,
+    pub eval_episodes: usize,
+    pub eval_seed: u64,
+    /// Candidates evaluated by CMA-ES.
+    pub evaluations: usize,
+    pub method: String,
+    pub elapsed_s: f64,
+}
+
+/// Maps u ∈ [−1, 1]ⁿ (clipped) onto the action box.
+pub fn action_of(spec: &EnvSpec, u: &[f64]) -> Vec<f64> {
+    u.iter()
+        .zip(spec.action_low.iter().zip(&spec.action_high))
+        .map(|(u, (lo, hi))| lo + (u.clamp(-1.0, 1.0) + 1.0) / 2.0 * (hi - lo))
+        .collect()
+}
+
+/// The u of an action (inverse of [`action_of`]).
+pub fn u_of(spec: &EnvSpec, action: &[f64]) -> Vec<f64> {
+    action
+        .iter()
+        .zip(spec.action_low.iter().zip(&spec.action_high))
+        .map(|(a, (lo, hi))| if hi > lo { 2.0 * (a - lo) / (hi - lo) - 1.0 } else { 0.0 })
+        .collect()
+}
+
+/// Mean return of a constant action over `episodes` starts from `seed`.
+pub fn constant_return(template: &dyn Env, action: &[f64], episodes: usize, seed: u64) -> Result<f64, EnvError> {
+    template.spec().check_action(action)?;
+    let mut env = template.snapshot();
+    let mut total = 0.0;
+    for k in 0..episodes {
+        let record = run_episode(env.as_mut(), seed.wrapping_add(k as u64), &mut |_| action.to_vec(), false)?;
+        total += record.episode_return;
+    }
+    Ok(total / episodes as f64)
+}
+
+fn evaluate_constant(template: &dyn Env, action: &[f64], tuning_return: f64, opts: &TuneOptions) -> Result<ConstantResult, EnvError> {
+    let mut env = template.snapshot();
+    let label = format!("constant {action:?}");
+    let (eval, _) = evaluate(env.as_mut(), &label, opts.eval_episodes, opts.eval_seed, &mut |_| action.to_vec(), &mut |_| {})?;
+    Ok(ConstantResult { action: action.to_vec(), tuning_return, eval })
+}
+
+/// Runs the search (candidates in parallel on the current rayon pool);
+/// `on_candidate` is called after every candidate with the best mean
+/// return so far.
+pub fn tune(template: &dyn Env, opts: &TuneOptions, on_candidate: &(dyn Fn(f64) + Sync)) -> Result<TuneReport, TuneError> {
+    if opts.episodes == 0 || opts.eval_episodes == 0 {
+        return Err(TuneError::Options("episodes and eval episodes must be at least 1".into()));
+    }
+    if opts.evaluations < 2 {
+        return Err(TuneError::Options("--evaluations must be at least 2".into()));
+    }
+    if !(opts.sigma.is_finite() && opts.sigma > 0.0) {
+        return Err(TuneError::Options(format!("sigma must be a finite number > 0, got {}", opts.sigma)));
+    }
+    let started = Instant::now();
+    let spec = template.spec().clone();
+    let n = spec.action_dim();
+    let zero = vec![0.0; n];
+    let zero_return = constant_return(template, &zero, opts.episodes, opts.seed)?;
+
+    // Episode errors cannot cross the objective's signature; the first one
+    // is kept and reported after the search.
+    let failure: std::sync::Mutex<Option<EnvError>> = std::sync::Mutex::new(None);
+    let best_so_far = std::sync::Mutex::new(zero_return);
+    let objective = |u: &DVector<f64>| -> f64 {
+        let action = action_of(&spec, u.as_slice());
+        match constant_return(template, &action, opts.episodes, opts.seed) {
+            Ok(r) => {
+                let best = {
+                    let mut best = best_so_far.lock().unwrap_or_else(|p| p.into_inner());
+                    *best = best.max(r);
+                    *best
+                };
+                on_candidate(best);
+                -r
+            }
+            Err(e) => {
+                failure.lock().unwrap_or_else(|p| p.into_inner()).get_or_insert(e);
+                f64::INFINITY
+            }
+        }
+    };
+    let mut state = CMAESOptions::new(u_of(&spec, &zero), opts.sigma)
+        .max_function_evals(opts.evaluations)
+        .seed(opts.seed)
+        .build(objective)
+        .map_err(|e| TuneError::Options(format!("{e:?}")))?;
+    let data = state.run_parallel();
+    let evaluations = state.function_evals();
+    drop(state);
+    if let Some(e) = failure.into_inner().unwrap_or_else(|p| p.into_inner()) {
+        return Err(TuneError::Env(e));
+    }
+    let (best_action, best_return) = match data.overall_best {
+        Some(ind) if -ind.value > zero_return => (action_of(&spec, ind.point.as_slice()), -ind.value),
+        _ => (zero.clone(), zero_return),
+    };
+
+    let best = evaluate_constant(template, &best_action, best_return, opts)?;
+    let zero_action = evaluate_constant(template, &zero, zero_return, opts)?;
+    Ok(TuneReport {
+        env: spec.name.clone(),
+        action_names: spec.action_names.clone(),
+        action: best_action,
+        mean_return: best.eval.mean_return,
+        success_rate: best.eval.success_rate,
+        mean_peak_force_n: best.eval.mean_peak_force_n,
+        terms: best.eval.terms,
+        best,
+        zero_action,
+        tuning_episodes: opts.episodes,
+        tuning_seed: opts.seed,
+        eval_episodes: opts.eval_episodes,
+        eval_seed: opts.eval_seed,
+        evaluations,
+        method: format!(
+            "CMA-ES (cmaes crate) in the box mapped to [-1,1]^n, start a = 0, sigma {}, up to {} candidates of {} episodes each; a = 0 kept if nothing beats it",
+            opts.sigma, opts.evaluations, opts.episodes
+        ),
+        elapsed_s: started.elapsed().as_secs_f64(),
+    })
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum TuneError {
+    #[error("tune: {0}")]
+    Options(String),
+    #[error(transparent)]
+    Env(#[from] EnvError),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::lti::{LtiConfig, LtiEnv};
+
+    #[test]
+    fn box_mapping_round_trips_and_clips() {
+        let env = crate::make_env("peg-group1").unwrap();
+        let spec = env.spec();
+        let a = vec![0.0, 1.5, -1.0, 4.0, 0.25, -0.5];
+        let back = action_of(spec, &u_of(spec, &a));
+        assert!(a.iter().zip(&back).all(|(x, y)| (x - y).abs() < 1e-12), "{back:?}");
+        assert_eq!(action_of(spec, &[9.0, -9.0, 0.0, 0.0, 0.0, 0.0])[..2], [2.0, -1.0]);
+    }
+
+    /// A system whose best constant is known: s' = s + a on one state from
+    /// s_0 = 1, cost s_t² + 0.1 a² for t = 0, 1, 2. The return
+    /// −[1 + (1+a)² + (1+2a)²] − 0.3 a² is a concave quadratic with its
+    /// maximum at a = −6/10.6; the search must find it to 0.02.
+    #[test]
+    fn finds_the_known_best_constant_of_a_linear_system() {
+        let mut cfg = LtiConfig::from_matrices(vec![vec![1.0]], vec![vec![1.0]]);
+        cfg.initial_state_low = Some(vec![1.0]);
+        cfg.initial_state_high = Some(vec![1.0]);
+        cfg.episode_steps = 3;
+        let env = LtiEnv::new("one", &cfg).unwrap();
+        let optimum = -6.0 / 10.6;
+        let opts = TuneOptions { episodes: 1, evaluations: 200, eval_episodes: 1, ..TuneOptions::default() };
+        let report = tune(&env, &opts, &|_| {}).unwrap();
+        assert!((report.action[0] - optimum).abs() < 0.02, "{:?} vs {optimum}", report.action);
+        assert!(report.mean_return > report.zero_action.eval.mean_return);
+        assert_eq!(report.zero_action.action, vec![0.0]);
+    }
+}
