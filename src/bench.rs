@@ -62,7 +62,7 @@ fn bench_learner(updates: usize) -> anyhow::Result<()> {
     tch::set_num_threads(1);
     let env = lcrl_sim::make_env("peg-group1")?;
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
-    let options = GraphOptions { cs3: Cs3Config { samples: 32, seed: 0, threads: 0 }, rule: Rule::Threshold(0.1), bootstrap: 0 };
+    let options = GraphOptions { cs3: Cs3Config { samples: 32, seed: 0, threads: 0, start: None }, rule: Rule::Threshold(0.1), bootstrap: 0 };
     let mask = build_graph(env.as_ref(), &options, &|| {})?.g;
     let edges: usize = mask.iter().flatten().map(|&v| usize::from(v)).sum();
     println!("peg-group1 ({m} states, {n} actions, {edges} of {} edges in G), one libtorch thread", m * n);
@@ -133,7 +133,7 @@ fn bench_graph(samples: usize, repeats: usize) -> anyhow::Result<()> {
     for (label, env) in &systems {
         let time = |threads: usize| -> anyhow::Result<f64> {
             let options = GraphOptions {
-                cs3: Cs3Config { samples, seed: 0, threads },
+                cs3: Cs3Config { samples, seed: 0, threads, start: None },
                 rule: Rule::Threshold(0.1),
                 bootstrap: 200,
             };

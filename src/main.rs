@@ -95,6 +95,7 @@ fn main() -> ExitCode {
 fn run_graph(args: &GraphArgs) -> anyhow::Result<()> {
     let report = args.run()?;
     print!("{}", report.table());
+    print!("{}", report.sweep_table());
     if let Some(path) = &args.out {
         println!("\nwrote {}", path.display());
     }

@@ -19,8 +19,18 @@ pub struct GraphArgs {
     pub samples: usize,
     /// T of eq. 7: keep action i for state j when phi(i,j) ≥ T × the mean
     /// effect of all actions on j [default: 0.1, the publication's value].
-    #[arg(long, conflicts_with = "exact", allow_hyphen_values = true)]
+    #[arg(long, conflicts_with_all = ["exact", "thresholds"], allow_hyphen_values = true)]
     pub threshold: Option<f64>,
+    /// A threshold sweep: G at each T (eq. 7) with its edge count, the
+    /// edges that flip between consecutive T, one heatmap panel per T; the
+    /// first T is the graph's own (its `g` in the JSON).
+    #[arg(long, value_delimiter = ',', num_args = 1.., conflicts_with = "exact", value_name = "T1,T2,…")]
+    pub thresholds: Option<Vec<f64>>,
+    /// Where CS3's start states s_0 come from: `trajectory` (a state along
+    /// an episode of the a = 0 controller, so often in contact; the default
+    /// for peg tasks) or `reset` (an episode start; the default elsewhere).
+    #[arg(long, value_enum)]
+    pub start: Option<crate::Start>,
     /// Use eq. 6 (G_ij = 1 iff phi ≠ 0) instead of eq. 7; only sensible for
     /// noise-free systems.
     #[arg(long)]
@@ -50,10 +60,11 @@ impl GraphArgs {
         let rule = if self.exact {
             Rule::Exact { tolerance: self.tolerance }
         } else {
-            Rule::Threshold(self.threshold.unwrap_or(0.1))
+            let first = self.thresholds.as_ref().and_then(|t| t.first().copied());
+            Rule::Threshold(self.threshold.or(first).unwrap_or(0.1))
         };
         GraphOptions {
-            cs3: Cs3Config { samples: self.samples, seed: self.seed, threads: self.threads },
+            cs3: Cs3Config { samples: self.samples, seed: self.seed, threads: self.threads, start: self.start },
             rule,
             bootstrap: self.bootstrap,
         }
@@ -66,6 +77,10 @@ impl GraphArgs {
     pub fn run(&self) -> Result<GraphReport, GraphError> {
         let options = self.options();
         options.validate()?;
+        let sweep = self.thresholds.clone().unwrap_or_default();
+        if let Some(bad) = sweep.iter().find(|t| !(t.is_finite() && **t > 0.0)) {
+            return Err(GraphError::Threshold(*bad));
+        }
         let env = lcrl_sim::make_env(&self.env)?;
         let json_out = self.out.as_deref().map(|p| PendingFile::new(p, ".json")).transpose()?;
         let plot_out = self.plot.as_deref().map(|p| PendingFile::new(p, ".png")).transpose()?;
@@ -77,7 +92,7 @@ impl GraphArgs {
         }
         let report = build_graph(env.as_ref(), &options, &|| bar.inc(1));
         bar.finish_and_clear();
-        let report = report?;
+        let report = report?.with_sweep(&sweep);
 
         if let Some(file) = json_out {
             report.write_json(file.temp.path())?;

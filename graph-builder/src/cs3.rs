@@ -16,6 +16,33 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
+/// Where the paired branches of a CS3 sample start (docs/method.md §2).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Start {
+    /// s_0 is an episode start: `reset(seed)`.
+    Reset,
+    /// s_0 is the state of an episode of the neutral controller (a = 0) at
+    /// a step drawn uniformly from the episode, so on contact tasks it is
+    /// often in contact and mid-insertion (eq. 5 draws s_0 from the whole
+    /// state space, not only from episode starts).
+    Trajectory,
+}
+
+impl Start {
+    /// The start an environment gets when none is asked for.
+    pub fn default_for(env: &dyn Env) -> Start {
+        if env.prefers_trajectory_starts() { Start::Trajectory } else { Start::Reset }
+    }
+
+    pub fn name(&self) -> &'static str {
+        match self {
+            Start::Reset => "reset",
+            Start::Trajectory => "trajectory",
+        }
+    }
+}
+
 /// How CS3 samples.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Cs3Config {
@@ -25,11 +52,14 @@ pub struct Cs3Config {
     pub seed: u64,
     /// Worker threads for the rollouts; 0 means one per core.
     pub threads: usize,
+    /// Where s_0 comes from; None: the environment's default
+    /// ([`Start::default_for`]).
+    pub start: Option<Start>,
 }
 
 impl Default for Cs3Config {
     fn default() -> Self {
-        Cs3Config { samples: 256, seed: 0, threads: 0 }
+        Cs3Config { samples: 256, seed: 0, threads: 0, start: None }
     }
 }
 
@@ -55,6 +85,26 @@ impl Cs3Samples {
     pub fn phi(&self) -> Vec<Vec<f64>> {
         let all: Vec<usize> = (0..self.samples).collect();
         self.phi_of(|_| &all)
+    }
+
+    /// The standard error of each phi(i, j): the sample standard deviation
+    /// of the ST per-sample sums over √ST.
+    pub fn phi_stderr(&self) -> Vec<Vec<f64>> {
+        let phi = self.phi();
+        let st = self.samples as f64;
+        (0..self.actions)
+            .map(|i| {
+                (0..self.states)
+                    .map(|j| {
+                        if self.samples < 2 {
+                            return 0.0;
+                        }
+                        let ss: f64 = (0..self.samples).map(|k| (self.sample(i, k)[j] - phi[i][j]).powi(2)).sum();
+                        (ss / (st - 1.0)).sqrt() / st.sqrt()
+                    })
+                    .collect()
+            })
+            .collect()
     }
 
     /// phi from a chosen multiset of sample indices per action (bootstrap).
@@ -84,11 +134,12 @@ pub fn measure(env: &dyn Env, cfg: &Cs3Config, on_sample: &(dyn Fn() + Sync)) ->
     }
     let n = env.spec().action_dim();
     let m = env.spec().state_dim();
+    let start = cfg.start.unwrap_or_else(|| Start::default_for(env));
     let per_sample: Vec<Result<Vec<f64>, EnvError>> = (0..n * cfg.samples)
         .into_par_iter()
         .map(|index| {
             let (i, k) = (index / cfg.samples, index % cfg.samples);
-            let result = paired_rollout(env, i, sample_seed(cfg.seed, i, k));
+            let result = paired_rollout(env, start, i, sample_seed(cfg.seed, i, k));
             on_sample();
             result
         })
@@ -101,14 +152,13 @@ pub fn measure(env: &dyn Env, cfg: &Cs3Config, on_sample: &(dyn Fn() + Sync)) ->
 }
 
 /// One sample of eq. 5 for action i: two branches from one s_0, m steps.
-fn paired_rollout(template: &dyn Env, i: usize, seed: u64) -> Result<Vec<f64>, EnvError> {
+fn paired_rollout(template: &dyn Env, start: Start, i: usize, seed: u64) -> Result<Vec<f64>, EnvError> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let spec = template.spec();
     let (n, m) = (spec.action_dim(), spec.state_dim());
 
     // s_0 ~ S, and s'_0 = s_0: the primed branch is an exact snapshot.
-    let mut plain = template.snapshot();
-    plain.reset(rng.random());
+    let mut plain = draw_start(template, start, &mut rng)?;
     let mut primed = plain.snapshot();
     if plain.is_stochastic() {
         // Process noise is part of the system, not of the action: the two
@@ -141,6 +191,34 @@ fn paired_rollout(template: &dyn Env, i: usize, seed: u64) -> Result<Vec<f64>, E
         }
     }
     Ok(sums)
+}
+
+/// A copy of `template` in a start state s_0 drawn as `start` says.
+///
+/// Trajectory starts run one episode of the neutral controller (a = 0) and
+/// keep the state at a step drawn uniformly from it by reservoir sampling
+/// (state t replaces the kept one with probability 1/(t+1)), so one pass
+/// and a few snapshots suffice. The final, ended state is never kept: an
+/// ended episode cannot be stepped. The copy is an exact snapshot, so both
+/// branches continue from it bit-identically.
+pub fn draw_start(template: &dyn Env, start: Start, rng: &mut ChaCha8Rng) -> Result<Box<dyn Env>, EnvError> {
+    let mut env = template.snapshot();
+    env.reset(rng.random());
+    if start == Start::Reset {
+        return Ok(env);
+    }
+    let neutral = vec![0.0; env.spec().action_dim()];
+    let mut kept = env.snapshot();
+    for t in 1usize.. {
+        let step = env.step(&neutral)?;
+        if step.terminated || step.truncated {
+            break;
+        }
+        if rng.random_range(0..=t) == 0 {
+            kept = env.snapshot();
+        }
+    }
+    Ok(kept)
 }
 
 /// The pool the rollouts run on: `threads` workers, or one per core for 0.

@@ -62,6 +62,19 @@ pub fn connection_graph(phi: &[Vec<f64>], rule: Rule) -> ConnectionGraph {
     ConnectionGraph { g, unmoved_states }
 }
 
+/// Each entry's margin under eq. 7 with threshold T: phi(i, j) divided by
+/// its cut T · (1/n) Σ_k phi(k, j). G_ij = 1 exactly when the margin is ≥ 1;
+/// a margin of 5 means the edge survives thresholds up to 5·T. Columns no
+/// action moves get 0.
+pub fn margins(phi: &[Vec<f64>], threshold: f64) -> Vec<Vec<f64>> {
+    let n = phi.len();
+    let m = phi.first().map_or(0, Vec::len);
+    let cuts: Vec<f64> = (0..m).map(|j| threshold * phi.iter().map(|row| row[j]).sum::<f64>() / n as f64).collect();
+    phi.iter()
+        .map(|row| row.iter().zip(&cuts).map(|(v, cut)| if *cut > 0.0 { v / cut } else { 0.0 }).collect())
+        .collect()
+}
+
 /// "Normalized CS3": phi divided by its column sum (0 for an all-zero column).
 pub fn normalized(phi: &[Vec<f64>]) -> Vec<Vec<f64>> {
     let m = phi.first().map_or(0, Vec::len);
@@ -126,6 +139,21 @@ mod tests {
         let graph = connection_graph(&phi, Rule::Exact { tolerance: EXACT_TOLERANCE });
         assert_eq!(graph.g, vec![vec![1, 0], vec![1, 0]]);
         assert_eq!(graph.unmoved_states, vec![1]);
+    }
+
+    #[test]
+    fn margins_are_phi_over_the_cut_and_agree_with_g() {
+        let phi = vec![vec![2.5, 0.0, 1e-6], vec![1.0, 0.0, 1e-6], vec![0.5, 0.0, 0.0]];
+        let margin = margins(&phi, 0.4);
+        // Column 0: cut 0.4 · 4/3; 2.5 / (1.6/3) = 4.6875.
+        assert!((margin[0][0] - 4.6875).abs() < 1e-12);
+        assert_eq!(margin[0][1], 0.0);
+        let g = connection_graph(&phi, Rule::Threshold(0.4)).g;
+        for (i, row) in margin.iter().enumerate() {
+            for (j, &v) in row.iter().enumerate() {
+                assert_eq!(g[i][j] == 1, v >= 1.0, "({i}, {j}): margin {v}");
+            }
+        }
     }
 
     #[test]

@@ -21,9 +21,9 @@ use std::time::Instant;
 
 use lcrl_sim::{Env, EnvError};
 
-pub use cs3::{Cs3Config, Cs3Error, Cs3Samples};
+pub use cs3::{Cs3Config, Cs3Error, Cs3Samples, Start};
 pub use graph::{ConnectionGraph, Rule, EXACT_TOLERANCE};
-pub use report::GraphReport;
+pub use report::{GraphReport, SweepEntry};
 
 /// How to build a graph: CS3 sampling, the rule, and the bootstrap size.
 #[derive(Debug, Clone, PartialEq)]
@@ -68,6 +68,10 @@ pub fn build_graph(env: &dyn Env, opts: &GraphOptions, on_sample: &(dyn Fn() + S
         Rule::Threshold(t) => (Some(t), false, None),
         Rule::Exact { tolerance } => (None, true, Some(tolerance)),
     };
+    let margin = match opts.rule {
+        Rule::Threshold(t) => graph::margins(&phi, t),
+        Rule::Exact { .. } => Vec::new(),
+    };
     Ok(GraphReport {
         env: spec.name.clone(),
         state_names: spec.state_names.clone(),
@@ -84,6 +88,9 @@ pub fn build_graph(env: &dyn Env, opts: &GraphOptions, on_sample: &(dyn Fn() + S
         g: graph.g,
         stability,
         unmoved_states: graph.unmoved_states,
+        start: Some(opts.cs3.start.unwrap_or_else(|| cs3::Start::default_for(env)).name().to_string()),
+        margin,
+        sweep: Vec::new(),
         elapsed_s: started.elapsed().as_secs_f64(),
     })
 }

@@ -71,6 +71,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         "graph built; serving it"
     );
     eprint!("{}", report.table());
+    eprint!("{}", report.sweep_table());
     state_tx.send_replace(GraphState::Ready(Arc::new((&report).into())));
 
     shutdown_signal().await;

@@ -40,11 +40,82 @@ pub struct GraphReport {
     pub stability: Vec<Vec<f64>>,
     /// State columns no action moves (all zeros in G).
     pub unmoved_states: Vec<usize>,
+    /// Where CS3's start states came from: "reset" or "trajectory".
+    #[serde(default)]
+    pub start: Option<String>,
+    /// Each entry's margin under eq. 7: phi divided by its cut (T times the
+    /// column mean), n × m; G_ij = 1 iff ≥ 1. Empty for eq. 6.
+    #[serde(default)]
+    pub margin: Vec<Vec<f64>>,
+    /// G at other thresholds, when a sweep was asked for (`--thresholds`).
+    #[serde(default)]
+    pub sweep: Vec<SweepEntry>,
     /// Wall time of CS3 and thresholding, seconds.
     pub elapsed_s: f64,
 }
 
+/// G at one threshold of a sweep.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SweepEntry {
+    pub threshold: f64,
+    /// G (n × m) under eq. 7 at this threshold.
+    pub g: Vec<Vec<u8>>,
+    /// Edges kept (ones in G).
+    pub edges: usize,
+    /// phi over this threshold's cut, n × m.
+    pub margin: Vec<Vec<f64>>,
+}
+
 impl GraphReport {
+    /// Adds G at each of `thresholds` (eq. 7, from the same phi).
+    pub fn with_sweep(mut self, thresholds: &[f64]) -> Self {
+        self.sweep = thresholds
+            .iter()
+            .map(|&t| {
+                let g = crate::graph::connection_graph(&self.phi, crate::Rule::Threshold(t)).g;
+                let edges = g.iter().flatten().filter(|&&v| v == 1).count();
+                SweepEntry { threshold: t, g, edges, margin: crate::graph::margins(&self.phi, t) }
+            })
+            .collect();
+        self
+    }
+
+    /// Edges kept in G.
+    pub fn edges(&self) -> usize {
+        self.g.iter().flatten().filter(|&&v| v == 1).count()
+    }
+
+    /// The sweep as text: G and its edge count per T, and which edges flip
+    /// between consecutive thresholds.
+    pub fn sweep_table(&self) -> String {
+        let mut out = String::new();
+        if self.sweep.is_empty() {
+            return out;
+        }
+        let label = self.action_names.iter().map(|s| s.len()).max().unwrap_or(0);
+        let _ = writeln!(out, "\nthreshold sweep (eq. 7), columns {}:", self.state_names.join(" "));
+        for (k, entry) in self.sweep.iter().enumerate() {
+            let _ = writeln!(out, "T = {}: {} of {} edges", entry.threshold, entry.edges, self.actions() * self.states());
+            for (i, name) in self.action_names.iter().enumerate() {
+                let row: Vec<String> = entry.g[i].iter().map(u8::to_string).collect();
+                let _ = writeln!(out, "  {name:<label$} [{}]", row.join(", "));
+            }
+            if let Some(next) = self.sweep.get(k + 1) {
+                let flips: Vec<String> = (0..self.actions())
+                    .flat_map(|i| (0..self.states()).map(move |j| (i, j)))
+                    .filter(|&(i, j)| entry.g[i][j] != next.g[i][j])
+                    .map(|(i, j)| {
+                        let sign = if next.g[i][j] == 1 { '+' } else { '-' };
+                        format!("{sign}{}→{}", self.action_names[i], self.state_names[j])
+                    })
+                    .collect();
+                let listed = if flips.is_empty() { "none".to_string() } else { flips.join(", ") };
+                let _ = writeln!(out, "  flips from T = {} to T = {}: {listed}", entry.threshold, next.threshold);
+            }
+        }
+        out
+    }
+
     pub fn actions(&self) -> usize {
         self.action_names.len()
     }
@@ -93,10 +164,11 @@ impl GraphReport {
         let mut out = String::new();
         let _ = writeln!(
             out,
-            "CS3 connection graph of {} — ST = {}, {}, seed {}, {:.3} s",
+            "CS3 connection graph of {} — ST = {}, {}, starts: {}, seed {}, {:.3} s",
             self.env,
             self.samples,
             self.rule_text(),
+            self.start.as_deref().unwrap_or("reset"),
             self.seed,
             self.elapsed_s
         );
@@ -117,7 +189,23 @@ impl GraphReport {
             }
             out.push('\n');
         }
-        let _ = writeln!(out, "\nG (action × state):");
+        if !self.margin.is_empty() {
+            let _ = writeln!(out, "\nmargin of each kept edge, phi / (T × column mean) (≥ 1 kept; the edge survives up to margin × T):");
+            let _ = write!(out, "{:<label$}", "");
+            for name in &self.state_names {
+                let _ = write!(out, " {name:>width$}");
+            }
+            out.push('\n');
+            for (i, name) in self.action_names.iter().enumerate() {
+                let _ = write!(out, "{name:<label$}");
+                for j in 0..self.states() {
+                    let cell = if self.g[i][j] == 1 { format!("{:.2}", self.margin[i][j]) } else { ".".to_string() };
+                    let _ = write!(out, " {cell:>width$}");
+                }
+                out.push('\n');
+            }
+        }
+        let _ = writeln!(out, "\nG (action × state), {} of {} edges:", self.edges(), self.actions() * self.states());
         for (i, name) in self.action_names.iter().enumerate() {
             let row: Vec<String> = self.g[i].iter().map(u8::to_string).collect();
             let _ = writeln!(out, "{name:<label$} [{}]", row.join(", "));

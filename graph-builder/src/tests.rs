@@ -13,7 +13,7 @@ use crate::{build_graph, Cs3Config, GraphOptions, Rule, EXACT_TOLERANCE};
 const PAPER_G: [[u8; 3]; 3] = [[1, 0, 0], [1, 1, 0], [0, 0, 1]];
 
 fn options(samples: usize, rule: Rule, threads: usize, seed: u64) -> GraphOptions {
-    GraphOptions { cs3: Cs3Config { samples, seed, threads }, rule, bootstrap: 50 }
+    GraphOptions { cs3: Cs3Config { samples, seed, threads, start: None }, rule, bootstrap: 50 }
 }
 
 #[test]

@@ -157,7 +157,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 (Connection::Local, None, Some(url)) => fetch_graph(url, Duration::from_secs(args.graph_timeout), n, m).await?,
                 (Connection::Local, None, None) => {
                     let options = lcrl_graph_builder::GraphOptions {
-                        cs3: lcrl_graph_builder::Cs3Config { samples: config.run.graph_samples, seed: config.run.seed, threads: 0 },
+                        cs3: lcrl_graph_builder::Cs3Config { samples: config.run.graph_samples, seed: config.run.seed, threads: 0, start: None },
                         rule: lcrl_graph_builder::Rule::Threshold(0.1),
                         bootstrap: 200,
                     };

@@ -199,7 +199,7 @@ fn refuses_to_overwrite_a_run_and_rejects_mismatched_graphs() {
     // A graph built for lti-paper (3×3) does not fit peg-group1 (6×12).
     let graph = dir.path().join("graph.json");
     let options = lcrl_graph_builder::GraphOptions {
-        cs3: lcrl_graph_builder::Cs3Config { samples: 8, seed: 0, threads: 1 },
+        cs3: lcrl_graph_builder::Cs3Config { samples: 8, seed: 0, threads: 1, start: None },
         rule: lcrl_graph_builder::Rule::Threshold(0.1),
         bootstrap: 0,
     };

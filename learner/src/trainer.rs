@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use lcrl_graph_builder::{build_graph, Cs3Config, GraphOptions, GraphReport, Rule};
-use lcrl_sim::evaluate::run_episode;
+use lcrl_sim::evaluate::evaluate;
 use lcrl_sim::{make_env, Env};
 use serde::{Deserialize, Serialize};
 
@@ -53,6 +53,49 @@ pub struct EpisodeRow {
     pub peak_moment_nm: Option<f64>,
     pub wall_s: f64,
     pub optimization_s: f64,
+    /// The return split into its reward terms (peg tasks; docs/peg.md).
+    #[serde(default)]
+    pub return_depth: Option<f64>,
+    #[serde(default)]
+    pub return_force: Option<f64>,
+    #[serde(default)]
+    pub return_moment: Option<f64>,
+    #[serde(default)]
+    pub return_bonus: Option<f64>,
+    #[serde(default)]
+    pub return_failure: Option<f64>,
+}
+
+/// The columns of metrics.csv, in EpisodeRow's order.
+pub const METRICS_COLUMNS: [&str; 13] = [
+    "episode",
+    "return",
+    "length",
+    "success",
+    "peak_force_n",
+    "peak_moment_nm",
+    "wall_s",
+    "optimization_s",
+    "return_depth",
+    "return_force",
+    "return_moment",
+    "return_bonus",
+    "return_failure",
+];
+
+impl EpisodeRow {
+    /// Fills the return-term columns from the episode's metrics.
+    pub fn with_terms(self, terms: Option<lcrl_sim::ReturnTerms>) -> Self {
+        let c = lcrl_sim::ReturnColumns::from(terms);
+        EpisodeRow {
+            return_depth: c.return_depth,
+            return_force: c.return_force,
+            return_moment: c.return_moment,
+            return_bonus: c.return_bonus,
+            return_failure: c.return_failure,
+            ..self
+        }
+    }
 }
 
 /// What summary.json holds.
@@ -67,6 +110,18 @@ pub struct TrainSummary {
     pub final_return: f64,
     /// Mean return of the deterministic policy over `eval_episodes` episodes.
     pub eval_return: f64,
+    /// The evaluation's success rate and mean peak force (peg tasks).
+    #[serde(default)]
+    pub eval_success_rate: Option<f64>,
+    #[serde(default)]
+    pub eval_peak_force_n: Option<f64>,
+    /// The evaluation return split into its reward terms (peg tasks).
+    #[serde(flatten)]
+    pub eval_terms: lcrl_sim::ReturnColumns,
+    /// The neutral constant action a = 0 on the same evaluation episodes
+    /// (on peg tasks the constant compliance controller): a reference line.
+    #[serde(default)]
+    pub zero_action_return: Option<f64>,
     /// The LQR controller's mean return on the same evaluation episodes
     /// (linear environments only).
     pub lqr_return: Option<f64>,
@@ -194,7 +249,7 @@ fn resolve_mask(req: &TrainRequest, env: &dyn Env) -> Result<(Vec<Vec<u8>>, f64,
         Some(path) => GraphReport::load(path)?,
         None => {
             let options = GraphOptions {
-                cs3: Cs3Config { samples: req.config.run.graph_samples, seed: req.config.run.seed, threads: 0 },
+                cs3: Cs3Config { samples: req.config.run.graph_samples, seed: req.config.run.seed, threads: 0, start: None },
                 rule: Rule::Threshold(0.1),
                 bootstrap: 200,
             };
@@ -280,7 +335,7 @@ fn write_rows(path: &Path, rows: &[EpisodeRow]) -> Result<csv::Writer<std::fs::F
     // a well-formed file (serde's automatic header waits for a first row).
     let mut writer = csv::WriterBuilder::new().has_headers(false).from_writer(file);
     writer
-        .write_record(["episode", "return", "length", "success", "peak_force_n", "peak_moment_nm", "wall_s", "optimization_s"])
+        .write_record(METRICS_COLUMNS)
         .map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
     for row in rows {
         writer.serialize(row).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
@@ -400,7 +455,13 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
             peak_moment_nm: metrics_now.peak_moment_nm,
             wall_s: episode_started.elapsed().as_secs_f64(),
             optimization_s: opt_seconds,
-        };
+            return_depth: None,
+            return_force: None,
+            return_moment: None,
+            return_bonus: None,
+            return_failure: None,
+        }
+        .with_terms(metrics_now.return_terms);
         metrics.serialize(&row).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
         metrics.flush().map_err(io(&metrics_path))?;
         let mut scalars = vec![("episode/return", row.episode_return), ("episode/length", row.length as f64), ("time/optimization_s", row.optimization_s)];
@@ -424,14 +485,12 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     }
     prior_opt = optimization;
 
-    // The deterministic policy, and the LQR ceiling on the same episodes.
+    // The deterministic policy, a = 0 and the LQR ceiling on the same episodes.
     let episodes = cfg.run.eval_episodes.max(1);
-    let mut eval_total = 0.0;
-    for k in 0..episodes {
-        let env_ref = env.snapshot();
-        let mut policy = |s: &[f64]| to_env_action(env_ref.as_ref(), &agent.act(&observe(env_ref.as_ref(), s)));
-        eval_total += run_episode(env.as_mut(), eval_seed(cfg.run.seed, k), &mut policy, false)?.episode_return;
-    }
+    let env_ref = env.snapshot();
+    let mut policy = |s: &[f64]| to_env_action(env_ref.as_ref(), &agent.act(&observe(env_ref.as_ref(), s)));
+    let (eval, _) = evaluate(env.as_mut(), "policy", episodes, eval_seed(cfg.run.seed, 0), &mut policy, &mut |_| {})?;
+    let (zero, _) = evaluate(env.as_mut(), "a = 0", episodes, eval_seed(cfg.run.seed, 0), &mut |_| vec![0.0; n], &mut |_| {})?;
     let lqr = env.as_lti().and_then(|lti| lqr_return(lti, episodes, eval_seed(cfg.run.seed, 0)));
     let masked_lqr = env.as_lti().and_then(|lti| masked_lqr_return(lti, &mask, episodes, eval_seed(cfg.run.seed, 0)));
     let recent = &rows[rows.len().saturating_sub(10)..];
@@ -444,7 +503,11 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         seed: cfg.run.seed,
         episodes: rows.len(),
         final_return: recent.iter().map(|r| r.episode_return).sum::<f64>() / recent.len().max(1) as f64,
-        eval_return: eval_total / episodes as f64,
+        eval_return: eval.mean_return,
+        eval_success_rate: eval.success_rate,
+        eval_peak_force_n: eval.mean_peak_force_n,
+        eval_terms: eval.terms,
+        zero_action_return: Some(zero.mean_return),
         lqr_return: lqr,
         masked_lqr_return: masked_lqr,
         graph_seconds,

@@ -99,6 +99,13 @@ pub trait Env: Send + Sync {
     fn control_period_s(&self) -> f64 {
         1.0
     }
+    /// Whether CS3 should by default draw its start states along an episode
+    /// of the neutral controller (a = 0) instead of from `reset` alone
+    /// (docs/method.md §2): true for tasks whose states of interest occur
+    /// only mid-episode, such as contact in the peg-in-hole task.
+    fn prefers_trajectory_starts(&self) -> bool {
+        false
+    }
     /// What the current episode achieved so far, where the task defines it.
     fn episode_metrics(&self) -> EpisodeMetrics {
         EpisodeMetrics::default()
