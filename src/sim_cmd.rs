@@ -30,7 +30,7 @@ pub struct SimArgs {
     /// Run this constant action instead of a = 0: n comma-separated
     /// revision factors (peg: dx,dy,dz,dalpha,dbeta,dgamma within
     /// [−1,2]³×[−1,4]³), e.g. the `action` of a best_constant.json.
-    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, num_args = 1.., conflicts_with = "checkpoint", value_name = "A1,…,An")]
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, conflicts_with = "checkpoint", value_name = "A1,…,An")]
     pub action: Option<Vec<f64>>,
     /// Episodes to run; seeds are seed, seed+1, …
     #[arg(long, default_value_t = 10)]

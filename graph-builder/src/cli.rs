@@ -24,7 +24,7 @@ pub struct GraphArgs {
     /// A threshold sweep: G at each T (eq. 7) with its edge count, the
     /// edges that flip between consecutive T, one heatmap panel per T; the
     /// first T is the graph's own (its `g` in the JSON).
-    #[arg(long, value_delimiter = ',', num_args = 1.., conflicts_with = "exact", value_name = "T1,T2,…")]
+    #[arg(long, value_delimiter = ',', conflicts_with = "exact", allow_hyphen_values = true, value_name = "T1,T2,…")]
     pub thresholds: Option<Vec<f64>>,
     /// Where CS3's start states s_0 come from: `trajectory` (a state along
     /// an episode of the a = 0 controller, so often in contact; the default

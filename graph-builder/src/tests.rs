@@ -98,3 +98,84 @@ proptest! {
         prop_assert_eq!(report.g, truth);
     }
 }
+
+/// Trajectory starts (the default on peg tasks) are mostly in contact and
+/// mid-insertion; episode starts never are (the peg starts above the hole).
+#[test]
+fn peg_trajectory_starts_are_mostly_in_contact() {
+    use rand::SeedableRng;
+    let env = make_env("peg-group1").unwrap();
+    assert_eq!(crate::Start::default_for(env.as_ref()), crate::Start::Trajectory);
+    assert_eq!(crate::Start::default_for(make_env("lti-paper").unwrap().as_ref()), crate::Start::Reset);
+    let in_contact = |start: crate::Start| {
+        (0..64u64)
+            .filter(|&k| {
+                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(k);
+                let s0 = crate::cs3::draw_start(env.as_ref(), start, &mut rng).unwrap();
+                s0.state()[6..12].iter().any(|&w| w != 0.0)
+            })
+            .count()
+    };
+    let (trajectory, reset) = (in_contact(crate::Start::Trajectory), in_contact(crate::Start::Reset));
+    assert_eq!(reset, 0);
+    assert!(trajectory > 40, "only {trajectory} of 64 trajectory starts touch the hole");
+}
+
+#[test]
+fn peg_trajectory_graph_does_not_depend_on_thread_count() {
+    let env = make_env("peg-group1").unwrap();
+    let one = build_graph(env.as_ref(), &options(4, Rule::Threshold(0.1), 1, 7), &|| {}).unwrap();
+    let two = build_graph(env.as_ref(), &options(4, Rule::Threshold(0.1), 2, 7), &|| {}).unwrap();
+    assert_eq!(one.start.as_deref(), Some("trajectory"));
+    assert_eq!(one.phi, two.phi); // bit-identical f64
+    assert_eq!(one.stability, two.stability);
+}
+
+/// Peg and hole are symmetric under the mirror x ↔ y. Under it the tip
+/// offsets and forces swap (x↔y, Fx↔Fy); angles and moments are
+/// pseudovectors, so alpha ↔ −beta, gamma → −gamma, Mx ↔ −My, Mz → −Mz;
+/// and the actions swap dx↔dy, dalpha↔dbeta. phi sums absolute
+/// differences, so signs drop out: phi of a start distribution and phi of
+/// its mirror image must be the same table with those rows and columns
+/// swapped. The distributions are deliberately lopsided (offset in x,
+/// tilted about x) so a mirror bug cannot hide in a symmetric average.
+/// Tolerance: each pair of entries within 4 combined standard errors (the
+/// per-sample spread over √ST) plus 2% of the larger: CS3 samples are
+/// independent, so a true difference of zero exceeds that rarely, and the
+/// seeds are fixed, so the test is deterministic.
+#[test]
+fn peg_phi_is_mirror_symmetric_under_x_y_swap() {
+    use lcrl_sim::peg::{PegConfig, PegEnv};
+    let mut cfg = PegConfig::group1();
+    cfg.episode.position_offset_mm = [0.12, 0.0];
+    cfg.episode.angle_offset_deg = [0.3, 0.0, 0.1];
+    let mut mirrored = cfg.clone();
+    mirrored.episode.position_offset_mm = [0.0, 0.12];
+    mirrored.episode.angle_offset_deg = [0.0, -0.3, -0.1];
+    let cs3 = |cfg: PegConfig, seed: u64| {
+        let env = PegEnv::new("mirror", cfg).unwrap();
+        let samples = crate::cs3::measure(&env, &Cs3Config { samples: 96, seed, threads: 0, start: None }, &|| {}).unwrap();
+        (samples.phi(), samples.phi_stderr())
+    };
+    let (phi, se) = cs3(cfg, 1);
+    let (phi_m, se_m) = cs3(mirrored, 2);
+    let actions = [1, 0, 2, 4, 3, 5];
+    let states = [1, 0, 2, 4, 3, 5, 7, 6, 8, 10, 9, 11];
+    let mut worst = (0.0, 0, 0);
+    for i in 0..6 {
+        for j in 0..12 {
+            let (a, b) = (phi[i][j], phi_m[actions[i]][states[j]]);
+            let tolerance = 4.0 * (se[i][j].powi(2) + se_m[actions[i]][states[j]].powi(2)).sqrt() + 0.02 * a.max(b);
+            let z = (a - b).abs() / tolerance;
+            if z > worst.0 {
+                worst = (z, i, j);
+            }
+            assert!((a - b).abs() <= tolerance, "phi({i},{j}) = {a} but its mirror phi({},{}) = {b} (tolerance {tolerance})", actions[i], states[j]);
+        }
+    }
+    // The mirror must also be different from the identity: a lopsided
+    // distribution makes x and y columns differ, so the test has teeth.
+    let unswapped_gap = (0..6).map(|i| (phi[i][0] - phi_m[i][0]).abs() / phi[i][0].max(phi_m[i][0])).fold(0.0, f64::max);
+    assert!(unswapped_gap > 0.2, "the distributions are too symmetric for the test to mean anything ({unswapped_gap})");
+    eprintln!("worst mirror difference: {:.2} of the tolerance at ({}, {})", worst.0, worst.1, worst.2);
+}

@@ -107,3 +107,60 @@ fn failed_run_keeps_an_existing_output_file() {
     assert!(!out.status.success());
     assert_eq!(fs::read_to_string(&json).unwrap(), "previous result");
 }
+
+#[test]
+fn threshold_sweep_lists_each_g_its_edges_flips_and_margins() {
+    let dir = tempfile::tempdir().unwrap();
+    let (json, png) = (dir.path().join("g.json"), dir.path().join("g.png"));
+    let out = lcrl()
+        .args(["graph", "--env", "lti-paper", "--samples", "32", "--thresholds", "0.1,0.6,2.0", "--out"])
+        .arg(&json)
+        .arg("--plot")
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = stdout(&out);
+    let v: Value = serde_json::from_str(&fs::read_to_string(&json).unwrap()).unwrap();
+    // The first T is the graph's own.
+    assert_eq!(v["threshold"], serde_json::json!(0.1));
+    assert_eq!(v["start"], serde_json::json!("reset"));
+    let sweep = v["sweep"].as_array().unwrap();
+    assert_eq!(sweep.len(), 3);
+    for entry in sweep {
+        let g = entry["g"].as_array().unwrap();
+        let ones = g.iter().flat_map(|r| r.as_array().unwrap()).filter(|x| x.as_u64() == Some(1)).count();
+        assert_eq!(entry["edges"].as_u64().unwrap() as usize, ones);
+        assert!(text.contains(&format!("T = {}: {ones} of 9 edges", entry["threshold"].as_f64().unwrap())), "{text}");
+    }
+    assert_eq!(sweep[0]["g"], v["g"]);
+    // Edges only disappear as T grows, and each kept edge's margin is ≥ 1
+    // while each dropped one's is < 1.
+    let e: Vec<u64> = sweep.iter().map(|s| s["edges"].as_u64().unwrap()).collect();
+    assert!(e[0] >= e[1] && e[1] >= e[2], "{e:?}");
+    for entry in sweep {
+        for i in 0..3 {
+            for j in 0..3 {
+                let (g, margin) = (entry["g"][i][j].as_u64().unwrap(), entry["margin"][i][j].as_f64().unwrap());
+                assert_eq!(g == 1, margin >= 1.0, "T {}: ({i},{j}) margin {margin}", entry["threshold"]);
+            }
+        }
+    }
+    if e[0] != e[1] {
+        assert!(text.contains("flips from T = 0.1 to T = 0.6: -a"), "{text}");
+    }
+    assert!(text.contains("margin of each kept edge"), "{text}");
+    let bytes = fs::read(&png).unwrap();
+    assert!(bytes.starts_with(b"\x89PNG"));
+}
+
+#[test]
+fn trajectory_start_on_a_linear_system_keeps_lemma1_and_bad_sweeps_fail() {
+    let dir = tempfile::tempdir().unwrap();
+    let v = graph_json(&dir, "t.json", &["--start", "trajectory"]);
+    assert_eq!(v["start"], serde_json::json!("trajectory"));
+    // Lemma 1 does not depend on s_0: the graph is the same.
+    assert_eq!(v["g"], serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]]));
+    let out = lcrl().args(["graph", "--env", "lti-paper", "--thresholds", "0.1,-1"]).output().unwrap();
+    assert_clean_failure(&out, "--threshold must be a finite number above 0");
+}

@@ -132,6 +132,14 @@ pub struct Episode {
     pub angle_error_deg: f64,
     /// Step cap: the episode is truncated after this many control steps.
     pub max_steps: usize,
+    /// Centre of the initial pose error: the start's tip offset (x, y), mm,
+    /// default 0 (the publication's centred distribution). A shifted
+    /// distribution and its mirror image test the physics' symmetry.
+    #[serde(default)]
+    pub position_offset_mm: [f64; 2],
+    /// Centre of the initial orientation error (alpha, beta, gamma), degrees.
+    #[serde(default)]
+    pub angle_offset_deg: [f64; 3],
 }
 
 /// Numerical settings of the physics.
@@ -181,7 +189,14 @@ impl PegConfig {
             },
             reward: Reward { h_z: 1.0, h_f: 0.1, h_m: 1.0, r_s: 2.0 },
             limits: Limits { force_limit_n: 50.0, moment_limit_nm: 1.5, success_tolerance_mm: 0.1 },
-            episode: Episode { start_height_mm: 1.0, position_error_mm: 0.2, angle_error_deg: 0.5, max_steps: 100 },
+            episode: Episode {
+                start_height_mm: 1.0,
+                position_error_mm: 0.2,
+                angle_error_deg: 0.5,
+                max_steps: 100,
+                position_offset_mm: [0.0; 2],
+                angle_offset_deg: [0.0; 3],
+            },
             physics: Physics { substeps: 8, solver_iterations: 2 },
         }
     }
@@ -325,6 +340,12 @@ impl PegConfig {
         non_negative("episode.start_height_mm", e.start_height_mm)?;
         non_negative("episode.position_error_mm", e.position_error_mm)?;
         non_negative("episode.angle_error_deg", e.angle_error_deg)?;
+        for (i, v) in e.position_offset_mm.iter().enumerate() {
+            finite(&format!("episode.position_offset_mm[{i}]"), *v)?;
+        }
+        for (i, v) in e.angle_offset_deg.iter().enumerate() {
+            finite(&format!("episode.angle_offset_deg[{i}]"), *v)?;
+        }
         if e.max_steps == 0 {
             return Err(EnvError::invalid("episode.max_steps", "must be at least 1"));
         }

@@ -150,13 +150,16 @@ impl Env for PegEnv {
     }
 
     /// Draws the initial pose error uniformly (±position_error_mm per axis,
-    /// ±angle_error_deg per angle) around the start pose above the hole.
+    /// ±angle_error_deg per angle) around the start pose above the hole
+    /// (shifted by the episode's offsets, 0 by default).
     fn reset(&mut self, seed: u64) -> Vec<f64> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let e = &self.cfg.episode;
         let mut draw = |r: f64| if r > 0.0 { rng.random_range(-r..=r) } else { 0.0 };
-        let position = [draw(e.position_error_mm), draw(e.position_error_mm), e.start_height_mm + draw(e.position_error_mm)];
-        let angles = [draw(e.angle_error_deg), draw(e.angle_error_deg), draw(e.angle_error_deg)];
+        let [ox, oy] = e.position_offset_mm;
+        let [oa, ob, oc] = e.angle_offset_deg;
+        let position = [ox + draw(e.position_error_mm), oy + draw(e.position_error_mm), e.start_height_mm + draw(e.position_error_mm)];
+        let angles = [oa + draw(e.angle_error_deg), ob + draw(e.angle_error_deg), oc + draw(e.angle_error_deg)];
         self.reset_to(position, angles)
     }
 
