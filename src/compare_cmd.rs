@@ -1,15 +1,18 @@
 //! `lcrl compare`: runs side by side, as the publication's Table II and
-//! reward-curve figures show LCRL against GCRL.
+//! reward-curve figures show LCRL against GCRL, with the best constant
+//! controller as the bar.
 
 use std::path::PathBuf;
 
 use anyhow::Context;
 use lcrl_learner::trainer::{EpisodeRow, TrainSummary};
+use serde::Deserialize;
 
 use crate::plots::{line_panels, Panel};
 
 /// Compare training runs: time split (graph, optimization, total), final
-/// returns, and their reward curves in one plot.
+/// and evaluation returns, and their reward curves in one plot, beside the
+/// reference controllers (LQR on linear systems, a = 0, the best constant).
 #[derive(Debug, clap::Args)]
 pub struct CompareArgs {
     /// Run directories written by `lcrl train` (or `lcrl run`).
@@ -18,19 +21,64 @@ pub struct CompareArgs {
     /// Moving-average window of the plotted returns, in episodes.
     #[arg(long, default_value_t = 10)]
     pub window: usize,
+    /// The bar: a best_constant.json written by `lcrl tune`, shown as a row
+    /// of the table and a line in the plot.
+    #[arg(long, value_name = "best_constant.json")]
+    pub best_constant: Option<PathBuf>,
     /// Where to draw the reward curves (a .png file).
     #[arg(long, value_name = "FILE.png", default_value = "compare.png", value_parser = lcrl_graph_builder::plot::png_path)]
     pub out: PathBuf,
 }
 
+/// The parts of best_constant.json that compare shows.
+#[derive(Debug, Deserialize)]
+struct BestConstant {
+    env: String,
+    action: Vec<f64>,
+    mean_return: f64,
+    success_rate: Option<f64>,
+    eval_episodes: usize,
+    zero_action: ZeroAction,
+}
+
+#[derive(Debug, Deserialize)]
+struct ZeroAction {
+    eval: lcrl_sim::evaluate::SummaryReturn,
+}
+
+/// A run's reference lines: the LQR optimum and the best controller with
+/// the actor's connection pattern (linear systems), and a = 0.
+pub fn references(s: &TrainSummary) -> Vec<(String, f64)> {
+    let mut lines = Vec::new();
+    lines.extend(s.lqr_return.map(|v| ("LQR".to_string(), v)));
+    if s.connection == lcrl_learner::Connection::Local {
+        lines.extend(s.masked_lqr_return.map(|v| ("masked LQR (best with G)".to_string(), v)));
+    }
+    lines.extend(s.zero_action_return.map(|v| ("a = 0".to_string(), v)));
+    lines
+}
+
 pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
+    let bar: Option<BestConstant> = match &args.best_constant {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+            Some(serde_json::from_str(&text).with_context(|| format!("{} is not a best_constant.json written by `lcrl tune`", path.display()))?)
+        }
+        None => None,
+    };
     let mut series = Vec::new();
     let mut longest: Vec<f64> = Vec::new();
-    println!("{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11}", "run", "episodes", "graph s", "optimization s", "total s", "final return", "eval return");
+    let mut lines = Vec::new();
+    println!("{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11} {:>8}", "run", "episodes", "graph s", "optimization s", "total s", "final return", "eval return", "success");
     for dir in &args.runs {
         let path = dir.join("summary.json");
         let text = std::fs::read_to_string(&path).with_context(|| format!("{} is not a finished run (no summary.json)", dir.display()))?;
         let s: TrainSummary = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
+        if let Some(bar) = &bar {
+            if bar.env != s.env {
+                anyhow::bail!("{} was trained on {} but the best constant is for {}; compare runs of one environment", dir.display(), s.env, bar.env);
+            }
+        }
         let metrics = dir.join("metrics.csv");
         let rows: Vec<EpisodeRow> = csv::Reader::from_path(&metrics)
             .with_context(|| format!("reading {}", metrics.display()))?
@@ -39,15 +87,21 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
             .with_context(|| format!("reading {}", metrics.display()))?;
         let label = format!("{:?}/{:?}", s.algo, s.connection).to_lowercase();
         println!(
-            "{:<34} {:>8} {:>10.2} {:>14.2} {:>10.2} {:>13.3} {:>11.3}",
+            "{:<34} {:>8} {:>10.2} {:>14.2} {:>10.2} {:>13.3} {:>11.3} {:>8}",
             format!("{label} ({})", dir.display()),
             s.episodes,
             s.graph_seconds,
             s.optimization_seconds,
             s.total_seconds,
             s.final_return,
-            s.eval_return
+            s.eval_return,
+            s.eval_success_rate.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r)),
         );
+        for line in references(&s) {
+            if !lines.iter().any(|(name, _): &(String, f64)| *name == line.0) {
+                lines.push(line);
+            }
+        }
         let returns: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();
         let window = args.window.max(1);
         let smooth: Vec<f64> = (0..returns.len())
@@ -61,11 +115,28 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
         }
         series.push((label, smooth));
     }
+    if let Some(bar) = &bar {
+        let pct = bar.success_rate.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
+        println!(
+            "{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11.3} {:>8}",
+            "best constant (lcrl tune)", "-", "-", "-", "-", "-", bar.mean_return, pct
+        );
+        println!(
+            "{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11.3}",
+            "a = 0", "-", "-", "-", "-", "-", bar.zero_action.eval.mean_return
+        );
+        println!(
+            "(constants: mean of {} evaluation episodes of `lcrl tune`; best a = {:?}. A trained agent is worth its training only above the best constant.)",
+            bar.eval_episodes,
+            bar.action.iter().map(|a| (a * 1e4).round() / 1e4).collect::<Vec<_>>()
+        );
+        lines.push(("best constant".to_string(), bar.mean_return));
+    }
     // Shorter runs are padded with NaN, which the plot leaves out.
     for (_, values) in series.iter_mut() {
         values.resize(longest.len(), f64::NAN);
     }
-    let panel = Panel { y_label: format!("return, moving average ({})", args.window), series, band: None };
+    let panel = Panel::rewards(format!("return, moving average ({})", args.window), series, lines);
     line_panels(&args.out, "reward curves", &longest, "episode", &[panel])?;
     println!("wrote {}", args.out.display());
     Ok(())

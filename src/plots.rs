@@ -11,6 +11,40 @@ pub struct Panel {
     pub series: Vec<(String, Vec<f64>)>,
     /// Optional shaded band (low, high) drawn under the first series.
     pub band: Option<(Vec<f64>, Vec<f64>)>,
+    /// Horizontal reference lines (name, y): LQR, a = 0, best constant, …
+    pub references: Vec<(String, f64)>,
+    /// Reward curves: let the y axis ignore the few worst values (early
+    /// episodes can be 1000× worse than the rest and would flatten every
+    /// curve into a line); values below the axis sit on its bottom edge and
+    /// the axis label says how many.
+    pub clip_low_outliers: bool,
+}
+
+impl Panel {
+    /// A panel of series with no band, references or clipping.
+    pub fn lines(y_label: impl Into<String>, series: Vec<(String, Vec<f64>)>) -> Self {
+        Panel { y_label: y_label.into(), series, band: None, references: Vec::new(), clip_low_outliers: false }
+    }
+
+    /// A reward-curve panel: low outliers clipped, with reference lines.
+    pub fn rewards(y_label: impl Into<String>, series: Vec<(String, Vec<f64>)>, references: Vec<(String, f64)>) -> Self {
+        Panel { y_label: y_label.into(), series, band: None, references, clip_low_outliers: true }
+    }
+}
+
+/// The y range of a reward panel: from the 5th percentile of all values
+/// (less a margin of half the 5–100% spread) to the maximum, widened to
+/// show every reference line. None when nothing needs clipping.
+pub fn robust_low(values: &[f64]) -> Option<f64> {
+    let mut sorted: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
+    if sorted.len() < 20 {
+        return None;
+    }
+    sorted.sort_by(f64::total_cmp);
+    let p5 = sorted[sorted.len() / 20];
+    let hi = sorted[sorted.len() - 1];
+    let low = p5 - 0.5 * (hi - p5).max(1e-9);
+    (sorted[0] < low).then_some(low)
 }
 
 const COLORS: [RGBColor; 6] = [
@@ -21,6 +55,9 @@ const COLORS: [RGBColor; 6] = [
     RGBColor(148, 103, 189),
     RGBColor(140, 86, 75),
 ];
+
+/// Reference lines: black, grey, dark green, purple (dashed).
+const REFERENCE_COLORS: [RGBColor; 4] = [RGBColor(0, 0, 0), RGBColor(120, 120, 120), RGBColor(0, 100, 0), RGBColor(120, 0, 120)];
 
 /// Draws `panels` top to bottom against `x` into a PNG.
 pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &[Panel]) -> anyhow::Result<()> {
@@ -33,9 +70,14 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
     let areas = root.split_evenly((panels.len(), 1));
     let (x0, x1) = range(x.iter().copied());
     for (area, panel) in areas.iter().zip(panels) {
-        let all = panel.series.iter().flat_map(|(_, v)| v.iter().copied());
+        let values: Vec<f64> = panel.series.iter().flat_map(|(_, v)| v.iter().copied()).collect();
         let band = panel.band.iter().flat_map(|(lo, hi)| lo.iter().chain(hi).copied());
-        let (y0, y1) = range(all.chain(band));
+        let references = panel.references.iter().map(|(_, y)| *y);
+        let floor = if panel.clip_low_outliers { robust_low(&values) } else { None };
+        let kept = values.iter().copied().filter(|v| floor.is_none_or(|f| *v >= f));
+        let (y0, y1) = range(kept.chain(band).chain(references).chain(floor));
+        let below = floor.map_or(0, |f| panel.series.first().map_or(0, |(_, v)| v.iter().filter(|x| **x < f).count()));
+        let y_label = if below > 0 { format!("{} ({below} values below the axis)", panel.y_label) } else { panel.y_label.clone() };
         let mut chart = ChartBuilder::on(area)
             .margin(12)
             .x_label_area_size(35)
@@ -45,7 +87,7 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
         chart
             .configure_mesh()
             .x_desc(x_label)
-            .y_desc(panel.y_label.as_str())
+            .y_desc(y_label.as_str())
             .label_style(("sans-serif", 13))
             .draw()
             .map_err(|e| draw_err(&e))?;
@@ -56,11 +98,19 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
         }
         for (k, (name, values)) in panel.series.iter().enumerate() {
             let color = COLORS[k % COLORS.len()];
-            let points = x.iter().copied().zip(values.iter().copied()).filter(|(_, y)| y.is_finite());
+            let points = x.iter().copied().zip(values.iter().map(|y| y.max(y0))).filter(|(_, y)| y.is_finite());
             chart
                 .draw_series(LineSeries::new(points, color.stroke_width(2)))
                 .map_err(|e| draw_err(&e))?
                 .label(name.as_str())
+                .legend(move |(lx, ly)| PathElement::new(vec![(lx, ly), (lx + 18, ly)], color.stroke_width(2)));
+        }
+        for (k, (name, y)) in panel.references.iter().enumerate() {
+            let color = REFERENCE_COLORS[k % REFERENCE_COLORS.len()];
+            chart
+                .draw_series(DashedLineSeries::new(vec![(x0, *y), (x1, *y)], 8, 5, color.stroke_width(2)))
+                .map_err(|e| draw_err(&e))?
+                .label(format!("{name} ({y:.3})"))
                 .legend(move |(lx, ly)| PathElement::new(vec![(lx, ly), (lx + 18, ly)], color.stroke_width(2)));
         }
         chart
@@ -82,4 +132,19 @@ fn range(values: impl Iterator<Item = f64>) -> (f64, f64) {
     }
     let pad = ((hi - lo) * 0.05).max(1e-9);
     (lo - pad, hi + pad)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::robust_low;
+
+    #[test]
+    fn one_terrible_episode_does_not_set_the_axis() {
+        let mut returns: Vec<f64> = (0..100).map(|k| -10.0 + k as f64 * 0.05).collect();
+        returns[0] = -3000.0;
+        let low = robust_low(&returns).unwrap();
+        assert!(low > -20.0 && low < -9.0, "{low}");
+        // Nothing to clip: no floor.
+        assert_eq!(robust_low(&returns[1..]), None);
+    }
 }

@@ -239,6 +239,6 @@ fn plot_curve(metrics: &Path, out: &Path, env: &str) -> anyhow::Result<()> {
             w.iter().sum::<f64>() / w.len() as f64
         })
         .collect();
-    let panel = crate::plots::Panel { y_label: "episode return".into(), series: vec![("return".into(), returns), ("moving average (20)".into(), average)], band: None };
+    let panel = crate::plots::Panel::rewards("episode return", vec![("return".into(), returns), ("moving average (20)".into(), average)], Vec::new());
     crate::plots::line_panels(out, &format!("{env} — distributed run"), &x, "episode (as reported by actors)", &[panel])
 }

@@ -158,15 +158,11 @@ fn plot_trace(env: &dyn Env, summary: &Summary, record: &EpisodeRecord, path: &P
     let title = format!("{} — {} controller, episode seed {}", summary.env, summary.controller, record.seed);
     let panels = match (named(&["z"]), named(&["Fx", "Fy", "Fz"]), named(&["Mx", "My", "Mz"])) {
         (Some(z), Some(f), Some(m)) => vec![
-            Panel { y_label: "remaining depth z [mm]".into(), series: z, band: None },
-            Panel { y_label: "contact force [N]".into(), series: f, band: None },
-            Panel { y_label: "contact moment [N·m]".into(), series: m, band: None },
+            Panel::lines("remaining depth z [mm]", z),
+            Panel::lines("contact force [N]", f),
+            Panel::lines("contact moment [N·m]", m),
         ],
-        _ => vec![Panel {
-            y_label: "state".into(),
-            series: names.iter().enumerate().map(|(j, n)| (n.clone(), series(j))).collect(),
-            band: None,
-        }],
+        _ => vec![Panel::lines("state", names.iter().enumerate().map(|(j, n)| (n.clone(), series(j))).collect())],
     };
     line_panels(path, &title, &time, "time [s]", &panels)
 }

@@ -46,9 +46,12 @@ pub struct TrainArgs {
 }
 
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
-    let mut config = match &args.config {
-        Some(path) => TrainConfig::load(path)?,
-        None => TrainConfig::default(),
+    let (mut config, source) = match &args.config {
+        Some(path) => (TrainConfig::load(path)?, format!("{}", path.display())),
+        None => {
+            let (config, source) = TrainConfig::for_env(&args.env);
+            (config, source.to_string())
+        }
     };
     if let Some(episodes) = args.episodes {
         config.run.episodes = episodes;
@@ -63,12 +66,14 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     if args.graph.is_some() && args.connection != Connection::Local {
         anyhow::bail!("--graph only applies to --connection local");
     }
+    eprintln!("training settings: {source}");
     let request = TrainRequest {
         env: args.env.clone(),
         algo: args.algo,
         connection: args.connection,
         graph: args.graph.clone(),
         config: config.clone(),
+        settings_source: source,
         run_dir: args.run_dir.clone(),
         resume: args.resume,
         stop_after: None,
@@ -87,13 +92,20 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     });
     bar.finish_and_clear();
     let outcome = outcome?;
-    plot_rewards(&outcome.rows, &outcome.summary.env, args)?;
+    plot_rewards(&outcome.rows, &outcome.summary, args)?;
     let s = &outcome.summary;
     let global_equivalent = lcrl_learner::nets::global_actor_params(&config.network, args.env_state_dims(s)?);
     println!("{:?} / {:?} on {} — {} episodes, {} env steps, {} updates", s.algo, s.connection, s.env, s.episodes, s.env_steps, s.updates);
     println!("  actor parameters      {} (a global actor of the configured size: {})", s.actor_params, global_equivalent);
     println!("  final return          {:.3} (mean of the last 10 episodes)", s.final_return);
-    println!("  eval return           {:.3} (deterministic policy)", s.eval_return);
+    println!("  eval return           {:.3} (deterministic policy, {} episodes)", s.eval_return, config.run.eval_episodes.max(1));
+    if let Some(zero) = s.zero_action_return {
+        println!("  a = 0 return          {zero:.3} (the neutral constant action, same episodes)");
+    }
+    if let (Some(rate), Some(force)) = (s.eval_success_rate, s.eval_peak_force_n) {
+        println!("  eval success          {:.0}%, mean peak force {force:.2} N", 100.0 * rate);
+    }
+    crate::sim_cmd::print_terms(&s.eval_terms);
     if let Some(lqr) = s.lqr_return {
         println!("  LQR return            {lqr:.3} (the optimum)");
     }
@@ -112,8 +124,10 @@ impl TrainArgs {
     }
 }
 
-/// Returns per episode with a 10-episode moving average.
-fn plot_rewards(rows: &[EpisodeRow], env: &str, args: &TrainArgs) -> anyhow::Result<()> {
+/// Returns per episode with a 10-episode moving average, and the run's
+/// references as horizontal lines.
+fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::trainer::TrainSummary, args: &TrainArgs) -> anyhow::Result<()> {
+    let env = &summary.env;
     let x: Vec<f64> = rows.iter().map(|r| r.episode as f64).collect();
     let returns: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();
     let average: Vec<f64> = (0..returns.len())
@@ -123,7 +137,11 @@ fn plot_rewards(rows: &[EpisodeRow], env: &str, args: &TrainArgs) -> anyhow::Res
         })
         .collect();
     let title = format!("{env} — {:?} with {:?} connection", args.algo, args.connection);
-    let panel = Panel { y_label: "episode return".into(), series: vec![("return".into(), returns), ("moving average (10)".into(), average)], band: None };
+    let panel = Panel::rewards(
+        "episode return",
+        vec![("return".into(), returns), ("moving average (10)".into(), average)],
+        crate::compare_cmd::references(summary),
+    );
     let path = args.run_dir.join("reward_curve.png");
     line_panels(&path, &title, &x, "episode", &[panel]).with_context(|| format!("drawing {}", path.display()))
 }

@@ -224,7 +224,26 @@ impl Default for RunConfig {
     }
 }
 
+/// configs/lti-fast.toml, compiled in: the settings that work on lti-paper.
+const LTI_FAST: &str = include_str!("../../configs/lti-fast.toml");
+
 impl TrainConfig {
+    /// The training settings that work on a registered environment, used
+    /// when no --config is given, and where they come from. lti-paper gets
+    /// configs/lti-fast.toml (Table I's defaults diverge there); every other
+    /// environment gets Table I's defaults.
+    pub fn for_env(env: &str) -> (TrainConfig, &'static str) {
+        match env {
+            // The embedded file is checked by a unit test; a parse failure
+            // here would be a build defect, and Table I's defaults stand in.
+            "lti-paper" => match toml::from_str::<TrainConfig>(LTI_FAST) {
+                Ok(cfg) => (cfg, "configs/lti-fast.toml (the settings for lti-paper)"),
+                Err(_) => (TrainConfig::default(), "Table I defaults"),
+            },
+            _ => (TrainConfig::default(), "Table I defaults"),
+        }
+    }
+
     /// Reads a TOML file (missing keys keep their defaults).
     pub fn load(path: &Path) -> Result<Self, LearnerError> {
         let text = std::fs::read_to_string(path).map_err(|source| LearnerError::Io { path: path.into(), source })?;
@@ -303,6 +322,18 @@ mod tests {
         cfg.validate().unwrap();
         assert_eq!((cfg.ddpg.actor_lr, cfg.ddpg.critic_lr, cfg.ddpg.tau), (1e-3, 1e-2, 1e-3));
         assert_eq!((cfg.ppo.actor_lr, cfg.ppo.critic_lr), (1e-4, 1e-3));
+    }
+
+    #[test]
+    fn registered_environments_get_their_working_settings() {
+        let (lti, source) = TrainConfig::for_env("lti-paper");
+        assert!(source.contains("lti-fast"), "{source}");
+        let file: TrainConfig = toml::from_str(LTI_FAST).unwrap();
+        assert_eq!(lti, file);
+        lti.validate().unwrap();
+        assert_eq!(lti.run.episodes, 1000, "lti-fast.toml's budget is 1000 episodes");
+        assert_eq!(lti.network.activation, Activation::Elu);
+        assert_eq!(TrainConfig::for_env("peg-group1").0, TrainConfig::default());
     }
 
     #[test]

@@ -32,7 +32,17 @@ fn run(algo: Algo, connection: Connection, cfg: TrainConfig, dir: &Path, resume:
 }
 
 fn run_until(algo: Algo, connection: Connection, cfg: TrainConfig, dir: &Path, resume: bool, stop_after: Option<usize>) -> TrainOutcome {
-    let request = TrainRequest { env: "lti-paper".into(), algo, connection, graph: None, config: cfg, run_dir: dir.into(), resume, stop_after };
+    let request = TrainRequest {
+        env: "lti-paper".into(),
+        algo,
+        connection,
+        graph: None,
+        config: cfg,
+        settings_source: "test".into(),
+        run_dir: dir.into(),
+        resume,
+        stop_after,
+    };
     train(&request, &mut |_| {}).unwrap()
 }
 
@@ -187,6 +197,7 @@ fn refuses_to_overwrite_a_run_and_rejects_mismatched_graphs() {
         connection: Connection::Global,
         graph: None,
         config: tiny(),
+        settings_source: "test".into(),
         run_dir: dir.path().into(),
         resume: false,
         stop_after: None,

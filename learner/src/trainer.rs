@@ -34,6 +34,9 @@ pub struct TrainRequest {
     /// A graph.json to use instead of building one (connection = local).
     pub graph: Option<PathBuf>,
     pub config: TrainConfig,
+    /// Where the settings came from (a file, or the environment's
+    /// defaults), recorded in the run's config.toml.
+    pub settings_source: String,
     pub run_dir: PathBuf,
     pub resume: bool,
     /// Stop (with a checkpoint) after this many episodes, as an interruption
@@ -389,7 +392,10 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     cfg.validate()?;
     tch::set_num_threads(cfg.run.threads as i32);
     let resolved = toml::to_string_pretty(&cfg).map_err(|e| LearnerError::Config(e.to_string()))?;
-    let header = format!("# resolved configuration\n# env = {:?}, algo = {:?}, connection = {:?}\n", req.env, req.algo, req.connection);
+    let header = format!(
+        "# resolved configuration\n# env = {:?}, algo = {:?}, connection = {:?}\n# settings from: {}\n",
+        req.env, req.algo, req.connection, req.settings_source
+    );
     let config_path = req.run_dir.join("config.toml");
     std::fs::write(&config_path, header + &resolved).map_err(io(&config_path))?;
 

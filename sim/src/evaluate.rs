@@ -98,6 +98,12 @@ pub struct Summary {
     pub elapsed_s: f64,
 }
 
+/// The one field of a summary that readers of other files need.
+#[derive(Debug, Clone, PartialEq, serde::Deserialize)]
+pub struct SummaryReturn {
+    pub mean_return: f64,
+}
+
 /// Runs `episodes` episodes with seeds seed, seed+1, …; records the first.
 pub fn evaluate(
     env: &mut dyn Env,
