@@ -142,6 +142,22 @@ fn compare_tabulates_runs_and_refuses_bad_paths() {
     }
     assert_eq!(&fs::read(&plot).unwrap()[1..4], b"PNG");
 
+    // The bar of `lcrl tune` beside the runs: a row and a line.
+    let bar = work.path().join("tune");
+    let out = lcrl().args(["tune", "--env", "lti-paper", "--episodes", "2", "--evaluations", "8", "--eval-episodes", "2", "--out"]).arg(&bar).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let bar = bar.join("best_constant.json");
+    let out = lcrl().arg("compare").arg(&local).arg(&global).arg("--best-constant").arg(&bar).arg("--out").arg(&plot).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let mean = json(&bar)["mean_return"].as_f64().unwrap();
+    assert!(stdout(&out).lines().any(|l| l.starts_with("best constant") && l.contains(&format!("{mean:.3}"))), "{}", stdout(&out));
+    let mut other = json(&bar);
+    other["env"] = Value::from("peg-group1");
+    let other_path = work.path().join("other.json");
+    fs::write(&other_path, other.to_string()).unwrap();
+    let out = lcrl().arg("compare").arg(&local).arg("--best-constant").arg(&other_path).arg("--out").arg(&plot).output().unwrap();
+    assert_clean_failure(&out, "best constant is for peg-group1");
+
     let out = lcrl().arg("compare").arg(&local).arg("--out").arg(work.path().join("curves")).output().unwrap();
     assert_clean_failure(&out, ".png");
     let out = lcrl().arg("compare").arg(&local).arg(work.path()).arg("--out").arg(&plot).output().unwrap();
@@ -182,4 +198,51 @@ fn bad_input_fails_cleanly() {
         .output()
         .unwrap();
     assert_clean_failure(&out, "--graph only applies");
+}
+
+/// Peg runs record the return's terms per episode (metrics.csv) and for the
+/// evaluation (summary.json), with the a = 0 reference beside them.
+#[test]
+fn peg_run_splits_returns_into_reward_terms() {
+    let work = tempfile::tempdir().unwrap();
+    let config = tiny_config(work.path());
+    let run = work.path().join("peg");
+    let out = lcrl()
+        .args(["train", "--env", "peg-group1", "--algo", "ddpg", "--connection", "global", "--episodes", "2", "--config"])
+        .arg(&config)
+        .arg("--run-dir")
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let s = json(&run.join("summary.json"));
+    let terms: f64 = ["return_depth", "return_force", "return_moment", "return_bonus", "return_failure"].iter().map(|k| s[*k].as_f64().unwrap()).sum();
+    assert!((terms - s["eval_return"].as_f64().unwrap()).abs() < 1e-9, "{s}");
+    assert!(s["zero_action_return"].as_f64().is_some() && s["eval_success_rate"].as_f64().is_some(), "{s}");
+    let mut rows = csv::Reader::from_path(run.join("metrics.csv")).unwrap();
+    let header: Vec<String> = rows.headers().unwrap().iter().map(str::to_string).collect();
+    assert!(header.ends_with(&["return_depth", "return_force", "return_moment", "return_bonus", "return_failure"].map(String::from)), "{header:?}");
+    for row in rows.records() {
+        let row = row.unwrap();
+        let total: f64 = row[1].parse().unwrap();
+        let parts: f64 = (8..13).map(|k| row[k].parse::<f64>().unwrap()).sum();
+        assert!((total - parts).abs() < 1e-9, "{row:?}");
+    }
+}
+
+/// With no --config, a registered environment gets the settings that work
+/// on it, recorded in the run's config.toml.
+#[test]
+fn lti_paper_without_config_gets_its_working_settings() {
+    let work = tempfile::tempdir().unwrap();
+    let run = work.path().join("r");
+    let out = lcrl()
+        .args(["train", "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--episodes", "2", "--run-dir"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let config = fs::read_to_string(run.join("config.toml")).unwrap();
+    assert!(config.contains("# settings from: configs/lti-fast.toml"), "{config}");
+    assert!(config.contains("activation = \"elu\"") && config.contains("buffer_capacity = 20000"), "{config}");
 }
