@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The main job, from a fresh clone: set-up (libtorch), build, then a local
-# LCRL training run on the publication's linear example (METHOD.md eq. 10):
+# LCRL training run on the publication's linear example (docs/method.md eq. 10):
 #   1. its connection graph G by CS3, printed;
 #   2. `lcrl run`: graph builder, learner and an actor as processes talking
 #      gRPC on loopback, PPO with the locally connected actor (~15 s).

@@ -27,7 +27,7 @@ use lcrl_graph_builder::cli::GraphArgs;
     long_about = "Local Connection Reinforcement Learning for robot controllers.\n\n\
         LCRL measures which state components each action component moves (CS3),\n\
         turns that into a connection graph G, and gives every action component a\n\
-        small policy that sees only its connected states. See METHOD.md."
+        small policy that sees only its connected states. See docs/method.md."
 )]
 struct Cli {
     #[command(subcommand)]

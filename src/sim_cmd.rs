@@ -24,7 +24,7 @@ pub struct SimArgs {
     #[arg(long, value_name = "DIR", conflicts_with = "controller")]
     pub checkpoint: Option<PathBuf>,
     /// The controller: `constant` is the constant compliance controller
-    /// (a = 0, METHOD.md §6), the non-learning baseline.
+    /// (a = 0, docs/method.md §6), the non-learning baseline.
     #[arg(long, value_enum, default_value_t = Controller::Constant)]
     pub controller: Controller,
     /// Run this constant action instead of a = 0: n comma-separated

@@ -33,7 +33,7 @@ pub struct TrainArgs {
     /// libtorch threads (overrides run.threads).
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Training configuration (TOML); defaults follow METHOD.md Table I.
+    /// Training configuration (TOML); defaults follow docs/method.md Table I.
     #[arg(long, value_name = "train.toml")]
     pub config: Option<PathBuf>,
     /// Run directory: config, graph, metrics.csv, summary.json, reward

@@ -8,7 +8,7 @@ use tempfile::NamedTempFile;
 
 use crate::{build_graph, plot, Cs3Config, GraphError, GraphOptions, GraphReport, Rule, EXACT_TOLERANCE};
 
-/// Build the LCRL connection graph G with CS3 (METHOD.md Algorithm 1).
+/// Build the LCRL connection graph G with CS3 (docs/method.md Algorithm 1).
 #[derive(Debug, Clone, clap::Args)]
 pub struct GraphArgs {
     /// Environment: a registered name (lti-paper) or a path to a .toml file.

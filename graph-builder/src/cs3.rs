@@ -1,4 +1,4 @@
-//! CS3, the continuous space serialized Shapley value (METHOD.md §2, eq. 5),
+//! CS3, the continuous space serialized Shapley value (docs/method.md §2, eq. 5),
 //! measured by Algorithm 1.
 //!
 //! For action i and sample k: draw s_0 and a random subspace L of the other

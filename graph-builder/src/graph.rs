@@ -1,4 +1,4 @@
-//! From phi to the connection graph G (METHOD.md §3, eqs. 6–7), and how
+//! From phi to the connection graph G (docs/method.md §3, eqs. 6–7), and how
 //! stable each entry of G is under resampling.
 
 use rand::{Rng, SeedableRng};
@@ -25,7 +25,7 @@ pub const EXACT_TOLERANCE: f64 = 1e-9;
 #[derive(Debug, Clone, PartialEq)]
 pub struct ConnectionGraph {
     pub g: Vec<Vec<u8>>,
-    /// Columns j with phi(·, j) = 0 for every action. Decision (METHOD.md §3):
+    /// Columns j with phi(·, j) = 0 for every action. Decision (docs/method.md §3):
     /// such a column is all zeros, although eq. 7 read literally gives ones.
     pub unmoved_states: Vec<usize>,
 }

@@ -1,4 +1,4 @@
-//! The closed-form connection graph of a linear system (METHOD.md §4,
+//! The closed-form connection graph of a linear system (docs/method.md §4,
 //! Lemma 1): the ground truth CS3 is tested against.
 
 use nalgebra::DMatrix;
@@ -19,7 +19,7 @@ pub fn lemma1_h(e: &DMatrix<f64>, f: &DMatrix<f64>) -> DMatrix<f64> {
 }
 
 /// G (n × m, action × state): G_ij = 1 iff H_ji > 0. This is the pattern of H
-/// transposed (the METHOD.md §4 decision on the publication's eq. 10 slip).
+/// transposed (the docs/method.md §4 decision on the publication's eq. 10 slip).
 pub fn lemma1_graph(e: &DMatrix<f64>, f: &DMatrix<f64>) -> Vec<Vec<u8>> {
     let h = lemma1_h(e, f);
     (0..h.ncols()).map(|i| (0..h.nrows()).map(|j| u8::from(h[(j, i)] > 0.0)).collect()).collect()

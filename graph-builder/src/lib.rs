@@ -1,4 +1,4 @@
-//! CS3 and the LCRL connection graph (METHOD.md §2–4).
+//! CS3 and the LCRL connection graph (docs/method.md §2–4).
 //!
 //! - [`cs3`]: Algorithm 1's paired rollouts, in parallel and deterministic.
 //! - [`graph`]: eq. 7 / eq. 6 thresholding and per-entry stability.

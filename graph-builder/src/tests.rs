@@ -8,7 +8,7 @@ use proptest::prelude::*;
 use crate::lemma1::lemma1_graph;
 use crate::{build_graph, Cs3Config, GraphOptions, Rule, EXACT_TOLERANCE};
 
-/// METHOD.md §4: the action × state graph of eq. 10 (the transposition
+/// docs/method.md §4: the action × state graph of eq. 10 (the transposition
 /// decision applied).
 const PAPER_G: [[u8; 3]; 3] = [[1, 0, 0], [1, 1, 0], [0, 0, 1]];
 
@@ -44,7 +44,7 @@ fn result_does_not_depend_on_thread_count() {
 
 #[test]
 fn unmoved_state_column_is_all_zero_and_reported() {
-    // s2 has no input and no coupling: no action moves it (METHOD.md §3 decision).
+    // s2 has no input and no coupling: no action moves it (docs/method.md §3 decision).
     let cfg = LtiConfig::from_matrices(vec![vec![0.5, 0.0], vec![0.0, 0.9]], vec![vec![1.0, 1.0], vec![0.0, 0.0]]);
     let env = LtiEnv::new("u", &cfg).unwrap();
     let report = build_graph(&env, &options(16, Rule::Threshold(0.1), 1, 0), &|| {}).unwrap();
@@ -85,7 +85,7 @@ fn sparse_system() -> impl Strategy<Value = (Vec<Vec<f64>>, Vec<Vec<f64>>)> {
 proptest! {
     #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
 
-    /// CS3 with eq. 6 equals the Lemma 1 pattern (H transposed, METHOD.md §4).
+    /// CS3 with eq. 6 equals the Lemma 1 pattern (H transposed, docs/method.md §4).
     #[test]
     fn cs3_eq6_matches_lemma1((e, f) in sparse_system(), seed in 0u64..1000) {
         let (m, n) = (e.len(), f[0].len());

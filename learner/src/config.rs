@@ -15,7 +15,7 @@ pub enum Algo {
     Ppo,
 }
 
-/// How the actor is connected to the state (METHOD.md §5).
+/// How the actor is connected to the state (docs/method.md §5).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum Connection {
@@ -60,7 +60,7 @@ pub enum Activation {
     Elu,
 }
 
-/// DDPG (Algorithm 2). Defaults from METHOD.md Table I where it gives them.
+/// DDPG (Algorithm 2). Defaults from docs/method.md Table I where it gives them.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct DdpgConfig {

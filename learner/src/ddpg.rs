@@ -1,4 +1,4 @@
-//! DDPG with the LCRL actor (METHOD.md §5, Algorithm 2).
+//! DDPG with the LCRL actor (docs/method.md §5, Algorithm 2).
 //!
 //! Per environment step: act with μ(s) + Gaussian noise (uniform random
 //! during warm-up), store the transition, and once warm do one update:

@@ -1,4 +1,4 @@
-//! The LCRL learner (METHOD.md §5): networks, DDPG and PPO, the replay
+//! The LCRL learner (docs/method.md §5): networks, DDPG and PPO, the replay
 //! buffer, checkpoints, and a single-process training loop. Everything is a
 //! plain Rust type that tests call directly; the distributed runtime wraps
 //! these later.

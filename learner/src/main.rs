@@ -39,7 +39,7 @@ struct Args {
     algo: Algo,
     #[arg(long, value_enum)]
     connection: Connection,
-    /// Training configuration (TOML); defaults follow METHOD.md Table I.
+    /// Training configuration (TOML); defaults follow docs/method.md Table I.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Run directory: graph.json, checkpoints; resumed if it holds one.

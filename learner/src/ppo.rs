@@ -1,4 +1,4 @@
-//! PPO with the LCRL actor (METHOD.md §5): a Gaussian policy whose mean
+//! PPO with the LCRL actor (docs/method.md §5): a Gaussian policy whose mean
 //! for action i comes from subnetwork i (or the global MLP), with a
 //! state-independent log standard deviation; a global value network V(s).
 //!

@@ -7,7 +7,7 @@ use thiserror::Error;
 pub struct EnvSpec {
     /// Registered name or the path of the file it came from.
     pub name: String,
-    /// m names, one per state component (METHOD.md §1).
+    /// m names, one per state component (docs/method.md §1).
     pub state_names: Vec<String>,
     /// n names, one per action component.
     pub action_names: Vec<String>,
@@ -70,7 +70,7 @@ pub struct Step {
 ///   leaves the environment unchanged; it clips finite actions to the bounds.
 /// - `snapshot` returns an exact copy: stepping the copy and the original
 ///   with the same actions gives bit-identical results. CS3 runs its two
-///   branches on snapshots (METHOD.md §2).
+///   branches on snapshots (docs/method.md §2).
 pub trait Env: Send + Sync {
     fn spec(&self) -> &EnvSpec;
     fn reset(&mut self, seed: u64) -> Vec<f64>;

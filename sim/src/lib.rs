@@ -4,8 +4,8 @@
 //!   bounds, names, reset/step with Gymnasium-style end flags, exact
 //!   snapshots for CS3's paired branches).
 //! - [`lti`]: linear time-invariant systems s' = E s + F a (+ noise), the
-//!   systems with a known connection graph (METHOD.md §4).
-//! - [`peg`]: the peg-in-hole assembly simulator on rapier3d (METHOD.md §6).
+//!   systems with a known connection graph (docs/method.md §4).
+//! - [`peg`]: the peg-in-hole assembly simulator on rapier3d (docs/method.md §6).
 //! - [`evaluate`]: whole episodes with a policy, traces and summaries.
 //! - [`registry`]: environments by name or TOML file.
 //! - [`tune`]: the best constant action (CMA-ES), the bar for learned agents.

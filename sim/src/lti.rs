@@ -1,6 +1,6 @@
 //! Linear time-invariant systems: s_{t+1} = E s_t + F a_t + w_t.
 //!
-//! These have a closed-form connection graph (METHOD.md §4, Lemma 1), which
+//! These have a closed-form connection graph (docs/method.md §4, Lemma 1), which
 //! makes them the ground truth for CS3. The reward is a quadratic cost,
 //! r_t = −(s_tᵀ Q s_t + a_tᵀ R a_t), so the optimal (LQR) controller is
 //! known too. w_t is optional Gaussian process noise, i.i.d. per component.
@@ -62,7 +62,7 @@ fn default_episode_steps() -> usize {
 }
 
 impl LtiConfig {
-    /// The example of METHOD.md eq. 10: E = [[−1,1,0],[0,1,0],[0,0,1]], F = I.
+    /// The example of docs/method.md eq. 10: E = [[−1,1,0],[0,1,0],[0,0,1]], F = I.
     pub fn paper_example() -> Self {
         LtiConfig {
             kind: Some("lti".into()),
@@ -160,7 +160,7 @@ impl LtiSystem {
         let action_high = vector("action_high", cfg.action_high.as_deref(), n, 1.0)?;
         for k in 0..n {
             // CS3 sets an action component to 0 when it is outside the random
-            // subspace L (METHOD.md §2), so 0 must be a valid action.
+            // subspace L (docs/method.md §2), so 0 must be a valid action.
             if !(action_low[k] <= 0.0 && 0.0 <= action_high[k] && action_low[k] < action_high[k]) {
                 return Err(EnvError::invalid(
                     "action_low/action_high",

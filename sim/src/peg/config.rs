@@ -1,4 +1,4 @@
-//! Every parameter of the peg-in-hole task (METHOD.md §6), its presets, and
+//! Every parameter of the peg-in-hole task (docs/method.md §6), its presets, and
 //! TOML overrides checked on load.
 //!
 //! Units, written once here and used everywhere in `peg`:

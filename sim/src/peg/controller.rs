@@ -1,4 +1,4 @@
-//! The adaptive compliance controller (METHOD.md eqs. 18–20).
+//! The adaptive compliance controller (docs/method.md eqs. 18–20).
 
 use super::config::Controller;
 

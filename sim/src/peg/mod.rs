@@ -1,4 +1,4 @@
-//! Peg-in-hole assembly (METHOD.md §6): a square peg held by a robot with a
+//! Peg-in-hole assembly (docs/method.md §6): a square peg held by a robot with a
 //! wrist force/torque sensor, inserted into a square hole by the adaptive
 //! compliance controller whose revision factors are the action.
 //!
