@@ -32,19 +32,27 @@ impl Panel {
     }
 }
 
-/// The y range of a reward panel: from the 5th percentile of all values
-/// (less a margin of half the 5–100% spread) to the maximum, widened to
-/// show every reference line. None when nothing needs clipping.
-pub fn robust_low(values: &[f64]) -> Option<f64> {
-    let mut sorted: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
-    if sorted.len() < 20 {
-        return None;
+/// The bottom of a reward panel's y axis: the worst value of the second
+/// half of each curve (where a run settles), less as much again as the
+/// spread from there to the best value. Early episodes far below that sit on
+/// the axis's bottom edge. None when nothing lies below it (or a curve is
+/// too short to have a settled half).
+pub fn robust_low(series: &[&[f64]]) -> Option<f64> {
+    let finite = |v: &[f64]| v.iter().copied().filter(|x| x.is_finite()).collect::<Vec<f64>>();
+    let mut late_min = f64::INFINITY;
+    let (mut lowest, mut highest) = (f64::INFINITY, f64::NEG_INFINITY);
+    for values in series {
+        let all = finite(values);
+        if all.len() < 20 {
+            return None;
+        }
+        let late = &all[all.len() / 2..];
+        late_min = late.iter().copied().fold(late_min, f64::min);
+        lowest = all.iter().copied().fold(lowest, f64::min);
+        highest = all.iter().copied().fold(highest, f64::max);
     }
-    sorted.sort_by(f64::total_cmp);
-    let p5 = sorted[sorted.len() / 20];
-    let hi = sorted[sorted.len() - 1];
-    let low = p5 - 0.5 * (hi - p5).max(1e-9);
-    (sorted[0] < low).then_some(low)
+    let low = late_min - (highest - late_min).max(1e-9);
+    (lowest < low).then_some(low)
 }
 
 const COLORS: [RGBColor; 6] = [
@@ -73,7 +81,8 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
         let values: Vec<f64> = panel.series.iter().flat_map(|(_, v)| v.iter().copied()).collect();
         let band = panel.band.iter().flat_map(|(lo, hi)| lo.iter().chain(hi).copied());
         let references = panel.references.iter().map(|(_, y)| *y);
-        let floor = if panel.clip_low_outliers { robust_low(&values) } else { None };
+        let curves: Vec<&[f64]> = panel.series.iter().map(|(_, v)| v.as_slice()).collect();
+        let floor = if panel.clip_low_outliers && !curves.is_empty() { robust_low(&curves) } else { None };
         let kept = values.iter().copied().filter(|v| floor.is_none_or(|f| *v >= f));
         let (y0, y1) = range(kept.chain(band).chain(references).chain(floor));
         let below = floor.map_or(0, |f| panel.series.first().map_or(0, |(_, v)| v.iter().filter(|x| **x < f).count()));
@@ -139,12 +148,14 @@ mod tests {
     use super::robust_low;
 
     #[test]
-    fn one_terrible_episode_does_not_set_the_axis() {
-        let mut returns: Vec<f64> = (0..100).map(|k| -10.0 + k as f64 * 0.05).collect();
-        returns[0] = -3000.0;
-        let low = robust_low(&returns).unwrap();
-        assert!(low > -20.0 && low < -9.0, "{low}");
-        // Nothing to clip: no floor.
-        assert_eq!(robust_low(&returns[1..]), None);
+    fn early_disasters_do_not_set_the_axis() {
+        // 40 terrible early episodes of 150, then a run settling near −2.
+        let returns: Vec<f64> = (0..150).map(|k| if k < 40 { -3000.0 + k as f64 } else { -2.0 - 10.0 / (k as f64) }).collect();
+        let low = robust_low(&[&returns]).unwrap();
+        assert!(low > -10.0 && low < -2.0, "{low}");
+        // A run with nothing far below its settled half: no clipping.
+        let calm: Vec<f64> = (0..150).map(|k| -5.0 + k as f64 * 0.01).collect();
+        assert_eq!(robust_low(&[&calm]), None);
+        assert_eq!(robust_low(&[&returns[..10]]), None);
     }
 }
