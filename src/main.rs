@@ -10,6 +10,7 @@ mod launch_cmd;
 mod plots;
 mod preset;
 mod run_cmd;
+mod run_summary;
 mod sim_cmd;
 mod train_cmd;
 mod tune_cmd;

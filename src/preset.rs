@@ -25,6 +25,10 @@ pub struct Job {
     pub actors: usize,
     #[serde(default = "one")]
     pub envs_per_actor: usize,
+    /// DDPG replay ratio (samples per insert) or "unlimited"; default
+    /// Algorithm 2's, one update of ddpg.batch_size per environment step.
+    #[serde(default)]
+    pub replay_ratio: Option<String>,
 }
 
 fn one() -> usize {
@@ -84,6 +88,12 @@ impl Preset {
     pub fn learner_args(&self, listen: &str, run_id: &str, train_config: &Path, learner_dir: &Path, graph_builder: Option<&str>) -> anyhow::Result<Vec<OsString>> {
         let mut args = os(&["--env", &self.job.env, "--listen", listen, "--run-id", run_id, "--checkpoint-secs", "30"]);
         args.extend(os(&["--algo", algo_name(self.job.algo), "--connection", connection_name(self.job.connection)]));
+        // The run's budget lives in the learner: it drives the schedules
+        // and ends training (compose and Kubernetes get it the same way).
+        args.extend(os(&["--episodes", &self.job.episodes.to_string()]));
+        if let Some(ratio) = &self.job.replay_ratio {
+            args.extend(os(&["--replay-ratio", ratio]));
+        }
         args.extend([OsString::from("--config"), train_config.into(), OsString::from("--run-dir"), learner_dir.into()]);
         match (self.job.connection, graph_builder) {
             (Connection::Local, Some(url)) => args.extend(os(&["--graph-builder", url])),

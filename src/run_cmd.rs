@@ -195,7 +195,9 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
             status.policy_version
         ));
         (last_steps, last_updates, last_time) = (status.env_steps, status.updates, Instant::now());
-        if status.episodes >= job.episodes {
+        // The learner owns the budget: it stops training, writes its final
+        // checkpoint and summary, then reports `finished`.
+        if status.finished {
             break false;
         }
     };
@@ -210,23 +212,37 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     if let Some(mut g) = graph_builder {
         g.stop(Duration::from_secs(5));
     }
-    let curve = run_dir.join("reward_curve.png");
-    plot_curve(&run_dir.join("learner/metrics.csv"), &curve, &job.env)?;
     let s = final_status.unwrap_or_default();
+    let wall = started.elapsed().as_secs_f64();
+    let summary = crate::run_summary::evaluate_run(preset, run_dir, &s, wall, job.actors, transport)?;
+    let curve = run_dir.join("reward_curve.png");
+    plot_curve(&run_dir.join("learner/metrics.csv"), &curve, &job.env, &summary)?;
+    let reference = match (summary.lqr_return, summary.masked_lqr_return, job.connection) {
+        (_, Some(masked), Connection::Local) => format!("masked LQR (the best controller with G) {masked:.3}"),
+        (Some(lqr), _, _) => format!("LQR {lqr:.3}"),
+        _ => format!("a = 0 {:.3}", summary.zero_action_return.unwrap_or(f64::NAN)),
+    };
     Ok(format!(
-        "{}run {run_id}: {} episodes, {} env steps, {} updates, policy v{}, recent average return {:.3}, {:.1} s\nresults in {}: config.toml, graph.json/graph.png, learner/metrics.csv (and TensorBoard events), learner/checkpoints/, reward_curve.png, logs/",
+        "{}run {run_id}: {} episodes, {} env steps, {} updates (replay ratio {:.1} sampled per inserted, target {}), policy lag mean {:.1}, policy v{}, recent average return {:.3}, {:.1} s\n\
+         eval return {:.3} over {} episodes of the final policy; reference: {reference}\n\
+         results in {}: summary.json, config.toml, graph.json/graph.png, learner/metrics.csv (and TensorBoard events), learner/checkpoints/, reward_curve.png, logs/",
         if interrupted { "interrupted: " } else { "" },
         s.episodes,
         s.env_steps,
         s.updates,
+        summary.replay_ratio,
+        if summary.replay_ratio_target > 0.0 { format!("{:.0}", summary.replay_ratio_target) } else { "unlimited".into() },
+        summary.policy_lag.mean,
         s.policy_version,
         s.recent_return,
-        started.elapsed().as_secs_f64(),
+        wall,
+        summary.eval_return,
+        summary.eval_episodes,
         run_dir.display()
     ))
 }
 
-fn plot_curve(metrics: &Path, out: &Path, env: &str) -> anyhow::Result<()> {
+fn plot_curve(metrics: &Path, out: &Path, env: &str, summary: &crate::run_summary::RunSummary) -> anyhow::Result<()> {
     let Ok(mut reader) = csv::Reader::from_path(metrics) else { return Ok(()) };
     let returns: Vec<f64> = reader.records().filter_map(|r| r.ok()?.get(1)?.parse().ok()).collect();
     if returns.is_empty() {
@@ -239,6 +255,10 @@ fn plot_curve(metrics: &Path, out: &Path, env: &str) -> anyhow::Result<()> {
             w.iter().sum::<f64>() / w.len() as f64
         })
         .collect();
-    let panel = crate::plots::Panel::rewards("episode return", vec![("return".into(), returns), ("moving average (20)".into(), average)], Vec::new());
+    let mut references = Vec::new();
+    references.extend(summary.lqr_return.map(|v| ("LQR".to_string(), v)));
+    references.extend(summary.masked_lqr_return.map(|v| ("masked LQR (best with G)".to_string(), v)));
+    references.extend(summary.zero_action_return.map(|v| ("a = 0".to_string(), v)));
+    let panel = crate::plots::Panel::rewards("episode return", vec![("return".into(), returns), ("moving average (20)".into(), average)], references);
     crate::plots::line_panels(out, &format!("{env} — distributed run"), &x, "episode (as reported by actors)", &[panel])
 }

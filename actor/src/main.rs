@@ -288,22 +288,38 @@ enum Feed {
     Shm(lcrl_learner::service::shm::PolicySubscriber),
 }
 
+/// How the worker explores with the current version (from its snapshot).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Exploration {
+    /// Uniformly random actions (the learner is warming up, DDPG).
+    uniform: bool,
+    /// Gaussian noise std the learner asks for (DDPG; 0: use --noise).
+    noise: f64,
+}
+
+impl Exploration {
+    fn of(snapshot: &PolicySnapshot) -> Self {
+        Exploration { uniform: snapshot.explore_uniform, noise: snapshot.exploration_noise }
+    }
+}
+
 /// Opens the source and returns it with the first policy.
-fn open_feed(source: PolicySource, stop: &AtomicBool) -> anyhow::Result<(Feed, Policy)> {
+fn open_feed(source: PolicySource, stop: &AtomicBool) -> anyhow::Result<(Feed, Policy, Exploration)> {
     match source {
         PolicySource::Grpc(mut rx) => {
             let snapshot = rx.borrow_and_update().clone();
             let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
-            Ok((Feed::Grpc(rx), policy))
+            Ok((Feed::Grpc(rx), policy, Exploration::of(&snapshot)))
         }
         PolicySource::Shm(run_id, deadline) => {
             let subscriber = lcrl_learner::service::shm::PolicySubscriber::open(&run_id).map_err(anyhow::Error::msg)?;
             let started = Instant::now();
             let mut last_log = Instant::now() - Duration::from_secs(10);
             loop {
-                if let Some((version, architecture, weights)) = subscriber.newest().map_err(anyhow::Error::msg)? {
-                    tracing::info!(version, "policy received over shared memory");
-                    return Ok((Feed::Shm(subscriber), Policy::from_snapshot(&architecture, &weights, version)?));
+                if let Some(snapshot) = subscriber.newest().map_err(anyhow::Error::msg)? {
+                    tracing::info!(version = snapshot.version, "policy received over shared memory");
+                    let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
+                    return Ok((Feed::Shm(subscriber), policy, Exploration::of(&snapshot)));
                 }
                 if stop.load(Ordering::Relaxed) {
                     bail!("stopped while waiting for the policy");
@@ -346,9 +362,11 @@ struct WorkerSettings {
     metrics: metrics::ActorMetrics,
 }
 
-/// Exploration noise per action component: the policy's own std (PPO) or
-/// `noise` (DDPG), in normalized action units.
-fn exploration_normals(policy: &Policy, noise: f64) -> Vec<Normal<f64>> {
+/// Exploration noise per action component: the policy's own std (PPO), or
+/// the learner's schedule (DDPG; `noise` when the learner sets none), in
+/// normalized action units.
+fn exploration_normals(policy: &Policy, exploration: Exploration, noise: f64) -> Vec<Normal<f64>> {
+    let noise = if exploration.noise > 0.0 { exploration.noise } else { noise };
     let std: Vec<f64> = policy.exploration_std().map_or_else(|| vec![noise; policy.architecture.action_dim], |v| v.iter().map(|&x| f64::from(x)).collect());
     // A non-finite or non-positive std (a diverged policy, a bad flag) acts
     // greedily rather than failing; the argument below is then always valid.
@@ -365,8 +383,10 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
         Sink::Grpc(batches) => Out::Grpc(batches),
         Sink::Shm(run_id) => Out::Shm(lcrl_learner::service::shm::ShmPublisher::open(&run_id).map_err(anyhow::Error::msg)?),
     };
-    let (mut feed, mut policy) = open_feed(source, &stop)?;
-    let mut exploration = exploration_normals(&policy, s.noise);
+    let (mut feed, mut policy, mut explore) = open_feed(source, &stop)?;
+    let mut exploration = exploration_normals(&policy, explore, s.noise);
+    // PPO samples its own Gaussian; the learner's uniform warm-up is DDPG's.
+    let own_distribution = policy.exploration_std().is_some();
     s.metrics.policy_version.set(policy.version as i64);
     let env_name = policy.architecture.env.clone();
     let mut envs: Vec<Box<dyn lcrl_sim::Env>> = (0..s.envs).map(|_| lcrl_sim::make_env(&env_name)).collect::<Result<_, _>>()?;
@@ -401,28 +421,36 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
                 if rx.has_changed().unwrap_or(false) {
                     let newest = rx.borrow_and_update().clone();
                     policy.update(&newest.weights, newest.version)?;
+                    explore = Exploration::of(&newest);
                 }
             }
             Feed::Shm(subscriber) => {
-                if let Some((version, _, weights)) = subscriber.newest().map_err(anyhow::Error::msg)? {
-                    if version > policy.version {
-                        policy.update(&weights, version)?;
+                if let Some(newest) = subscriber.newest().map_err(anyhow::Error::msg)? {
+                    if newest.version > policy.version {
+                        policy.update(&newest.weights, newest.version)?;
+                        explore = Exploration::of(&newest);
                     }
                 }
             }
         }
         if policy.version != version {
-            exploration = exploration_normals(&policy, s.noise);
+            exploration = exploration_normals(&policy, explore, s.noise);
             s.metrics.policy_version.set(policy.version as i64);
         }
         for (k, env) in envs.iter_mut().enumerate() {
             let obs = lcrl_learner::trainer::observe(env.as_ref(), &states[k]);
-            let u: Vec<f32> = policy
-                .act_normalized(&obs)
-                .iter()
-                .zip(&exploration)
-                .map(|(&a, noise)| (f64::from(a) + noise.sample(&mut rng)).clamp(-1.0, 1.0) as f32)
-                .collect();
+            let u: Vec<f32> = if explore.uniform && !own_distribution {
+                // The learner is filling its replay buffer: uniformly random
+                // actions, as `lcrl train` warms up.
+                (0..policy.architecture.action_dim).map(|_| rand::Rng::random_range(&mut rng, -1.0f32..=1.0)).collect()
+            } else {
+                policy
+                    .act_normalized(&obs)
+                    .iter()
+                    .zip(&exploration)
+                    .map(|(&a, noise)| (f64::from(a) + noise.sample(&mut rng)).clamp(-1.0, 1.0) as f32)
+                    .collect()
+            };
             let action = lcrl_learner::trainer::to_env_action(env.as_ref(), &u);
             let step = env.step(&action)?;
             returns[k] += step.reward;
@@ -437,6 +465,7 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
                 // A batch boundary is not an episode end, but each env's
                 // stream is cut there for PPO's advantage estimates.
                 truncated: step.truncated,
+                policy_version: policy.version,
             });
             if step.terminated || step.truncated {
                 batch.episodes.push(EpisodeSummary { episode_return: returns[k], length: lengths[k], success: env.episode_metrics().success });

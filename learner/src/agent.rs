@@ -53,6 +53,22 @@ pub trait Agent: Send {
     /// Tells the agent how far training is (0 at the start, 1 at the end),
     /// for schedules such as PPO's learning-rate annealing.
     fn set_progress(&mut self, _fraction: f64) {}
+    /// How actors of a distributed run explore with the current policy
+    /// after `episodes` episodes, as `explore` would: (uniformly random
+    /// while warming up, Gaussian noise std). None: the policy samples its
+    /// own distribution (PPO).
+    fn exploration(&self, _episodes: usize) -> Option<(bool, f64)> {
+        None
+    }
+    /// Transitions one update samples (DDPG: a minibatch), for the
+    /// replay-ratio limiter; 0 where updates do not sample a replay buffer.
+    fn samples_per_update(&self) -> usize {
+        0
+    }
+    /// Transitions stored before the first update can happen.
+    fn min_size_to_sample(&self) -> usize {
+        0
+    }
     fn counters(&self) -> Counters;
     /// Parameter counts of (actor, critic).
     fn param_counts(&self) -> (usize, usize);

@@ -249,6 +249,18 @@ impl Agent for Ddpg {
         }
     }
 
+    fn exploration(&self, episodes: usize) -> Option<(bool, f64)> {
+        Some((self.replay.len() < self.cfg.warmup_steps, self.noise_std(episodes)))
+    }
+
+    fn samples_per_update(&self) -> usize {
+        self.cfg.batch_size
+    }
+
+    fn min_size_to_sample(&self) -> usize {
+        self.cfg.warmup_steps.max(self.cfg.batch_size)
+    }
+
     fn counters(&self) -> Counters {
         self.counters
     }

@@ -6,6 +6,7 @@
 //! - [`config`]: every hyperparameter, from one TOML file.
 //! - [`nets`]: locally connected (batched, masked), full-subnets and global actors; critics.
 //! - [`adam`]: Adam with savable state. [`replay`]: the replay buffer.
+//! - [`rate_limiter`]: the replay-ratio limiter of the distributed learner (Reverb's semantics).
 //! - [`agent`]: the algorithm interface; [`ddpg`] and [`ppo`] implement it.
 //! - [`lqr`]: the LQR ceiling for linear environments.
 //! - [`trainer`]: episodes, metrics.csv, summary.json, checkpoints, resume.
@@ -21,6 +22,7 @@ pub mod lqr;
 pub mod nets;
 pub mod policy;
 pub mod ppo;
+pub mod rate_limiter;
 pub mod replay;
 pub mod service;
 pub mod snapshot;

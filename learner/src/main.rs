@@ -73,6 +73,23 @@ struct Args {
     /// Store transitions but never train (for ingestion benchmarks).
     #[arg(long)]
     no_train: bool,
+    /// The run's episode budget: schedules (learning-rate annealing, the
+    /// fading pre-tanh penalty, DDPG exploration noise) follow the episodes
+    /// stored as in `lcrl train`, and at the budget the learner stops
+    /// training and writes its final checkpoint and summary.json.
+    #[arg(long)]
+    episodes: Option<u64>,
+    /// DDPG replay ratio: transitions sampled per transition inserted
+    /// (Reverb's samples per insert). Default: Algorithm 2's, one update of
+    /// ddpg.batch_size per environment step. `unlimited`: no limiter, at
+    /// most one update per stored step, actors never wait (throughput
+    /// experiments).
+    #[arg(long, value_name = "SPI|unlimited")]
+    replay_ratio: Option<String>,
+    /// Slack of the replay-ratio limiter around its target, in inserted
+    /// transitions (Reverb's error buffer divided by SPI).
+    #[arg(long, default_value_t = 256)]
+    replay_slack: u64,
     /// Serve Prometheus metrics on http://ADDR/metrics (port 0: any free
     /// port, logged as "metrics on").
     #[arg(long, value_name = "ADDR")]
@@ -181,6 +198,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 elapsed_seconds: 0.0,
                 policy_version: 0,
                 actor_sequences: Default::default(),
+                rate_limiter: None,
             };
             (config, mask, meta)
         }
@@ -209,7 +227,28 @@ async fn run(args: Args) -> anyhow::Result<()> {
         policy,
         shutdown: watch::channel(false).0,
         run_dir: args.run_dir.clone(),
+        flow: Mutex::new(Default::default()),
     });
+    let limiter = match (args.algo, args.replay_ratio.as_deref()) {
+        (Algo::Ppo, _) | (Algo::Ddpg, Some("unlimited")) => None,
+        (Algo::Ddpg, ratio) => {
+            let spi = match ratio {
+                None => config.ddpg.batch_size as f64,
+                Some(text) => text.parse::<f64>().map_err(|_| anyhow::anyhow!("--replay-ratio must be a number of samples per insert or `unlimited`, got {text}"))?,
+            };
+            let fresh = lcrl_learner::rate_limiter::RateLimiter::new(spi, agent.min_size_to_sample() as u64, spi * args.replay_slack as f64).map_err(|e| anyhow::anyhow!("--replay-ratio: {e}"))?;
+            fresh.check_steps(lcrl_learner::service::shm::MAX_TRANSITIONS as u64, config.ddpg.batch_size as u64).map_err(|e| anyhow::anyhow!("{e}; raise --replay-slack"))?;
+            // A resumed run keeps its counters (no burst of updates on a
+            // buffer that the checkpoint restored).
+            match resume.as_ref().and_then(|(_, meta)| meta.rate_limiter.clone()) {
+                Some(saved) => Some(lcrl_learner::rate_limiter::RateLimiter { samples_per_insert: spi, error_buffer: fresh.error_buffer, ..saved }),
+                None => Some(fresh),
+            }
+        }
+    };
+    if let Some(0) = args.episodes {
+        bail!("--episodes must be at least 1");
+    }
     let (commands, inbox) = mpsc::channel(64);
     if !(args.checkpoint_secs.is_finite() && args.checkpoint_secs > 0.0) {
         bail!("--checkpoint-secs must be a positive number of seconds");
@@ -221,6 +260,8 @@ async fn run(args: Args) -> anyhow::Result<()> {
         meta,
         train: !args.no_train,
         max_staleness: staleness,
+        budget_episodes: args.episodes,
+        limiter,
     };
     let trainer_shared = shared.clone();
     // A failed training thread stops the server too: a learner that cannot

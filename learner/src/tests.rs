@@ -134,6 +134,7 @@ fn checkpoint_round_trip_gives_identical_actions() {
             elapsed_seconds: 0.0,
             policy_version: 0,
             actor_sequences: Default::default(),
+            rate_limiter: None,
         };
         let saved = write_checkpoint(dir.path(), agent.as_ref(), &meta).unwrap();
         let policy = Policy::load(&saved).unwrap();

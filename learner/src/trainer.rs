@@ -165,6 +165,10 @@ pub struct CheckpointMeta {
     /// restarted learner still rejects replayed batches.
     #[serde(default)]
     pub actor_sequences: std::collections::HashMap<String, u64>,
+    /// Distributed DDPG runs: the replay-ratio limiter's settings and
+    /// counters, so a restarted learner keeps the ratio.
+    #[serde(default)]
+    pub rate_limiter: Option<crate::rate_limiter::RateLimiter>,
 }
 
 impl CheckpointMeta {
@@ -202,7 +206,7 @@ fn episode_seed(seed: u64, episode: usize) -> u64 {
     seed.wrapping_mul(1_000_003).wrapping_add(episode as u64)
 }
 
-fn eval_seed(seed: u64, k: usize) -> u64 {
+pub fn eval_seed(seed: u64, k: usize) -> u64 {
     (seed ^ 0xE7A1_0000_0000).wrapping_mul(7_919).wrapping_add(k as u64)
 }
 
@@ -421,6 +425,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         elapsed_seconds: elapsed,
         policy_version: 0,
         actor_sequences: Default::default(),
+        rate_limiter: None,
     };
 
     let last_episode = req.stop_after.map_or(cfg.run.episodes, |stop| stop.min(cfg.run.episodes));

@@ -17,6 +17,9 @@ pub struct AgentTransition {
     pub next_obs: Vec<f32>,
     pub terminated: bool,
     pub truncated: bool,
+    /// The policy version that chose the action (the batch's when the
+    /// actor did not say: version 0 is then indistinguishable from unset).
+    pub policy_version: u64,
 }
 
 /// An accepted batch, ready for the training thread.
@@ -133,6 +136,7 @@ impl Ingest {
                 next_obs: to_obs(&t.next_state),
                 terminated: t.terminated,
                 truncated: t.truncated,
+                policy_version: if t.policy_version > 0 { t.policy_version } else { batch.policy_version },
             })
             .collect::<Vec<_>>();
         self.accepted += transitions.len() as u64;
@@ -152,7 +156,7 @@ mod tests {
             sequence,
             episode_id: 1,
             policy_version: 3,
-            transitions: vec![Transition { state: state.clone(), action: vec![0.5, -1.0, 1.0], reward: -1.0, next_state: state, terminated: false, truncated: false }],
+            transitions: vec![Transition { state: state.clone(), action: vec![0.5, -1.0, 1.0], reward: -1.0, next_state: state, terminated: false, truncated: false, policy_version: 0 }],
             episodes: vec![],
         }
     }

@@ -65,6 +65,15 @@ impl Collector for LearnerCollector {
         counter(&mut encoder, "env_steps", "Environment steps stored (replay buffer or rollout)", s.env_steps.load(Ordering::Relaxed))?;
         counter(&mut encoder, "episodes", "Episodes reported by actors", s.episodes.load(Ordering::Relaxed))?;
         counter(&mut encoder, "updates", "Gradient updates", s.updates.load(Ordering::Relaxed))?;
+        let flow = s.flow();
+        let (lag_min, lag_mean, lag_max) = flow.lag.stats();
+        counter(&mut encoder, "replay_sampled", "Transitions sampled by updates (DDPG minibatches)", flow.sampled)?;
+        counter(&mut encoder, "replay_inserted", "Transitions inserted into the replay buffer or rollout", flow.inserted)?;
+        gauge(&mut encoder, "policy_lag_min", "Smallest policy lag of the last 1000 stored transitions (versions)", lag_min as i64)?;
+        gauge(&mut encoder, "policy_lag_mean_milli", "Mean policy lag of the last 1000 stored transitions, in thousandths of a version", (lag_mean * 1000.0) as i64)?;
+        gauge(&mut encoder, "policy_lag_max", "Largest policy lag of the last 1000 stored transitions (versions)", lag_max as i64)?;
+        gauge(&mut encoder, "actors_waited_milliseconds", "Time the rate limiter held actors back (the learner was behind)", (flow.actors_waited_s * 1000.0) as i64)?;
+        gauge(&mut encoder, "learner_waited_milliseconds", "Time the learner waited for data (actors were behind)", (flow.learner_waited_s * 1000.0) as i64)?;
         gauge(&mut encoder, "replay_size", "Transitions held (DDPG replay buffer, PPO rollout)", s.replay_size.load(Ordering::Relaxed) as i64)?;
         gauge(&mut encoder, "policy_version", "Newest published policy version", s.policy_version() as i64)?;
         gauge(&mut encoder, "connected_actors", "Actors with an open gRPC transition stream", i64::from(s.connected_actors.load(Ordering::Relaxed)))?;

@@ -13,6 +13,8 @@ use tokio::sync::{mpsc, watch};
 
 use crate::agent::{Agent, Transition};
 use crate::config::{Algo, Connection};
+use crate::rate_limiter::RateLimiter;
+use crate::service::flow::FlowStats;
 use crate::service::ingest::{Accepted, Ingest};
 use crate::snapshot::{encode_weights, Architecture};
 use crate::trainer::{write_checkpoint, CheckpointMeta};
@@ -44,6 +46,8 @@ pub struct Shared {
     pub shutdown: watch::Sender<bool>,
     /// Where metrics.csv goes.
     pub run_dir: PathBuf,
+    /// Replay ratio, waits, policy lag and the budget.
+    pub flow: Mutex<FlowStats>,
 }
 
 impl Shared {
@@ -57,6 +61,11 @@ impl Shared {
         async move {
             let _ = rx.wait_for(|stop| *stop).await;
         }
+    }
+
+    /// A copy of the flow statistics.
+    pub fn flow(&self) -> FlowStats {
+        self.flow.lock().map(|f| f.clone()).unwrap_or_default()
     }
 
     pub fn recent_return(&self) -> f64 {
@@ -82,6 +91,13 @@ pub struct Schedule {
     /// are dropped when they reach the training thread (they may have
     /// waited in the queue through an update). None: keep everything.
     pub max_staleness: Option<u64>,
+    /// The run's episode budget: drives every schedule (learning-rate
+    /// annealing, the fading pre-tanh penalty, DDPG's exploration noise)
+    /// as `lcrl train` does, and ends training. None: run until stopped.
+    pub budget_episodes: Option<u64>,
+    /// DDPG's replay-ratio limiter (restored from the checkpoint on
+    /// resume). None: unlimited, at most one update per stored step.
+    pub limiter: Option<RateLimiter>,
 }
 
 /// Batches stored per loop turn before training gets its turn: with fast
@@ -92,11 +108,63 @@ const BATCHES_PER_TURN: usize = 8;
 pub fn snapshot(agent: &dyn Agent, architecture: &Architecture, version: u64) -> Result<PolicySnapshot, LearnerError> {
     let weights = encode_weights(&agent.actor_variables())?;
     let architecture = serde_json::to_string(architecture).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    Ok(PolicySnapshot { version, weights, architecture })
+    Ok(PolicySnapshot { version, weights, architecture, explore_uniform: false, exploration_noise: 0.0 })
+}
+
+/// The learner's own summary at the end of its budget (run_dir/summary.json).
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
+pub struct LearnerSummary {
+    pub episodes: u64,
+    pub env_steps: u64,
+    pub updates: u64,
+    pub sampled: u64,
+    pub inserted: u64,
+    /// sampled / inserted.
+    pub replay_ratio: f64,
+    /// The limiter's target (0: unlimited).
+    pub replay_ratio_target: f64,
+    pub policy_lag: PolicyLag,
+    pub actors_waited_s: f64,
+    pub learner_waited_s: f64,
+    /// Mean return of the last 10 episodes (with exploration).
+    pub final_return: f64,
+    pub policy_version: u64,
+}
+
+/// Policy lag over the window of recently stored transitions.
+#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
+pub struct PolicyLag {
+    pub min: u64,
+    pub mean: f64,
+    pub max: u64,
+}
+
+fn write_summary(agent: &dyn Agent, shared: &Shared) -> Result<(), LearnerError> {
+    let flow = shared.flow();
+    let (min, mean, max) = flow.lag.stats();
+    let counters = agent.counters();
+    let summary = LearnerSummary {
+        episodes: shared.episodes.load(Ordering::Relaxed),
+        env_steps: counters.env_steps,
+        updates: counters.updates,
+        sampled: flow.sampled,
+        inserted: flow.inserted,
+        replay_ratio: flow.achieved_ratio(),
+        replay_ratio_target: flow.replay_ratio_target,
+        policy_lag: PolicyLag { min, mean, max },
+        actors_waited_s: flow.actors_waited_s,
+        learner_waited_s: flow.learner_waited_s,
+        final_return: shared.recent_return(),
+        policy_version: shared.policy_version(),
+    };
+    let path = shared.run_dir.join("summary.json");
+    let text = serde_json::to_string_pretty(&summary).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    std::fs::write(&path, text + "\n").map_err(|source| LearnerError::Io { path, source })
 }
 
 fn checkpoint(agent: &dyn Agent, shared: &Shared, schedule: &Schedule) -> Result<(), LearnerError> {
     let mut meta = schedule.meta.clone();
+    meta.rate_limiter = schedule.limiter.clone();
     meta.episode = shared.episodes.load(Ordering::Relaxed) as usize;
     meta.policy_version = shared.policy_version();
     meta.actor_sequences = shared.ingest.lock().map(|i| i.sequences().clone()).unwrap_or_default();
@@ -105,68 +173,198 @@ fn checkpoint(agent: &dyn Agent, shared: &Shared, schedule: &Schedule) -> Result
     Ok(())
 }
 
+/// Adds `seconds` to one of the wait counters.
+fn waited(shared: &Shared, seconds: f64, actors: bool) {
+    if let Ok(mut flow) = shared.flow.lock() {
+        if actors {
+            flow.actors_waited_s += seconds;
+        } else {
+            flow.learner_waited_s += seconds;
+        }
+    }
+}
+
 /// The training loop; returns when told to stop or when every sender is
 /// gone, after writing a checkpoint.
-pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Command>, shared: Arc<Shared>, schedule: Schedule) -> Result<(), LearnerError> {
+///
+/// Each turn: store batches while the rate limiter admits them (a batch it
+/// refuses is held, so the command queue fills and the actors' sends block:
+/// backpressure, not dropped data); follow the budget's schedules; train
+/// once if the limiter lets the learner sample; publish; checkpoint.
+pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Command>, shared: Arc<Shared>, mut schedule: Schedule) -> Result<(), LearnerError> {
     let mut last_published = agent.counters().updates;
+    let mut published_exploration = exploration_of(agent.as_ref(), &shared);
+    publish(agent.as_ref(), &shared, published_exploration)?;
     let mut last_checkpoint = std::time::Instant::now();
     let mut log = EpisodeLog::open(&shared.run_dir);
+    let mut held: Option<Accepted> = None;
+    let mut turn = std::time::Instant::now();
+    let budget_reached = |shared: &Shared| schedule_budget_reached(shared);
+    if let Ok(mut flow) = shared.flow.lock() {
+        flow.budget_episodes = schedule.budget_episodes.unwrap_or(0);
+        flow.replay_ratio_target = schedule.limiter.as_ref().map_or(0.0, |l| l.samples_per_insert);
+        if let Some(l) = &schedule.limiter {
+            (flow.inserted, flow.sampled) = (l.inserts, l.samples);
+        }
+    }
+    let mut finished = budget_reached(&shared);
+    set_finished(&shared, finished);
     loop {
+        let turn_seconds = turn.elapsed().as_secs_f64();
+        turn = std::time::Instant::now();
+        if held.is_some() {
+            waited(&shared, turn_seconds, true);
+        }
         let mut stop = false;
         let mut received = false;
         for _ in 0..BATCHES_PER_TURN {
-            match commands.try_recv() {
-                Ok(Command::Batch(batch)) => {
-                    received = true;
-                    store(agent.as_mut(), &shared, &schedule, &mut log, batch);
+            let batch = match held.take() {
+                Some(batch) => batch,
+                None => match commands.try_recv() {
+                    Ok(Command::Batch(batch)) => batch,
+                    Ok(Command::Stop) | Err(mpsc::error::TryRecvError::Disconnected) => {
+                        stop = true;
+                        break;
+                    }
+                    Err(mpsc::error::TryRecvError::Empty) => break,
+                },
+            };
+            if finished {
+                if let Ok(mut ingest) = shared.ingest.lock() {
+                    *ingest.rejected.entry("over_budget".into()).or_insert(0) += batch.transitions.len() as u64;
                 }
-                Ok(Command::Stop) | Err(mpsc::error::TryRecvError::Disconnected) => {
-                    stop = true;
+                continue;
+            }
+            let count = batch.transitions.len() as u64;
+            if let Some(limiter) = &schedule.limiter {
+                // Liveness: a batch too large for the window goes in when
+                // the learner cannot sample either (one batch of error).
+                let batch_size = agent.samples_per_update() as u64;
+                if !limiter.can_insert(count) && limiter.can_sample(batch_size) {
+                    held = Some(batch);
                     break;
                 }
-                Err(mpsc::error::TryRecvError::Empty) => break,
+            }
+            received = true;
+            store(agent.as_mut(), &shared, &schedule, &mut log, batch);
+            if let Some(limiter) = &mut schedule.limiter {
+                limiter.insert(count);
+            }
+            if let Ok(mut flow) = shared.flow.lock() {
+                flow.inserted += count;
+            }
+            if budget_reached(&shared) {
+                finished = true;
+                held = None;
+                checkpoint(agent.as_ref(), &shared, &schedule)?;
+                write_summary(agent.as_ref(), &shared)?;
+                set_finished(&shared, true);
+                tracing::info!(episodes = shared.episodes.load(Ordering::Relaxed), "episode budget reached: training ends");
+                break;
             }
         }
         if stop {
             return checkpoint(agent.as_ref(), &shared, &schedule);
         }
+        // The budget drives every schedule, as in `lcrl train`.
+        let episodes = shared.episodes.load(Ordering::Relaxed);
+        if let Some(budget) = schedule.budget_episodes {
+            agent.set_progress(episodes as f64 / budget.max(1) as f64);
+        }
         let before = agent.counters();
-        // DDPG keeps at most one update per stored environment step (Algorithm
-        // 2's ratio); PPO trains whenever a rollout is full.
-        let may_train = schedule.train && (shared.algo == Algo::Ppo || before.updates < before.env_steps);
+        let batch_size = agent.samples_per_update() as u64;
+        let limited = match (&schedule.limiter, shared.algo) {
+            (_, Algo::Ppo) => true,
+            (Some(limiter), Algo::Ddpg) => limiter.can_sample(batch_size),
+            // Unlimited: at most one update per stored step.
+            (None, Algo::Ddpg) => before.updates < before.env_steps,
+        };
+        let may_train = schedule.train && !finished && limited;
         if may_train {
             agent.train_step();
         }
         let after = agent.counters();
+        let updates = after.updates - before.updates;
+        if updates > 0 {
+            if let Some(limiter) = &mut schedule.limiter {
+                limiter.sample(updates * batch_size);
+            }
+            if let Ok(mut flow) = shared.flow.lock() {
+                flow.sampled += updates * batch_size;
+            }
+        }
+        let warm = agent.stored() >= agent.min_size_to_sample();
+        if schedule.train && !finished && !limited && warm && shared.algo == Algo::Ddpg {
+            waited(&shared, turn_seconds, false);
+        }
         shared.updates.store(after.updates, Ordering::Relaxed);
         shared.replay_size.store(agent.stored() as u64, Ordering::Relaxed);
-        let trained = after.updates > before.updates;
-        let publish = match shared.algo {
-            Algo::Ppo => trained,
-            Algo::Ddpg => after.updates >= last_published + schedule.publish_every,
+        let trained = updates > 0;
+        let exploration = exploration_of(agent.as_ref(), &shared);
+        let exploration_changed = match (exploration, published_exploration) {
+            (Some((uniform, noise)), Some((was_uniform, was_noise))) => uniform != was_uniform || (noise - was_noise).abs() >= 0.005,
+            _ => false,
         };
-        if publish {
+        let publish_now = exploration_changed
+            || match shared.algo {
+                Algo::Ppo => trained,
+                Algo::Ddpg => after.updates >= last_published + schedule.publish_every,
+            };
+        if publish_now {
             last_published = after.updates;
-            let version = shared.policy_version() + 1;
-            let next = snapshot(agent.as_ref(), &shared.architecture, version)?;
-            shared.policy.send_replace(Arc::new(next));
-            tracing::debug!(version, updates = after.updates, "policy published");
+            published_exploration = exploration;
+            publish(agent.as_ref(), &shared, exploration)?;
         }
         if last_checkpoint.elapsed() >= schedule.checkpoint_interval {
             last_checkpoint = std::time::Instant::now();
             checkpoint(agent.as_ref(), &shared, &schedule)?;
         }
-        if !received && !trained {
+        if held.is_some() && !trained {
+            // Refused inserts and nothing to train: should not happen (the
+            // limiter admits a batch whenever the learner cannot sample),
+            // but never spin.
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        } else if held.is_none() && !received && !trained {
             // Nothing to do until the next batch arrives (or the next
             // checkpoint is due).
             let wait = schedule.checkpoint_interval.saturating_sub(last_checkpoint.elapsed()).max(std::time::Duration::from_millis(10));
             match recv_timeout(&mut commands, wait) {
-                Some(Some(Command::Batch(batch))) => store(agent.as_mut(), &shared, &schedule, &mut log, batch),
+                Some(Some(Command::Batch(batch))) => held = Some(batch),
                 Some(Some(Command::Stop)) | Some(None) => return checkpoint(agent.as_ref(), &shared, &schedule),
                 None => {}
             }
         }
     }
+}
+
+fn schedule_budget_reached(shared: &Shared) -> bool {
+    let budget = shared.flow().budget_episodes;
+    budget > 0 && shared.episodes.load(Ordering::Relaxed) >= budget
+}
+
+fn set_finished(shared: &Shared, finished: bool) {
+    if let Ok(mut flow) = shared.flow.lock() {
+        flow.finished = finished;
+    }
+}
+
+/// The exploration actors should use now (DDPG), from the episodes stored.
+fn exploration_of(agent: &dyn Agent, shared: &Shared) -> Option<(bool, f64)> {
+    agent.exploration(shared.episodes.load(Ordering::Relaxed) as usize)
+}
+
+/// Publishes the agent's actor as the next policy version, with how actors
+/// should explore with it.
+fn publish(agent: &dyn Agent, shared: &Shared, exploration: Option<(bool, f64)>) -> Result<(), LearnerError> {
+    let version = shared.policy_version() + 1;
+    let mut next = snapshot(agent, &shared.architecture, version)?;
+    if let Some((uniform, noise)) = exploration {
+        next.explore_uniform = uniform;
+        next.exploration_noise = noise;
+    }
+    shared.policy.send_replace(Arc::new(next));
+    tracing::debug!(version, updates = agent.counters().updates, "policy published");
+    Ok(())
 }
 
 /// Blocks for the next command up to `timeout`: Some(command or None for
@@ -215,10 +413,18 @@ impl EpisodeLog {
                 tb.scalars((first + k as u64 + 1) as i64, &[("episode/return", e.episode_return), ("episode/length", f64::from(e.length))])?;
             }
             let step = (first + episodes.len() as u64) as i64;
+            let flow = shared.flow();
+            let (lag_min, lag_mean, lag_max) = flow.lag.stats();
             let learner = [
                 ("learner/env_steps", shared.env_steps.load(Ordering::Relaxed) as f64),
                 ("learner/updates", shared.updates.load(Ordering::Relaxed) as f64),
                 ("learner/policy_version", shared.policy_version() as f64),
+                ("learner/replay_ratio", flow.achieved_ratio()),
+                ("learner/policy_lag_min", lag_min as f64),
+                ("learner/policy_lag_mean", lag_mean),
+                ("learner/policy_lag_max", lag_max as f64),
+                ("learner/actors_waited_s", flow.actors_waited_s),
+                ("learner/learner_waited_s", flow.learner_waited_s),
             ];
             tb.scalars(step, &learner)?;
             tb.flush()?;
@@ -244,6 +450,11 @@ fn store(agent: &mut dyn Agent, shared: &Shared, schedule: &Schedule, log: &mut 
             terminated: t.terminated,
             truncated: t.truncated,
         });
+    }
+    if let Ok(mut flow) = shared.flow.lock() {
+        for t in batch.transitions.iter().filter(|_| !stale) {
+            flow.lag.push(newest.saturating_sub(t.policy_version));
+        }
     }
     shared.env_steps.store(agent.counters().env_steps, Ordering::Relaxed);
     let first = shared.episodes.fetch_add(batch.episodes.len() as u64, Ordering::Relaxed);

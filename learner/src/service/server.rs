@@ -130,6 +130,8 @@ impl Learner for LearnerService {
     async fn get_status(&self, _request: Request<GetStatusRequest>) -> Result<Response<LearnerStatus>, Status> {
         let s = &self.shared;
         let rejected = s.ingest.lock().map(|i| i.rejected.clone().into_iter().collect()).unwrap_or_default();
+        let flow = s.flow();
+        let lag = flow.lag.stats();
         Ok(Response::new(LearnerStatus {
             run_id: s.run_id.clone(),
             algo: format!("{:?}", s.algo).to_lowercase(),
@@ -142,6 +144,16 @@ impl Learner for LearnerService {
             connected_actors: s.connected_actors.load(Ordering::Relaxed),
             rejected,
             recent_return: s.recent_return(),
+            policy_lag_min: lag.0,
+            policy_lag_mean: lag.1,
+            policy_lag_max: lag.2,
+            sampled: flow.sampled,
+            inserted: flow.inserted,
+            replay_ratio_target: flow.replay_ratio_target,
+            actors_waited_s: flow.actors_waited_s,
+            learner_waited_s: flow.learner_waited_s,
+            budget_episodes: flow.budget_episodes,
+            finished: flow.finished,
         }))
     }
 }

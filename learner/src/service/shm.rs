@@ -43,6 +43,8 @@ pub struct TransitionSample {
     pub rewards: [f32; MAX_TRANSITIONS],
     /// bit 0: terminated, bit 1: truncated.
     pub flags: [u8; MAX_TRANSITIONS],
+    /// The policy version that chose each action.
+    pub versions: [u64; MAX_TRANSITIONS],
     pub episode_returns: [f64; MAX_EPISODES],
     pub episode_lengths: [u32; MAX_EPISODES],
     /// −1: unknown, 0: failed, 1: succeeded.
@@ -76,6 +78,7 @@ impl TransitionSample {
             actions: [0.0; MAX_TRANSITIONS * MAX_ACTION],
             rewards: [0.0; MAX_TRANSITIONS],
             flags: [0; MAX_TRANSITIONS],
+            versions: [0; MAX_TRANSITIONS],
             episode_returns: [0.0; MAX_EPISODES],
             episode_lengths: [0; MAX_EPISODES],
             episode_success: [-1; MAX_EPISODES],
@@ -90,6 +93,7 @@ impl TransitionSample {
             s.actions[k * n..(k + 1) * n].copy_from_slice(&t.action);
             s.rewards[k] = t.reward;
             s.flags[k] = u8::from(t.terminated) | (u8::from(t.truncated) << 1);
+            s.versions[k] = t.policy_version;
         }
         for (k, e) in batch.episodes.iter().enumerate() {
             s.episode_returns[k] = e.episode_return;
@@ -119,6 +123,7 @@ impl TransitionSample {
                     next_state: self.next_states[k * m..(k + 1) * m].to_vec(),
                     terminated: self.flags[k] & 1 != 0,
                     truncated: self.flags[k] & 2 != 0,
+                    policy_version: self.versions[k],
                 })
                 .collect(),
             episodes: (0..(self.episode_count as usize).min(MAX_EPISODES))
@@ -271,6 +276,9 @@ pub const MAX_ARCHITECTURE_BYTES: usize = 16 << 10;
 #[repr(C)]
 pub struct PolicySample {
     pub version: u64,
+    /// How actors explore with this version (see `PolicySnapshot`).
+    pub exploration_noise: f64,
+    pub explore_uniform: u8,
     pub weights_len: u32,
     pub architecture_len: u32,
     pub architecture: [u8; MAX_ARCHITECTURE_BYTES],
@@ -326,6 +334,8 @@ pub fn run_policy_publisher(shared: Arc<Shared>) -> Result<(), String> {
         let sample = unsafe {
             std::ptr::write_bytes(payload, 0, 1);
             (*payload).version = snapshot.version;
+            (*payload).exploration_noise = snapshot.exploration_noise;
+            (*payload).explore_uniform = u8::from(snapshot.explore_uniform);
             (*payload).weights_len = snapshot.weights.len() as u32;
             (*payload).architecture_len = snapshot.architecture.len() as u32;
             (&mut (*payload).weights)[..snapshot.weights.len()].copy_from_slice(&snapshot.weights);
@@ -354,15 +364,19 @@ impl PolicySubscriber {
         Ok(PolicySubscriber { subscriber, _service: service, _node: node })
     }
 
-    /// The newest version received since the last call: (version,
-    /// architecture JSON, weights).
-    pub fn newest(&self) -> Result<Option<(u64, String, Vec<u8>)>, String> {
+    /// The newest version received since the last call, as the snapshot
+    /// the gRPC path carries.
+    pub fn newest(&self) -> Result<Option<lcrl_proto::v1::PolicySnapshot>, String> {
         let mut newest = None;
         while let Some(sample) = self.subscriber.receive().map_err(|e| format!("receive: {e:?}"))? {
             let p = sample.payload();
-            let weights = p.weights[..(p.weights_len as usize).min(MAX_POLICY_BYTES)].to_vec();
-            let arch = String::from_utf8_lossy(&p.architecture[..(p.architecture_len as usize).min(MAX_ARCHITECTURE_BYTES)]).into_owned();
-            newest = Some((p.version, arch, weights));
+            newest = Some(lcrl_proto::v1::PolicySnapshot {
+                version: p.version,
+                weights: p.weights[..(p.weights_len as usize).min(MAX_POLICY_BYTES)].to_vec(),
+                architecture: String::from_utf8_lossy(&p.architecture[..(p.architecture_len as usize).min(MAX_ARCHITECTURE_BYTES)]).into_owned(),
+                explore_uniform: p.explore_uniform != 0,
+                exploration_noise: p.exploration_noise,
+            });
         }
         Ok(newest)
     }
@@ -374,7 +388,7 @@ mod tests {
 
     #[test]
     fn sample_round_trips_a_batch() {
-        let t = |v: f32| Transition { state: vec![v; 12], action: vec![-v; 6], reward: v, next_state: vec![v + 1.0; 12], terminated: v > 2.0, truncated: v < 1.0 };
+        let t = |v: f32| Transition { state: vec![v; 12], action: vec![-v; 6], reward: v, next_state: vec![v + 1.0; 12], terminated: v > 2.0, truncated: v < 1.0, policy_version: v as u64 };
         let batch = TransitionBatch {
             run_id: "r".into(),
             actor_id: "actor-7".into(),
