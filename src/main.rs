@@ -11,6 +11,7 @@ mod plots;
 mod preset;
 mod run_cmd;
 mod run_summary;
+mod scale_cmd;
 mod sim_cmd;
 mod train_cmd;
 mod tune_cmd;
@@ -39,6 +40,8 @@ struct Cli {
 enum Command {
     /// Run graph builder, learner and actors from one preset (configs/).
     Run(run_cmd::RunArgs),
+    /// Measure throughput against actor processes (scale.json/csv/png).
+    Scale(scale_cmd::ScaleArgs),
     /// Start one role of a run from a preset (for containers and pods).
     Launch(launch_cmd::LaunchArgs),
     /// Probe a server's gRPC health service (exit 0 when SERVING).
@@ -75,6 +78,7 @@ fn main() -> ExitCode {
         Command::Graph(args) => run_graph(&args),
         Command::Run(args) => run_cmd::run(&args),
         Command::Launch(args) => launch_cmd::run(&args),
+        Command::Scale(args) => scale_cmd::run(&args),
         Command::Health(args) => probe_cmd::health(&args),
         Command::Status(args) => probe_cmd::status(&args),
         Command::Sim(args) => sim_cmd::run(&args),

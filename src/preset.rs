@@ -103,6 +103,20 @@ impl Preset {
         Ok(args)
     }
 
+    /// `lcrl-learner`'s arguments with the graph (connection local) from a
+    /// graph.json file instead of a graph builder (`lcrl scale` builds it
+    /// once for all its points).
+    pub fn learner_args_with_graph_file(&self, listen: &str, run_id: &str, train_config: &Path, learner_dir: &Path, graph: &Path) -> anyhow::Result<Vec<OsString>> {
+        let mut args = self.learner_args(listen, run_id, train_config, learner_dir, Some("unused"))?;
+        if let Some(k) = args.iter().position(|a| a == "--graph-builder") {
+            args.drain(k..k + 2);
+        }
+        if self.job.connection == Connection::Local {
+            args.extend([OsString::from("--graph"), graph.into()]);
+        }
+        Ok(args)
+    }
+
     /// `lcrl-actor`'s arguments. `actor_id` None: the actor names itself
     /// (host name and process id), as replicas in containers must.
     pub fn actor_args(&self, learner: &str, run_id: &str, transport: &str, actor_id: Option<&str>, seed_offset: u64) -> Vec<OsString> {

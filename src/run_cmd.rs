@@ -49,7 +49,7 @@ pub enum TransportArg {
 
 /// A child process, stopped (SIGTERM, then SIGKILL after a grace period)
 /// when dropped, so no run leaves orphans behind.
-struct Managed {
+pub(crate) struct Managed {
     name: String,
     child: Child,
 }
@@ -58,7 +58,7 @@ impl Managed {
     /// Starts `command` with stderr to logs/NAME.log. A server prints
     /// "listening on ADDR" as its first line; with `server` that address is
     /// read and returned.
-    fn spawn(name: &str, mut command: Command, logs: &Path, server: bool) -> anyhow::Result<(Managed, Option<String>)> {
+    pub(crate) fn spawn(name: &str, mut command: Command, logs: &Path, server: bool) -> anyhow::Result<(Managed, Option<String>)> {
         let log = fs::File::create(logs.join(format!("{name}.log")))?;
         let stdout = if server { Stdio::piped() } else { Stdio::null() };
         let child = command.stdout(stdout).stderr(log).spawn().with_context(|| format!("starting {name}"))?;
@@ -73,7 +73,15 @@ impl Managed {
         Ok((managed, address))
     }
 
-    fn stop(&mut self, grace: Duration) {
+    pub(crate) fn stop(&mut self, grace: Duration) {
+        self.stop_inner(grace)
+    }
+
+    pub(crate) fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    fn stop_inner(&mut self, grace: Duration) {
         if matches!(self.child.try_wait(), Ok(Some(_))) {
             return;
         }
@@ -97,7 +105,7 @@ impl Drop for Managed {
     }
 }
 
-async fn wait_healthy(url: &str, service: &str, what: &str, timeout: Duration) -> anyhow::Result<()> {
+pub(crate) async fn wait_healthy(url: &str, service: &str, what: &str, timeout: Duration) -> anyhow::Result<()> {
     let deadline = Instant::now() + timeout;
     loop {
         if let Ok(true) = crate::probe_cmd::is_serving(url, service).await {

@@ -249,7 +249,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
     if let Some(0) = args.episodes {
         bail!("--episodes must be at least 1");
     }
-    let (commands, inbox) = mpsc::channel(64);
+    // Few batches in flight: every queued batch is policy lag (an actor a
+    // whole queue ahead acts with a policy that many updates old), and the
+    // rate limiter holds actors back through this queue.
+    let (commands, inbox) = mpsc::channel(8);
     if !(args.checkpoint_secs.is_finite() && args.checkpoint_secs > 0.0) {
         bail!("--checkpoint-secs must be a positive number of seconds");
     }

@@ -246,12 +246,12 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
                 }
             }
             received = true;
-            store(agent.as_mut(), &shared, &schedule, &mut log, batch);
+            let stored = store(agent.as_mut(), &shared, &schedule, &mut log, batch);
             if let Some(limiter) = &mut schedule.limiter {
-                limiter.insert(count);
+                limiter.insert(stored);
             }
             if let Ok(mut flow) = shared.flow.lock() {
-                flow.inserted += count;
+                flow.inserted += stored;
             }
             if budget_reached(&shared) {
                 finished = true;
@@ -376,7 +376,7 @@ fn recv_timeout(commands: &mut mpsc::Receiver<Command>, timeout: std::time::Dura
             Ok(command) => return Some(Some(command)),
             Err(mpsc::error::TryRecvError::Disconnected) => return Some(None),
             Err(mpsc::error::TryRecvError::Empty) if std::time::Instant::now() >= deadline => return None,
-            Err(mpsc::error::TryRecvError::Empty) => std::thread::sleep(std::time::Duration::from_millis(2)),
+            Err(mpsc::error::TryRecvError::Empty) => std::thread::sleep(std::time::Duration::from_micros(250)),
         }
     }
 }
@@ -433,13 +433,18 @@ impl EpisodeLog {
     }
 }
 
-fn store(agent: &mut dyn Agent, shared: &Shared, schedule: &Schedule, log: &mut EpisodeLog, batch: Accepted) {
+/// Stores an accepted batch; returns the transitions stored (0 if stale).
+fn store(agent: &mut dyn Agent, shared: &Shared, schedule: &Schedule, log: &mut EpisodeLog, batch: Accepted) -> u64 {
     let newest = shared.policy_version();
     let stale = schedule.max_staleness.is_some_and(|bound| newest.saturating_sub(batch.policy_version) > bound);
     if stale {
+        // Nothing of a stale batch counts: its episodes are not data the
+        // learner learned from, so they do not use up the budget either
+        // (the budget means what it means in `lcrl train`).
         if let Ok(mut ingest) = shared.ingest.lock() {
             *ingest.rejected.entry("stale".into()).or_insert(0) += batch.transitions.len() as u64;
         }
+        return 0;
     }
     for t in batch.transitions.iter().filter(|_| !stale) {
         agent.store(Transition {
@@ -471,4 +476,5 @@ fn store(agent: &mut dyn Agent, shared: &Shared, schedule: &Schedule, log: &mut 
             }
         }
     }
+    batch.transitions.len() as u64
 }
