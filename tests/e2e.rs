@@ -9,6 +9,7 @@ mod e2e {
     mod sim_cli;
     mod train_cli;
     mod distributed;
+    mod distributed_learning;
     mod observability;
     mod deploy;
     mod run_cli;

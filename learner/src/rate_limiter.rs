@@ -74,7 +74,8 @@ impl RateLimiter {
         Ok(())
     }
 
-    fn centre(&self) -> f64 {
+    /// The diff the limiter steers to: SPI · min_size.
+    pub fn centre(&self) -> f64 {
         self.samples_per_insert * self.min_size_to_sample as f64
     }
 
@@ -105,6 +106,13 @@ impl RateLimiter {
             return false;
         }
         self.diff() - count as f64 >= self.min_diff()
+    }
+
+    /// Samples owed at the end of a run: how far diff is above its centre,
+    /// so a learner that was behind can take the updates its last inserts
+    /// earned (as the single-process loop takes one per step to the end).
+    pub fn owed(&self) -> f64 {
+        (self.diff() - self.centre()).max(0.0)
     }
 
     pub fn insert(&mut self, count: u64) {
@@ -187,6 +195,15 @@ mod tests {
             assert!((l.samples as f64 - expected).abs() <= l.error_buffer + 256.0 * 64.0, "{l:?}");
         }
         assert!(l.inserts > 1_000_000);
+    }
+
+    #[test]
+    fn owed_samples_are_the_distance_above_the_centre() {
+        let mut l = limiter();
+        l.insert(5); // diff 10, centre 6
+        assert_eq!(l.owed(), 4.0);
+        l.sample(6);
+        assert_eq!(l.owed(), 0.0);
     }
 
     #[test]

@@ -26,7 +26,7 @@ impl Drop for Proc {
 }
 
 impl Proc {
-    fn signal(&self, signal: &str) {
+    pub(super) fn signal(&self, signal: &str) {
         let _ = Command::new("kill").args([format!("-{signal}"), self.0.id().to_string()]).status();
     }
 }

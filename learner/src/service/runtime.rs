@@ -256,6 +256,22 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
             if budget_reached(&shared) {
                 finished = true;
                 held = None;
+                // The updates the last inserts earned (Algorithm 2 gives
+                // every step its update, to the end of the run).
+                let batch_size = agent.samples_per_update() as u64;
+                while let Some(limiter) = schedule.limiter.as_mut().filter(|l| schedule.train && batch_size > 0 && l.owed() >= batch_size as f64) {
+                    let before = agent.counters().updates;
+                    agent.train_step();
+                    let updates = agent.counters().updates - before;
+                    if updates == 0 {
+                        break;
+                    }
+                    limiter.sample(updates * batch_size);
+                    if let Ok(mut flow) = shared.flow.lock() {
+                        flow.sampled += updates * batch_size;
+                    }
+                }
+                shared.updates.store(agent.counters().updates, Ordering::Relaxed);
                 checkpoint(agent.as_ref(), &shared, &schedule)?;
                 write_summary(agent.as_ref(), &shared)?;
                 set_finished(&shared, true);

@@ -187,7 +187,9 @@ fn open_service(node: &Node<ipc::Service>, run_id: &str) -> Result<Service, Stri
     node.service_builder(&name)
         .publish_subscribe::<TransitionSample>()
         .enable_safe_overflow(false)
-        .subscriber_max_buffer_size(64)
+        // A few batches of slack: every batch buffered here is policy lag,
+        // and the replay-ratio limiter holds actors back through it.
+        .subscriber_max_buffer_size(4)
         .max_publishers(64)
         .open_or_create()
         .map_err(|e| format!("cannot open the shared-memory service {}: {e:?}", service_name(run_id)))
