@@ -28,7 +28,9 @@ bash deploy/build-image.sh lcrl:local
 lcrl=target/debug/lcrl
 project="lcrl-e2e-$$"
 run_dir="$(mktemp -d /tmp/lcrl-compose-XXXXXX)"
-export LCRL_PRESET=lti-paper.toml LCRL_RUN_DIR="$run_dir" LCRL_RUN_ID="e2e-$$"
+# A budget the test never reaches: it checks that training goes on through
+# a lost and a rejoined actor, so the learner must not finish meanwhile.
+export LCRL_PRESET=lti-paper.toml LCRL_RUN_DIR="$run_dir" LCRL_RUN_ID="e2e-$$" LCRL_EPISODES=100000000
 dc() { "${compose[@]}" -p "$project" -f deploy/compose.yaml "$@"; }
 cleanup() {
   status=$?

@@ -53,11 +53,18 @@ pub struct LaunchArgs {
     /// Print the command line instead of running it.
     #[arg(long)]
     pub dry_run: bool,
+    /// Learner: the run's episode budget instead of the preset's
+    /// `[job] episodes` (0: the preset's).
+    #[arg(long, default_value_t = 0)]
+    pub episodes: u64,
 }
 
 /// The binary and arguments `args` stands for.
 pub fn command_line(args: &LaunchArgs) -> anyhow::Result<(&'static str, Vec<OsString>)> {
-    let preset = Preset::load(&args.config)?;
+    let mut preset = Preset::load(&args.config)?;
+    if args.episodes > 0 {
+        preset.job.episodes = args.episodes;
+    }
     let (binary, mut argv) = match args.role {
         Role::GraphBuilder => {
             let listen = args.listen.as_deref().unwrap_or("0.0.0.0:50051");

@@ -182,7 +182,7 @@ fn compose_commands_are_accepted_by_the_cli() {
     compose.apply_merge().expect("compose.yaml merge keys (<<: *lcrl)");
     let services = compose["services"].as_mapping().unwrap();
     let run_dir = tempfile::tempdir().unwrap();
-    let substitute = |s: &str| s.replace("${LCRL_PRESET:-lti-paper.toml}", "lti-paper.toml").replace("${LCRL_RUN_ID:-compose}", "compose");
+    let substitute = |s: &str| s.replace("${LCRL_PRESET:-lti-paper.toml}", "lti-paper.toml").replace("${LCRL_RUN_ID:-compose}", "compose").replace("${LCRL_EPISODES:-0}", "0");
     let mut binaries = BTreeSet::new();
     for (name, service) in services {
         let name = name.as_str().unwrap();
