@@ -65,6 +65,11 @@ pub trait Agent: Send {
     fn samples_per_update(&self) -> usize {
         0
     }
+    /// Transitions drawn from the replay buffer so far (DDPG: one minibatch
+    /// per critic update, whatever the policy delay), for the limiter.
+    fn samples_drawn(&self) -> u64 {
+        0
+    }
     /// Transitions stored before the first update can happen.
     fn min_size_to_sample(&self) -> usize {
         0

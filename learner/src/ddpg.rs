@@ -257,6 +257,10 @@ impl Agent for Ddpg {
         self.cfg.batch_size
     }
 
+    fn samples_drawn(&self) -> u64 {
+        self.critic_updates * self.cfg.batch_size as u64
+    }
+
     fn min_size_to_sample(&self) -> usize {
         self.cfg.warmup_steps.max(self.cfg.batch_size)
     }

@@ -260,15 +260,15 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
                 // every step its update, to the end of the run).
                 let batch_size = agent.samples_per_update() as u64;
                 while let Some(limiter) = schedule.limiter.as_mut().filter(|l| schedule.train && batch_size > 0 && l.owed() >= batch_size as f64) {
-                    let before = agent.counters().updates;
+                    let before = agent.samples_drawn();
                     agent.train_step();
-                    let updates = agent.counters().updates - before;
-                    if updates == 0 {
+                    let drawn = agent.samples_drawn() - before;
+                    if drawn == 0 {
                         break;
                     }
-                    limiter.sample(updates * batch_size);
+                    limiter.sample(drawn);
                     if let Ok(mut flow) = shared.flow.lock() {
-                        flow.sampled += updates * batch_size;
+                        flow.sampled += drawn;
                     }
                 }
                 shared.updates.store(agent.counters().updates, Ordering::Relaxed);
@@ -288,6 +288,7 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
             agent.set_progress(episodes as f64 / budget.max(1) as f64);
         }
         let before = agent.counters();
+        let drawn_before = agent.samples_drawn();
         let batch_size = agent.samples_per_update() as u64;
         let limited = match (&schedule.limiter, shared.algo) {
             (_, Algo::Ppo) => true,
@@ -300,13 +301,15 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
             agent.train_step();
         }
         let after = agent.counters();
-        let updates = after.updates - before.updates;
-        if updates > 0 {
+        // The limiter counts transitions drawn (every critic minibatch),
+        // not actor updates: with a policy delay they differ.
+        let drawn = agent.samples_drawn() - drawn_before;
+        if drawn > 0 {
             if let Some(limiter) = &mut schedule.limiter {
-                limiter.sample(updates * batch_size);
+                limiter.sample(drawn);
             }
             if let Ok(mut flow) = shared.flow.lock() {
-                flow.sampled += updates * batch_size;
+                flow.sampled += drawn;
             }
         }
         let warm = agent.stored() >= agent.min_size_to_sample();
@@ -315,7 +318,8 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
         }
         shared.updates.store(after.updates, Ordering::Relaxed);
         shared.replay_size.store(agent.stored() as u64, Ordering::Relaxed);
-        let trained = updates > 0;
+        // PPO updates draw nothing from a replay buffer: count its updates.
+        let trained = drawn > 0 || after.updates > before.updates;
         let exploration = exploration_of(agent.as_ref(), &shared);
         let exploration_changed = match (exploration, published_exploration) {
             (Some((uniform, noise)), Some((was_uniform, was_noise))) => uniform != was_uniform || (noise - was_noise).abs() >= 0.005,
