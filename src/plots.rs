@@ -33,10 +33,10 @@ impl Panel {
 }
 
 /// The bottom of a reward panel's y axis: the worst value of the second
-/// half of each curve (where a run settles), less as much again as the
-/// spread from there to the best value. Early episodes far below that sit on
+/// half of each curve (where a run settles), less twice the spread from
+/// there to the best value. Early episodes far below that sit on
 /// the axis's bottom edge. None when nothing lies below it (or a curve is
-/// too short to have a settled half).
+/// too short to have a settled half): then the whole curve is drawn.
 pub fn robust_low(series: &[&[f64]]) -> Option<f64> {
     let finite = |v: &[f64]| v.iter().copied().filter(|x| x.is_finite()).collect::<Vec<f64>>();
     let mut late_min = f64::INFINITY;
@@ -51,7 +51,7 @@ pub fn robust_low(series: &[&[f64]]) -> Option<f64> {
         lowest = all.iter().copied().fold(lowest, f64::min);
         highest = all.iter().copied().fold(highest, f64::max);
     }
-    let low = late_min - (highest - late_min).max(1e-9);
+    let low = late_min - 2.0 * (highest - late_min).max(1e-9);
     (lowest < low).then_some(low)
 }
 
