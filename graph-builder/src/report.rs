@@ -173,37 +173,11 @@ impl GraphReport {
             self.elapsed_s
         );
         let _ = writeln!(out, "phi(i, j) (eq. 5); * marks G_ij = 1 (action i sees state j)");
-        let width = self.state_names.iter().map(|s| s.len()).max().unwrap_or(0).max(10) + 1;
         let label = self.action_names.iter().map(|s| s.len()).max().unwrap_or(0);
-        let _ = write!(out, "{:<label$}", "");
-        for name in &self.state_names {
-            let _ = write!(out, " {name:>width$}");
-        }
-        out.push('\n');
-        for (i, name) in self.action_names.iter().enumerate() {
-            let _ = write!(out, "{name:<label$}");
-            for j in 0..self.states() {
-                let mark = if self.g[i][j] == 1 { '*' } else { ' ' };
-                let cell = format!("{}{}", format_phi(self.phi[i][j]), mark);
-                let _ = write!(out, " {cell:>width$}");
-            }
-            out.push('\n');
-        }
+        out.push_str(&self.matrix(|i, j| format!("{}{}", format_phi(self.phi[i][j]), if self.g[i][j] == 1 { '*' } else { ' ' })));
         if !self.margin.is_empty() {
             let _ = writeln!(out, "\nmargin of each kept edge, phi / (T × column mean) (≥ 1 kept; the edge survives up to margin × T):");
-            let _ = write!(out, "{:<label$}", "");
-            for name in &self.state_names {
-                let _ = write!(out, " {name:>width$}");
-            }
-            out.push('\n');
-            for (i, name) in self.action_names.iter().enumerate() {
-                let _ = write!(out, "{name:<label$}");
-                for j in 0..self.states() {
-                    let cell = if self.g[i][j] == 1 { format!("{:.2}", self.margin[i][j]) } else { ".".to_string() };
-                    let _ = write!(out, " {cell:>width$}");
-                }
-                out.push('\n');
-            }
+            out.push_str(&self.matrix(|i, j| if self.g[i][j] == 1 { format!("{:.2}", self.margin[i][j]) } else { ".".to_string() }));
         }
         let _ = writeln!(out, "\nG (action × state), {} of {} edges:", self.edges(), self.actions() * self.states());
         for (i, name) in self.action_names.iter().enumerate() {
@@ -221,6 +195,28 @@ impl GraphReport {
         if !self.unmoved_states.is_empty() {
             let names: Vec<&str> = self.unmoved_states.iter().map(|&j| self.state_names[j].as_str()).collect();
             let _ = writeln!(out, "\nno action moves: {} (their columns are all 0)", names.join(", "));
+        }
+        out
+    }
+}
+
+impl GraphReport {
+    /// An action × state table of `cell(i, j)` with labelled rows and columns.
+    fn matrix(&self, cell: impl Fn(usize, usize) -> String) -> String {
+        let mut out = String::new();
+        let width = self.state_names.iter().map(|s| s.len()).max().unwrap_or(0).max(10) + 1;
+        let label = self.action_names.iter().map(|s| s.len()).max().unwrap_or(0);
+        let _ = write!(out, "{:<label$}", "");
+        for name in &self.state_names {
+            let _ = write!(out, " {name:>width$}");
+        }
+        out.push('\n');
+        for (i, name) in self.action_names.iter().enumerate() {
+            let _ = write!(out, "{name:<label$}");
+            for j in 0..self.states() {
+                let _ = write!(out, " {:>width$}", cell(i, j));
+            }
+            out.push('\n');
         }
         out
     }

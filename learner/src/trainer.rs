@@ -57,6 +57,8 @@ pub struct EpisodeRow {
     pub wall_s: f64,
     pub optimization_s: f64,
     /// The return split into its reward terms (peg tasks; docs/peg.md).
+    /// Spelled out rather than a flattened `ReturnColumns`: the csv crate
+    /// cannot write flattened structs.
     #[serde(default)]
     pub return_depth: Option<f64>,
     #[serde(default)]
