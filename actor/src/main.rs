@@ -180,6 +180,18 @@ async fn run(args: Args) -> anyhow::Result<()> {
         },
     }
     stop.store(true, Ordering::Relaxed);
+    // The worker checks `stop` between steps, but a send can block while the
+    // learner's rate limiter holds this actor back. Stopping must not wait
+    // on the learner: after a grace period the process exits without the
+    // worker (its unsent batch is lost, as any unacknowledged batch is).
+    let deadline = Instant::now() + Duration::from_secs(2);
+    while !finished.load(Ordering::Relaxed) && Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    if !finished.load(Ordering::Relaxed) {
+        tracing::warn!("the environment thread is blocked sending to a learner that holds actors back; exiting without it");
+        return Ok(());
+    }
     worker.join().map_err(|_| anyhow::anyhow!("the environment thread panicked"))??;
     Ok(())
 }
