@@ -16,7 +16,7 @@ const SMALL: &str = "[network]\nglobal_hidden = [32, 32]\nsubnet_hidden = [16, 1
 [ddpg]\nwarmup_steps = 100\nbatch_size = 32\n[run]\ngraph_samples = 16\n";
 
 /// A child process killed (SIGKILL) when dropped.
-pub(super) struct Proc(Child);
+pub(super) struct Proc(pub(super) Child);
 
 impl Drop for Proc {
     fn drop(&mut self) {

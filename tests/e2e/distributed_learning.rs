@@ -178,3 +178,38 @@ fn scale_with_two_points_writes_parsable_outputs() {
     assert_eq!(csv.records().count(), 3);
     assert!(fs::read(out_dir.join("scale.png")).unwrap().starts_with(b"\x89PNG"));
 }
+
+/// SIGTERM while the limiter holds the actors back (the command queue full,
+/// the shared-memory subscriber blocked on it): the learner still
+/// checkpoints and exits at once, and so does the held actor.
+#[tokio::test]
+async fn a_learner_holding_actors_back_stops_promptly() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    // 100 minibatches per inserted transition: draining the queue would
+    // take the learner tens of seconds, so a shutdown that waited for it
+    // would show.
+    let (learner, url) = learner_with_args(&run, "rh", free_port(), "ddpg", &["--replay-ratio", "3200"]);
+    let actor = actor_with_args(&url, "rh", &["--transport", "shm"]);
+    wait_for(&url, "the limiter to hold the actor back", |s| s.updates > 200 && s.actors_waited_s > 0.5).await;
+    // The actor keeps running: the learner must not wait for it.
+    let stopped = Instant::now();
+    learner.signal("TERM");
+    let mut learner = learner;
+    let deadline = Instant::now() + Duration::from_secs(8);
+    let code = loop {
+        if let Some(code) = learner.0.try_wait().unwrap() {
+            break code;
+        }
+        assert!(Instant::now() < deadline, "the learner did not stop within 8 s of SIGTERM while holding its actor back");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert!(code.success(), "learner exit {code:?} after {:?}", stopped.elapsed());
+    // The held actor stops promptly too.
+    let stopped = Instant::now();
+    actor.signal("TERM");
+    let mut actor = actor;
+    assert!(actor.0.wait().unwrap().success());
+    assert!(stopped.elapsed() < Duration::from_secs(8), "the actor took {:?}", stopped.elapsed());
+    assert!(lcrl_learner::trainer::latest_checkpoint(&run).is_some(), "a final checkpoint");
+}

@@ -210,6 +210,12 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
     let mut finished = budget_reached(&shared);
     set_finished(&shared, finished);
     loop {
+        // Shutdown does not wait for a Stop through the queue: while the
+        // limiter holds a batch the queue is full, and senders (the Stop
+        // among them) would wait on this thread forever.
+        if *shared.shutdown.borrow() {
+            return checkpoint(agent.as_ref(), &shared, &schedule);
+        }
         let turn_seconds = turn.elapsed().as_secs_f64();
         turn = std::time::Instant::now();
         if held.is_some() {
