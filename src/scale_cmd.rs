@@ -116,7 +116,7 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
         };
         lcrl_graph_builder::build_graph(env.as_ref(), &options, &|| {})?.write_json(&graph)?;
     }
-    let mut points = vec![baseline(&preset, args)?];
+    let mut points = vec![baseline(&preset, args, &graph)?];
     eprintln!("baseline (lcrl train loop, 1 process): {:.0} env steps/s, {:.0} updates/s", points[0].env_steps_per_s, points[0].updates_per_s);
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
     for &envs in &args.envs_per_actor {
@@ -161,7 +161,7 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
 /// The single-process `lcrl train` loop on the same settings: env steps and
 /// updates per second after its warm-up (as many episodes as fit in the
 /// window, at least enough to pass the warm-up).
-fn baseline(preset: &Preset, args: &ScaleArgs) -> anyhow::Result<ScalePoint> {
+fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<ScalePoint> {
     let env = lcrl_sim::make_env(&preset.job.env)?;
     // Episode length from one a = 0 episode.
     let mut probe = env.snapshot();
@@ -177,8 +177,8 @@ fn baseline(preset: &Preset, args: &ScaleArgs) -> anyhow::Result<ScalePoint> {
     let request = lcrl_learner::trainer::TrainRequest {
         env: preset.job.env.clone(),
         algo: preset.job.algo,
-        connection: lcrl_learner::Connection::Global,
-        graph: None,
+        connection: preset.job.connection,
+        graph: (preset.job.connection == lcrl_learner::Connection::Local).then(|| graph.to_path_buf()),
         config,
         settings_source: args.config.display().to_string(),
         run_dir: dir,
