@@ -199,7 +199,8 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
     let mut log = EpisodeLog::open(&shared.run_dir);
     let mut held: Option<Accepted> = None;
     let mut turn = std::time::Instant::now();
-    let budget_reached = |shared: &Shared| schedule_budget_reached(shared);
+    let budget = schedule.budget_episodes;
+    let budget_reached = |shared: &Shared| budget.is_some_and(|b| shared.episodes.load(Ordering::Relaxed) >= b);
     if let Ok(mut flow) = shared.flow.lock() {
         flow.budget_episodes = schedule.budget_episodes.unwrap_or(0);
         flow.replay_ratio_target = schedule.limiter.as_ref().map_or(0.0, |l| l.samples_per_insert);
@@ -363,11 +364,6 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
     }
 }
 
-fn schedule_budget_reached(shared: &Shared) -> bool {
-    let budget = shared.flow().budget_episodes;
-    budget > 0 && shared.episodes.load(Ordering::Relaxed) >= budget
-}
-
 fn set_finished(shared: &Shared, finished: bool) {
     if let Ok(mut flow) = shared.flow.lock() {
         flow.finished = finished;
@@ -439,18 +435,22 @@ impl EpisodeLog {
                 tb.scalars((first + k as u64 + 1) as i64, &[("episode/return", e.episode_return), ("episode/length", f64::from(e.length))])?;
             }
             let step = (first + episodes.len() as u64) as i64;
-            let flow = shared.flow();
-            let (lag_min, lag_mean, lag_max) = flow.lag.stats();
+            // Read under the lock: no copy of the lag window per batch.
+            let (ratio, (lag_min, lag_mean, lag_max), actors_waited, learner_waited) = shared
+                .flow
+                .lock()
+                .map(|f| (f.achieved_ratio(), f.lag.stats(), f.actors_waited_s, f.learner_waited_s))
+                .unwrap_or_default();
             let learner = [
                 ("learner/env_steps", shared.env_steps.load(Ordering::Relaxed) as f64),
                 ("learner/updates", shared.updates.load(Ordering::Relaxed) as f64),
                 ("learner/policy_version", shared.policy_version() as f64),
-                ("learner/replay_ratio", flow.achieved_ratio()),
+                ("learner/replay_ratio", ratio),
                 ("learner/policy_lag_min", lag_min as f64),
                 ("learner/policy_lag_mean", lag_mean),
                 ("learner/policy_lag_max", lag_max as f64),
-                ("learner/actors_waited_s", flow.actors_waited_s),
-                ("learner/learner_waited_s", flow.learner_waited_s),
+                ("learner/actors_waited_s", actors_waited),
+                ("learner/learner_waited_s", learner_waited),
             ];
             tb.scalars(step, &learner)?;
             tb.flush()?;
