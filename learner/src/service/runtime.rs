@@ -194,7 +194,16 @@ fn waited(shared: &Shared, seconds: f64, actors: bool) {
 pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Command>, shared: Arc<Shared>, mut schedule: Schedule) -> Result<(), LearnerError> {
     let mut last_published = agent.counters().updates;
     let mut published_exploration = exploration_of(agent.as_ref(), &shared);
-    publish(agent.as_ref(), &shared, published_exploration)?;
+    // The starting version (no actor has it yet: the servers start after
+    // this thread) learns how to explore, without a version of its own.
+    if let Some((uniform, noise)) = published_exploration {
+        shared.policy.send_modify(|current| {
+            let mut first = (**current).clone();
+            first.explore_uniform = uniform;
+            first.exploration_noise = noise;
+            *current = Arc::new(first);
+        });
+    }
     let mut last_checkpoint = std::time::Instant::now();
     let mut log = EpisodeLog::open(&shared.run_dir);
     let mut held: Option<Accepted> = None;
