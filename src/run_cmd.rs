@@ -231,15 +231,18 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
         _ => format!("a = 0 {:.3}", summary.zero_action_return.unwrap_or(f64::NAN)),
     };
     Ok(format!(
-        "{}run {run_id}: {} episodes, {} env steps, {} updates (replay ratio {:.1} sampled per inserted, target {}), policy lag mean {:.1}, policy v{}, recent average return {:.3}, {:.1} s\n\
+        "{}run {run_id}: {} episodes, {} env steps, {} updates ({}), policy lag mean {:.1}, policy v{}, recent average return {:.3}, {:.1} s\n\
          eval return {:.3} over {} episodes of the final policy; reference: {reference}\n\
          results in {}: summary.json, config.toml, graph.json/graph.png, learner/metrics.csv (and TensorBoard events), learner/checkpoints/, reward_curve.png, logs/",
         if interrupted { "interrupted: " } else { "" },
         s.episodes,
         s.env_steps,
         s.updates,
-        summary.replay_ratio,
-        if summary.replay_ratio_target > 0.0 { format!("{:.0}", summary.replay_ratio_target) } else { "unlimited".into() },
+        match (job.algo, summary.replay_ratio_target > 0.0) {
+            (lcrl_learner::Algo::Ppo, _) => "PPO, on-policy".to_string(),
+            (_, true) => format!("replay ratio {:.1} sampled per inserted, target {:.0}", summary.replay_ratio, summary.replay_ratio_target),
+            (_, false) => format!("replay ratio {:.1} sampled per inserted, unlimited", summary.replay_ratio),
+        },
         summary.policy_lag.mean,
         s.policy_version,
         s.recent_return,
