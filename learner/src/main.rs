@@ -63,8 +63,11 @@ struct Args {
     /// DDPG: publish a new policy version every this many updates.
     #[arg(long, default_value_t = 100)]
     publish_every: u64,
-    /// PPO: discard batches more than this many versions older than the newest.
-    #[arg(long, default_value_t = 1)]
+    /// PPO: discard batches more than this many versions older than the
+    /// newest. 0 (default): strictly on-policy, as `lcrl train`'s PPO; the
+    /// learner treats stored data as the current policy's, so older data
+    /// biases the update.
+    #[arg(long, default_value_t = 0)]
     max_staleness: u64,
     /// Checkpoint at this interval, seconds (and on SIGTERM/Ctrl-C); the
     /// newest 3 checkpoints are kept.
