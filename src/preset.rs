@@ -86,15 +86,7 @@ impl Preset {
     /// `lcrl-learner`'s arguments; the graph (connection local) comes from
     /// `graph_builder`, a gRPC URL.
     pub fn learner_args(&self, listen: &str, run_id: &str, train_config: &Path, learner_dir: &Path, graph_builder: Option<&str>) -> anyhow::Result<Vec<OsString>> {
-        let mut args = os(&["--env", &self.job.env, "--listen", listen, "--run-id", run_id, "--checkpoint-secs", "30"]);
-        args.extend(os(&["--algo", algo_name(self.job.algo), "--connection", connection_name(self.job.connection)]));
-        // The run's budget lives in the learner: it drives the schedules
-        // and ends training (compose and Kubernetes get it the same way).
-        args.extend(os(&["--episodes", &self.job.episodes.to_string()]));
-        if let Some(ratio) = &self.job.replay_ratio {
-            args.extend(os(&["--replay-ratio", ratio]));
-        }
-        args.extend([OsString::from("--config"), train_config.into(), OsString::from("--run-dir"), learner_dir.into()]);
+        let mut args = self.learner_base_args(listen, run_id, train_config, learner_dir);
         match (self.job.connection, graph_builder) {
             (Connection::Local, Some(url)) => args.extend(os(&["--graph-builder", url])),
             (Connection::Local, None) => bail!("connection local needs the graph builder's URL (--graph-builder)"),
@@ -106,15 +98,26 @@ impl Preset {
     /// `lcrl-learner`'s arguments with the graph (connection local) from a
     /// graph.json file instead of a graph builder (`lcrl scale` builds it
     /// once for all its points).
-    pub fn learner_args_with_graph_file(&self, listen: &str, run_id: &str, train_config: &Path, learner_dir: &Path, graph: &Path) -> anyhow::Result<Vec<OsString>> {
-        let mut args = self.learner_args(listen, run_id, train_config, learner_dir, Some("unused"))?;
-        if let Some(k) = args.iter().position(|a| a == "--graph-builder") {
-            args.drain(k..k + 2);
-        }
+    pub fn learner_args_with_graph_file(&self, listen: &str, run_id: &str, train_config: &Path, learner_dir: &Path, graph: &Path) -> Vec<OsString> {
+        let mut args = self.learner_base_args(listen, run_id, train_config, learner_dir);
         if self.job.connection == Connection::Local {
             args.extend([OsString::from("--graph"), graph.into()]);
         }
-        Ok(args)
+        args
+    }
+
+    /// Everything but where the graph comes from.
+    fn learner_base_args(&self, listen: &str, run_id: &str, train_config: &Path, learner_dir: &Path) -> Vec<OsString> {
+        let mut args = os(&["--env", &self.job.env, "--listen", listen, "--run-id", run_id, "--checkpoint-secs", "30"]);
+        args.extend(os(&["--algo", algo_name(self.job.algo), "--connection", connection_name(self.job.connection)]));
+        // The run's budget lives in the learner: it drives the schedules
+        // and ends training (compose and Kubernetes get it the same way).
+        args.extend(os(&["--episodes", &self.job.episodes.to_string()]));
+        if let Some(ratio) = &self.job.replay_ratio {
+            args.extend(os(&["--replay-ratio", ratio]));
+        }
+        args.extend([OsString::from("--config"), train_config.into(), OsString::from("--run-dir"), learner_dir.into()]);
+        args
     }
 
     /// `lcrl-actor`'s arguments. `actor_id` None: the actor names itself

@@ -73,15 +73,11 @@ impl Managed {
         Ok((managed, address))
     }
 
-    pub(crate) fn stop(&mut self, grace: Duration) {
-        self.stop_inner(grace)
-    }
-
     pub(crate) fn pid(&self) -> u32 {
         self.child.id()
     }
 
-    fn stop_inner(&mut self, grace: Duration) {
+    pub(crate) fn stop(&mut self, grace: Duration) {
         if matches!(self.child.try_wait(), Ok(Some(_))) {
             return;
         }
@@ -266,10 +262,7 @@ fn plot_curve(metrics: &Path, out: &Path, env: &str, summary: &crate::run_summar
             w.iter().sum::<f64>() / w.len() as f64
         })
         .collect();
-    let mut references = Vec::new();
-    references.extend(summary.lqr_return.map(|v| ("LQR".to_string(), v)));
-    references.extend(summary.masked_lqr_return.map(|v| ("masked LQR (best with G)".to_string(), v)));
-    references.extend(summary.zero_action_return.map(|v| ("a = 0".to_string(), v)));
+    let references = crate::compare_cmd::reference_lines(summary.lqr_return, summary.masked_lqr_return, summary.zero_action_return);
     let panel = crate::plots::Panel::rewards("episode return", vec![("return".into(), returns), ("moving average (20)".into(), average)], references);
     crate::plots::line_panels(out, &format!("{env} — distributed run"), &x, "episode (as reported by actors)", &[panel])
 }

@@ -235,7 +235,7 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
     preset.write_train_config(&train)?;
     let run_id = format!("scale-{}-a{actors}-e{envs}", std::process::id());
     let mut cmd = Command::new(sibling("lcrl-learner")?);
-    cmd.args(preset.learner_args_with_graph_file("127.0.0.1:0", &run_id, &train, &dir.join("learner"), graph)?);
+    cmd.args(preset.learner_args_with_graph_file("127.0.0.1:0", &run_id, &train, &dir.join("learner"), graph));
     let (mut learner, address) = Managed::spawn("learner", cmd, &logs, true)?;
     let url = format!("http://{}", address.context("the learner did not start; see its log")?);
     wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120)).await?;

@@ -275,16 +275,9 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
                 // The updates the last inserts earned (Algorithm 2 gives
                 // every step its update, to the end of the run).
                 let batch_size = agent.samples_per_update() as u64;
-                while let Some(limiter) = schedule.limiter.as_mut().filter(|l| schedule.train && batch_size > 0 && l.owed() >= batch_size as f64) {
-                    let before = agent.samples_drawn();
-                    agent.train_step();
-                    let drawn = agent.samples_drawn() - before;
-                    if drawn == 0 {
+                while schedule.limiter.as_ref().is_some_and(|l| schedule.train && batch_size > 0 && l.owed() >= batch_size as f64) {
+                    if train_and_count(agent.as_mut(), &mut schedule, &shared) == 0 {
                         break;
-                    }
-                    limiter.sample(drawn);
-                    if let Ok(mut flow) = shared.flow.lock() {
-                        flow.sampled += drawn;
                     }
                 }
                 shared.updates.store(agent.counters().updates, Ordering::Relaxed);
@@ -304,7 +297,6 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
             agent.set_progress(episodes as f64 / budget.max(1) as f64);
         }
         let before = agent.counters();
-        let drawn_before = agent.samples_drawn();
         let batch_size = agent.samples_per_update() as u64;
         let limited = match (&schedule.limiter, shared.algo) {
             (_, Algo::Ppo) => true,
@@ -313,21 +305,8 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
             (None, Algo::Ddpg) => before.updates < before.env_steps,
         };
         let may_train = schedule.train && !finished && limited;
-        if may_train {
-            agent.train_step();
-        }
+        let drawn = if may_train { train_and_count(agent.as_mut(), &mut schedule, &shared) } else { 0 };
         let after = agent.counters();
-        // The limiter counts transitions drawn (every critic minibatch),
-        // not actor updates: with a policy delay they differ.
-        let drawn = agent.samples_drawn() - drawn_before;
-        if drawn > 0 {
-            if let Some(limiter) = &mut schedule.limiter {
-                limiter.sample(drawn);
-            }
-            if let Ok(mut flow) = shared.flow.lock() {
-                flow.sampled += drawn;
-            }
-        }
         let warm = agent.stored() >= agent.min_size_to_sample();
         if schedule.train && !finished && !limited && warm && shared.algo == Algo::Ddpg {
             waited(&shared, turn_seconds, false);
@@ -371,6 +350,24 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
             }
         }
     }
+}
+
+/// One training step, with the transitions it drew counted in the limiter
+/// and the flow statistics. The limiter counts transitions drawn (every
+/// critic minibatch), not actor updates: with a policy delay they differ.
+fn train_and_count(agent: &mut dyn Agent, schedule: &mut Schedule, shared: &Shared) -> u64 {
+    let before = agent.samples_drawn();
+    agent.train_step();
+    let drawn = agent.samples_drawn() - before;
+    if drawn > 0 {
+        if let Some(limiter) = &mut schedule.limiter {
+            limiter.sample(drawn);
+        }
+        if let Ok(mut flow) = shared.flow.lock() {
+            flow.sampled += drawn;
+        }
+    }
+    drawn
 }
 
 fn set_finished(shared: &Shared, finished: bool) {
