@@ -5,8 +5,10 @@ mod bench;
 mod bench_transport;
 mod compare_cmd;
 mod doctor;
+mod experiment;
 mod probe_cmd;
 mod launch_cmd;
+mod output;
 mod plots;
 mod preset;
 mod run_cmd;
@@ -58,6 +60,10 @@ enum Command {
     Train(train_cmd::TrainArgs),
     /// Compare training runs: time split, final returns, reward curves.
     Compare(compare_cmd::CompareArgs),
+    /// Many seeds of LCRL against GCRL: statistics, figures, resumable
+    /// (experiments/*.toml; see `lcrl experiment run --help`).
+    #[command(subcommand)]
+    Experiment(experiment::ExperimentCommand),
     /// Check the installation: libtorch loads and computes, threads, CUDA.
     Doctor,
     /// Measure performance figures (see `lcrl bench --help`).
@@ -85,6 +91,7 @@ fn main() -> ExitCode {
         Command::Tune(args) => tune_cmd::run(&args),
         Command::Train(args) => train_cmd::run(&args),
         Command::Compare(args) => compare_cmd::run(&args),
+        Command::Experiment(command) => experiment::run(&command),
         Command::Doctor => doctor::run(),
         Command::Bench(command) => bench::run(command),
     };

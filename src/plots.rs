@@ -9,8 +9,10 @@ use plotters::prelude::*;
 pub struct Panel {
     pub y_label: String,
     pub series: Vec<(String, Vec<f64>)>,
-    /// Optional shaded band (low, high) drawn under the first series.
-    pub band: Option<(Vec<f64>, Vec<f64>)>,
+    /// Shaded bands (series index, low, high) in their series' colour.
+    pub bands: Vec<(usize, Vec<f64>, Vec<f64>)>,
+    /// This panel's own x values (else the figure's shared x).
+    pub x: Option<Vec<f64>>,
     /// Horizontal reference lines (name, y): LQR, a = 0, best constant, …
     pub references: Vec<(String, f64)>,
     /// Reward curves: let the y axis ignore the few worst values (early
@@ -23,12 +25,12 @@ pub struct Panel {
 impl Panel {
     /// A panel of series with no band, references or clipping.
     pub fn lines(y_label: impl Into<String>, series: Vec<(String, Vec<f64>)>) -> Self {
-        Panel { y_label: y_label.into(), series, band: None, references: Vec::new(), clip_low_outliers: false }
+        Panel { y_label: y_label.into(), series, bands: Vec::new(), x: None, references: Vec::new(), clip_low_outliers: false }
     }
 
     /// A reward-curve panel: low outliers clipped, with reference lines.
     pub fn rewards(y_label: impl Into<String>, series: Vec<(String, Vec<f64>)>, references: Vec<(String, f64)>) -> Self {
-        Panel { y_label: y_label.into(), series, band: None, references, clip_low_outliers: true }
+        Panel { y_label: y_label.into(), series, bands: Vec::new(), x: None, references, clip_low_outliers: true }
     }
 }
 
@@ -76,10 +78,11 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
     root.fill(&WHITE).map_err(|e| draw_err(&e))?;
     let root = root.titled(title, ("sans-serif", 20)).map_err(|e| draw_err(&e))?;
     let areas = root.split_evenly((panels.len(), 1));
-    let (x0, x1) = range(x.iter().copied());
     for (area, panel) in areas.iter().zip(panels) {
+        let x = panel.x.as_deref().unwrap_or(x);
+        let (x0, x1) = range(x.iter().copied());
         let values: Vec<f64> = panel.series.iter().flat_map(|(_, v)| v.iter().copied()).collect();
-        let band = panel.band.iter().flat_map(|(lo, hi)| lo.iter().chain(hi).copied());
+        let band = panel.bands.iter().flat_map(|(_, lo, hi)| lo.iter().chain(hi).copied());
         let references = panel.references.iter().map(|(_, y)| *y);
         let curves: Vec<&[f64]> = panel.series.iter().map(|(_, v)| v.as_slice()).collect();
         let floor = if panel.clip_low_outliers && !curves.is_empty() { robust_low(&curves) } else { None };
@@ -100,10 +103,11 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
             .label_style(("sans-serif", 13))
             .draw()
             .map_err(|e| draw_err(&e))?;
-        if let Some((lo, hi)) = &panel.band {
-            let polygon: Vec<(f64, f64)> =
-                x.iter().copied().zip(hi.iter().copied()).chain(x.iter().copied().zip(lo.iter().copied()).rev()).collect();
-            chart.draw_series(std::iter::once(Polygon::new(polygon, COLORS[0].mix(0.2).filled()))).map_err(|e| draw_err(&e))?;
+        for (k, lo, hi) in &panel.bands {
+            let clamp = |v: &[f64]| -> Vec<(f64, f64)> { x.iter().copied().zip(v.iter().map(|y| y.clamp(y0, y1))).collect() };
+            let polygon: Vec<(f64, f64)> = clamp(hi).into_iter().chain(clamp(lo).into_iter().rev()).collect();
+            let color = COLORS[k % COLORS.len()];
+            chart.draw_series(std::iter::once(Polygon::new(polygon, color.mix(0.18).filled()))).map_err(|e| draw_err(&e))?;
         }
         for (k, (name, values)) in panel.series.iter().enumerate() {
             let color = COLORS[k % COLORS.len()];

@@ -67,6 +67,9 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         anyhow::bail!("--graph only applies to --connection local");
     }
     eprintln!("training settings: {source}");
+    if let Some(checkpoint) = args.resume.then(|| lcrl_learner::trainer::latest_checkpoint(&args.run_dir)).flatten() {
+        eprintln!("resuming from checkpoint {}", checkpoint.display());
+    }
     let request = TrainRequest {
         env: args.env.clone(),
         algo: args.algo,

@@ -3,7 +3,6 @@
 
 use std::path::PathBuf;
 
-use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use lcrl_sim::tune::{tune, TuneOptions};
 
@@ -62,7 +61,8 @@ pub fn run(args: &TuneArgs) -> anyhow::Result<()> {
     bar.finish_and_clear();
     let report = report?;
     let path = args.out.join("best_constant.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&report)? + "\n").with_context(|| format!("writing {}", path.display()))?;
+    // Atomic: `lcrl experiment` takes an existing file as a finished tune.
+    crate::output::write_atomic(&path, &(serde_json::to_string_pretty(&report)? + "\n"))?;
 
     let pct = |r: Option<f64>| r.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
     let force = |f: Option<f64>| f.map_or("n/a".into(), |f| format!("{f:.2} N"));

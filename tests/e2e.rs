@@ -13,4 +13,5 @@ mod e2e {
     mod observability;
     mod deploy;
     mod run_cli;
+    mod experiment_cli;
 }

@@ -533,6 +533,10 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     };
     let path = req.run_dir.join("summary.json");
     let text = serde_json::to_string_pretty(&summary).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    std::fs::write(&path, text + "\n").map_err(io(&path))?;
+    // Written whole, then renamed: a summary.json marks a finished run
+    // (`lcrl experiment` skips it), so it must never be half a file.
+    let partial = req.run_dir.join(".summary.json.partial");
+    std::fs::write(&partial, text + "\n").map_err(io(&partial))?;
+    std::fs::rename(&partial, &path).map_err(io(&path))?;
     Ok(TrainOutcome { summary, rows })
 }

@@ -1,6 +1,6 @@
 //! Helpers for running the project's binaries.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 /// `lcrl`, built by cargo for this test binary.
@@ -34,4 +34,24 @@ pub fn assert_clean_failure(out: &Output, needle: &str) {
     let lines: Vec<&str> = err.lines().filter(|l| l.contains("error")).collect();
     assert_eq!(lines.len(), 1, "expected exactly one error line, got: {err}");
     assert!(lines[0].contains(needle), "error line {:?} should mention {needle:?}", lines[0]);
+}
+
+/// Every YAML document of a manifest file.
+pub fn load_docs(path: &Path) -> Vec<serde_yaml::Value> {
+    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    serde_yaml::Deserializer::from_str(&text)
+        .map(|doc| <serde_yaml::Value as serde::Deserialize>::deserialize(doc).unwrap_or_else(|e| panic!("{} is not YAML: {e}", path.display())))
+        .collect()
+}
+
+pub fn str_of<'a>(v: &'a serde_yaml::Value, path: &[&str]) -> &'a str {
+    let mut at = v;
+    for key in path {
+        at = &at[*key];
+    }
+    at.as_str().unwrap_or_else(|| panic!("{path:?} is not a string in {v:?}"))
+}
+
+pub fn seq<'a>(v: &'a serde_yaml::Value, key: &str) -> Vec<&'a serde_yaml::Value> {
+    v[key].as_sequence().map(|s| s.iter().collect()).unwrap_or_default()
 }

@@ -6,32 +6,12 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
-use serde::Deserialize;
 use serde_yaml::Value;
 
-use super::common::{lcrl, stderr, stdout};
+use super::common::{lcrl, load_docs, seq, stderr, stdout, str_of};
 
 fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
-fn load_docs(path: &Path) -> Vec<Value> {
-    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    serde_yaml::Deserializer::from_str(&text)
-        .map(|doc| Value::deserialize(doc).unwrap_or_else(|e| panic!("{} is not YAML: {e}", path.display())))
-        .collect()
-}
-
-fn str_of<'a>(v: &'a Value, path: &[&str]) -> &'a str {
-    let mut at = v;
-    for key in path {
-        at = &at[*key];
-    }
-    at.as_str().unwrap_or_else(|| panic!("{path:?} is not a string in {v:?}"))
-}
-
-fn seq<'a>(v: &'a Value, key: &str) -> Vec<&'a Value> {
-    v[key].as_sequence().map(|s| s.iter().collect()).unwrap_or_default()
 }
 
 /// `lcrl launch ARGS --dry-run` with the manifest's placeholders filled in:

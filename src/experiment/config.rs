@@ -1,0 +1,336 @@
+//! The experiment file (experiments/*.toml): which environments,
+//! algorithms, connections and seeds a study runs, with their budgets and
+//! data-efficiency thresholds. Checked on load, unknown keys rejected by name.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use anyhow::{bail, Context};
+use lcrl_learner::{Algo, TrainConfig};
+use serde::{Deserialize, Serialize};
+
+/// The publication's threshold T of eq. 7, used by a plain `local`.
+pub const DEFAULT_THRESHOLD: f64 = 0.1;
+
+/// One experiment file, as written.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExperimentFile {
+    /// Names the study (Kubernetes objects, report titles); letters, digits
+    /// and '-'.
+    pub name: String,
+    /// Registered names (peg-group1, lti-paper, …) or .toml paths.
+    pub environments: Vec<String>,
+    pub algorithms: Vec<Algo>,
+    /// `local` (T = 0.1), `local@T`, `global`, `full-subnets`.
+    pub connections: Vec<String>,
+    /// A count n (seeds 0 … n−1) or an explicit list.
+    pub seeds: Seeds,
+    /// Training episodes per algorithm, e.g. `{ ddpg = 200, ppo = 900 }`.
+    pub episodes: BTreeMap<String, usize>,
+    /// Episodes of the deterministic policy evaluated after training.
+    #[serde(default = "default_eval_episodes")]
+    pub eval_episodes: usize,
+    /// Data efficiency: per environment, per algorithm, the average return
+    /// (10-episode mean) a run must reach; e.g.
+    /// `[reward_threshold.peg-group1]` `ddpg = -5.0`.
+    #[serde(default)]
+    pub reward_threshold: BTreeMap<String, BTreeMap<String, f64>>,
+    #[serde(default)]
+    pub graph: GraphSettings,
+    #[serde(default)]
+    pub best_constant: BestConstantSettings,
+    /// Training settings shared by every run, laid over each environment's
+    /// defaults (`lcrl train` without --config): `[train.ddpg]`, `[train.run]`, …
+    #[serde(default)]
+    pub train: toml::Table,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Seeds {
+    Count(u64),
+    List(Vec<u64>),
+}
+
+/// CS3 settings of the graphs (one per environment and threshold).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GraphSettings {
+    /// ST, CS3 samples per action component.
+    pub samples: usize,
+    pub seed: u64,
+}
+
+impl Default for GraphSettings {
+    fn default() -> Self {
+        GraphSettings { samples: 256, seed: 0 }
+    }
+}
+
+/// The best constant controller (`lcrl tune`), the bar beside every cell.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BestConstantSettings {
+    pub enabled: bool,
+    /// Candidate actions CMA-ES may evaluate.
+    pub evaluations: usize,
+    /// Tuning episodes per candidate.
+    pub episodes: usize,
+    /// Evaluation episodes of the winner and of a = 0.
+    pub eval_episodes: usize,
+}
+
+impl Default for BestConstantSettings {
+    fn default() -> Self {
+        let tune = lcrl_sim::tune::TuneOptions::default();
+        BestConstantSettings { enabled: true, evaluations: tune.evaluations, episodes: tune.episodes, eval_episodes: tune.eval_episodes }
+    }
+}
+
+fn default_eval_episodes() -> usize {
+    100
+}
+
+/// One entry of `connections`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ConnectionSpec {
+    Local { threshold: f64 },
+    Global,
+    FullSubnets,
+}
+
+impl ConnectionSpec {
+    pub fn parse(text: &str) -> anyhow::Result<Self> {
+        let unknown = || format!("unknown connection \"{text}\"; use local (T = {DEFAULT_THRESHOLD}), local@T such as local@0.25, global or full-subnets");
+        match text {
+            "local" => Ok(ConnectionSpec::Local { threshold: DEFAULT_THRESHOLD }),
+            "global" => Ok(ConnectionSpec::Global),
+            "full-subnets" => Ok(ConnectionSpec::FullSubnets),
+            _ => {
+                let t = text.strip_prefix("local@").with_context(unknown)?;
+                let threshold: f64 = t.parse().map_err(|_| anyhow::anyhow!("{}: \"{t}\" is not a number", unknown()))?;
+                if !(threshold.is_finite() && threshold >= 0.0) {
+                    bail!("connection \"{text}\": the threshold T must be a finite number ≥ 0");
+                }
+                Ok(ConnectionSpec::Local { threshold })
+            }
+        }
+    }
+
+    /// The name in tables, folders and plots: local@0.1, global, full-subnets.
+    pub fn label(&self) -> String {
+        match self {
+            ConnectionSpec::Local { threshold } => format!("local@{threshold}"),
+            ConnectionSpec::Global => "global".into(),
+            ConnectionSpec::FullSubnets => "full-subnets".into(),
+        }
+    }
+
+    pub fn threshold(&self) -> Option<f64> {
+        match self {
+            ConnectionSpec::Local { threshold } => Some(*threshold),
+            _ => None,
+        }
+    }
+}
+
+pub fn algo_name(algo: Algo) -> &'static str {
+    match algo {
+        Algo::Ddpg => "ddpg",
+        Algo::Ppo => "ppo",
+    }
+}
+
+/// A checked experiment: the file plus what follows from it.
+#[derive(Debug, Clone)]
+pub struct Experiment {
+    pub file: ExperimentFile,
+    pub connections: Vec<ConnectionSpec>,
+    pub seeds: Vec<u64>,
+}
+
+impl Experiment {
+    /// Reads and checks an experiment file.
+    pub fn load(path: &Path) -> anyhow::Result<Self> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read experiment file {}", path.display()))?;
+        Self::parse(&text).with_context(|| format!("experiment file {}", path.display()))
+    }
+
+    pub fn parse(text: &str) -> anyhow::Result<Self> {
+        let file: ExperimentFile = toml::from_str(text)?;
+        Self::check(file)
+    }
+
+    /// Every check that can run before a single process starts.
+    pub fn check(file: ExperimentFile) -> anyhow::Result<Self> {
+        if file.name.is_empty() || !file.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-') || file.name.len() > 40 {
+            bail!("`name` \"{}\" must be 1–40 letters, digits or '-' (it names Kubernetes objects)", file.name);
+        }
+        if file.environments.is_empty() || file.algorithms.is_empty() || file.connections.is_empty() {
+            bail!("`environments`, `algorithms` and `connections` must each list at least one entry");
+        }
+        let seeds = match &file.seeds {
+            Seeds::Count(n) => (0..*n).collect(),
+            Seeds::List(list) => list.clone(),
+        };
+        if seeds.is_empty() {
+            bail!("`seeds` is zero: give a count (seeds = 5 runs seeds 0–4) or a list (seeds = [0, 7, 9])");
+        }
+        if seeds.iter().collect::<std::collections::BTreeSet<_>>().len() != seeds.len() {
+            bail!("`seeds` lists a seed twice: {seeds:?}");
+        }
+        let connections = file.connections.iter().map(|c| ConnectionSpec::parse(c)).collect::<anyhow::Result<Vec<_>>>()?;
+        let labels: Vec<String> = connections.iter().map(ConnectionSpec::label).collect();
+        if labels.iter().collect::<std::collections::BTreeSet<_>>().len() != labels.len() {
+            bail!("`connections` lists a connection twice: {labels:?}");
+        }
+        if file.eval_episodes == 0 {
+            bail!("`eval_episodes` must be at least 1");
+        }
+        let algos: Vec<&str> = file.algorithms.iter().map(|a| algo_name(*a)).collect();
+        for algo in &algos {
+            match file.episodes.get(*algo) {
+                Some(0) => bail!("`episodes.{algo}` must be at least 1"),
+                Some(_) => {}
+                None => bail!("`episodes` gives no budget for {algo}; add e.g. `episodes = {{ {algo} = 200 }}`"),
+            }
+        }
+        for key in file.episodes.keys() {
+            if !algos.contains(&key.as_str()) {
+                bail!("`episodes.{key}`: {key} is not one of `algorithms` ({})", algos.join(", "));
+            }
+        }
+        let mut slugs = BTreeMap::new();
+        for env in &file.environments {
+            lcrl_sim::make_env(env).with_context(|| format!("environment \"{env}\""))?;
+            if let Some(other) = slugs.insert(env_slug(env), env) {
+                bail!("environments \"{other}\" and \"{env}\" would share the folder {}", env_slug(env));
+            }
+        }
+        for (env, per_algo) in &file.reward_threshold {
+            if !file.environments.contains(env) {
+                bail!("`reward_threshold.{env}`: {env} is not one of `environments`");
+            }
+            for (algo, value) in per_algo {
+                if !algos.contains(&algo.as_str()) {
+                    bail!("`reward_threshold.{env}.{algo}`: {algo} is not one of `algorithms`");
+                }
+                if !value.is_finite() {
+                    bail!("`reward_threshold.{env}.{algo}` must be a finite number");
+                }
+            }
+        }
+        if file.graph.samples == 0 {
+            bail!("`graph.samples` must be at least 1");
+        }
+        let b = &file.best_constant;
+        if b.enabled && (b.evaluations == 0 || b.episodes == 0 || b.eval_episodes == 0) {
+            bail!("`best_constant`: evaluations, episodes and eval_episodes must each be at least 1 (or set enabled = false)");
+        }
+        if let Some(run) = file.train.get("run").and_then(|r| r.as_table()) {
+            for (key, instead) in [("episodes", "`episodes`"), ("seed", "`seeds`"), ("eval_episodes", "`eval_episodes`"), ("threads", "one thread per run")] {
+                if run.contains_key(key) {
+                    bail!("`train.run.{key}` is set by the experiment ({instead}); remove it");
+                }
+            }
+        }
+        let experiment = Experiment { file, connections, seeds };
+        for env in &experiment.file.environments {
+            experiment.train_config(env)?;
+        }
+        Ok(experiment)
+    }
+
+    /// The training settings of every run on `env`: the environment's
+    /// defaults with `[train]` laid over them, and the experiment's
+    /// evaluation episodes.
+    pub fn train_config(&self, env: &str) -> anyhow::Result<TrainConfig> {
+        let (defaults, _) = TrainConfig::for_env(env);
+        let mut merged = match toml::Value::try_from(&defaults).context("serializing the default training settings")? {
+            toml::Value::Table(table) => table,
+            _ => bail!("the default training settings are not a table"),
+        };
+        overlay(&mut merged, &self.file.train);
+        let mut config: TrainConfig = toml::Value::Table(merged).try_into().map_err(|e| anyhow::anyhow!("`train`: {e}"))?;
+        config.run.eval_episodes = self.file.eval_episodes;
+        config.run.threads = 1;
+        config.validate().map_err(|e| anyhow::anyhow!("`train`: {e}"))?;
+        Ok(config)
+    }
+
+    pub fn episodes(&self, algo: Algo) -> usize {
+        self.file.episodes.get(algo_name(algo)).copied().unwrap_or(1)
+    }
+
+    pub fn reward_threshold(&self, env: &str, algo: Algo) -> Option<f64> {
+        self.file.reward_threshold.get(env)?.get(algo_name(algo)).copied()
+    }
+
+    /// The distinct thresholds of the local connections, in file order.
+    pub fn thresholds(&self) -> Vec<f64> {
+        let mut out: Vec<f64> = Vec::new();
+        for t in self.connections.iter().filter_map(ConnectionSpec::threshold) {
+            if !out.contains(&t) {
+                out.push(t);
+            }
+        }
+        out
+    }
+}
+
+/// Lays `top` over `base`, table by table (values in `top` win).
+fn overlay(base: &mut toml::Table, top: &toml::Table) {
+    for (key, value) in top {
+        match (base.get_mut(key), value) {
+            (Some(toml::Value::Table(b)), toml::Value::Table(t)) => overlay(b, t),
+            _ => {
+                base.insert(key.clone(), value.clone());
+            }
+        }
+    }
+}
+
+/// A folder name for an environment: a registered name as is, a file path
+/// by its stem.
+pub fn env_slug(env: &str) -> String {
+    let stem = Path::new(env).file_stem().map_or(env.to_string(), |s| s.to_string_lossy().into_owned());
+    stem.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MINIMAL: &str = "name = \"t\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"local@0.25\", \"global\"]\nseeds = 3\nepisodes = { ppo = 10 }\n";
+
+    #[test]
+    fn parses_connections_seeds_and_overlays_training_settings() {
+        let text = format!("{MINIMAL}[train.ppo]\nactor_lr = 0.005\n");
+        let e = Experiment::parse(&text).unwrap();
+        assert_eq!(e.seeds, vec![0, 1, 2]);
+        assert_eq!(e.connections.iter().map(ConnectionSpec::label).collect::<Vec<_>>(), ["local@0.1", "local@0.25", "global"]);
+        assert_eq!(e.thresholds(), vec![0.1, 0.25]);
+        let cfg = e.train_config("lti-paper").unwrap();
+        assert_eq!(cfg.ppo.actor_lr, 0.005);
+        // Everything else keeps lti-paper's own settings (configs/lti-fast.toml).
+        let (defaults, _) = TrainConfig::for_env("lti-paper");
+        assert_eq!(cfg.ppo.rollout_steps, defaults.ppo.rollout_steps);
+        assert_eq!((cfg.run.eval_episodes, cfg.run.threads), (100, 1));
+    }
+
+    #[test]
+    fn bad_files_are_refused_by_name() {
+        let err = |text: &str| Experiment::parse(text).err().map(|e| format!("{e:#}")).unwrap_or_else(|| panic!("accepted {text}"));
+        assert!(err(&MINIMAL.replace("\"global\"", "\"globl\"")).contains("unknown connection \"globl\""));
+        assert!(err(&MINIMAL.replace("seeds = 3", "seeds = 0")).contains("`seeds` is zero"));
+        assert!(err(&MINIMAL.replace("seeds = 3", "seeds = []")).contains("`seeds` is zero"));
+        assert!(err(&format!("{MINIMAL}colour = 1\n")).contains("colour"));
+        assert!(err(&format!("{MINIMAL}[train.ppo]\nactor_rate = 1\n")).contains("actor_rate"));
+        assert!(err(&format!("{MINIMAL}[train.run]\nseed = 4\n")).contains("train.run.seed"));
+        assert!(err(&MINIMAL.replace("{ ppo = 10 }", "{ ddpg = 10 }")).contains("no budget for ppo"));
+        assert!(err(&MINIMAL.replace("lti-paper", "peg-group9")).contains("peg-group9"));
+        assert!(err(&format!("{MINIMAL}[reward_threshold.peg-group1]\nppo = -3.0\n")).contains("reward_threshold.peg-group1"));
+        assert!(err(&MINIMAL.replace("local@0.25", "local@x")).contains("\"x\" is not a number"));
+    }
+}

@@ -1,0 +1,210 @@
+//! `lcrl experiment`: the publication's evaluation as one command. Many
+//! seeds of LCRL against GCRL (and the full-subnets ablation), statistics
+//! with confidence intervals, the publication's figures; on every core of
+//! one machine (`run`) or as a Kubernetes Indexed Job (`k8s`).
+
+mod config;
+mod figures;
+mod k8s;
+mod plan;
+mod report;
+mod runner;
+pub mod stats;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use anyhow::{bail, Context};
+
+use config::Experiment;
+use plan::Task;
+
+#[derive(Debug, clap::Subcommand)]
+pub enum ExperimentCommand {
+    /// Run a study: every (environment, algorithm, connection, seed) as a
+    /// child `lcrl train`, N at a time, then write its report. Run the same
+    /// command again to resume: finished runs are skipped, interrupted ones
+    /// continue from their newest checkpoint.
+    Run(RunArgs),
+    /// Write report.json, report.md, curves.png and traces.png from the
+    /// finished runs of a study.
+    Report(ReportArgs),
+    /// Write the study as a Kubernetes Indexed Job (one index per task) on a
+    /// shared volume.
+    K8s(K8sArgs),
+    /// Run one task of a study by its index: what each pod of the
+    /// Kubernetes Job runs.
+    Task(TaskArgs),
+}
+
+#[derive(Debug, clap::Args)]
+pub struct RunArgs {
+    /// The experiment file (e.g. experiments/paper.toml).
+    pub file: PathBuf,
+    /// Output directory; one per experiment file.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Runs at a time, each with one libtorch thread [default: the number of cores].
+    #[arg(long)]
+    pub jobs: Option<usize>,
+    /// List the tasks and their commands; run nothing.
+    #[arg(long)]
+    pub dry_run: bool,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct ReportArgs {
+    /// The --out directory of `lcrl experiment run`.
+    pub dir: PathBuf,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct K8sArgs {
+    pub file: PathBuf,
+    /// Directory for kustomization.yaml, job.yaml and report-job.yaml.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Pods at a time (each asks for one core).
+    #[arg(long, default_value_t = 16)]
+    pub parallelism: usize,
+    /// The image (built by deploy/build-image.sh).
+    #[arg(long, default_value = "lcrl:local")]
+    pub image: String,
+    /// Size of the shared ReadWriteMany volume claim.
+    #[arg(long, default_value = "20Gi")]
+    pub storage: String,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct TaskArgs {
+    pub file: PathBuf,
+    /// Output directory shared by all tasks of the study.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Task index [default: $JOB_COMPLETION_INDEX, which Kubernetes sets in
+    /// an Indexed Job].
+    #[arg(long)]
+    pub index: Option<usize>,
+    /// Print the command(s) the task runs; run nothing.
+    #[arg(long)]
+    pub dry_run: bool,
+}
+
+pub fn run(command: &ExperimentCommand) -> anyhow::Result<()> {
+    match command {
+        ExperimentCommand::Run(args) => run_study(args),
+        ExperimentCommand::Report(args) => {
+            let e = plan::recorded_experiment(&args.dir)?;
+            write_report(&e, &args.dir)
+        }
+        ExperimentCommand::K8s(args) => write_k8s(args),
+        ExperimentCommand::Task(args) => run_task(args),
+    }
+}
+
+fn run_study(args: &RunArgs) -> anyhow::Result<()> {
+    let e = Experiment::load(&args.file)?;
+    let jobs = args.jobs.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    if jobs == 0 {
+        bail!("--jobs must be at least 1");
+    }
+    let tasks = plan::tasks(&e);
+    if args.dry_run {
+        for (i, task) in tasks.iter().enumerate() {
+            println!("{i:>4} {:<48} lcrl {}", task.id(), task.args(&e, &args.out).join(" "));
+        }
+        return Ok(());
+    }
+    plan::prepare_out(&e, &args.file, &args.out, false)?;
+    // One study per directory at a time; the lock goes with the process.
+    let lock_path = args.out.join(".lock");
+    let lock = std::fs::File::create(&lock_path).with_context(|| format!("creating {}", lock_path.display()))?;
+    if lock.try_lock().is_err() {
+        bail!("another `lcrl experiment run` is working in {}; wait for it or stop it first", args.out.display());
+    }
+    let runs = tasks.iter().filter(|t| matches!(t, Task::Train { .. })).count();
+    println!("experiment {}: {} tasks ({runs} training runs) in {}, {jobs} at a time", e.file.name, tasks.len(), args.out.display());
+    let outcome = runner::run_tasks(&e, &tasks, &args.out, jobs)?;
+    println!(
+        "{} tasks finished now, {} before, {} failed, {} not started (their graph failed); wall time {:.1} s",
+        outcome.completed,
+        outcome.skipped,
+        outcome.failed.len(),
+        outcome.blocked,
+        outcome.wall_seconds
+    );
+    write_report(&e, &args.out)?;
+    if !outcome.failed.is_empty() {
+        let list: Vec<String> = outcome.failed.iter().map(|(id, log)| format!("  {id}: {}", log.display())).collect();
+        bail!(
+            "{} task(s) failed (logs below); the report covers the finished runs. Fix the cause and run the same command again to retry only those:\n{}",
+            outcome.failed.len(),
+            list.join("\n")
+        );
+    }
+    Ok(())
+}
+
+fn write_report(e: &Experiment, out: &Path) -> anyhow::Result<()> {
+    let study = report::gather(e, out)?;
+    let report = study.report();
+    report::write(&report, out)?;
+    figures::curves(&study, &out.join("curves.png"))?;
+    figures::traces(&study, &out.join("traces.png"))?;
+    print!("{}", report::markdown(&report));
+    println!("wrote {}/report.json, report.md, curves.png, traces.png", out.display());
+    Ok(())
+}
+
+fn write_k8s(args: &K8sArgs) -> anyhow::Result<()> {
+    let e = Experiment::load(&args.file)?;
+    if args.parallelism == 0 {
+        bail!("--parallelism must be at least 1");
+    }
+    let tasks = plan::tasks(&e);
+    let opts = k8s::K8sOptions { parallelism: args.parallelism, image: args.image.clone(), storage: args.storage.clone() };
+    k8s::write(&e, &args.file, &tasks, &args.out, &opts)?;
+    println!("wrote {}: an Indexed Job of {} tasks, {} pods at a time, results in {} on claim lcrl-experiments", args.out.display(), tasks.len(), args.parallelism, k8s::out_in_pod(&e));
+    println!("  kubectl apply -k {}", args.out.display());
+    println!("  kubectl wait --for=condition=complete --timeout=48h job/lcrl-experiment-{}", e.file.name);
+    println!("  kubectl apply -f {}", args.out.join("report-job.yaml").display());
+    Ok(())
+}
+
+/// One task, with the graph it needs built first if no other pod has.
+fn run_task(args: &TaskArgs) -> anyhow::Result<()> {
+    let e = Experiment::load(&args.file)?;
+    let tasks = plan::tasks(&e);
+    let index = match args.index {
+        Some(i) => i,
+        None => std::env::var("JOB_COMPLETION_INDEX")
+            .context("give --index, or set JOB_COMPLETION_INDEX (Kubernetes does in an Indexed Job)")?
+            .parse()
+            .context("JOB_COMPLETION_INDEX is not a number")?,
+    };
+    let Some(task) = tasks.get(index) else {
+        bail!("task index {index} is out of range: experiment {} has {} tasks (0–{})", e.file.name, tasks.len(), tasks.len() - 1);
+    };
+    let steps: Vec<Task> = task.dependency().into_iter().chain([task.clone()]).collect();
+    if args.dry_run {
+        for t in &steps {
+            println!("lcrl {}", t.args(&e, &args.out).join(" "));
+        }
+        return Ok(());
+    }
+    plan::prepare_out(&e, &args.file, &args.out, true)?;
+    let exe = std::env::current_exe().context("cannot find the lcrl executable")?;
+    for t in steps.iter().filter(|t| !t.is_done(&args.out)) {
+        println!("task {index}: {}", t.id());
+        let dir = t.output_dir(&args.out);
+        std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        let mut command = Command::new(&exe);
+        command.args(t.args(&e, &args.out)).stdin(Stdio::null());
+        runner::die_with_parent(&mut command);
+        let status = command.status().with_context(|| format!("starting {}", t.id()))?;
+        if !status.success() {
+            bail!("{} failed ({status})", t.id());
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,266 @@
+//! What a study runs: its tasks (best constants, graphs, training runs),
+//! where each writes, the `lcrl` command line of each, and when one counts
+//! as finished. The local scheduler and the Kubernetes Indexed Job both
+//! run these tasks, so a study means the same work everywhere.
+//!
+//! Layout of the output directory:
+//!   experiment.toml, experiment.json   the file as given, and as parsed
+//!   configs/ENV.toml                   training settings of ENV's runs
+//!   best_constant/ENV/best_constant.json
+//!   graphs/ENV/T0.1/graph.json         one graph per (ENV, T), shared by seeds
+//!   runs/ENV/ALGO/CONNECTION/seedK/    `lcrl train` run directories
+//!   logs/TASK.log                      each task's output
+//!   report.json, report.md, curves.png, traces.png
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use lcrl_learner::trainer::TrainSummary;
+use lcrl_learner::Algo;
+
+use super::config::{algo_name, env_slug, ConnectionSpec, Experiment};
+use crate::output::write_atomic;
+
+/// One (environment, algorithm, connection): a row of the report.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Cell {
+    pub env: String,
+    pub algo: Algo,
+    pub connection: ConnectionSpec,
+}
+
+impl Cell {
+    pub fn label(&self) -> String {
+        format!("{}/{}/{}", self.env, algo_name(self.algo), self.connection.label())
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum Task {
+    /// `lcrl tune`: the best constant action of an environment.
+    Tune { env: String },
+    /// `lcrl graph` at one threshold.
+    Graph { env: String, threshold: f64 },
+    /// `lcrl train` of one cell with one seed.
+    Train { cell: Cell, seed: u64 },
+}
+
+/// All tasks of a study, in the order they start: graphs first (training
+/// runs wait for them), then runs seed by seed (so an interrupted study
+/// has whole seeds of every cell), best constants last.
+pub fn tasks(e: &Experiment) -> Vec<Task> {
+    let mut tasks = Vec::new();
+    for env in &e.file.environments {
+        for threshold in e.thresholds() {
+            tasks.push(Task::Graph { env: env.clone(), threshold });
+        }
+    }
+    for &seed in &e.seeds {
+        for cell in cells(e) {
+            tasks.push(Task::Train { cell, seed });
+        }
+    }
+    if e.file.best_constant.enabled {
+        tasks.extend(e.file.environments.iter().map(|env| Task::Tune { env: env.clone() }));
+    }
+    tasks
+}
+
+/// Every cell, environment by environment, algorithm by algorithm.
+pub fn cells(e: &Experiment) -> Vec<Cell> {
+    let mut cells = Vec::new();
+    for env in &e.file.environments {
+        for &algo in &e.file.algorithms {
+            for &connection in &e.connections {
+                cells.push(Cell { env: env.clone(), algo, connection });
+            }
+        }
+    }
+    cells
+}
+
+pub fn config_path(out: &Path, env: &str) -> PathBuf {
+    out.join("configs").join(format!("{}.toml", env_slug(env)))
+}
+
+pub fn best_constant_path(out: &Path, env: &str) -> PathBuf {
+    out.join("best_constant").join(env_slug(env)).join("best_constant.json")
+}
+
+pub fn graph_path(out: &Path, env: &str, threshold: f64) -> PathBuf {
+    out.join("graphs").join(env_slug(env)).join(format!("T{threshold}")).join("graph.json")
+}
+
+pub fn run_dir(out: &Path, cell: &Cell, seed: u64) -> PathBuf {
+    out.join("runs").join(env_slug(&cell.env)).join(algo_name(cell.algo)).join(cell.connection.label()).join(format!("seed{seed}"))
+}
+
+/// A finished run's summary, if it has one that parses.
+pub fn finished_run(dir: &Path) -> Option<TrainSummary> {
+    let text = std::fs::read_to_string(dir.join("summary.json")).ok()?;
+    serde_json::from_str(&text).ok()
+}
+
+impl Task {
+    /// A name for progress lines and log files.
+    pub fn id(&self) -> String {
+        match self {
+            Task::Tune { env } => format!("tune-{}", env_slug(env)),
+            Task::Graph { env, threshold } => format!("graph-{}-T{threshold}", env_slug(env)),
+            Task::Train { cell, seed } => {
+                format!("train-{}-{}-{}-seed{seed}", env_slug(&cell.env), algo_name(cell.algo), cell.connection.label())
+            }
+        }
+    }
+
+    /// The task this one needs finished first.
+    pub fn dependency(&self) -> Option<Task> {
+        match self {
+            Task::Train { cell, .. } => cell.connection.threshold().map(|threshold| Task::Graph { env: cell.env.clone(), threshold }),
+            _ => None,
+        }
+    }
+
+    /// Whether its result is on disk (then it is never run again).
+    pub fn is_done(&self, out: &Path) -> bool {
+        match self {
+            Task::Tune { env } => best_constant_path(out, env).is_file(),
+            Task::Graph { env, threshold } => graph_path(out, env, *threshold).is_file(),
+            Task::Train { cell, seed } => finished_run(&run_dir(out, cell, *seed)).is_some(),
+        }
+    }
+
+    /// The folder its result goes to (created before it starts).
+    pub fn output_dir(&self, out: &Path) -> PathBuf {
+        let file = match self {
+            Task::Tune { env } => best_constant_path(out, env),
+            Task::Graph { env, threshold } => graph_path(out, env, *threshold),
+            Task::Train { cell, seed } => run_dir(out, cell, *seed).join("summary.json"),
+        };
+        file.parent().map(Path::to_path_buf).unwrap_or_else(|| out.to_path_buf())
+    }
+
+    /// The `lcrl` arguments that do it. Every output is written atomically
+    /// by the command (complete or absent), and a training run always
+    /// passes --resume: it continues from its newest checkpoint if an
+    /// interrupted attempt left one, and starts afresh otherwise.
+    pub fn args(&self, e: &Experiment, out: &Path) -> Vec<String> {
+        let s = |p: &Path| p.display().to_string();
+        match self {
+            Task::Tune { env } => {
+                let b = &e.file.best_constant;
+                let dir = best_constant_path(out, env).parent().map(Path::to_path_buf).unwrap_or_default();
+                vec![
+                    "tune".into(), "--env".into(), env.clone(), "--out".into(), s(&dir),
+                    "--evaluations".into(), b.evaluations.to_string(), "--episodes".into(), b.episodes.to_string(),
+                    "--eval-episodes".into(), b.eval_episodes.to_string(),
+                ]
+            }
+            Task::Graph { env, threshold } => {
+                let path = graph_path(out, env, *threshold);
+                vec![
+                    "graph".into(), "--env".into(), env.clone(), "--samples".into(), e.file.graph.samples.to_string(),
+                    "--threshold".into(), threshold.to_string(), "--seed".into(), e.file.graph.seed.to_string(),
+                    "--threads".into(), "1".into(), "--out".into(), s(&path), "--plot".into(), s(&path.with_extension("png")),
+                ]
+            }
+            Task::Train { cell, seed } => {
+                let mut args = vec![
+                    "train".into(), "--env".into(), cell.env.clone(), "--algo".into(), algo_name(cell.algo).into(),
+                    "--connection".into(), connection_arg(&cell.connection).into(), "--episodes".into(), e.episodes(cell.algo).to_string(),
+                    "--seed".into(), seed.to_string(), "--threads".into(), "1".into(), "--config".into(), s(&config_path(out, &cell.env)),
+                    "--run-dir".into(), s(&run_dir(out, cell, *seed)), "--resume".into(),
+                ];
+                if let Some(threshold) = cell.connection.threshold() {
+                    args.extend(["--graph".into(), s(&graph_path(out, &cell.env, threshold))]);
+                }
+                args
+            }
+        }
+    }
+}
+
+fn connection_arg(c: &ConnectionSpec) -> &'static str {
+    match c {
+        ConnectionSpec::Local { .. } => "local",
+        ConnectionSpec::Global => "global",
+        ConnectionSpec::FullSubnets => "full-subnets",
+    }
+}
+
+/// Claims `out` for this experiment, or refuses if it holds another one,
+/// and writes the files every task reads (experiment copy, configs).
+/// Comments and layout of the file may change; its content may not.
+/// `shared`: many pods prepare the same folder at once (Kubernetes), so a
+/// folder with files but no experiment.json yet is not refused.
+pub fn prepare_out(e: &Experiment, file: &Path, out: &Path, shared: bool) -> anyhow::Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create output directory {}", out.display()))?;
+    let parsed = serde_json::to_string_pretty(&e.file)? + "\n";
+    let recorded = out.join("experiment.json");
+    match std::fs::read_to_string(&recorded) {
+        Ok(existing) if existing != parsed => {
+            let other: Option<String> = serde_json::from_str::<serde_json::Value>(&existing).ok().and_then(|v| v["name"].as_str().map(String::from));
+            bail!(
+                "{} belongs to a different experiment ({}); {} describes another study. Nothing was changed: \
+                 run it with another --out, or restore the file that made this directory to continue it",
+                out.display(),
+                other.map_or("unreadable experiment.json".into(), |n| format!("\"{n}\", see {}", out.join("experiment.toml").display())),
+                file.display()
+            );
+        }
+        Ok(_) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            if !shared && std::fs::read_dir(out)?.next().is_some() {
+                bail!("{} is not empty and holds no experiment; choose an empty or new --out", out.display());
+            }
+        }
+        Err(e) => return Err(e).with_context(|| format!("reading {}", recorded.display())),
+    }
+    write_atomic(&recorded, &parsed)?;
+    write_atomic(&out.join("experiment.toml"), &std::fs::read_to_string(file)?)?;
+    for env in &e.file.environments {
+        let config = e.train_config(env)?;
+        let header = format!("# Training settings of every run on {env} in experiment \"{}\" (written by lcrl experiment).\n", e.file.name);
+        write_atomic(&config_path(out, env), &(header + &toml::to_string_pretty(&config)?))?;
+    }
+    Ok(())
+}
+
+/// The experiment a directory was made for (experiment.json).
+pub fn recorded_experiment(out: &Path) -> anyhow::Result<Experiment> {
+    let path = out.join("experiment.json");
+    let text = std::fs::read_to_string(&path).with_context(|| format!("{} holds no experiment (no experiment.json); give the --out of `lcrl experiment run`", out.display()))?;
+    let file = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
+    Experiment::check(file).with_context(|| format!("{}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn graphs_come_first_and_local_runs_use_them() {
+        let text = "name = \"t\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"global\"]\nseeds = [3, 5]\nepisodes = { ppo = 7 }\n";
+        let e = Experiment::parse(text).unwrap();
+        let tasks = tasks(&e);
+        let ids: Vec<String> = tasks.iter().map(Task::id).collect();
+        assert_eq!(
+            ids,
+            [
+                "graph-lti-paper-T0.1",
+                "train-lti-paper-ppo-local@0.1-seed3",
+                "train-lti-paper-ppo-global-seed3",
+                "train-lti-paper-ppo-local@0.1-seed5",
+                "train-lti-paper-ppo-global-seed5",
+                "tune-lti-paper"
+            ]
+        );
+        let out = Path::new("/study");
+        let local = tasks[1].args(&e, out).join(" ");
+        assert!(local.contains("--graph /study/graphs/lti-paper/T0.1/graph.json") && local.contains("--resume"), "{local}");
+        assert!(local.contains("--episodes 7 --seed 3 --threads 1"), "{local}");
+        assert_eq!(tasks[1].dependency(), Some(tasks[0].clone()));
+        assert!(!tasks[2].args(&e, out).contains(&"--graph".to_string()));
+        assert_eq!(tasks[2].dependency(), None);
+    }
+}
