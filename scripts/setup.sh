@@ -50,9 +50,10 @@ echo "setup: libtorch $TORCH_VERSION at $VENV/libtorch"
 
 # The Python gRPC client (clients/python): grpcio, and stubs generated from
 # the contract itself, so they can never drift from proto/lcrl.proto.
-if ! "$VENV/bin/python" -c 'import grpc, grpc_tools, grpc_health' 2>/dev/null; then
-  echo "setup: installing grpcio, grpcio-tools, grpcio-health-checking into $VENV"
-  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check grpcio grpcio-tools grpcio-health-checking
+# grpcio-reflection: clients that know no stubs (clients/python/reflect_act.py).
+if ! "$VENV/bin/python" -c 'import grpc, grpc_tools, grpc_health, grpc_reflection' 2>/dev/null; then
+  echo "setup: installing grpcio, grpcio-tools, grpcio-health-checking, grpcio-reflection into $VENV"
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check grpcio grpcio-tools grpcio-health-checking grpcio-reflection
 fi
 stubs=clients/python/lcrl_stubs
 if [ ! -f "$stubs/lcrl_pb2.py" ] || [ proto/lcrl.proto -nt "$stubs/lcrl_pb2.py" ]; then

@@ -10,7 +10,7 @@ use std::process::Command;
 
 use anyhow::Context;
 
-use crate::preset::{sibling, Preset};
+use crate::preset::{sibling, Preset, RunSecurity};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Role {
@@ -57,6 +57,8 @@ pub struct LaunchArgs {
     /// `[job] episodes` (0: the preset's).
     #[arg(long, default_value_t = 0)]
     pub episodes: u64,
+    #[command(flatten)]
+    pub security: RunSecurity,
 }
 
 /// The binary and arguments `args` stands for.
@@ -75,12 +77,20 @@ pub fn command_line(args: &LaunchArgs) -> anyhow::Result<(&'static str, Vec<OsSt
             std::fs::create_dir_all(&args.run_dir).with_context(|| format!("creating {}", args.run_dir.display()))?;
             let train = args.run_dir.join("train.toml");
             preset.write_train_config(&train)?;
-            let graph_builder = Some(args.graph_builder.as_str());
-            ("lcrl-learner", preset.learner_args(listen, &args.run_id, &train, &args.run_dir.join("learner"), graph_builder)?)
+            let url = args.security.url(&args.graph_builder);
+            ("lcrl-learner", preset.learner_args(listen, &args.run_id, &train, &args.run_dir.join("learner"), Some(url.as_str()))?)
         }
         // Replicas name themselves (host name), which also sets their seeds apart.
-        Role::Actor => ("lcrl-actor", preset.actor_args(&args.learner, &args.run_id, "grpc", None, 0)),
+        Role::Actor => {
+            let url = args.security.url(&args.learner);
+            ("lcrl-actor", preset.actor_args(&url, &args.run_id, "grpc", None, 0))
+        }
     };
+    argv.extend(match args.role {
+        Role::GraphBuilder => args.security.server_args(false)?,
+        Role::Learner => args.security.server_args(preset.job.connection == lcrl_learner::Connection::Local)?,
+        Role::Actor => args.security.client_args()?,
+    });
     if let (Some(addr), Role::Learner | Role::Actor) = (&args.metrics_listen, args.role) {
         argv.extend([OsString::from("--metrics-listen"), OsString::from(addr)]);
     }

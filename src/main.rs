@@ -3,6 +3,7 @@
 
 mod bench;
 mod bench_transport;
+mod certs_cmd;
 mod compare_cmd;
 mod doctor;
 mod experiment;
@@ -64,6 +65,8 @@ enum Command {
     /// (experiments/*.toml; see `lcrl experiment run --help`).
     #[command(subcommand)]
     Experiment(experiment::ExperimentCommand),
+    /// Make a CA, server and client certificates and a token (TLS across hosts).
+    Certs(certs_cmd::CertsArgs),
     /// Check the installation: libtorch loads and computes, threads, CUDA.
     Doctor,
     /// Measure performance figures (see `lcrl bench --help`).
@@ -92,6 +95,7 @@ fn main() -> ExitCode {
         Command::Train(args) => train_cmd::run(&args),
         Command::Compare(args) => compare_cmd::run(&args),
         Command::Experiment(command) => experiment::run(&command),
+        Command::Certs(args) => certs_cmd::run(&args),
         Command::Doctor => doctor::run(),
         Command::Bench(command) => bench::run(command),
     };

@@ -4,7 +4,8 @@
 
 use std::time::Duration;
 
-use anyhow::{bail, Context};
+use anyhow::bail;
+use lcrl_proto::security::{ClientSecurity, ClientSecurityArgs};
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::{health_client::HealthClient, HealthCheckRequest};
 
@@ -19,15 +20,14 @@ pub struct HealthArgs {
     /// Give up after this many seconds.
     #[arg(long, default_value_t = 5.0)]
     pub timeout: f64,
+    #[command(flatten)]
+    pub security: ClientSecurityArgs,
 }
 
-/// Whether `service` at `url` reports SERVING.
-pub async fn is_serving(url: &str, service: &str) -> anyhow::Result<bool> {
-    let channel = tonic::transport::Channel::from_shared(url.to_string())
-        .with_context(|| format!("{url} is not a URL (expected e.g. http://127.0.0.1:50052)"))?
-        .connect()
-        .await
-        .with_context(|| format!("cannot connect to {url}"))?;
+/// Whether `service` at `url` reports SERVING (health checks need no
+/// token; TLS where `security` says).
+pub async fn is_serving(url: &str, service: &str, security: &ClientSecurity) -> anyhow::Result<bool> {
+    let channel = security.connect(url).await?;
     let status = HealthClient::new(channel).check(HealthCheckRequest { service: service.into() }).await?.into_inner().status;
     Ok(status == ServingStatus::Serving as i32)
 }
@@ -36,9 +36,10 @@ pub fn health(args: &HealthArgs) -> anyhow::Result<()> {
     if !(args.timeout.is_finite() && args.timeout > 0.0) {
         bail!("--timeout must be a positive number of seconds");
     }
+    let security = ClientSecurity::from_args(&args.security)?;
     let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
     let what = if args.service.is_empty() { args.url.clone() } else { format!("{} at {}", args.service, args.url) };
-    match runtime.block_on(async { tokio::time::timeout(Duration::from_secs_f64(args.timeout), is_serving(&args.url, &args.service)).await }) {
+    match runtime.block_on(async { tokio::time::timeout(Duration::from_secs_f64(args.timeout), is_serving(&args.url, &args.service, &security)).await }) {
         Ok(Ok(true)) => {
             println!("{what}: SERVING");
             Ok(())
@@ -53,16 +54,20 @@ pub fn health(args: &HealthArgs) -> anyhow::Result<()> {
 pub struct StatusArgs {
     /// The learner's gRPC URL, e.g. http://127.0.0.1:50052.
     pub url: String,
+    #[command(flatten)]
+    pub security: ClientSecurityArgs,
 }
 
 /// `lcrl status`: the learner's GetStatus as one JSON line, for scripts.
 pub fn status(args: &StatusArgs) -> anyhow::Result<()> {
     use lcrl_proto::v1::{learner_client::LearnerClient, GetStatusRequest};
+    let security = ClientSecurity::from_args(&args.security)?;
     let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
     let s = runtime.block_on(async {
         let fetch = async {
-            let mut client = LearnerClient::connect(args.url.clone()).await.with_context(|| format!("cannot connect to the learner at {}", args.url))?;
-            anyhow::Ok(client.get_status(GetStatusRequest {}).await?.into_inner())
+            let mut client = LearnerClient::new(security.connect(&args.url).await?);
+            let status = client.get_status(GetStatusRequest {}).await.map_err(|s| anyhow::anyhow!("{}: {}", args.url, s.message()))?;
+            anyhow::Ok(status.into_inner())
         };
         tokio::time::timeout(Duration::from_secs(10), fetch).await.map_err(|_| anyhow::anyhow!("no answer from {} within 10 s", args.url))?
     })?;
@@ -71,7 +76,7 @@ pub fn status(args: &StatusArgs) -> anyhow::Result<()> {
         "episodes": s.episodes, "env_steps": s.env_steps, "updates": s.updates,
         "replay_size": s.replay_size, "policy_version": s.policy_version,
         "connected_actors": s.connected_actors, "rejected": s.rejected,
-        "recent_return": s.recent_return,
+        "recent_return": s.recent_return, "unauthenticated": s.unauthenticated,
     });
     println!("{json}");
     Ok(())

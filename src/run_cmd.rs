@@ -13,7 +13,8 @@ use lcrl_learner::Connection;
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::GetStatusRequest;
 
-use crate::preset::{sibling, Preset};
+use crate::preset::{sibling, Preset, RunSecurity};
+use lcrl_proto::security::ClientSecurity;
 
 /// Run graph builder, learner and actors on this machine until the episode
 /// budget is reached (or Ctrl-C), collecting everything in the run directory.
@@ -37,6 +38,8 @@ pub struct RunArgs {
     /// Only check the preset (and its environment) and exit.
     #[arg(long)]
     pub check: bool,
+    #[command(flatten)]
+    pub security: RunSecurity,
 }
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -101,10 +104,10 @@ impl Drop for Managed {
     }
 }
 
-pub(crate) async fn wait_healthy(url: &str, service: &str, what: &str, timeout: Duration) -> anyhow::Result<()> {
+pub(crate) async fn wait_healthy(url: &str, service: &str, what: &str, timeout: Duration, security: &ClientSecurity) -> anyhow::Result<()> {
     let deadline = Instant::now() + timeout;
     loop {
-        if let Ok(true) = crate::probe_cmd::is_serving(url, service).await {
+        if let Ok(true) = crate::probe_cmd::is_serving(url, service, security).await {
             return Ok(());
         }
         if Instant::now() > deadline {
@@ -140,37 +143,40 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         TransportArg::Grpc => "grpc",
         TransportArg::Shm => "shm",
     };
-    let summary = runtime.block_on(orchestrate(&preset, &train_path, &run_dir, &logs, transport))?;
+    let summary = runtime.block_on(orchestrate(&preset, &train_path, &run_dir, &logs, transport, &args.security))?;
     println!("{summary}");
     Ok(())
 }
 
-async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &Path, transport: &str) -> anyhow::Result<String> {
+async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &Path, transport: &str, security: &RunSecurity) -> anyhow::Result<String> {
     let job = &preset.job;
+    // Certificates and the token are checked before anything starts.
+    let client_security = security.client()?;
     let started = Instant::now();
     let run_id = format!("{}-{}", std::process::id(), started.elapsed().as_nanos() % 1_000_000);
     let mut graph_builder = None;
     let mut graph_url = None;
     if job.connection == Connection::Local {
         let mut cmd = Command::new(sibling("lcrl-graph-builder")?);
-        cmd.args(preset.graph_builder_args("127.0.0.1:0", run_dir));
+        cmd.args(preset.graph_builder_args("127.0.0.1:0", run_dir)).args(security.server_args(false)?);
         let (process, address) = Managed::spawn("graph-builder", cmd, logs, true)?;
-        let url = format!("http://{}", address.context("the graph builder did not start; see logs/graph-builder.log")?);
+        let url = security.url(&format!("http://{}", address.context("the graph builder did not start; see logs/graph-builder.log")?));
         eprintln!("graph builder at {url}: building the connection graph");
-        wait_healthy(&url, "lcrl.v1.Graph", "the graph builder", Duration::from_secs(600)).await?;
+        wait_healthy(&url, "lcrl.v1.Graph", "the graph builder", Duration::from_secs(600), &client_security).await?;
         graph_url = Some(url);
         graph_builder = Some(process);
     }
     let mut learner_cmd = Command::new(sibling("lcrl-learner")?);
     learner_cmd.args(preset.learner_args("127.0.0.1:0", &run_id, train_path, &run_dir.join("learner"), graph_url.as_deref())?);
+    learner_cmd.args(security.server_args(graph_url.is_some())?);
     let (mut learner, address) = Managed::spawn("learner", learner_cmd, logs, true)?;
-    let url = format!("http://{}", address.context("the learner did not start; see logs/learner.log")?);
-    wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120)).await?;
+    let url = security.url(&format!("http://{}", address.context("the learner did not start; see logs/learner.log")?));
+    wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120), &client_security).await?;
     eprintln!("learner at {url}; starting {} actor(s) over {transport}", job.actors);
     let mut actors = Vec::new();
     for k in 0..job.actors {
         let mut cmd = Command::new(sibling("lcrl-actor")?);
-        cmd.args(preset.actor_args(&url, &run_id, transport, Some(&format!("actor-{k}")), k as u64));
+        cmd.args(preset.actor_args(&url, &run_id, transport, Some(&format!("actor-{k}")), k as u64)).args(security.client_args()?);
         actors.push(Managed::spawn(&format!("actor-{k}"), cmd, logs, false)?.0);
     }
 
@@ -178,7 +184,7 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     if let Ok(style) = ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})") {
         bar.set_style(style.progress_chars("=> "));
     }
-    let mut client = LearnerClient::connect(url.clone()).await?;
+    let mut client = LearnerClient::new(client_security.connect(&url).await?);
     let (mut last_steps, mut last_updates, mut last_time) = (0u64, 0u64, Instant::now());
     let interrupted = loop {
         tokio::select! {

@@ -238,7 +238,7 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
     cmd.args(preset.learner_args_with_graph_file("127.0.0.1:0", &run_id, &train, &dir.join("learner"), graph));
     let (mut learner, address) = Managed::spawn("learner", cmd, &logs, true)?;
     let url = format!("http://{}", address.context("the learner did not start; see its log")?);
-    wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120)).await?;
+    wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120), &Default::default()).await?;
     let started = Instant::now();
     let mut workers = Vec::new();
     for k in 0..actors {

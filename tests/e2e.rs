@@ -14,4 +14,6 @@ mod e2e {
     mod deploy;
     mod run_cli;
     mod experiment_cli;
+    mod security;
+    mod hostile;
 }

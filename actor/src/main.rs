@@ -24,7 +24,7 @@ use rand_distr::{Distribution, Normal};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::StreamExt;
-use tonic::transport::Channel;
+use lcrl_proto::security::{AuthChannel, ClientSecurity, ClientSecurityArgs};
 
 /// Batches in flight or waiting: the bound on what an actor holds.
 const MAX_PENDING_BATCHES: usize = 8;
@@ -79,6 +79,8 @@ struct Args {
     /// Log as JSON lines instead of human-readable text (level: RUST_LOG).
     #[arg(long)]
     log_json: bool,
+    #[command(flatten)]
+    security: ClientSecurityArgs,
 }
 
 fn main() -> std::process::ExitCode {
@@ -101,12 +103,12 @@ fn main() -> std::process::ExitCode {
 }
 
 /// Connects, retrying with backoff until `deadline`.
-async fn connect(url: &str, deadline: Duration) -> anyhow::Result<LearnerClient<Channel>> {
+async fn connect(url: &str, security: &ClientSecurity, deadline: Duration) -> anyhow::Result<LearnerClient<AuthChannel>> {
     let give_up = Instant::now() + deadline;
     let mut delay = Duration::from_millis(100);
     loop {
-        match LearnerClient::connect(url.to_string()).await {
-            Ok(client) => return Ok(client.max_decoding_message_size(16 << 20).max_encoding_message_size(16 << 20)),
+        match security.connect(url).await {
+            Ok(channel) => return Ok(LearnerClient::new(channel).max_decoding_message_size(16 << 20).max_encoding_message_size(16 << 20)),
             Err(e) if Instant::now() < give_up => {
                 tracing::warn!("learner at {url} unreachable ({e}); retrying in {:.1} s", delay.as_secs_f64());
                 tokio::time::sleep(delay).await;
@@ -125,6 +127,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         bail!("--transport shm carries at most {} transitions per batch; lower --batch", lcrl_learner::service::shm::MAX_TRANSITIONS);
     }
     let deadline = Duration::from_secs(args.connect_deadline);
+    let security = ClientSecurity::from_args(&args.security)?;
     let metrics = metrics::ActorMetrics::default();
     if let Some(addr) = args.metrics_listen {
         let registry = Arc::new(metrics.registry());
@@ -141,11 +144,11 @@ async fn run(args: Args) -> anyhow::Result<()> {
     // actors from the run's broadcast, without any network.
     let (client, policy_source) = match args.transport {
         Transport::Grpc => {
-            let mut client = connect(&args.learner, deadline).await?;
-            let first = client.get_policy(GetPolicyRequest {}).await.context("asking the learner for its policy")?.into_inner();
+            let mut client = connect(&args.learner, &security, deadline).await?;
+            let first = client.get_policy(GetPolicyRequest {}).await.map_err(refused).context("asking the learner for its policy")?.into_inner();
             tracing::info!(version = first.version, learner = %args.learner, "connected");
             let (policy_tx, policy_rx) = watch::channel(Arc::new(first));
-            tokio::spawn(watch_policy(args.learner.clone(), policy_tx));
+            tokio::spawn(watch_policy(args.learner.clone(), security.clone(), policy_tx));
             (Some(client), PolicySource::Grpc(policy_rx))
         }
         Transport::Shm => (None, PolicySource::Shm(args.run_id.clone(), deadline)),
@@ -156,7 +159,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let (sink, sender) = match client {
         Some(client) => {
             let (batches_tx, batches_rx) = mpsc::channel::<TransitionBatch>(2);
-            (Sink::Grpc(batches_tx), Some(tokio::spawn(send_batches(args.learner.clone(), client, batches_rx, deadline, metrics.clone()))))
+            (Sink::Grpc(batches_tx), Some(tokio::spawn(send_batches(args.learner.clone(), security.clone(), client, batches_rx, deadline, metrics.clone()))))
         }
         None => (Sink::Shm(args.run_id.clone()), None),
     };
@@ -201,10 +204,10 @@ fn hostname() -> String {
 }
 
 /// Keeps `policy` at the learner's newest version, reconnecting forever.
-async fn watch_policy(url: String, policy: watch::Sender<Arc<PolicySnapshot>>) {
+async fn watch_policy(url: String, security: ClientSecurity, policy: watch::Sender<Arc<PolicySnapshot>>) {
     loop {
         let after = policy.borrow().version;
-        let stream = async { LearnerClient::connect(url.clone()).await?.max_decoding_message_size(16 << 20).watch_policy(WatchPolicyRequest { after_version: after }).await.map_err(anyhow::Error::from) };
+        let stream = async { LearnerClient::new(security.connect(&url).await?).max_decoding_message_size(16 << 20).watch_policy(WatchPolicyRequest { after_version: after }).await.map_err(anyhow::Error::from) };
         match stream.await {
             Ok(response) => {
                 let mut updates = response.into_inner();
@@ -224,7 +227,7 @@ async fn watch_policy(url: String, policy: watch::Sender<Arc<PolicySnapshot>>) {
 /// reconnect (the learner drops duplicates). Returns when the worker is done
 /// and every batch is acknowledged, or fails after `deadline` without a
 /// learner.
-async fn send_batches(url: String, mut client: LearnerClient<Channel>, mut batches: mpsc::Receiver<TransitionBatch>, deadline: Duration, metrics: metrics::ActorMetrics) -> anyhow::Result<()> {
+async fn send_batches(url: String, security: ClientSecurity, mut client: LearnerClient<AuthChannel>, mut batches: mpsc::Receiver<TransitionBatch>, deadline: Duration, metrics: metrics::ActorMetrics) -> anyhow::Result<()> {
     let mut pending: VecDeque<TransitionBatch> = VecDeque::new();
     let mut worker_done = false;
     loop {
@@ -234,6 +237,7 @@ async fn send_batches(url: String, mut client: LearnerClient<Channel>, mut batch
         }
         let acks = match client.stream_transitions(ReceiverStream::new(request_rx)).await {
             Ok(response) => Some(response.into_inner()),
+            Err(status) if status.code() == tonic::Code::Unauthenticated => return Err(refused(status)),
             Err(status) => {
                 tracing::warn!("cannot stream to the learner: {status}");
                 None
@@ -269,6 +273,7 @@ async fn send_batches(url: String, mut client: LearnerClient<Channel>, mut batch
                             pending.pop_front();
                             break;
                         }
+                        Some(Err(status)) if status.code() == tonic::Code::Unauthenticated => return Err(refused(status)),
                         Some(Err(status)) => {
                             tracing::warn!("lost the learner: {status}");
                             break;
@@ -281,8 +286,17 @@ async fn send_batches(url: String, mut client: LearnerClient<Channel>, mut batch
         if worker_done && pending.is_empty() {
             return Ok(());
         }
-        client = connect(&url, deadline).await?;
+        client = connect(&url, &security, deadline).await?;
         metrics.reconnects.inc();
+    }
+}
+
+/// A refusal as an error that says what to do (a wrong token never heals,
+/// so the actor stops instead of retrying).
+fn refused(status: tonic::Status) -> anyhow::Error {
+    match status.code() {
+        tonic::Code::Unauthenticated => anyhow::anyhow!("the learner refused this actor: {} (give the learner's token with --token-file or LCRL_TOKEN_FILE)", status.message()),
+        _ => anyhow::anyhow!("{status}"),
     }
 }
 

@@ -10,6 +10,7 @@ use clap::Parser;
 use lcrl_graph_builder::service::shutdown_signal;
 use lcrl_graph_builder::cli::GraphArgs;
 use lcrl_graph_builder::service::{self, GraphState};
+use lcrl_proto::security::{ServerSecurity, ServerSecurityArgs};
 use tokio::sync::watch;
 
 #[derive(Debug, Parser)]
@@ -21,6 +22,8 @@ struct Args {
     /// printed as "listening on ADDR").
     #[arg(long, default_value = "127.0.0.1:50051")]
     listen: SocketAddr,
+    #[command(flatten)]
+    security: ServerSecurityArgs,
     /// Log as JSON lines instead of human-readable text (level: RUST_LOG).
     #[arg(long)]
     log_json: bool,
@@ -43,15 +46,19 @@ async fn run(args: Args) -> anyhow::Result<()> {
     // Bad settings fail before the port is taken.
     args.graph.options().validate()?;
     lcrl_sim::make_env(&args.graph.env)?;
+    let security = ServerSecurity::from_args(&args.security)?;
+    let server = security.server_builder()?;
     let listener = tokio::net::TcpListener::bind(args.listen)
         .await
         .with_context(|| format!("cannot listen on {}; is another process using it?", args.listen))?;
     let addr = listener.local_addr()?;
     println!("listening on {addr}");
+    security.warn_if_exposed(addr);
+    tracing::info!(%addr, security = %security.describe(), "serving");
 
     let (state_tx, state_rx) = watch::channel(GraphState::Building);
     let (stop_tx, mut stop_rx) = watch::channel(false);
-    let server = tokio::spawn(service::serve(listener, state_rx, async move {
+    let server = tokio::spawn(service::serve(listener, state_rx, server, security.token_check(), async move {
         let _ = stop_rx.wait_for(|stop| *stop).await;
     }));
 

@@ -11,7 +11,10 @@ use tokio_stream::{Stream, StreamExt};
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio_stream::wrappers::TcpListenerStream;
+use lcrl_proto::security::TokenCheck;
+use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status};
+use tonic_reflection::server as reflection;
 use tonic_health::ServingStatus;
 
 /// What the service has to offer right now.
@@ -63,12 +66,15 @@ impl Graph for GraphService {
     }
 }
 
-/// Serves Graph, grpc.health.v1 and reflection on `listener` until
-/// `shutdown` resolves. Health reports NOT_SERVING (for "" and for
+/// Serves Graph, grpc.health.v1 and reflection (v1 and v1alpha) on
+/// `listener` until `shutdown` resolves. `server` carries TLS where
+/// configured; `check` guards every service but health (tokens). Health reports NOT_SERVING (for "" and for
 /// lcrl.v1.Graph) until the state becomes Ready.
 pub async fn serve(
     listener: TcpListener,
     state: watch::Receiver<GraphState>,
+    server: tonic::transport::Server,
+    check: TokenCheck,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
     let (health, health_service) = tonic_health::server::health_reporter();
@@ -90,23 +96,27 @@ pub async fn serve(
             health.set_service_status(graph_name, status).await;
         }
     });
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(lcrl_proto::v1::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()
-        .map_err(|e| {
-            // The descriptor sets are compiled in; failing here is a build bug.
-            tracing::error!("reflection descriptors are invalid: {e}");
-            e
-        });
-    let mut router = tonic::transport::Server::builder()
+    let router = server
         .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
         .add_service(health_service)
-        .add_service(GraphServer::new(GraphService::new(state)));
-    if let Ok(reflection) = reflection {
-        router = router.add_service(reflection);
-    }
-    router.serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown).await
+        .add_service(InterceptedService::new(GraphServer::new(GraphService::new(state)), check.clone()));
+    add_reflection(router, &check).serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown).await
+}
+
+/// Adds server reflection of lcrl.v1 and grpc.health.v1 in both protocol
+/// versions, behind the token check: v1 (grpcurl, grpcui, newer tools) and
+/// v1alpha (grpcio's `grpcio-reflection`, Postman, older tools).
+pub fn add_reflection<L>(router: tonic::transport::server::Router<L>, check: &TokenCheck) -> tonic::transport::server::Router<L> {
+    let configure = || {
+        reflection::Builder::configure()
+            .register_encoded_file_descriptor_set(lcrl_proto::v1::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    // The descriptor sets are compiled in: a failure is a build defect,
+    // which every test that starts a server would show.
+    let v1 = configure().build_v1().expect("compiled-in descriptor sets are valid");
+    let v1alpha = configure().build_v1alpha().expect("compiled-in descriptor sets are valid");
+    router.add_service(InterceptedService::new(v1, check.clone())).add_service(InterceptedService::new(v1alpha, check.clone()))
 }
 
 /// Resolves on SIGTERM or Ctrl-C: how every lcrl server and actor stops.

@@ -50,3 +50,5 @@ pub enum LearnerError {
 }
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod hostile_tests;

@@ -19,7 +19,9 @@ use lcrl_learner::service::ingest::Ingest;
 use lcrl_learner::service::runtime::{run_training, snapshot, Schedule, Shared};
 use lcrl_learner::service::server::{LearnerService, PolicyService};
 use lcrl_learner::trainer::{latest_checkpoint, make_agent, read_meta, CheckpointMeta};
+use lcrl_proto::security::{ClientSecurity, ServerSecurity, ServerSecurityArgs};
 use lcrl_proto::v1::graph_client::GraphClient;
+use tonic::service::interceptor::InterceptedService;
 use lcrl_proto::v1::learner_server::LearnerServer;
 use lcrl_proto::v1::policy_server::PolicyServer;
 use tokio::sync::{mpsc, watch};
@@ -100,6 +102,13 @@ struct Args {
     /// Log as JSON lines instead of human-readable text (level: RUST_LOG).
     #[arg(long)]
     log_json: bool,
+    #[command(flatten)]
+    security: ServerSecurityArgs,
+    /// Trust this CA for the graph builder's certificate (an https://
+    /// --graph-builder URL); with --tls-cert/--tls-key the learner shows its
+    /// own certificate to it (mutual TLS). The token is --token-file's.
+    #[arg(long, value_name = "PEM")]
+    graph_builder_tls_ca: Option<PathBuf>,
 }
 
 fn main() -> std::process::ExitCode {
@@ -122,12 +131,12 @@ fn main() -> std::process::ExitCode {
 }
 
 /// G from a graph builder, retrying while it is unreachable or building.
-async fn fetch_graph(url: &str, timeout: Duration, n: usize, m: usize) -> anyhow::Result<Vec<Vec<u8>>> {
+async fn fetch_graph(url: &str, security: &ClientSecurity, timeout: Duration, n: usize, m: usize) -> anyhow::Result<Vec<Vec<u8>>> {
     let deadline = Instant::now() + timeout;
     let mut delay = Duration::from_millis(200);
     loop {
         let attempt = async {
-            let mut client = GraphClient::connect(url.to_string()).await?;
+            let mut client = GraphClient::new(security.connect(url).await?);
             let graph = client.get_graph(lcrl_proto::v1::GetGraphRequest {}).await?.into_inner();
             anyhow::Ok(graph)
         };
@@ -149,6 +158,11 @@ async fn fetch_graph(url: &str, timeout: Duration, n: usize, m: usize) -> anyhow
 }
 
 async fn run(args: Args) -> anyhow::Result<()> {
+    // Certificates and tokens are checked before any work.
+    let security = ServerSecurity::from_args(&args.security)?;
+    let server_builder = security.server_builder()?;
+    let own_identity = args.security.tls_cert.as_deref().zip(args.security.tls_key.as_deref());
+    let graph_builder_security = ClientSecurity::new(args.graph_builder_tls_ca.as_deref(), own_identity, args.security.token_file.as_deref())?;
     let env = lcrl_sim::make_env(&args.env)?;
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
     std::fs::create_dir_all(&args.run_dir).with_context(|| format!("creating {}", args.run_dir.display()))?;
@@ -174,7 +188,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
                     }
                     report.g
                 }
-                (Connection::Local, None, Some(url)) => fetch_graph(url, Duration::from_secs(args.graph_timeout), n, m).await?,
+                (Connection::Local, None, Some(url)) => fetch_graph(url, &graph_builder_security, Duration::from_secs(args.graph_timeout), n, m).await?,
                 (Connection::Local, None, None) => {
                     let options = lcrl_graph_builder::GraphOptions {
                         cs3: lcrl_graph_builder::Cs3Config { samples: config.run.graph_samples, seed: config.run.seed, threads: 0, start: None },
@@ -231,6 +245,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         shutdown: watch::channel(false).0,
         run_dir: args.run_dir.clone(),
         flow: Mutex::new(Default::default()),
+        auth_refusals: security.refusals(),
     });
     let limiter = match (args.algo, args.replay_ratio.as_deref()) {
         (Algo::Ppo, _) | (Algo::Ddpg, Some("unlimited")) => None,
@@ -308,13 +323,12 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let listener = tokio::net::TcpListener::bind(args.listen).await.with_context(|| format!("cannot listen on {}; is another process using it?", args.listen))?;
     let addr = listener.local_addr()?;
     println!("listening on {addr}");
+    security.warn_if_exposed(addr);
+    tracing::info!(%addr, security = %security.describe(), "serving");
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<LearnerServer<LearnerService>>().await;
     health.set_serving::<PolicyServer<PolicyService>>().await;
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(lcrl_proto::v1::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-        .build_v1()?;
+    let check = security.token_check();
     let stopper = shared.clone();
     let learner = LearnerServer::new(LearnerService { shared: shared.clone(), commands: commands.clone() })
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
@@ -338,12 +352,15 @@ async fn run(args: Args) -> anyhow::Result<()> {
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
     let mut server = tokio::spawn(
-        tonic::transport::Server::builder()
-            .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
-            .add_service(health_service)
-            .add_service(reflection)
-            .add_service(learner)
-            .add_service(policy)
+        lcrl_graph_builder::service::add_reflection(
+            server_builder
+                .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
+                .add_service(health_service)
+                // Every service but health needs the token, when there is one.
+                .add_service(InterceptedService::new(learner, check.clone()))
+                .add_service(InterceptedService::new(policy, check.clone())),
+            &check,
+        )
             // Small request/response messages: no Nagle delay on accepted sockets.
             .serve_with_incoming_shutdown(tokio_stream::StreamExt::map(tokio_stream::wrappers::TcpListenerStream::new(listener), |conn| {
                 conn.inspect(|stream| {

@@ -52,6 +52,7 @@ impl Policy {
     pub fn from_snapshot(architecture_json: &str, weights: &[u8], version: u64) -> Result<Self, LearnerError> {
         let architecture: Architecture =
             serde_json::from_str(architecture_json).map_err(|e| LearnerError::Checkpoint(format!("policy architecture: {e}")))?;
+        architecture.validate()?;
         let (vs, actor, architecture) = Self::empty(architecture);
         let mut policy = Policy { architecture, episode: None, version, vs, actor, log_std: None };
         policy.update(weights, version)?;
@@ -61,15 +62,22 @@ impl Policy {
     /// Replaces the weights with those of a newer snapshot of the same actor.
     pub fn update(&mut self, weights: &[u8], version: u64) -> Result<(), LearnerError> {
         let named = decode_weights(weights)?;
-        self.log_std = named.iter().find(|(n, _)| n == "log_std").and_then(|(_, t)| Vec::<f32>::try_from(t).ok());
+        let log_std = named.iter().find(|(n, _)| n == "log_std").and_then(|(_, t)| Vec::<f32>::try_from(t).ok());
+        if log_std.as_ref().is_some_and(|l| l.len() != self.architecture.action_dim || l.iter().any(|v| !v.is_finite())) {
+            return Err(LearnerError::Checkpoint("snapshot log_std must hold one finite number per action".into()));
+        }
         let mut variables = self.vs.variables();
         for (name, target) in variables.iter_mut() {
             let source = named.iter().find(|(n, _)| n == name).map(|(_, t)| t).ok_or_else(|| LearnerError::Checkpoint(format!("snapshot lacks weights {name}")))?;
             if source.size() != target.size() {
                 return Err(LearnerError::Checkpoint(format!("snapshot weights {name} have shape {:?}, expected {:?}", source.size(), target.size())));
             }
+            if !bool::try_from(source.isfinite().all()).unwrap_or(false) {
+                return Err(LearnerError::Checkpoint(format!("snapshot weights {name} hold non-finite numbers")));
+            }
             tch::no_grad(|| target.copy_(source));
         }
+        self.log_std = log_std;
         self.version = version;
         Ok(())
     }

@@ -21,6 +21,45 @@ pub struct Architecture {
     pub network: NetworkConfig,
 }
 
+/// Largest dimensions and layer widths a snapshot may ask an actor to
+/// build: far above any real controller, far below what would exhaust
+/// memory (a hostile or corrupt snapshot is refused, not allocated).
+pub const MAX_DIM: usize = 4096;
+pub const MAX_LAYERS: usize = 16;
+/// 200 MB of f32 weights.
+pub const MAX_ACTOR_PARAMS: usize = 50_000_000;
+
+impl Architecture {
+    /// Checks what a peer could get wrong before anything is built from it.
+    pub fn validate(&self) -> Result<(), LearnerError> {
+        let bad = |why: String| Err(LearnerError::Mismatch(format!("policy architecture: {why}")));
+        let (m, n) = (self.state_dim, self.action_dim);
+        if !(1..=MAX_DIM).contains(&m) || !(1..=MAX_DIM).contains(&n) {
+            return bad(format!("state_dim {m} and action_dim {n} must lie in 1..={MAX_DIM}"));
+        }
+        if self.mask.len() != n || self.mask.iter().any(|row| row.len() != m || row.iter().any(|&v| v > 1)) {
+            return bad(format!("the mask must be {n}×{m} of 0/1"));
+        }
+        if self.connection == Connection::Local && self.mask.iter().any(|row| row.iter().all(|&v| v == 0)) {
+            return bad("a local actor's mask row sees no state".into());
+        }
+        let net = &self.network;
+        for (name, widths) in [("global_hidden", &net.global_hidden), ("subnet_hidden", &net.subnet_hidden), ("critic_hidden", &net.critic_hidden)] {
+            if widths.is_empty() || widths.len() > MAX_LAYERS || widths.iter().any(|&w| !(1..=MAX_DIM).contains(&w)) {
+                return bad(format!("network.{name} must list 1..={MAX_LAYERS} widths in 1..={MAX_DIM}"));
+            }
+        }
+        let widths = if self.connection == Connection::Global { &net.global_hidden } else { &net.subnet_hidden };
+        let (nets, outputs) = if self.connection == Connection::Global { (1, n) } else { (n, 1) };
+        let layers: Vec<usize> = std::iter::once(m).chain(widths.iter().copied()).chain([outputs]).collect();
+        let params = nets * layers.windows(2).map(|w| w[0] * w[1]).sum::<usize>();
+        if params > MAX_ACTOR_PARAMS {
+            return bad(format!("an actor of {params} weights is larger than the {MAX_ACTOR_PARAMS} this build accepts"));
+        }
+        Ok(())
+    }
+}
+
 /// Named f32 tensors as a safetensors byte buffer.
 pub fn encode_weights(named: &[(String, Tensor)]) -> Result<Vec<u8>, LearnerError> {
     let owned: Vec<(String, Vec<usize>, Vec<u8>)> = named

@@ -1,7 +1,10 @@
 //! The `lcrl.v1` gRPC contract, generated from `proto/lcrl.proto`.
 //!
 //! The `.proto` file is the documentation of every field; this crate only
-//! re-exports what tonic/prost generate from it.
+//! re-exports what tonic/prost generate from it, plus [`security`]: how
+//! every server and client of the contract authenticates (TLS, tokens).
+
+pub mod security;
 
 /// Generated types and stubs of package `lcrl.v1`.
 pub mod v1 {

@@ -16,19 +16,48 @@ fn repo() -> PathBuf {
 
 /// `lcrl launch ARGS --dry-run` with the manifest's placeholders filled in:
 /// the command line it would run.
-fn dry_run(args: &[String], run_dir: &Path) -> String {
+fn dry_run(args: &[String], run_dir: &Path, tls: &Path) -> String {
     let configs = repo().join("configs");
-    let args: Vec<String> = args
-        .iter()
-        .map(|a| a.replace("/configs", &configs.display().to_string()).replace("/runs", &run_dir.display().to_string()))
-        .collect();
+    let args: Vec<String> = args.iter().map(|a| local_path(a, run_dir, tls).replace("/configs", &configs.display().to_string())).collect();
     let out = lcrl().args(&args).arg("--dry-run").output().unwrap();
     assert!(out.status.success(), "`lcrl {}` fails: {}", args.join(" "), stderr(&out));
     stdout(&out)
 }
 
+/// A container path on this machine: /runs and /tls (the TLS secret) mapped.
+fn local_path(arg: &str, run_dir: &Path, tls: &Path) -> String {
+    let arg = arg.replace("/runs", &run_dir.display().to_string());
+    match arg.strip_prefix("/tls") {
+        Some(rest) if rest.is_empty() || rest.starts_with('/') => format!("{}{rest}", tls.display()),
+        _ => arg,
+    }
+}
+
+/// A folder as `lcrl certs` writes it: what the Secret lcrl-tls holds.
+fn certs() -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    let out = lcrl().args(["certs", "--out"]).arg(dir.path()).output().unwrap();
+    assert!(out.status.success(), "{}", stderr(&out));
+    dir
+}
+
+/// An exec health probe: `lcrl health https://127.0.0.1:PORT` with TLS
+/// files that `lcrl certs` writes; returns the port.
+fn check_health_command(words: &[&str], tls: &Path, what: &str) -> u16 {
+    assert_eq!(&words[..2], ["/bin/lcrl", "health"], "{what}: {words:?}");
+    let port = words[2].strip_prefix("https://127.0.0.1:").unwrap_or_else(|| panic!("{what}: probes {} without TLS", words[2]));
+    for file in words.iter().filter_map(|w| w.strip_prefix("/tls/")) {
+        assert!(tls.join(file).is_file(), "{what}: /tls/{file} is not a file `lcrl certs` writes");
+    }
+    for flag in ["--tls-ca", "--tls-client-cert", "--tls-client-key"] {
+        assert!(words.contains(&flag), "{what}: health probe without {flag} (servers ask for client certificates)");
+    }
+    port.parse().unwrap()
+}
+
 #[test]
 fn kubernetes_manifests_reference_each_other_consistently() {
+    let tls = certs();
     let k8s = repo().join("deploy/k8s");
     let kustomization = &load_docs(&k8s.join("kustomization.yaml"))[0];
     assert_eq!(str_of(kustomization, &["kind"]), "Kustomization");
@@ -92,7 +121,11 @@ fn kubernetes_manifests_reference_each_other_consistently() {
             if let Some(claim) = volume["persistentVolumeClaim"]["claimName"].as_str() {
                 assert!(claims.contains(claim), "{name}: claim {claim} does not exist");
             }
+            if let Some(secret) = volume["secret"]["secretName"].as_str() {
+                assert_eq!(secret, "lcrl-tls", "{name}: the TLS secret README tells users to create");
+            }
         }
+        assert!(volumes.values().any(|v| v["secret"]["secretName"].as_str() == Some("lcrl-tls")), "{name}: no TLS secret");
         for container in seq(pod, "containers") {
             assert_eq!(str_of(container, &["image"]), image_name, "{name}: image");
             let ports: BTreeMap<&str, i64> = seq(container, "ports").iter().map(|p| (str_of(p, &["name"]), p["containerPort"].as_i64().unwrap())).collect();
@@ -105,7 +138,10 @@ fn kubernetes_manifests_reference_each_other_consistently() {
                 env.insert(format!("$({})", str_of(var, &["name"])), value.to_string());
             }
             for mount in seq(container, "volumeMounts") {
-                assert!(volumes.contains_key(str_of(mount, &["name"])), "{name}: mounts an undeclared volume");
+                let volume = volumes.get(str_of(mount, &["name"])).unwrap_or_else(|| panic!("{name}: mounts an undeclared volume"));
+                if volume["secret"].is_mapping() {
+                    assert_eq!((str_of(mount, &["mountPath"]), mount["readOnly"].as_bool()), ("/tls", Some(true)), "{name}: the secret is mounted read-only at /tls");
+                }
             }
             for probe in ["readinessProbe", "livenessProbe"] {
                 let p = &container[probe];
@@ -116,6 +152,10 @@ fn kubernetes_manifests_reference_each_other_consistently() {
                     }
                 } else if let Some(port) = p["httpGet"]["port"].as_str() {
                     assert!(ports.contains_key(port), "{name}: {probe} on port {port}");
+                } else if let Some(command) = p["exec"]["command"].as_sequence() {
+                    let words: Vec<&str> = command.iter().filter_map(Value::as_str).collect();
+                    let port = check_health_command(&words, tls.path(), &format!("{name} {probe}"));
+                    assert!(ports.values().any(|&c| c == i64::from(port)), "{name}: {probe} on port {port}, not a container port");
                 }
             }
             // Arguments: placeholders defined, URLs naming a Service port, and
@@ -126,13 +166,18 @@ fn kubernetes_manifests_reference_each_other_consistently() {
                 .collect();
             for arg in &args {
                 assert!(!arg.contains("$("), "{name}: {arg} uses an undefined variable");
-                if let Some(rest) = arg.strip_prefix("http://") {
+                assert!(!arg.starts_with("http://"), "{name}: {arg} is plain text between pods");
+                if let Some(rest) = arg.strip_prefix("https://") {
                     let (host, port) = rest.split_once(':').unwrap();
                     let service = services.get(host).unwrap_or_else(|| panic!("{name}: no Service {host}"));
                     assert!(seq(&service["spec"], "ports").iter().any(|p| p["port"].as_str().map(str::to_string).or(p["port"].as_i64().map(|n| n.to_string())).as_deref() == Some(port)), "{name}: Service {host} has no port {port}");
                 }
             }
-            let command = dry_run(&args, run_dir.path());
+            for file in args.iter().filter_map(|a| a.strip_prefix("/tls/")) {
+                assert!(tls.path().join(file).is_file(), "{name}: /tls/{file} is not a file `lcrl certs` writes");
+            }
+            let command = dry_run(&args, run_dir.path(), tls.path());
+            assert!(command.contains("--token-file") && command.contains("--tls-"), "{name}: runs without TLS or token: {command}");
             roles.insert(command.split_whitespace().next().unwrap().to_string());
         }
     }
@@ -154,12 +199,71 @@ fn kubernetes_manifests_reference_each_other_consistently() {
             assert!(container_ports.contains(str_of(port, &["targetPort"])), "Service {name}: targetPort {:?} is no container port", port["targetPort"]);
         }
     }
+
+    // Network policies: each guards one Deployment's pods, admits only the
+    // peers the design names, on ports those pods declare.
+    let labels_of = |d: &Value| d["spec"]["template"]["metadata"]["labels"]["app.kubernetes.io/name"].as_str().unwrap().to_string();
+    let selects = |selector: &Value| -> Vec<String> {
+        let wanted = selector["matchLabels"].as_mapping().unwrap();
+        deployments.iter().filter(|d| wanted.iter().all(|(k, v)| &d["spec"]["template"]["metadata"]["labels"][k.as_str().unwrap()] == v)).map(|d| labels_of(d)).collect()
+    };
+    let mut admitted: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+    for policy in of_kind("NetworkPolicy") {
+        let name = str_of(policy, &["metadata", "name"]);
+        let guarded = selects(&policy["spec"]["podSelector"]);
+        assert_eq!(guarded.len(), 1, "NetworkPolicy {name} selects {guarded:?}");
+        let target = deployments.iter().find(|d| labels_of(d) == guarded[0]).unwrap();
+        let ports: BTreeSet<String> = seq(&target["spec"]["template"]["spec"], "containers").iter().flat_map(|c| seq(c, "ports")).map(|p| str_of(p, &["name"]).to_string()).collect();
+        for rule in seq(&policy["spec"], "ingress") {
+            let rule_ports: Vec<&str> = seq(rule, "ports").iter().map(|p| str_of(p, &["port"])).collect();
+            for port in &rule_ports {
+                assert!(ports.contains(*port), "NetworkPolicy {name}: port {port} is not a port of {}", guarded[0]);
+            }
+            for peer in seq(rule, "from") {
+                let source = if peer["podSelector"].is_mapping() {
+                    let from = selects(&peer["podSelector"]);
+                    assert_eq!(from.len(), 1, "NetworkPolicy {name}: a podSelector matching {from:?}");
+                    from[0].clone()
+                } else {
+                    format!("namespace {}", str_of(peer, &["namespaceSelector", "matchLabels", "kubernetes.io/metadata.name"]))
+                };
+                for port in &rule_ports {
+                    admitted.entry(format!("{}:{port}", guarded[0])).or_default().insert(source.clone());
+                }
+            }
+        }
+    }
+    let expect = |s: &[&str]| s.iter().map(|x| x.to_string()).collect::<BTreeSet<String>>();
+    assert_eq!(admitted["lcrl-learner:grpc"], expect(&["lcrl-actor"]), "only actors reach the learner's gRPC port");
+    assert_eq!(admitted["lcrl-graph-builder:grpc"], expect(&["lcrl-learner"]), "only the learner reaches the graph builder");
+    for metrics in ["lcrl-learner:metrics", "lcrl-actor:metrics"] {
+        assert_eq!(admitted[metrics], expect(&["namespace monitoring"]), "{metrics}");
+    }
 }
 
 #[test]
 fn compose_commands_are_accepted_by_the_cli() {
-    let mut compose = load_docs(&repo().join("deploy/compose.yaml")).remove(0);
-    compose.apply_merge().expect("compose.yaml merge keys (<<: *lcrl)");
+    let tls = certs();
+    let plain = load_docs(&repo().join("deploy/compose.yaml")).remove(0);
+    check_compose(&plain, tls.path(), false);
+    // compose.secure.yaml laid over compose.yaml, as compose merges them:
+    // its commands, health checks and volumes per service.
+    let secure_file = load_docs(&repo().join("deploy/compose.secure.yaml")).remove(0);
+    let mut secure = plain.clone();
+    let mut overlay = secure_file.clone();
+    overlay.apply_merge().expect("compose.secure.yaml merge keys");
+    for (name, service) in overlay["services"].as_mapping().unwrap() {
+        let target = secure["services"][name.as_str().unwrap()].as_mapping_mut().unwrap_or_else(|| panic!("compose.secure.yaml names a service {name:?} compose.yaml lacks"));
+        for (key, value) in service.as_mapping().unwrap() {
+            target.insert(key.clone(), value.clone());
+        }
+    }
+    check_compose(&secure, tls.path(), true);
+}
+
+fn check_compose(compose: &Value, tls: &Path, secure: bool) {
+    let mut compose = compose.clone();
+    compose.apply_merge().expect("compose merge keys (<<: *lcrl)");
     let services = compose["services"].as_mapping().unwrap();
     let run_dir = tempfile::tempdir().unwrap();
     let substitute = |s: &str| s.replace("${LCRL_PRESET:-lti-paper.toml}", "lti-paper.toml").replace("${LCRL_RUN_ID:-compose}", "compose").replace("${LCRL_EPISODES:-0}", "0");
@@ -167,13 +271,19 @@ fn compose_commands_are_accepted_by_the_cli() {
     for (name, service) in services {
         let name = name.as_str().unwrap();
         let command: Vec<String> = seq(service, "command").iter().map(|a| substitute(a.as_str().unwrap())).collect();
-        let launched = dry_run(&command, run_dir.path());
+        let launched = dry_run(&command, run_dir.path(), tls);
         binaries.insert(launched.split_whitespace().next().unwrap().to_string());
+        assert_eq!(launched.contains("--tls-"), secure, "{name}: `{launched}`");
+        if secure {
+            let mounts: Vec<&str> = seq(service, "volumes").iter().filter_map(|v| v.as_str()).collect();
+            assert!(mounts.iter().any(|m| m.ends_with(":/tls:ro")), "{name}: /tls is not mounted read-only: {mounts:?}");
+            assert_eq!(service["environment"]["LCRL_TOKEN_FILE"].as_str(), Some("/tls/token"), "{name}: token");
+        }
         assert!(service["image"].as_str().unwrap().contains("lcrl:local"), "{name}: image");
         if let Some(test) = service["healthcheck"]["test"].as_sequence() {
             let words: Vec<&str> = test.iter().filter_map(Value::as_str).collect();
-            assert_eq!(&words[..3], ["CMD", "/bin/lcrl", "health"], "{name}: health check");
-            let port = words[3].rsplit(':').next().unwrap();
+            assert_eq!(words[0], "CMD", "{name}: health check");
+            let port = if secure { check_health_command(&words[1..], tls, name).to_string() } else { words[3].rsplit(':').next().unwrap().to_string() };
             assert!(launched.contains(&format!("--listen 0.0.0.0:{port}")), "{name}: health check on port {port}, but it runs `{launched}`");
         }
     }

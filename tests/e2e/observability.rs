@@ -10,7 +10,7 @@ use super::common::workspace_bin;
 use super::distributed::{actor_with_args, batch, free_port, learner_with_args, send, wait_for};
 
 /// GET /metrics over plain HTTP/1.1; the body.
-fn scrape(port: u16) -> String {
+pub(super) fn scrape(port: u16) -> String {
     let mut stream = std::net::TcpStream::connect(("127.0.0.1", port)).expect("metrics endpoint reachable");
     stream.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
     write!(stream, "GET /metrics HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n").unwrap();
@@ -22,7 +22,7 @@ fn scrape(port: u16) -> String {
 }
 
 /// The value of the sample line `series` (name with labels), if present.
-fn sample(text: &str, series: &str) -> Option<f64> {
+pub(super) fn sample(text: &str, series: &str) -> Option<f64> {
     text.lines().find_map(|line| line.strip_prefix(series)?.strip_prefix(' ')?.split(' ').next()?.parse().ok())
 }
 

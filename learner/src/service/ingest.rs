@@ -76,6 +76,12 @@ impl Ingest {
         *self.rejected.entry(reason.to_string()).or_insert(0) += transitions.max(1) as u64;
     }
 
+    /// Counts a message refused before it could be read as a batch
+    /// ("oversize", "undecodable").
+    pub fn refuse(&mut self, reason: &str) {
+        self.count(reason, 1);
+    }
+
     /// Checks `batch` against the run and the current policy version.
     pub fn check(&mut self, batch: &TransitionBatch, policy_version: u64) -> Verdict {
         let count = batch.transitions.len();

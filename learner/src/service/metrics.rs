@@ -86,6 +86,11 @@ impl Collector for LearnerCollector {
         for (reason, count) in rejected {
             ConstCounter::new(count).encode(by_reason.encode_family(&vec![("reason".to_string(), reason)])?)?;
         }
+        drop(by_reason);
+        let mut refused = encoder.encode_descriptor("unauthenticated", "Calls refused with UNAUTHENTICATED, by reason", None, family.metric_type())?;
+        for (reason, count) in s.auth_refusals.counts() {
+            ConstCounter::new(count).encode(refused.encode_family(&vec![("reason".to_string(), reason.to_string())])?)?;
+        }
         Ok(())
     }
 }

@@ -48,6 +48,8 @@ pub struct Shared {
     pub run_dir: PathBuf,
     /// Replay ratio, waits, policy lag and the budget.
     pub flow: Mutex<FlowStats>,
+    /// Calls refused for a missing or wrong token (GetStatus, /metrics).
+    pub auth_refusals: Arc<lcrl_proto::security::AuthRefusals>,
 }
 
 impl Shared {

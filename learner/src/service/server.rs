@@ -64,7 +64,23 @@ impl Learner for LearnerService {
                 let batch = match batch {
                     Ok(batch) => batch,
                     Err(status) => {
-                        tracing::debug!(%status, "actor stream ended");
+                        // A message over the size limit, or bytes that are no
+                        // TransitionBatch: refused and counted; the stream ends.
+                        let reason = match status.code() {
+                            tonic::Code::OutOfRange | tonic::Code::ResourceExhausted => Some("oversize"),
+                            tonic::Code::Internal if status.message().contains("decode") => Some("undecodable"),
+                            _ => None,
+                        };
+                        match reason {
+                            Some(reason) => {
+                                if let Ok(mut ingest) = shared.ingest.lock() {
+                                    ingest.refuse(reason);
+                                }
+                                tracing::warn!(reason, %status, "batch refused");
+                                let _ = acks.send(Err(status)).await;
+                            }
+                            None => tracing::debug!(%status, "actor stream ended"),
+                        }
                         break;
                     }
                 };
@@ -154,6 +170,7 @@ impl Learner for LearnerService {
             learner_waited_s: flow.learner_waited_s,
             budget_episodes: flow.budget_episodes,
             finished: flow.finished,
+            unauthenticated: s.auth_refusals.counts().into_iter().map(|(reason, n)| (reason.to_string(), n)).collect(),
         }))
     }
 }

@@ -1,0 +1,182 @@
+//! A bounded load test of hostile clients against a real learner with a
+//! token: many concurrent streams of wrong-run, non-finite, oversize and
+//! undecodable batches and wrong tokens, while a well-behaved actor trains.
+//! Every bad stream is refused with a status and counted, the learner's
+//! memory stays bounded, and the actor's steps keep growing throughout.
+
+use std::time::Duration;
+
+use bytes::{Buf, BufMut};
+use lcrl_proto::security::ClientSecurity;
+use lcrl_proto::v1::learner_client::LearnerClient;
+use lcrl_proto::v1::{GetStatusRequest, LearnerStatus, Transition, TransitionBatch};
+use tonic::codec::{Codec, DecodeBuf, Decoder, EncodeBuf, Encoder};
+use tonic::Status;
+
+use super::distributed::{actor_with_args, batch, free_port, learner_with_args};
+use super::observability::{sample, scrape};
+
+/// Sends raw bytes as messages: what a broken or malicious client writes.
+#[derive(Clone, Default)]
+struct RawCodec;
+
+impl Codec for RawCodec {
+    type Encode = Vec<u8>;
+    type Decode = Vec<u8>;
+    type Encoder = RawCodec;
+    type Decoder = RawCodec;
+    fn encoder(&mut self) -> RawCodec {
+        RawCodec
+    }
+    fn decoder(&mut self) -> RawCodec {
+        RawCodec
+    }
+}
+
+impl Encoder for RawCodec {
+    type Item = Vec<u8>;
+    type Error = Status;
+    fn encode(&mut self, item: Vec<u8>, dst: &mut EncodeBuf<'_>) -> Result<(), Status> {
+        dst.put_slice(&item);
+        Ok(())
+    }
+}
+
+impl Decoder for RawCodec {
+    type Item = Vec<u8>;
+    type Error = Status;
+    fn decode(&mut self, src: &mut DecodeBuf<'_>) -> Result<Option<Vec<u8>>, Status> {
+        let bytes = src.chunk().to_vec();
+        src.advance(bytes.len());
+        Ok(Some(bytes))
+    }
+}
+
+fn rss_kib(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    status.lines().find_map(|l| l.strip_prefix("VmRSS:")).and_then(|v| v.split_whitespace().next()?.parse().ok()).unwrap()
+}
+
+async fn status(url: &str, security: &ClientSecurity) -> LearnerStatus {
+    let mut client = LearnerClient::new(security.connect(url).await.unwrap());
+    client.get_status(GetStatusRequest {}).await.unwrap().into_inner()
+}
+
+/// Sends `batches` on one stream; the first refusal's status code.
+async fn send_all(url: &str, security: &ClientSecurity, batches: Vec<TransitionBatch>) -> Option<tonic::Code> {
+    let mut client = LearnerClient::new(security.connect(url).await.ok()?).max_encoding_message_size(64 << 20);
+    match client.stream_transitions(tokio_stream::iter(batches)).await {
+        Err(status) => Some(status.code()),
+        Ok(response) => {
+            let mut acks = response.into_inner();
+            loop {
+                match acks.message().await {
+                    Ok(Some(_)) => continue,
+                    Ok(None) => return None,
+                    Err(status) => return Some(status.code()),
+                }
+            }
+        }
+    }
+}
+
+async fn send_garbage(url: &str, security: &ClientSecurity) -> Option<tonic::Code> {
+    let channel = security.connect(url).await.ok()?;
+    let mut grpc = tonic::client::Grpc::new(channel);
+    grpc.ready().await.ok()?;
+    let garbage = vec![vec![0xff_u8; 64], b"\x0a\xff\xff\xff\xff\xff\xff\xff\xff\xff\xff".to_vec()];
+    let path = tonic::codegen::http::uri::PathAndQuery::from_static("/lcrl.v1.Learner/StreamTransitions");
+    match grpc.streaming(tonic::Request::new(tokio_stream::iter(garbage)), path, RawCodec).await {
+        Err(status) => Some(status.code()),
+        Ok(response) => response.into_inner().message().await.err().map(|s| s.code()),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn hostile_streams_are_refused_and_counted_while_actors_train() {
+    let dir = tempfile::tempdir().unwrap();
+    let token = dir.path().join("token");
+    std::fs::write(&token, "load-test-token-0123456789abcdef\n").unwrap();
+    let wrong = dir.path().join("wrong");
+    std::fs::write(&wrong, "another-token-0123456789abcdef\n").unwrap();
+    let port = free_port();
+    let token_flag = token.display().to_string();
+    let metrics_port = free_port();
+    let metrics_flag = format!("127.0.0.1:{metrics_port}");
+    let (learner, url) = learner_with_args(&dir.path().join("run"), "load", port, "ddpg", &["--token-file", &token_flag, "--metrics-listen", &metrics_flag]);
+    let good = ClientSecurity::new(None, None, Some(&token)).unwrap();
+    let _actor = actor_with_args(&url, "load", &["--token-file", &token_flag]);
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while status(&url, &good).await.env_steps < 300 {
+        assert!(std::time::Instant::now() < deadline, "the actor never trained");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let rss_before = rss_kib(learner.0.id());
+    let steps_before = status(&url, &good).await.env_steps;
+
+    // 60 hostile streams at once.
+    let mut tasks = tokio::task::JoinSet::new();
+    let mut spawn = |what: &'static str, security: &ClientSecurity, batches: Option<Vec<TransitionBatch>>| {
+        let (url, security) = (url.clone(), security.clone());
+        tasks.spawn(async move {
+            let code = match batches {
+                Some(batches) => send_all(&url, &security, batches).await,
+                None => send_garbage(&url, &security).await,
+            };
+            (what, code)
+        });
+    };
+    let wrong_token = ClientSecurity::new(None, None, Some(&wrong)).unwrap();
+    for k in 0..30u64 {
+        spawn("unknown_run", &good, Some(vec![batch("someone-else", k, 3, 0.5); 3]));
+    }
+    for k in 0..10u64 {
+        spawn("non_finite", &good, Some(vec![batch("load", 1_000_000 + k, 3, f32::NAN)]));
+        spawn("dimensions", &good, Some(vec![batch("load", 2_000_000 + k, 7, 0.5)]));
+    }
+    for _ in 0..4 {
+        // 17 MB: over the learner's 16 MB message limit.
+        let huge = TransitionBatch { transitions: vec![Transition { state: vec![0.5; 1 << 20], ..Default::default() }; 4], ..batch("load", 3_000_000, 3, 0.5) };
+        spawn("oversize", &good, Some(vec![huge]));
+        spawn("undecodable", &good, None);
+        spawn("wrong_token", &wrong_token, Some(vec![batch("load", 4_000_000, 3, 0.5)]));
+    }
+    drop(spawn);
+    let mut during = Vec::new();
+    let mut outcomes: std::collections::BTreeMap<&str, Vec<Option<tonic::Code>>> = Default::default();
+    while let Some(done) = tasks.join_next().await {
+        let (what, code) = done.unwrap();
+        outcomes.entry(what).or_default().push(code);
+        during.push(status(&url, &good).await.env_steps);
+    }
+    let expected = [
+        ("unknown_run", tonic::Code::InvalidArgument),
+        ("non_finite", tonic::Code::InvalidArgument),
+        ("dimensions", tonic::Code::InvalidArgument),
+        ("oversize", tonic::Code::OutOfRange),
+        ("undecodable", tonic::Code::Internal),
+        ("wrong_token", tonic::Code::Unauthenticated),
+    ];
+    for (what, code) in expected {
+        assert!(outcomes[what].iter().all(|c| *c == Some(code)), "{what}: {:?}", outcomes[what]);
+    }
+    let after = status(&url, &good).await;
+    for (reason, at_least) in [("unknown_run", 30 * 4), ("non_finite", 10 * 4), ("dimensions", 10 * 4), ("oversize", 4), ("undecodable", 4)] {
+        assert!(after.rejected.get(reason).copied().unwrap_or(0) >= at_least, "{reason}: {:?}", after.rejected);
+    }
+    assert!(after.unauthenticated["wrong_token"] >= 4, "{:?}", after.unauthenticated);
+    // The same counts in /metrics.
+    let text = scrape(metrics_port);
+    let value = |series: &str| sample(&text, series).unwrap_or_else(|| panic!("{series} missing from\n{text}"));
+    assert!(value("lcrl_learner_unauthenticated_total{reason=\"wrong_token\"}") >= 4.0);
+    assert!(value("lcrl_learner_transitions_rejected_total{reason=\"oversize\"}") >= 4.0);
+    // The actor trained throughout, and nothing hostile was stored.
+    assert!(during.windows(2).all(|w| w[1] >= w[0]) && after.env_steps > steps_before, "steps {steps_before} → {during:?} → {}", after.env_steps);
+    let deadline = std::time::Instant::now() + Duration::from_secs(30);
+    while status(&url, &good).await.env_steps < after.env_steps + 200 {
+        assert!(std::time::Instant::now() < deadline, "the actor stopped training after the attack");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let grown_mib = rss_kib(learner.0.id()).saturating_sub(rss_before) / 1024;
+    assert!(grown_mib < 256, "the learner grew by {grown_mib} MiB under the attack");
+}
