@@ -200,7 +200,10 @@ impl RunSecurity {
     /// This process as a client of the run's servers.
     pub fn client(&self) -> anyhow::Result<lcrl_proto::security::ClientSecurity> {
         let (ca, cert, key) = match &self.tls_dir {
-            Some(dir) => (Some(dir.join("ca.pem")), Some(dir.join("client.pem")), Some(dir.join("client.key"))),
+            Some(dir) => {
+                let file = |name: &str| Self::file(dir, name).map(PathBuf::from).map(Some);
+                (file("ca.pem")?, file("client.pem")?, file("client.key")?)
+            }
             None => (None, None, None),
         };
         let identity = cert.as_deref().zip(key.as_deref());

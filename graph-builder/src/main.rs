@@ -47,7 +47,6 @@ async fn run(args: Args) -> anyhow::Result<()> {
     args.graph.options().validate()?;
     lcrl_sim::make_env(&args.graph.env)?;
     let security = ServerSecurity::from_args(&args.security)?;
-    let server = security.server_builder()?;
     let listener = tokio::net::TcpListener::bind(args.listen)
         .await
         .with_context(|| format!("cannot listen on {}; is another process using it?", args.listen))?;
@@ -58,7 +57,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
 
     let (state_tx, state_rx) = watch::channel(GraphState::Building);
     let (stop_tx, mut stop_rx) = watch::channel(false);
-    let server = tokio::spawn(service::serve(listener, state_rx, server, security.token_check(), async move {
+    let server = tokio::spawn(service::serve(listener, state_rx, security.clone(), async move {
         let _ = stop_rx.wait_for(|stop| *stop).await;
     }));
 

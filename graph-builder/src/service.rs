@@ -10,8 +10,7 @@ use tokio_stream::wrappers::WatchStream;
 use tokio_stream::{Stream, StreamExt};
 use tokio::net::TcpListener;
 use tokio::sync::watch;
-use tokio_stream::wrappers::TcpListenerStream;
-use lcrl_proto::security::TokenCheck;
+use lcrl_proto::security::{ServerSecurity, TokenCheck};
 use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status};
 use tonic_reflection::server as reflection;
@@ -67,14 +66,13 @@ impl Graph for GraphService {
 }
 
 /// Serves Graph, grpc.health.v1 and reflection (v1 and v1alpha) on
-/// `listener` until `shutdown` resolves. `server` carries TLS where
-/// configured; `check` guards every service but health (tokens). Health reports NOT_SERVING (for "" and for
+/// `listener` until `shutdown` resolves, with TLS where `security` says;
+/// its token check guards every service but health. Health reports NOT_SERVING (for "" and for
 /// lcrl.v1.Graph) until the state becomes Ready.
 pub async fn serve(
     listener: TcpListener,
     state: watch::Receiver<GraphState>,
-    server: tonic::transport::Server,
-    check: TokenCheck,
+    security: ServerSecurity,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
     let (health, health_service) = tonic_health::server::health_reporter();
@@ -96,11 +94,12 @@ pub async fn serve(
             health.set_service_status(graph_name, status).await;
         }
     });
-    let router = server
+    let check = security.token_check();
+    let router = tonic::transport::Server::builder()
         .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
         .add_service(health_service)
         .add_service(InterceptedService::new(GraphServer::new(GraphService::new(state)), check.clone()));
-    add_reflection(router, &check).serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown).await
+    add_reflection(router, &check).serve_with_incoming_shutdown(security.incoming(listener), shutdown).await
 }
 
 /// Adds server reflection of lcrl.v1 and grpc.health.v1 in both protocol

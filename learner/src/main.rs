@@ -160,7 +160,6 @@ async fn fetch_graph(url: &str, security: &ClientSecurity, timeout: Duration, n:
 async fn run(args: Args) -> anyhow::Result<()> {
     // Certificates and tokens are checked before any work.
     let security = ServerSecurity::from_args(&args.security)?;
-    let server_builder = security.server_builder()?;
     let own_identity = args.security.tls_cert.as_deref().zip(args.security.tls_key.as_deref());
     let graph_builder_security = ClientSecurity::new(args.graph_builder_tls_ca.as_deref(), own_identity, args.security.token_file.as_deref())?;
     let env = lcrl_sim::make_env(&args.env)?;
@@ -353,7 +352,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
     let mut server = tokio::spawn(
         lcrl_graph_builder::service::add_reflection(
-            server_builder
+            tonic::transport::Server::builder()
                 .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
                 .add_service(health_service)
                 // Every service but health needs the token, when there is one.
@@ -361,12 +360,8 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 .add_service(InterceptedService::new(policy, check.clone())),
             &check,
         )
-            // Small request/response messages: no Nagle delay on accepted sockets.
-            .serve_with_incoming_shutdown(tokio_stream::StreamExt::map(tokio_stream::wrappers::TcpListenerStream::new(listener), |conn| {
-                conn.inspect(|stream| {
-                    let _ = stream.set_nodelay(true);
-                })
-            }), async move {
+            // TLS where configured; TCP_NODELAY on accepted sockets.
+            .serve_with_incoming_shutdown(security.incoming(listener), async move {
                 let _ = server_stopped.await;
             }),
     );

@@ -4,6 +4,7 @@
 //! re-exports what tonic/prost generate from it, plus [`security`]: how
 //! every server and client of the contract authenticates (TLS, tokens).
 
+pub mod incoming;
 pub mod security;
 
 /// Generated types and stubs of package `lcrl.v1`.

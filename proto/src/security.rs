@@ -13,7 +13,7 @@ use std::sync::Arc;
 use subtle::ConstantTimeEq;
 use tonic::metadata::MetadataValue;
 use tonic::service::Interceptor;
-use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity, ServerTlsConfig};
+use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity};
 use tonic::{Request, Status};
 
 /// The environment variable naming the token file where no --token-file is given.
@@ -87,14 +87,18 @@ pub struct AuthRefusals {
     pub malformed: AtomicU64,
     /// A bearer token that does not match.
     pub wrong: AtomicU64,
+    /// A TLS handshake that failed: plain text to a TLS port, no client
+    /// certificate or one of another CA (mutual TLS), a timeout.
+    pub tls_handshake: AtomicU64,
 }
 
 impl AuthRefusals {
-    pub fn counts(&self) -> [(&'static str, u64); 3] {
+    pub fn counts(&self) -> [(&'static str, u64); 4] {
         [
             ("missing_token", self.missing.load(Ordering::Relaxed)),
             ("malformed_token", self.malformed.load(Ordering::Relaxed)),
             ("wrong_token", self.wrong.load(Ordering::Relaxed)),
+            ("tls_handshake", self.tls_handshake.load(Ordering::Relaxed)),
         ]
     }
 }
@@ -167,7 +171,7 @@ fn read(what: &'static str, path: &Path) -> Result<Vec<u8>, SecurityError> {
 /// A server's TLS and token settings, checked on start.
 #[derive(Clone)]
 pub struct ServerSecurity {
-    tls: Option<ServerTlsConfig>,
+    tls: Option<Arc<tokio_rustls::rustls::ServerConfig>>,
     check: TokenCheck,
 }
 
@@ -175,11 +179,8 @@ impl ServerSecurity {
     pub fn from_args(args: &ServerSecurityArgs) -> Result<Self, SecurityError> {
         let tls = match (&args.tls_cert, &args.tls_key) {
             (Some(cert), Some(key)) => {
-                let mut config = ServerTlsConfig::new().identity(Identity::from_pem(read("certificate", cert)?, read("private key", key)?));
-                if let Some(ca) = &args.tls_client_ca {
-                    config = config.client_ca_root(Certificate::from_pem(read("client CA", ca)?));
-                }
-                Some(config)
+                let ca = args.tls_client_ca.as_deref().map(|ca| read("client CA", ca)).transpose()?;
+                Some(crate::incoming::server_config(&read("certificate", cert)?, &read("private key", key)?, ca.as_deref())?)
             }
             _ => None,
         };
@@ -196,14 +197,10 @@ impl ServerSecurity {
         self.check.refusals.clone()
     }
 
-    /// A server builder with TLS where configured (an unreadable or
-    /// mismatched certificate fails here, before anything is served).
-    pub fn server_builder(&self) -> Result<tonic::transport::Server, SecurityError> {
-        let builder = tonic::transport::Server::builder();
-        match &self.tls {
-            Some(tls) => builder.tls_config(tls.clone()).map_err(|e| SecurityError::Invalid(format!("TLS: {e}"))),
-            None => Ok(builder),
-        }
+    /// The connections `listener` accepts: TLS where configured (failed
+    /// handshakes counted), for `serve_with_incoming`.
+    pub fn incoming(&self, listener: tokio::net::TcpListener) -> tokio_stream::wrappers::ReceiverStream<std::io::Result<crate::incoming::Conn>> {
+        crate::incoming::incoming(listener, self.tls.clone(), self.check.refusals.clone())
     }
 
     pub fn describe(&self) -> String {
@@ -320,7 +317,7 @@ mod tests {
         assert_eq!(call(&mut check, Some("Bearer s3cret-token-012345678")), Err(tonic::Code::Unauthenticated));
         assert_eq!(call(&mut check, Some("Bearer s3cret-token-01234567890")), Err(tonic::Code::Unauthenticated));
         let counts: Vec<u64> = check.refusals.counts().iter().map(|(_, n)| *n).collect();
-        assert_eq!(counts, [1, 1, 2]);
+        assert_eq!(counts, [1, 1, 2, 0], "missing, malformed, wrong, TLS handshake");
         // Without a token, everything passes.
         let mut open = TokenCheck { token: None, refusals: Arc::default() };
         assert_eq!(call(&mut open, None), Ok(()));

@@ -71,3 +71,37 @@ fn every_shipped_preset_is_valid() {
     }
     assert!(checked >= 9, "expected the 8 peg presets and the linear one, found {checked}");
 }
+
+/// `lcrl run --tls-dir --token-file`: every process of the run speaks
+/// mutual TLS with the token (the servers' logs say so), and it finishes.
+#[test]
+fn run_over_mutual_tls_with_a_token_finishes() {
+    let dir = tempfile::tempdir().unwrap();
+    let certs = dir.path().join("certs");
+    assert!(lcrl().args(["certs", "--out"]).arg(&certs).output().unwrap().status.success());
+    let run = dir.path().join("run");
+    let preset = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/lti-paper.toml");
+    let out = lcrl()
+        .args(["run", "--episodes", "100", "--transport", "grpc", "--config"])
+        .arg(&preset)
+        .arg("--run-dir")
+        .arg(&run)
+        .arg("--tls-dir")
+        .arg(&certs)
+        .arg("--token-file")
+        .arg(certs.join("token"))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout(&out).contains("results in"), "{}", stdout(&out));
+    for server in ["learner", "graph-builder"] {
+        let log = fs::read_to_string(run.join(format!("logs/{server}.log"))).unwrap();
+        assert!(log.contains("TLS + token"), "{server} did not serve TLS with a token:\n{log}");
+    }
+    let actor_log = fs::read_to_string(run.join("logs/actor-0.log")).unwrap();
+    assert!(!actor_log.contains("refused"), "{actor_log}");
+    assert_clean_failure(
+        &lcrl().args(["run", "--config"]).arg(&preset).arg("--tls-dir").arg(dir.path().join("nowhere")).output().unwrap(),
+        "lcrl certs",
+    );
+}

@@ -84,7 +84,10 @@ async fn mutual_tls_and_a_token_guard_the_learner() {
     let plain = ClientSecurity::default();
     assert!(get_status(&format!("http://127.0.0.1:{port}"), &plain).await.is_err(), "plain text to a TLS port");
     let status = get_status(&url, &good).await.unwrap();
-    assert!(status.unauthenticated["wrong_token"] >= 1 && status.unauthenticated["missing_token"] >= 1, "{:?}", status.unauthenticated);
+    let refused = &status.unauthenticated;
+    assert!(refused["wrong_token"] >= 1 && refused["missing_token"] >= 1, "{refused:?}");
+    // A foreign client certificate and plain text fail the handshake; both counted.
+    assert!(refused["tls_handshake"] >= 2, "{refused:?}");
 
     // Health checks need no token (probes know none).
     let channel = tokenless.connect(&url).await.unwrap();

@@ -31,6 +31,28 @@ pub struct Accepted {
     pub policy_version: u64,
 }
 
+impl Accepted {
+    /// Keeps the batch's first `episodes` episodes: its transitions up to
+    /// the end of the last one kept (a batch lists its episodes in the
+    /// order their ends appear). Returns how many transitions were dropped.
+    /// The learner's budget ends exactly at its last episode this way,
+    /// as `lcrl train`'s does, even when a batch holds several ends.
+    pub fn keep_episodes(&mut self, episodes: usize) -> usize {
+        if self.episodes.len() <= episodes {
+            return 0;
+        }
+        let mut ends = self.transitions.iter().enumerate().filter(|(_, t)| t.terminated || t.truncated).map(|(i, _)| i + 1);
+        let cut = match episodes {
+            0 => 0,
+            k => ends.nth(k - 1).unwrap_or(self.transitions.len()),
+        };
+        let dropped = self.transitions.len() - cut;
+        self.transitions.truncate(cut);
+        self.episodes.truncate(episodes);
+        dropped
+    }
+}
+
 /// The outcome of checking one batch.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Verdict {
@@ -169,6 +191,23 @@ mod tests {
 
     fn ingest(staleness: Option<u64>) -> Ingest {
         Ingest::new("run-a", lcrl_sim::make_env("lti-paper").unwrap(), staleness)
+    }
+
+    #[test]
+    fn a_batch_is_cut_after_the_last_episode_the_budget_allows() {
+        let t = |end: bool| AgentTransition { obs: vec![], action: vec![], reward: 0.0, next_obs: vec![], terminated: end, truncated: false, policy_version: 0 };
+        let e = || EpisodeSummary { episode_return: -1.0, length: 2, success: None };
+        // Two episode ends (after transitions 2 and 4) and a started third.
+        let batch = || Accepted { transitions: vec![t(false), t(true), t(false), t(true), t(false)], episodes: vec![e(), e()], policy_version: 1 };
+        let mut one = batch();
+        assert_eq!(one.keep_episodes(1), 3);
+        assert_eq!((one.transitions.len(), one.episodes.len()), (2, 1));
+        let mut all = batch();
+        assert_eq!(all.keep_episodes(2), 0);
+        assert_eq!(all.transitions.len(), 5, "within the budget nothing is cut");
+        let mut none = batch();
+        assert_eq!(none.keep_episodes(0), 5);
+        assert!(none.transitions.is_empty() && none.episodes.is_empty());
     }
 
     #[test]

@@ -247,10 +247,19 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
                     Err(mpsc::error::TryRecvError::Empty) => break,
                 },
             };
-            if finished {
+            let mut batch = batch;
+            // Nothing past the budget's last episode is stored.
+            let past_budget = match budget {
+                _ if finished => std::mem::take(&mut batch.transitions).len(),
+                Some(b) => batch.keep_episodes(b.saturating_sub(shared.episodes.load(Ordering::Relaxed)) as usize),
+                None => 0,
+            };
+            if past_budget > 0 {
                 if let Ok(mut ingest) = shared.ingest.lock() {
-                    *ingest.rejected.entry("over_budget".into()).or_insert(0) += batch.transitions.len() as u64;
+                    *ingest.rejected.entry("over_budget".into()).or_insert(0) += past_budget as u64;
                 }
+            }
+            if finished || batch.transitions.is_empty() {
                 continue;
             }
             let count = batch.transitions.len() as u64;
