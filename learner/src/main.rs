@@ -247,6 +247,9 @@ async fn run(args: Args) -> anyhow::Result<()> {
         auth_refusals: security.refusals(),
     });
     let limiter = match (args.algo, args.replay_ratio.as_deref()) {
+        // A learner that never samples (--no-train: ingestion benchmarks)
+        // must not wait for samples before it inserts.
+        _ if args.no_train => None,
         (Algo::Ppo, _) | (Algo::Ddpg, Some("unlimited")) => None,
         (Algo::Ddpg, ratio) => {
             let spi = match ratio {
