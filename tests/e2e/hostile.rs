@@ -115,40 +115,49 @@ async fn hostile_streams_are_refused_and_counted_while_actors_train() {
     let steps_before = status(&url, &good).await.env_steps;
 
     // 60 hostile streams at once.
-    let mut tasks = tokio::task::JoinSet::new();
-    let mut spawn = |what: &'static str, security: &ClientSecurity, batches: Option<Vec<TransitionBatch>>| {
-        let (url, security) = (url.clone(), security.clone());
-        tasks.spawn(async move {
-            let code = match batches {
-                Some(batches) => send_all(&url, &security, batches).await,
-                None => send_garbage(&url, &security).await,
-            };
-            (what, code)
-        });
-    };
+    // Waves of 66 hostile streams at once: at least 4 s of attack, and on
+    // until the actor has stored something during it (at most 60 s; on a
+    // loaded machine its steps come slowly, but they must come).
     let wrong_token = ClientSecurity::new(None, None, Some(&wrong)).unwrap();
-    for k in 0..30u64 {
-        spawn("unknown_run", &good, Some(vec![batch("someone-else", k, 3, 0.5); 3]));
-    }
-    for k in 0..10u64 {
-        spawn("non_finite", &good, Some(vec![batch("load", 1_000_000 + k, 3, f32::NAN)]));
-        spawn("dimensions", &good, Some(vec![batch("load", 2_000_000 + k, 7, 0.5)]));
-    }
-    for _ in 0..4 {
-        // 17 MB: over the learner's 16 MB message limit.
-        let huge = TransitionBatch { transitions: vec![Transition { state: vec![0.5; 1 << 20], ..Default::default() }; 4], ..batch("load", 3_000_000, 3, 0.5) };
-        spawn("oversize", &good, Some(vec![huge]));
-        spawn("undecodable", &good, None);
-        spawn("wrong_token", &wrong_token, Some(vec![batch("load", 4_000_000, 3, 0.5)]));
-    }
-    drop(spawn);
-    let mut during = Vec::new();
+    let attack_started = std::time::Instant::now();
+    let mut waves = 0u64;
     let mut outcomes: std::collections::BTreeMap<&str, Vec<Option<tonic::Code>>> = Default::default();
-    while let Some(done) = tasks.join_next().await {
-        let (what, code) = done.unwrap();
-        outcomes.entry(what).or_default().push(code);
-        during.push(status(&url, &good).await.env_steps);
+    let mut progressed = false;
+    while waves == 0 || attack_started.elapsed() < Duration::from_secs(4) || (!progressed && attack_started.elapsed() < Duration::from_secs(60)) {
+        waves += 1;
+        let mut tasks = tokio::task::JoinSet::new();
+        let mut spawn = |what: &'static str, security: &ClientSecurity, batches: Option<Vec<TransitionBatch>>| {
+            let (url, security) = (url.clone(), security.clone());
+            tasks.spawn(async move {
+                let code = match batches {
+                    Some(batches) => send_all(&url, &security, batches).await,
+                    None => send_garbage(&url, &security).await,
+                };
+                (what, code)
+            });
+        };
+        for k in 0..30u64 {
+            spawn("unknown_run", &good, Some(vec![batch("someone-else", k, 3, 0.5); 3]));
+        }
+        for k in 0..10u64 {
+            spawn("non_finite", &good, Some(vec![batch("load", 1_000_000 + k, 3, f32::NAN)]));
+            spawn("dimensions", &good, Some(vec![batch("load", 2_000_000 + k, 7, 0.5)]));
+        }
+        for _ in 0..4 {
+            // 17 MB: over the learner's 16 MB message limit.
+            let huge = TransitionBatch { transitions: vec![Transition { state: vec![0.5; 1 << 20], ..Default::default() }; 4], ..batch("load", 3_000_000, 3, 0.5) };
+            spawn("oversize", &good, Some(vec![huge]));
+            spawn("undecodable", &good, None);
+            spawn("wrong_token", &wrong_token, Some(vec![batch("load", 4_000_000, 3, 0.5)]));
+        }
+        drop(spawn);
+        while let Some(done) = tasks.join_next().await {
+            let (what, code) = done.unwrap();
+            outcomes.entry(what).or_default().push(code);
+        }
+        progressed = status(&url, &good).await.env_steps > steps_before;
     }
+    let attack_seconds = attack_started.elapsed().as_secs_f64();
     let expected = [
         ("unknown_run", tonic::Code::InvalidArgument),
         ("non_finite", tonic::Code::InvalidArgument),
@@ -162,16 +171,16 @@ async fn hostile_streams_are_refused_and_counted_while_actors_train() {
     }
     let after = status(&url, &good).await;
     for (reason, at_least) in [("unknown_run", 30 * 4), ("non_finite", 10 * 4), ("dimensions", 10 * 4), ("oversize", 4), ("undecodable", 4)] {
-        assert!(after.rejected.get(reason).copied().unwrap_or(0) >= at_least, "{reason}: {:?}", after.rejected);
+        assert!(after.rejected.get(reason).copied().unwrap_or(0) >= at_least * waves, "{reason} after {waves} waves: {:?}", after.rejected);
     }
-    assert!(after.unauthenticated["wrong_token"] >= 4, "{:?}", after.unauthenticated);
+    assert!(after.unauthenticated["wrong_token"] >= 4 * waves, "{:?}", after.unauthenticated);
     // The same counts in /metrics.
     let text = scrape(metrics_port);
     let value = |series: &str| sample(&text, series).unwrap_or_else(|| panic!("{series} missing from\n{text}"));
     assert!(value("lcrl_learner_unauthenticated_total{reason=\"wrong_token\"}") >= 4.0);
     assert!(value("lcrl_learner_transitions_rejected_total{reason=\"oversize\"}") >= 4.0);
-    // The actor trained throughout, and nothing hostile was stored.
-    assert!(during.windows(2).all(|w| w[1] >= w[0]) && after.env_steps > steps_before, "steps {steps_before} → {during:?} → {}", after.env_steps);
+    // The actor trained through the attack, and goes on after it.
+    assert!(after.env_steps > steps_before, "the actor's steps went {steps_before} → {} during {attack_seconds:.1} s of attack ({waves} waves)", after.env_steps);
     let deadline = std::time::Instant::now() + Duration::from_secs(30);
     while status(&url, &good).await.env_steps < after.env_steps + 200 {
         assert!(std::time::Instant::now() < deadline, "the actor stopped training after the attack");
