@@ -215,14 +215,16 @@ fn os(args: &[&str]) -> Vec<OsString> {
     args.iter().map(OsString::from).collect()
 }
 
-fn algo_name(algo: Algo) -> &'static str {
+/// The CLI spelling of an algorithm (`--algo`).
+pub(crate) fn algo_name(algo: Algo) -> &'static str {
     match algo {
         Algo::Ddpg => "ddpg",
         Algo::Ppo => "ppo",
     }
 }
 
-fn connection_name(connection: Connection) -> &'static str {
+/// The CLI spelling of a connection (`--connection`).
+pub(crate) fn connection_name(connection: Connection) -> &'static str {
     match connection {
         Connection::Local => "local",
         Connection::Global => "global",

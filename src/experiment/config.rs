@@ -9,6 +9,8 @@ use anyhow::{bail, Context};
 use lcrl_learner::{Algo, TrainConfig};
 use serde::{Deserialize, Serialize};
 
+pub(crate) use crate::preset::algo_name;
+
 /// The publication's threshold T of eq. 7, used by a plain `local`.
 pub const DEFAULT_THRESHOLD: f64 = 0.1;
 
@@ -127,6 +129,14 @@ impl ConnectionSpec {
         }
     }
 
+    pub fn connection(&self) -> lcrl_learner::Connection {
+        match self {
+            ConnectionSpec::Local { .. } => lcrl_learner::Connection::Local,
+            ConnectionSpec::Global => lcrl_learner::Connection::Global,
+            ConnectionSpec::FullSubnets => lcrl_learner::Connection::FullSubnets,
+        }
+    }
+
     pub fn threshold(&self) -> Option<f64> {
         match self {
             ConnectionSpec::Local { threshold } => Some(*threshold),
@@ -135,12 +145,6 @@ impl ConnectionSpec {
     }
 }
 
-pub fn algo_name(algo: Algo) -> &'static str {
-    match algo {
-        Algo::Ddpg => "ddpg",
-        Algo::Ppo => "ppo",
-    }
-}
 
 /// A checked experiment: the file plus what follows from it.
 #[derive(Debug, Clone)]

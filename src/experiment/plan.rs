@@ -167,7 +167,7 @@ impl Task {
             Task::Train { cell, seed } => {
                 let mut args = vec![
                     "train".into(), "--env".into(), cell.env.clone(), "--algo".into(), algo_name(cell.algo).into(),
-                    "--connection".into(), connection_arg(&cell.connection).into(), "--episodes".into(), e.episodes(cell.algo).to_string(),
+                    "--connection".into(), crate::preset::connection_name(cell.connection.connection()).into(), "--episodes".into(), e.episodes(cell.algo).to_string(),
                     "--seed".into(), seed.to_string(), "--threads".into(), "1".into(), "--config".into(), s(&config_path(out, &cell.env)),
                     "--run-dir".into(), s(&run_dir(out, cell, *seed)), "--resume".into(),
                 ];
@@ -180,13 +180,6 @@ impl Task {
     }
 }
 
-fn connection_arg(c: &ConnectionSpec) -> &'static str {
-    match c {
-        ConnectionSpec::Local { .. } => "local",
-        ConnectionSpec::Global => "global",
-        ConnectionSpec::FullSubnets => "full-subnets",
-    }
-}
 
 /// Claims `out` for this experiment, or refuses if it holds another one,
 /// and writes the files every task reads (experiment copy, configs).
