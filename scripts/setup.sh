@@ -55,6 +55,19 @@ if ! "$VENV/bin/python" -c 'import grpc, grpc_tools, grpc_health, grpc_reflectio
   echo "setup: installing grpcio, grpcio-tools, grpcio-health-checking, grpcio-reflection into $VENV"
   "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check grpcio grpcio-tools grpcio-health-checking grpcio-reflection
 fi
+# Bring-your-own environments (clients/python/lcrl_env, docs/environments.md):
+# Gymnasium with MuJoCo (HalfCheetah-v5, the example), and lcrl_env itself,
+# editable so it runs from clients/python beside the generated stubs.
+GYMNASIUM_VERSION=1.4.0
+MUJOCO_VERSION=4.0.0
+if ! "$VENV/bin/python" -c "import importlib.metadata as m, sys; sys.exit(m.version('gymnasium') != '$GYMNASIUM_VERSION' or m.version('mujoco') != '$MUJOCO_VERSION')" 2>/dev/null; then
+  echo "setup: installing gymnasium[mujoco]==$GYMNASIUM_VERSION (mujoco==$MUJOCO_VERSION) into $VENV"
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check "gymnasium[mujoco]==$GYMNASIUM_VERSION" "mujoco==$MUJOCO_VERSION"
+fi
+if ! "$VENV/bin/python" -c 'import importlib.metadata as m; m.version("lcrl-env")' 2>/dev/null; then
+  echo "setup: installing lcrl_env (clients/python) into $VENV"
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check --no-build-isolation --no-deps -e clients/python
+fi
 stubs=clients/python/lcrl_stubs
 if [ ! -f "$stubs/lcrl_pb2.py" ] || [ proto/lcrl.proto -nt "$stubs/lcrl_pb2.py" ]; then
   mkdir -p "$stubs"

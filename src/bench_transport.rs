@@ -231,14 +231,14 @@ async fn end_to_end(dir: &std::path::Path, seconds: f64) -> anyhow::Result<()> {
     let alone = tokio::task::block_in_place(|| -> anyhow::Result<f64> {
         tch::set_num_threads(1);
         let mut env = lcrl_sim::make_env(env_name)?;
-        let mut state = env.reset(0);
+        let mut state = env.reset(0)?;
         let (started, mut steps, mut seed) = (Instant::now(), 0u64, 0u64);
         while started.elapsed().as_secs_f64() < seconds {
             let step = env.step(&policy.act(env.as_ref(), &state))?;
             steps += 1;
             state = if step.terminated || step.truncated {
                 seed += 1;
-                env.reset(seed)
+                env.reset(seed)?
             } else {
                 step.state
             };

@@ -61,7 +61,7 @@ pub fn evaluate_run(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wal
     policy.check_env(env.as_ref())?;
     let seed = preset.train.run.seed;
     let episodes = preset.train.run.eval_episodes.max(1);
-    let scales = env.snapshot();
+    let scales = env.fresh();
     let first = eval_seed(seed, 0);
     let (eval, _) = evaluate(env.as_mut(), "policy", episodes, first, &mut |s: &[f64]| policy.act(scales.as_ref(), s), &mut |_| {})?;
     let n = env.spec().action_dim();

@@ -164,7 +164,7 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
 fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<ScalePoint> {
     let env = lcrl_sim::make_env(&preset.job.env)?;
     // Episode length from one a = 0 episode.
-    let mut probe = env.snapshot();
+    let mut probe = env.fresh();
     let n = probe.spec().action_dim();
     let length = lcrl_sim::evaluate::run_episode(probe.as_mut(), 0, &mut |_| vec![0.0; n], false)?.steps.max(1);
     let warm = preset.train.ddpg.warmup_steps.div_ceil(length) + 1;

@@ -81,7 +81,7 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
     };
     // The policy normalizes states with the environment's scales; a snapshot
     // serves that while `evaluate` steps the environment itself.
-    let scales = env.snapshot();
+    let scales = env.fresh();
     let (label, mut act): (String, Box<dyn FnMut(&[f64]) -> Vec<f64>>) = match &policy {
         Some(policy) => (
             format!("{:?}/{:?} policy (episode {})", policy.architecture.algo, policy.architecture.connection, policy.episode.unwrap_or(0)).to_lowercase(),

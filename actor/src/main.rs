@@ -427,7 +427,13 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
     };
     let mut rng = ChaCha8Rng::seed_from_u64(s.seed ^ salt);
     let mut episode_seed = s.seed.wrapping_mul(1_000_003) ^ (salt << 20);
-    let mut states: Vec<Vec<f64>> = envs.iter_mut().map(|env| { episode_seed += 1; env.reset(episode_seed) }).collect();
+    let mut states: Vec<Vec<f64>> = envs
+        .iter_mut()
+        .map(|env| {
+            episode_seed += 1;
+            env.reset(episode_seed)
+        })
+        .collect::<Result<_, _>>()?;
     let mut returns = vec![0.0f64; s.envs];
     let mut lengths = vec![0u32; s.envs];
     // The learner keeps the highest sequence per actor id and drops what is
@@ -463,7 +469,8 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
             exploration = exploration_normals(&policy, explore, s.noise);
             s.metrics.policy_version.set(policy.version as i64);
         }
-        for (k, env) in envs.iter_mut().enumerate() {
+        let mut actions = Vec::with_capacity(envs.len());
+        for (k, env) in envs.iter().enumerate() {
             let obs = lcrl_learner::trainer::observe(env.as_ref(), &states[k]);
             let u: Vec<f32> = if explore.uniform && !own_distribution {
                 // The learner is filling its replay buffer: uniformly random
@@ -477,8 +484,11 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
                     .map(|(&a, noise)| (f64::from(a) + noise.sample(&mut rng)).clamp(-1.0, 1.0) as f32)
                     .collect()
             };
-            let action = lcrl_learner::trainer::to_env_action(env.as_ref(), &u);
-            let step = env.step(&action)?;
+            actions.push(lcrl_learner::trainer::to_env_action(env.as_ref(), &u));
+        }
+        // All K environments at once: one call when a server serves them.
+        let steps = lcrl_sim::step_all(&mut envs, &actions)?;
+        for (k, (step, action)) in steps.into_iter().zip(&actions).enumerate() {
             returns[k] += step.reward;
             lengths[k] += 1;
             s.metrics.env_steps.inc();
@@ -494,13 +504,13 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
                 policy_version: policy.version,
             });
             if step.terminated || step.truncated {
-                batch.episodes.push(EpisodeSummary { episode_return: returns[k], length: lengths[k], success: env.episode_metrics().success });
+                batch.episodes.push(EpisodeSummary { episode_return: returns[k], length: lengths[k], success: envs[k].episode_metrics().success });
                 episodes_done += 1;
                 s.metrics.episodes.inc();
                 returns[k] = 0.0;
                 lengths[k] = 0;
                 episode_seed += 1;
-                states[k] = env.reset(episode_seed);
+                states[k] = envs[k].reset(episode_seed)?;
             } else {
                 states[k] = step.state;
             }

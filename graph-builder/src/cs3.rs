@@ -132,6 +132,8 @@ pub fn measure(env: &dyn Env, cfg: &Cs3Config, on_sample: &(dyn Fn() + Sync)) ->
     if cfg.samples == 0 {
         return Err(Cs3Error::NoSamples);
     }
+    // Paired branches need exact copies: refuse at once, with the reason.
+    env.check_snapshot()?;
     let n = env.spec().action_dim();
     let m = env.spec().state_dim();
     let start = cfg.start.unwrap_or_else(|| Start::default_for(env));
@@ -159,7 +161,7 @@ fn paired_rollout(template: &dyn Env, start: Start, i: usize, seed: u64) -> Resu
 
     // s_0 ~ S, and s'_0 = s_0: the primed branch is an exact snapshot.
     let mut plain = draw_start(template, start, &mut rng)?;
-    let mut primed = plain.snapshot();
+    let mut primed = plain.snapshot()?;
     if plain.is_stochastic() {
         // Process noise is part of the system, not of the action: the two
         // branches draw it independently, as two real runs would.
@@ -202,20 +204,20 @@ fn paired_rollout(template: &dyn Env, start: Start, i: usize, seed: u64) -> Resu
 /// ended episode cannot be stepped. The copy is an exact snapshot, so both
 /// branches continue from it bit-identically.
 pub fn draw_start(template: &dyn Env, start: Start, rng: &mut ChaCha8Rng) -> Result<Box<dyn Env>, EnvError> {
-    let mut env = template.snapshot();
-    env.reset(rng.random());
+    let mut env = template.fresh();
+    env.reset(rng.random())?;
     if start == Start::Reset {
         return Ok(env);
     }
     let neutral = vec![0.0; env.spec().action_dim()];
-    let mut kept = env.snapshot();
+    let mut kept = env.snapshot()?;
     for t in 1usize.. {
         let step = env.step(&neutral)?;
         if step.terminated || step.truncated {
             break;
         }
         if rng.random_range(0..=t) == 0 {
-            kept = env.snapshot();
+            kept = env.snapshot()?;
         }
     }
     Ok(kept)

@@ -435,7 +435,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         let episode_started = Instant::now();
         agent.set_progress(episode as f64 / cfg.run.episodes as f64);
         let steps_before = agent.counters().env_steps;
-        let mut state = env.reset(episode_seed(cfg.run.seed, episode));
+        let mut state = env.reset(episode_seed(cfg.run.seed, episode))?;
         let (mut total, mut length, mut opt_seconds) = (0.0, 0, 0.0);
         loop {
             let obs = observe(env.as_ref(), &state);
@@ -500,7 +500,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
 
     // The deterministic policy, a = 0 and the LQR ceiling on the same episodes.
     let episodes = cfg.run.eval_episodes.max(1);
-    let env_ref = env.snapshot();
+    let env_ref = env.fresh();
     let mut policy = |s: &[f64]| to_env_action(env_ref.as_ref(), &agent.act(&observe(env_ref.as_ref(), s)));
     let (eval, _) = evaluate(env.as_mut(), "policy", episodes, eval_seed(cfg.run.seed, 0), &mut policy, &mut |_| {})?;
     let (zero, _) = evaluate(env.as_mut(), "a = 0", episodes, eval_seed(cfg.run.seed, 0), &mut |_| vec![0.0; n], &mut |_| {})?;

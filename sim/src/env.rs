@@ -39,6 +39,11 @@ impl EnvSpec {
         Ok(())
     }
 
+    /// A spec with no components yet (while a remote spec is read).
+    pub(crate) fn empty(name: &str) -> EnvSpec {
+        EnvSpec { name: name.to_string(), state_names: Vec::new(), action_names: Vec::new(), action_low: Vec::new(), action_high: Vec::new() }
+    }
+
     /// Clips every component into [lb, ub].
     pub fn clip_action(&self, action: &[f64]) -> Vec<f64> {
         action
@@ -71,13 +76,29 @@ pub struct Step {
 /// - `snapshot` returns an exact copy: stepping the copy and the original
 ///   with the same actions gives bit-identical results. CS3 runs its two
 ///   branches on snapshots (docs/method.md §2).
+/// - `reset`, `step` and `snapshot` fail only for environments in another
+///   process ([`crate::remote`]): the server is gone, or cannot copy.
 pub trait Env: Send + Sync {
     fn spec(&self) -> &EnvSpec;
-    fn reset(&mut self, seed: u64) -> Vec<f64>;
+    fn reset(&mut self, seed: u64) -> Result<Vec<f64>, EnvError>;
     fn state(&self) -> &[f64];
     fn step(&mut self, action: &[f64]) -> Result<Step, EnvError>;
     /// An exact, independent copy of the environment in its current state.
-    fn snapshot(&self) -> Box<dyn Env>;
+    fn snapshot(&self) -> Result<Box<dyn Env>, EnvError>;
+    /// A new instance of the same environment, not yet reset (cheap: no
+    /// copy of the current state). For what needs the environment's spec
+    /// and scales beside a running episode, and for fresh episodes.
+    fn fresh(&self) -> Box<dyn Env>;
+    /// Whether `snapshot` can work at all, so CS3 can refuse at once with
+    /// the reason instead of failing in its first rollout.
+    fn check_snapshot(&self) -> Result<(), EnvError> {
+        Ok(())
+    }
+    /// The served environment behind this one, for batched steps
+    /// ([`step_all`]).
+    fn as_remote_mut(&mut self) -> Option<&mut crate::remote::RemoteEnv> {
+        None
+    }
     /// Re-seeds the environment's own randomness (process noise) without
     /// changing its physical state. Deterministic environments ignore it.
     fn reseed_noise(&mut self, _seed: u64) {}
@@ -204,10 +225,22 @@ impl ReturnTerms {
     }
 }
 
-impl Clone for Box<dyn Env> {
-    fn clone(&self) -> Self {
-        self.snapshot()
+/// Steps each environment by its action, in order. Environments served by
+/// one server ([`crate::remote`]) go in one call (the service's batched
+/// Step), which is what makes K environments per actor cheap.
+pub fn step_all(envs: &mut [Box<dyn Env>], actions: &[Vec<f64>]) -> Result<Vec<Step>, EnvError> {
+    if envs.len() != actions.len() {
+        return Err(EnvError::invalid("actions", format!("{} actions for {} environments", actions.len(), envs.len())));
     }
+    if envs.len() > 1 {
+        let remotes: Option<Vec<&mut crate::remote::RemoteEnv>> = envs.iter_mut().map(|e| e.as_remote_mut()).collect();
+        if let Some(mut remotes) = remotes {
+            if remotes.iter().all(|r| r.same_server(remotes[0])) {
+                return crate::remote::RemoteEnv::step_batch(&mut remotes, actions);
+            }
+        }
+    }
+    envs.iter_mut().zip(actions).map(|(env, action)| env.step(action)).collect()
 }
 
 /// Everything that can go wrong when making or stepping an environment.
@@ -219,7 +252,7 @@ pub enum EnvError {
     NonFiniteAction { index: usize, value: f64 },
     #[error("the episode has ended (terminated); call reset before stepping again")]
     EpisodeOver,
-    #[error("unknown environment '{name}': use one of {known}, or a path to a .toml file")]
+    #[error("unknown environment '{name}': use one of {known}, a path to a .toml file, or grpc://HOST:PORT for a served environment (python -m lcrl_env serve)")]
     Unknown { name: String, known: String },
     #[error("cannot read environment file {path}: {source}")]
     Read { path: String, source: std::io::Error },
@@ -227,6 +260,15 @@ pub enum EnvError {
     Parse { path: String, message: String },
     #[error("environment config, field `{field}`: {message}")]
     Invalid { field: String, message: String },
+    #[error("environment server {url}: {message}")]
+    Remote { url: String, message: String },
+    #[error(
+        "the environment at {url} cannot fork ({reason}); CS3 runs its two branches from exact copies of one state \
+         (docs/method.md §2), so it needs an environment that can fork: a MuJoCo environment, or one that copy.deepcopy copies exactly"
+    )]
+    ForkUnavailable { url: String, reason: String },
+    #[error("the environment has not been reset yet; call reset before step")]
+    NotReset,
 }
 
 impl EnvError {

@@ -41,7 +41,7 @@ pub fn run_episode(
     policy: &mut dyn FnMut(&[f64]) -> Vec<f64>,
     record: bool,
 ) -> Result<EpisodeRecord, EnvError> {
-    let initial_state = env.reset(seed);
+    let initial_state = env.reset(seed)?;
     let period = env.control_period_s();
     let mut state = initial_state.clone();
     let mut trace = Vec::new();

@@ -7,7 +7,9 @@
 //!   systems with a known connection graph (docs/method.md §4).
 //! - [`peg`]: the peg-in-hole assembly simulator on rapier3d (docs/method.md §6).
 //! - [`evaluate`]: whole episodes with a policy, traces and summaries.
-//! - [`registry`]: environments by name or TOML file.
+//! - [`registry`]: environments by name, TOML file or server URL.
+//! - [`remote`]: environments served by another process (`grpc://HOST:PORT`,
+//!   e.g. any Gymnasium environment behind `python -m lcrl_env serve`).
 //! - [`tune`]: the best constant action (CMA-ES), the bar for learned agents.
 
 pub mod env;
@@ -15,7 +17,8 @@ pub mod evaluate;
 pub mod lti;
 pub mod peg;
 pub mod registry;
+pub mod remote;
 pub mod tune;
 
-pub use env::{Env, EnvError, EnvSpec, EpisodeMetrics, ReturnColumns, ReturnTerms, Step};
+pub use env::{step_all, Env, EnvError, EnvSpec, EpisodeMetrics, ReturnColumns, ReturnTerms, Step};
 pub use registry::{known_env_names, make_env};

@@ -286,7 +286,7 @@ impl Env for LtiEnv {
         &self.spec
     }
 
-    fn reset(&mut self, seed: u64) -> Vec<f64> {
+    fn reset(&mut self, seed: u64) -> Result<Vec<f64>, EnvError> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let s: Vec<f64> = (0..self.spec.state_dim())
             .map(|k| {
@@ -296,7 +296,7 @@ impl Env for LtiEnv {
             .collect();
         self.noise_rng = ChaCha8Rng::seed_from_u64(rng.random());
         self.set_state(&s);
-        s
+        Ok(s)
     }
 
     fn state(&self) -> &[f64] {
@@ -327,8 +327,12 @@ impl Env for LtiEnv {
         })
     }
 
-    fn snapshot(&self) -> Box<dyn Env> {
+    fn fresh(&self) -> Box<dyn Env> {
         Box::new(self.clone())
+    }
+
+    fn snapshot(&self) -> Result<Box<dyn Env>, EnvError> {
+        Ok(Box::new(self.clone()))
     }
 
     fn reseed_noise(&mut self, seed: u64) {
@@ -377,7 +381,7 @@ mod tests {
     fn truncates_at_episode_steps() {
         let cfg = LtiConfig { episode_steps: 3, ..LtiConfig::paper_example() };
         let mut env = LtiEnv::new("x", &cfg).unwrap();
-        env.reset(1);
+        env.reset(1).unwrap();
         let flags: Vec<bool> = (0..3).map(|_| env.step(&[0.0; 3]).unwrap().truncated).collect();
         assert_eq!(flags, vec![false, false, true]);
     }
@@ -386,9 +390,9 @@ mod tests {
     fn snapshot_continues_bit_identically_with_noise() {
         let cfg = LtiConfig { noise_std: 0.3, ..LtiConfig::paper_example() };
         let mut env = LtiEnv::new("x", &cfg).unwrap();
-        env.reset(7);
+        env.reset(7).unwrap();
         env.step(&[0.3, 0.1, -0.2]).unwrap();
-        let mut copy = env.snapshot();
+        let mut copy = env.snapshot().unwrap();
         for k in 0..10 {
             let a = [0.1 * k as f64, -0.05, 0.2];
             assert_eq!(env.step(&a).unwrap(), copy.step(&a).unwrap());
@@ -403,9 +407,9 @@ mod tests {
             ..LtiConfig::paper_example()
         };
         let mut env = LtiEnv::new("x", &cfg).unwrap();
-        let a = env.reset(11);
-        assert_eq!(a, env.reset(11));
-        assert_ne!(a, env.reset(12));
+        let a = env.reset(11).unwrap();
+        assert_eq!(a, env.reset(11).unwrap());
+        assert_ne!(a, env.reset(12).unwrap());
         assert!((-2.0..=-1.0).contains(&a[0]) && a[1] == 0.0 && (1.0..=3.0).contains(&a[2]));
     }
 

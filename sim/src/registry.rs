@@ -1,4 +1,5 @@
-//! Environments by name (`lti-paper`) or by TOML file (`kind = "lti"`).
+//! Environments by name (`lti-paper`), by TOML file (`kind = "lti"`) or
+//! served by another process (`grpc://HOST:PORT`, [`crate::remote`]).
 
 use std::path::Path;
 
@@ -11,8 +12,12 @@ pub fn known_env_names() -> Vec<&'static str> {
     vec!["lti-paper", "peg-group1", "peg-group2", "peg-experiment"]
 }
 
-/// Makes an environment from a registered name or a path to a `.toml` file.
+/// Makes an environment from a registered name, a path to a `.toml` file,
+/// or a server's URL (`grpc://HOST:PORT`).
 pub fn make_env(name_or_path: &str) -> Result<Box<dyn Env>, EnvError> {
+    if name_or_path.starts_with(crate::remote::SCHEME) {
+        return Ok(Box::new(crate::remote::RemoteEnv::connect(name_or_path)?));
+    }
     if let Some(cfg) = PegConfig::preset(name_or_path) {
         return Ok(Box::new(PegEnv::new(name_or_path, cfg)?));
     }

@@ -101,7 +101,7 @@ pub fn u_of(spec: &EnvSpec, action: &[f64]) -> Vec<f64> {
 /// Mean return of a constant action over `episodes` starts from `seed`.
 pub fn constant_return(template: &dyn Env, action: &[f64], episodes: usize, seed: u64) -> Result<f64, EnvError> {
     template.spec().check_action(action)?;
-    let mut env = template.snapshot();
+    let mut env = template.fresh();
     let mut total = 0.0;
     for k in 0..episodes {
         let record = run_episode(env.as_mut(), seed.wrapping_add(k as u64), &mut |_| action.to_vec(), false)?;
@@ -111,7 +111,7 @@ pub fn constant_return(template: &dyn Env, action: &[f64], episodes: usize, seed
 }
 
 fn evaluate_constant(template: &dyn Env, action: &[f64], tuning_return: f64, opts: &TuneOptions) -> Result<ConstantResult, EnvError> {
-    let mut env = template.snapshot();
+    let mut env = template.fresh();
     let label = format!("constant {action:?}");
     let (eval, _) = evaluate(env.as_mut(), &label, opts.eval_episodes, opts.eval_seed, &mut |_| action.to_vec(), &mut |_| {})?;
     Ok(ConstantResult { action: action.to_vec(), tuning_return, eval })

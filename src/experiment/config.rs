@@ -298,13 +298,24 @@ fn overlay(base: &mut toml::Table, top: &toml::Table) {
 /// A folder name for an environment: a registered name as is, a file path
 /// by its stem.
 pub fn env_slug(env: &str) -> String {
-    let stem = Path::new(env).file_stem().map_or(env.to_string(), |s| s.to_string_lossy().into_owned());
+    // A served environment is named by its address, not a file stem.
+    let stem = match env.strip_prefix(lcrl_sim::remote::SCHEME) {
+        Some(address) => format!("grpc-{address}"),
+        None => Path::new(env).file_stem().map_or(env.to_string(), |s| s.to_string_lossy().into_owned()),
+    };
     stem.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn env_slugs_are_folder_names() {
+        assert_eq!(env_slug("grpc://127.0.0.1:50070"), "grpc-127_0_0_1_50070");
+        assert_eq!(env_slug("envs/my-system.toml"), "my-system");
+        assert_eq!(env_slug("peg-group1"), "peg-group1");
+    }
 
     const MINIMAL: &str = "name = \"t\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"local@0.25\", \"global\"]\nseeds = 3\nepisodes = { ppo = 10 }\n";
 

@@ -102,7 +102,7 @@ fn rollout(env: &mut dyn Env, act: &mut dyn FnMut(&[f64]) -> Vec<f64>) -> anyhow
         _ => vec![(0..names.len()).collect()],
     };
     let norm = |s: &[f64], idx: &[usize]| idx.iter().map(|&j| s[j] * s[j]).sum::<f64>().sqrt();
-    let mut state = env.reset(0);
+    let mut state = env.reset(0)?;
     let mut trace = Trace { time: vec![0.0], panels: groups.iter().map(|g| vec![norm(&state, g)]).collect() };
     for k in 1.. {
         let step = env.step(&act(&state))?;
@@ -134,7 +134,7 @@ pub fn traces(study: &Study, path: &Path) -> anyhow::Result<()> {
         for cell in &group {
             let Some(run) = cell.median_run() else { continue };
             let policy = Policy::load(&run.dir)?;
-            let scales = env.snapshot();
+            let scales = env.fresh();
             let label = format!("{} (seed {}, median)", cell.cell.connection.label(), run.seed);
             runs.push((label, rollout(env.as_mut(), &mut |s| policy.act(scales.as_ref(), s))?));
         }

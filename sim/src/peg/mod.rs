@@ -152,7 +152,7 @@ impl Env for PegEnv {
     /// Draws the initial pose error uniformly (±position_error_mm per axis,
     /// ±angle_error_deg per angle) around the start pose above the hole
     /// (shifted by the episode's offsets, 0 by default).
-    fn reset(&mut self, seed: u64) -> Vec<f64> {
+    fn reset(&mut self, seed: u64) -> Result<Vec<f64>, EnvError> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let e = &self.cfg.episode;
         let mut draw = |r: f64| if r > 0.0 { rng.random_range(-r..=r) } else { 0.0 };
@@ -160,7 +160,7 @@ impl Env for PegEnv {
         let [oa, ob, oc] = e.angle_offset_deg;
         let position = [ox + draw(e.position_error_mm), oy + draw(e.position_error_mm), e.start_height_mm + draw(e.position_error_mm)];
         let angles = [oa + draw(e.angle_error_deg), ob + draw(e.angle_error_deg), oc + draw(e.angle_error_deg)];
-        self.reset_to(position, angles)
+        Ok(self.reset_to(position, angles))
     }
 
     fn state(&self) -> &[f64] {
@@ -232,8 +232,12 @@ impl Env for PegEnv {
         })
     }
 
-    fn snapshot(&self) -> Box<dyn Env> {
+    fn fresh(&self) -> Box<dyn Env> {
         Box::new(self.clone())
+    }
+
+    fn snapshot(&self) -> Result<Box<dyn Env>, EnvError> {
+        Ok(Box::new(self.clone()))
     }
 
     /// Scales for learning: offsets by 0.5 mm, depth by L, angles by 1°,

@@ -113,7 +113,7 @@ fn penetration_stays_below_ten_micrometres() {
     for cfg in [PegConfig::group1(), PegConfig::group2()] {
         let mut env = env(cfg);
         for seed in 0..8 {
-            env.reset(seed);
+            env.reset(seed).unwrap();
             let mut worst: f64 = 0.0;
             loop {
                 let step = env.step(&[0.0; 6]).unwrap();
@@ -146,12 +146,12 @@ fn jamming_ends_on_the_force_limit() {
 #[test]
 fn snapshot_restore_continues_bit_identically() {
     let mut env = env(PegConfig::group1());
-    env.reset(3);
+    env.reset(3).unwrap();
     let actions = |k: usize| -> [f64; 6] { std::array::from_fn(|i| ((k * 7 + i * 3) % 5) as f64 * 0.5 - 1.0) };
     for k in 0..8 {
         env.step(&actions(k)).unwrap();
     }
-    let mut copy = env.snapshot();
+    let mut copy = env.snapshot().unwrap();
     for k in 8..30 {
         assert_eq!(env.step(&actions(k)).unwrap(), copy.step(&actions(k)).unwrap(), "step {k}");
     }
@@ -161,8 +161,8 @@ fn snapshot_restore_continues_bit_identically() {
 fn same_seed_same_episode_and_bad_actions_change_nothing() {
     let mut a = env(PegConfig::group1());
     let mut b = env(PegConfig::group1());
-    assert_eq!(a.reset(11), b.reset(11));
-    assert_ne!(a.reset(11), a.clone().reset(12));
+    assert_eq!(a.reset(11).unwrap(), b.reset(11).unwrap());
+    assert_ne!(a.reset(11).unwrap(), a.clone().reset(12).unwrap());
     a.step(&[0.5; 6]).unwrap();
     b.step(&[0.5; 6]).unwrap();
     let err = a.step(&[0.0, 0.0, f64::NAN, 0.0, 0.0, 0.0]).unwrap_err();
@@ -208,7 +208,7 @@ fn jamming_on_purpose_scores_below_every_success_from_the_same_start() {
     let mut jammed = 0;
     for seed in 0..12 {
         let mut jam_env = env(PegConfig::group1());
-        jam_env.reset(seed);
+        jam_env.reset(seed).unwrap();
         let jam_steps = run(&mut jam_env, [-1.0, -1.0, 2.0, 4.0, 4.0, 4.0]);
         let jam_return: f64 = jam_steps.iter().map(|s| s.reward).sum();
         if !matches!(jam_env.outcome(), Outcome::ForceLimit | Outcome::MomentLimit) {
@@ -222,7 +222,7 @@ fn jamming_on_purpose_scores_below_every_success_from_the_same_start() {
         // lateral compliance.
         for action in [[0.0; 6], [2.0, 2.0, 0.0, 0.0, 0.0, 0.0], [2.0, 2.0, 2.0, 4.0, 4.0, 4.0], [-1.0; 6]] {
             let mut ok_env = env(PegConfig::group1());
-            ok_env.reset(seed);
+            ok_env.reset(seed).unwrap();
             let ok_return: f64 = run(&mut ok_env, action).iter().map(|s| s.reward).sum();
             if ok_env.outcome() == Outcome::Inserted {
                 assert!(jam_return < ok_return, "seed {seed}: jam {jam_return} ≥ success {ok_return} with {action:?}");
@@ -244,7 +244,7 @@ fn failure_charge_bounds_every_step_within_limits() {
     for action in [[0.0; 6], [2.0, 2.0, 2.0, 4.0, 4.0, 4.0], [-0.5; 6]] {
         for seed in 0..4 {
             let mut e = env(cfg.clone());
-            e.reset(seed);
+            e.reset(seed).unwrap();
             let steps = run(&mut e, action);
             let failed = matches!(e.outcome(), Outcome::ForceLimit | Outcome::MomentLimit);
             let within = if failed { &steps[..steps.len() - 1] } else { &steps[..] };

@@ -1,0 +1,271 @@
+//! Environments served by another process over `lcrl.v1.Environment`
+//! (proto/lcrl.proto), usually a Gymnasium environment behind
+//! `python -m lcrl_env serve` (docs/environments.md). `--env grpc://HOST:PORT`
+//! makes a [`RemoteEnv`] wherever a built-in environment name is accepted.
+//!
+//! Every [`RemoteEnv`] is one session on the server, opened at its first
+//! reset (so making one only to read its spec costs no instance), closed
+//! when dropped. [`Env::snapshot`] is the service's Fork. Calls block the
+//! calling thread: they run on one small tokio runtime of this process and
+//! hand the answer back over a channel, so they work from rayon's CS3
+//! threads, an actor's environment thread and async code alike.
+
+use std::future::Future;
+use std::sync::{Arc, OnceLock};
+use std::time::Duration;
+
+use lcrl_proto::v1::environment_client::EnvironmentClient;
+use lcrl_proto::v1::{CloseRequest, ForkRequest, GetSpecRequest, OpenRequest, ResetRequest, SessionReset, SessionStep, StepRequest};
+use tonic::transport::{Channel, Endpoint};
+
+use crate::env::{Env, EnvError, EnvSpec, Step};
+
+/// How `--env` names a served environment.
+pub const SCHEME: &str = "grpc://";
+
+/// How long a server may take to accept a connection.
+const CONNECT_TIMEOUT: Duration = Duration::from_secs(10);
+/// How long one call may take (a Fork of a large simulation, a slow step).
+const CALL_TIMEOUT: Duration = Duration::from_secs(120);
+
+/// What every session of one server shares.
+struct Server {
+    url: String,
+    client: EnvironmentClient<Channel>,
+    spec: EnvSpec,
+    /// Divisors of `normalize_state`: the larger bound's magnitude where the
+    /// observation space bounds a component, else 1.
+    state_scale: Vec<f64>,
+    /// Why the server cannot fork; None when it can.
+    fork_unavailable: Option<String>,
+    dt: f64,
+}
+
+/// One instance of a served environment (one session).
+pub struct RemoteEnv {
+    server: Arc<Server>,
+    session: Option<u64>,
+    state: Vec<f64>,
+}
+
+/// The process's runtime for environment calls (one worker thread: the
+/// calls are small and the environment server is the bottleneck).
+fn runtime() -> Result<&'static tokio::runtime::Runtime, String> {
+    static RUNTIME: OnceLock<Result<tokio::runtime::Runtime, String>> = OnceLock::new();
+    RUNTIME
+        .get_or_init(|| {
+            tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(1)
+                .thread_name("lcrl-env-client")
+                .enable_all()
+                .build()
+                .map_err(|e| format!("cannot start the environment client's runtime: {e}"))
+        })
+        .as_ref()
+        .map_err(Clone::clone)
+}
+
+/// Runs `call` on the runtime and waits for it on this thread.
+fn blocking<T: Send + 'static>(call: impl Future<Output = T> + Send + 'static) -> Result<T, String> {
+    let (tx, rx) = std::sync::mpsc::sync_channel(1);
+    runtime()?.spawn(async move {
+        let _ = tx.send(call.await);
+    });
+    rx.recv().map_err(|_| "the call was dropped (the process is shutting down)".to_string())
+}
+
+impl Server {
+    fn error(&self, message: impl Into<String>) -> EnvError {
+        EnvError::Remote { url: self.url.clone(), message: message.into() }
+    }
+
+    /// A failed call as an error that says what to do.
+    fn status(&self, what: &str, status: tonic::Status) -> EnvError {
+        match status.code() {
+            tonic::Code::Unavailable => self.error(format!("{what}: the server is unreachable ({}); is `python -m lcrl_env serve` still running there?", status.message())),
+            tonic::Code::DeadlineExceeded => self.error(format!("{what}: no answer within {} s", CALL_TIMEOUT.as_secs())),
+            code => self.error(format!("{what}: {} ({code:?})", status.message())),
+        }
+    }
+
+    /// Runs one call of the client, mapping transport and status errors.
+    fn call<T: Send + 'static, F>(&self, what: &str, call: impl FnOnce(EnvironmentClient<Channel>) -> F) -> Result<T, EnvError>
+    where
+        F: Future<Output = Result<tonic::Response<T>, tonic::Status>> + Send + 'static,
+    {
+        match blocking(call(self.client.clone())) {
+            Ok(Ok(response)) => Ok(response.into_inner()),
+            Ok(Err(status)) => Err(self.status(what, status)),
+            Err(message) => Err(self.error(message)),
+        }
+    }
+}
+
+impl RemoteEnv {
+    /// Connects to `url` (`grpc://HOST:PORT`) and reads the environment's
+    /// spec. No instance is opened yet.
+    pub fn connect(url: &str) -> Result<RemoteEnv, EnvError> {
+        let unreachable = |message: String| EnvError::Remote { url: url.to_string(), message };
+        let address = url
+            .strip_prefix(SCHEME)
+            .filter(|rest| rest.rsplit_once(':').is_some_and(|(host, port)| !host.is_empty() && port.parse::<u16>().is_ok()))
+            .ok_or_else(|| unreachable(format!("not a server address; write {SCHEME}HOST:PORT, e.g. {SCHEME}127.0.0.1:50070")))?;
+        let endpoint = Endpoint::from_shared(format!("http://{address}"))
+            .map_err(|e| unreachable(e.to_string()))?
+            .connect_timeout(CONNECT_TIMEOUT)
+            .timeout(CALL_TIMEOUT);
+        let channel = blocking(async move { endpoint.connect().await })
+            .map_err(unreachable)?
+            .map_err(|e| {
+                unreachable(format!(
+                    "cannot connect ({e}); start the environment server first, e.g. `.venv/bin/python -m lcrl_env serve --env Pendulum-v1 --listen {address}`"
+                ))
+            })?;
+        let client = EnvironmentClient::new(channel).max_decoding_message_size(16 << 20).max_encoding_message_size(16 << 20);
+        let provisional = Server { url: url.to_string(), client, spec: EnvSpec::empty(url), state_scale: Vec::new(), fork_unavailable: None, dt: 0.0 };
+        let spec = provisional.call("GetSpec", |mut c| async move { c.get_spec(GetSpecRequest {}).await })?;
+        let (m, n) = (spec.state_names.len(), spec.action_names.len());
+        if m == 0 || n == 0 {
+            return Err(provisional.error(format!("the server reports {m} states and {n} actions; both must be at least 1")));
+        }
+        if spec.action_low.len() != n || spec.action_high.len() != n || spec.state_low.len() != m || spec.state_high.len() != m {
+            return Err(provisional.error("the spec's bounds do not match its names (a server of another version?)"));
+        }
+        if let Some(i) = (0..n).find(|&i| !(spec.action_low[i].is_finite() && spec.action_high[i].is_finite() && spec.action_low[i] < spec.action_high[i])) {
+            return Err(provisional.error(format!("action {i} has bounds [{}, {}]; they must be finite and increasing", spec.action_low[i], spec.action_high[i])));
+        }
+        let state_scale = spec
+            .state_low
+            .iter()
+            .zip(&spec.state_high)
+            .map(|(lo, hi)| {
+                let bound = lo.abs().max(hi.abs());
+                if lo.is_finite() && hi.is_finite() && bound > 0.0 { bound } else { 1.0 }
+            })
+            .collect();
+        let server = Server {
+            spec: EnvSpec { name: url.to_string(), state_names: spec.state_names, action_names: spec.action_names, action_low: spec.action_low, action_high: spec.action_high },
+            state_scale,
+            fork_unavailable: (!spec.can_fork).then(|| if spec.fork_unavailable.is_empty() { "the server cannot fork".to_string() } else { spec.fork_unavailable }),
+            dt: spec.dt,
+            ..provisional
+        };
+        Ok(RemoteEnv { state: vec![0.0; m], server: Arc::new(server), session: None })
+    }
+
+    /// This instance's session, opened on first use.
+    fn session(&mut self) -> Result<u64, EnvError> {
+        if let Some(session) = self.session {
+            return Ok(session);
+        }
+        let opened = self.server.call("Open", |mut c| async move { c.open(OpenRequest { count: 1 }).await })?;
+        let session = *opened.sessions.first().ok_or_else(|| self.server.error("Open returned no session"))?;
+        self.session = Some(session);
+        Ok(session)
+    }
+
+    fn checked_state(server: &Server, state: Vec<f64>) -> Result<Vec<f64>, EnvError> {
+        if state.len() != server.spec.state_dim() {
+            return Err(server.error(format!("a state of {} components arrived; the spec has {}", state.len(), server.spec.state_dim())));
+        }
+        Ok(state)
+    }
+
+    /// Steps every environment of `envs` by its action in one call. All must
+    /// be sessions of one server and reset (see [`crate::step_all`]).
+    pub(crate) fn step_batch(envs: &mut [&mut RemoteEnv], actions: &[Vec<f64>]) -> Result<Vec<Step>, EnvError> {
+        let Some(first) = envs.first() else { return Ok(Vec::new()) };
+        let server = first.server.clone();
+        let mut steps = Vec::with_capacity(envs.len());
+        for (env, action) in envs.iter().zip(actions) {
+            server.spec.check_action(action)?;
+            steps.push(SessionStep { session: env.session.ok_or(EnvError::NotReset)?, action: server.spec.clip_action(action) });
+        }
+        let reply = server.call("Step", |mut c| async move { c.step(StepRequest { steps }).await })?;
+        if reply.results.len() != envs.len() {
+            return Err(server.error(format!("Step answered {} results for {} sessions", reply.results.len(), envs.len())));
+        }
+        envs.iter_mut()
+            .zip(reply.results)
+            .map(|(env, r)| {
+                env.state = Self::checked_state(&server, r.state)?;
+                Ok(Step { state: env.state.clone(), reward: r.reward, terminated: r.terminated, truncated: r.truncated })
+            })
+            .collect()
+    }
+
+    /// Whether `other` is a session of the same server (one batch).
+    pub(crate) fn same_server(&self, other: &RemoteEnv) -> bool {
+        Arc::ptr_eq(&self.server, &other.server)
+    }
+}
+
+impl Env for RemoteEnv {
+    fn spec(&self) -> &EnvSpec {
+        &self.server.spec
+    }
+
+    fn reset(&mut self, seed: u64) -> Result<Vec<f64>, EnvError> {
+        let session = self.session()?;
+        let reply = self.server.call("Reset", |mut c| async move { c.reset(ResetRequest { resets: vec![SessionReset { session, seed }] }).await })?;
+        let state = reply.states.into_iter().next().ok_or_else(|| self.server.error("Reset returned no state"))?;
+        self.state = Self::checked_state(&self.server, state.state)?;
+        Ok(self.state.clone())
+    }
+
+    fn state(&self) -> &[f64] {
+        &self.state
+    }
+
+    fn step(&mut self, action: &[f64]) -> Result<Step, EnvError> {
+        let mut envs = [&mut *self];
+        let mut steps = Self::step_batch(&mut envs, &[action.to_vec()])?;
+        steps.pop().ok_or(EnvError::NotReset)
+    }
+
+    fn fresh(&self) -> Box<dyn Env> {
+        Box::new(RemoteEnv { server: self.server.clone(), session: None, state: vec![0.0; self.server.spec.state_dim()] })
+    }
+
+    fn snapshot(&self) -> Result<Box<dyn Env>, EnvError> {
+        let Some(session) = self.session else {
+            // Nothing to copy yet: a new, unopened instance is the same.
+            return Ok(self.fresh());
+        };
+        self.check_snapshot()?;
+        let fork = self.server.call("Fork", |mut c| async move { c.fork(ForkRequest { session }).await })?;
+        Ok(Box::new(RemoteEnv { server: self.server.clone(), session: Some(fork.session), state: self.state.clone() }))
+    }
+
+    fn check_snapshot(&self) -> Result<(), EnvError> {
+        match &self.server.fork_unavailable {
+            Some(reason) => Err(EnvError::ForkUnavailable { url: self.server.url.clone(), reason: reason.clone() }),
+            None => Ok(()),
+        }
+    }
+
+    fn normalize_state(&self, state: &[f64]) -> Vec<f64> {
+        state.iter().zip(&self.server.state_scale).map(|(s, k)| s / k).collect()
+    }
+
+    fn control_period_s(&self) -> f64 {
+        if self.server.dt > 0.0 { self.server.dt } else { 1.0 }
+    }
+
+    fn as_remote_mut(&mut self) -> Option<&mut RemoteEnv> {
+        Some(self)
+    }
+}
+
+impl Drop for RemoteEnv {
+    /// Closes the session without waiting (a fork in CS3 is dropped every
+    /// sample); the server also closes sessions that stay idle.
+    fn drop(&mut self) {
+        if let (Some(session), Ok(runtime)) = (self.session, runtime()) {
+            let mut client = self.server.client.clone();
+            runtime.spawn(async move {
+                let _ = client.close(CloseRequest { sessions: vec![session] }).await;
+            });
+        }
+    }
+}
