@@ -15,7 +15,8 @@ use serde::Deserialize;
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Job {
-    /// Environment: a registered name or a .toml path.
+    /// Environment: a registered name, a .toml path, or grpc://HOST:PORT
+    /// (a served environment; with [env_server], where `lcrl run` serves it).
     pub env: String,
     pub algo: Algo,
     pub connection: Connection,
@@ -29,6 +30,80 @@ pub struct Job {
     /// Algorithm 2's, one update of ddpg.batch_size per environment step.
     #[serde(default)]
     pub replay_ratio: Option<String>,
+    /// T of eq. 7 for the graph builder (default 0.1, the publication's).
+    #[serde(default)]
+    pub graph_threshold: Option<f64>,
+}
+
+/// `[env_server]`: a Gymnasium environment that `lcrl run` serves itself
+/// (`python -m lcrl_env serve`) at `job.env`, a `grpc://HOST:PORT` address
+/// (port 0: any free port), for the whole run (docs/environments.md).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EnvServer {
+    /// A registered Gymnasium id, e.g. "HalfCheetah-v5".
+    #[serde(default)]
+    pub gym: Option<String>,
+    /// Or your own class, "module:Class" (the module on `pythonpath`).
+    #[serde(default)]
+    pub entry_point: Option<String>,
+    /// Keyword arguments for gymnasium.make or the class.
+    #[serde(default)]
+    pub kwargs: toml::Table,
+    /// Truncate episodes after this many steps.
+    #[serde(default)]
+    pub max_episode_steps: Option<u32>,
+    /// Folder added to PYTHONPATH, relative to the preset's folder.
+    #[serde(default)]
+    pub pythonpath: Option<PathBuf>,
+    /// The Python with lcrl_env installed (default: $LCRL_PYTHON, else this
+    /// project's .venv, as scripts/setup.sh makes it).
+    #[serde(default)]
+    pub python: Option<PathBuf>,
+}
+
+impl EnvServer {
+    fn check(&self, env: &str) -> anyhow::Result<()> {
+        if self.gym.is_some() == self.entry_point.is_some() {
+            bail!("[env_server] needs exactly one of gym = \"ID\" (a Gymnasium id) and entry_point = \"module:Class\"");
+        }
+        if !env.starts_with(lcrl_sim::remote::SCHEME) {
+            bail!("with [env_server], job.env is where it listens: grpc://HOST:PORT (e.g. grpc://127.0.0.1:0 for any free port), not {env:?}");
+        }
+        Ok(())
+    }
+
+    /// The server's command line, listening on `listen` (HOST:PORT);
+    /// relative paths are taken from `preset_dir`.
+    pub fn command(&self, listen: &str, instances: usize, preset_dir: &Path) -> anyhow::Result<std::process::Command> {
+        let python = match (&self.python, std::env::var_os("LCRL_PYTHON")) {
+            (Some(p), _) => preset_dir.join(p),
+            (None, Some(p)) => PathBuf::from(p),
+            (None, None) => Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python"),
+        };
+        if !python.is_file() {
+            bail!("{} is missing: run `bash scripts/setup.sh` (it installs lcrl_env into .venv), or name a Python with lcrl_env as [env_server] python or $LCRL_PYTHON", python.display());
+        }
+        let mut cmd = std::process::Command::new(python);
+        cmd.args(["-m", "lcrl_env", "serve", "--listen", listen, "--instances", &instances.to_string()]);
+        match (&self.gym, &self.entry_point) {
+            (Some(id), _) => cmd.args(["--env", id]),
+            (None, Some(entry)) => cmd.args(["--entry-point", entry]),
+            (None, None) => bail!("[env_server] needs gym or entry_point"),
+        };
+        if !self.kwargs.is_empty() {
+            cmd.args(["--kwargs", &serde_json::to_string(&self.kwargs)?]);
+        }
+        if let Some(steps) = self.max_episode_steps {
+            cmd.args(["--max-episode-steps", &steps.to_string()]);
+        }
+        if let Some(extra) = &self.pythonpath {
+            let mut paths = vec![preset_dir.join(extra)];
+            paths.extend(std::env::var_os("PYTHONPATH").iter().flat_map(std::env::split_paths));
+            cmd.env("PYTHONPATH", std::env::join_paths(paths)?);
+        }
+        Ok(cmd)
+    }
 }
 
 fn one() -> usize {
@@ -39,6 +114,7 @@ fn one() -> usize {
 #[derive(Debug, Clone)]
 pub struct Preset {
     pub job: Job,
+    pub env_server: Option<EnvServer>,
     pub train: TrainConfig,
     /// The file as written, kept in the run directory as config.toml.
     pub text: String,
@@ -51,9 +127,13 @@ impl Preset {
         let mut table: toml::Table = toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
         let job_value = table.remove("job").with_context(|| format!("{} has no [job] section (env, algo, connection, episodes)", path.display()))?;
         let job: Job = job_value.try_into().with_context(|| format!("{}: [job]", path.display()))?;
+        let env_server: Option<EnvServer> = match table.remove("env_server") {
+            Some(value) => Some(value.try_into().with_context(|| format!("{}: [env_server]", path.display()))?),
+            None => None,
+        };
         let train: TrainConfig = toml::Value::Table(table).try_into().with_context(|| format!("{}: training sections", path.display()))?;
         train.validate()?;
-        let preset = Preset { job, train, text };
+        let preset = Preset { job, env_server, train, text };
         preset.check()?;
         Ok(preset)
     }
@@ -64,7 +144,18 @@ impl Preset {
         if job.actors == 0 || job.envs_per_actor == 0 || job.episodes == 0 {
             bail!("job.actors, job.envs_per_actor and job.episodes must be at least 1");
         }
-        lcrl_sim::make_env(&job.env)?;
+        if let Some(t) = job.graph_threshold {
+            if !(t.is_finite() && t > 0.0) {
+                bail!("job.graph_threshold must be a positive number (T of eq. 7), not {t}");
+            }
+        }
+        match &self.env_server {
+            // Served by the run itself: there is nothing to reach yet.
+            Some(server) => server.check(&job.env)?,
+            None => {
+                lcrl_sim::make_env(&job.env)?;
+            }
+        }
         Ok(())
     }
 
@@ -79,6 +170,9 @@ impl Preset {
     pub fn graph_builder_args(&self, listen: &str, run_dir: &Path) -> Vec<OsString> {
         let mut args = os(&["--env", &self.job.env, "--listen", listen]);
         args.extend(os(&["--samples", &self.train.run.graph_samples.to_string(), "--seed", &self.train.run.seed.to_string()]));
+        if let Some(t) = self.job.graph_threshold {
+            args.extend(os(&["--threshold", &t.to_string()]));
+        }
         args.extend([OsString::from("--out"), run_dir.join("graph.json").into(), OsString::from("--plot"), run_dir.join("graph.png").into()]);
         args
     }

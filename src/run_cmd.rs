@@ -104,6 +104,31 @@ impl Drop for Managed {
     }
 }
 
+/// Makes a child die with this process (Linux: PR_SET_PDEATHSIG): a killed
+/// `lcrl run` or study leaves no server or run behind.
+#[cfg(target_os = "linux")]
+pub(crate) fn die_with_parent(command: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    let parent = std::process::id() as libc::pid_t;
+    // SAFETY: the closure runs in the forked child before exec and calls
+    // only async-signal-safe functions (prctl, getppid, _exit).
+    unsafe {
+        command.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // The parent may have died before prctl took effect.
+            if libc::getppid() != parent {
+                libc::_exit(1);
+            }
+            Ok(())
+        });
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+pub(crate) fn die_with_parent(_command: &mut Command) {}
+
 pub(crate) async fn wait_healthy(url: &str, service: &str, what: &str, timeout: Duration, security: &ClientSecurity) -> anyhow::Result<()> {
     let deadline = Instant::now() + timeout;
     loop {
@@ -126,8 +151,8 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         preset.job.episodes = episodes;
     }
     preset.check()?;
-    let job = &preset.job;
     if args.check {
+        let job = &preset.job;
         println!("{}: {} with {:?}/{:?}, {} episodes, {} actor(s) — ok", args.config.display(), job.env, job.algo, job.connection, job.episodes, job.actors);
         return Ok(());
     }
@@ -136,6 +161,12 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let logs = run_dir.join("logs");
     fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
     fs::write(run_dir.join("config.toml"), &preset.text)?;
+    // A served environment lives until the run's end: the final evaluation
+    // steps it too. Dropped last, it is stopped after everything else.
+    let _env_server = match preset.env_server.clone() {
+        Some(server) => Some(start_env_server(&mut preset, &server, &args.config, &logs)?),
+        None => None,
+    };
     let train_path = run_dir.join("train.toml");
     preset.write_train_config(&train_path)?;
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
@@ -146,6 +177,26 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let summary = runtime.block_on(orchestrate(&preset, &train_path, &run_dir, &logs, transport, &args.security))?;
     println!("{summary}");
     Ok(())
+}
+
+/// Starts `python -m lcrl_env serve` for the preset's `[env_server]` and
+/// points `job.env` at the address it listens on.
+fn start_env_server(preset: &mut Preset, server: &crate::preset::EnvServer, config: &Path, logs: &Path) -> anyhow::Result<Managed> {
+    let listen = preset.job.env.strip_prefix(lcrl_sim::remote::SCHEME).unwrap_or(&preset.job.env).to_string();
+    // Every actor environment, plus the evaluation's, has an instance ready.
+    let instances = preset.job.actors * preset.job.envs_per_actor + 1;
+    let mut cmd = server.command(&listen, instances, config.parent().unwrap_or(Path::new(".")))?;
+    die_with_parent(&mut cmd);
+    let (process, address) = Managed::spawn("env-server", cmd, logs, true)?;
+    let Some(address) = address else {
+        let log = logs.join("env-server.log");
+        let reason = fs::read_to_string(&log).ok().and_then(|t| t.lines().rev().find(|l| l.contains("error")).map(str::to_string));
+        bail!("the environment server did not start: {}", reason.unwrap_or_else(|| format!("see {}", log.display())));
+    };
+    preset.job.env = format!("{}{address}", lcrl_sim::remote::SCHEME);
+    eprintln!("environment server at {}: {}", preset.job.env, server.gym.as_deref().or(server.entry_point.as_deref()).unwrap_or(""));
+    preset.check()?;
+    Ok(process)
 }
 
 async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &Path, transport: &str, security: &RunSecurity) -> anyhow::Result<String> {

@@ -15,7 +15,8 @@ use crate::plots::{line_panels, Panel};
 #[derive(Debug, clap::Args)]
 pub struct SimArgs {
     /// Environment: a registered name (peg-group1, peg-group2, peg-experiment,
-    /// lti-paper) or a path to a .toml file. With --checkpoint it defaults
+    /// lti-paper), a path to a .toml file, or grpc://HOST:PORT for a served
+    /// environment (python -m lcrl_env serve). With --checkpoint it defaults
     /// to the environment the policy was trained on.
     #[arg(long, required_unless_present = "checkpoint")]
     pub env: Option<String>,

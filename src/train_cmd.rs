@@ -12,7 +12,8 @@ use crate::plots::{line_panels, Panel};
 /// Train an actor with DDPG or PPO; the environment runs in this process.
 #[derive(Debug, clap::Args)]
 pub struct TrainArgs {
-    /// Environment: a registered name or a path to a .toml file.
+    /// Environment: a registered name, a path to a .toml file, or
+    /// grpc://HOST:PORT for a served one (`python -m lcrl_env serve`).
     #[arg(long)]
     pub env: String,
     #[arg(long, value_enum)]

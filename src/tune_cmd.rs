@@ -12,7 +12,8 @@ use crate::sim_cmd::{prepare_out_dir, print_terms};
 /// best_constant.json (the bar beside trained runs in `lcrl compare`).
 #[derive(Debug, clap::Args)]
 pub struct TuneArgs {
-    /// Environment: a registered name or a path to a .toml file.
+    /// Environment: a registered name, a path to a .toml file, or
+    /// grpc://HOST:PORT for a served one (`python -m lcrl_env serve`).
     #[arg(long)]
     pub env: String,
     /// Episodes per candidate action (the fixed tuning starts).

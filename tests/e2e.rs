@@ -16,4 +16,5 @@ mod e2e {
     mod experiment_cli;
     mod security;
     mod hostile;
+    mod served_env;
 }

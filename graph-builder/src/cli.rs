@@ -11,7 +11,9 @@ use crate::{build_graph, plot, Cs3Config, GraphError, GraphOptions, GraphReport,
 /// Build the LCRL connection graph G with CS3 (docs/method.md Algorithm 1).
 #[derive(Debug, Clone, clap::Args)]
 pub struct GraphArgs {
-    /// Environment: a registered name (lti-paper) or a path to a .toml file.
+    /// Environment: a registered name (lti-paper, peg-group1, ...), a path to a
+    /// .toml file, or grpc://HOST:PORT for a served environment (any Gymnasium
+    /// environment behind `python -m lcrl_env serve`; CS3 needs it to fork).
     #[arg(long)]
     pub env: String,
     /// ST: CS3 samples per action component; more samples, steadier phi.

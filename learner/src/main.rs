@@ -34,7 +34,8 @@ const MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
 #[derive(Debug, Parser)]
 #[command(version, about = "The LCRL learner process: ingests actors' transitions, trains, publishes policies")]
 struct Args {
-    /// Environment (registered name or .toml path); actors run the same one.
+    /// Environment (registered name, .toml path or grpc://HOST:PORT);
+    /// actors run the same one.
     #[arg(long)]
     env: String,
     #[arg(long, value_enum)]

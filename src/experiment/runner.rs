@@ -149,32 +149,9 @@ pub fn spawn(exe: &Path, args: &[String], log: &Path) -> anyhow::Result<Child> {
     let file = std::fs::OpenOptions::new().create(true).append(true).open(log).with_context(|| format!("opening {}", log.display()))?;
     let mut command = Command::new(exe);
     command.args(args).stdin(Stdio::null()).stdout(file.try_clone()?).stderr(file);
-    die_with_parent(&mut command);
+    crate::run_cmd::die_with_parent(&mut command);
     Ok(command.spawn()?)
 }
-
-#[cfg(target_os = "linux")]
-pub fn die_with_parent(command: &mut Command) {
-    use std::os::unix::process::CommandExt;
-    let parent = std::process::id() as libc::pid_t;
-    // SAFETY: the closure runs in the forked child before exec and calls
-    // only async-signal-safe functions (prctl, getppid, _exit).
-    unsafe {
-        command.pre_exec(move || {
-            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
-                return Err(std::io::Error::last_os_error());
-            }
-            // The parent may have died before prctl took effect.
-            if libc::getppid() != parent {
-                libc::_exit(1);
-            }
-            Ok(())
-        });
-    }
-}
-
-#[cfg(not(target_os = "linux"))]
-pub fn die_with_parent(_command: &mut Command) {}
 
 /// The last `n` lines of a log, indented.
 fn tail(path: &Path, n: usize) -> String {

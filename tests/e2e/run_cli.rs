@@ -6,7 +6,7 @@ use std::path::Path;
 use super::common::{assert_clean_failure, lcrl, stdout};
 
 /// Processes whose command line mentions `needle` (other than this test).
-fn processes_mentioning(needle: &str) -> Vec<String> {
+pub(super) fn processes_mentioning(needle: &str) -> Vec<String> {
     let mut found = Vec::new();
     for entry in fs::read_dir("/proc").unwrap().flatten() {
         if let Ok(cmdline) = fs::read(entry.path().join("cmdline")) {
