@@ -33,6 +33,20 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 5.0)]
         seconds: f64,
     },
+    /// A Gymnasium environment stepped in plain Python, against the same
+    /// environment stepped through `python -m lcrl_env serve` (one
+    /// instance, and K instances batched in one call).
+    Env {
+        /// The Gymnasium id.
+        #[arg(long, default_value = "HalfCheetah-v5")]
+        gym: String,
+        /// Batch sizes K to measure through the service.
+        #[arg(long, value_delimiter = ',', default_value = "1,8,32")]
+        instances: Vec<usize>,
+        /// Environment steps per measurement.
+        #[arg(long, default_value_t = 4000)]
+        steps: usize,
+    },
     /// Control steps per second of peg-group1 on one core.
     Sim {
         /// Episodes per setting.
@@ -47,6 +61,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Sim { episodes } => bench_sim(episodes.max(1)),
         BenchCommand::Learner { updates } => bench_learner(updates.max(1)),
         BenchCommand::Transport { seconds } => crate::bench_transport::run(seconds.max(1.0)),
+        BenchCommand::Env { gym, instances, steps } => crate::bench_env::run(&gym, &instances, steps.max(1)),
     }
 }
 

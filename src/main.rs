@@ -2,6 +2,7 @@
 //! Learning. Each subcommand is a thin layer over a library crate.
 
 mod bench;
+mod bench_env;
 mod bench_transport;
 mod certs_cmd;
 mod compare_cmd;

@@ -76,13 +76,12 @@ impl EnvServer {
     /// The server's command line, listening on `listen` (HOST:PORT);
     /// relative paths are taken from `preset_dir`.
     pub fn command(&self, listen: &str, instances: usize, preset_dir: &Path) -> anyhow::Result<std::process::Command> {
-        let python = match (&self.python, std::env::var_os("LCRL_PYTHON")) {
-            (Some(p), _) => preset_dir.join(p),
-            (None, Some(p)) => PathBuf::from(p),
-            (None, None) => Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python"),
+        let python = match &self.python {
+            Some(p) => preset_dir.join(p),
+            None => lcrl_python()?,
         };
         if !python.is_file() {
-            bail!("{} is missing: run `bash scripts/setup.sh` (it installs lcrl_env into .venv), or name a Python with lcrl_env as [env_server] python or $LCRL_PYTHON", python.display());
+            bail!("[env_server] python = {} is missing", python.display());
         }
         let mut cmd = std::process::Command::new(python);
         cmd.args(["-m", "lcrl_env", "serve", "--listen", listen, "--instances", &instances.to_string()]);
@@ -303,6 +302,19 @@ impl RunSecurity {
         let identity = cert.as_deref().zip(key.as_deref());
         Ok(lcrl_proto::security::ClientSecurity::new(ca.as_deref(), identity, self.token_file.as_deref())?)
     }
+}
+
+/// The Python with lcrl_env installed: $LCRL_PYTHON, else this project's
+/// .venv (scripts/setup.sh installs lcrl_env there).
+pub fn lcrl_python() -> anyhow::Result<PathBuf> {
+    let python = match std::env::var_os("LCRL_PYTHON") {
+        Some(p) => PathBuf::from(p),
+        None => Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python"),
+    };
+    if !python.is_file() {
+        bail!("{} is missing: run `bash scripts/setup.sh` (it installs lcrl_env into .venv), or set $LCRL_PYTHON to a Python with lcrl_env", python.display());
+    }
+    Ok(python)
 }
 
 fn os(args: &[&str]) -> Vec<OsString> {

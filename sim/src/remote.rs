@@ -11,7 +11,8 @@
 //! threads, an actor's environment thread and async code alike.
 
 use std::future::Future;
-use std::sync::{Arc, OnceLock};
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::Duration;
 
 use lcrl_proto::v1::environment_client::EnvironmentClient;
@@ -102,9 +103,27 @@ impl Server {
 }
 
 impl RemoteEnv {
-    /// Connects to `url` (`grpc://HOST:PORT`) and reads the environment's
-    /// spec. No instance is opened yet.
+    /// An instance of the environment at `url` (`grpc://HOST:PORT`), not
+    /// opened yet. Instances of one URL share one connection and spec (so
+    /// an actor's K environments are stepped in one call, [`crate::step_all`]);
+    /// the first connects and reads the spec.
     pub fn connect(url: &str) -> Result<RemoteEnv, EnvError> {
+        static SERVERS: OnceLock<Mutex<HashMap<String, Weak<Server>>>> = OnceLock::new();
+        let servers = SERVERS.get_or_init(Default::default);
+        let mut servers = servers.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        let server = match servers.get(url).and_then(Weak::upgrade) {
+            Some(server) => server,
+            None => {
+                let server = Arc::new(Self::connect_server(url)?);
+                servers.retain(|_, weak| weak.strong_count() > 0);
+                servers.insert(url.to_string(), Arc::downgrade(&server));
+                server
+            }
+        };
+        Ok(RemoteEnv { state: vec![0.0; server.spec.state_dim()], server, session: None })
+    }
+
+    fn connect_server(url: &str) -> Result<Server, EnvError> {
         let unreachable = |message: String| EnvError::Remote { url: url.to_string(), message };
         let address = url
             .strip_prefix(SCHEME)
@@ -143,14 +162,13 @@ impl RemoteEnv {
                 if lo.is_finite() && hi.is_finite() && bound > 0.0 { bound } else { 1.0 }
             })
             .collect();
-        let server = Server {
+        Ok(Server {
             spec: EnvSpec { name: url.to_string(), state_names: spec.state_names, action_names: spec.action_names, action_low: spec.action_low, action_high: spec.action_high },
             state_scale,
             fork_unavailable: (!spec.can_fork).then(|| if spec.fork_unavailable.is_empty() { "the server cannot fork".to_string() } else { spec.fork_unavailable }),
             dt: spec.dt,
             ..provisional
-        };
-        Ok(RemoteEnv { state: vec![0.0; m], server: Arc::new(server), session: None })
+        })
     }
 
     /// This instance's session, opened on first use.
