@@ -8,7 +8,7 @@ use std::os::unix::process::CommandExt;
 use std::path::PathBuf;
 use std::process::Command;
 
-use anyhow::Context;
+use anyhow::{bail, Context};
 
 use crate::preset::{sibling, Preset, RunSecurity};
 
@@ -64,6 +64,14 @@ pub struct LaunchArgs {
 /// The binary and arguments `args` stands for.
 pub fn command_line(args: &LaunchArgs) -> anyhow::Result<(&'static str, Vec<OsString>)> {
     let mut preset = Preset::load(&args.config)?;
+    if let Some(server) = &preset.env_server {
+        bail!(
+            "{} serves its environment from Python ([env_server] {}), which `lcrl launch` cannot start in a container: \
+             serve it yourself (`python -m lcrl_env serve --listen HOST:PORT`), set job.env = \"grpc://HOST:PORT\" and drop [env_server]",
+            args.config.display(),
+            server.gym.as_deref().or(server.entry_point.as_deref()).unwrap_or("")
+        );
+    }
     if args.episodes > 0 {
         preset.job.episodes = args.episodes;
     }
