@@ -60,7 +60,11 @@ def serve_command(args) -> int:
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
-    stop.wait()
+    # A timed wait: the kernel may deliver SIGTERM to one of gRPC's threads,
+    # and Python runs the handler only when the main thread runs bytecode;
+    # an untimed wait would then sleep through it forever.
+    while not stop.wait(0.2):
+        pass
     server.stop(grace=2).wait()
     logging.info("stopped")
     return 0
