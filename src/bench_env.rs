@@ -4,6 +4,7 @@
 //! and K instances batched in one call, as an actor with K environments
 //! steps them. All in one run, so the ratios hold whatever the machine.
 
+use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::Instant;
 
@@ -24,8 +25,8 @@ pub fn run(gym: &str, instances: &[usize], steps: usize) -> anyhow::Result<()> {
 
     let logs = tempfile::tempdir()?;
     let most = instances.iter().copied().max().unwrap_or(1).max(1);
-    let mut cmd = Command::new(&python);
-    cmd.args(["-m", "lcrl_env", "serve", "--env", gym, "--listen", "127.0.0.1:0", "--instances", &most.to_string()]);
+    let server = crate::preset::EnvServer { gym: Some(gym.to_string()), ..Default::default() };
+    let mut cmd = server.command("127.0.0.1:0", most, Path::new("."))?;
     crate::run_cmd::die_with_parent(&mut cmd);
     let (_server, address) = Managed::spawn("env-server", cmd, logs.path(), true)?;
     let url = format!("{}{}", lcrl_sim::remote::SCHEME, address.context("the environment server did not start")?);

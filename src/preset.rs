@@ -38,7 +38,7 @@ pub struct Job {
 /// `[env_server]`: a Gymnasium environment that `lcrl run` serves itself
 /// (`python -m lcrl_env serve`) at `job.env`, a `grpc://HOST:PORT` address
 /// (port 0: any free port), for the whole run (docs/environments.md).
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EnvServer {
     /// A registered Gymnasium id, e.g. "HalfCheetah-v5".

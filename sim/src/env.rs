@@ -39,11 +39,6 @@ impl EnvSpec {
         Ok(())
     }
 
-    /// A spec with no components yet (while a remote spec is read).
-    pub(crate) fn empty(name: &str) -> EnvSpec {
-        EnvSpec { name: name.to_string(), state_names: Vec::new(), action_names: Vec::new(), action_low: Vec::new(), action_high: Vec::new() }
-    }
-
     /// Clips every component into [lb, ub].
     pub fn clip_action(&self, action: &[f64]) -> Vec<f64> {
         action

@@ -29,10 +29,15 @@ const CONNECT_TIMEOUT: Duration = Duration::from_secs(10);
 /// How long one call may take (a Fork of a large simulation, a slow step).
 const CALL_TIMEOUT: Duration = Duration::from_secs(120);
 
-/// What every session of one server shares.
-struct Server {
+/// A connection to a server, and how its calls fail.
+struct Connection {
     url: String,
     client: EnvironmentClient<Channel>,
+}
+
+/// What every session of one server shares.
+struct Server {
+    connection: Connection,
     spec: EnvSpec,
     /// Divisors of `normalize_state`: the larger bound's magnitude where the
     /// observation space bounds a component, else 1.
@@ -75,7 +80,7 @@ fn blocking<T: Send + 'static>(call: impl Future<Output = T> + Send + 'static) -
     rx.recv().map_err(|_| "the call was dropped (the process is shutting down)".to_string())
 }
 
-impl Server {
+impl Connection {
     fn error(&self, message: impl Into<String>) -> EnvError {
         EnvError::Remote { url: self.url.clone(), message: message.into() }
     }
@@ -141,17 +146,17 @@ impl RemoteEnv {
                 ))
             })?;
         let client = EnvironmentClient::new(channel).max_decoding_message_size(16 << 20).max_encoding_message_size(16 << 20);
-        let provisional = Server { url: url.to_string(), client, spec: EnvSpec::empty(url), state_scale: Vec::new(), fork_unavailable: None, dt: 0.0 };
-        let spec = provisional.call("GetSpec", |mut c| async move { c.get_spec(GetSpecRequest {}).await })?;
+        let connection = Connection { url: url.to_string(), client };
+        let spec = connection.call("GetSpec", |mut c| async move { c.get_spec(GetSpecRequest {}).await })?;
         let (m, n) = (spec.state_names.len(), spec.action_names.len());
         if m == 0 || n == 0 {
-            return Err(provisional.error(format!("the server reports {m} states and {n} actions; both must be at least 1")));
+            return Err(connection.error(format!("the server reports {m} states and {n} actions; both must be at least 1")));
         }
         if spec.action_low.len() != n || spec.action_high.len() != n || spec.state_low.len() != m || spec.state_high.len() != m {
-            return Err(provisional.error("the spec's bounds do not match its names (a server of another version?)"));
+            return Err(connection.error("the spec's bounds do not match its names (a server of another version?)"));
         }
         if let Some(i) = (0..n).find(|&i| !(spec.action_low[i].is_finite() && spec.action_high[i].is_finite() && spec.action_low[i] < spec.action_high[i])) {
-            return Err(provisional.error(format!("action {i} has bounds [{}, {}]; they must be finite and increasing", spec.action_low[i], spec.action_high[i])));
+            return Err(connection.error(format!("action {i} has bounds [{}, {}]; they must be finite and increasing", spec.action_low[i], spec.action_high[i])));
         }
         let state_scale = spec
             .state_low
@@ -163,11 +168,11 @@ impl RemoteEnv {
             })
             .collect();
         Ok(Server {
+            connection,
             spec: EnvSpec { name: url.to_string(), state_names: spec.state_names, action_names: spec.action_names, action_low: spec.action_low, action_high: spec.action_high },
             state_scale,
             fork_unavailable: (!spec.can_fork).then(|| if spec.fork_unavailable.is_empty() { "the server cannot fork".to_string() } else { spec.fork_unavailable }),
             dt: spec.dt,
-            ..provisional
         })
     }
 
@@ -176,15 +181,15 @@ impl RemoteEnv {
         if let Some(session) = self.session {
             return Ok(session);
         }
-        let opened = self.server.call("Open", |mut c| async move { c.open(OpenRequest { count: 1 }).await })?;
-        let session = *opened.sessions.first().ok_or_else(|| self.server.error("Open returned no session"))?;
+        let opened = self.server.connection.call("Open", |mut c| async move { c.open(OpenRequest { count: 1 }).await })?;
+        let session = *opened.sessions.first().ok_or_else(|| self.server.connection.error("Open returned no session"))?;
         self.session = Some(session);
         Ok(session)
     }
 
     fn checked_state(server: &Server, state: Vec<f64>) -> Result<Vec<f64>, EnvError> {
         if state.len() != server.spec.state_dim() {
-            return Err(server.error(format!("a state of {} components arrived; the spec has {}", state.len(), server.spec.state_dim())));
+            return Err(server.connection.error(format!("a state of {} components arrived; the spec has {}", state.len(), server.spec.state_dim())));
         }
         Ok(state)
     }
@@ -199,9 +204,9 @@ impl RemoteEnv {
             server.spec.check_action(action)?;
             steps.push(SessionStep { session: env.session.ok_or(EnvError::NotReset)?, action: server.spec.clip_action(action) });
         }
-        let reply = server.call("Step", |mut c| async move { c.step(StepRequest { steps }).await })?;
+        let reply = server.connection.call("Step", |mut c| async move { c.step(StepRequest { steps }).await })?;
         if reply.results.len() != envs.len() {
-            return Err(server.error(format!("Step answered {} results for {} sessions", reply.results.len(), envs.len())));
+            return Err(server.connection.error(format!("Step answered {} results for {} sessions", reply.results.len(), envs.len())));
         }
         envs.iter_mut()
             .zip(reply.results)
@@ -225,8 +230,8 @@ impl Env for RemoteEnv {
 
     fn reset(&mut self, seed: u64) -> Result<Vec<f64>, EnvError> {
         let session = self.session()?;
-        let reply = self.server.call("Reset", |mut c| async move { c.reset(ResetRequest { resets: vec![SessionReset { session, seed }] }).await })?;
-        let state = reply.states.into_iter().next().ok_or_else(|| self.server.error("Reset returned no state"))?;
+        let reply = self.server.connection.call("Reset", |mut c| async move { c.reset(ResetRequest { resets: vec![SessionReset { session, seed }] }).await })?;
+        let state = reply.states.into_iter().next().ok_or_else(|| self.server.connection.error("Reset returned no state"))?;
         self.state = Self::checked_state(&self.server, state.state)?;
         Ok(self.state.clone())
     }
@@ -237,8 +242,9 @@ impl Env for RemoteEnv {
 
     fn step(&mut self, action: &[f64]) -> Result<Step, EnvError> {
         let mut envs = [&mut *self];
+        // step_batch checked that one result came back for the one session.
         let mut steps = Self::step_batch(&mut envs, &[action.to_vec()])?;
-        steps.pop().ok_or(EnvError::NotReset)
+        steps.pop().ok_or_else(|| self.server.connection.error("Step returned no result"))
     }
 
     fn fresh(&self) -> Box<dyn Env> {
@@ -251,13 +257,13 @@ impl Env for RemoteEnv {
             return Ok(self.fresh());
         };
         self.check_snapshot()?;
-        let fork = self.server.call("Fork", |mut c| async move { c.fork(ForkRequest { session }).await })?;
+        let fork = self.server.connection.call("Fork", |mut c| async move { c.fork(ForkRequest { session }).await })?;
         Ok(Box::new(RemoteEnv { server: self.server.clone(), session: Some(fork.session), state: self.state.clone() }))
     }
 
     fn check_snapshot(&self) -> Result<(), EnvError> {
         match &self.server.fork_unavailable {
-            Some(reason) => Err(EnvError::ForkUnavailable { url: self.server.url.clone(), reason: reason.clone() }),
+            Some(reason) => Err(EnvError::ForkUnavailable { url: self.server.connection.url.clone(), reason: reason.clone() }),
             None => Ok(()),
         }
     }
@@ -280,7 +286,7 @@ impl Drop for RemoteEnv {
     /// sample); the server also closes sessions that stay idle.
     fn drop(&mut self) {
         if let (Some(session), Ok(runtime)) = (self.session, runtime()) {
-            let mut client = self.server.client.clone();
+            let mut client = self.server.connection.client.clone();
             runtime.spawn(async move {
                 let _ = client.close(CloseRequest { sessions: vec![session] }).await;
             });
