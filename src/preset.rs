@@ -130,8 +130,9 @@ impl Preset {
             Some(value) => Some(value.try_into().with_context(|| format!("{}: [env_server]", path.display()))?),
             None => None,
         };
-        let train: TrainConfig = toml::Value::Table(table).try_into().with_context(|| format!("{}: training sections", path.display()))?;
-        train.validate()?;
+        // Keys a preset leaves out keep the environment's own settings
+        // (configs/peg.toml on the peg presets), as `lcrl train` does.
+        let train = TrainConfig::for_env_with(&job.env, &table).with_context(|| format!("{}: training sections", path.display()))?;
         let preset = Preset { job, env_server, train, text };
         preset.check()?;
         Ok(preset)

@@ -34,7 +34,13 @@ pub struct TrainArgs {
     /// libtorch threads (overrides run.threads).
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Training configuration (TOML); defaults follow docs/method.md Table I.
+    /// Act around this base controller (residual RL): a best_constant.json
+    /// of `lcrl tune`; sets controller.base = "best-constant" from that file.
+    #[arg(long, value_name = "best_constant.json")]
+    pub base_action: Option<PathBuf>,
+    /// Training configuration (TOML); keys it leaves out keep the
+    /// environment's settings (configs/peg.toml on peg presets,
+    /// configs/lti-fast.toml on lti-paper, Table I elsewhere).
     #[arg(long, value_name = "train.toml")]
     pub config: Option<PathBuf>,
     /// Run directory: config, graph, metrics.csv, summary.json, reward
@@ -48,7 +54,7 @@ pub struct TrainArgs {
 
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     let (mut config, source) = match &args.config {
-        Some(path) => (TrainConfig::load(path)?, format!("{}", path.display())),
+        Some(path) => (TrainConfig::load_for_env(path, &args.env)?, format!("{} (missing keys: the environment's settings)", path.display())),
         None => {
             let (config, source) = TrainConfig::for_env(&args.env);
             (config, source.to_string())
@@ -62,6 +68,12 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     }
     if let Some(threads) = args.threads {
         config.run.threads = threads;
+    }
+    if let Some(path) = &args.base_action {
+        // Read now, so a bad file fails before any work.
+        lcrl_learner::action::read_best_constant(path)?;
+        config.controller.base = lcrl_learner::config::BaseController::BestConstant;
+        config.controller.best_constant_file = Some(path.clone());
     }
     config.validate()?;
     if args.graph.is_some() && args.connection != Connection::Local {

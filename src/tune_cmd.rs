@@ -1,15 +1,31 @@
 //! `lcrl tune`: the best constant action of an environment (CMA-ES), the
-//! bar a learned agent must beat to be worth training.
+//! bar a learned agent must beat to be worth training; with `--policy`, the
+//! best state-feedback controller of a simple family (the headroom above
+//! that bar, docs/peg.md).
 
 use std::path::PathBuf;
 
 use indicatif::{ProgressBar, ProgressStyle};
+use lcrl_sim::tune::feedback::{tune_policy, Family};
 use lcrl_sim::tune::{tune, TuneOptions};
 
 use crate::sim_cmd::{prepare_out_dir, print_terms};
 
+/// What `--policy` searches.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum PolicyFamily {
+    /// A constant action (best_constant.json).
+    Constant,
+    /// a = clip(a0 + K·ŝ) on the normalized state (best_policy.json).
+    Affine,
+    /// Two gain matrices, switched 2 mm below the hole entrance (best_policy.json).
+    DepthSwitched,
+}
+
 /// Search constant actions on a fixed set of starts and write
-/// best_constant.json (the bar beside trained runs in `lcrl compare`).
+/// best_constant.json (the bar beside trained runs in `lcrl compare`), or
+/// with --policy a state-feedback family and write best_policy.json (how
+/// much a controller that looks at the state can gain over that bar).
 #[derive(Debug, clap::Args)]
 pub struct TuneArgs {
     /// Environment: a registered name, a path to a .toml file, or
@@ -22,12 +38,22 @@ pub struct TuneArgs {
     /// Seed of the first tuning start (kept apart from the evaluation starts).
     #[arg(long, default_value_t = TuneOptions::default().seed)]
     pub seed: u64,
-    /// Candidate actions CMA-ES may evaluate.
-    #[arg(long, default_value_t = TuneOptions::default().evaluations)]
-    pub evaluations: usize,
-    /// Initial CMA-ES step size, in units of the action box mapped to [−1, 1].
-    #[arg(long, default_value_t = TuneOptions::default().sigma)]
-    pub sigma: f64,
+    /// Candidates CMA-ES may evaluate [default: 300 for constants, 1500
+    /// for feedback policies (78 or 150 parameters on peg tasks)].
+    #[arg(long)]
+    pub evaluations: Option<usize>,
+    /// The controller family to search.
+    #[arg(long, value_enum, default_value = "constant")]
+    pub policy: PolicyFamily,
+    /// Feedback policies start at this constant (a best_constant.json)
+    /// [default: the best constant recorded for a registered peg preset,
+    /// else a = 0].
+    #[arg(long, value_name = "best_constant.json")]
+    pub start: Option<PathBuf>,
+    /// Initial CMA-ES step size, in units of the action box mapped to
+    /// [−1, 1] [default: 0.3 for constants, 0.1 for feedback policies].
+    #[arg(long)]
+    pub sigma: Option<f64>,
     /// Episodes of the final evaluation (a = 0 and the winner, same starts).
     #[arg(long, default_value_t = TuneOptions::default().eval_episodes)]
     pub eval_episodes: usize,
@@ -35,7 +61,7 @@ pub struct TuneArgs {
     /// runs the same starts.
     #[arg(long, default_value_t = TuneOptions::default().eval_seed)]
     pub eval_seed: u64,
-    /// Directory for best_constant.json.
+    /// Directory for best_constant.json or best_policy.json.
     #[arg(long, default_value = "runs/tune")]
     pub out: PathBuf,
 }
@@ -43,17 +69,49 @@ pub struct TuneArgs {
 pub fn run(args: &TuneArgs) -> anyhow::Result<()> {
     let env = lcrl_sim::make_env(&args.env)?;
     prepare_out_dir(&args.out)?;
+    let pct = |r: Option<f64>| r.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
+    let force = |f: Option<f64>| f.map_or("n/a".into(), |f| format!("{f:.2} N"));
+    let constant = args.policy == PolicyFamily::Constant;
     let opts = TuneOptions {
         episodes: args.episodes,
         seed: args.seed,
-        evaluations: args.evaluations,
-        sigma: args.sigma,
+        evaluations: args.evaluations.unwrap_or(if constant { TuneOptions::default().evaluations } else { 1500 }),
+        sigma: args.sigma.unwrap_or(if constant { TuneOptions::default().sigma } else { 0.1 }),
         eval_episodes: args.eval_episodes,
         eval_seed: args.eval_seed,
     };
-    let bar = ProgressBar::new(args.evaluations as u64);
+    let bar = ProgressBar::new(opts.evaluations as u64);
     if let Ok(style) = ProgressStyle::with_template("candidates [{bar:30}] {pos}/{len} {msg} ({elapsed}, eta {eta})") {
         bar.set_style(style.progress_chars("=> "));
+    }
+    let family = match args.policy {
+        PolicyFamily::Constant => None,
+        PolicyFamily::Affine => Some(Family::Affine),
+        PolicyFamily::DepthSwitched => Some(Family::DepthSwitched),
+    };
+    if let Some(family) = family {
+        let n = env.spec().action_dim();
+        let start = match &args.start {
+            Some(path) => lcrl_learner::action::read_best_constant(path)?,
+            None => lcrl_sim::peg::measured_best_constant(&env.spec().name).map_or(vec![0.0; n], |a| a.to_vec()),
+        };
+        let report = tune_policy(env.as_ref(), family, &start, &opts, &|best| {
+            bar.set_message(format!("best mean return {best:.3}"));
+            bar.inc(1);
+        });
+        bar.finish_and_clear();
+        let report = report?;
+        let path = args.out.join("best_policy.json");
+        crate::output::write_atomic(&path, &(serde_json::to_string_pretty(&report)? + "\n"))?;
+        println!("best {:?} policy of {} ({} candidates, {:.1} s):", family, report.env, report.evaluations, report.elapsed_s);
+        println!("on {} evaluation episodes from seed {}:", report.eval_episodes, report.eval_seed);
+        println!("  {:<22} {:>12} {:>9} {:>12}", "controller", "mean return", "success", "peak force");
+        for (label, r) in [("a = 0", &report.zero_action), ("start constant", &report.start_constant), ("feedback policy", &report.best)] {
+            println!("  {label:<22} {:>12.3} {:>9} {:>12}", r.eval.mean_return, pct(r.eval.success_rate), force(r.eval.mean_peak_force_n));
+        }
+        print_terms(&report.terms);
+        println!("wrote {}", path.display());
+        return Ok(());
     }
     let report = tune(env.as_ref(), &opts, &|best| {
         bar.set_message(format!("best mean return {best:.3}"));
@@ -65,8 +123,6 @@ pub fn run(args: &TuneArgs) -> anyhow::Result<()> {
     // Atomic: `lcrl experiment` takes an existing file as a finished tune.
     crate::output::write_atomic(&path, &(serde_json::to_string_pretty(&report)? + "\n"))?;
 
-    let pct = |r: Option<f64>| r.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
-    let force = |f: Option<f64>| f.map_or("n/a".into(), |f| format!("{f:.2} N"));
     println!("best constant action of {} ({} candidates, {:.1} s):", report.env, report.evaluations, report.elapsed_s);
     for (name, a) in report.action_names.iter().zip(&report.action) {
         println!("  {name:<8} {a:>8.4}");

@@ -484,7 +484,7 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
                     .map(|(&a, noise)| (f64::from(a) + noise.sample(&mut rng)).clamp(-1.0, 1.0) as f32)
                     .collect()
             };
-            actions.push(lcrl_learner::trainer::to_env_action(env.as_ref(), &u));
+            actions.push(policy.action_map(env.as_ref())?.to_env(&u));
         }
         // All K environments at once: one call when a server serves them.
         let steps = lcrl_sim::step_all(&mut envs, &actions)?;

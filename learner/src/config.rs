@@ -35,6 +35,79 @@ pub struct TrainConfig {
     pub ddpg: DdpgConfig,
     pub ppo: PpoConfig,
     pub run: RunConfig,
+    pub controller: ControllerConfig,
+}
+
+/// The controller under the agent (residual RL, learner/src/action.rs):
+/// a = clip(base + u·(ub − lb)/2, lb, ub).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ControllerConfig {
+    /// "none" (the plain map onto the box, Table I), "a = 0" (on peg
+    /// tasks the constant compliance controller), "best-constant", or an
+    /// action [a1, …, an]. A run records the resolved numbers.
+    pub base: BaseController,
+    /// best_constant.json of `lcrl tune` for base = "best-constant"
+    /// (default: the constant measured for a registered peg preset).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub best_constant_file: Option<std::path::PathBuf>,
+}
+
+impl ControllerConfig {
+    /// The base action once resolved (learner/src/action.rs): numbers, or
+    /// zeros for "a = 0"; None without a base.
+    pub fn base_action(&self, action_dim: usize) -> Option<Vec<f64>> {
+        match &self.base {
+            BaseController::Action(a) => Some(a.clone()),
+            BaseController::Zero => Some(vec![0.0; action_dim]),
+            BaseController::None | BaseController::BestConstant => None,
+        }
+    }
+}
+
+/// The base controller setting. In TOML a string or a list of numbers.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub enum BaseController {
+    #[default]
+    None,
+    Zero,
+    BestConstant,
+    Action(Vec<f64>),
+}
+
+impl Serialize for BaseController {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            BaseController::None => s.serialize_str("none"),
+            BaseController::Zero => s.serialize_str("a = 0"),
+            BaseController::BestConstant => s.serialize_str("best-constant"),
+            BaseController::Action(a) => a.serialize(s),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for BaseController {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Raw {
+            Name(String),
+            Action(Vec<f64>),
+        }
+        match Raw::deserialize(d).map_err(|_| {
+            serde::de::Error::custom("controller.base must be \"none\", \"a = 0\", \"best-constant\" or a list of numbers")
+        })? {
+            Raw::Name(name) => match name.as_str() {
+                "none" => Ok(BaseController::None),
+                "a = 0" | "zero" => Ok(BaseController::Zero),
+                "best-constant" => Ok(BaseController::BestConstant),
+                other => Err(serde::de::Error::custom(format!(
+                    "controller.base = {other:?}: use \"none\", \"a = 0\", \"best-constant\" or a list of numbers"
+                ))),
+            },
+            Raw::Action(a) => Ok(BaseController::Action(a)),
+        }
+    }
 }
 
 /// Network sizes. The defaults give local and global actors comparable
@@ -151,7 +224,13 @@ pub struct RunConfig {
 
 impl Default for TrainConfig {
     fn default() -> Self {
-        TrainConfig { network: NetworkConfig::default(), ddpg: DdpgConfig::default(), ppo: PpoConfig::default(), run: RunConfig::default() }
+        TrainConfig {
+            network: NetworkConfig::default(),
+            ddpg: DdpgConfig::default(),
+            ppo: PpoConfig::default(),
+            run: RunConfig::default(),
+            controller: ControllerConfig::default(),
+        }
     }
 }
 
@@ -226,22 +305,48 @@ impl Default for RunConfig {
 
 /// configs/lti-fast.toml, compiled in: the settings that work on lti-paper.
 const LTI_FAST: &str = include_str!("../../configs/lti-fast.toml");
+/// configs/peg.toml, compiled in: the settings that work on the peg tasks.
+const PEG: &str = include_str!("../../configs/peg.toml");
 
 impl TrainConfig {
     /// The training settings that work on a registered environment, used
     /// when no --config is given, and where they come from. lti-paper gets
-    /// configs/lti-fast.toml (Table I's defaults diverge there); every other
-    /// environment gets Table I's defaults.
+    /// configs/lti-fast.toml and the peg presets configs/peg.toml (Table
+    /// I's defaults diverge on both; docs/peg.md); every other environment
+    /// gets Table I's defaults (configs/table1-ddpg.toml, table1-ppo.toml).
     pub fn for_env(env: &str) -> (TrainConfig, &'static str) {
-        match env {
-            // The embedded file is checked by a unit test; a parse failure
+        let embedded = match env {
+            "lti-paper" => Some((LTI_FAST, "configs/lti-fast.toml (the settings for lti-paper)")),
+            name if lcrl_sim::peg::PegConfig::preset(name).is_some() => Some((PEG, "configs/peg.toml (the settings for the peg presets)")),
+            _ => None,
+        };
+        match embedded {
+            // The embedded files are checked by a unit test; a parse failure
             // here would be a build defect, and Table I's defaults stand in.
-            "lti-paper" => match toml::from_str::<TrainConfig>(LTI_FAST) {
-                Ok(cfg) => (cfg, "configs/lti-fast.toml (the settings for lti-paper)"),
+            Some((text, source)) => match toml::from_str::<TrainConfig>(text) {
+                Ok(cfg) => (cfg, source),
                 Err(_) => (TrainConfig::default(), "Table I defaults"),
             },
-            _ => (TrainConfig::default(), "Table I defaults"),
+            None => (TrainConfig::default(), "Table I defaults"),
         }
+    }
+
+    /// `env`'s settings (see [`TrainConfig::for_env`]) with a table of
+    /// overrides laid over them (sections merge key by key), checked.
+    pub fn for_env_with(env: &str, overrides: &toml::Table) -> Result<TrainConfig, LearnerError> {
+        let (defaults, _) = Self::for_env(env);
+        let mut merged = toml::Table::try_from(&defaults).map_err(|e| LearnerError::Config(e.to_string()))?;
+        overlay(&mut merged, overrides);
+        let cfg: TrainConfig = toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| LearnerError::Config(e.to_string()))?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Reads a TOML file whose missing keys keep `env`'s settings.
+    pub fn load_for_env(path: &Path, env: &str) -> Result<Self, LearnerError> {
+        let text = std::fs::read_to_string(path).map_err(|source| LearnerError::Io { path: path.into(), source })?;
+        let table: toml::Table = toml::from_str(&text).map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))?;
+        Self::for_env_with(env, &table).map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))
     }
 
     /// Reads a TOML file (missing keys keep their defaults).
@@ -312,6 +417,18 @@ impl TrainConfig {
     }
 }
 
+/// Lays `over` onto `base`: tables merge key by key, anything else replaces.
+pub fn overlay(base: &mut toml::Table, over: &toml::Table) {
+    for (key, value) in over {
+        match (base.get_mut(key), value) {
+            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => overlay(b, o),
+            _ => {
+                base.insert(key.clone(), value.clone());
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -333,7 +450,33 @@ mod tests {
         lti.validate().unwrap();
         assert_eq!(lti.run.episodes, 1000, "lti-fast.toml's budget is 1000 episodes");
         assert_eq!(lti.network.activation, Activation::Elu);
-        assert_eq!(TrainConfig::for_env("peg-group1").0, TrainConfig::default());
+        let (peg, source) = TrainConfig::for_env("peg-group1");
+        assert!(source.contains("configs/peg.toml"), "{source}");
+        assert_eq!(peg, toml::from_str::<TrainConfig>(PEG).unwrap());
+        peg.validate().unwrap();
+        for name in lcrl_sim::peg::PegConfig::NAMES {
+            assert_eq!(TrainConfig::for_env(name).0, peg, "{name}");
+        }
+        assert_eq!(TrainConfig::for_env("grpc://127.0.0.1:1").0, TrainConfig::default());
+    }
+
+    /// The named Table I files hold exactly the publication's settings
+    /// (the defaults of this file), whatever environment they are laid
+    /// over: a study can put them beside the working settings.
+    #[test]
+    fn table1_files_are_table1_over_any_environment() {
+        for name in ["table1-ddpg.toml", "table1-ppo.toml"] {
+            let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs").join(name);
+            for env in ["peg-group1", "lti-paper"] {
+                let cfg = TrainConfig::load_for_env(&path, env).unwrap();
+                let table1 = TrainConfig::default();
+                if name.contains("ddpg") {
+                    assert_eq!((&cfg.ddpg, &cfg.network, &cfg.controller), (&table1.ddpg, &table1.network, &table1.controller), "{name} over {env}");
+                } else {
+                    assert_eq!((&cfg.ppo, &cfg.network, &cfg.controller), (&table1.ppo, &table1.network, &table1.controller), "{name} over {env}");
+                }
+            }
+        }
     }
 
     #[test]

@@ -5,6 +5,7 @@
 //!
 //! - [`config`]: every hyperparameter, from one TOML file.
 //! - [`nets`]: locally connected (batched, masked), full-subnets and global actors; critics.
+//! - [`action`]: normalized actions to the environment's box, around an optional base controller (residual RL).
 //! - [`adam`]: Adam with savable state. [`replay`]: the replay buffer.
 //! - [`rate_limiter`]: the replay-ratio limiter of the distributed learner (Reverb's semantics).
 //! - [`agent`]: the algorithm interface; [`ddpg`] and [`ppo`] implement it.
@@ -14,6 +15,7 @@
 //! - [`snapshot`]: a policy on the wire (architecture + safetensors weights).
 //! - [`service`]: the distributed learner (`lcrl-learner`): ingestion, training thread, gRPC.
 
+pub mod action;
 pub mod adam;
 pub mod agent;
 pub mod config;

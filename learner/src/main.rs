@@ -176,10 +176,14 @@ async fn run(args: Args) -> anyhow::Result<()> {
             (meta.config.clone(), meta.mask.clone(), meta.clone())
         }
         None => {
-            let config = match &args.config {
+            let mut config = match &args.config {
                 Some(path) => TrainConfig::load(path)?,
-                None => TrainConfig::default(),
+                None => TrainConfig::for_env(&args.env).0,
             };
+            // The base controller as numbers, recorded in every checkpoint.
+            let base = lcrl_learner::action::resolve_base(&config.controller, env.spec())?;
+            config.controller.base = base.map_or(lcrl_learner::config::BaseController::None, lcrl_learner::config::BaseController::Action);
+            config.controller.best_constant_file = None;
             let mask = match (args.connection, &args.graph, &args.graph_builder) {
                 (Connection::Local, Some(path), _) => {
                     let report = lcrl_graph_builder::GraphReport::load(path)?;
@@ -226,6 +230,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         agent.load(dir)?;
     }
     let architecture = meta.architecture();
+    let actions = lcrl_learner::action::ActionMap::new(env.spec(), architecture.base.as_deref())?;
     let (policy, _) = watch::channel(Arc::new(snapshot(agent.as_ref(), &architecture, meta.policy_version)?));
     let staleness = (args.algo == Algo::Ppo).then_some(args.max_staleness);
     let counters = agent.counters();
@@ -240,7 +245,11 @@ async fn run(args: Args) -> anyhow::Result<()> {
         episodes: AtomicU64::new(meta.episode as u64),
         connected_actors: AtomicU32::new(0),
         recent_returns: Mutex::new(VecDeque::new()),
-        ingest: Mutex::new(Ingest::new(&args.run_id, lcrl_sim::make_env(&args.env)?, staleness).with_sequences(meta.actor_sequences.clone())),
+        ingest: Mutex::new(
+            Ingest::new(&args.run_id, lcrl_sim::make_env(&args.env)?, staleness)
+                .with_actions(actions)
+                .with_sequences(meta.actor_sequences.clone()),
+        ),
         policy,
         shutdown: watch::channel(false).0,
         run_dir: args.run_dir.clone(),

@@ -6,6 +6,7 @@ use std::path::Path;
 use lcrl_sim::Env;
 use tch::nn;
 
+use crate::action::ActionMap;
 use crate::agent::{build_actor, load_vs};
 use crate::nets::{batch, ActorNet};
 use crate::snapshot::{decode_weights, Architecture};
@@ -95,9 +96,22 @@ impl Policy {
         })
     }
 
-    /// The action for a raw environment state, in the environment's bounds.
+    /// How this policy's normalized actions become `env`'s actions (around
+    /// its base controller, if it has one).
+    pub fn action_map(&self, env: &dyn Env) -> Result<ActionMap, LearnerError> {
+        ActionMap::new(env.spec(), self.architecture.base.as_deref())
+    }
+
+    /// The full action for a raw environment state, in the environment's
+    /// bounds, base controller included.
     pub fn act(&self, env: &dyn Env, state: &[f64]) -> Vec<f64> {
-        crate::trainer::to_env_action(env, &self.act_normalized(&crate::trainer::observe(env, state)))
+        let u = self.act_normalized(&crate::trainer::observe(env, state));
+        match self.action_map(env) {
+            Ok(map) => map.to_env(&u),
+            // check_env and Architecture::validate refuse a base that does
+            // not fit; the plain map is the only other meaning u has.
+            Err(_) => ActionMap::plain(env.spec()).to_env(&u),
+        }
     }
 
     /// Checks that the policy fits `env`.
@@ -110,6 +124,7 @@ impl Policy {
                 a.env, a.state_dim, a.action_dim, env.spec().name
             )));
         }
+        self.action_map(env)?;
         Ok(())
     }
 }

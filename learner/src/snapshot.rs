@@ -19,6 +19,10 @@ pub struct Architecture {
     /// The actor's connection mask (n × m).
     pub mask: Vec<Vec<u8>>,
     pub network: NetworkConfig,
+    /// The base controller the actor acts around (residual RL,
+    /// learner/src/action.rs); None: the plain map onto the box.
+    #[serde(default)]
+    pub base: Option<Vec<f64>>,
 }
 
 /// Largest dimensions and layer widths a snapshot may ask an actor to
@@ -42,6 +46,11 @@ impl Architecture {
         }
         if self.connection == Connection::Local && self.mask.iter().any(|row| row.iter().all(|&v| v == 0)) {
             return bad("a local actor's mask row sees no state".into());
+        }
+        if let Some(base) = &self.base {
+            if base.len() != n || base.iter().any(|b| !b.is_finite()) {
+                return bad(format!("the base action must hold {n} finite numbers"));
+            }
         }
         let net = &self.network;
         for (name, widths) in [("global_hidden", &net.global_hidden), ("subnet_hidden", &net.subnet_hidden), ("critic_hidden", &net.critic_hidden)] {

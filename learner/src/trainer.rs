@@ -184,6 +184,7 @@ impl CheckpointMeta {
             action_dim: self.action_dim,
             mask: self.mask.clone(),
             network: self.config.network.clone(),
+            base: self.config.controller.base_action(self.action_dim),
         }
     }
 }
@@ -214,15 +215,6 @@ pub fn eval_seed(seed: u64, k: usize) -> u64 {
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
     move |source| LearnerError::Io { path: path.to_path_buf(), source }
-}
-
-/// Maps a normalized action u ∈ [−1, 1] to the environment's bounds.
-pub fn to_env_action(env: &dyn Env, u: &[f32]) -> Vec<f64> {
-    let spec = env.spec();
-    u.iter()
-        .zip(spec.action_low.iter().zip(&spec.action_high))
-        .map(|(&u, (lo, hi))| lo + (f64::from(u).clamp(-1.0, 1.0) + 1.0) / 2.0 * (hi - lo))
-        .collect()
 }
 
 /// A raw state as the agent's input: normalized, f32.
@@ -396,6 +388,12 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         }
     };
     cfg.validate()?;
+    // The base controller as numbers, so config.toml and every checkpoint
+    // record exactly what the agent acted around.
+    let base = crate::action::resolve_base(&cfg.controller, env.spec())?;
+    cfg.controller.base = base.clone().map_or(crate::config::BaseController::None, crate::config::BaseController::Action);
+    cfg.controller.best_constant_file = None;
+    let actions = crate::action::ActionMap::new(env.spec(), base.as_deref())?;
     tch::set_num_threads(cfg.run.threads as i32);
     let resolved = toml::to_string_pretty(&cfg).map_err(|e| LearnerError::Config(e.to_string()))?;
     let header = format!(
@@ -440,7 +438,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         loop {
             let obs = observe(env.as_ref(), &state);
             let u = agent.explore(&obs, episode);
-            let step = env.step(&to_env_action(env.as_ref(), &u))?;
+            let step = env.step(&actions.to_env(&u))?;
             let next_obs = observe(env.as_ref(), &step.state);
             opt_seconds += agent.observe(crate::agent::Transition {
                 obs: &obs,
@@ -501,7 +499,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     // The deterministic policy, a = 0 and the LQR ceiling on the same episodes.
     let episodes = cfg.run.eval_episodes.max(1);
     let env_ref = env.fresh();
-    let mut policy = |s: &[f64]| to_env_action(env_ref.as_ref(), &agent.act(&observe(env_ref.as_ref(), s)));
+    let mut policy = |s: &[f64]| actions.to_env(&agent.act(&observe(env_ref.as_ref(), s)));
     let (eval, _) = evaluate(env.as_mut(), "policy", episodes, eval_seed(cfg.run.seed, 0), &mut policy, &mut |_| {})?;
     let (zero, _) = evaluate(env.as_mut(), "a = 0", episodes, eval_seed(cfg.run.seed, 0), &mut |_| vec![0.0; n], &mut |_| {})?;
     let lqr = env.as_lti().and_then(|lti| lqr_return(lti, episodes, eval_seed(cfg.run.seed, 0)));

@@ -115,6 +115,11 @@ pub trait Env: Send + Sync {
     fn control_period_s(&self) -> f64 {
         1.0
     }
+    /// The remaining depth (state index 2, mm) at the hole entrance, for
+    /// tasks that insert something; None elsewhere.
+    fn depth_reference_mm(&self) -> Option<f64> {
+        None
+    }
     /// Whether CS3 should by default draw its start states along an episode
     /// of the neutral controller (a = 0) instead of from `reset` alone
     /// (docs/method.md §2): true for tasks whose states of interest occur

@@ -9,7 +9,7 @@ use crate::peg::{PegConfig, PegEnv};
 
 /// The registered environment names, for help texts and error messages.
 pub fn known_env_names() -> Vec<&'static str> {
-    vec!["lti-paper", "peg-group1", "peg-group2", "peg-experiment"]
+    std::iter::once("lti-paper").chain(crate::peg::PegConfig::NAMES).collect()
 }
 
 /// Makes an environment from a registered name, a path to a `.toml` file,

@@ -250,13 +250,7 @@ impl Experiment {
     /// defaults with `[train]` laid over them, and the experiment's
     /// evaluation episodes.
     pub fn train_config(&self, env: &str) -> anyhow::Result<TrainConfig> {
-        let (defaults, _) = TrainConfig::for_env(env);
-        let mut merged = match toml::Value::try_from(&defaults).context("serializing the default training settings")? {
-            toml::Value::Table(table) => table,
-            _ => bail!("the default training settings are not a table"),
-        };
-        overlay(&mut merged, &self.file.train);
-        let mut config: TrainConfig = toml::Value::Table(merged).try_into().map_err(|e| anyhow::anyhow!("`train`: {e}"))?;
+        let mut config = TrainConfig::for_env_with(env, &self.file.train).map_err(|e| anyhow::anyhow!("`train`: {e}"))?;
         config.run.eval_episodes = self.file.eval_episodes;
         config.run.threads = 1;
         config.validate().map_err(|e| anyhow::anyhow!("`train`: {e}"))?;
@@ -280,18 +274,6 @@ impl Experiment {
             }
         }
         out
-    }
-}
-
-/// Lays `top` over `base`, table by table (values in `top` win).
-fn overlay(base: &mut toml::Table, top: &toml::Table) {
-    for (key, value) in top {
-        match (base.get_mut(key), value) {
-            (Some(toml::Value::Table(b)), toml::Value::Table(t)) => overlay(b, t),
-            _ => {
-                base.insert(key.clone(), value.clone());
-            }
-        }
     }
 }
 

@@ -3,6 +3,7 @@
 //! filtered for staleness (PPO), and converted to the agent's normalized
 //! units. Plain Rust; the gRPC and shared-memory front ends both call it.
 
+use crate::action::ActionMap;
 use std::collections::{BTreeMap, HashMap};
 
 use lcrl_proto::v1::{EpisodeSummary, TransitionBatch};
@@ -69,6 +70,8 @@ pub enum Verdict {
 pub struct Ingest {
     run_id: String,
     env: Box<dyn Env>,
+    /// Actors send environment actions; the agent learns normalized ones.
+    actions: ActionMap,
     /// Highest sequence stored per actor; sequences increase per actor.
     last_sequence: HashMap<String, u64>,
     /// Maximum accepted age (in policy versions) of a batch; None: any.
@@ -81,7 +84,15 @@ pub struct Ingest {
 
 impl Ingest {
     pub fn new(run_id: &str, env: Box<dyn Env>, max_staleness: Option<u64>) -> Self {
-        Ingest { run_id: run_id.to_string(), env, last_sequence: HashMap::new(), max_staleness, rejected: BTreeMap::new(), accepted: 0 }
+        let actions = ActionMap::plain(env.spec());
+        Ingest { run_id: run_id.to_string(), env, actions, last_sequence: HashMap::new(), max_staleness, rejected: BTreeMap::new(), accepted: 0 }
+    }
+
+    /// The run's action map (its base controller): actions arrive in the
+    /// environment's units and are stored as the agent's u.
+    pub fn with_actions(mut self, actions: ActionMap) -> Self {
+        self.actions = actions;
+        self
     }
 
     /// Resumes deduplication from a checkpoint.
@@ -143,13 +154,7 @@ impl Ingest {
             self.count("stale", count);
             return Verdict::Stale;
         }
-        let spec = self.env.spec();
-        let to_action = |a: &[f32]| -> Vec<f32> {
-            a.iter()
-                .zip(spec.action_low.iter().zip(&spec.action_high))
-                .map(|(&a, (lo, hi))| ((2.0 * (f64::from(a) - lo) / (hi - lo) - 1.0).clamp(-1.0, 1.0)) as f32)
-                .collect()
-        };
+        let to_action = |a: &[f32]| -> Vec<f32> { self.actions.to_normalized(&a.iter().map(|&v| f64::from(v)).collect::<Vec<_>>()) };
         let to_obs = |s: &[f32]| -> Vec<f32> {
             let raw: Vec<f64> = s.iter().map(|&v| f64::from(v)).collect();
             self.env.normalize_state(&raw).iter().map(|&v| v as f32).collect()

@@ -27,6 +27,37 @@ pub struct PegConfig {
     pub limits: Limits,
     pub episode: Episode,
     pub physics: Physics,
+    /// Part and contact drawn anew every episode (the `-rand` presets);
+    /// absent: every episode has the parts above.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub randomize: Option<Randomize>,
+}
+
+/// Per-episode ranges, each [low, high], drawn uniformly at reset from the
+/// episode's seed (docs/peg.md, "Randomized presets").
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Randomize {
+    /// Coulomb friction between peg and hole.
+    pub friction: [f64; 2],
+    /// Clearance, hole side minus peg side, mm: the hole is resized, the
+    /// peg kept.
+    pub clearance_mm: [f64; 2],
+    /// 45° chamfer on the peg's bottom edges, mm.
+    pub peg_chamfer_mm: [f64; 2],
+}
+
+impl Randomize {
+    /// The parts of one episode: `nominal` with every range drawn by `draw`
+    /// (a uniform draw in [low, high]).
+    pub fn apply(&self, nominal: &PegConfig, draw: &mut dyn FnMut([f64; 2]) -> f64) -> PegConfig {
+        let mut cfg = nominal.clone();
+        cfg.contact.friction = draw(self.friction);
+        cfg.geometry.hole_side_mm = cfg.geometry.peg_side_mm + draw(self.clearance_mm);
+        cfg.geometry.peg_chamfer_mm = draw(self.peg_chamfer_mm);
+        cfg.randomize = None;
+        cfg
+    }
 }
 
 /// Part dimensions (Table I / Table III).
@@ -198,6 +229,7 @@ impl PegConfig {
                 angle_offset_deg: [0.0; 3],
             },
             physics: Physics { substeps: 8, solver_iterations: 2 },
+            randomize: None,
         }
     }
 
@@ -224,12 +256,27 @@ impl PegConfig {
         cfg
     }
 
+    /// A group preset as a task family (docs/peg.md, "Randomized
+    /// presets"): friction, clearance and peg chamfer drawn per episode,
+    /// initial errors twice Table I's (±0.4 mm, ±1°).
+    pub fn randomized(mut self) -> Self {
+        self.episode.position_error_mm *= 2.0;
+        self.episode.angle_error_deg *= 2.0;
+        self.randomize = Some(Randomize { friction: [0.1, 0.6], clearance_mm: [0.03, 0.2], peg_chamfer_mm: [0.45, 0.8] });
+        self
+    }
+
+    /// The registered preset names, in the order help texts list them.
+    pub const NAMES: [&'static str; 5] = ["peg-group1", "peg-group2", "peg-experiment", "peg-group1-rand", "peg-group2-rand"];
+
     /// The preset of a registered name.
     pub fn preset(name: &str) -> Option<Self> {
         match name {
             "peg-group1" => Some(Self::group1()),
             "peg-group2" => Some(Self::group2()),
             "peg-experiment" => Some(Self::experiment()),
+            "peg-group1-rand" => Some(Self::group1().randomized()),
+            "peg-group2-rand" => Some(Self::group2().randomized()),
             _ => None,
         }
     }
@@ -354,6 +401,21 @@ impl PegConfig {
         }
         if self.physics.solver_iterations == 0 {
             return Err(EnvError::invalid("physics.solver_iterations", "must be at least 1"));
+        }
+        if let Some(r) = &self.randomize {
+            for (field, [lo, hi]) in [("randomize.friction", r.friction), ("randomize.clearance_mm", r.clearance_mm), ("randomize.peg_chamfer_mm", r.peg_chamfer_mm)] {
+                if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
+                    return Err(EnvError::invalid(field, format!("must be [low, high] with low ≤ high, got [{lo}, {hi}]")));
+                }
+            }
+            if r.clearance_mm[0] <= 0.0 {
+                return Err(EnvError::invalid("randomize.clearance_mm", "the clearance must stay above 0"));
+            }
+            // Every draw must be a valid task: the range's corners are.
+            for pick in [0, 1] {
+                let corner = r.apply(self, &mut |range| range[pick]);
+                corner.validate().map_err(|e| EnvError::invalid("randomize", format!("a part at the range's {} end is invalid: {e}", ["low", "high"][pick])))?;
+            }
         }
         Ok(())
     }

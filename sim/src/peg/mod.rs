@@ -25,6 +25,22 @@ use crate::env::{Env, EnvError, EnvSpec, EpisodeMetrics, ReturnTerms, Step};
 pub use config::PegConfig;
 use world::{angles_deg, pose_from, PegWorld};
 
+/// Seeds the per-episode part draws apart from the pose draws.
+const PARTS_STREAM: u64 = 0x9A27_5EED;
+
+/// The best constant action of each registered preset, as `lcrl tune --env
+/// NAME` (default settings) found it (docs/peg.md), for
+/// `controller.base = "best-constant"`. A test checks that each one still
+/// beats a = 0 on its preset.
+pub fn measured_best_constant(name: &str) -> Option<[f64; 6]> {
+    match name {
+        "peg-group1" => Some([2.00, 2.00, 0.22, 0.05, 0.11, 1.61]),
+        "peg-group2" => Some([2.00, 2.00, -0.69, 1.15, 1.43, 1.67]),
+        "peg-experiment" => Some([2.00, 2.00, 0.42, -0.62, -0.82, 1.94]),
+        _ => None,
+    }
+}
+
 const STATE_NAMES: [&str; 12] = ["x", "y", "z", "alpha", "beta", "gamma", "Fx", "Fy", "Fz", "Mx", "My", "Mz"];
 const ACTION_NAMES: [&str; 6] = ["dx", "dy", "dz", "dalpha", "dbeta", "dgamma"];
 
@@ -43,7 +59,10 @@ pub enum Outcome {
 /// The peg-in-hole environment.
 #[derive(Clone)]
 pub struct PegEnv {
+    /// The task as configured (with its randomization ranges, if any).
     cfg: PegConfig,
+    /// The parts of the current episode: `cfg`, or a draw from its ranges.
+    episode_cfg: PegConfig,
     spec: EnvSpec,
     world: PegWorld,
     /// Commanded tip pose (the robot's).
@@ -74,6 +93,7 @@ impl PegEnv {
         let start = pose_from([0.0, 0.0, cfg.episode.start_height_mm], [0.0; 3]);
         let mut env = PegEnv {
             world: PegWorld::new(&cfg, start),
+            episode_cfg: cfg.clone(),
             cfg,
             spec,
             command: start,
@@ -94,6 +114,12 @@ impl PegEnv {
         &self.cfg
     }
 
+    /// The parts of the current episode (friction, clearance and chamfer
+    /// drawn at reset on randomized presets; otherwise the config's).
+    pub fn episode_config(&self) -> &PegConfig {
+        &self.episode_cfg
+    }
+
     pub fn outcome(&self) -> Outcome {
         self.outcome
     }
@@ -106,7 +132,7 @@ impl PegEnv {
     }
 
     fn start_at(&mut self, pose: Pose) {
-        self.world = PegWorld::new(&self.cfg, pose);
+        self.world = PegWorld::new(&self.episode_cfg, pose);
         self.command = pose;
         self.wrench = [0.0; 6];
         self.steps = 0;
@@ -160,6 +186,15 @@ impl Env for PegEnv {
         let [oa, ob, oc] = e.angle_offset_deg;
         let position = [ox + draw(e.position_error_mm), oy + draw(e.position_error_mm), e.start_height_mm + draw(e.position_error_mm)];
         let angles = [oa + draw(e.angle_error_deg), ob + draw(e.angle_error_deg), oc + draw(e.angle_error_deg)];
+        // The parts come from a stream of their own, so the pose draws (and
+        // every unrandomized preset's episodes) do not depend on them.
+        self.episode_cfg = match &self.cfg.randomize {
+            Some(ranges) => {
+                let mut parts = ChaCha8Rng::seed_from_u64(seed ^ PARTS_STREAM);
+                ranges.apply(&self.cfg, &mut |[lo, hi]| if hi > lo { parts.random_range(lo..=hi) } else { lo })
+            }
+            None => self.cfg.clone(),
+        };
         Ok(self.reset_to(position, angles))
     }
 
@@ -269,6 +304,10 @@ impl Env for PegEnv {
     /// that matter (docs/peg.md) show in contact, mid-insertion.
     fn prefers_trajectory_starts(&self) -> bool {
         true
+    }
+
+    fn depth_reference_mm(&self) -> Option<f64> {
+        Some(self.cfg.geometry.target_depth_mm)
     }
 
     fn episode_metrics(&self) -> EpisodeMetrics {

@@ -255,3 +255,98 @@ fn failure_charge_bounds_every_step_within_limits() {
     }
 }
 
+
+/// A randomized preset draws its parts from the episode's seed: the same
+/// seed gives the same parts and start, other seeds other parts, every draw
+/// inside its range, and the ranges are covered. An unrandomized preset
+/// keeps its parts in every episode.
+#[test]
+fn randomized_presets_draw_parts_per_episode_within_their_ranges() {
+    let cfg = PegConfig::preset("peg-group1-rand").unwrap();
+    let ranges = cfg.randomize.clone().unwrap();
+    assert_eq!((cfg.episode.position_error_mm, cfg.episode.angle_error_deg), (0.4, 1.0));
+    let mut env = env(cfg.clone());
+    let mut twin = env.clone();
+    let (mut frictions, mut clearances, mut chamfers) = (Vec::new(), Vec::new(), Vec::new());
+    for seed in 0..200 {
+        let s0 = env.reset(seed).unwrap();
+        let parts = env.episode_config().clone();
+        assert_eq!(twin.reset(seed).unwrap(), s0);
+        assert_eq!(twin.episode_config(), &parts, "seed {seed}: the same seed must draw the same parts");
+        assert!(parts.randomize.is_none());
+        let clearance = parts.geometry.hole_side_mm - parts.geometry.peg_side_mm;
+        let inside = |v: f64, [lo, hi]: [f64; 2]| (lo..=hi).contains(&v);
+        assert!(inside(parts.contact.friction, ranges.friction), "{}", parts.contact.friction);
+        assert!(inside(clearance, [ranges.clearance_mm[0] - 1e-12, ranges.clearance_mm[1] + 1e-12]), "{clearance}");
+        assert!(inside(parts.geometry.peg_chamfer_mm, ranges.peg_chamfer_mm));
+        assert_eq!(parts.geometry.peg_side_mm, cfg.geometry.peg_side_mm, "the peg keeps its size");
+        frictions.push(parts.contact.friction);
+        clearances.push(clearance);
+        chamfers.push(parts.geometry.peg_chamfer_mm);
+    }
+    // 200 uniform draws span at least 90% of each range.
+    for (values, [lo, hi]) in [(frictions, ranges.friction), (clearances, ranges.clearance_mm), (chamfers, ranges.peg_chamfer_mm)] {
+        let spread = values.iter().cloned().fold(f64::MIN, f64::max) - values.iter().cloned().fold(f64::MAX, f64::min);
+        assert!(spread > 0.9 * (hi - lo), "spread {spread} of [{lo}, {hi}]");
+    }
+    // The published preset keeps its parts.
+    let mut plain = env_for("peg-group1");
+    for seed in 0..5 {
+        plain.reset(seed).unwrap();
+        assert_eq!(plain.episode_config(), plain.config());
+    }
+}
+
+fn env_for(name: &str) -> PegEnv {
+    PegEnv::new(name, PegConfig::preset(name).unwrap()).unwrap()
+}
+
+/// Friction acts where it should: with the same start and controller, a
+/// slippery part is inserted with less axial force than a sticky one
+/// (the wall's normal force times μ resists the advance).
+#[test]
+fn more_friction_costs_more_axial_force() {
+    let mean_peak_fz = |friction: f64| {
+        let mut cfg = PegConfig::group1();
+        cfg.contact.friction = friction;
+        let mut env = env(cfg);
+        let mut total = 0.0;
+        for seed in 0..8 {
+            env.reset(seed).unwrap();
+            let steps = run(&mut env, [0.0; 6]);
+            total += steps.iter().map(|s| s.state[8].abs()).fold(0.0, f64::max);
+        }
+        total / 8.0
+    };
+    let (low, high) = (mean_peak_fz(0.1), mean_peak_fz(0.6));
+    assert!(high > low, "peak |Fz| with μ = 0.6: {high:.2} N, with μ = 0.1: {low:.2} N");
+}
+
+#[test]
+fn bad_randomization_ranges_name_the_field() {
+    let base = PegConfig::group1();
+    let field = |text: &str| match base.with_overrides(&toml::from_str(text).unwrap(), "x.toml") {
+        Err(EnvError::Invalid { field, .. }) => field,
+        other => panic!("expected an invalid field, got {other:?}"),
+    };
+    let ranges = "[randomize]\nfriction = [0.1, 0.6]\nclearance_mm = [0.03, 0.2]\n";
+    assert_eq!(field(&format!("{ranges}peg_chamfer_mm = [0.8, 0.4]\n")), "randomize.peg_chamfer_mm");
+    assert_eq!(field("[randomize]\nfriction = [0.1, 0.6]\nclearance_mm = [0.0, 0.2]\npeg_chamfer_mm = [0.4, 0.8]\n"), "randomize.clearance_mm");
+    // A chamfer at the range's top end wider than half the peg.
+    assert_eq!(field(&format!("{ranges}peg_chamfer_mm = [0.4, 5.0]\n")), "randomize");
+    let ok = base.with_overrides(&toml::from_str(&format!("{ranges}peg_chamfer_mm = [0.4, 0.8]\n")).unwrap(), "x.toml").unwrap();
+    assert!(ok.randomize.is_some());
+}
+
+/// Each recorded best constant (controller.base = "best-constant") still
+/// beats the constant compliance controller on its preset.
+#[test]
+fn recorded_best_constants_beat_a_zero() {
+    for name in ["peg-group1", "peg-group2"] {
+        let env = env_for(name);
+        let best = measured_best_constant(name).unwrap();
+        let b = crate::tune::constant_return(&env, &best, 16, 0).unwrap();
+        let zero = crate::tune::constant_return(&env, &[0.0; 6], 16, 0).unwrap();
+        assert!(b > zero + 1.0, "{name}: best constant {b:.2}, a = 0 {zero:.2}");
+    }
+}

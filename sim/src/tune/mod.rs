@@ -13,6 +13,8 @@
 //! always a candidate, so the bar is never worse than the untrained
 //! controller on the tuning starts.
 
+pub mod feedback;
+
 use std::time::Instant;
 
 use cmaes::{CMAESOptions, DVector};
@@ -41,6 +43,21 @@ pub struct TuneOptions {
 impl Default for TuneOptions {
     fn default() -> Self {
         TuneOptions { episodes: 32, seed: 1_000_000, evaluations: 300, sigma: 0.3, eval_episodes: 100, eval_seed: 0 }
+    }
+}
+
+impl TuneOptions {
+    fn check(&self) -> Result<(), TuneError> {
+        if self.episodes == 0 || self.eval_episodes == 0 {
+            return Err(TuneError::Options("episodes and eval episodes must be at least 1".into()));
+        }
+        if self.evaluations < 2 {
+            return Err(TuneError::Options("--evaluations must be at least 2".into()));
+        }
+        if !(self.sigma.is_finite() && self.sigma > 0.0) {
+            return Err(TuneError::Options(format!("sigma must be a finite number > 0, got {}", self.sigma)));
+        }
+        Ok(())
     }
 }
 
@@ -121,15 +138,7 @@ fn evaluate_constant(template: &dyn Env, action: &[f64], tuning_return: f64, opt
 /// `on_candidate` is called after every candidate with the best mean
 /// return so far.
 pub fn tune(template: &dyn Env, opts: &TuneOptions, on_candidate: &(dyn Fn(f64) + Sync)) -> Result<TuneReport, TuneError> {
-    if opts.episodes == 0 || opts.eval_episodes == 0 {
-        return Err(TuneError::Options("episodes and eval episodes must be at least 1".into()));
-    }
-    if opts.evaluations < 2 {
-        return Err(TuneError::Options("--evaluations must be at least 2".into()));
-    }
-    if !(opts.sigma.is_finite() && opts.sigma > 0.0) {
-        return Err(TuneError::Options(format!("sigma must be a finite number > 0, got {}", opts.sigma)));
-    }
+    opts.check()?;
     let started = Instant::now();
     let spec = template.spec().clone();
     let n = spec.action_dim();
