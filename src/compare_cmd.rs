@@ -25,12 +25,18 @@ pub struct CompareArgs {
     /// of the table and a line in the plot.
     #[arg(long, value_name = "best_constant.json")]
     pub best_constant: Option<PathBuf>,
+    /// The headroom: a best_policy.json of `lcrl tune --policy affine` (or
+    /// depth-switched), the best state-feedback controller of that family,
+    /// shown as a row and a line beside the best constant.
+    #[arg(long, value_name = "best_policy.json")]
+    pub best_policy: Option<PathBuf>,
     /// Where to draw the reward curves (a .png file).
     #[arg(long, value_name = "FILE.png", default_value = "compare.png", value_parser = lcrl_graph_builder::plot::png_path)]
     pub out: PathBuf,
 }
 
-/// The parts of best_constant.json that compare shows.
+/// The parts of best_constant.json (and of best_policy.json, which has
+/// the same fields) that compare shows.
 #[derive(Debug, Deserialize)]
 struct BestConstant {
     env: String,
@@ -63,13 +69,17 @@ pub fn reference_lines(lqr: Option<f64>, masked_lqr: Option<f64>, zero_action: O
 }
 
 pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
-    let bar: Option<BestConstant> = match &args.best_constant {
-        Some(path) => {
-            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-            Some(serde_json::from_str(&text).with_context(|| format!("{} is not a best_constant.json written by `lcrl tune`", path.display()))?)
+    let read = |path: &Option<PathBuf>, what: &str| -> anyhow::Result<Option<BestConstant>> {
+        match path {
+            Some(path) => {
+                let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+                Ok(Some(serde_json::from_str(&text).with_context(|| format!("{} is not a {what} written by `lcrl tune`", path.display()))?))
+            }
+            None => Ok(None),
         }
-        None => None,
     };
+    let bar = read(&args.best_constant, "best_constant.json")?;
+    let headroom = read(&args.best_policy, "best_policy.json")?;
     let mut series = Vec::new();
     let mut longest: Vec<f64> = Vec::new();
     let mut lines = Vec::new();
@@ -78,9 +88,11 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
         let path = dir.join("summary.json");
         let text = std::fs::read_to_string(&path).with_context(|| format!("{} is not a finished run (no summary.json)", dir.display()))?;
         let s: TrainSummary = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
-        if let Some(bar) = &bar {
-            if bar.env != s.env {
-                anyhow::bail!("{} was trained on {} but the best constant is for {}; compare runs of one environment", dir.display(), s.env, bar.env);
+        for (reference, what) in [(&bar, "best constant"), (&headroom, "best policy")] {
+            if let Some(r) = reference {
+                if r.env != s.env {
+                    anyhow::bail!("{} was trained on {} but the {what} is for {}; compare runs of one environment", dir.display(), s.env, r.env);
+                }
             }
         }
         let metrics = dir.join("metrics.csv");
@@ -135,6 +147,15 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
             bar.action.iter().map(|a| (a * 1e4).round() / 1e4).collect::<Vec<_>>()
         );
         lines.push(("best constant".to_string(), bar.mean_return));
+    }
+    if let Some(policy) = &headroom {
+        let pct = policy.success_rate.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
+        println!(
+            "{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11.3} {:>8}",
+            "best feedback policy (lcrl tune)", "-", "-", "-", "-", "-", policy.mean_return, pct
+        );
+        println!("(the headroom: the best state-feedback controller `lcrl tune --policy` found, mean of {} evaluation episodes.)", policy.eval_episodes);
+        lines.push(("best feedback policy".to_string(), policy.mean_return));
     }
     // Shorter runs are padded with NaN, which the plot leaves out.
     for (_, values) in series.iter_mut() {

@@ -227,3 +227,54 @@ fn refuses_to_overwrite_a_run_and_rejects_mismatched_graphs() {
     let err = train(&peg, &mut |_| {}).err().unwrap().to_string();
     assert!(err.contains("3×3") && err.contains("6 actions"), "{err}");
 }
+
+/// Residual RL (learner/src/action.rs): a run around a base controller
+/// records its numbers in config.toml and the checkpoint, its untrained
+/// policy is the base controller, and the evaluation returns match the
+/// base's own. DDPG and PPO alike; warm-up longer than the run, so the
+/// policy is the freshly built one.
+#[test]
+fn a_base_controller_is_recorded_and_is_the_first_policy() {
+    tch::set_num_threads(1);
+    let dir = tempfile::tempdir().unwrap();
+    let base = [2.0, 2.0, 0.2, 0.1, 0.1, 1.5];
+    let file = dir.path().join("best_constant.json");
+    std::fs::write(&file, serde_json::json!({ "env": "peg-group1", "action": base }).to_string()).unwrap();
+    for algo in [Algo::Ddpg, Algo::Ppo] {
+        let (mut cfg, _) = TrainConfig::for_env("peg-group1");
+        cfg.controller.base = crate::config::BaseController::BestConstant;
+        cfg.controller.best_constant_file = Some(file.clone());
+        cfg.run.episodes = 1;
+        cfg.run.eval_episodes = 3;
+        cfg.ddpg.warmup_steps = 10_000;
+        cfg.ppo.rollout_steps = 10_000;
+        let run_dir = dir.path().join(format!("{algo:?}"));
+        let request = TrainRequest {
+            env: "peg-group1".into(),
+            algo,
+            connection: Connection::Global,
+            graph: None,
+            config: cfg,
+            settings_source: "test".into(),
+            run_dir: run_dir.clone(),
+            resume: false,
+            stop_after: None,
+        };
+        let outcome = train(&request, &mut |_| {}).unwrap();
+        let recorded: TrainConfig = toml::from_str(&std::fs::read_to_string(run_dir.join("config.toml")).unwrap()).unwrap();
+        assert_eq!(recorded.controller.base, crate::config::BaseController::Action(base.to_vec()), "{algo:?}");
+        assert_eq!(recorded.controller.best_constant_file, None);
+        let policy = Policy::load(&run_dir).unwrap();
+        assert_eq!(policy.architecture.base.as_deref(), Some(&base[..]));
+        let mut env = make_env("peg-group1").unwrap();
+        let state = env.reset(5).unwrap();
+        let action = policy.act(env.as_ref(), &state);
+        // The actor's last layer starts within ±3e-3: u ≈ 0, a ≈ base.
+        for (a, b) in action.iter().zip(base) {
+            assert!((a - b).abs() < 0.05, "{algo:?}: {action:?} against the base {base:?}");
+        }
+        // And it scores as the base does on the same starts.
+        let constant = lcrl_sim::tune::constant_return(env.as_ref(), &base, 3, crate::trainer::eval_seed(0, 0)).unwrap();
+        assert!((outcome.summary.eval_return - constant).abs() < 0.05 * constant.abs(), "{algo:?}: {} vs {constant}", outcome.summary.eval_return);
+    }
+}

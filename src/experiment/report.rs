@@ -57,12 +57,15 @@ pub struct Study {
     pub experiment: Experiment,
     pub cells: Vec<CellRuns>,
     pub best_constant: BTreeMap<String, BestConstant>,
+    /// The headroom reference per environment: best_policy/ENV/best_policy.json
+    /// (`lcrl tune --policy affine --out OUT/best_policy/ENV`), where present.
+    pub best_policy: BTreeMap<String, BestConstant>,
     pub missing: Vec<String>,
 }
 
 /// Reads every finished run, graph and best constant under `out`.
 pub fn gather(e: &Experiment, out: &Path) -> anyhow::Result<Study> {
-    let mut study = Study { experiment: e.clone(), cells: Vec::new(), best_constant: BTreeMap::new(), missing: Vec::new() };
+    let mut study = Study { experiment: e.clone(), cells: Vec::new(), best_constant: BTreeMap::new(), best_policy: BTreeMap::new(), missing: Vec::new() };
     for cell in cells(e) {
         let graph_seconds = match cell.connection.threshold() {
             Some(t) => graph_seconds(&graph_path(out, &cell.env, t))?,
@@ -82,17 +85,19 @@ pub fn gather(e: &Experiment, out: &Path) -> anyhow::Result<Study> {
         study.cells.push(CellRuns { cell, runs, graph_seconds });
     }
     for env in &e.file.environments {
-        let path = best_constant_path(out, env);
-        if let Ok(text) = std::fs::read_to_string(&path) {
-            let v: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
-            let action = v["action"].as_array().map(|a| a.iter().filter_map(|x| x.as_f64()).collect()).unwrap_or_default();
-            study.best_constant.insert(env.clone(), BestConstant {
-                action,
-                mean_return: v["mean_return"].as_f64().unwrap_or(f64::NAN),
-                success_rate: v["success_rate"].as_f64(),
-                zero_action_return: v["zero_action"]["eval"]["mean_return"].as_f64().unwrap_or(f64::NAN),
-                eval_episodes: v["eval_episodes"].as_u64().unwrap_or(0) as usize,
-            });
+        let policy_path = out.join("best_policy").join(super::config::env_slug(env)).join("best_policy.json");
+        for (path, map) in [(best_constant_path(out, env), &mut study.best_constant), (policy_path, &mut study.best_policy)] {
+            if let Ok(text) = std::fs::read_to_string(&path) {
+                let v: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
+                let action = v["action"].as_array().map(|a| a.iter().filter_map(|x| x.as_f64()).collect()).unwrap_or_default();
+                map.insert(env.clone(), BestConstant {
+                    action,
+                    mean_return: v["mean_return"].as_f64().unwrap_or(f64::NAN),
+                    success_rate: v["success_rate"].as_f64(),
+                    zero_action_return: v["zero_action"]["eval"]["mean_return"].as_f64().unwrap_or(f64::NAN),
+                    eval_episodes: v["eval_episodes"].as_u64().unwrap_or(0) as usize,
+                });
+            }
         }
     }
     Ok(study)
@@ -118,6 +123,7 @@ pub struct Report {
     pub experiment: String,
     pub methods: Methods,
     pub best_constant: BTreeMap<String, BestConstant>,
+    pub best_policy: BTreeMap<String, BestConstant>,
     pub cells: Vec<CellReport>,
     pub comparisons: Vec<Comparison>,
     /// Runs not finished (yet): their cells report the seeds that are.
@@ -223,6 +229,7 @@ impl Study {
             experiment: e.file.name.clone(),
             methods: METHODS,
             best_constant: self.best_constant.clone(),
+            best_policy: self.best_policy.clone(),
             comparisons: self.comparisons(),
             cells,
             missing_runs: self.missing.clone(),
@@ -318,6 +325,10 @@ pub fn markdown(report: &Report) -> String {
             let success = b.success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
             let _ = writeln!(md, "| best constant | — | — | {} | {success} | — | — | — | — |", num(b.mean_return));
             let _ = writeln!(md, "| a = 0 | — | — | {} | — | — | — | — | — |", num(b.zero_action_return));
+        }
+        if let Some(p) = report.best_policy.get(env) {
+            let success = p.success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
+            let _ = writeln!(md, "| best feedback policy (headroom) | — | — | {} | {success} | — | — | — | — |", num(p.mean_return));
         }
         let _ = writeln!(md);
         for c in &rows {

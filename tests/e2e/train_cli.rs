@@ -246,3 +246,36 @@ fn lti_paper_without_config_gets_its_working_settings() {
     assert!(config.contains("# settings from: configs/lti-fast.toml"), "{config}");
     assert!(config.contains("activation = \"elu\"") && config.contains("buffer_capacity = 20000"), "{config}");
 }
+
+/// A base controller that cannot be used stops `lcrl train` before any
+/// work, naming the file or the component: a missing file, a file that
+/// is not `lcrl tune`'s, an action outside the box, the wrong length.
+#[test]
+fn train_refuses_a_bad_base_action() {
+    let work = tempfile::tempdir().unwrap();
+    let config = tiny_config(work.path());
+    let base_train = |file: &Path| {
+        lcrl()
+            .args(["train", "--env", "peg-group1", "--algo", "ddpg", "--connection", "global", "--config"])
+            .arg(&config)
+            .arg("--run-dir")
+            .arg(work.path().join("run"))
+            .arg("--base-action")
+            .arg(file)
+            .output()
+            .unwrap()
+    };
+    let missing = work.path().join("missing.json");
+    assert_clean_failure(&base_train(&missing), "missing.json");
+    let cases = [
+        ("not-tune.json", "{\"best\": 1}", "not a best_constant.json"),
+        ("outside.json", "{\"action\": [2.0, 2.0, 0.0, 9.0, 0.0, 0.0]}", "controller.base[3] = 9 lies outside the action box"),
+        ("short.json", "{\"action\": [0.0, 0.0]}", "controller.base has 2 components"),
+    ];
+    for (name, text, needle) in cases {
+        let file = work.path().join(name);
+        fs::write(&file, text).unwrap();
+        assert_clean_failure(&base_train(&file), needle);
+    }
+    assert!(!work.path().join("run").join("checkpoints").exists(), "nothing was trained");
+}

@@ -27,10 +27,31 @@ pub struct PegConfig {
     pub limits: Limits,
     pub episode: Episode,
     pub physics: Physics,
+    /// How states are scaled for learning (`Env::normalize_state`).
+    #[serde(default)]
+    pub observation: Observation,
     /// Part and contact drawn anew every episode (the `-rand` presets);
     /// absent: every episode has the parts above.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub randomize: Option<Randomize>,
+}
+
+/// The divisors of the state for learning, in the state's order and units
+/// (mm, degrees, N, N·m). The defaults are the root-mean-square values of
+/// a = 0 episodes on peg-group1 (8 episodes, docs/peg.md "Inputs"),
+/// rounded, with z divided by the insertion depth L: typical inputs are
+/// then of order 1. The force and moment limits (50 N, 1.5 N·m) as
+/// divisors left the wrench at 0.01–0.04.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Observation {
+    pub scale: [f64; 12],
+}
+
+impl Default for Observation {
+    fn default() -> Self {
+        Observation { scale: [0.05, 0.05, 30.0, 0.3, 0.3, 0.3, 1.0, 1.0, 2.0, 0.015, 0.015, 0.01] }
+    }
 }
 
 /// Per-episode ranges, each [low, high], drawn uniformly at reset from the
@@ -229,6 +250,7 @@ impl PegConfig {
                 angle_offset_deg: [0.0; 3],
             },
             physics: Physics { substeps: 8, solver_iterations: 2 },
+            observation: Observation::default(),
             randomize: None,
         }
     }
@@ -241,6 +263,7 @@ impl PegConfig {
         cfg.geometry.hole_side_mm = 8.0;
         cfg.geometry.hole_depth_mm = 20.0;
         cfg.geometry.target_depth_mm = 20.0;
+        cfg.observation.scale[2] = 20.0;
         cfg
     }
 
@@ -401,6 +424,9 @@ impl PegConfig {
         }
         if self.physics.solver_iterations == 0 {
             return Err(EnvError::invalid("physics.solver_iterations", "must be at least 1"));
+        }
+        for (i, &s) in self.observation.scale.iter().enumerate() {
+            positive(&format!("observation.scale[{i}]"), s)?;
         }
         if let Some(r) = &self.randomize {
             for (field, [lo, hi]) in [("randomize.friction", r.friction), ("randomize.clearance_mm", r.clearance_mm), ("randomize.peg_chamfer_mm", r.peg_chamfer_mm)] {

@@ -275,25 +275,10 @@ impl Env for PegEnv {
         Ok(Box::new(self.clone()))
     }
 
-    /// Scales for learning: offsets by 0.5 mm, depth by L, angles by 1°,
-    /// force and moment by their limits, so typical values are O(1).
+    /// Divides each component by its typical size (`observation.scale`,
+    /// measured on real episodes), so inputs are of order 1.
     fn normalize_state(&self, state: &[f64]) -> Vec<f64> {
-        let l = &self.cfg.limits;
-        let scale = [
-            0.5,
-            0.5,
-            self.cfg.geometry.target_depth_mm,
-            1.0,
-            1.0,
-            1.0,
-            l.force_limit_n,
-            l.force_limit_n,
-            l.force_limit_n,
-            l.moment_limit_nm,
-            l.moment_limit_nm,
-            l.moment_limit_nm,
-        ];
-        state.iter().zip(scale).map(|(v, s)| v / s).collect()
+        state.iter().zip(self.cfg.observation.scale).map(|(v, s)| v / s).collect()
     }
 
     fn control_period_s(&self) -> f64 {
