@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The peg-in-hole measurement behind docs/peg.md: for each peg preset, the
 # constant controllers (a = 0 and the tuned best constant) and DDPG local
-# and global (200 episodes, seeds 0–2), all evaluated on the same 100
+# and global (200 episodes, seeds 0–2, Table I's settings: configs/table1-ddpg.toml), all evaluated on the same 100
 # starts (`lcrl sim --episodes 100 --seed 0`). Two runs at a time.
 # Usage: bash scripts/measure-peg.sh [OUT_DIR] [PRESETS...]
 set -euo pipefail
@@ -29,7 +29,7 @@ run_one() {
   dir="$out/$env-ddpg-$conn-s$seed"
   if [ ! -f "$dir/summary.json" ]; then
     rm -rf "$dir"
-    $lcrl train --env "$env" --algo ddpg --connection "$conn" --seed "$seed" --episodes 200 --run-dir "$dir" > "$dir.log" 2>&1
+    $lcrl train --env "$env" --algo ddpg --connection "$conn" --seed "$seed" --episodes 200 --config configs/table1-ddpg.toml --run-dir "$dir" > "$dir.log" 2>&1
   fi
   $lcrl sim --checkpoint "$dir" --episodes 100 --seed 0 --out "$dir/eval100" > "$dir.eval.log" 2>&1
 }
