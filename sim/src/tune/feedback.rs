@@ -16,7 +16,6 @@
 
 use std::time::Instant;
 
-use cmaes::{CMAESOptions, DVector};
 use serde::Serialize;
 
 use super::{action_of, constant_return, u_of, ConstantResult, TuneError, TuneOptions};
@@ -150,40 +149,11 @@ pub fn tune_policy(template: &dyn Env, family: Family, start: &[f64], opts: &Tun
     let start_policy = FeedbackPolicy::from_params(family, &theta0, n, m, switch);
     let start_return = policy_return(template, &start_policy, opts.episodes, opts.seed)?;
 
-    let failure: std::sync::Mutex<Option<EnvError>> = std::sync::Mutex::new(None);
-    let best_so_far = std::sync::Mutex::new(start_return);
-    let objective = |theta: &DVector<f64>| -> f64 {
-        let policy = FeedbackPolicy::from_params(family, theta.as_slice(), n, m, switch);
-        match policy_return(template, &policy, opts.episodes, opts.seed) {
-            Ok(r) => {
-                let best = {
-                    let mut best = best_so_far.lock().unwrap_or_else(|p| p.into_inner());
-                    *best = best.max(r);
-                    *best
-                };
-                on_candidate(best);
-                -r
-            }
-            Err(e) => {
-                failure.lock().unwrap_or_else(|p| p.into_inner()).get_or_insert(e);
-                f64::INFINITY
-            }
-        }
-    };
-    let mut state = CMAESOptions::new(theta0.clone(), opts.sigma)
-        .max_function_evals(opts.evaluations)
-        .seed(opts.seed)
-        .build(objective)
-        .map_err(|e| TuneError::Options(format!("{e:?}")))?;
-    let data = state.run_parallel();
-    let evaluations = state.function_evals();
-    drop(state);
-    if let Some(e) = failure.into_inner().unwrap_or_else(|p| p.into_inner()) {
-        return Err(TuneError::Env(e));
-    }
-    let (policy, best_return) = match data.overall_best {
-        Some(ind) if -ind.value > start_return => (FeedbackPolicy::from_params(family, ind.point.as_slice(), n, m, switch), -ind.value),
-        _ => (start_policy, start_return),
+    let objective = |theta: &[f64]| policy_return(template, &FeedbackPolicy::from_params(family, theta, n, m, switch), opts.episodes, opts.seed);
+    let (found, evaluations) = super::search(theta0, start_return, opts, &objective, on_candidate)?;
+    let (policy, best_return) = match found {
+        Some((theta, r)) => (FeedbackPolicy::from_params(family, &theta, n, m, switch), r),
+        None => (start_policy, start_return),
     };
 
     let mut env = template.fresh();

@@ -134,24 +134,22 @@ fn evaluate_constant(template: &dyn Env, action: &[f64], tuning_return: f64, opt
     Ok(ConstantResult { action: action.to_vec(), tuning_return, eval })
 }
 
-/// Runs the search (candidates in parallel on the current rayon pool);
-/// `on_candidate` is called after every candidate with the best mean
-/// return so far.
-pub fn tune(template: &dyn Env, opts: &TuneOptions, on_candidate: &(dyn Fn(f64) + Sync)) -> Result<TuneReport, TuneError> {
-    opts.check()?;
-    let started = Instant::now();
-    let spec = template.spec().clone();
-    let n = spec.action_dim();
-    let zero = vec![0.0; n];
-    let zero_return = constant_return(template, &zero, opts.episodes, opts.seed)?;
-
-    // Episode errors cannot cross the objective's signature; the first one
-    // is kept and reported after the search.
+/// CMA-ES from `start` (whose mean return is `start_return`), maximizing
+/// `mean_return` over up to `opts.evaluations` candidates in parallel on
+/// the current rayon pool. Returns the best point and its return if it
+/// beats the start, and the candidates evaluated; the first episode error
+/// (which cannot cross the objective's signature) ends it as an error.
+fn search(
+    start: Vec<f64>,
+    start_return: f64,
+    opts: &TuneOptions,
+    mean_return: &(dyn Fn(&[f64]) -> Result<f64, EnvError> + Sync),
+    on_candidate: &(dyn Fn(f64) + Sync),
+) -> Result<(Option<(Vec<f64>, f64)>, usize), TuneError> {
     let failure: std::sync::Mutex<Option<EnvError>> = std::sync::Mutex::new(None);
-    let best_so_far = std::sync::Mutex::new(zero_return);
-    let objective = |u: &DVector<f64>| -> f64 {
-        let action = action_of(&spec, u.as_slice());
-        match constant_return(template, &action, opts.episodes, opts.seed) {
+    let best_so_far = std::sync::Mutex::new(start_return);
+    let objective = |point: &DVector<f64>| -> f64 {
+        match mean_return(point.as_slice()) {
             Ok(r) => {
                 let best = {
                     let mut best = best_so_far.lock().unwrap_or_else(|p| p.into_inner());
@@ -167,7 +165,7 @@ pub fn tune(template: &dyn Env, opts: &TuneOptions, on_candidate: &(dyn Fn(f64) 
             }
         }
     };
-    let mut state = CMAESOptions::new(u_of(&spec, &zero), opts.sigma)
+    let mut state = CMAESOptions::new(start, opts.sigma)
         .max_function_evals(opts.evaluations)
         .seed(opts.seed)
         .build(objective)
@@ -178,9 +176,25 @@ pub fn tune(template: &dyn Env, opts: &TuneOptions, on_candidate: &(dyn Fn(f64) 
     if let Some(e) = failure.into_inner().unwrap_or_else(|p| p.into_inner()) {
         return Err(TuneError::Env(e));
     }
-    let (best_action, best_return) = match data.overall_best {
-        Some(ind) if -ind.value > zero_return => (action_of(&spec, ind.point.as_slice()), -ind.value),
-        _ => (zero.clone(), zero_return),
+    let found = data.overall_best.filter(|ind| -ind.value > start_return).map(|ind| (ind.point.as_slice().to_vec(), -ind.value));
+    Ok((found, evaluations))
+}
+
+/// Runs the search (candidates in parallel on the current rayon pool);
+/// `on_candidate` is called after every candidate with the best mean
+/// return so far.
+pub fn tune(template: &dyn Env, opts: &TuneOptions, on_candidate: &(dyn Fn(f64) + Sync)) -> Result<TuneReport, TuneError> {
+    opts.check()?;
+    let started = Instant::now();
+    let spec = template.spec().clone();
+    let n = spec.action_dim();
+    let zero = vec![0.0; n];
+    let zero_return = constant_return(template, &zero, opts.episodes, opts.seed)?;
+
+    let (found, evaluations) = search(u_of(&spec, &zero), zero_return, opts, &|u| constant_return(template, &action_of(&spec, u), opts.episodes, opts.seed), on_candidate)?;
+    let (best_action, best_return) = match found {
+        Some((u, r)) => (action_of(&spec, &u), r),
+        None => (zero.clone(), zero_return),
     };
 
     let best = evaluate_constant(template, &best_action, best_return, opts)?;
