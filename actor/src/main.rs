@@ -417,6 +417,9 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
     let env_name = policy.architecture.env.clone();
     let mut envs: Vec<Box<dyn lcrl_sim::Env>> = (0..s.envs).map(|_| lcrl_sim::make_env(&env_name)).collect::<Result<_, _>>()?;
     policy.check_env(envs[0].as_ref())?;
+    // The base is part of the architecture, which newer weights never
+    // change, and the K environments share one spec: one map for the run.
+    let action_map = policy.action_map(envs[0].as_ref())?;
     // Actors differ by name (container replicas all run as process 1), and
     // the same name and seed give the same episodes.
     let salt = {
@@ -484,7 +487,7 @@ fn work(s: WorkerSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBoo
                     .map(|(&a, noise)| (f64::from(a) + noise.sample(&mut rng)).clamp(-1.0, 1.0) as f32)
                     .collect()
             };
-            actions.push(policy.action_map(env.as_ref())?.to_env(&u));
+            actions.push(action_map.to_env(&u));
         }
         // All K environments at once: one call when a server serves them.
         let steps = lcrl_sim::step_all(&mut envs, &actions)?;
