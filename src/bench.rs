@@ -4,7 +4,7 @@
 use std::time::Instant;
 
 use clap::Subcommand;
-use lcrl_graph_builder::{build_graph, Cs3Config, GraphOptions, Rule};
+use lcrl_graph_builder::{build_graph, Cs3Config, GraphOptions};
 use lcrl_sim::lti::{LtiConfig, LtiEnv};
 use lcrl_sim::Env;
 
@@ -20,11 +20,24 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 5)]
         repeats: usize,
     },
-    /// DDPG update and PPO update time, local vs global actor.
+    /// DDPG update and PPO update time, local vs global actor, per device
+    /// and libtorch thread count; with the PyTorch-eager equivalent when a
+    /// Python with torch is at hand (ratios within one run).
     Learner {
-        /// DDPG updates to time per actor.
+        /// DDPG updates to time per setting.
         #[arg(long, default_value_t = 300)]
         updates: usize,
+        /// Where the networks compute.
+        #[arg(long, default_value = "cpu", value_parser = ["cpu", "cuda"])]
+        device: String,
+        /// libtorch intra-op thread counts to measure.
+        #[arg(long, value_delimiter = ',', default_value = "1")]
+        threads: Vec<usize>,
+        /// The Python whose torch times the same DDPG update eagerly
+        /// (scripts/bench_torch_ddpg.py) [default: this project's .venv];
+        /// `none` skips it.
+        #[arg(long)]
+        python: Option<String>,
     },
     /// gRPC ingestion rate, Policy.Act latency, and end-to-end environment
     /// steps/s with 1 and 2 actors (real lcrl-learner / lcrl-actor processes).
@@ -59,7 +72,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
     match command {
         BenchCommand::Graph { samples, repeats } => bench_graph(samples, repeats.max(1)),
         BenchCommand::Sim { episodes } => bench_sim(episodes.max(1)),
-        BenchCommand::Learner { updates } => bench_learner(updates.max(1)),
+        BenchCommand::Learner { updates, device, threads, python } => bench_learner(updates.max(1), &device, &threads, python.as_deref()),
         BenchCommand::Transport { seconds } => crate::bench_transport::run(seconds.max(1.0)),
         BenchCommand::Env { gym, instances, steps } => crate::bench_env::run(&gym, &instances, steps.max(1)),
     }
@@ -67,53 +80,136 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
 
 /// One DDPG update (batch 256, default sizes) and one PPO update (a 2048-step
 /// rollout: 10 epochs of 64-transition minibatches), local vs global actor,
-/// at the peg task's size with its CS3 graph, one libtorch thread.
-fn bench_learner(updates: usize) -> anyhow::Result<()> {
-    use lcrl_learner::agent::Transition;
-    use lcrl_learner::trainer::make_agent;
-    use lcrl_learner::{Algo, Connection, TrainConfig};
-    use rand::{Rng, SeedableRng};
-
-    tch::set_num_threads(1);
+/// at the peg task's size with its CS3 graph, for each thread count on
+/// `device`; then the same DDPG update in PyTorch eager (global actor).
+fn bench_learner(updates: usize, device: &str, threads: &[usize], python: Option<&str>) -> anyhow::Result<()> {
+    if threads.is_empty() || threads.iter().any(|&t| t == 0 || t > lcrl_learner::device::MAX_THREADS) {
+        anyhow::bail!("--threads takes counts from 1 to {}", lcrl_learner::device::MAX_THREADS);
+    }
+    let torch_device = lcrl_learner::device::resolve_device(device)?;
     let env = lcrl_sim::make_env("peg-group1")?;
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
-    let options = GraphOptions { cs3: Cs3Config { samples: 32, seed: 0, threads: 0, start: None }, rule: Rule::Threshold(0.1), bootstrap: 0 };
+    let options = GraphOptions::paper(32, 0, 0);
     let mask = build_graph(env.as_ref(), &options, &|| {})?.g;
     let edges: usize = mask.iter().flatten().map(|&v| usize::from(v)).sum();
-    println!("peg-group1 ({m} states, {n} actions, {edges} of {} edges in G), one libtorch thread", m * n);
-    let mut cfg = TrainConfig::default();
+    let mut cfg = lcrl_learner::TrainConfig::default();
     cfg.ddpg.warmup_steps = 0;
+    cfg.run.device = device.to_string();
+    println!(
+        "peg-group1 ({m} states, {n} actions, {edges} of {} edges in G), DDPG batch {}, {updates} updates per setting, on {device} ({} cores here)",
+        m * n,
+        cfg.ddpg.batch_size,
+        lcrl_learner::device::available_cores()
+    );
+    println!("{:>7} {:<12} {:>13} {:>16} {:>12} {:>20}", "threads", "actor", "actor params", "DDPG update ms", "updates/s", "PPO update (10 ep) s");
+    let mut globals: Vec<(usize, f64)> = Vec::new();
+    for &t in threads {
+        tch::set_num_threads(t as i32);
+        let mut by_connection = Vec::new();
+        for connection in [lcrl_learner::Connection::Global, lcrl_learner::Connection::Local, lcrl_learner::Connection::FullSubnets] {
+            let (ddpg, ppo, params) = time_updates(&cfg, connection, &mask, m, n, updates, torch_device)?;
+            println!("{t:>7} {:<12} {params:>13} {:>16.3} {:>12.0} {ppo:>20.3}", format!("{connection:?}"), ddpg * 1e3, 1.0 / ddpg);
+            by_connection.push((ddpg, ppo));
+        }
+        let (global, local) = (by_connection[0], by_connection[1]);
+        println!("{t:>7} local / global: DDPG update {:.2}×, PPO update {:.2}× (target ≤ 1.3×)", local.0 / global.0, local.1 / global.1);
+        if let Some(&(first, seconds)) = globals.first() {
+            println!("{t:>7} global DDPG update: {:.2}× the speed of {first} thread(s)", seconds / global.0);
+        }
+        globals.push((t, global.0));
+    }
+    torch_eager(python, device, threads, updates, (m, n, cfg.ddpg.batch_size), &globals)
+}
+
+/// Seconds per DDPG update and per PPO update, and the actor's parameters.
+/// Updates are timed as a whole after a synchronizing read, so a GPU's
+/// asynchronous launches are counted when they finish, not when queued.
+fn time_updates(
+    cfg: &lcrl_learner::TrainConfig,
+    connection: lcrl_learner::Connection,
+    mask: &[Vec<u8>],
+    m: usize,
+    n: usize,
+    updates: usize,
+    device: tch::Device,
+) -> anyhow::Result<(f64, f64, usize)> {
+    use lcrl_learner::agent::Transition;
+    use lcrl_learner::trainer::make_agent;
+    use lcrl_learner::Algo;
+    use rand::{Rng, SeedableRng};
+
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     let mut random = |len: usize| -> Vec<f32> { (0..len).map(|_| rng.random_range(-1.0..1.0)).collect() };
-    let mut results = Vec::new();
-    for connection in [Connection::Global, Connection::Local, Connection::FullSubnets] {
-        let mut ddpg = make_agent(Algo::Ddpg, connection, &cfg, &mask, m, n)?;
-        let mut ddpg_seconds = 0.0;
-        for k in 0..(updates + cfg.ddpg.batch_size) {
-            let (obs, action, next) = (random(m), random(n), random(m));
-            let t = Transition { obs: &obs, action: &action, reward: -1.0, next_obs: &next, terminated: false, truncated: false };
-            let spent = ddpg.observe(t);
-            if k >= cfg.ddpg.batch_size {
-                ddpg_seconds += spent;
+    let sync = || {
+        if let tch::Device::Cuda(k) = device {
+            tch::Cuda::synchronize(k as i64);
+        }
+    };
+    let mut ddpg = make_agent(Algo::Ddpg, connection, cfg, mask, m, n)?;
+    for _ in 0..cfg.ddpg.batch_size {
+        let (obs, action, next) = (random(m), random(n), random(m));
+        ddpg.store(Transition { obs: &obs, action: &action, reward: -1.0, next_obs: &next, terminated: false, truncated: false });
+    }
+    // Warm-up updates (allocator, kernels' first launches) are not timed.
+    for _ in 0..10 {
+        ddpg.train_step();
+    }
+    sync();
+    let started = Instant::now();
+    for _ in 0..updates {
+        ddpg.train_step();
+    }
+    sync();
+    let ddpg_seconds = started.elapsed().as_secs_f64() / updates as f64;
+
+    let mut ppo = make_agent(Algo::Ppo, connection, cfg, mask, m, n)?;
+    let mut ppo_seconds = 0.0;
+    for _ in 0..cfg.ppo.rollout_steps {
+        let obs = random(m);
+        let action = ppo.explore(&obs, 0);
+        let next = random(m);
+        ppo_seconds += ppo.observe(Transition { obs: &obs, action: &action, reward: -1.0, next_obs: &next, terminated: false, truncated: false });
+    }
+    sync();
+    Ok((ddpg_seconds, ppo_seconds, ddpg.param_counts().0))
+}
+
+/// The same DDPG update (global actor, Table I sizes) in PyTorch eager, per
+/// thread count, and lcrl's speed against it.
+fn torch_eager(python: Option<&str>, device: &str, threads: &[usize], updates: usize, (m, n, batch): (usize, usize, usize), lcrl: &[(usize, f64)]) -> anyhow::Result<()> {
+    let python = match python {
+        Some("none") => return Ok(()),
+        Some(path) => std::path::PathBuf::from(path),
+        None => match crate::preset::lcrl_python() {
+            Ok(path) => path,
+            Err(_) => {
+                println!("PyTorch eager: skipped (no .venv Python; pass --python)");
+                return Ok(());
             }
-        }
-        let mut ppo = make_agent(Algo::Ppo, connection, &cfg, &mask, m, n)?;
-        let mut ppo_seconds = 0.0;
-        for _ in 0..cfg.ppo.rollout_steps {
-            let obs = random(m);
-            let action = ppo.explore(&obs, 0);
-            let next = random(m);
-            ppo_seconds += ppo.observe(Transition { obs: &obs, action: &action, reward: -1.0, next_obs: &next, terminated: false, truncated: false });
-        }
-        let params = ddpg.param_counts().0;
-        results.push((connection, params, ddpg_seconds / updates as f64, ppo_seconds));
+        },
+    };
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/bench_torch_ddpg.py");
+    let threads_arg = threads.iter().map(ToString::to_string).collect::<Vec<_>>().join(",");
+    let out = std::process::Command::new(&python)
+        .arg(&script)
+        .args(["--device", device, "--threads", &threads_arg, "--updates", &updates.to_string()])
+        .args(["--states", &m.to_string(), "--actions", &n.to_string(), "--batch", &batch.to_string()])
+        .output()
+        .map_err(|e| anyhow::anyhow!("starting {}: {e}", python.display()))?;
+    if !out.status.success() {
+        println!("PyTorch eager: skipped ({} failed: {})", script.display(), String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or("no message"));
+        return Ok(());
     }
-    println!("{:<14} {:>13} {:>16} {:>12} {:>18}", "actor", "actor params", "DDPG update ms", "updates/s", "PPO update (10 ep) s");
-    for (connection, params, ddpg, ppo) in &results {
-        println!("{:<14} {params:>13} {:>16.3} {:>12.0} {ppo:>18.3}", format!("{connection:?}"), ddpg * 1e3, 1.0 / ddpg);
+    // Lines "THREADS MS_PER_UPDATE VERSION".
+    for line in String::from_utf8_lossy(&out.stdout).lines() {
+        let fields: Vec<&str> = line.split_whitespace().collect();
+        let (Some(t), Some(ms), Some(version)) = (fields.first(), fields.get(1).and_then(|v| v.parse::<f64>().ok()), fields.get(2)) else { continue };
+        let against = match lcrl.iter().find(|(lt, _)| lt.to_string() == *t) {
+            Some((_, seconds)) => format!(", lcrl's global update {:.2}× its time", seconds * 1e3 / ms),
+            None => String::new(),
+        };
+        println!("{t:>7} PyTorch {version} eager DDPG update (global): {ms:.3} ms{against}");
     }
-    let (global, local) = (&results[0], &results[1]);
-    println!("local / global: DDPG update {:.2}×, PPO update {:.2}× (target ≤ 1.3×)", local.2 / global.2, local.3 / global.3);
     Ok(())
 }
 
@@ -143,15 +239,11 @@ fn bench_graph(samples: usize, repeats: usize) -> anyhow::Result<()> {
         ("lti-paper (3×3)", LtiEnv::new("lti-paper", &LtiConfig::paper_example())?),
         ("random 12×6", LtiEnv::new("random-12x6", &LtiConfig::random_sparse(12, 6, 0.25, 42))?),
     ];
-    println!("CS3 graph build, ST = {samples}, eq. 7, 200 bootstrap resamples; median of {repeats}");
+    println!("CS3 graph build, ST = {samples}, eq. 7, {} bootstrap resamples; median of {repeats}", lcrl_graph_builder::DEFAULT_BOOTSTRAP);
     println!("{:<18} {:>12} {:>12} {:>14}", "system", "1 thread", format!("{cores} threads"), "speed-up");
     for (label, env) in &systems {
         let time = |threads: usize| -> anyhow::Result<f64> {
-            let options = GraphOptions {
-                cs3: Cs3Config { samples, seed: 0, threads, start: None },
-                rule: Rule::Threshold(0.1),
-                bootstrap: 200,
-            };
+            let options = GraphOptions { cs3: Cs3Config { samples, seed: 0, threads, start: None }, ..GraphOptions::paper(samples, 0, lcrl_graph_builder::DEFAULT_BOOTSTRAP) };
             let mut runs = Vec::with_capacity(repeats);
             for _ in 0..repeats {
                 let started = Instant::now();

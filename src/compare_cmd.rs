@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use lcrl_learner::trainer::{EpisodeRow, TrainSummary};
+use lcrl_learner::run_files::{EpisodeRow, TrainSummary};
 use serde::Deserialize;
 
 use crate::plots::{line_panels, Panel};

@@ -226,6 +226,40 @@ impl Preset {
     }
 }
 
+/// Where a run's learner computes (`lcrl run`, `lcrl scale`): overrides of
+/// the preset's run.device and run.threads. Actors always use the CPU.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct LearnerCompute {
+    /// The learner's device (overrides run.device).
+    #[arg(long, value_parser = ["cpu", "cuda"])]
+    pub device: Option<String>,
+    /// The learner's libtorch intra-op threads (overrides run.threads; 0:
+    /// the cores this machine has left over after the actors, at least 1).
+    #[arg(long)]
+    pub threads: Option<usize>,
+}
+
+impl Preset {
+    /// Applies `compute`'s overrides and checks the result.
+    pub fn set_compute(&mut self, compute: &LearnerCompute) -> anyhow::Result<()> {
+        if let Some(device) = &compute.device {
+            self.train.run.device = device.clone();
+        }
+        if let Some(threads) = compute.threads {
+            self.train.run.threads = threads;
+        }
+        self.train.validate()?;
+        Ok(())
+    }
+
+    /// run.threads as a count for a learner that shares this machine with
+    /// the job's actors (one core each): 0 ("auto") becomes the cores left
+    /// over, so learner and actors do not fight for cores.
+    pub fn pin_learner_threads(&mut self) {
+        self.train.run.threads = lcrl_learner::device::resolve_threads(self.train.run.threads, self.job.actors);
+    }
+}
+
 /// TLS and the token for every process of a run: a folder `lcrl certs`
 /// wrote and a token file. Shared by `lcrl run` (one machine) and
 /// `lcrl launch` (containers, pods), so both secure a run the same way.

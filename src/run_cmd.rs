@@ -13,7 +13,7 @@ use lcrl_learner::Connection;
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::GetStatusRequest;
 
-use crate::preset::{sibling, Preset, RunSecurity};
+use crate::preset::{sibling, LearnerCompute, Preset, RunSecurity};
 use lcrl_proto::security::ClientSecurity;
 
 /// Run graph builder, learner and actors on this machine until the episode
@@ -38,6 +38,8 @@ pub struct RunArgs {
     /// Only check the preset (and its environment) and exit.
     #[arg(long)]
     pub check: bool,
+    #[command(flatten)]
+    pub compute: LearnerCompute,
     #[command(flatten)]
     pub security: RunSecurity,
 }
@@ -150,7 +152,11 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     if let Some(episodes) = args.episodes {
         preset.job.episodes = episodes;
     }
+    preset.set_compute(&args.compute)?;
     preset.check()?;
+    // A learner that cannot have its device fails here, before anything starts.
+    lcrl_learner::device::resolve_device(&preset.train.run.device)?;
+    preset.pin_learner_threads();
     if args.check {
         let job = &preset.job;
         println!("{}: {} with {:?}/{:?}, {} episodes, {} actor(s) — ok", args.config.display(), job.env, job.algo, job.connection, job.episodes, job.actors);

@@ -53,6 +53,8 @@ pub struct ScaleArgs {
     /// default: the preset's (Algorithm 2's).
     #[arg(long)]
     pub replay_ratio: Option<String>,
+    #[command(flatten)]
+    pub compute: crate::preset::LearnerCompute,
     /// Where scale.json, scale.csv, scale.png and per-point logs go.
     #[arg(long, default_value = "runs/scale")]
     pub out: PathBuf,
@@ -68,6 +70,9 @@ pub struct ScalePoint {
     /// Learner + actors (1 for the single-process loop).
     pub processes: usize,
     pub transport: String,
+    /// The learner's device and libtorch threads.
+    pub learner_device: String,
+    pub learner_threads: usize,
     pub seconds: f64,
     pub env_steps_per_s: f64,
     pub updates_per_s: f64,
@@ -95,6 +100,8 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
         bail!("--seconds must be > 0 and --warmup ≥ 0");
     }
     let mut preset = Preset::load(&args.config)?;
+    preset.set_compute(&args.compute)?;
+    lcrl_learner::device::resolve_device(&preset.train.run.device)?;
     if args.replay_ratio.is_some() {
         preset.job.replay_ratio = args.replay_ratio.clone();
     }
@@ -109,11 +116,7 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
     let graph = args.out.join("graph.json");
     if preset.job.connection == lcrl_learner::Connection::Local && !graph.is_file() {
         let env = lcrl_sim::make_env(&preset.job.env)?;
-        let options = lcrl_graph_builder::GraphOptions {
-            cs3: lcrl_graph_builder::Cs3Config { samples: preset.train.run.graph_samples, seed: preset.train.run.seed, threads: 0, start: None },
-            rule: lcrl_graph_builder::Rule::Threshold(0.1),
-            bootstrap: 0,
-        };
+        let options = lcrl_graph_builder::GraphOptions::paper(preset.train.run.graph_samples, preset.train.run.seed, 0);
         lcrl_graph_builder::build_graph(env.as_ref(), &options, &|| {})?.write_json(&graph)?;
     }
     let mut points = vec![baseline(&preset, args, &graph)?];
@@ -138,20 +141,25 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
     }
     csv.flush()?;
     plot(&points, &args.out.join("scale.png"), &preset.job.env)?;
-    println!("{:<24} {:>6} {:>5} {:>12} {:>10} {:>7} {:>6} {:>8} {:>9} {:>9}", "kind", "actors", "envs", "env steps/s", "updates/s", "ratio", "lag", "act p50", "cpu lrn", "cpu act");
+    println!(
+        "{:<24} {:>6} {:>5} {:>8} {:>12} {:>10} {:>7} {:>6} {:>8} {:>9} {:>9} {:>10}",
+        "kind", "actors", "envs", "learner", "env steps/s", "updates/s", "ratio", "lag", "act p50", "cpu lrn", "cpu act", "to thr. s"
+    );
     for p in &points {
         println!(
-            "{:<24} {:>6} {:>5} {:>12.0} {:>10.0} {:>7.1} {:>6.1} {:>8} {:>9.2} {:>9.2}",
+            "{:<24} {:>6} {:>5} {:>8} {:>12.0} {:>10.0} {:>7.1} {:>6.1} {:>8} {:>9.2} {:>9.2} {:>10}",
             p.kind,
             p.actors,
             p.envs_per_actor,
+            format!("{}×{}", p.learner_device, p.learner_threads),
             p.env_steps_per_s,
             p.updates_per_s,
             p.replay_ratio,
             p.policy_lag_mean,
             p.act_p50_ms.map_or("-".into(), |v| format!("{v:.2}ms")),
             p.learner_cpu,
-            p.actors_cpu
+            p.actors_cpu,
+            p.seconds_to_threshold.map_or("-".into(), |v| format!("{v:.0}"))
         );
     }
     println!("wrote {}, {}, {}", json.display(), csv_path.display(), args.out.join("scale.png").display());
@@ -187,21 +195,28 @@ fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<S
     };
     let outcome = lcrl_learner::trainer::train(&request, &mut |_| {})?;
     let after_warmup = &outcome.rows[warm.min(outcome.rows.len().saturating_sub(1))..];
-    let wall: f64 = after_warmup.iter().map(|r| r.wall_s).sum();
+    let wall: f64 = after_warmup.iter().filter_map(|r| r.wall_s).sum();
     let steps: usize = after_warmup.iter().map(|r| r.length).sum();
     let rate = steps as f64 / wall.max(1e-9);
+    let ddpg = &preset.train.ddpg;
     Ok(ScalePoint {
         kind: "train (single process)".into(),
         actors: 0,
         envs_per_actor: 1,
         processes: 1,
         transport: "-".into(),
+        learner_device: preset.train.run.device.clone(),
+        learner_threads: lcrl_learner::device::resolve_threads(preset.train.run.threads, 0),
         seconds: wall,
         env_steps_per_s: rate,
-        // Algorithm 2 in one process: one update per step once warm (PPO:
-        // one PPO update per rollout).
-        updates_per_s: if preset.job.algo == lcrl_learner::Algo::Ddpg { rate } else { rate / preset.train.ppo.rollout_steps as f64 },
-        replay_ratio: if preset.job.algo == lcrl_learner::Algo::Ddpg { preset.train.ddpg.batch_size as f64 } else { 0.0 },
+        // Algorithm 2 in one process: one update per step once warm, or
+        // gradient_steps every update_every steps (PPO: one PPO update per
+        // rollout).
+        updates_per_s: match preset.job.algo {
+            lcrl_learner::Algo::Ddpg => rate * ddpg.gradient_steps as f64 / ddpg.update_every as f64,
+            lcrl_learner::Algo::Ppo => rate / preset.train.ppo.rollout_steps as f64,
+        },
+        replay_ratio: if preset.job.algo == lcrl_learner::Algo::Ddpg { ddpg.samples_per_insert() } else { 0.0 },
         policy_lag_mean: 0.0,
         policy_lag_max: 0,
         act_p50_ms: None,
@@ -227,6 +242,8 @@ fn cpu_seconds(pid: u32) -> f64 {
 async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize, envs: usize, transport: &str) -> anyhow::Result<ScalePoint> {
     let mut preset = preset.clone();
     preset.job.envs_per_actor = envs;
+    preset.job.actors = actors;
+    preset.pin_learner_threads();
     let dir = args.out.join(format!("a{actors}-e{envs}"));
     let _ = fs::remove_dir_all(&dir);
     let logs = dir.join("logs");
@@ -293,6 +310,8 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
         envs_per_actor: envs,
         processes: actors + 1,
         transport: transport.into(),
+        learner_device: preset.train.run.device.clone(),
+        learner_threads: preset.train.run.threads,
         seconds,
         env_steps_per_s: last.env_steps.saturating_sub(first.env_steps) as f64 / seconds,
         updates_per_s: last.updates.saturating_sub(first.updates) as f64 / seconds,

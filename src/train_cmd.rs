@@ -4,7 +4,8 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
-use lcrl_learner::trainer::{train, EpisodeRow, TrainRequest};
+use lcrl_learner::run_files::EpisodeRow;
+use lcrl_learner::trainer::{train, TrainRequest};
 use lcrl_learner::{Algo, Connection, TrainConfig};
 
 use crate::plots::{line_panels, Panel};
@@ -31,9 +32,12 @@ pub struct TrainArgs {
     /// Seed of networks, exploration and episodes (overrides run.seed).
     #[arg(long)]
     pub seed: Option<u64>,
-    /// libtorch threads (overrides run.threads).
+    /// libtorch intra-op threads (overrides run.threads; 0: every core).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Where the networks compute (overrides run.device).
+    #[arg(long, value_parser = ["cpu", "cuda"])]
+    pub device: Option<String>,
     /// Act around this base controller (residual RL): a best_constant.json
     /// of `lcrl tune`; sets controller.base = "best-constant" from that file.
     #[arg(long, value_name = "best_constant.json")]
@@ -69,6 +73,9 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     if let Some(threads) = args.threads {
         config.run.threads = threads;
     }
+    if let Some(device) = &args.device {
+        config.run.device = device.clone();
+    }
     if let Some(path) = &args.base_action {
         // Read now, so a bad file fails before any work.
         lcrl_learner::action::read_best_constant(path)?;
@@ -80,7 +87,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         anyhow::bail!("--graph only applies to --connection local");
     }
     eprintln!("training settings: {source}");
-    if let Some(checkpoint) = args.resume.then(|| lcrl_learner::trainer::latest_checkpoint(&args.run_dir)).flatten() {
+    if let Some(checkpoint) = args.resume.then(|| lcrl_learner::checkpoint::latest_checkpoint(&args.run_dir)).flatten() {
         eprintln!("resuming from checkpoint {}", checkpoint.display());
     }
     let request = TrainRequest {
@@ -134,7 +141,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
 }
 
 impl TrainArgs {
-    fn env_state_dims(&self, _s: &lcrl_learner::trainer::TrainSummary) -> anyhow::Result<(usize, usize)> {
+    fn env_state_dims(&self, _s: &lcrl_learner::run_files::TrainSummary) -> anyhow::Result<(usize, usize)> {
         let env = lcrl_sim::make_env(&self.env)?;
         Ok((env.spec().state_dim(), env.spec().action_dim()))
     }
@@ -142,7 +149,7 @@ impl TrainArgs {
 
 /// Returns per episode with a 10-episode moving average, and the run's
 /// references as horizontal lines.
-fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::trainer::TrainSummary, args: &TrainArgs) -> anyhow::Result<()> {
+fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::run_files::TrainSummary, args: &TrainArgs) -> anyhow::Result<()> {
     let env = &summary.env;
     let x: Vec<f64> = rows.iter().map(|r| r.episode as f64).collect();
     let returns: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();

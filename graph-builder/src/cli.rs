@@ -47,7 +47,7 @@ pub struct GraphArgs {
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
     /// Bootstrap resamples for each entry's stability (0 to skip).
-    #[arg(long, default_value_t = 200)]
+    #[arg(long, default_value_t = crate::DEFAULT_BOOTSTRAP)]
     pub bootstrap: usize,
     /// Write the graph as JSON here (read back by `lcrl train --graph`).
     #[arg(long, value_name = "FILE.json")]
@@ -63,7 +63,7 @@ impl GraphArgs {
             Rule::Exact { tolerance: self.tolerance }
         } else {
             let first = self.thresholds.as_ref().and_then(|t| t.first().copied());
-            Rule::Threshold(self.threshold.or(first).unwrap_or(0.1))
+            Rule::Threshold(self.threshold.or(first).unwrap_or(crate::PAPER_THRESHOLD))
         };
         GraphOptions {
             cs3: Cs3Config { samples: self.samples, seed: self.seed, threads: self.threads, start: self.start },

@@ -18,6 +18,14 @@ pub enum Rule {
     Exact { tolerance: f64 },
 }
 
+/// T of eq. 7, the publication's threshold (docs/method.md §3): an action
+/// connects to a state whose normalized CS3 value is at least T.
+pub const PAPER_THRESHOLD: f64 = 0.1;
+
+/// Bootstrap resamples for each entry's stability, where nobody asks for
+/// another count.
+pub const DEFAULT_BOOTSTRAP: usize = 200;
+
 /// The default relative tolerance of [`Rule::Exact`].
 pub const EXACT_TOLERANCE: f64 = 1e-9;
 

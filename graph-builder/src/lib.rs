@@ -22,7 +22,7 @@ use std::time::Instant;
 use lcrl_sim::{Env, EnvError};
 
 pub use cs3::{Cs3Config, Cs3Error, Cs3Samples, Start};
-pub use graph::{ConnectionGraph, Rule, EXACT_TOLERANCE};
+pub use graph::{ConnectionGraph, Rule, DEFAULT_BOOTSTRAP, EXACT_TOLERANCE, PAPER_THRESHOLD};
 pub use report::{GraphReport, SweepEntry};
 
 /// How to build a graph: CS3 sampling, the rule, and the bootstrap size.
@@ -35,6 +35,13 @@ pub struct GraphOptions {
 }
 
 impl GraphOptions {
+    /// The publication's graph (T of eq. 7, [`PAPER_THRESHOLD`]) from
+    /// `samples` CS3 samples per action with `seed`, on every core, with
+    /// `bootstrap` stability resamples.
+    pub fn paper(samples: usize, seed: u64, bootstrap: usize) -> Self {
+        GraphOptions { cs3: Cs3Config { samples, seed, threads: 0, start: None }, rule: Rule::Threshold(PAPER_THRESHOLD), bootstrap }
+    }
+
     /// Rejects settings that cannot give a meaningful graph.
     pub fn validate(&self) -> Result<(), GraphError> {
         if self.cs3.samples == 0 {

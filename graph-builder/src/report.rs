@@ -238,6 +238,25 @@ fn format_phi(v: f64) -> String {
     }
 }
 
+/// G (n rows of m 0/1 entries) from a graph builder's message, checked
+/// against the environment that will use it: a peer's malformed graph is
+/// refused here with what is wrong, never reshaped into a network.
+pub fn mask_from_message(graph: &lcrl_proto::v1::ConnectionGraph, n: usize, m: usize) -> Result<Vec<Vec<u8>>, String> {
+    if (graph.actions as usize, graph.states as usize) != (n, m) {
+        return Err(format!("the graph builder's graph is {}×{} but this environment needs {n}×{m}", graph.actions, graph.states));
+    }
+    if n == 0 || m == 0 {
+        return Err(format!("the graph builder's graph is {n}×{m}: it has no rows or no columns"));
+    }
+    if graph.g.len() != n * m {
+        return Err(format!("the graph builder's G has {} entries but a {n}×{m} graph needs {}", graph.g.len(), n * m));
+    }
+    if let Some(k) = graph.g.iter().position(|&v| v > 1) {
+        return Err(format!("the graph builder's G[{}][{}] = {}: entries must be 0 or 1", k / m, k % m, graph.g[k]));
+    }
+    Ok(graph.g.chunks(m).map(|row| row.iter().map(|&v| v as u8).collect()).collect())
+}
+
 impl From<&GraphReport> for lcrl_proto::v1::ConnectionGraph {
     fn from(r: &GraphReport) -> Self {
         let flat_f32 = |rows: &[Vec<f64>]| rows.iter().flatten().map(|&v| v as f32).collect();

@@ -179,3 +179,24 @@ fn peg_phi_is_mirror_symmetric_under_x_y_swap() {
     assert!(unswapped_gap > 0.2, "the distributions are too symmetric for the test to mean anything ({unswapped_gap})");
     eprintln!("worst mirror difference: {:.2} of the tolerance at ({}, {})", worst.0, worst.1, worst.2);
 }
+
+/// A graph builder's message becomes G only when it is whole: the right
+/// shape for the environment, n·m entries, each 0 or 1.
+#[test]
+fn a_malformed_graph_message_is_refused_with_what_is_wrong() {
+    use crate::report::mask_from_message;
+    let good = lcrl_proto::v1::ConnectionGraph { actions: 2, states: 3, g: vec![1, 0, 1, 0, 0, 0], ..Default::default() };
+    assert_eq!(mask_from_message(&good, 2, 3).unwrap(), vec![vec![1, 0, 1], vec![0, 0, 0]]);
+    let cases = [
+        (lcrl_proto::v1::ConnectionGraph { g: vec![1, 0, 1], ..good.clone() }, "has 3 entries but a 2×3 graph needs 6"),
+        (lcrl_proto::v1::ConnectionGraph { g: vec![1, 0, 1, 0, 0, 0, 1], ..good.clone() }, "has 7 entries"),
+        (lcrl_proto::v1::ConnectionGraph { g: vec![1, 0, 1, 0, 7, 0], ..good.clone() }, "G[1][1] = 7"),
+        (lcrl_proto::v1::ConnectionGraph { actions: 3, ..good.clone() }, "is 3×3 but this environment needs 2×3"),
+    ];
+    for (message, needle) in cases {
+        let err = mask_from_message(&message, 2, 3).unwrap_err();
+        assert!(err.contains(needle), "{err}");
+    }
+    let empty = lcrl_proto::v1::ConnectionGraph { actions: 0, states: 3, g: vec![], ..Default::default() };
+    assert!(mask_from_message(&empty, 0, 3).unwrap_err().contains("no rows"));
+}

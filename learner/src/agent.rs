@@ -60,8 +60,9 @@ pub trait Agent: Send {
     fn exploration(&self, _episodes: usize) -> Option<(bool, f64)> {
         None
     }
-    /// Transitions one update samples (DDPG: a minibatch), for the
-    /// replay-ratio limiter; 0 where updates do not sample a replay buffer.
+    /// Transitions one `train_step` samples (DDPG: its minibatches), for
+    /// the replay-ratio limiter; 0 where updates do not sample a replay
+    /// buffer.
     fn samples_per_update(&self) -> usize {
         0
     }

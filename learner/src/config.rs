@@ -158,6 +158,15 @@ pub struct DdpgConfig {
     /// diverging policy leaves in the buffer); 0 means plain mean squared
     /// error as in Algorithm 2.
     pub huber_delta: f64,
+    /// Throughput trade-offs (docs/scaling.md). Train every this many
+    /// environment steps (1: Algorithm 2, an update per step) ...
+    pub update_every: usize,
+    /// ... doing this many updates of `batch_size` each time. Samples per
+    /// insert are batch_size · gradient_steps / update_every: a 4× batch
+    /// with update_every = 4 keeps Algorithm 2's ratio with 4× fewer, larger
+    /// updates; update_every = gradient_steps = 4 keeps the updates too, in
+    /// bursts (fewer policy refreshes between steps).
+    pub gradient_steps: usize,
     /// Weight of mean(raw²) on the actor's pre-tanh outputs in its loss:
     /// keeps the actor out of tanh saturation, where its gradient vanishes
     /// and a wrong early push can never be undone.
@@ -208,9 +217,13 @@ pub struct PpoConfig {
 pub struct RunConfig {
     pub episodes: usize,
     pub seed: u64,
-    /// libtorch intra-op threads.
+    /// libtorch intra-op threads; 0 (the default): automatic, every core
+    /// for `lcrl train`, the cores left over after the actors for a
+    /// distributed learner (`lcrl run`), all of its own for a learner alone
+    /// in its container or pod.
     pub threads: usize,
-    /// cpu or cuda.
+    /// Where the learner's networks compute: "cpu" or "cuda" (actors always
+    /// run on the CPU).
     pub device: String,
     /// Write a checkpoint every this many episodes (and at the end).
     pub checkpoint_every: usize,
@@ -245,6 +258,14 @@ impl Default for NetworkConfig {
     }
 }
 
+impl DdpgConfig {
+    /// Transitions sampled per transition stored, once warm: Algorithm 2's
+    /// batch_size, scaled by the throughput settings.
+    pub fn samples_per_insert(&self) -> f64 {
+        (self.batch_size * self.gradient_steps) as f64 / self.update_every.max(1) as f64
+    }
+}
+
 impl Default for DdpgConfig {
     fn default() -> Self {
         DdpgConfig {
@@ -265,6 +286,8 @@ impl Default for DdpgConfig {
             twin_critics: false,
             anneal_lr: false,
             huber_delta: 0.0,
+            update_every: 1,
+            gradient_steps: 1,
         }
     }
 }
@@ -293,7 +316,7 @@ impl Default for RunConfig {
         RunConfig {
             episodes: 200,
             seed: 0,
-            threads: 1,
+            threads: 0,
             device: "cpu".into(),
             checkpoint_every: 50,
             save_replay: true,
@@ -392,11 +415,12 @@ impl TrainConfig {
             ("ddpg.batch_size", self.ddpg.batch_size),
             ("ddpg.buffer_capacity", self.ddpg.buffer_capacity),
             ("ddpg.policy_delay", self.ddpg.policy_delay),
+            ("ddpg.update_every", self.ddpg.update_every),
+            ("ddpg.gradient_steps", self.ddpg.gradient_steps),
             ("ppo.rollout_steps", self.ppo.rollout_steps),
             ("ppo.epochs", self.ppo.epochs),
             ("ppo.minibatch_size", self.ppo.minibatch_size),
             ("run.episodes", self.run.episodes),
-            ("run.threads", self.run.threads),
             ("run.checkpoint_every", self.run.checkpoint_every),
             ("run.graph_samples", self.run.graph_samples),
         ];
@@ -409,6 +433,9 @@ impl TrainConfig {
             if sizes.is_empty() || sizes.contains(&0) {
                 return bad(field, "must list at least one layer width, each at least 1");
             }
+        }
+        if self.run.threads > crate::device::MAX_THREADS {
+            return bad("run.threads", &format!("must be 0 (automatic) or a thread count up to {}, got {}", crate::device::MAX_THREADS, self.run.threads));
         }
         if !matches!(self.run.device.as_str(), "cpu" | "cuda") {
             return bad("run.device", &format!("must be \"cpu\" or \"cuda\", got \"{}\"", self.run.device));

@@ -225,13 +225,26 @@ impl Agent for Ddpg {
         self.counters.env_steps += 1;
     }
 
+    /// One round: `gradient_steps` updates (1: Algorithm 2's one).
     fn train_step(&mut self) -> f64 {
         if self.replay.len() < self.cfg.warmup_steps.max(self.cfg.batch_size) {
             return 0.0;
         }
         let started = Instant::now();
-        self.update();
+        for _ in 0..self.cfg.gradient_steps.max(1) {
+            self.update();
+        }
         started.elapsed().as_secs_f64()
+    }
+
+    /// Single-process Algorithm 2 with the throughput settings: a round of
+    /// updates every `update_every` stored steps.
+    fn observe(&mut self, transition: Transition) -> f64 {
+        self.store(transition);
+        if self.counters.env_steps % self.cfg.update_every.max(1) as u64 != 0 {
+            return 0.0;
+        }
+        self.train_step()
     }
 
     fn stored(&self) -> usize {
@@ -254,7 +267,7 @@ impl Agent for Ddpg {
     }
 
     fn samples_per_update(&self) -> usize {
-        self.cfg.batch_size
+        self.cfg.batch_size * self.cfg.gradient_steps.max(1)
     }
 
     fn samples_drawn(&self) -> u64 {

@@ -1,16 +1,19 @@
 //! The LCRL learner (docs/method.md §5): networks, DDPG and PPO, the replay
 //! buffer, checkpoints, and a single-process training loop. Everything is a
-//! plain Rust type that tests call directly; the distributed runtime wraps
-//! these later.
+//! plain Rust type that tests call directly; the distributed runtime
+//! ([`service`]) wraps them.
 //!
 //! - [`config`]: every hyperparameter, from one TOML file.
 //! - [`nets`]: locally connected (batched, masked), full-subnets and global actors; critics.
 //! - [`action`]: normalized actions to the environment's box, around an optional base controller (residual RL).
+//! - [`device`]: the libtorch device (CUDA loaded at run time) and intra-op threads.
 //! - [`adam`]: Adam with savable state. [`replay`]: the replay buffer.
 //! - [`rate_limiter`]: the replay-ratio limiter of the distributed learner (Reverb's semantics).
 //! - [`agent`]: the algorithm interface; [`ddpg`] and [`ppo`] implement it.
 //! - [`lqr`]: the LQR ceiling for linear environments.
-//! - [`trainer`]: episodes, metrics.csv, summary.json, checkpoints, resume.
+//! - [`run_files`]: metrics.csv and summary.json (atomic), for both loops.
+//! - [`checkpoint`]: the checkpoint store (atomic writes, newest kept, resume).
+//! - [`trainer`]: the single-process loop: episodes, metrics.csv, summary.json, resume.
 //! - [`policy`]: a trained actor loaded from a checkpoint or a snapshot.
 //! - [`snapshot`]: a policy on the wire (architecture + safetensors weights).
 //! - [`service`]: the distributed learner (`lcrl-learner`): ingestion, training thread, gRPC.
@@ -18,14 +21,17 @@
 pub mod action;
 pub mod adam;
 pub mod agent;
+pub mod checkpoint;
 pub mod config;
 pub mod ddpg;
+pub mod device;
 pub mod lqr;
 pub mod nets;
 pub mod policy;
 pub mod ppo;
 pub mod rate_limiter;
 pub mod replay;
+pub mod run_files;
 pub mod service;
 pub mod snapshot;
 pub mod tensorboard;

@@ -18,7 +18,8 @@ use lcrl_learner::config::{Algo, Connection, TrainConfig};
 use lcrl_learner::service::ingest::Ingest;
 use lcrl_learner::service::runtime::{run_training, snapshot, Schedule, Shared};
 use lcrl_learner::service::server::{LearnerService, PolicyService};
-use lcrl_learner::trainer::{latest_checkpoint, make_agent, read_meta, CheckpointMeta};
+use lcrl_learner::checkpoint::{latest_checkpoint, read_meta, CheckpointMeta};
+use lcrl_learner::trainer::make_agent;
 use lcrl_proto::security::{ClientSecurity, ServerSecurity, ServerSecurityArgs};
 use lcrl_proto::v1::graph_client::GraphClient;
 use tonic::service::interceptor::InterceptedService;
@@ -45,6 +46,15 @@ struct Args {
     /// Training configuration (TOML); defaults follow docs/method.md Table I.
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Where the networks compute (overrides run.device; a resumed run may
+    /// change it).
+    #[arg(long, value_parser = ["cpu", "cuda"])]
+    device: Option<String>,
+    /// libtorch intra-op threads (overrides run.threads; 0: every core of
+    /// this machine or container; `lcrl run` passes the cores its actors
+    /// leave over).
+    #[arg(long)]
+    threads: Option<usize>,
     /// Run directory: graph.json, checkpoints; resumed if it holds one.
     #[arg(long, default_value = "runs/learner")]
     run_dir: PathBuf,
@@ -87,7 +97,8 @@ struct Args {
     episodes: Option<u64>,
     /// DDPG replay ratio: transitions sampled per transition inserted
     /// (Reverb's samples per insert). Default: Algorithm 2's, one update of
-    /// ddpg.batch_size per environment step. `unlimited`: no limiter, at
+    /// ddpg.batch_size per environment step (times ddpg.gradient_steps /
+    /// ddpg.update_every). `unlimited`: no limiter, at
     /// most one update per stored step, actors never wait (throughput
     /// experiments).
     #[arg(long, value_name = "SPI|unlimited")]
@@ -142,12 +153,8 @@ async fn fetch_graph(url: &str, security: &ClientSecurity, timeout: Duration, n:
             anyhow::Ok(graph)
         };
         match attempt.await {
-            Ok(graph) => {
-                if (graph.actions as usize, graph.states as usize) != (n, m) {
-                    bail!("the graph builder's graph is {}×{} but this environment needs {n}×{m}", graph.actions, graph.states);
-                }
-                return Ok(graph.g.chunks(m).map(|row| row.iter().map(|&v| u8::from(v == 1)).collect()).collect());
-            }
+            // A malformed graph is refused at once: retrying would not mend it.
+            Ok(graph) => return lcrl_graph_builder::report::mask_from_message(&graph, n, m).map_err(|e| anyhow::anyhow!("{url}: {e}")),
             Err(e) if Instant::now() < deadline => {
                 tracing::info!("waiting for the graph builder at {url}: {e}");
                 tokio::time::sleep(delay).await;
@@ -194,11 +201,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 }
                 (Connection::Local, None, Some(url)) => fetch_graph(url, &graph_builder_security, Duration::from_secs(args.graph_timeout), n, m).await?,
                 (Connection::Local, None, None) => {
-                    let options = lcrl_graph_builder::GraphOptions {
-                        cs3: lcrl_graph_builder::Cs3Config { samples: config.run.graph_samples, seed: config.run.seed, threads: 0, start: None },
-                        rule: lcrl_graph_builder::Rule::Threshold(0.1),
-                        bootstrap: 200,
-                    };
+                    let options = lcrl_graph_builder::GraphOptions::paper(config.run.graph_samples, config.run.seed, lcrl_graph_builder::DEFAULT_BOOTSTRAP);
                     let report = lcrl_graph_builder::build_graph(env.as_ref(), &options, &|| {})?;
                     report.write_json(&args.run_dir.join("graph.json"))?;
                     report.g
@@ -224,7 +227,16 @@ async fn run(args: Args) -> anyhow::Result<()> {
             (config, mask, meta)
         }
     };
-    tch::set_num_threads(config.run.threads as i32);
+    let mut config = config;
+    if let Some(device) = &args.device {
+        config.run.device = device.clone();
+    }
+    if let Some(threads) = args.threads {
+        config.run.threads = threads;
+    }
+    config.validate()?;
+    let threads = lcrl_learner::device::apply_threads(config.run.threads, 0);
+    tracing::info!(device = %config.run.device, threads, "learner compute");
     let mut agent = make_agent(args.algo, args.connection, &config, &mask, m, n)?;
     if let Some((dir, _)) = &resume {
         agent.load(dir)?;
@@ -263,11 +275,11 @@ async fn run(args: Args) -> anyhow::Result<()> {
         (Algo::Ppo, _) | (Algo::Ddpg, Some("unlimited")) => None,
         (Algo::Ddpg, ratio) => {
             let spi = match ratio {
-                None => config.ddpg.batch_size as f64,
+                None => config.ddpg.samples_per_insert(),
                 Some(text) => text.parse::<f64>().map_err(|_| anyhow::anyhow!("--replay-ratio must be a number of samples per insert or `unlimited`, got {text}"))?,
             };
             let fresh = lcrl_learner::rate_limiter::RateLimiter::new(spi, agent.min_size_to_sample() as u64, spi * args.replay_slack as f64).map_err(|e| anyhow::anyhow!("--replay-ratio: {e}"))?;
-            fresh.check_steps(lcrl_learner::service::shm::MAX_TRANSITIONS as u64, config.ddpg.batch_size as u64).map_err(|e| anyhow::anyhow!("{e}; raise --replay-slack"))?;
+            fresh.check_steps(lcrl_learner::service::shm::MAX_TRANSITIONS as u64, agent.samples_per_update() as u64).map_err(|e| anyhow::anyhow!("{e}; raise --replay-slack"))?;
             // A resumed run keeps its counters (no burst of updates on a
             // buffer that the checkpoint restored).
             match resume.as_ref().and_then(|(_, meta)| meta.rate_limiter.clone()) {

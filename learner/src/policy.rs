@@ -10,7 +10,7 @@ use crate::action::ActionMap;
 use crate::agent::{build_actor, load_vs};
 use crate::nets::{batch, ActorNet};
 use crate::snapshot::{decode_weights, Architecture};
-use crate::trainer::{latest_checkpoint, read_meta};
+use crate::checkpoint::{latest_checkpoint, read_meta};
 use crate::LearnerError;
 
 /// The deterministic policy of a checkpoint or snapshot.

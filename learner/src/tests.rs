@@ -7,7 +7,9 @@ use lcrl_sim::make_env;
 
 use crate::config::{Algo, Connection, TrainConfig};
 use crate::policy::Policy;
-use crate::trainer::{make_agent, train, write_checkpoint, CheckpointMeta, EpisodeRow, TrainOutcome, TrainRequest};
+use crate::checkpoint::{write_checkpoint, CheckpointMeta};
+use crate::run_files::EpisodeRow;
+use crate::trainer::{make_agent, train, TrainOutcome, TrainRequest};
 
 fn lti_fast() -> TrainConfig {
     TrainConfig::load(Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../configs/lti-fast.toml"))).unwrap()
@@ -166,7 +168,7 @@ fn resumed_run_continues_exactly() {
         let resumed_dir = tempfile::tempdir().unwrap();
         run_until(algo, Connection::Local, cfg.clone(), resumed_dir.path(), false, Some(2));
         if cfg.ddpg.twin_critics {
-            assert!(crate::trainer::latest_checkpoint(resumed_dir.path()).unwrap().join("critic2.safetensors").is_file());
+            assert!(crate::checkpoint::latest_checkpoint(resumed_dir.path()).unwrap().join("critic2.safetensors").is_file());
         }
         let resumed = run(algo, Connection::Local, cfg, resumed_dir.path(), true);
         assert_eq!(timeless(&straight.rows), timeless(&resumed.rows), "{algo:?}");
@@ -276,5 +278,42 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
         // And it scores as the base does on the same starts.
         let constant = lcrl_sim::tune::constant_return(env.as_ref(), &base, 3, crate::trainer::eval_seed(0, 0)).unwrap();
         assert!((outcome.summary.eval_return - constant).abs() < 0.05 * constant.abs(), "{algo:?}: {} vs {constant}", outcome.summary.eval_return);
+    }
+}
+
+/// The same updates on CUDA as on the CPU: DDPG and PPO agents built with
+/// one seed, fed the same transitions, end with the same actor weights
+/// within float tolerance. Needs a GPU: skipped with a printed reason
+/// otherwise (`lcrl doctor` says what libtorch sees).
+#[test]
+fn cuda_updates_equal_cpu_updates() {
+    if !crate::device::cuda_available() {
+        eprintln!("skipped: no CUDA device here (libtorch_cuda: {}); run on a GPU machine to check CUDA updates", crate::device::load_cuda());
+        return;
+    }
+    tch::set_num_threads(1);
+    let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
+    for algo in [Algo::Ddpg, Algo::Ppo] {
+        let weights = |device: &str| -> Vec<(String, Vec<f32>)> {
+            let mut cfg = TrainConfig::default();
+            cfg.run.device = device.into();
+            (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size) = (32, 32);
+            (cfg.ppo.rollout_steps, cfg.ppo.minibatch_size, cfg.ppo.epochs) = (64, 16, 2);
+            let mut agent = crate::trainer::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
+            for k in 0..160 {
+                let obs: Vec<f32> = (0..3).map(|j| ((k * 3 + j) as f32 * 0.37).sin()).collect();
+                let action = agent.explore(&obs, 0);
+                let next: Vec<f32> = obs.iter().zip(action.iter().cycle()).map(|(s, a)| 0.9 * s + 0.1 * a).collect();
+                let reward = -obs.iter().map(|v| v * v).sum::<f32>();
+                agent.observe(crate::agent::Transition { obs: &obs, action: &action, reward, next_obs: &next, terminated: false, truncated: k % 40 == 39 });
+            }
+            agent.actor_variables().into_iter().map(|(name, t)| (name, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect()
+        };
+        let (cpu, cuda) = (weights("cpu"), weights("cuda"));
+        assert_eq!(cpu.len(), cuda.len());
+        for ((name, a), (_, b)) in cpu.iter().zip(&cuda) {
+            let worst = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+            assert!(worst < 1e-3, "{algo:?} {name}: CUDA and CPU weights differ by {worst}");
+        }
     }
 }

@@ -13,12 +13,14 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use lcrl_graph_builder::{build_graph, Cs3Config, GraphOptions, GraphReport, Rule};
+use lcrl_graph_builder::{build_graph, GraphOptions, GraphReport};
 use lcrl_sim::evaluate::evaluate;
 use lcrl_sim::{make_env, Env};
-use serde::{Deserialize, Serialize};
 
 use crate::agent::Agent;
+use crate::run_files::{EpisodeRow, TrainSummary};
+use crate::run_files::{read_rows, write_summary, MetricsLog};
+use crate::checkpoint::{latest_checkpoint, read_meta, write_checkpoint, CheckpointMeta};
 use crate::config::{Algo, Connection, TrainConfig};
 use crate::ddpg::Ddpg;
 use crate::lqr::{lqr_return, masked_lqr_return};
@@ -42,151 +44,6 @@ pub struct TrainRequest {
     /// Stop (with a checkpoint) after this many episodes, as an interruption
     /// would, keeping every schedule of the full run. None: run to the end.
     pub stop_after: Option<usize>,
-}
-
-/// One row of metrics.csv.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct EpisodeRow {
-    pub episode: usize,
-    #[serde(rename = "return")]
-    pub episode_return: f64,
-    pub length: usize,
-    pub success: Option<bool>,
-    pub peak_force_n: Option<f64>,
-    pub peak_moment_nm: Option<f64>,
-    pub wall_s: f64,
-    pub optimization_s: f64,
-    /// The return split into its reward terms (peg tasks; docs/peg.md).
-    /// Spelled out rather than a flattened `ReturnColumns`: the csv crate
-    /// cannot write flattened structs.
-    #[serde(default)]
-    pub return_depth: Option<f64>,
-    #[serde(default)]
-    pub return_force: Option<f64>,
-    #[serde(default)]
-    pub return_moment: Option<f64>,
-    #[serde(default)]
-    pub return_bonus: Option<f64>,
-    #[serde(default)]
-    pub return_failure: Option<f64>,
-}
-
-/// The columns of metrics.csv, in EpisodeRow's order.
-pub const METRICS_COLUMNS: [&str; 13] = [
-    "episode",
-    "return",
-    "length",
-    "success",
-    "peak_force_n",
-    "peak_moment_nm",
-    "wall_s",
-    "optimization_s",
-    "return_depth",
-    "return_force",
-    "return_moment",
-    "return_bonus",
-    "return_failure",
-];
-
-impl EpisodeRow {
-    /// Fills the return-term columns from the episode's metrics.
-    pub fn with_terms(self, terms: Option<lcrl_sim::ReturnTerms>) -> Self {
-        let c = lcrl_sim::ReturnColumns::from(terms);
-        EpisodeRow {
-            return_depth: c.return_depth,
-            return_force: c.return_force,
-            return_moment: c.return_moment,
-            return_bonus: c.return_bonus,
-            return_failure: c.return_failure,
-            ..self
-        }
-    }
-}
-
-/// What summary.json holds.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TrainSummary {
-    pub env: String,
-    pub algo: Algo,
-    pub connection: Connection,
-    pub seed: u64,
-    pub episodes: usize,
-    /// Mean return of the last 10 training episodes (with exploration).
-    pub final_return: f64,
-    /// Mean return of the deterministic policy over `eval_episodes` episodes.
-    pub eval_return: f64,
-    /// The evaluation's success rate and mean peak force (peg tasks).
-    #[serde(default)]
-    pub eval_success_rate: Option<f64>,
-    #[serde(default)]
-    pub eval_peak_force_n: Option<f64>,
-    /// The evaluation return split into its reward terms (peg tasks).
-    #[serde(flatten)]
-    pub eval_terms: lcrl_sim::ReturnColumns,
-    /// The neutral constant action a = 0 on the same evaluation episodes
-    /// (on peg tasks the constant compliance controller): a reference line.
-    #[serde(default)]
-    pub zero_action_return: Option<f64>,
-    /// The LQR controller's mean return on the same evaluation episodes
-    /// (linear environments only).
-    pub lqr_return: Option<f64>,
-    /// The best controller with the actor's connection pattern (a = −K s
-    /// with K zero where the mask is): the ceiling of a local actor, which
-    /// may be below `lqr_return` when G hides states the optimum uses.
-    pub masked_lqr_return: Option<f64>,
-    pub graph_seconds: f64,
-    pub optimization_seconds: f64,
-    pub total_seconds: f64,
-    pub env_steps: u64,
-    pub updates: u64,
-    pub actor_params: usize,
-    pub critic_params: usize,
-}
-
-/// Written next to the tensors of every checkpoint.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct CheckpointMeta {
-    /// Episodes completed when the checkpoint was written.
-    pub episode: usize,
-    pub env: String,
-    pub algo: Algo,
-    pub connection: Connection,
-    pub state_dim: usize,
-    pub action_dim: usize,
-    /// The actor's connection mask (n × m).
-    pub mask: Vec<Vec<u8>>,
-    pub config: TrainConfig,
-    pub graph_seconds: f64,
-    pub optimization_seconds: f64,
-    /// Wall time of the run so far (graph, set-up, training), seconds.
-    pub elapsed_seconds: f64,
-    /// Distributed runs: the policy version at the checkpoint.
-    #[serde(default)]
-    pub policy_version: u64,
-    /// Distributed runs: the highest batch sequence stored per actor, so a
-    /// restarted learner still rejects replayed batches.
-    #[serde(default)]
-    pub actor_sequences: std::collections::HashMap<String, u64>,
-    /// Distributed DDPG runs: the replay-ratio limiter's settings and
-    /// counters, so a restarted learner keeps the ratio.
-    #[serde(default)]
-    pub rate_limiter: Option<crate::rate_limiter::RateLimiter>,
-}
-
-impl CheckpointMeta {
-    /// The actor's architecture, as a published policy describes it.
-    pub fn architecture(&self) -> crate::snapshot::Architecture {
-        crate::snapshot::Architecture {
-            env: self.env.clone(),
-            algo: self.algo,
-            connection: self.connection,
-            state_dim: self.state_dim,
-            action_dim: self.action_dim,
-            mask: self.mask.clone(),
-            network: self.config.network.clone(),
-            base: self.config.controller.base_action(self.action_dim),
-        }
-    }
 }
 
 /// Per-episode progress for the caller's display.
@@ -222,18 +79,9 @@ pub fn observe(env: &dyn Env, state: &[f64]) -> Vec<f32> {
     env.normalize_state(state).iter().map(|&v| v as f32).collect()
 }
 
-/// The libtorch device of `run.device` (validated: "cpu" or "cuda").
-pub fn device(cfg: &TrainConfig) -> Result<tch::Device, LearnerError> {
-    match cfg.run.device.as_str() {
-        "cuda" if tch::Cuda::is_available() => Ok(tch::Device::Cuda(0)),
-        "cuda" => Err(LearnerError::Config("run.device = \"cuda\" but no CUDA device is available; use \"cpu\"".into())),
-        _ => Ok(tch::Device::Cpu),
-    }
-}
-
 /// Builds the agent for the request on `run.device`.
 pub fn make_agent(algo: Algo, connection: Connection, cfg: &TrainConfig, mask: &[Vec<u8>], m: usize, n: usize) -> Result<Box<dyn Agent>, LearnerError> {
-    let device = device(cfg)?;
+    let device = crate::device::resolve_device(&cfg.run.device)?;
     Ok(match algo {
         Algo::Ddpg => Box::new(Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
         Algo::Ppo => Box::new(Ppo::new(&cfg.ppo, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
@@ -249,11 +97,7 @@ fn resolve_mask(req: &TrainRequest, env: &dyn Env) -> Result<(Vec<Vec<u8>>, f64,
     let report = match &req.graph {
         Some(path) => GraphReport::load(path)?,
         None => {
-            let options = GraphOptions {
-                cs3: Cs3Config { samples: req.config.run.graph_samples, seed: req.config.run.seed, threads: 0, start: None },
-                rule: Rule::Threshold(0.1),
-                bootstrap: 200,
-            };
+            let options = GraphOptions::paper(req.config.run.graph_samples, req.config.run.seed, lcrl_graph_builder::DEFAULT_BOOTSTRAP);
             build_graph(env, &options, &|| {})?
         }
     };
@@ -267,82 +111,6 @@ fn resolve_mask(req: &TrainRequest, env: &dyn Env) -> Result<(Vec<Vec<u8>>, f64,
     }
     let seconds = if req.graph.is_some() { 0.0 } else { report.elapsed_s };
     Ok((report.g.clone(), seconds, Some(report)))
-}
-
-/// The newest complete checkpoint under `run_dir`, if any.
-pub fn latest_checkpoint(run_dir: &Path) -> Option<PathBuf> {
-    let mut dirs: Vec<PathBuf> = std::fs::read_dir(run_dir.join("checkpoints"))
-        .ok()?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.join("checkpoint.json").is_file())
-        .collect();
-    dirs.sort();
-    dirs.pop()
-}
-
-pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, LearnerError> {
-    let path = dir.join("checkpoint.json");
-    let text = std::fs::read_to_string(&path).map_err(io(&path))?;
-    serde_json::from_str(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
-}
-
-/// Writes a checkpoint atomically: into a temporary folder, then renamed.
-pub fn write_checkpoint(run_dir: &Path, agent: &dyn Agent, meta: &CheckpointMeta) -> Result<PathBuf, LearnerError> {
-    let root = run_dir.join("checkpoints");
-    std::fs::create_dir_all(&root).map_err(io(&root))?;
-    let name = format!("ep{:06}", meta.episode);
-    let staging = root.join(format!(".{name}.partial"));
-    let _ = std::fs::remove_dir_all(&staging);
-    std::fs::create_dir_all(&staging).map_err(io(&staging))?;
-    agent.save(&staging, meta.config.run.save_replay)?;
-    let text = serde_json::to_string_pretty(meta).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    std::fs::write(staging.join("checkpoint.json"), text).map_err(io(&staging))?;
-    let target = root.join(name);
-    let _ = std::fs::remove_dir_all(&target);
-    std::fs::rename(&staging, &target).map_err(io(&target))?;
-    prune_checkpoints(&root, KEEP_CHECKPOINTS);
-    Ok(target)
-}
-
-/// Checkpoints kept per run: each can hold a replay buffer of hundreds of
-/// megabytes, so only the newest few stay.
-pub const KEEP_CHECKPOINTS: usize = 3;
-
-/// Deletes all but the newest `keep` complete checkpoints.
-fn prune_checkpoints(root: &Path, keep: usize) {
-    let Ok(entries) = std::fs::read_dir(root) else { return };
-    let mut complete: Vec<PathBuf> = entries
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.join("checkpoint.json").is_file())
-        .collect();
-    complete.sort();
-    let excess = complete.len().saturating_sub(keep);
-    for old in &complete[..excess] {
-        if let Err(e) = std::fs::remove_dir_all(old) {
-            tracing::warn!("cannot remove old checkpoint {}: {e}", old.display());
-        }
-    }
-}
-
-fn read_rows(path: &Path, keep: usize) -> Result<Vec<EpisodeRow>, LearnerError> {
-    let mut reader = csv::Reader::from_path(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))?;
-    let rows: Result<Vec<EpisodeRow>, _> = reader.deserialize().take(keep).collect();
-    rows.map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
-}
-
-fn write_rows(path: &Path, rows: &[EpisodeRow]) -> Result<csv::Writer<std::fs::File>, LearnerError> {
-    let file = std::fs::File::create(path).map_err(io(path))?;
-    // The header is written by hand, now, so an interrupted run still leaves
-    // a well-formed file (serde's automatic header waits for a first row).
-    let mut writer = csv::WriterBuilder::new().has_headers(false).from_writer(file);
-    writer
-        .write_record(METRICS_COLUMNS)
-        .map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    for row in rows {
-        writer.serialize(row).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    }
-    writer.flush().map_err(io(path))?;
-    Ok(writer)
 }
 
 /// Trains for `config.run.episodes` episodes (in total, counting resumed
@@ -394,7 +162,8 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     cfg.controller.base = base.clone().map_or(crate::config::BaseController::None, crate::config::BaseController::Action);
     cfg.controller.best_constant_file = None;
     let actions = crate::action::ActionMap::new(env.spec(), base.as_deref())?;
-    tch::set_num_threads(cfg.run.threads as i32);
+    // lcrl train steps the environment and updates in turn: every core.
+    crate::device::apply_threads(cfg.run.threads, 0);
     let resolved = toml::to_string_pretty(&cfg).map_err(|e| LearnerError::Config(e.to_string()))?;
     let header = format!(
         "# resolved configuration\n# env = {:?}, algo = {:?}, connection = {:?}\n# settings from: {}\n",
@@ -408,7 +177,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         agent.load(dir)?;
     }
     let metrics_path = req.run_dir.join("metrics.csv");
-    let mut metrics = write_rows(&metrics_path, &rows)?;
+    let mut metrics = MetricsLog::create(&metrics_path, &rows)?;
     let mut tensorboard = crate::tensorboard::EventWriter::create(&req.run_dir).map_err(io(&req.run_dir))?;
     let mut optimization = prior_opt;
     let meta_for = |episode: usize, optimization: f64, elapsed: f64| CheckpointMeta {
@@ -464,8 +233,8 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
             success: metrics_now.success,
             peak_force_n: metrics_now.peak_force_n,
             peak_moment_nm: metrics_now.peak_moment_nm,
-            wall_s: episode_started.elapsed().as_secs_f64(),
-            optimization_s: opt_seconds,
+            wall_s: Some(episode_started.elapsed().as_secs_f64()),
+            optimization_s: Some(opt_seconds),
             return_depth: None,
             return_force: None,
             return_moment: None,
@@ -473,9 +242,8 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
             return_failure: None,
         }
         .with_terms(metrics_now.return_terms);
-        metrics.serialize(&row).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-        metrics.flush().map_err(io(&metrics_path))?;
-        let mut scalars = vec![("episode/return", row.episode_return), ("episode/length", row.length as f64), ("time/optimization_s", row.optimization_s)];
+        metrics.push(&row)?;
+        let mut scalars = vec![("episode/return", row.episode_return), ("episode/length", row.length as f64), ("time/optimization_s", opt_seconds)];
         scalars.extend(row.peak_force_n.map(|f| ("episode/peak_force_n", f)));
         scalars.extend(row.success.map(|s| ("episode/success", f64::from(u8::from(s)))));
         tensorboard.scalars(row.episode as i64, &scalars).and_then(|()| tensorboard.flush()).map_err(io(tensorboard.path()))?;
@@ -526,15 +294,10 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         total_seconds: prior_elapsed + started.elapsed().as_secs_f64(),
         env_steps: counters.env_steps,
         updates: counters.updates,
+        samples_drawn: agent.samples_drawn(),
         actor_params,
         critic_params,
     };
-    let path = req.run_dir.join("summary.json");
-    let text = serde_json::to_string_pretty(&summary).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    // Written whole, then renamed: a summary.json marks a finished run
-    // (`lcrl experiment` skips it), so it must never be half a file.
-    let partial = req.run_dir.join(".summary.json.partial");
-    std::fs::write(&partial, text + "\n").map_err(io(&partial))?;
-    std::fs::rename(&partial, &path).map_err(io(&path))?;
+    write_summary(&req.run_dir, &summary)?;
     Ok(TrainOutcome { summary, rows })
 }

@@ -2,7 +2,8 @@
 //!
 //! The `.proto` file is the documentation of every field; this crate only
 //! re-exports what tonic/prost generate from it, plus [`security`]: how
-//! every server and client of the contract authenticates (TLS, tokens).
+//! every server and client of the contract authenticates (TLS, tokens), and
+//! [`incoming`]: the TLS-accepting connection stream servers are fed from.
 
 pub mod incoming;
 pub mod security;

@@ -172,6 +172,8 @@ fn read(what: &'static str, path: &Path) -> Result<Vec<u8>, SecurityError> {
 #[derive(Clone)]
 pub struct ServerSecurity {
     tls: Option<Arc<tokio_rustls::rustls::ServerConfig>>,
+    /// Whether TLS asks clients for a certificate of a CA (mutual TLS).
+    mutual: bool,
     check: TokenCheck,
 }
 
@@ -185,7 +187,8 @@ impl ServerSecurity {
             _ => None,
         };
         let token = Token::load(args.token_file.as_deref())?;
-        Ok(ServerSecurity { tls, check: TokenCheck { token, refusals: Arc::default() } })
+        let mutual = tls.is_some() && args.tls_client_ca.is_some();
+        Ok(ServerSecurity { tls, mutual, check: TokenCheck { token, refusals: Arc::default() } })
     }
 
     /// The interceptor to put in front of every service but health.
@@ -204,7 +207,12 @@ impl ServerSecurity {
     }
 
     pub fn describe(&self) -> String {
-        format!("{}{}", if self.tls.is_some() { "TLS" } else { "plain text" }, if self.check.token.is_some() { " + token" } else { "" })
+        let transport = match (&self.tls, self.mutual) {
+            (Some(_), true) => "mutual TLS",
+            (Some(_), false) => "TLS",
+            (None, _) => "plain text",
+        };
+        format!("{transport}{}", if self.check.token.is_some() { " + token" } else { "" })
     }
 
     /// A server reachable from other hosts without TLS is worth a warning.

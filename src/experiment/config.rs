@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 pub(crate) use crate::preset::algo_name;
 
 /// The publication's threshold T of eq. 7, used by a plain `local`.
-pub const DEFAULT_THRESHOLD: f64 = 0.1;
+pub const DEFAULT_THRESHOLD: f64 = lcrl_graph_builder::PAPER_THRESHOLD;
 
 /// One experiment file, as written.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -15,7 +15,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
-use lcrl_learner::trainer::TrainSummary;
+use lcrl_learner::run_files::TrainSummary;
 use lcrl_learner::Algo;
 
 use super::config::{algo_name, env_slug, ConnectionSpec, Experiment};

@@ -7,7 +7,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use lcrl_learner::trainer::{EpisodeRow, TrainSummary};
+use lcrl_learner::run_files::{EpisodeRow, TrainSummary};
 use serde::Serialize;
 
 use super::config::{algo_name, Experiment};

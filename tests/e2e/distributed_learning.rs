@@ -126,7 +126,7 @@ async fn a_restarted_learner_keeps_the_replay_ratio() {
     assert_eq!(before.replay_ratio_target, 32.0);
     let deadline = Instant::now() + Duration::from_secs(30);
     let saved = loop {
-        let meta = lcrl_learner::trainer::latest_checkpoint(&run).and_then(|d| lcrl_learner::trainer::read_meta(&d).ok());
+        let meta = lcrl_learner::checkpoint::latest_checkpoint(&run).and_then(|d| lcrl_learner::checkpoint::read_meta(&d).ok());
         match meta.and_then(|m| m.rate_limiter) {
             Some(limiter) if limiter.samples > 0 => break limiter,
             _ => {
@@ -216,5 +216,5 @@ async fn a_learner_holding_actors_back_stops_promptly() {
     let mut actor = actor;
     assert!(actor.0.wait().unwrap().success());
     assert!(stopped.elapsed() < Duration::from_secs(8), "the actor took {:?}", stopped.elapsed());
-    assert!(lcrl_learner::trainer::latest_checkpoint(&run).is_some(), "a final checkpoint");
+    assert!(lcrl_learner::checkpoint::latest_checkpoint(&run).is_some(), "a final checkpoint");
 }

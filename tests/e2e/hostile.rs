@@ -189,3 +189,45 @@ async fn hostile_streams_are_refused_and_counted_while_actors_train() {
     let grown_mib = rss_kib(learner.0.id()).saturating_sub(rss_before) / 1024;
     assert!(grown_mib < 256, "the learner grew by {grown_mib} MiB under the attack");
 }
+
+/// A graph builder that serves a malformed graph: G one entry short of the
+/// environment's 3 × 3.
+struct ShortGraph;
+
+#[tonic::async_trait]
+impl lcrl_proto::v1::graph_server::Graph for ShortGraph {
+    type WatchGraphStream = tokio_stream::Empty<Result<lcrl_proto::v1::ConnectionGraph, Status>>;
+
+    async fn get_graph(&self, _: tonic::Request<lcrl_proto::v1::GetGraphRequest>) -> Result<tonic::Response<lcrl_proto::v1::ConnectionGraph>, Status> {
+        let graph = lcrl_proto::v1::ConnectionGraph { env: "lti-paper".into(), actions: 3, states: 3, g: vec![1, 0, 0, 1, 1, 0, 0, 0], ..Default::default() };
+        Ok(tonic::Response::new(graph))
+    }
+
+    async fn watch_graph(&self, _: tonic::Request<lcrl_proto::v1::WatchGraphRequest>) -> Result<tonic::Response<Self::WatchGraphStream>, Status> {
+        Ok(tonic::Response::new(tokio_stream::empty()))
+    }
+}
+
+/// The learner refuses a malformed graph from a hostile graph builder with
+/// a clear error and a non-zero exit, instead of reshaping it into a
+/// network (a panic in `Tensor::view`) or retrying forever.
+#[tokio::test]
+async fn a_malformed_graph_from_a_graph_builder_is_refused() {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    let server = tokio::spawn(
+        tonic::transport::Server::builder()
+            .add_service(lcrl_proto::v1::graph_server::GraphServer::new(ShortGraph))
+            .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener)),
+    );
+    let work = tempfile::tempdir().unwrap();
+    let run_dir = work.path().join("learner");
+    let mut learner = super::common::workspace_bin("lcrl-learner");
+    learner.args(["--env", "lti-paper", "--algo", "ddpg", "--connection", "local", "--listen", "127.0.0.1:0", "--graph-timeout", "20", "--graph-builder", &url]);
+    learner.arg("--run-dir").arg(&run_dir);
+    // Waited for off the runtime's thread, which serves the graph meanwhile.
+    let out = tokio::task::spawn_blocking(move || learner.output()).await.unwrap().unwrap();
+    server.abort();
+    super::common::assert_clean_failure(&out, "G has 8 entries but a 3×3 graph needs 9");
+    assert!(!run_dir.join("checkpoints").exists(), "no training started on the malformed graph");
+}

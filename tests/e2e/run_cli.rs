@@ -31,10 +31,12 @@ fn run_on_the_linear_preset_finishes_with_every_artifact_and_no_leftovers() {
     assert_eq!(graph["g"], serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]]));
     let metrics = fs::read_to_string(run.join("learner/metrics.csv")).unwrap();
     assert!(metrics.lines().count() > 300, "{} rows", metrics.lines().count());
+    // The same columns as `lcrl train`'s metrics.csv (learner/src/run_files.rs).
+    assert_eq!(metrics.lines().next().unwrap(), lcrl_learner::run_files::METRICS_COLUMNS.join(","));
     assert!(metrics.lines().nth(1).unwrap().split(',').nth(1).unwrap().parse::<f64>().is_ok());
     assert_eq!(super::train_cli::tensorboard_returns(&run.join("learner")).len(), metrics.lines().count() - 1, "TensorBoard has every episode");
-    let checkpoint = lcrl_learner::trainer::latest_checkpoint(&run.join("learner")).expect("a final checkpoint");
-    assert!(lcrl_learner::trainer::read_meta(&checkpoint).unwrap().episode >= 300);
+    let checkpoint = lcrl_learner::checkpoint::latest_checkpoint(&run.join("learner")).expect("a final checkpoint");
+    assert!(lcrl_learner::checkpoint::read_meta(&checkpoint).unwrap().episode >= 300);
     for file in ["config.toml", "train.toml", "graph.png", "reward_curve.png", "logs/learner.log", "logs/actor-0.log", "logs/graph-builder.log"] {
         assert!(run.join(file).is_file(), "{file} missing");
     }

@@ -279,3 +279,31 @@ fn train_refuses_a_bad_base_action() {
     }
     assert!(!work.path().join("run").join("checkpoints").exists(), "nothing was trained");
 }
+
+/// The throughput settings keep the replay ratio they promise: a round of
+/// `gradient_steps` updates of `batch_size` every `update_every` stored
+/// steps once the buffer holds max(warmup, batch) — exactly, as counted in
+/// summary.json.
+#[test]
+fn throughput_settings_keep_their_replay_ratio() {
+    let work = tempfile::tempdir().unwrap();
+    // (batch, update_every, gradient_steps): Algorithm 2; a 4× batch on
+    // every 4th step; 4 updates on every 4th step.
+    for (batch, every, steps) in [(16u64, 1u64, 1u64), (64, 4, 1), (16, 4, 4)] {
+        let config = work.path().join(format!("b{batch}-e{every}-g{steps}.toml"));
+        let text = TINY.replace("batch_size = 16", &format!("batch_size = {batch}\nupdate_every = {every}\ngradient_steps = {steps}"));
+        fs::write(&config, text).unwrap();
+        let dir = work.path().join(format!("run-{batch}-{every}-{steps}"));
+        let out = train_connected("global", &dir, &config, &[]);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let summary = json(&dir.join("summary.json"));
+        let env_steps = summary["env_steps"].as_u64().unwrap();
+        let min_size = batch.max(20);
+        let rounds = (1..=env_steps).filter(|k| k % every == 0 && *k >= min_size).count() as u64;
+        assert_eq!(summary["samples_drawn"].as_u64().unwrap(), rounds * steps * batch, "batch {batch}, every {every}, steps {steps}");
+        // Samples per insert after warm-up: batch · steps / every = 16 or 64.
+        let ratio = summary["samples_drawn"].as_u64().unwrap() as f64 / (env_steps - min_size + 1) as f64;
+        let promised = (batch * steps) as f64 / every as f64;
+        assert!((ratio - promised).abs() <= promised * every as f64 / (env_steps - min_size + 1) as f64 + 1e-9, "ratio {ratio} vs {promised}");
+    }
+}

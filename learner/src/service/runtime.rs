@@ -17,7 +17,7 @@ use crate::rate_limiter::RateLimiter;
 use crate::service::flow::FlowStats;
 use crate::service::ingest::{Accepted, Ingest};
 use crate::snapshot::{encode_weights, Architecture};
-use crate::trainer::{write_checkpoint, CheckpointMeta};
+use crate::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::LearnerError;
 
 /// What the handlers send to the training thread.
@@ -159,9 +159,7 @@ fn write_summary(agent: &dyn Agent, shared: &Shared) -> Result<(), LearnerError>
         final_return: shared.recent_return(),
         policy_version: shared.policy_version(),
     };
-    let path = shared.run_dir.join("summary.json");
-    let text = serde_json::to_string_pretty(&summary).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    std::fs::write(&path, text + "\n").map_err(|source| LearnerError::Io { path, source })
+    crate::run_files::write_summary(&shared.run_dir, &summary)
 }
 
 fn checkpoint(agent: &dyn Agent, shared: &Shared, schedule: &Schedule) -> Result<(), LearnerError> {
@@ -424,7 +422,8 @@ fn recv_timeout(commands: &mut mpsc::Receiver<Command>, timeout: std::time::Dura
 /// length, success; what `lcrl compare` and the reward curve read) and
 /// TensorBoard scalars beside it.
 struct EpisodeLog {
-    csv: std::path::PathBuf,
+    /// None when the file cannot be opened (warned once; training goes on).
+    csv: Option<crate::run_files::MetricsLog>,
     tensorboard: Option<crate::tensorboard::EventWriter>,
 }
 
@@ -433,19 +432,24 @@ impl EpisodeLog {
         let tensorboard = crate::tensorboard::EventWriter::create(run_dir)
             .map_err(|e| tracing::warn!("no TensorBoard events in {}: {e}", run_dir.display()))
             .ok();
-        EpisodeLog { csv: run_dir.join("metrics.csv"), tensorboard }
+        let csv = crate::run_files::MetricsLog::append(&run_dir.join("metrics.csv")).map_err(|e| tracing::warn!("no metrics.csv: {e}")).ok();
+        EpisodeLog { csv, tensorboard }
     }
 
     fn append(&mut self, first: u64, episodes: &[lcrl_proto::v1::EpisodeSummary], shared: &Shared) -> std::io::Result<()> {
-        use std::io::Write;
-        let new = !self.csv.exists();
-        let mut file = std::fs::OpenOptions::new().create(true).append(true).open(&self.csv)?;
-        if new {
-            writeln!(file, "episode,return,length,success,peak_force_n,peak_moment_nm,wall_s,optimization_s")?;
-        }
-        for (k, e) in episodes.iter().enumerate() {
-            let success = e.success.map_or(String::new(), |s| s.to_string());
-            writeln!(file, "{},{},{},{success},,,,", first + k as u64 + 1, e.episode_return, e.length)?;
+        if let Some(csv) = &mut self.csv {
+            for (k, e) in episodes.iter().enumerate() {
+                // The actors report return, length and success; the rest
+                // of the row is `lcrl train`'s own.
+                let row = crate::run_files::EpisodeRow {
+                    episode: (first + k as u64 + 1) as usize,
+                    episode_return: e.episode_return,
+                    length: e.length as usize,
+                    success: e.success,
+                    ..Default::default()
+                };
+                csv.push(&row).map_err(std::io::Error::other)?;
+            }
         }
         if let Some(tb) = &mut self.tensorboard {
             for (k, e) in episodes.iter().enumerate() {

@@ -4,7 +4,10 @@
 //! sample converts to the same `TransitionBatch` the gRPC path carries and
 //! goes through the same ingestion checks. Publishers block while the
 //! learner's buffer is full: nothing is dropped and nothing queues without
-//! bound. Policies still reach shared-memory actors over `WatchPolicy`.
+//! bound. Policies go the other way over shared memory too: one
+//! publish-subscribe service per run (`lcrl/<run id>/policy`, holding
+//! `PolicySample`s), which this transport's actors subscribe to instead of
+//! `WatchPolicy`.
 
 use std::sync::Arc;
 use std::time::Duration;

@@ -1,0 +1,118 @@
+//! The checkpoint store of a run directory: `checkpoints/epNNNNNN/`, each
+//! the agent's tensors (weights, optimizer state, replay) beside
+//! `checkpoint.json` (this [`CheckpointMeta`]), written atomically, the
+//! newest [`KEEP_CHECKPOINTS`] kept. `lcrl train` and the distributed
+//! learner both write and resume from it.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::agent::Agent;
+use crate::config::{Algo, Connection, TrainConfig};
+use crate::LearnerError;
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
+    move |source| LearnerError::Io { path: path.to_path_buf(), source }
+}
+
+/// Written next to the tensors of every checkpoint.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct CheckpointMeta {
+    /// Episodes completed when the checkpoint was written.
+    pub episode: usize,
+    pub env: String,
+    pub algo: Algo,
+    pub connection: Connection,
+    pub state_dim: usize,
+    pub action_dim: usize,
+    /// The actor's connection mask (n × m).
+    pub mask: Vec<Vec<u8>>,
+    pub config: TrainConfig,
+    pub graph_seconds: f64,
+    pub optimization_seconds: f64,
+    /// Wall time of the run so far (graph, set-up, training), seconds.
+    pub elapsed_seconds: f64,
+    /// Distributed runs: the policy version at the checkpoint.
+    #[serde(default)]
+    pub policy_version: u64,
+    /// Distributed runs: the highest batch sequence stored per actor, so a
+    /// restarted learner still rejects replayed batches.
+    #[serde(default)]
+    pub actor_sequences: std::collections::HashMap<String, u64>,
+    /// Distributed DDPG runs: the replay-ratio limiter's settings and
+    /// counters, so a restarted learner keeps the ratio.
+    #[serde(default)]
+    pub rate_limiter: Option<crate::rate_limiter::RateLimiter>,
+}
+
+impl CheckpointMeta {
+    /// The actor's architecture, as a published policy describes it.
+    pub fn architecture(&self) -> crate::snapshot::Architecture {
+        crate::snapshot::Architecture {
+            env: self.env.clone(),
+            algo: self.algo,
+            connection: self.connection,
+            state_dim: self.state_dim,
+            action_dim: self.action_dim,
+            mask: self.mask.clone(),
+            network: self.config.network.clone(),
+            base: self.config.controller.base_action(self.action_dim),
+        }
+    }
+}
+
+/// The newest complete checkpoint under `run_dir`, if any.
+pub fn latest_checkpoint(run_dir: &Path) -> Option<PathBuf> {
+    let mut dirs: Vec<PathBuf> = std::fs::read_dir(run_dir.join("checkpoints"))
+        .ok()?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.join("checkpoint.json").is_file())
+        .collect();
+    dirs.sort();
+    dirs.pop()
+}
+
+pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, LearnerError> {
+    let path = dir.join("checkpoint.json");
+    let text = std::fs::read_to_string(&path).map_err(io(&path))?;
+    serde_json::from_str(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+}
+
+/// Writes a checkpoint atomically: into a temporary folder, then renamed.
+pub fn write_checkpoint(run_dir: &Path, agent: &dyn Agent, meta: &CheckpointMeta) -> Result<PathBuf, LearnerError> {
+    let root = run_dir.join("checkpoints");
+    std::fs::create_dir_all(&root).map_err(io(&root))?;
+    let name = format!("ep{:06}", meta.episode);
+    let staging = root.join(format!(".{name}.partial"));
+    let _ = std::fs::remove_dir_all(&staging);
+    std::fs::create_dir_all(&staging).map_err(io(&staging))?;
+    agent.save(&staging, meta.config.run.save_replay)?;
+    let text = serde_json::to_string_pretty(meta).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    std::fs::write(staging.join("checkpoint.json"), text).map_err(io(&staging))?;
+    let target = root.join(name);
+    let _ = std::fs::remove_dir_all(&target);
+    std::fs::rename(&staging, &target).map_err(io(&target))?;
+    prune_checkpoints(&root, KEEP_CHECKPOINTS);
+    Ok(target)
+}
+
+/// Checkpoints kept per run: each can hold a replay buffer of hundreds of
+/// megabytes, so only the newest few stay.
+pub const KEEP_CHECKPOINTS: usize = 3;
+
+/// Deletes all but the newest `keep` complete checkpoints.
+fn prune_checkpoints(root: &Path, keep: usize) {
+    let Ok(entries) = std::fs::read_dir(root) else { return };
+    let mut complete: Vec<PathBuf> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.join("checkpoint.json").is_file())
+        .collect();
+    complete.sort();
+    let excess = complete.len().saturating_sub(keep);
+    for old in &complete[..excess] {
+        if let Err(e) = std::fs::remove_dir_all(old) {
+            tracing::warn!("cannot remove old checkpoint {}: {e}", old.display());
+        }
+    }
+}

@@ -1,0 +1,172 @@
+//! Where the learner computes: the libtorch device (`run.device`) and the
+//! intra-op thread count (`run.threads`).
+//!
+//! **Why CUDA needs loading.** tch's binaries link `libtorch_cpu` and
+//! `libtorch`, but no symbol of `libtorch_cuda.so` is referenced, so the
+//! linker's `--as-needed` drops it, its static initializers never run, and
+//! libtorch never registers its CUDA backend: `Cuda::is_available()` stays
+//! false on a GPU machine. Linking it into every binary would cost every
+//! actor ~0.4 s of start-up and ~400 MB of mapped CUDA libraries for
+//! nothing (actors stay on the CPU), so it is loaded here instead, once, at
+//! run time, before the first CUDA query: by `resolve_device("cuda")` and
+//! by `lcrl doctor`.
+
+use std::path::PathBuf;
+use std::sync::OnceLock;
+
+use crate::LearnerError;
+
+/// The libtorch library folder the binaries were linked against (their
+/// rpath), from build.rs.
+const LIBTORCH_LIB: Option<&str> = option_env!("LCRL_LIBTORCH_LIB");
+
+/// The most intra-op threads `run.threads` accepts: far above any machine
+/// this runs on, low enough to catch a typo (a count, not a core mask).
+pub const MAX_THREADS: usize = 1024;
+
+/// What loading `libtorch_cuda.so` found.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum CudaLibrary {
+    /// Loaded from this path: libtorch's CUDA backend is registered.
+    Loaded(PathBuf),
+    /// This libtorch is a CPU-only build (no `libtorch_cuda.so` beside it).
+    CpuOnlyBuild,
+    /// The file is there but would not load (a missing CUDA runtime
+    /// library, for example); the loader's message.
+    Failed(String),
+}
+
+impl std::fmt::Display for CudaLibrary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            CudaLibrary::Loaded(path) => write!(f, "loaded ({})", path.display()),
+            CudaLibrary::CpuOnlyBuild => write!(f, "absent: this libtorch is a CPU-only build"),
+            CudaLibrary::Failed(why) => write!(f, "present but failed to load: {why}"),
+        }
+    }
+}
+
+/// Loads `libtorch_cuda.so` (once per process; later calls return the first
+/// answer). Call it before anything asks libtorch about CUDA.
+pub fn load_cuda() -> &'static CudaLibrary {
+    static LOADED: OnceLock<CudaLibrary> = OnceLock::new();
+    LOADED.get_or_init(|| {
+        let Some(dir) = LIBTORCH_LIB else { return CudaLibrary::CpuOnlyBuild };
+        let path = PathBuf::from(dir).join("libtorch_cuda.so");
+        if !path.is_file() {
+            return CudaLibrary::CpuOnlyBuild;
+        }
+        // RTLD_GLOBAL: libtorch resolves the backend's symbols across
+        // libraries, as when Python's torch loads it.
+        let flags = libloading::os::unix::RTLD_NOW | libloading::os::unix::RTLD_GLOBAL;
+        // SAFETY: libtorch_cuda.so's initializers register the CUDA backend
+        // with the libtorch already loaded; it is never unloaded (leaked
+        // below), so no symbol outlives its library.
+        match unsafe { libloading::os::unix::Library::open(Some(&path), flags) } {
+            Ok(library) => {
+                std::mem::forget(library);
+                CudaLibrary::Loaded(path)
+            }
+            Err(e) => CudaLibrary::Failed(e.to_string()),
+        }
+    })
+}
+
+/// Whether libtorch sees a CUDA device (after loading its CUDA backend).
+pub fn cuda_available() -> bool {
+    load_cuda();
+    tch::Cuda::is_available()
+}
+
+/// The libtorch device for `run.device` ("cpu" or "cuda"; validated in the
+/// config). "cuda" without a usable GPU is an error that says why.
+pub fn resolve_device(name: &str) -> Result<tch::Device, LearnerError> {
+    match name {
+        "cpu" => Ok(tch::Device::Cpu),
+        "cuda" => {
+            let library = load_cuda();
+            if tch::Cuda::is_available() {
+                return Ok(tch::Device::Cuda(0));
+            }
+            let why = match library {
+                CudaLibrary::Loaded(_) => "libtorch's CUDA backend loaded, but it sees no CUDA device (no NVIDIA GPU or driver here)".to_string(),
+                other => format!("libtorch_cuda.so: {other}"),
+            };
+            Err(LearnerError::Config(format!("device \"cuda\" asked for, but CUDA is not available: {why}; use device \"cpu\" (`lcrl doctor` shows what libtorch sees)")))
+        }
+        other => Err(LearnerError::Config(format!("device must be \"cpu\" or \"cuda\", got {other:?}"))),
+    }
+}
+
+/// The cores of this machine (or of this container's CPU quota).
+pub fn available_cores() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
+}
+
+/// libtorch intra-op threads for `run.threads`: the number itself, or with
+/// 0 ("auto") the cores left over after `reserved` cores that other
+/// processes of the run on this machine use (its actors), at least 1.
+pub fn resolve_threads(configured: usize, reserved: usize) -> usize {
+    match configured {
+        0 => available_cores().saturating_sub(reserved).max(1),
+        n => n,
+    }
+}
+
+/// Sets libtorch's intra-op threads for `run.threads` (see
+/// [`resolve_threads`]) and returns the count used.
+pub fn apply_threads(configured: usize, reserved: usize) -> usize {
+    let threads = resolve_threads(configured, reserved);
+    tch::set_num_threads(threads as i32);
+    threads
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn auto_threads_leave_the_reserved_cores_and_never_drop_to_zero() {
+        let cores = available_cores();
+        assert_eq!(resolve_threads(3, 100), 3, "an explicit count is kept");
+        assert_eq!(resolve_threads(0, 0), cores);
+        assert_eq!(resolve_threads(0, 1), (cores - 1).max(1));
+        assert_eq!(resolve_threads(0, cores + 5), 1);
+    }
+
+    #[test]
+    fn cpu_resolves_and_unknown_devices_are_refused() {
+        assert_eq!(resolve_device("cpu").expect("cpu"), tch::Device::Cpu);
+        let err = resolve_device("tpu").expect_err("tpu").to_string();
+        assert!(err.contains("\"cpu\" or \"cuda\""), "{err}");
+    }
+
+    /// The mechanism itself, GPU or not: with a CUDA build of libtorch the
+    /// backend library is really mapped into this process afterwards.
+    #[test]
+    fn the_cuda_backend_library_is_loaded_when_libtorch_has_one() {
+        let has_cuda_build = LIBTORCH_LIB.is_some_and(|dir| PathBuf::from(dir).join("libtorch_cuda.so").is_file());
+        let status = load_cuda();
+        let maps = std::fs::read_to_string("/proc/self/maps").unwrap_or_default();
+        if has_cuda_build {
+            assert!(matches!(status, CudaLibrary::Loaded(_)), "{status}");
+            assert!(maps.contains("libtorch_cuda.so"), "libtorch_cuda.so is not mapped after load_cuda");
+        } else {
+            assert_eq!(*status, CudaLibrary::CpuOnlyBuild);
+        }
+    }
+
+    /// On a machine without a GPU, "cuda" fails with a message that says so
+    /// and what to do; with one, it resolves.
+    #[test]
+    fn cuda_resolves_exactly_when_a_device_is_there() {
+        match resolve_device("cuda") {
+            Ok(device) => assert!(cuda_available() && device == tch::Device::Cuda(0)),
+            Err(e) => {
+                assert!(!cuda_available());
+                let text = e.to_string();
+                assert!(text.contains("CUDA is not available") && text.contains("use device \"cpu\""), "{text}");
+            }
+        }
+    }
+}

@@ -1,0 +1,180 @@
+//! The records of a run directory that people and tools read: one
+//! `metrics.csv` row per episode and `summary.json` at the end, the same
+//! files from `lcrl train` and from the distributed learner.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::config::{Algo, Connection};
+use crate::LearnerError;
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
+    move |source| LearnerError::Io { path: path.to_path_buf(), source }
+}
+
+/// One row of metrics.csv.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeRow {
+    pub episode: usize,
+    #[serde(rename = "return")]
+    pub episode_return: f64,
+    pub length: usize,
+    pub success: Option<bool>,
+    pub peak_force_n: Option<f64>,
+    pub peak_moment_nm: Option<f64>,
+    /// Wall time of the episode and the part of it spent in updates
+    /// (`lcrl train`; empty where actors ran the episode elsewhere).
+    pub wall_s: Option<f64>,
+    pub optimization_s: Option<f64>,
+    /// The return split into its reward terms (peg tasks; docs/peg.md).
+    /// Spelled out rather than a flattened `ReturnColumns`: the csv crate
+    /// cannot write flattened structs.
+    #[serde(default)]
+    pub return_depth: Option<f64>,
+    #[serde(default)]
+    pub return_force: Option<f64>,
+    #[serde(default)]
+    pub return_moment: Option<f64>,
+    #[serde(default)]
+    pub return_bonus: Option<f64>,
+    #[serde(default)]
+    pub return_failure: Option<f64>,
+}
+
+/// The columns of metrics.csv, in EpisodeRow's order.
+pub const METRICS_COLUMNS: [&str; 13] = [
+    "episode",
+    "return",
+    "length",
+    "success",
+    "peak_force_n",
+    "peak_moment_nm",
+    "wall_s",
+    "optimization_s",
+    "return_depth",
+    "return_force",
+    "return_moment",
+    "return_bonus",
+    "return_failure",
+];
+
+impl EpisodeRow {
+    /// Fills the return-term columns from the episode's metrics.
+    pub fn with_terms(self, terms: Option<lcrl_sim::ReturnTerms>) -> Self {
+        let c = lcrl_sim::ReturnColumns::from(terms);
+        EpisodeRow {
+            return_depth: c.return_depth,
+            return_force: c.return_force,
+            return_moment: c.return_moment,
+            return_bonus: c.return_bonus,
+            return_failure: c.return_failure,
+            ..self
+        }
+    }
+}
+
+/// What summary.json holds.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainSummary {
+    pub env: String,
+    pub algo: Algo,
+    pub connection: Connection,
+    pub seed: u64,
+    pub episodes: usize,
+    /// Mean return of the last 10 training episodes (with exploration).
+    pub final_return: f64,
+    /// Mean return of the deterministic policy over `eval_episodes` episodes.
+    pub eval_return: f64,
+    /// The evaluation's success rate and mean peak force (peg tasks).
+    #[serde(default)]
+    pub eval_success_rate: Option<f64>,
+    #[serde(default)]
+    pub eval_peak_force_n: Option<f64>,
+    /// The evaluation return split into its reward terms (peg tasks).
+    #[serde(flatten)]
+    pub eval_terms: lcrl_sim::ReturnColumns,
+    /// The neutral constant action a = 0 on the same evaluation episodes
+    /// (on peg tasks the constant compliance controller): a reference line.
+    #[serde(default)]
+    pub zero_action_return: Option<f64>,
+    /// The LQR controller's mean return on the same evaluation episodes
+    /// (linear environments only).
+    pub lqr_return: Option<f64>,
+    /// The best controller with the actor's connection pattern (a = −K s
+    /// with K zero where the mask is): the ceiling of a local actor, which
+    /// may be below `lqr_return` when G hides states the optimum uses.
+    pub masked_lqr_return: Option<f64>,
+    pub graph_seconds: f64,
+    pub optimization_seconds: f64,
+    pub total_seconds: f64,
+    pub env_steps: u64,
+    pub updates: u64,
+    /// Transitions drawn from the replay buffer (DDPG: batch_size per critic
+    /// update); against env_steps, the replay ratio the run kept.
+    #[serde(default)]
+    pub samples_drawn: u64,
+    pub actor_params: usize,
+    pub critic_params: usize,
+}
+
+/// The first `keep` rows of a metrics.csv (a resumed run's history).
+pub fn read_rows(path: &Path, keep: usize) -> Result<Vec<EpisodeRow>, LearnerError> {
+    let mut reader = csv::Reader::from_path(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))?;
+    let rows: Result<Vec<EpisodeRow>, _> = reader.deserialize().take(keep).collect();
+    rows.map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+}
+
+/// metrics.csv, one flushed row per episode, so an interrupted run still
+/// leaves a well-formed file.
+pub struct MetricsLog {
+    path: std::path::PathBuf,
+    writer: csv::Writer<std::fs::File>,
+}
+
+impl MetricsLog {
+    /// Starts `path` afresh with `rows` (a resumed run's kept history).
+    pub fn create(path: &Path, rows: &[EpisodeRow]) -> Result<Self, LearnerError> {
+        let file = std::fs::File::create(path).map_err(io(path))?;
+        let mut log = Self::over(path, file, true)?;
+        for row in rows {
+            log.push(row)?;
+        }
+        Ok(log)
+    }
+
+    /// Appends to `path` (the distributed learner, resumed or not),
+    /// starting it with the header when it is new.
+    pub fn append(path: &Path) -> Result<Self, LearnerError> {
+        let new = std::fs::metadata(path).map_or(true, |m| m.len() == 0);
+        let file = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(io(path))?;
+        Self::over(path, file, new)
+    }
+
+    fn over(path: &Path, file: std::fs::File, header: bool) -> Result<Self, LearnerError> {
+        // The header is written by hand, now (serde's automatic header
+        // waits for a first row).
+        let mut writer = csv::WriterBuilder::new().has_headers(false).from_writer(file);
+        if header {
+            writer.write_record(METRICS_COLUMNS).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+            writer.flush().map_err(io(path))?;
+        }
+        Ok(MetricsLog { path: path.to_path_buf(), writer })
+    }
+
+    pub fn push(&mut self, row: &EpisodeRow) -> Result<(), LearnerError> {
+        self.writer.serialize(row).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", self.path.display())))?;
+        self.writer.flush().map_err(io(&self.path))
+    }
+}
+
+/// Writes `value` as pretty JSON to `run_dir/summary.json`: whole, then
+/// renamed, because a summary.json marks a finished run (`lcrl experiment`
+/// skips it), so it must never be half a file.
+pub fn write_summary<T: Serialize>(run_dir: &Path, value: &T) -> Result<(), LearnerError> {
+    let path = run_dir.join("summary.json");
+    let text = serde_json::to_string_pretty(value).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    let partial = run_dir.join(".summary.json.partial");
+    std::fs::write(&partial, text + "\n").map_err(io(&partial))?;
+    std::fs::rename(&partial, &path).map_err(io(&path))
+}
