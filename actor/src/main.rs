@@ -14,7 +14,7 @@ mod metrics;
 
 use anyhow::{bail, Context};
 use clap::Parser;
-use lcrl_graph_builder::service::shutdown_signal;
+use lcrl_proto::process::shutdown_signal;
 use lcrl_learner::policy::Policy;
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::{EpisodeSummary, GetPolicyRequest, PolicySnapshot, Transition, TransitionBatch, WatchPolicyRequest};
@@ -85,21 +85,8 @@ struct Args {
 
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
-    lcrl_graph_builder::service::init_logging(args.log_json);
-    let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build() {
-        Ok(runtime) => runtime,
-        Err(e) => {
-            eprintln!("lcrl-actor: error: cannot start the async runtime: {e}");
-            return std::process::ExitCode::FAILURE;
-        }
-    };
-    match runtime.block_on(run(args)) {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("lcrl-actor: error: {e:#}");
-            std::process::ExitCode::FAILURE
-        }
-    }
+    // The environments step on their own thread; the runtime only talks.
+    lcrl_proto::process::run_service("lcrl-actor", args.log_json, 1, run(args))
 }
 
 /// Connects, retrying with backoff until `deadline`.

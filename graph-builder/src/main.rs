@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use clap::Parser;
-use lcrl_graph_builder::service::shutdown_signal;
+use lcrl_proto::process::shutdown_signal;
 use lcrl_graph_builder::cli::GraphArgs;
 use lcrl_graph_builder::service::{self, GraphState};
 use lcrl_proto::security::{ServerSecurity, ServerSecurityArgs};
@@ -29,17 +29,10 @@ struct Args {
     log_json: bool,
 }
 
-#[tokio::main]
-async fn main() -> std::process::ExitCode {
+fn main() -> std::process::ExitCode {
     let args = Args::parse();
-    service::init_logging(args.log_json);
-    match run(args).await {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("lcrl-graph-builder: error: {e:#}");
-            std::process::ExitCode::FAILURE
-        }
-    }
+    // CS3 runs on its own thread pool; the runtime only serves gRPC.
+    lcrl_proto::process::run_service("lcrl-graph-builder", args.log_json, 2, run(args))
 }
 
 async fn run(args: Args) -> anyhow::Result<()> {

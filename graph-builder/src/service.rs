@@ -1,5 +1,6 @@
 //! The `lcrl.v1.Graph` gRPC service: a thin handler over the current
-//! [`GraphState`], plus health checking and server reflection.
+//! [`GraphState`], plus health checking and server reflection
+//! ([`lcrl_proto::process::add_reflection`]).
 
 use std::future::Future;
 use std::sync::Arc;
@@ -10,10 +11,9 @@ use tokio_stream::wrappers::WatchStream;
 use tokio_stream::{Stream, StreamExt};
 use tokio::net::TcpListener;
 use tokio::sync::watch;
-use lcrl_proto::security::{ServerSecurity, TokenCheck};
+use lcrl_proto::security::ServerSecurity;
 use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status};
-use tonic_reflection::server as reflection;
 use tonic_health::ServingStatus;
 
 /// What the service has to offer right now.
@@ -99,52 +99,5 @@ pub async fn serve(
         .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
         .add_service(health_service)
         .add_service(InterceptedService::new(GraphServer::new(GraphService::new(state)), check.clone()));
-    add_reflection(router, &check).serve_with_incoming_shutdown(security.incoming(listener), shutdown).await
-}
-
-/// Adds server reflection of lcrl.v1 and grpc.health.v1 in both protocol
-/// versions, behind the token check: v1 (grpcurl, grpcui, newer tools) and
-/// v1alpha (grpcio's `grpcio-reflection`, Postman, older tools).
-pub fn add_reflection<L>(router: tonic::transport::server::Router<L>, check: &TokenCheck) -> tonic::transport::server::Router<L> {
-    let configure = || {
-        reflection::Builder::configure()
-            .register_encoded_file_descriptor_set(lcrl_proto::v1::FILE_DESCRIPTOR_SET)
-            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
-    };
-    // The descriptor sets are compiled in: a failure is a build defect,
-    // which every test that starts a server would show.
-    let v1 = configure().build_v1().expect("compiled-in descriptor sets are valid");
-    let v1alpha = configure().build_v1alpha().expect("compiled-in descriptor sets are valid");
-    router.add_service(InterceptedService::new(v1, check.clone())).add_service(InterceptedService::new(v1alpha, check.clone()))
-}
-
-/// Resolves on SIGTERM or Ctrl-C: how every lcrl server and actor stops.
-pub async fn shutdown_signal() {
-    let ctrl_c = tokio::signal::ctrl_c();
-    match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-        Ok(mut term) => {
-            tokio::select! {
-                _ = ctrl_c => {},
-                _ = term.recv() => {},
-            }
-        }
-        Err(_) => {
-            let _ = ctrl_c.await;
-        }
-    }
-}
-
-/// Logging of every lcrl process: to stderr, human-readable by default or
-/// JSON lines with `json`, level from `RUST_LOG` (default `info`).
-pub fn init_logging(json: bool) {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
-    let builder = tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .with_ansi(!json && std::io::IsTerminal::is_terminal(&std::io::stderr()));
-    if json {
-        builder.json().init();
-    } else {
-        builder.init();
-    }
+    lcrl_proto::process::add_reflection(router, &check).serve_with_incoming_shutdown(security.incoming(listener), shutdown).await
 }

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use clap::Parser;
-use lcrl_graph_builder::service::shutdown_signal;
+use lcrl_proto::process::shutdown_signal;
 use lcrl_learner::config::{Algo, Connection, TrainConfig};
 use lcrl_learner::service::ingest::Ingest;
 use lcrl_learner::service::runtime::{run_training, snapshot, Schedule, Shared};
@@ -125,21 +125,8 @@ struct Args {
 
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
-    lcrl_graph_builder::service::init_logging(args.log_json);
-    let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build() {
-        Ok(runtime) => runtime,
-        Err(e) => {
-            eprintln!("lcrl-learner: error: cannot start the async runtime: {e}");
-            return std::process::ExitCode::FAILURE;
-        }
-    };
-    match runtime.block_on(run(args)) {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("lcrl-learner: error: {e:#}");
-            std::process::ExitCode::FAILURE
-        }
-    }
+    // Training has its own thread; the runtime serves gRPC and metrics.
+    lcrl_proto::process::run_service("lcrl-learner", args.log_json, 2, run(args))
 }
 
 /// G from a graph builder, retrying while it is unreachable or building.
@@ -376,7 +363,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
     let mut server = tokio::spawn(
-        lcrl_graph_builder::service::add_reflection(
+        lcrl_proto::process::add_reflection(
             tonic::transport::Server::builder()
                 .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
                 .add_service(health_service)

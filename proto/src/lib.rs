@@ -3,9 +3,12 @@
 //! The `.proto` file is the documentation of every field; this crate only
 //! re-exports what tonic/prost generate from it, plus [`security`]: how
 //! every server and client of the contract authenticates (TLS, tokens), and
-//! [`incoming`]: the TLS-accepting connection stream servers are fed from.
+//! [`incoming`]: the TLS-accepting connection stream servers are fed from,
+//! and [`process`]: the start-up, logging, shutdown and reflection every
+//! service process shares.
 
 pub mod incoming;
+pub mod process;
 pub mod security;
 
 /// Generated types and stubs of package `lcrl.v1`.

@@ -1,0 +1,84 @@
+//! What every lcrl service process shares, so the graph builder, the
+//! learner and the actor start, log, stop and describe themselves alike:
+//! [`run_service`] (the `main()` of each), [`init_logging`],
+//! [`shutdown_signal`] and [`add_reflection`].
+
+use std::future::Future;
+use std::process::ExitCode;
+
+use tonic::service::interceptor::InterceptedService;
+use tonic_reflection::server as reflection;
+
+use crate::security::TokenCheck;
+
+/// The body of a service binary's `main()`: logging (JSON lines with
+/// `log_json`), a multi-threaded async runtime with `workers` threads, and
+/// `run` on it; an error is printed as one `NAME: error: …` line (with its
+/// causes) and exits non-zero.
+pub fn run_service<F>(name: &str, log_json: bool, workers: usize, run: F) -> ExitCode
+where
+    F: Future<Output = anyhow::Result<()>>,
+{
+    init_logging(log_json);
+    let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(workers.max(1)).enable_all().build() {
+        Ok(runtime) => runtime,
+        Err(e) => {
+            eprintln!("{name}: error: cannot start the async runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    match runtime.block_on(run) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("{name}: error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Resolves on SIGTERM or Ctrl-C: how every lcrl server and actor stops.
+pub async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+        Ok(mut term) => {
+            tokio::select! {
+                _ = ctrl_c => {},
+                _ = term.recv() => {},
+            }
+        }
+        Err(_) => {
+            let _ = ctrl_c.await;
+        }
+    }
+}
+
+/// Logging of every lcrl process: to stderr, human-readable by default or
+/// JSON lines with `json`, level from `RUST_LOG` (default `info`).
+pub fn init_logging(json: bool) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(!json && std::io::IsTerminal::is_terminal(&std::io::stderr()));
+    if json {
+        builder.json().init();
+    } else {
+        builder.init();
+    }
+}
+
+/// Adds server reflection of lcrl.v1 and grpc.health.v1 in both protocol
+/// versions, behind the token check: v1 (grpcurl, grpcui, newer tools) and
+/// v1alpha (grpcio's `grpcio-reflection`, Postman, older tools).
+pub fn add_reflection<L>(router: tonic::transport::server::Router<L>, check: &TokenCheck) -> tonic::transport::server::Router<L> {
+    let configure = || {
+        reflection::Builder::configure()
+            .register_encoded_file_descriptor_set(crate::v1::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    // The descriptor sets are compiled in: a failure is a build defect,
+    // which every test that starts a server would show.
+    let v1 = configure().build_v1().expect("compiled-in descriptor sets are valid");
+    let v1alpha = configure().build_v1alpha().expect("compiled-in descriptor sets are valid");
+    router.add_service(InterceptedService::new(v1, check.clone())).add_service(InterceptedService::new(v1alpha, check.clone()))
+}
