@@ -1,0 +1,307 @@
+//! The actor's rollout: K environments stepping with one policy plus
+//! exploration noise, their transitions assembled into `TransitionBatch`es
+//! (proto/lcrl.proto). No network here: [`crate::transport`] moves the
+//! batches and the policies, and tests drive a [`Rollout`] directly.
+
+use lcrl_learner::action::ActionMap;
+use lcrl_learner::policy::Policy;
+use lcrl_proto::v1::{EpisodeSummary, PolicySnapshot, Transition, TransitionBatch};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+
+use crate::metrics::ActorMetrics;
+
+/// How to explore with the current version (from its snapshot).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Exploration {
+    /// Uniformly random actions (the learner is warming up, DDPG).
+    pub uniform: bool,
+    /// Gaussian noise std the learner asks for (DDPG; 0: the actor's own).
+    pub noise: f64,
+}
+
+impl Exploration {
+    pub fn of(snapshot: &PolicySnapshot) -> Self {
+        Exploration { uniform: snapshot.explore_uniform, noise: snapshot.exploration_noise }
+    }
+}
+
+/// What a rollout is asked to do.
+#[derive(Debug, Clone)]
+pub struct RolloutSettings {
+    /// K, environment instances.
+    pub envs: usize,
+    /// Transitions per batch.
+    pub batch: usize,
+    /// Exploration noise std where the learner sets none (DDPG).
+    pub noise: f64,
+    pub seed: u64,
+    /// Stop after this many episodes in total (None: never).
+    pub episodes: Option<u64>,
+    pub run_id: String,
+    pub actor_id: String,
+}
+
+/// Exploration noise per action component: the policy's own std (PPO), or
+/// the learner's schedule (DDPG; `noise` when the learner sets none), in
+/// normalized action units.
+fn exploration_normals(policy: &Policy, exploration: Exploration, noise: f64) -> Vec<Normal<f64>> {
+    let noise = if exploration.noise > 0.0 { exploration.noise } else { noise };
+    let std: Vec<f64> = policy.exploration_std().map_or_else(|| vec![noise; policy.architecture.action_dim], |v| v.iter().map(|&x| f64::from(x)).collect());
+    // A non-finite or non-positive std (a diverged policy, a bad flag) acts
+    // greedily rather than failing; the argument below is then always valid.
+    std.iter()
+        .map(|&sd| Normal::new(0.0, if sd.is_finite() && sd > 0.0 { sd } else { 1e-9 }).expect("finite positive std"))
+        .collect()
+}
+
+/// K environments mid-episode and the batch being assembled.
+pub struct Rollout {
+    settings: RolloutSettings,
+    envs: Vec<Box<dyn lcrl_sim::Env>>,
+    /// The base is part of the architecture, which newer weights never
+    /// change, and the K environments share one spec: one map for the run.
+    action_map: ActionMap,
+    explore: Exploration,
+    normals: Vec<Normal<f64>>,
+    /// PPO samples its own Gaussian; the learner's uniform warm-up is DDPG's.
+    own_distribution: bool,
+    rng: ChaCha8Rng,
+    episode_seed: u64,
+    states: Vec<Vec<f64>>,
+    returns: Vec<f64>,
+    lengths: Vec<u32>,
+    /// Each environment's transitions since the last batch: they stay
+    /// contiguous in a batch, the last one marked as a cut, so the learner
+    /// sees whole trajectory segments.
+    segments: Vec<Vec<Transition>>,
+    episodes_in_batch: Vec<EpisodeSummary>,
+    sequence: u64,
+    episodes_done: u64,
+}
+
+impl Rollout {
+    /// K fresh environments of the policy's environment, reset.
+    pub fn new(settings: RolloutSettings, policy: &Policy, explore: Exploration) -> anyhow::Result<Self> {
+        if settings.envs == 0 || settings.batch == 0 {
+            anyhow::bail!("a rollout needs at least one environment and one transition per batch");
+        }
+        let name = &policy.architecture.env;
+        let mut envs: Vec<Box<dyn lcrl_sim::Env>> = (0..settings.envs).map(|_| lcrl_sim::make_env(name)).collect::<Result<_, _>>()?;
+        policy.check_env(envs[0].as_ref())?;
+        let action_map = policy.action_map(envs[0].as_ref())?;
+        // Actors differ by name (container replicas all run as process 1),
+        // and the same name and seed give the same episodes.
+        let salt = {
+            use std::hash::{Hash, Hasher};
+            let mut hasher = std::collections::hash_map::DefaultHasher::new();
+            settings.actor_id.hash(&mut hasher);
+            hasher.finish()
+        };
+        let mut episode_seed = settings.seed.wrapping_mul(1_000_003) ^ (salt << 20);
+        let states = envs
+            .iter_mut()
+            .map(|env| {
+                episode_seed += 1;
+                env.reset(episode_seed)
+            })
+            .collect::<Result<_, _>>()?;
+        let k = settings.envs;
+        Ok(Rollout {
+            rng: ChaCha8Rng::seed_from_u64(settings.seed ^ salt),
+            normals: exploration_normals(policy, explore, settings.noise),
+            own_distribution: policy.exploration_std().is_some(),
+            explore,
+            action_map,
+            envs,
+            episode_seed,
+            states,
+            returns: vec![0.0; k],
+            lengths: vec![0; k],
+            segments: vec![Vec::new(); k],
+            episodes_in_batch: Vec::new(),
+            // The learner keeps the highest sequence per actor id and drops
+            // what is not above it. Starting from the clock (µs) keeps a
+            // restarted actor with the same id above everything its
+            // previous life sent.
+            sequence: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64),
+            episodes_done: 0,
+            settings,
+        })
+    }
+
+    /// After a new policy version: its exploration (and, for PPO, its std).
+    pub fn set_exploration(&mut self, policy: &Policy, explore: Exploration) {
+        self.explore = explore;
+        self.normals = exploration_normals(policy, explore, self.settings.noise);
+    }
+
+    /// Whether the episode budget is used up.
+    pub fn finished(&self) -> bool {
+        self.settings.episodes.is_some_and(|limit| self.episodes_done >= limit)
+    }
+
+    pub fn episodes_done(&self) -> u64 {
+        self.episodes_done
+    }
+
+    /// Steps every environment once with `policy`; returns a batch when
+    /// `batch` transitions are collected (or the budget ends).
+    pub fn step(&mut self, policy: &Policy, metrics: &ActorMetrics) -> anyhow::Result<Option<TransitionBatch>> {
+        let mut actions = Vec::with_capacity(self.envs.len());
+        for (k, env) in self.envs.iter().enumerate() {
+            let obs = lcrl_learner::trainer::observe(env.as_ref(), &self.states[k]);
+            let u: Vec<f32> = if self.explore.uniform && !self.own_distribution {
+                // The learner is filling its replay buffer: uniformly random
+                // actions, as `lcrl train` warms up.
+                (0..policy.architecture.action_dim).map(|_| rand::Rng::random_range(&mut self.rng, -1.0f32..=1.0)).collect()
+            } else {
+                let rng = &mut self.rng;
+                policy.act_normalized(&obs).iter().zip(&self.normals).map(|(&a, noise)| (f64::from(a) + noise.sample(rng)).clamp(-1.0, 1.0) as f32).collect()
+            };
+            actions.push(self.action_map.to_env(&u));
+        }
+        // All K environments at once: one call when a server serves them.
+        let steps = lcrl_sim::step_all(&mut self.envs, &actions)?;
+        for (k, (step, action)) in steps.into_iter().zip(&actions).enumerate() {
+            self.returns[k] += step.reward;
+            self.lengths[k] += 1;
+            metrics.env_steps.inc();
+            self.segments[k].push(Transition {
+                state: self.states[k].iter().map(|&v| v as f32).collect(),
+                action: action.iter().map(|&v| v as f32).collect(),
+                reward: step.reward as f32,
+                next_state: step.state.iter().map(|&v| v as f32).collect(),
+                terminated: step.terminated,
+                truncated: step.truncated,
+                policy_version: policy.version,
+            });
+            if step.terminated || step.truncated {
+                let success = self.envs[k].episode_metrics().success;
+                self.episodes_in_batch.push(EpisodeSummary { episode_return: self.returns[k], length: self.lengths[k], success });
+                self.episodes_done += 1;
+                metrics.episodes.inc();
+                (self.returns[k], self.lengths[k]) = (0.0, 0);
+                self.episode_seed += 1;
+                self.states[k] = self.envs[k].reset(self.episode_seed)?;
+            } else {
+                self.states[k] = step.state;
+            }
+        }
+        let collected: usize = self.segments.iter().map(Vec::len).sum();
+        if collected < self.settings.batch && !(self.finished() && collected > 0) {
+            return Ok(None);
+        }
+        let mut batch = TransitionBatch { run_id: self.settings.run_id.clone(), actor_id: self.settings.actor_id.clone(), ..Default::default() };
+        for segment in self.segments.iter_mut() {
+            // A batch boundary is not an episode end, but each
+            // environment's stream is cut there for PPO's advantages.
+            if let Some(last) = segment.last_mut() {
+                last.truncated |= !last.terminated;
+            }
+            batch.transitions.append(segment);
+        }
+        batch.episodes = std::mem::take(&mut self.episodes_in_batch);
+        self.sequence += 1;
+        batch.sequence = self.sequence;
+        batch.episode_id = self.episodes_done;
+        batch.policy_version = policy.version;
+        metrics.batches_sent.inc();
+        metrics.transitions_sent.inc_by(batch.transitions.len() as u64);
+        Ok(Some(batch))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lcrl_learner::config::{Algo, Connection, TrainConfig};
+
+    /// An untrained lti-paper policy, as the learner would publish it.
+    fn policy(algo: Algo) -> Policy {
+        let cfg = TrainConfig::for_env("lti-paper").0;
+        let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
+        let agent = lcrl_learner::trainer::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
+        let architecture = lcrl_learner::snapshot::Architecture {
+            env: "lti-paper".into(),
+            algo,
+            connection: Connection::Local,
+            state_dim: 3,
+            action_dim: 3,
+            mask,
+            network: cfg.network.clone(),
+            base: None,
+        };
+        let snapshot = lcrl_learner::service::runtime::snapshot(agent.as_ref(), &architecture, 7).unwrap();
+        Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap()
+    }
+
+    fn settings(episodes: u64) -> RolloutSettings {
+        RolloutSettings { envs: 3, batch: 50, noise: 0.1, seed: 4, episodes: Some(episodes), run_id: "r".into(), actor_id: "a".into() }
+    }
+
+    fn run(algo: Algo, episodes: u64) -> Vec<TransitionBatch> {
+        let policy = policy(algo);
+        let mut rollout = Rollout::new(settings(episodes), &policy, Exploration { uniform: false, noise: 0.0 }).unwrap();
+        let metrics = ActorMetrics::default();
+        let mut batches = Vec::new();
+        while !rollout.finished() {
+            batches.extend(rollout.step(&policy, &metrics).unwrap());
+        }
+        assert_eq!(metrics.episodes.get(), rollout.episodes_done());
+        assert_eq!(metrics.transitions_sent.get(), batches.iter().map(|b| b.transitions.len() as u64).sum::<u64>());
+        batches
+    }
+
+    /// Batches carry whole per-environment segments (each cut at its end),
+    /// every finished episode once, rising sequence numbers and the
+    /// policy's version; the last, partial batch is sent when the budget
+    /// ends; the same seed gives the same batches.
+    #[test]
+    fn batches_hold_whole_segments_and_every_episode() {
+        for algo in [Algo::Ddpg, Algo::Ppo] {
+            let batches = run(algo, 5);
+            let episodes: Vec<&EpisodeSummary> = batches.iter().flat_map(|b| &b.episodes).collect();
+            assert!(episodes.len() >= 5, "{algo:?}: {} episodes", episodes.len());
+            let steps: u64 = batches.iter().map(|b| b.transitions.len() as u64).sum();
+            let finished: u64 = episodes.iter().map(|e| u64::from(e.length)).sum();
+            assert!(steps >= finished, "every finished episode's steps were sent");
+            for (k, batch) in batches.iter().enumerate() {
+                assert!(batch.transitions.len() >= 50 || k == batches.len() - 1, "only the last batch may be short");
+                assert!(batch.transitions.iter().all(|t| t.policy_version == 7 && t.state.len() == 3 && t.action.len() == 3));
+                // Contiguity: within a segment next_state is the next state.
+                for pair in batch.transitions.windows(2) {
+                    if !(pair[0].terminated || pair[0].truncated) {
+                        assert_eq!(pair[0].next_state, pair[1].state, "{algo:?}: a segment was interleaved");
+                    }
+                }
+                let last = batch.transitions.last().unwrap();
+                assert!(last.terminated || last.truncated, "each batch ends a segment");
+                if k > 0 {
+                    assert_eq!(batch.sequence, batches[k - 1].sequence + 1);
+                }
+            }
+            let again = run(algo, 5);
+            let strip = |b: &[TransitionBatch]| b.iter().map(|b| (b.transitions.clone(), b.episodes.clone())).collect::<Vec<_>>();
+            assert_eq!(strip(&batches), strip(&again), "{algo:?}: same seed, same batches");
+        }
+    }
+
+    /// During the learner's warm-up (DDPG) actions are uniform over the box,
+    /// not the untrained policy's near-zero output.
+    #[test]
+    fn uniform_warm_up_covers_the_box() {
+        let policy = policy(Algo::Ddpg);
+        let mut rollout = Rollout::new(settings(2), &policy, Exploration { uniform: true, noise: 0.0 }).unwrap();
+        let metrics = ActorMetrics::default();
+        let mut batches = Vec::new();
+        while !rollout.finished() {
+            batches.extend(rollout.step(&policy, &metrics).unwrap());
+        }
+        let spread = batches.iter().flat_map(|b| &b.transitions).flat_map(|t| t.action.clone()).fold(0.0f32, |m, a| m.max(a.abs()));
+        let env = lcrl_sim::make_env("lti-paper").unwrap();
+        let high = env.spec().action_high[0] as f32;
+        assert!(spread > 0.8 * high, "uniform actions reach {spread} of a box up to {high}");
+    }
+}
