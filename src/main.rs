@@ -1,24 +1,7 @@
 //! `lcrl`: the command-line front end of Local Connection Reinforcement
 //! Learning. Each subcommand is a thin layer over a library crate.
 
-mod bench;
-mod bench_env;
-mod bench_transport;
-mod certs_cmd;
-mod compare_cmd;
-mod doctor;
-mod experiment;
-mod probe_cmd;
-mod launch_cmd;
-mod output;
-mod plots;
-mod preset;
-mod run_cmd;
-mod run_summary;
-mod scale_cmd;
-mod sim_cmd;
-mod train_cmd;
-mod tune_cmd;
+mod cmd;
 
 use std::process::ExitCode;
 
@@ -43,36 +26,36 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Run graph builder, learner and actors from one preset (configs/).
-    Run(run_cmd::RunArgs),
+    Run(cmd::run::RunArgs),
     /// Measure throughput against actor processes (scale.json/csv/png).
-    Scale(scale_cmd::ScaleArgs),
+    Scale(cmd::scale::ScaleArgs),
     /// Start one role of a run from a preset (for containers and pods).
-    Launch(launch_cmd::LaunchArgs),
+    Launch(cmd::launch::LaunchArgs),
     /// Probe a server's gRPC health service (exit 0 when SERVING).
-    Health(probe_cmd::HealthArgs),
+    Health(cmd::probe::HealthArgs),
     /// Print a learner's status (GetStatus) as one JSON line.
-    Status(probe_cmd::StatusArgs),
+    Status(cmd::probe::StatusArgs),
     /// Build the connection graph G of an environment with CS3 and print it.
     Graph(GraphArgs),
     /// Run a controller on an environment: summary.json, trace.csv, trace.png.
-    Sim(sim_cmd::SimArgs),
+    Sim(cmd::sim::SimArgs),
     /// Find the best constant action (CMA-ES): the bar a trained agent must beat.
-    Tune(tune_cmd::TuneArgs),
+    Tune(cmd::tune::TuneArgs),
     /// Train an actor (LCRL local, GCRL global, or full-subnets) with DDPG or PPO.
-    Train(train_cmd::TrainArgs),
+    Train(cmd::train::TrainArgs),
     /// Compare training runs: time split, final returns, reward curves.
-    Compare(compare_cmd::CompareArgs),
+    Compare(cmd::compare::CompareArgs),
     /// Many seeds of LCRL against GCRL: statistics, figures, resumable
     /// (experiments/*.toml; see `lcrl experiment run --help`).
     #[command(subcommand)]
-    Experiment(experiment::ExperimentCommand),
+    Experiment(lcrl::experiment::ExperimentCommand),
     /// Make a CA, server and client certificates and a token (TLS across hosts).
-    Certs(certs_cmd::CertsArgs),
+    Certs(cmd::certs::CertsArgs),
     /// Check the installation: libtorch loads and computes, threads, CUDA.
     Doctor,
     /// Measure performance figures (see `lcrl bench --help`).
     #[command(subcommand)]
-    Bench(bench::BenchCommand),
+    Bench(cmd::bench::BenchCommand),
 }
 
 fn main() -> ExitCode {
@@ -86,19 +69,19 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Graph(args) => run_graph(&args),
-        Command::Run(args) => run_cmd::run(&args),
-        Command::Launch(args) => launch_cmd::run(&args),
-        Command::Scale(args) => scale_cmd::run(&args),
-        Command::Health(args) => probe_cmd::health(&args),
-        Command::Status(args) => probe_cmd::status(&args),
-        Command::Sim(args) => sim_cmd::run(&args),
-        Command::Tune(args) => tune_cmd::run(&args),
-        Command::Train(args) => train_cmd::run(&args),
-        Command::Compare(args) => compare_cmd::run(&args),
-        Command::Experiment(command) => experiment::run(&command),
-        Command::Certs(args) => certs_cmd::run(&args),
-        Command::Doctor => doctor::run(),
-        Command::Bench(command) => bench::run(command),
+        Command::Run(args) => cmd::run::run(&args),
+        Command::Launch(args) => cmd::launch::run(&args),
+        Command::Scale(args) => cmd::scale::run(&args),
+        Command::Health(args) => cmd::probe::health(&args),
+        Command::Status(args) => cmd::probe::status(&args),
+        Command::Sim(args) => cmd::sim::run(&args),
+        Command::Tune(args) => cmd::tune::run(&args),
+        Command::Train(args) => cmd::train::run(&args),
+        Command::Compare(args) => cmd::compare::run(&args),
+        Command::Experiment(command) => lcrl::experiment::run(&command),
+        Command::Certs(args) => cmd::certs::run(&args),
+        Command::Doctor => cmd::doctor::run(),
+        Command::Bench(command) => cmd::bench::run(command),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

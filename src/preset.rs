@@ -381,3 +381,92 @@ pub fn sibling(name: &str) -> anyhow::Result<PathBuf> {
     }
     Ok(path)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn preset(extra: &str) -> Preset {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.toml");
+        let text = format!("[job]\nenv = \"lti-paper\"\nalgo = \"ddpg\"\nconnection = \"local\"\nepisodes = 40\nactors = 3\nenvs_per_actor = 2\n{extra}\n[run]\ngraph_samples = 32\nseed = 5\n");
+        std::fs::write(&path, text).unwrap();
+        Preset::load(&path).unwrap()
+    }
+
+    fn strings(args: &[OsString]) -> Vec<String> {
+        args.iter().map(|a| a.to_string_lossy().into_owned()).collect()
+    }
+
+    /// The value after `flag` in `args`.
+    fn value<'a>(args: &'a [String], flag: &str) -> Option<&'a str> {
+        args.iter().position(|a| a == flag).and_then(|k| args.get(k + 1)).map(String::as_str)
+    }
+
+    /// Every process of a run is told the preset's settings: the graph
+    /// builder its CS3 samples, seed and threshold; the learner the
+    /// environment, algorithm, connection, budget, replay ratio, config and
+    /// graph source; each actor its batch size, envs and its own seed.
+    #[test]
+    fn a_preset_becomes_each_processs_command_line() {
+        let p = preset("replay_ratio = \"unlimited\"\ngraph_threshold = 0.25\n");
+        let graph = strings(&p.graph_builder_args("127.0.0.1:0", Path::new("/runs/x")));
+        assert_eq!(value(&graph, "--env"), Some("lti-paper"));
+        assert_eq!((value(&graph, "--samples"), value(&graph, "--seed"), value(&graph, "--threshold")), (Some("32"), Some("5"), Some("0.25")));
+        assert_eq!(value(&graph, "--out"), Some("/runs/x/graph.json"));
+
+        let learner = strings(&p.learner_args("127.0.0.1:0", "run-a", Path::new("/t.toml"), Path::new("/runs/x/learner"), Some("http://g:1")).unwrap());
+        for (flag, expected) in [
+            ("--env", "lti-paper"),
+            ("--algo", "ddpg"),
+            ("--connection", "local"),
+            ("--episodes", "40"),
+            ("--replay-ratio", "unlimited"),
+            ("--run-id", "run-a"),
+            ("--config", "/t.toml"),
+            ("--run-dir", "/runs/x/learner"),
+            ("--graph-builder", "http://g:1"),
+        ] {
+            assert_eq!(value(&learner, flag), Some(expected), "{flag} in {learner:?}");
+        }
+        // A locally connected learner cannot run without its graph.
+        assert!(p.learner_args("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), None).is_err());
+        let from_file = strings(&p.learner_args_with_graph_file("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), Path::new("/g.json")));
+        assert_eq!(value(&from_file, "--graph"), Some("/g.json"));
+
+        let first = strings(&p.actor_args("http://l:2", "run-a", "shm", None, 0));
+        let third = strings(&p.actor_args("http://l:2", "run-a", "shm", Some("actor-2"), 2));
+        assert_eq!((value(&first, "--learner"), value(&first, "--transport"), value(&first, "--envs")), (Some("http://l:2"), Some("shm"), Some("2")));
+        assert_eq!((value(&first, "--seed"), value(&third, "--seed")), (Some("5"), Some("7")), "actors explore with distinct seeds");
+        assert_eq!((value(&first, "--actor-id"), value(&third, "--actor-id")), (None, Some("actor-2")));
+    }
+
+    /// Without a replay ratio or threshold the processes get none (their own
+    /// defaults: Algorithm 2's ratio, the publication's T); a global
+    /// learner gets no graph.
+    #[test]
+    fn unset_settings_are_left_to_each_process() {
+        let p = preset("");
+        let graph = strings(&p.graph_builder_args("127.0.0.1:0", Path::new("/r")));
+        assert_eq!(value(&graph, "--threshold"), None);
+        let learner = strings(&p.learner_args("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), Some("http://g:1")).unwrap());
+        assert_eq!(value(&learner, "--replay-ratio"), None);
+        let mut global = p.clone();
+        global.job.connection = Connection::Global;
+        let learner = strings(&global.learner_args("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), None).unwrap());
+        assert!(!learner.iter().any(|a| a == "--graph-builder" || a == "--graph"), "{learner:?}");
+    }
+
+    /// `--threads 0` (automatic) leaves a run's learner the cores its
+    /// actors do not use, at least one; device and thread overrides are
+    /// checked.
+    #[test]
+    fn learner_compute_overrides_are_checked_and_threads_pinned() {
+        let mut p = preset("");
+        p.set_compute(&LearnerCompute { device: Some("cpu".into()), threads: Some(0) }).unwrap();
+        p.pin_learner_threads();
+        assert_eq!(p.train.run.threads, lcrl_learner::device::available_cores().saturating_sub(3).max(1));
+        let err = p.set_compute(&LearnerCompute { device: None, threads: Some(1 << 20) }).unwrap_err().to_string();
+        assert!(err.contains("run.threads"), "{err}");
+    }
+}

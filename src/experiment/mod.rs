@@ -200,7 +200,7 @@ fn run_task(args: &TaskArgs) -> anyhow::Result<()> {
         std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
         let mut command = Command::new(&exe);
         command.args(t.args(&e, &args.out)).stdin(Stdio::null());
-        crate::run_cmd::die_with_parent(&mut command);
+        crate::supervise::die_with_parent(&mut command);
         let status = command.status().with_context(|| format!("starting {}", t.id()))?;
         if !status.success() {
             bail!("{} failed ({status})", t.id());

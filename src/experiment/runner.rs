@@ -149,7 +149,7 @@ pub fn spawn(exe: &Path, args: &[String], log: &Path) -> anyhow::Result<Child> {
     let file = std::fs::OpenOptions::new().create(true).append(true).open(log).with_context(|| format!("opening {}", log.display()))?;
     let mut command = Command::new(exe);
     command.args(args).stdin(Stdio::null()).stdout(file.try_clone()?).stderr(file);
-    crate::run_cmd::die_with_parent(&mut command);
+    crate::supervise::die_with_parent(&mut command);
     Ok(command.spawn()?)
 }
 

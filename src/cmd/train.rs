@@ -8,7 +8,7 @@ use lcrl_learner::run_files::EpisodeRow;
 use lcrl_learner::trainer::{train, TrainRequest};
 use lcrl_learner::{Algo, Connection, TrainConfig};
 
-use crate::plots::{line_panels, Panel};
+use lcrl::plots::{line_panels, Panel};
 
 /// Train an actor with DDPG or PPO; the environment runs in this process.
 #[derive(Debug, clap::Args)]
@@ -128,7 +128,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     if let (Some(rate), Some(force)) = (s.eval_success_rate, s.eval_peak_force_n) {
         println!("  eval success          {:.0}%, mean peak force {force:.2} N", 100.0 * rate);
     }
-    crate::sim_cmd::print_terms(&s.eval_terms);
+    crate::cmd::sim::print_terms(&s.eval_terms);
     if let Some(lqr) = s.lqr_return {
         println!("  LQR return            {lqr:.3} (the optimum)");
     }
@@ -163,7 +163,7 @@ fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::run_files::TrainSum
     let panel = Panel::rewards(
         "episode return",
         vec![("return".into(), returns), ("moving average (10)".into(), average)],
-        crate::compare_cmd::references(summary),
+        crate::cmd::compare::references(summary),
     );
     let path = args.run_dir.join("reward_curve.png");
     line_panels(&path, &title, &x, "episode", &[panel]).with_context(|| format!("drawing {}", path.display()))

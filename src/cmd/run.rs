@@ -2,9 +2,8 @@
 //! graph builder, learner and actors as child processes.
 
 use std::fs;
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
@@ -13,8 +12,8 @@ use lcrl_learner::Connection;
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::GetStatusRequest;
 
-use crate::preset::{sibling, LearnerCompute, Preset, RunSecurity};
-use lcrl_proto::security::ClientSecurity;
+use lcrl::preset::{sibling, LearnerCompute, Preset, RunSecurity};
+use lcrl::supervise::{die_with_parent, wait_healthy, Managed};
 
 /// Run graph builder, learner and actors on this machine until the episode
 /// budget is reached (or Ctrl-C), collecting everything in the run directory.
@@ -50,98 +49,6 @@ pub enum TransportArg {
     Grpc,
     /// iceoryx2 shared memory.
     Shm,
-}
-
-/// A child process, stopped (SIGTERM, then SIGKILL after a grace period)
-/// when dropped, so no run leaves orphans behind.
-pub(crate) struct Managed {
-    name: String,
-    child: Child,
-}
-
-impl Managed {
-    /// Starts `command` with stderr to logs/NAME.log. A server prints
-    /// "listening on ADDR" as its first line; with `server` that address is
-    /// read and returned.
-    pub(crate) fn spawn(name: &str, mut command: Command, logs: &Path, server: bool) -> anyhow::Result<(Managed, Option<String>)> {
-        let log = fs::File::create(logs.join(format!("{name}.log")))?;
-        let stdout = if server { Stdio::piped() } else { Stdio::null() };
-        let child = command.stdout(stdout).stderr(log).spawn().with_context(|| format!("starting {name}"))?;
-        let mut managed = Managed { name: name.to_string(), child };
-        let mut address = None;
-        if let Some(stdout) = managed.child.stdout.take() {
-            let mut line = String::new();
-            if BufReader::new(stdout).read_line(&mut line).is_ok() {
-                address = line.trim().strip_prefix("listening on ").map(|a| a.trim().to_string());
-            }
-        }
-        Ok((managed, address))
-    }
-
-    pub(crate) fn pid(&self) -> u32 {
-        self.child.id()
-    }
-
-    pub(crate) fn stop(&mut self, grace: Duration) {
-        if matches!(self.child.try_wait(), Ok(Some(_))) {
-            return;
-        }
-        let _ = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status();
-        let deadline = Instant::now() + grace;
-        while Instant::now() < deadline {
-            if matches!(self.child.try_wait(), Ok(Some(_))) {
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        tracing::warn!("{} did not stop within {} s; killing it", self.name, grace.as_secs());
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-impl Drop for Managed {
-    fn drop(&mut self) {
-        self.stop(Duration::from_secs(10));
-    }
-}
-
-/// Makes a child die with this process (Linux: PR_SET_PDEATHSIG): a killed
-/// `lcrl run` or study leaves no server or run behind.
-#[cfg(target_os = "linux")]
-pub(crate) fn die_with_parent(command: &mut Command) {
-    use std::os::unix::process::CommandExt;
-    let parent = std::process::id() as libc::pid_t;
-    // SAFETY: the closure runs in the forked child before exec and calls
-    // only async-signal-safe functions (prctl, getppid, _exit).
-    unsafe {
-        command.pre_exec(move || {
-            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
-                return Err(std::io::Error::last_os_error());
-            }
-            // The parent may have died before prctl took effect.
-            if libc::getppid() != parent {
-                libc::_exit(1);
-            }
-            Ok(())
-        });
-    }
-}
-
-#[cfg(not(target_os = "linux"))]
-pub(crate) fn die_with_parent(_command: &mut Command) {}
-
-pub(crate) async fn wait_healthy(url: &str, service: &str, what: &str, timeout: Duration, security: &ClientSecurity) -> anyhow::Result<()> {
-    let deadline = Instant::now() + timeout;
-    loop {
-        if let Ok(true) = crate::probe_cmd::is_serving(url, service, security).await {
-            return Ok(());
-        }
-        if Instant::now() > deadline {
-            bail!("{what} did not become healthy within {} s; see its log", timeout.as_secs());
-        }
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    }
 }
 
 pub fn run(args: &RunArgs) -> anyhow::Result<()> {
@@ -187,7 +94,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
 
 /// Starts `python -m lcrl_env serve` for the preset's `[env_server]` and
 /// points `job.env` at the address it listens on.
-fn start_env_server(preset: &mut Preset, server: &crate::preset::EnvServer, config: &Path, logs: &Path) -> anyhow::Result<Managed> {
+fn start_env_server(preset: &mut Preset, server: &lcrl::preset::EnvServer, config: &Path, logs: &Path) -> anyhow::Result<Managed> {
     let listen = preset.job.env.strip_prefix(lcrl_sim::remote::SCHEME).unwrap_or(&preset.job.env).to_string();
     // Every actor environment, plus the evaluation's, has an instance ready.
     let instances = preset.job.actors * preset.job.envs_per_actor + 1;
@@ -281,7 +188,7 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     }
     let s = final_status.unwrap_or_default();
     let wall = started.elapsed().as_secs_f64();
-    let summary = crate::run_summary::evaluate_run(preset, run_dir, &s, wall, job.actors, transport)?;
+    let summary = lcrl::run_summary::evaluate_run(preset, run_dir, &s, wall, job.actors, transport)?;
     let curve = run_dir.join("reward_curve.png");
     plot_curve(&run_dir.join("learner/metrics.csv"), &curve, &job.env, &summary)?;
     let reference = match (summary.lqr_return, summary.masked_lqr_return, job.connection) {
@@ -312,7 +219,7 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     ))
 }
 
-fn plot_curve(metrics: &Path, out: &Path, env: &str, summary: &crate::run_summary::RunSummary) -> anyhow::Result<()> {
+fn plot_curve(metrics: &Path, out: &Path, env: &str, summary: &lcrl::run_summary::RunSummary) -> anyhow::Result<()> {
     let Ok(mut reader) = csv::Reader::from_path(metrics) else { return Ok(()) };
     let returns: Vec<f64> = reader.records().filter_map(|r| r.ok()?.get(1)?.parse().ok()).collect();
     if returns.is_empty() {
@@ -325,7 +232,7 @@ fn plot_curve(metrics: &Path, out: &Path, env: &str, summary: &crate::run_summar
             w.iter().sum::<f64>() / w.len() as f64
         })
         .collect();
-    let references = crate::compare_cmd::reference_lines(summary.lqr_return, summary.masked_lqr_return, summary.zero_action_return);
-    let panel = crate::plots::Panel::rewards("episode return", vec![("return".into(), returns), ("moving average (20)".into(), average)], references);
-    crate::plots::line_panels(out, &format!("{env} — distributed run"), &x, "episode (as reported by actors)", &[panel])
+    let references = crate::cmd::compare::reference_lines(summary.lqr_return, summary.masked_lqr_return, summary.zero_action_return);
+    let panel = lcrl::plots::Panel::rewards("episode return", vec![("return".into(), returns), ("moving average (20)".into(), average)], references);
+    lcrl::plots::line_panels(out, &format!("{env} — distributed run"), &x, "episode (as reported by actors)", &[panel])
 }

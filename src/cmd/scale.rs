@@ -18,8 +18,9 @@ use lcrl_proto::v1::{ActRequest, GetStatusRequest, LearnerStatus};
 use plotters::prelude::*;
 use serde::Serialize;
 
-use crate::preset::{sibling, Preset};
-use crate::run_cmd::{wait_healthy, Managed, TransportArg};
+use lcrl::preset::{sibling, Preset};
+use crate::cmd::run::TransportArg;
+use lcrl::supervise::{wait_healthy, Managed};
 
 /// Measure throughput against the number of actor processes.
 #[derive(Debug, clap::Args)]
@@ -54,7 +55,7 @@ pub struct ScaleArgs {
     #[arg(long)]
     pub replay_ratio: Option<String>,
     #[command(flatten)]
-    pub compute: crate::preset::LearnerCompute,
+    pub compute: lcrl::preset::LearnerCompute,
     /// Where scale.json, scale.csv, scale.png and per-point logs go.
     #[arg(long, default_value = "runs/scale")]
     pub out: PathBuf,

@@ -9,7 +9,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use lcrl_sim::tune::feedback::{tune_policy, Family};
 use lcrl_sim::tune::{tune, TuneOptions};
 
-use crate::sim_cmd::{prepare_out_dir, print_terms};
+use crate::cmd::sim::{prepare_out_dir, print_terms};
 
 /// What `--policy` searches.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -102,7 +102,7 @@ pub fn run(args: &TuneArgs) -> anyhow::Result<()> {
         bar.finish_and_clear();
         let report = report?;
         let path = args.out.join("best_policy.json");
-        crate::output::write_atomic(&path, &(serde_json::to_string_pretty(&report)? + "\n"))?;
+        lcrl::output::write_atomic(&path, &(serde_json::to_string_pretty(&report)? + "\n"))?;
         println!("best {:?} policy of {} ({} candidates, {:.1} s):", family, report.env, report.evaluations, report.elapsed_s);
         println!("on {} evaluation episodes from seed {}:", report.eval_episodes, report.eval_seed);
         println!("  {:<22} {:>12} {:>9} {:>12}", "controller", "mean return", "success", "peak force");
@@ -121,7 +121,7 @@ pub fn run(args: &TuneArgs) -> anyhow::Result<()> {
     let report = report?;
     let path = args.out.join("best_constant.json");
     // Atomic: `lcrl experiment` takes an existing file as a finished tune.
-    crate::output::write_atomic(&path, &(serde_json::to_string_pretty(&report)? + "\n"))?;
+    lcrl::output::write_atomic(&path, &(serde_json::to_string_pretty(&report)? + "\n"))?;
 
     println!("best constant action of {} ({} candidates, {:.1} s):", report.env, report.evaluations, report.elapsed_s);
     for (name, a) in report.action_names.iter().zip(&report.action) {

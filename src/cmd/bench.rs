@@ -73,8 +73,8 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Graph { samples, repeats } => bench_graph(samples, repeats.max(1)),
         BenchCommand::Sim { episodes } => bench_sim(episodes.max(1)),
         BenchCommand::Learner { updates, device, threads, python } => bench_learner(updates.max(1), &device, &threads, python.as_deref()),
-        BenchCommand::Transport { seconds } => crate::bench_transport::run(seconds.max(1.0)),
-        BenchCommand::Env { gym, instances, steps } => crate::bench_env::run(&gym, &instances, steps.max(1)),
+        BenchCommand::Transport { seconds } => crate::cmd::bench_transport::run(seconds.max(1.0)),
+        BenchCommand::Env { gym, instances, steps } => crate::cmd::bench_env::run(&gym, &instances, steps.max(1)),
     }
 }
 
@@ -180,7 +180,7 @@ fn torch_eager(python: Option<&str>, device: &str, threads: &[usize], updates: u
     let python = match python {
         Some("none") => return Ok(()),
         Some(path) => std::path::PathBuf::from(path),
-        None => match crate::preset::lcrl_python() {
+        None => match lcrl::preset::lcrl_python() {
             Ok(path) => path,
             Err(_) => {
                 println!("PyTorch eager: skipped (no .venv Python; pass --python)");

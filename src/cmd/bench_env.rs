@@ -12,10 +12,10 @@ use anyhow::{bail, Context};
 use lcrl_sim::Env;
 use rand::SeedableRng;
 
-use crate::run_cmd::Managed;
+use lcrl::supervise::Managed;
 
 pub fn run(gym: &str, instances: &[usize], steps: usize) -> anyhow::Result<()> {
-    let python = crate::preset::lcrl_python()?;
+    let python = lcrl::preset::lcrl_python()?;
     let plain = Command::new(&python).args(["-m", "lcrl_env", "bench", "--env", gym, "--steps", &steps.to_string()]).stderr(Stdio::null()).output()?;
     if !plain.status.success() {
         bail!("python -m lcrl_env bench --env {gym} failed (exit {:?})", plain.status.code());
@@ -25,9 +25,9 @@ pub fn run(gym: &str, instances: &[usize], steps: usize) -> anyhow::Result<()> {
 
     let logs = tempfile::tempdir()?;
     let most = instances.iter().copied().max().unwrap_or(1).max(1);
-    let server = crate::preset::EnvServer { gym: Some(gym.to_string()), ..Default::default() };
+    let server = lcrl::preset::EnvServer { gym: Some(gym.to_string()), ..Default::default() };
     let mut cmd = server.command("127.0.0.1:0", most, Path::new("."))?;
-    crate::run_cmd::die_with_parent(&mut cmd);
+    lcrl::supervise::die_with_parent(&mut cmd);
     let (_server, address) = Managed::spawn("env-server", cmd, logs.path(), true)?;
     let url = format!("{}{}", lcrl_sim::remote::SCHEME, address.context("the environment server did not start")?);
 

@@ -10,7 +10,7 @@ use std::process::Command;
 
 use anyhow::{bail, Context};
 
-use crate::preset::{sibling, Preset, RunSecurity};
+use lcrl::preset::{sibling, Preset, RunSecurity};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Role {

@@ -44,7 +44,7 @@ impl Link {
 
     fn tls(dir: &std::path::Path) -> anyhow::Result<Link> {
         let certs = dir.join("certs");
-        crate::certs_cmd::write_set(&certs, &["127.0.0.1".to_string()], 1)?;
+        crate::cmd::certs::write_set(&certs, &["127.0.0.1".to_string()], 1)?;
         let file = |name: &str| certs.join(name).display().to_string();
         let server_flags = ["--tls-cert", &file("server.pem"), "--tls-key", &file("server.key"), "--tls-client-ca", &file("ca.pem"), "--token-file", &file("token")]
             .map(String::from)

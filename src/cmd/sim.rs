@@ -9,7 +9,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use lcrl_sim::evaluate::{evaluate, EpisodeRecord, Summary};
 use lcrl_sim::Env;
 
-use crate::plots::{line_panels, Panel};
+use lcrl::plots::{line_panels, Panel};
 
 /// Run a controller on an environment and report what it achieved.
 #[derive(Debug, clap::Args)]

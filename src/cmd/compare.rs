@@ -8,7 +8,7 @@ use anyhow::Context;
 use lcrl_learner::run_files::{EpisodeRow, TrainSummary};
 use serde::Deserialize;
 
-use crate::plots::{line_panels, Panel};
+use lcrl::plots::{line_panels, Panel};
 
 /// Compare training runs: time split (graph, optimization, total), final
 /// and evaluation returns, and their reward curves in one plot, beside the

@@ -6,8 +6,7 @@ use std::time::Duration;
 
 use anyhow::bail;
 use lcrl_proto::security::{ClientSecurity, ClientSecurityArgs};
-use tonic_health::pb::health_check_response::ServingStatus;
-use tonic_health::pb::{health_client::HealthClient, HealthCheckRequest};
+use lcrl::supervise::is_serving;
 
 #[derive(Debug, clap::Args)]
 pub struct HealthArgs {
@@ -22,14 +21,6 @@ pub struct HealthArgs {
     pub timeout: f64,
     #[command(flatten)]
     pub security: ClientSecurityArgs,
-}
-
-/// Whether `service` at `url` reports SERVING (health checks need no
-/// token; TLS where `security` says).
-pub async fn is_serving(url: &str, service: &str, security: &ClientSecurity) -> anyhow::Result<bool> {
-    let channel = security.connect(url).await?;
-    let status = HealthClient::new(channel).check(HealthCheckRequest { service: service.into() }).await?.into_inner().status;
-    Ok(status == ServingStatus::Serving as i32)
 }
 
 pub fn health(args: &HealthArgs) -> anyhow::Result<()> {

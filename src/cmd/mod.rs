@@ -1,0 +1,16 @@
+//! One module per `lcrl` subcommand: its arguments and a thin `run` over
+//! the library crates (and this crate's own library, `lcrl::*`).
+
+pub mod bench;
+pub mod bench_env;
+pub mod bench_transport;
+pub mod certs;
+pub mod compare;
+pub mod doctor;
+pub mod launch;
+pub mod probe;
+pub mod run;
+pub mod scale;
+pub mod sim;
+pub mod train;
+pub mod tune;

@@ -1,0 +1,17 @@
+//! The `lcrl` command line's own library: what several commands share,
+//! and what tests call without starting a process.
+//!
+//! - [`preset`]: a preset (configs/*.toml) and its command lines for the
+//!   graph builder, the learner and the actors.
+//! - [`supervise`]: child processes that stop when dropped, health waits.
+//! - [`run_summary`]: a distributed run's summary and evaluation.
+//! - [`plots`]: the PNG figures.
+//! - [`experiment`]: `lcrl experiment`, a study of many runs.
+//! - [`output`]: writing result files.
+
+pub mod experiment;
+pub mod output;
+pub mod plots;
+pub mod preset;
+pub mod run_summary;
+pub mod supervise;

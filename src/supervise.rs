@@ -1,0 +1,115 @@
+//! Process supervision for the commands that start other lcrl processes
+//! (`lcrl run`, `lcrl scale`, `lcrl bench`, `lcrl experiment`): children
+//! that are stopped when dropped and die with their parent, and waiting for
+//! a server to report healthy.
+
+use std::fs;
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use lcrl_proto::security::ClientSecurity;
+use tonic_health::pb::health_check_response::ServingStatus;
+use tonic_health::pb::{health_client::HealthClient, HealthCheckRequest};
+
+/// Whether `service` at `url` reports SERVING (health checks need no
+/// token; TLS where `security` says).
+pub async fn is_serving(url: &str, service: &str, security: &ClientSecurity) -> anyhow::Result<bool> {
+    let channel = security.connect(url).await?;
+    let status = HealthClient::new(channel).check(HealthCheckRequest { service: service.into() }).await?.into_inner().status;
+    Ok(status == ServingStatus::Serving as i32)
+}
+
+/// A child process, stopped (SIGTERM, then SIGKILL after a grace period)
+/// when dropped, so no run leaves orphans behind.
+pub struct Managed {
+    name: String,
+    child: Child,
+}
+
+impl Managed {
+    /// Starts `command` with stderr to logs/NAME.log. A server prints
+    /// "listening on ADDR" as its first line; with `server` that address is
+    /// read and returned.
+    pub fn spawn(name: &str, mut command: Command, logs: &Path, server: bool) -> anyhow::Result<(Managed, Option<String>)> {
+        let log = fs::File::create(logs.join(format!("{name}.log")))?;
+        let stdout = if server { Stdio::piped() } else { Stdio::null() };
+        let child = command.stdout(stdout).stderr(log).spawn().with_context(|| format!("starting {name}"))?;
+        let mut managed = Managed { name: name.to_string(), child };
+        let mut address = None;
+        if let Some(stdout) = managed.child.stdout.take() {
+            let mut line = String::new();
+            if BufReader::new(stdout).read_line(&mut line).is_ok() {
+                address = line.trim().strip_prefix("listening on ").map(|a| a.trim().to_string());
+            }
+        }
+        Ok((managed, address))
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    pub fn stop(&mut self, grace: Duration) {
+        if matches!(self.child.try_wait(), Ok(Some(_))) {
+            return;
+        }
+        let _ = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status();
+        let deadline = Instant::now() + grace;
+        while Instant::now() < deadline {
+            if matches!(self.child.try_wait(), Ok(Some(_))) {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        tracing::warn!("{} did not stop within {} s; killing it", self.name, grace.as_secs());
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Managed {
+    fn drop(&mut self) {
+        self.stop(Duration::from_secs(10));
+    }
+}
+
+/// Makes a child die with this process (Linux: PR_SET_PDEATHSIG): a killed
+/// `lcrl run` or study leaves no server or run behind.
+#[cfg(target_os = "linux")]
+pub fn die_with_parent(command: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    let parent = std::process::id() as libc::pid_t;
+    // SAFETY: the closure runs in the forked child before exec and calls
+    // only async-signal-safe functions (prctl, getppid, _exit).
+    unsafe {
+        command.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // The parent may have died before prctl took effect.
+            if libc::getppid() != parent {
+                libc::_exit(1);
+            }
+            Ok(())
+        });
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+pub fn die_with_parent(_command: &mut Command) {}
+
+pub async fn wait_healthy(url: &str, service: &str, what: &str, timeout: Duration, security: &ClientSecurity) -> anyhow::Result<()> {
+    let deadline = Instant::now() + timeout;
+    loop {
+        if let Ok(true) = is_serving(url, service, security).await {
+            return Ok(());
+        }
+        if Instant::now() > deadline {
+            bail!("{what} did not become healthy within {} s; see its log", timeout.as_secs());
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
