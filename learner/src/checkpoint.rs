@@ -47,6 +47,28 @@ pub struct CheckpointMeta {
 }
 
 impl CheckpointMeta {
+    /// The metadata of a run at its start (episode 0, nothing timed, no
+    /// distributed state): what every writer fills in from.
+    #[allow(clippy::too_many_arguments)]
+    pub fn start(env: &str, algo: Algo, connection: Connection, state_dim: usize, action_dim: usize, mask: Vec<Vec<u8>>, config: TrainConfig) -> Self {
+        CheckpointMeta {
+            episode: 0,
+            env: env.to_string(),
+            algo,
+            connection,
+            state_dim,
+            action_dim,
+            mask,
+            config,
+            graph_seconds: 0.0,
+            optimization_seconds: 0.0,
+            elapsed_seconds: 0.0,
+            policy_version: 0,
+            actor_sequences: Default::default(),
+            rate_limiter: None,
+        }
+    }
+
     /// The actor's architecture, as a published policy describes it.
     pub fn architecture(&self) -> crate::snapshot::Architecture {
         crate::snapshot::Architecture {

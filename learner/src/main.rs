@@ -195,22 +195,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 }
                 _ => vec![vec![1; m]; n],
             };
-            let meta = CheckpointMeta {
-                episode: 0,
-                env: args.env.clone(),
-                algo: args.algo,
-                connection: args.connection,
-                state_dim: m,
-                action_dim: n,
-                mask: mask.clone(),
-                config: config.clone(),
-                graph_seconds: 0.0,
-                optimization_seconds: 0.0,
-                elapsed_seconds: 0.0,
-                policy_version: 0,
-                actor_sequences: Default::default(),
-                rate_limiter: None,
-            };
+            let meta = CheckpointMeta::start(&args.env, args.algo, args.connection, m, n, mask.clone(), config.clone());
             (config, mask, meta)
         }
     };

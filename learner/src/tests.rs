@@ -122,22 +122,7 @@ fn checkpoint_round_trip_gives_identical_actions() {
             let next = [obs[0] * 0.9, obs[1] + 0.01 * k as f32, -obs[2]];
             agent.observe(crate::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &next, terminated: false, truncated: k % 50 == 49 });
         }
-        let meta = CheckpointMeta {
-            episode: 1,
-            env: "lti-paper".into(),
-            algo,
-            connection: Connection::Local,
-            state_dim: 3,
-            action_dim: 3,
-            mask: mask.clone(),
-            config: cfg.clone(),
-            graph_seconds: 0.0,
-            optimization_seconds: 0.0,
-            elapsed_seconds: 0.0,
-            policy_version: 0,
-            actor_sequences: Default::default(),
-            rate_limiter: None,
-        };
+        let meta = CheckpointMeta { episode: 1, ..CheckpointMeta::start("lti-paper", algo, Connection::Local, 3, 3, mask.clone(), cfg.clone()) };
         let saved = write_checkpoint(dir.path(), agent.as_ref(), &meta).unwrap();
         let policy = Policy::load(&saved).unwrap();
         let mut restored = make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();

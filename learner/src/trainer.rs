@@ -180,22 +180,8 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     let mut metrics = MetricsLog::create(&metrics_path, &rows)?;
     let mut tensorboard = crate::tensorboard::EventWriter::create(&req.run_dir).map_err(io(&req.run_dir))?;
     let mut optimization = prior_opt;
-    let meta_for = |episode: usize, optimization: f64, elapsed: f64| CheckpointMeta {
-        episode,
-        env: req.env.clone(),
-        algo: req.algo,
-        connection: req.connection,
-        state_dim: m,
-        action_dim: n,
-        mask: mask.clone(),
-        config: cfg.clone(),
-        graph_seconds,
-        optimization_seconds: optimization,
-        elapsed_seconds: elapsed,
-        policy_version: 0,
-        actor_sequences: Default::default(),
-        rate_limiter: None,
-    };
+    let start = CheckpointMeta { graph_seconds, ..CheckpointMeta::start(&req.env, req.algo, req.connection, m, n, mask.clone(), cfg.clone()) };
+    let meta_for = |episode: usize, optimization: f64, elapsed: f64| CheckpointMeta { episode, optimization_seconds: optimization, elapsed_seconds: elapsed, ..start.clone() };
 
     let last_episode = req.stop_after.map_or(cfg.run.episodes, |stop| stop.min(cfg.run.episodes));
     for episode in rows.len()..last_episode {
