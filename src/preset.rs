@@ -67,7 +67,7 @@ impl EnvServer {
         if self.gym.is_some() == self.entry_point.is_some() {
             bail!("[env_server] needs exactly one of gym = \"ID\" (a Gymnasium id) and entry_point = \"module:Class\"");
         }
-        if !env.starts_with(lcrl_sim::remote::SCHEME) {
+        if !lcrl_sim::remote::is_served(env) {
             bail!("with [env_server], job.env is where it listens: grpc://HOST:PORT (e.g. grpc://127.0.0.1:0 for any free port), not {env:?}");
         }
         Ok(())
@@ -323,6 +323,22 @@ impl RunSecurity {
         }
         args.extend(self.token_args());
         Ok(args)
+    }
+
+    /// Makes this process, and every process it starts afterwards, a client
+    /// of a secured environment server (`lcrl_env serve`): the variables
+    /// `lcrl_sim::remote` reads for `grpcs://` URLs, and $LCRL_TOKEN_FILE.
+    /// Call it before any thread starts.
+    pub fn export_env_client(&self) -> anyhow::Result<()> {
+        if let Some(dir) = &self.tls_dir {
+            std::env::set_var(lcrl_sim::remote::TLS_CA_ENV, Self::file(dir, "ca.pem")?);
+            std::env::set_var(lcrl_sim::remote::TLS_CLIENT_CERT_ENV, Self::file(dir, "client.pem")?);
+            std::env::set_var(lcrl_sim::remote::TLS_CLIENT_KEY_ENV, Self::file(dir, "client.key")?);
+        }
+        if let Some(token) = &self.token_file {
+            std::env::set_var(lcrl_proto::security::TOKEN_FILE_ENV, token);
+        }
+        Ok(())
     }
 
     /// This process as a client of the run's servers.

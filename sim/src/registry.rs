@@ -15,7 +15,7 @@ pub fn known_env_names() -> Vec<&'static str> {
 /// Makes an environment from a registered name, a path to a `.toml` file,
 /// or a server's URL (`grpc://HOST:PORT`).
 pub fn make_env(name_or_path: &str) -> Result<Box<dyn Env>, EnvError> {
-    if name_or_path.starts_with(crate::remote::SCHEME) {
+    if crate::remote::is_served(name_or_path) {
         return Ok(Box::new(crate::remote::RemoteEnv::connect(name_or_path)?));
     }
     if let Some(cfg) = PegConfig::preset(name_or_path) {

@@ -15,14 +15,34 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::Duration;
 
+use lcrl_proto::security::{AuthChannel, ClientSecurity};
 use lcrl_proto::v1::environment_client::EnvironmentClient;
 use lcrl_proto::v1::{CloseRequest, ForkRequest, GetSpecRequest, OpenRequest, ResetRequest, SessionReset, SessionStep, StepRequest};
-use tonic::transport::{Channel, Endpoint};
 
 use crate::env::{Env, EnvError, EnvSpec, Step};
 
 /// How `--env` names a served environment.
 pub const SCHEME: &str = "grpc://";
+/// ... and one served over TLS (`python -m lcrl_env serve --tls-cert ...`).
+pub const TLS_SCHEME: &str = "grpcs://";
+
+/// The environment variables that give a process the CA to trust for
+/// `grpcs://` servers and its own certificate for mutual TLS (`lcrl run
+/// --tls-dir` sets them for every process it starts). The token comes from
+/// $LCRL_TOKEN_FILE, as for every lcrl client.
+pub const TLS_CA_ENV: &str = "LCRL_ENV_TLS_CA";
+pub const TLS_CLIENT_CERT_ENV: &str = "LCRL_ENV_TLS_CLIENT_CERT";
+pub const TLS_CLIENT_KEY_ENV: &str = "LCRL_ENV_TLS_CLIENT_KEY";
+
+/// Whether `name` is a served environment's URL.
+pub fn is_served(name: &str) -> bool {
+    name.starts_with(SCHEME) || name.starts_with(TLS_SCHEME)
+}
+
+/// HOST:PORT of a served environment's URL.
+pub fn address(name: &str) -> Option<&str> {
+    name.strip_prefix(SCHEME).or_else(|| name.strip_prefix(TLS_SCHEME))
+}
 
 /// How long a server may take to accept a connection.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(10);
@@ -32,7 +52,7 @@ const CALL_TIMEOUT: Duration = Duration::from_secs(120);
 /// A connection to a server, and how its calls fail.
 struct Connection {
     url: String,
-    client: EnvironmentClient<Channel>,
+    client: EnvironmentClient<AuthChannel>,
 }
 
 /// What every session of one server shares.
@@ -90,12 +110,13 @@ impl Connection {
         match status.code() {
             tonic::Code::Unavailable => self.error(format!("{what}: the server is unreachable ({}); is `python -m lcrl_env serve` still running there?", status.message())),
             tonic::Code::DeadlineExceeded => self.error(format!("{what}: no answer within {} s", CALL_TIMEOUT.as_secs())),
+            tonic::Code::Unauthenticated => self.error(format!("{what}: the server refused this client: {} (give its token with $LCRL_TOKEN_FILE)", status.message())),
             code => self.error(format!("{what}: {} ({code:?})", status.message())),
         }
     }
 
     /// Runs one call of the client, mapping transport and status errors.
-    fn call<T: Send + 'static, F>(&self, what: &str, call: impl FnOnce(EnvironmentClient<Channel>) -> F) -> Result<T, EnvError>
+    fn call<T: Send + 'static, F>(&self, what: &str, call: impl FnOnce(EnvironmentClient<AuthChannel>) -> F) -> Result<T, EnvError>
     where
         F: Future<Output = Result<tonic::Response<T>, tonic::Status>> + Send + 'static,
     {
@@ -105,6 +126,21 @@ impl Connection {
             Err(message) => Err(self.error(message)),
         }
     }
+}
+
+/// This process as a client of environment servers: the token of
+/// $LCRL_TOKEN_FILE, and for `grpcs://` the CA (and client certificate)
+/// of [`TLS_CA_ENV`] and its companions.
+fn client_security(tls: bool) -> Result<ClientSecurity, String> {
+    let path = |name: &str| std::env::var_os(name).map(std::path::PathBuf::from);
+    let ca = if tls {
+        Some(path(TLS_CA_ENV).ok_or_else(|| format!("a {TLS_SCHEME} server needs the CA to trust: set ${TLS_CA_ENV} to its PEM file (`lcrl run --tls-dir` does)"))?)
+    } else {
+        None
+    };
+    let (cert, key) = (path(TLS_CLIENT_CERT_ENV), path(TLS_CLIENT_KEY_ENV));
+    let identity = cert.as_deref().zip(key.as_deref()).filter(|_| tls);
+    ClientSecurity::new(ca.as_deref(), identity, None).map_err(|e| e.to_string())
 }
 
 impl RemoteEnv {
@@ -130,21 +166,23 @@ impl RemoteEnv {
 
     fn connect_server(url: &str) -> Result<Server, EnvError> {
         let unreachable = |message: String| EnvError::Remote { url: url.to_string(), message };
-        let address = url
-            .strip_prefix(SCHEME)
+        let address = address(url)
             .filter(|rest| rest.rsplit_once(':').is_some_and(|(host, port)| !host.is_empty() && port.parse::<u16>().is_ok()))
-            .ok_or_else(|| unreachable(format!("not a server address; write {SCHEME}HOST:PORT, e.g. {SCHEME}127.0.0.1:50070")))?;
-        let endpoint = Endpoint::from_shared(format!("http://{address}"))
-            .map_err(|e| unreachable(e.to_string()))?
-            .connect_timeout(CONNECT_TIMEOUT)
-            .timeout(CALL_TIMEOUT);
+            .ok_or_else(|| unreachable(format!("not a server address; write {SCHEME}HOST:PORT (or {TLS_SCHEME}HOST:PORT under TLS), e.g. {SCHEME}127.0.0.1:50070")))?;
+        let tls = url.starts_with(TLS_SCHEME);
+        let security = client_security(tls).map_err(unreachable)?;
+        let http = if tls { "https" } else { "http" };
+        let endpoint = security.endpoint(&format!("{http}://{address}")).map_err(|e| unreachable(e.to_string()))?.connect_timeout(CONNECT_TIMEOUT).timeout(CALL_TIMEOUT);
+        let bearer = security.bearer().map_err(|e| unreachable(e.to_string()))?;
         let channel = blocking(async move { endpoint.connect().await })
             .map_err(unreachable)?
             .map_err(|e| {
                 unreachable(format!(
-                    "cannot connect ({e}); start the environment server first, e.g. `.venv/bin/python -m lcrl_env serve --env Pendulum-v1 --listen {address}`"
+                    "cannot connect ({}); start the environment server first, e.g. `.venv/bin/python -m lcrl_env serve --env Pendulum-v1 --listen {address}`",
+                    lcrl_proto::security::error_chain(&e)
                 ))
             })?;
+        let channel = tonic::service::interceptor::InterceptedService::new(channel, bearer);
         let client = EnvironmentClient::new(channel).max_decoding_message_size(16 << 20).max_encoding_message_size(16 << 20);
         let connection = Connection { url: url.to_string(), client };
         let spec = connection.call("GetSpec", |mut c| async move { c.get_spec(GetSpecRequest {}).await })?;

@@ -77,7 +77,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     // A served environment lives until the run's end: the final evaluation
     // steps it too. Dropped last, it is stopped after everything else.
     let _env_server = match preset.env_server.clone() {
-        Some(server) => Some(start_env_server(&mut preset, &server, &args.config, &logs)?),
+        Some(server) => Some(start_env_server(&mut preset, &server, &args.config, &logs, &args.security)?),
         None => None,
     };
     let train_path = run_dir.join("train.toml");
@@ -94,11 +94,16 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
 
 /// Starts `python -m lcrl_env serve` for the preset's `[env_server]` and
 /// points `job.env` at the address it listens on.
-fn start_env_server(preset: &mut Preset, server: &lcrl::preset::EnvServer, config: &Path, logs: &Path) -> anyhow::Result<Managed> {
-    let listen = preset.job.env.strip_prefix(lcrl_sim::remote::SCHEME).unwrap_or(&preset.job.env).to_string();
+/// Under --tls-dir / --token-file it is secured like the run's other
+/// servers, and this process and its children (which inherit the
+/// environment) are its clients.
+fn start_env_server(preset: &mut Preset, server: &lcrl::preset::EnvServer, config: &Path, logs: &Path, security: &RunSecurity) -> anyhow::Result<Managed> {
+    let listen = lcrl_sim::remote::address(&preset.job.env).unwrap_or(&preset.job.env).to_string();
     // Every actor environment, plus the evaluation's, has an instance ready.
     let instances = preset.job.actors * preset.job.envs_per_actor + 1;
     let mut cmd = server.command(&listen, instances, config.parent().unwrap_or(Path::new(".")))?;
+    cmd.args(security.server_args(false)?);
+    security.export_env_client()?;
     die_with_parent(&mut cmd);
     let (process, address) = Managed::spawn("env-server", cmd, logs, true)?;
     let Some(address) = address else {
@@ -106,7 +111,8 @@ fn start_env_server(preset: &mut Preset, server: &lcrl::preset::EnvServer, confi
         let reason = fs::read_to_string(&log).ok().and_then(|t| t.lines().rev().find(|l| l.contains("error")).map(str::to_string));
         bail!("the environment server did not start: {}", reason.unwrap_or_else(|| format!("see {}", log.display())));
     };
-    preset.job.env = format!("{}{address}", lcrl_sim::remote::SCHEME);
+    let scheme = if security.tls_dir.is_some() { lcrl_sim::remote::TLS_SCHEME } else { lcrl_sim::remote::SCHEME };
+    preset.job.env = format!("{scheme}{address}");
     eprintln!("environment server at {}: {}", preset.job.env, server.gym.as_deref().or(server.entry_point.as_deref()).unwrap_or(""));
     preset.check()?;
     Ok(process)

@@ -281,7 +281,7 @@ impl Experiment {
 /// by its stem.
 pub fn env_slug(env: &str) -> String {
     // A served environment is named by its address, not a file stem.
-    let stem = match env.strip_prefix(lcrl_sim::remote::SCHEME) {
+    let stem = match lcrl_sim::remote::address(env) {
         Some(address) => format!("grpc-{address}"),
         None => Path::new(env).file_stem().map_or(env.to_string(), |s| s.to_string_lossy().into_owned()),
     };

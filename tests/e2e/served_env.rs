@@ -322,3 +322,92 @@ async fn the_service_refuses_bad_calls_with_the_right_codes() {
     let clipped = client.step(step(sessions[0], vec![1e9])).await.unwrap().into_inner();
     assert_eq!(clipped.results.len(), 1);
 }
+
+/// `lcrl sim` against a served environment, with `vars` set (and the
+/// token and TLS variables of this test process cleared first).
+fn sim_against(url: &str, vars: &[(&str, &Path)]) -> std::process::Output {
+    let mut cmd = lcrl();
+    cmd.args(["sim", "--env", url, "--episodes", "1", "--seed", "0"]);
+    for name in ["LCRL_TOKEN_FILE", lcrl_sim::remote::TLS_CA_ENV, lcrl_sim::remote::TLS_CLIENT_CERT_ENV, lcrl_sim::remote::TLS_CLIENT_KEY_ENV] {
+        cmd.env_remove(name);
+    }
+    for (name, value) in vars {
+        cmd.env(name, value);
+    }
+    cmd.output().unwrap()
+}
+
+/// The environment service is secured like lcrl's own servers: with a
+/// token it refuses every call without it (and counts the refusals),
+/// serves with it, and answers health checks without one; under mutual
+/// TLS (`grpcs://`) a client needs the CA and its own certificate.
+#[test]
+fn the_environment_service_takes_tls_and_a_token() {
+    let dir = tempfile::tempdir().unwrap();
+    let token = dir.path().join("token");
+    std::fs::write(&token, "s3cret-env-token\n").unwrap();
+    let served = Served::start(&["--env", "Pendulum-v1", "--token-file", token.to_str().unwrap()], None);
+    assert_clean_failure(&sim_against(&served.url, &[]), "refused this client");
+    let out = sim_against(&served.url, &[("LCRL_TOKEN_FILE", &token)]);
+    assert!(out.status.success(), "with the token: {}", stderr(&out));
+    let health_url = served.url.replace("grpc://", "http://");
+    let out = lcrl().args(["health", &health_url]).env_remove("LCRL_TOKEN_FILE").output().unwrap();
+    assert!(stdout(&out).contains("SERVING"), "health needs no token: {}", stderr(&out));
+    let log = std::fs::read_to_string(served._log.path()).unwrap();
+    assert!(log.contains("1 refusal(s) so far"), "refusals are counted: {log}");
+
+    let certs = dir.path().join("certs");
+    let out = lcrl().args(["certs", "--out"]).arg(&certs).output().unwrap();
+    assert!(out.status.success(), "{}", stderr(&out));
+    let file = |name: &str| certs.join(name).to_str().unwrap().to_string();
+    let (cert, key, ca) = (file("server.pem"), file("server.key"), file("ca.pem"));
+    let tls = Served::start(&["--env", "Pendulum-v1", "--token-file", token.to_str().unwrap(), "--tls-cert", &cert, "--tls-key", &key, "--tls-client-ca", &ca], None);
+    let url = tls.url.replace("grpc://", "grpcs://");
+    let (ca_path, client_cert, client_key) = (certs.join("ca.pem"), certs.join("client.pem"), certs.join("client.key"));
+    let trusted = [("LCRL_TOKEN_FILE", token.as_path()), (lcrl_sim::remote::TLS_CA_ENV, ca_path.as_path())];
+    let out = sim_against(&url, &[trusted[0], trusted[1], (lcrl_sim::remote::TLS_CLIENT_CERT_ENV, &client_cert), (lcrl_sim::remote::TLS_CLIENT_KEY_ENV, &client_key)]);
+    assert!(out.status.success(), "mutual TLS with the token: {}", stderr(&out));
+    assert!(!sim_against(&url, &trusted).status.success(), "no client certificate: refused by mutual TLS");
+    assert_clean_failure(&sim_against(&url, &[trusted[0]]), lcrl_sim::remote::TLS_CA_ENV);
+    assert!(!sim_against(&tls.url, &trusted).status.success(), "plain text to a TLS server fails");
+}
+
+/// `lcrl run --tls-dir --token-file` secures the environment server it
+/// starts like the run's other servers (mutual TLS + token, `grpcs://`),
+/// and the learner, the actors and the final evaluation reach it.
+#[test]
+fn lcrl_run_secures_the_environment_server_it_starts() {
+    let dir = tempfile::tempdir().unwrap();
+    let module = unique_module("secured");
+    write_envs(dir.path(), &module);
+    let certs = dir.path().join("certs");
+    let out = lcrl().args(["certs", "--out"]).arg(&certs).output().unwrap();
+    assert!(out.status.success(), "{}", stderr(&out));
+    let token = dir.path().join("token");
+    std::fs::write(&token, "a-run-token-of-24-chars\n").unwrap();
+    let preset = dir.path().join("secured.toml");
+    let text = format!(
+        "[job]\nenv = \"grpc://127.0.0.1:0\"\nalgo = \"ppo\"\nconnection = \"global\"\nepisodes = 20\nactors = 1\n\n\
+         [env_server]\nentry_point = \"{module}:Linear\"\npythonpath = \".\"\n\n[ppo]\nrollout_steps = 200\nminibatch_size = 50\n[run]\neval_episodes = 3\n"
+    );
+    std::fs::write(&preset, text).unwrap();
+    let run = dir.path().join("run");
+    let out = lcrl()
+        .args(["run", "--config"])
+        .arg(&preset)
+        .arg("--run-dir")
+        .arg(&run)
+        .arg("--tls-dir")
+        .arg(&certs)
+        .arg("--token-file")
+        .arg(&token)
+        .env_remove("LCRL_TOKEN_FILE")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}\n{}", stdout(&out), stderr(&out));
+    assert!(stderr(&out).contains("environment server at grpcs://127.0.0.1:"), "{}", stderr(&out));
+    let log = std::fs::read_to_string(run.join("logs/env-server.log")).unwrap();
+    assert!(log.contains("(TLS + token)"), "{log}");
+    assert!(run.join("summary.json").is_file());
+    assert_eq!(super::run_cli::processes_mentioning(&module), Vec::<String>::new(), "Python processes left behind");
+}

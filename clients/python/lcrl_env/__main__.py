@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import signal
 import sys
 import threading
@@ -34,7 +35,9 @@ def _factory(args):
 
 
 def serve_command(args) -> int:
-    from .server import Sessions, serve
+    from .server import Security, Sessions, serve
+
+    security = Security(args.tls_cert, args.tls_key, args.tls_client_ca, args.token_file or os.environ.get("LCRL_TOKEN_FILE") or None)
 
     factory, env_id = _factory(args)
     probe = factory()
@@ -49,10 +52,10 @@ def serve_command(args) -> int:
     if args.instances < 0 or args.max_sessions < max(1, args.instances):
         raise SpecError("--instances must be >= 0 and --max-sessions at least 1 and at least --instances")
     sessions = Sessions(factory, spec, fork, instances=args.instances, max_sessions=args.max_sessions, idle_timeout_s=args.idle_timeout)
-    server, address = serve(sessions, args.listen, args.workers)
+    server, address = serve(sessions, args.listen, args.workers, security)
     logging.info(
-        "serving %s: %d states, %d actions, fork %s, %d instance(s) ready",
-        env_id, len(spec.state_names), len(spec.action_names), spec.fork_method or "unavailable", args.instances,
+        "serving %s (%s): %d states, %d actions, fork %s, %d instance(s) ready",
+        env_id, security.describe(), len(spec.state_names), len(spec.action_names), spec.fork_method or "unavailable", args.instances,
     )
     # The first stdout line is the address (lcrl run reads it, as it does
     # for its own servers); logs go to stderr.
@@ -66,7 +69,7 @@ def serve_command(args) -> int:
     while not stop.wait(0.2):
         pass
     server.stop(grace=2).wait()
-    logging.info("stopped")
+    logging.info("stopped (refused calls: %s)", security.refusals)
     return 0
 
 
@@ -99,6 +102,10 @@ def main(argv=None) -> int:
     s.add_argument("--max-sessions", type=int, default=1024, help="most sessions open at once, forks included (default 1024)")
     s.add_argument("--idle-timeout", type=float, default=3600.0, metavar="S", help="close sessions unused for S seconds (clients that died without closing)")
     s.add_argument("--workers", type=int, default=8, help="gRPC worker threads (default 8)")
+    s.add_argument("--tls-cert", metavar="PEM", help="serve TLS with this certificate (with --tls-key; `lcrl certs` writes server.pem)")
+    s.add_argument("--tls-key", metavar="PEM", help="the certificate's private key (server.key)")
+    s.add_argument("--tls-client-ca", metavar="PEM", help="accept only clients with a certificate of this CA (mutual TLS; ca.pem)")
+    s.add_argument("--token-file", metavar="FILE", help="require `authorization: Bearer <token>` from this file on every call but health checks [default: the file $LCRL_TOKEN_FILE names, if set]")
     b = sub.add_parser("bench", help="time env.step in plain Python (no service)")
     _add_env_args(b)
     b.add_argument("--steps", type=int, default=5000)

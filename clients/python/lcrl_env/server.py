@@ -3,12 +3,16 @@ environment: sessions of instances, batched Reset and Step, exact Fork.
 
 `Sessions` holds the logic and raises `EnvServiceError`; `Servicer` only
 translates gRPC messages and status codes, so tests can drive `Sessions`
-without a network.
+without a network. `Security` secures the server like lcrl's own (TLS,
+mutual TLS, a bearer token on every call but health checks, refusals
+counted), and server reflection describes it to grpcurl and friends.
 """
 
 from __future__ import annotations
 
+import hmac
 import itertools
+import logging
 import threading
 import time
 from concurrent import futures
@@ -16,6 +20,7 @@ from concurrent import futures
 import grpc
 import numpy as np
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
 
 from . import lcrl_pb2, lcrl_pb2_grpc
 from .adapter import EnvSpec
@@ -206,19 +211,94 @@ class Servicer(lcrl_pb2_grpc.EnvironmentServicer):
         return self._run(context, lambda: lcrl_pb2.ForkResponse(session=self.sessions.fork_session(request.session)))
 
 
-def serve(sessions: Sessions, listen: str, workers: int) -> tuple[grpc.Server, str]:
+class Security:
+    """TLS (a certificate and key; with a client CA, mutual TLS) and a
+    bearer token, as `lcrl certs` and `--token-file` give lcrl's servers."""
+
+    def __init__(self, cert=None, key=None, client_ca=None, token_file=None):
+        read = lambda path, what: _read(path, what)  # noqa: E731
+        if (cert is None) != (key is None):
+            raise ValueError("--tls-cert and --tls-key go together")
+        if client_ca is not None and cert is None:
+            raise ValueError("--tls-client-ca needs --tls-cert and --tls-key")
+        self.credentials = None
+        if cert is not None:
+            ca = read(client_ca, "client CA") if client_ca else None
+            self.credentials = grpc.ssl_server_credentials([(read(key, "private key"), read(cert, "certificate"))], root_certificates=ca, require_client_auth=ca is not None)
+        self.token = None
+        if token_file is not None:
+            token = read(token_file, "token").decode("utf-8", "replace").strip()
+            # lcrl's own servers' rule (proto/src/security.rs).
+            if len(token) < 16 or not token.isprintable() or any(c.isspace() for c in token):
+                raise ValueError(f"the token file {token_file} must hold one token of at least 16 printable characters (e.g. `lcrl certs` writes one)")
+            self.token = token
+        self.refusals = {"missing_token": 0, "wrong_token": 0}
+        self._lock = threading.Lock()
+
+    def describe(self) -> str:
+        tls = "plain text" if self.credentials is None else "TLS"
+        return tls + (" + token" if self.token else "")
+
+    def refuse(self, reason: str) -> int:
+        with self._lock:
+            self.refusals[reason] += 1
+            return sum(self.refusals.values())
+
+
+def _read(path, what: str) -> bytes:
+    try:
+        with open(path, "rb") as f:
+            return f.read()
+    except OSError as e:
+        raise OSError(f"cannot read the {what} {path}: {e.strerror}") from e
+
+
+class TokenCheck(grpc.ServerInterceptor):
+    """Refuses every call without `authorization: Bearer <token>` but the
+    health checks (which load balancers and `lcrl health` make without one),
+    and counts the refusals."""
+
+    def __init__(self, security: Security):
+        self.security = security
+
+    def intercept_service(self, continuation, details):
+        if details.method.startswith("/grpc.health.v1.Health/"):
+            return continuation(details)
+        sent = dict(details.invocation_metadata or ()).get("authorization", "")
+        expected = f"Bearer {self.security.token}"
+        if hmac.compare_digest(sent.encode(), expected.encode()):
+            return continuation(details)
+        reason = "missing_token" if not sent else "wrong_token"
+        total = self.security.refuse(reason)
+        logging.warning("refused %s (%s); %d refusal(s) so far", details.method, reason.replace("_", " "), total)
+        message = "missing bearer token" if not sent else "wrong bearer token"
+
+        def deny(request, context):
+            context.abort(grpc.StatusCode.UNAUTHENTICATED, message)
+
+        return grpc.unary_unary_rpc_method_handler(deny)
+
+
+def serve(sessions: Sessions, listen: str, workers: int, security: Security | None = None) -> tuple[grpc.Server, str]:
     """Starts the server; returns it and the address it listens on."""
+    security = security or Security()
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=workers),
         options=[("grpc.max_receive_message_length", 16 << 20), ("grpc.max_send_message_length", 16 << 20)],
+        interceptors=[TokenCheck(security)] if security.token else [],
     )
     lcrl_pb2_grpc.add_EnvironmentServicer_to_server(Servicer(sessions), server)
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    names = (lcrl_pb2.DESCRIPTOR.services_by_name["Environment"].full_name, health.SERVICE_NAME, reflection.SERVICE_NAME)
+    reflection.enable_server_reflection(names, server)
     host, _, port = listen.rpartition(":")
     if not host or not port.isdigit():
         raise ValueError(f"--listen {listen!r} must be HOST:PORT (port 0: any free port)")
-    bound = server.add_insecure_port(listen)
+    if security.credentials is None:
+        bound = server.add_insecure_port(listen)
+    else:
+        bound = server.add_secure_port(listen, security.credentials)
     if bound == 0:
         raise OSError(f"cannot listen on {listen} (in use, or not an address of this host)")
     server.start()
