@@ -355,6 +355,15 @@ fn the_environment_service_takes_tls_and_a_token() {
     assert!(stdout(&out).contains("SERVING"), "health needs no token: {}", stderr(&out));
     let log = std::fs::read_to_string(served._log.path()).unwrap();
     assert!(log.contains("1 refusal(s) so far"), "refusals are counted: {log}");
+    // Server reflection lists the service (behind the token).
+    let list = "import grpc, sys\n\
+        from grpc_reflection.v1alpha import reflection_pb2 as pb, reflection_pb2_grpc as rpc\n\
+        stub = rpc.ServerReflectionStub(grpc.insecure_channel(sys.argv[1]))\n\
+        auth = [('authorization', 'Bearer ' + open(sys.argv[2]).read().strip())]\n\
+        reply = next(stub.ServerReflectionInfo(iter([pb.ServerReflectionRequest(list_services='')]), metadata=auth))\n\
+        print(' '.join(s.name for s in reply.list_services_response.service))\n";
+    let out = Command::new(python()).args(["-c", list, served.url.trim_start_matches("grpc://")]).arg(&token).output().unwrap();
+    assert!(stdout(&out).contains("lcrl.v1.Environment"), "reflection: {}{}", stdout(&out), stderr(&out));
 
     let certs = dir.path().join("certs");
     let out = lcrl().args(["certs", "--out"]).arg(&certs).output().unwrap();
