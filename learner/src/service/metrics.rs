@@ -79,7 +79,7 @@ impl Collector for LearnerCollector {
         gauge(&mut encoder, "connected_actors", "Actors with an open gRPC transition stream", i64::from(s.connected_actors.load(Ordering::Relaxed)))?;
         let queued = self.queue.max_capacity() - self.queue.capacity();
         gauge(&mut encoder, "training_queue_depth", "Accepted batches waiting for the training thread", queued as i64)?;
-        let (accepted, rejected) = s.ingest.lock().map(|i| (i.accepted, i.rejected.clone())).unwrap_or_default();
+        let (accepted, rejected) = s.ingest_counts();
         counter(&mut encoder, "transitions_accepted", "Transitions accepted by ingestion", accepted)?;
         let family = ConstCounter::new(0u64);
         let mut by_reason = encoder.encode_descriptor("transitions_rejected", "Transitions rejected or dropped, by reason", None, family.metric_type())?;

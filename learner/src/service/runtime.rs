@@ -52,7 +52,38 @@ pub struct Shared {
     pub auth_refusals: Arc<lcrl_proto::security::AuthRefusals>,
 }
 
+/// Locks `mutex` whatever happened to its last holder. The policy for a
+/// poisoned lock (a thread panicked while holding it): the state behind
+/// these locks is counters, maps of sequence numbers and recent returns,
+/// each left whole between statements, so the learner keeps serving with
+/// it rather than failing every later call; the panic itself is reported
+/// where it happened.
+fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
 impl Shared {
+    /// Ingestion's checks and counters (every transport goes through them).
+    pub fn ingest(&self) -> std::sync::MutexGuard<'_, Ingest> {
+        lock(&self.ingest)
+    }
+
+    /// Counts a stream or batch refused before ingestion could read it.
+    pub fn record_rejection(&self, reason: &str) {
+        self.ingest().refuse(reason);
+    }
+
+    /// Transitions accepted, and rejected by reason, so far.
+    pub fn ingest_counts(&self) -> (u64, std::collections::BTreeMap<String, u64>) {
+        let ingest = self.ingest();
+        (ingest.accepted, ingest.rejected.clone())
+    }
+
+    /// The flow statistics, for the training thread to update.
+    pub fn flow_mut(&self) -> std::sync::MutexGuard<'_, FlowStats> {
+        lock(&self.flow)
+    }
+
     pub fn policy_version(&self) -> u64 {
         self.policy.borrow().version
     }
@@ -67,11 +98,11 @@ impl Shared {
 
     /// A copy of the flow statistics.
     pub fn flow(&self) -> FlowStats {
-        self.flow.lock().map(|f| f.clone()).unwrap_or_default()
+        self.flow_mut().clone()
     }
 
     pub fn recent_return(&self) -> f64 {
-        let returns = self.recent_returns.lock().map(|r| r.iter().copied().collect::<Vec<_>>()).unwrap_or_default();
+        let returns: Vec<f64> = lock(&self.recent_returns).iter().copied().collect();
         if returns.is_empty() { 0.0 } else { returns.iter().sum::<f64>() / returns.len() as f64 }
     }
 }
@@ -167,7 +198,7 @@ fn checkpoint(agent: &dyn Agent, shared: &Shared, schedule: &Schedule) -> Result
     meta.rate_limiter = schedule.limiter.clone();
     meta.episode = shared.episodes.load(Ordering::Relaxed) as usize;
     meta.policy_version = shared.policy_version();
-    meta.actor_sequences = shared.ingest.lock().map(|i| i.sequences().clone()).unwrap_or_default();
+    meta.actor_sequences = shared.ingest().sequences().clone();
     let dir = write_checkpoint(&schedule.run_dir, agent, &meta)?;
     tracing::info!(checkpoint = %dir.display(), episodes = meta.episode, policy_version = meta.policy_version, "checkpoint written");
     Ok(())
@@ -175,7 +206,8 @@ fn checkpoint(agent: &dyn Agent, shared: &Shared, schedule: &Schedule) -> Result
 
 /// Adds `seconds` to one of the wait counters.
 fn waited(shared: &Shared, seconds: f64, actors: bool) {
-    if let Ok(mut flow) = shared.flow.lock() {
+    {
+        let mut flow = shared.flow_mut();
         if actors {
             flow.actors_waited_s += seconds;
         } else {
@@ -210,7 +242,8 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
     let mut turn = std::time::Instant::now();
     let budget = schedule.budget_episodes;
     let budget_reached = |shared: &Shared| budget.is_some_and(|b| shared.episodes.load(Ordering::Relaxed) >= b);
-    if let Ok(mut flow) = shared.flow.lock() {
+    {
+        let mut flow = shared.flow_mut();
         flow.budget_episodes = schedule.budget_episodes.unwrap_or(0);
         flow.replay_ratio_target = schedule.limiter.as_ref().map_or(0.0, |l| l.samples_per_insert);
         if let Some(l) = &schedule.limiter {
@@ -253,7 +286,8 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
                 None => 0,
             };
             if past_budget > 0 {
-                if let Ok(mut ingest) = shared.ingest.lock() {
+                {
+        let mut ingest = shared.ingest();
                     *ingest.rejected.entry("over_budget".into()).or_insert(0) += past_budget as u64;
                 }
             }
@@ -275,7 +309,8 @@ pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Comm
             if let Some(limiter) = &mut schedule.limiter {
                 limiter.insert(stored);
             }
-            if let Ok(mut flow) = shared.flow.lock() {
+            {
+        let mut flow = shared.flow_mut();
                 flow.inserted += stored;
             }
             if budget_reached(&shared) {
@@ -372,7 +407,8 @@ fn train_and_count(agent: &mut dyn Agent, schedule: &mut Schedule, shared: &Shar
         if let Some(limiter) = &mut schedule.limiter {
             limiter.sample(drawn);
         }
-        if let Ok(mut flow) = shared.flow.lock() {
+        {
+        let mut flow = shared.flow_mut();
             flow.sampled += drawn;
         }
     }
@@ -380,7 +416,8 @@ fn train_and_count(agent: &mut dyn Agent, schedule: &mut Schedule, shared: &Shar
 }
 
 fn set_finished(shared: &Shared, finished: bool) {
-    if let Ok(mut flow) = shared.flow.lock() {
+    {
+        let mut flow = shared.flow_mut();
         flow.finished = finished;
     }
 }
@@ -457,11 +494,10 @@ impl EpisodeLog {
             }
             let step = (first + episodes.len() as u64) as i64;
             // Read under the lock: no copy of the lag window per batch.
-            let (ratio, (lag_min, lag_mean, lag_max), actors_waited, learner_waited) = shared
-                .flow
-                .lock()
-                .map(|f| (f.achieved_ratio(), f.lag.stats(), f.actors_waited_s, f.learner_waited_s))
-                .unwrap_or_default();
+            let (ratio, (lag_min, lag_mean, lag_max), actors_waited, learner_waited) = {
+                let f = shared.flow_mut();
+                (f.achieved_ratio(), f.lag.stats(), f.actors_waited_s, f.learner_waited_s)
+            };
             let learner = [
                 ("learner/env_steps", shared.env_steps.load(Ordering::Relaxed) as f64),
                 ("learner/updates", shared.updates.load(Ordering::Relaxed) as f64),
@@ -488,7 +524,8 @@ fn store(agent: &mut dyn Agent, shared: &Shared, schedule: &Schedule, log: &mut 
         // Nothing of a stale batch counts: its episodes are not data the
         // learner learned from, so they do not use up the budget either
         // (the budget means what it means in `lcrl train`).
-        if let Ok(mut ingest) = shared.ingest.lock() {
+        {
+        let mut ingest = shared.ingest();
             *ingest.rejected.entry("stale".into()).or_insert(0) += batch.transitions.len() as u64;
         }
         return 0;
@@ -503,7 +540,8 @@ fn store(agent: &mut dyn Agent, shared: &Shared, schedule: &Schedule, log: &mut 
             truncated: t.truncated,
         });
     }
-    if let Ok(mut flow) = shared.flow.lock() {
+    {
+        let mut flow = shared.flow_mut();
         for t in batch.transitions.iter().filter(|_| !stale) {
             flow.lag.push(newest.saturating_sub(t.policy_version));
         }
@@ -515,7 +553,8 @@ fn store(agent: &mut dyn Agent, shared: &Shared, schedule: &Schedule, log: &mut 
             tracing::warn!("cannot record episodes in {}: {e}", shared.run_dir.display());
         }
     }
-    if let Ok(mut returns) = shared.recent_returns.lock() {
+    {
+        let mut returns = lock(&shared.recent_returns);
         for episode in &batch.episodes {
             returns.push_back(episode.episode_return);
             while returns.len() > 10 {

@@ -73,9 +73,7 @@ impl Learner for LearnerService {
                         };
                         match reason {
                             Some(reason) => {
-                                if let Ok(mut ingest) = shared.ingest.lock() {
-                                    ingest.refuse(reason);
-                                }
+                                shared.record_rejection(reason);
                                 tracing::warn!(reason, %status, "batch refused");
                                 let _ = acks.send(Err(status)).await;
                             }
@@ -87,10 +85,7 @@ impl Learner for LearnerService {
                 let span = tracing::debug_span!("batch", actor = %batch.actor_id, sequence = batch.sequence);
                 let _entered = span.enter();
                 let version = shared.policy_version();
-                let verdict = match shared.ingest.lock() {
-                    Ok(mut ingest) => ingest.check(&batch, version),
-                    Err(_) => Verdict::Reject { reason: "internal", message: "ingestion state poisoned".into() },
-                };
+                let verdict = shared.ingest().check(&batch, version);
                 let (stored, outcome) = match verdict {
                     Verdict::Accept(accepted) => {
                         let stored = accepted.transitions.len() as u32;
@@ -145,7 +140,7 @@ impl Learner for LearnerService {
 
     async fn get_status(&self, _request: Request<GetStatusRequest>) -> Result<Response<LearnerStatus>, Status> {
         let s = &self.shared;
-        let rejected = s.ingest.lock().map(|i| i.rejected.clone().into_iter().collect()).unwrap_or_default();
+        let rejected = s.ingest_counts().1.into_iter().collect();
         let flow = s.flow();
         let lag = flow.lag.stats();
         Ok(Response::new(LearnerStatus {

@@ -256,7 +256,7 @@ pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>) -> R
         let batch = sample.payload().to_batch(&shared.run_id);
         drop(sample);
         let version = shared.policy_version();
-        let verdict = shared.ingest.lock().map_err(|_| "ingestion state poisoned".to_string())?.check(&batch, version);
+        let verdict = shared.ingest().check(&batch, version);
         match verdict {
             Verdict::Accept(accepted) => {
                 if commands.blocking_send(Command::Batch(accepted)).is_err() {
