@@ -214,7 +214,9 @@ fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<S
         // gradient_steps every update_every steps (PPO: one PPO update per
         // rollout).
         updates_per_s: match preset.job.algo {
-            lcrl_learner::Algo::Ddpg => rate * ddpg.gradient_steps as f64 / ddpg.update_every as f64,
+            // Actor updates, as the distributed rows count them: one per
+            // policy_delay critic updates.
+            lcrl_learner::Algo::Ddpg => rate * ddpg.gradient_steps as f64 / ddpg.update_every as f64 / ddpg.policy_delay as f64,
             lcrl_learner::Algo::Ppo => rate / preset.train.ppo.rollout_steps as f64,
         },
         replay_ratio: if preset.job.algo == lcrl_learner::Algo::Ddpg { ddpg.samples_per_insert() } else { 0.0 },
