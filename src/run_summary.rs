@@ -67,7 +67,7 @@ pub fn evaluate_run(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wal
     let n = env.spec().action_dim();
     let (zero, _) = evaluate(env.as_mut(), "a = 0", episodes, first, &mut |_| vec![0.0; n], &mut |_| {})?;
     let lqr = env.as_lti().and_then(|lti| lcrl_learner::lqr::lqr_return(lti, episodes, first));
-    let masked = env.as_lti().and_then(|lti| lcrl_learner::lqr::masked_lqr_return(lti, &policy.architecture.mask, episodes, first));
+    let masked = env.as_lti().and_then(|lti| lcrl_learner::lqr::masked_lqr_return(lti, &policy.architecture.shape.mask, episodes, first));
     let learner: Option<LearnerSummary> = std::fs::read_to_string(learner_dir.join("summary.json")).ok().and_then(|t| serde_json::from_str(&t).ok());
     let graph_seconds = std::fs::read_to_string(run_dir.join("graph.json"))
         .ok()

@@ -48,7 +48,7 @@ pub struct RolloutSettings {
 /// normalized action units.
 fn exploration_normals(policy: &Policy, exploration: Exploration, noise: f64) -> Vec<Normal<f64>> {
     let noise = if exploration.noise > 0.0 { exploration.noise } else { noise };
-    let std: Vec<f64> = policy.exploration_std().map_or_else(|| vec![noise; policy.architecture.action_dim], |v| v.iter().map(|&x| f64::from(x)).collect());
+    let std: Vec<f64> = policy.exploration_std().map_or_else(|| vec![noise; policy.architecture.shape.action_dim], |v| v.iter().map(|&x| f64::from(x)).collect());
     // A non-finite or non-positive std (a diverged policy, a bad flag) acts
     // greedily rather than failing; the argument below is then always valid.
     std.iter()
@@ -87,7 +87,7 @@ impl Rollout {
         if settings.envs == 0 || settings.batch == 0 {
             anyhow::bail!("a rollout needs at least one environment and one transition per batch");
         }
-        let name = &policy.architecture.env;
+        let name = &policy.architecture.shape.env;
         let mut envs: Vec<Box<dyn lcrl_sim::Env>> = (0..settings.envs).map(|_| lcrl_sim::make_env(name)).collect::<Result<_, _>>()?;
         policy.check_env(envs[0].as_ref())?;
         let action_map = policy.action_map(envs[0].as_ref())?;
@@ -155,7 +155,7 @@ impl Rollout {
             let u: Vec<f32> = if self.explore.uniform && !self.own_distribution {
                 // The learner is filling its replay buffer: uniformly random
                 // actions, as `lcrl train` warms up.
-                (0..policy.architecture.action_dim).map(|_| rand::Rng::random_range(&mut self.rng, -1.0f32..=1.0)).collect()
+                (0..policy.architecture.shape.action_dim).map(|_| rand::Rng::random_range(&mut self.rng, -1.0f32..=1.0)).collect()
             } else {
                 let rng = &mut self.rng;
                 policy.act_normalized(&obs).iter().zip(&self.normals).map(|(&a, noise)| (f64::from(a) + noise.sample(rng)).clamp(-1.0, 1.0) as f32).collect()
@@ -223,16 +223,8 @@ mod tests {
         let cfg = TrainConfig::for_env("lti-paper").0;
         let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
         let agent = lcrl_learner::trainer::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
-        let architecture = lcrl_learner::snapshot::Architecture {
-            env: "lti-paper".into(),
-            algo,
-            connection: Connection::Local,
-            state_dim: 3,
-            action_dim: 3,
-            mask,
-            network: cfg.network.clone(),
-            base: None,
-        };
+        let shape = lcrl_learner::snapshot::ActorShape { env: "lti-paper".into(), algo, connection: Connection::Local, state_dim: 3, action_dim: 3, mask };
+        let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: None };
         let snapshot = lcrl_learner::service::runtime::snapshot(agent.as_ref(), &architecture, 7).unwrap();
         Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap()
     }

@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::agent::Agent;
 use crate::config::{Algo, Connection, TrainConfig};
+use crate::snapshot::ActorShape;
 use crate::LearnerError;
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
@@ -21,13 +22,8 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
 pub struct CheckpointMeta {
     /// Episodes completed when the checkpoint was written.
     pub episode: usize,
-    pub env: String,
-    pub algo: Algo,
-    pub connection: Connection,
-    pub state_dim: usize,
-    pub action_dim: usize,
-    /// The actor's connection mask (n × m).
-    pub mask: Vec<Vec<u8>>,
+    #[serde(flatten)]
+    pub shape: ActorShape,
     pub config: TrainConfig,
     pub graph_seconds: f64,
     pub optimization_seconds: f64,
@@ -53,12 +49,7 @@ impl CheckpointMeta {
     pub fn start(env: &str, algo: Algo, connection: Connection, state_dim: usize, action_dim: usize, mask: Vec<Vec<u8>>, config: TrainConfig) -> Self {
         CheckpointMeta {
             episode: 0,
-            env: env.to_string(),
-            algo,
-            connection,
-            state_dim,
-            action_dim,
-            mask,
+            shape: ActorShape { env: env.to_string(), algo, connection, state_dim, action_dim, mask },
             config,
             graph_seconds: 0.0,
             optimization_seconds: 0.0,
@@ -72,14 +63,9 @@ impl CheckpointMeta {
     /// The actor's architecture, as a published policy describes it.
     pub fn architecture(&self) -> crate::snapshot::Architecture {
         crate::snapshot::Architecture {
-            env: self.env.clone(),
-            algo: self.algo,
-            connection: self.connection,
-            state_dim: self.state_dim,
-            action_dim: self.action_dim,
-            mask: self.mask.clone(),
+            shape: self.shape.clone(),
             network: self.config.network.clone(),
-            base: self.config.controller.base_action(self.action_dim),
+            base: self.config.controller.base_action(self.shape.action_dim),
         }
     }
 }

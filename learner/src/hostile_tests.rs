@@ -166,7 +166,7 @@ fn snapshot_weights_with_nan_or_the_wrong_shape_are_refused() {
 fn valid_weights(poison: Option<f32>) -> Vec<u8> {
     let arch: crate::snapshot::Architecture = serde_json::from_value(architecture()).expect("valid architecture");
     let vs = tch::nn::VarStore::new(tch::Device::Cpu);
-    let _actor = crate::agent::build_actor(&vs.root(), arch.connection, &arch.mask, 3, 3, &arch.network, 0);
+    let _actor = crate::agent::build_actor(&vs.root(), arch.shape.connection, &arch.shape.mask, 3, 3, &arch.network, 0);
     let named: Vec<(String, tch::Tensor)> = vs
         .variables()
         .into_iter()

@@ -163,11 +163,11 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let resume = latest_checkpoint(&args.run_dir).map(|dir| read_meta(&dir).map(|meta| (dir, meta))).transpose()?;
     let (config, mask, meta) = match &resume {
         Some((dir, meta)) => {
-            if meta.env != args.env || meta.algo != args.algo || meta.connection != args.connection {
-                bail!("{} holds a run of {} with {:?}/{:?}; start with the same --env, --algo and --connection, or another --run-dir", dir.display(), meta.env, meta.algo, meta.connection);
+            if meta.shape.env != args.env || meta.shape.algo != args.algo || meta.shape.connection != args.connection {
+                bail!("{} holds a run of {} with {:?}/{:?}; start with the same --env, --algo and --connection, or another --run-dir", dir.display(), meta.shape.env, meta.shape.algo, meta.shape.connection);
             }
             tracing::info!(checkpoint = %dir.display(), episodes = meta.episode, "resuming");
-            (meta.config.clone(), meta.mask.clone(), meta.clone())
+            (meta.config.clone(), meta.shape.mask.clone(), meta.clone())
         }
         None => {
             let mut config = match &args.config {

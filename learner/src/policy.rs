@@ -31,7 +31,7 @@ impl Policy {
         let vs = nn::VarStore::new(tch::Device::Cpu);
         let a = &architecture;
         // The weights are overwritten right after; the seed is irrelevant.
-        let actor = build_actor(&vs.root(), a.connection, &a.mask, a.state_dim, a.action_dim, &a.network, 0);
+        let actor = build_actor(&vs.root(), a.shape.connection, &a.shape.mask, a.shape.state_dim, a.shape.action_dim, &a.network, 0);
         (vs, actor, architecture)
     }
 
@@ -64,7 +64,7 @@ impl Policy {
     pub fn update(&mut self, weights: &[u8], version: u64) -> Result<(), LearnerError> {
         let named = decode_weights(weights)?;
         let log_std = named.iter().find(|(n, _)| n == "log_std").and_then(|(_, t)| Vec::<f32>::try_from(t).ok());
-        if log_std.as_ref().is_some_and(|l| l.len() != self.architecture.action_dim || l.iter().any(|v| !v.is_finite())) {
+        if log_std.as_ref().is_some_and(|l| l.len() != self.architecture.shape.action_dim || l.iter().any(|v| !v.is_finite())) {
             return Err(LearnerError::Checkpoint("snapshot log_std must hold one finite number per action".into()));
         }
         let mut variables = self.vs.variables();
@@ -91,7 +91,7 @@ impl Policy {
     /// Normalized actions in [−1, 1] for rows of normalized observations.
     pub fn act_normalized(&self, obs: &[f32]) -> Vec<f32> {
         tch::no_grad(|| {
-            let out = self.actor.forward(&batch(obs, self.architecture.state_dim, tch::Device::Cpu));
+            let out = self.actor.forward(&batch(obs, self.architecture.shape.state_dim, tch::Device::Cpu));
             Vec::<f32>::try_from(out.flatten(0, -1)).unwrap_or_default()
         })
     }
@@ -118,10 +118,10 @@ impl Policy {
     pub fn check_env(&self, env: &dyn Env) -> Result<(), LearnerError> {
         let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
         let a = &self.architecture;
-        if (m, n) != (a.state_dim, a.action_dim) {
+        if (m, n) != (a.shape.state_dim, a.shape.action_dim) {
             return Err(LearnerError::Mismatch(format!(
                 "the policy was trained on {} ({} states, {} actions); {} has {m} states and {n} actions",
-                a.env, a.state_dim, a.action_dim, env.spec().name
+                a.shape.env, a.shape.state_dim, a.shape.action_dim, env.spec().name
             )));
         }
         self.action_map(env)?;

@@ -7,10 +7,12 @@ use tch::Tensor;
 use crate::config::{Algo, Connection, NetworkConfig};
 use crate::LearnerError;
 
-/// Enough to rebuild the actor before loading its weights, and to step the
-/// environment it was trained on.
+/// What identifies a run's actor: the environment and its sizes, the
+/// algorithm, the connection and its mask. A published policy's
+/// [`Architecture`] and a checkpoint's metadata both hold it (flattened:
+/// their JSON lists these fields at the top level).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Architecture {
+pub struct ActorShape {
     pub env: String,
     pub algo: Algo,
     pub connection: Connection,
@@ -18,6 +20,14 @@ pub struct Architecture {
     pub action_dim: usize,
     /// The actor's connection mask (n × m).
     pub mask: Vec<Vec<u8>>,
+}
+
+/// Enough to rebuild the actor before loading its weights, and to step the
+/// environment it was trained on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Architecture {
+    #[serde(flatten)]
+    pub shape: ActorShape,
     pub network: NetworkConfig,
     /// The base controller the actor acts around (residual RL,
     /// learner/src/action.rs); None: the plain map onto the box.
@@ -37,14 +47,14 @@ impl Architecture {
     /// Checks what a peer could get wrong before anything is built from it.
     pub fn validate(&self) -> Result<(), LearnerError> {
         let bad = |why: String| Err(LearnerError::Mismatch(format!("policy architecture: {why}")));
-        let (m, n) = (self.state_dim, self.action_dim);
+        let (m, n) = (self.shape.state_dim, self.shape.action_dim);
         if !(1..=MAX_DIM).contains(&m) || !(1..=MAX_DIM).contains(&n) {
             return bad(format!("state_dim {m} and action_dim {n} must lie in 1..={MAX_DIM}"));
         }
-        if self.mask.len() != n || self.mask.iter().any(|row| row.len() != m || row.iter().any(|&v| v > 1)) {
+        if self.shape.mask.len() != n || self.shape.mask.iter().any(|row| row.len() != m || row.iter().any(|&v| v > 1)) {
             return bad(format!("the mask must be {n}×{m} of 0/1"));
         }
-        if self.connection == Connection::Local && self.mask.iter().any(|row| row.iter().all(|&v| v == 0)) {
+        if self.shape.connection == Connection::Local && self.shape.mask.iter().any(|row| row.iter().all(|&v| v == 0)) {
             return bad("a local actor's mask row sees no state".into());
         }
         if let Some(base) = &self.base {
@@ -58,8 +68,8 @@ impl Architecture {
                 return bad(format!("network.{name} must list 1..={MAX_LAYERS} widths in 1..={MAX_DIM}"));
             }
         }
-        let widths = if self.connection == Connection::Global { &net.global_hidden } else { &net.subnet_hidden };
-        let (nets, outputs) = if self.connection == Connection::Global { (1, n) } else { (n, 1) };
+        let widths = if self.shape.connection == Connection::Global { &net.global_hidden } else { &net.subnet_hidden };
+        let (nets, outputs) = if self.shape.connection == Connection::Global { (1, n) } else { (n, 1) };
         let layers: Vec<usize> = std::iter::once(m).chain(widths.iter().copied()).chain([outputs]).collect();
         let params = nets * layers.windows(2).map(|w| w[0] * w[1]).sum::<usize>();
         if params > MAX_ACTOR_PARAMS {

@@ -132,20 +132,20 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     let (mask, graph_seconds, mut prior_opt, prior_elapsed, mut rows, checkpoint) = match (req.resume, existing) {
         (true, Some(dir)) => {
             let meta = read_meta(&dir)?;
-            if meta.env != req.env || meta.algo != req.algo || meta.connection != req.connection {
+            if meta.shape.env != req.env || meta.shape.algo != req.algo || meta.shape.connection != req.connection {
                 return Err(LearnerError::Mismatch(format!(
                     "{} was trained on {} with {:?}/{:?}; resume it with the same --env, --algo and --connection",
                     dir.display(),
-                    meta.env,
-                    meta.algo,
-                    meta.connection
+                    meta.shape.env,
+                    meta.shape.algo,
+                    meta.shape.connection
                 )));
             }
             let episodes = cfg.run.episodes;
             cfg = meta.config.clone();
             cfg.run.episodes = episodes.max(meta.episode);
             let rows = read_rows(&req.run_dir.join("metrics.csv"), meta.episode)?;
-            (meta.mask.clone(), meta.graph_seconds, meta.optimization_seconds, meta.elapsed_seconds, rows, Some(dir))
+            (meta.shape.mask.clone(), meta.graph_seconds, meta.optimization_seconds, meta.elapsed_seconds, rows, Some(dir))
         }
         _ => {
             let (mask, seconds, report) = resolve_mask(req, env.as_ref())?;

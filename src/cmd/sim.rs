@@ -56,7 +56,7 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
     let policy = args.checkpoint.as_deref().map(lcrl_learner::policy::Policy::load).transpose()?;
     let env_name = match (&args.env, &policy) {
         (Some(name), _) => name.clone(),
-        (None, Some(policy)) => policy.architecture.env.clone(),
+        (None, Some(policy)) => policy.architecture.shape.env.clone(),
         (None, None) => bail!("--env is required without --checkpoint"),
     };
     let mut env = lcrl_sim::make_env(&env_name)?;
@@ -85,7 +85,7 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
     let scales = env.fresh();
     let (label, mut act): (String, Box<dyn FnMut(&[f64]) -> Vec<f64>>) = match &policy {
         Some(policy) => (
-            format!("{:?}/{:?} policy (episode {})", policy.architecture.algo, policy.architecture.connection, policy.episode.unwrap_or(0)).to_lowercase(),
+            format!("{:?}/{:?} policy (episode {})", policy.architecture.shape.algo, policy.architecture.shape.connection, policy.episode.unwrap_or(0)).to_lowercase(),
             Box::new(move |s: &[f64]| policy.act(scales.as_ref(), s)),
         ),
         None => {

@@ -196,7 +196,7 @@ impl PolicyService {
     }
 
     fn check_states(&self, states: &[f32], count: usize) -> Result<usize, Status> {
-        let m = self.shared.architecture.state_dim;
+        let m = self.shared.architecture.shape.state_dim;
         if count == 0 || states.len() != count * m {
             return Err(Status::invalid_argument(format!("expected {count} state(s) of {m} numbers, got {} numbers", states.len())));
         }
