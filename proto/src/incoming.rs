@@ -6,7 +6,6 @@
 
 use std::io;
 use std::pin::Pin;
-use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::task::{Context, Poll};
 use std::time::Duration;
@@ -18,8 +17,6 @@ use tokio_rustls::server::TlsStream;
 use tokio_rustls::TlsAcceptor;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::server::{Connected, TcpConnectInfo};
-
-use crate::security::{AuthRefusals, SecurityError};
 
 /// How long a client may take to finish its TLS handshake.
 const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
@@ -73,40 +70,13 @@ impl AsyncWrite for Conn {
     }
 }
 
-/// A rustls server configuration: this certificate, and with `client_ca`
-/// only clients holding a certificate of that CA (mutual TLS).
-pub fn server_config(cert: &[u8], key: &[u8], client_ca: Option<&[u8]>) -> Result<Arc<rustls::ServerConfig>, SecurityError> {
-    use rustls::pki_types::pem::PemObject;
-    use rustls::pki_types::{CertificateDer, PrivateKeyDer};
-    let invalid = |what: &str, e: &dyn std::fmt::Display| SecurityError::Invalid(format!("{what}: {e}"));
-    let chain = CertificateDer::pem_slice_iter(cert).collect::<Result<Vec<_>, _>>().map_err(|e| invalid("--tls-cert is not a PEM certificate", &e))?;
-    let key = PrivateKeyDer::from_pem_slice(key).map_err(|e| invalid("--tls-key is not a PEM private key", &e))?;
-    let provider = Arc::new(rustls::crypto::ring::default_provider());
-    let builder = rustls::ServerConfig::builder_with_provider(provider.clone())
-        .with_safe_default_protocol_versions()
-        .map_err(|e| invalid("TLS", &e))?;
-    let builder = match client_ca {
-        Some(ca) => {
-            let mut roots = rustls::RootCertStore::empty();
-            for cert in CertificateDer::pem_slice_iter(ca) {
-                roots.add(cert.map_err(|e| invalid("--tls-client-ca is not a PEM certificate", &e))?).map_err(|e| invalid("--tls-client-ca", &e))?;
-            }
-            let verifier = rustls::server::WebPkiClientVerifier::builder_with_provider(Arc::new(roots), provider)
-                .build()
-                .map_err(|e| invalid("--tls-client-ca", &e))?;
-            builder.with_client_cert_verifier(verifier)
-        }
-        None => builder.with_no_client_auth(),
-    };
-    let mut config = builder.with_single_cert(chain, key).map_err(|e| invalid("--tls-cert and --tls-key do not match", &e))?;
-    config.alpn_protocols = vec![b"h2".to_vec()];
-    Ok(Arc::new(config))
-}
+/// Called once per failed TLS handshake (the server counts them).
+pub type OnRefusedHandshake = Arc<dyn Fn() + Send + Sync>;
 
 /// Accepts connections on `listener` (TCP_NODELAY: small request and
 /// response messages), completing TLS handshakes where `tls` is set and
-/// counting the failed ones in `refusals`.
-pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, refusals: Arc<AuthRefusals>) -> ReceiverStream<io::Result<Conn>> {
+/// reporting each failed one to `refused`.
+pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, refused: OnRefusedHandshake) -> ReceiverStream<io::Result<Conn>> {
     let (tx, rx) = tokio::sync::mpsc::channel(64);
     let acceptor = tls.map(TlsAcceptor::from);
     tokio::spawn(async move {
@@ -132,14 +102,14 @@ pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, r
                     }
                 }
                 Some(acceptor) => {
-                    let (acceptor, tx, refusals) = (acceptor.clone(), tx.clone(), refusals.clone());
+                    let (acceptor, tx, refused) = (acceptor.clone(), tx.clone(), refused.clone());
                     tokio::spawn(async move {
                         match tokio::time::timeout(HANDSHAKE_TIMEOUT, acceptor.accept(stream)).await {
                             Ok(Ok(tls)) => {
                                 let _ = tx.send(Ok(Conn::Tls(Box::new(tls)))).await;
                             }
                             outcome => {
-                                refusals.tls_handshake.fetch_add(1, Ordering::Relaxed);
+                                refused();
                                 let why = match outcome {
                                     Ok(Err(e)) => e.to_string(),
                                     _ => "timed out".to_string(),

@@ -11,6 +11,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use subtle::ConstantTimeEq;
+use tokio_rustls::rustls;
 use tonic::metadata::MetadataValue;
 use tonic::service::Interceptor;
 use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity};
@@ -168,6 +169,36 @@ fn read(what: &'static str, path: &Path) -> Result<Vec<u8>, SecurityError> {
     std::fs::read(path).map_err(|source| SecurityError::Read { what, path: path.into(), source })
 }
 
+/// A rustls server configuration: this certificate, and with `client_ca`
+/// only clients holding a certificate of that CA (mutual TLS).
+pub fn server_config(cert: &[u8], key: &[u8], client_ca: Option<&[u8]>) -> Result<Arc<rustls::ServerConfig>, SecurityError> {
+    use rustls::pki_types::pem::PemObject;
+    use rustls::pki_types::{CertificateDer, PrivateKeyDer};
+    let invalid = |what: &str, e: &dyn std::fmt::Display| SecurityError::Invalid(format!("{what}: {e}"));
+    let chain = CertificateDer::pem_slice_iter(cert).collect::<Result<Vec<_>, _>>().map_err(|e| invalid("--tls-cert is not a PEM certificate", &e))?;
+    let key = PrivateKeyDer::from_pem_slice(key).map_err(|e| invalid("--tls-key is not a PEM private key", &e))?;
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let builder = rustls::ServerConfig::builder_with_provider(provider.clone())
+        .with_safe_default_protocol_versions()
+        .map_err(|e| invalid("TLS", &e))?;
+    let builder = match client_ca {
+        Some(ca) => {
+            let mut roots = rustls::RootCertStore::empty();
+            for cert in CertificateDer::pem_slice_iter(ca) {
+                roots.add(cert.map_err(|e| invalid("--tls-client-ca is not a PEM certificate", &e))?).map_err(|e| invalid("--tls-client-ca", &e))?;
+            }
+            let verifier = rustls::server::WebPkiClientVerifier::builder_with_provider(Arc::new(roots), provider)
+                .build()
+                .map_err(|e| invalid("--tls-client-ca", &e))?;
+            builder.with_client_cert_verifier(verifier)
+        }
+        None => builder.with_no_client_auth(),
+    };
+    let mut config = builder.with_single_cert(chain, key).map_err(|e| invalid("--tls-cert and --tls-key do not match", &e))?;
+    config.alpn_protocols = vec![b"h2".to_vec()];
+    Ok(Arc::new(config))
+}
+
 /// A server's TLS and token settings, checked on start.
 #[derive(Clone)]
 pub struct ServerSecurity {
@@ -182,7 +213,7 @@ impl ServerSecurity {
         let tls = match (&args.tls_cert, &args.tls_key) {
             (Some(cert), Some(key)) => {
                 let ca = args.tls_client_ca.as_deref().map(|ca| read("client CA", ca)).transpose()?;
-                Some(crate::incoming::server_config(&read("certificate", cert)?, &read("private key", key)?, ca.as_deref())?)
+                Some(server_config(&read("certificate", cert)?, &read("private key", key)?, ca.as_deref())?)
             }
             _ => None,
         };
@@ -203,7 +234,10 @@ impl ServerSecurity {
     /// The connections `listener` accepts: TLS where configured (failed
     /// handshakes counted), for `serve_with_incoming`.
     pub fn incoming(&self, listener: tokio::net::TcpListener) -> tokio_stream::wrappers::ReceiverStream<std::io::Result<crate::incoming::Conn>> {
-        crate::incoming::incoming(listener, self.tls.clone(), self.check.refusals.clone())
+        let refusals = self.check.refusals.clone();
+        crate::incoming::incoming(listener, self.tls.clone(), Arc::new(move || {
+            refusals.tls_handshake.fetch_add(1, Ordering::Relaxed);
+        }))
     }
 
     pub fn describe(&self) -> String {
