@@ -1,17 +1,21 @@
 #!/usr/bin/env bash
 # The main job, from a fresh clone: set-up (libtorch), build, then a local
-# LCRL training run on the publication's linear example (docs/method.md eq. 10):
-#   1. its connection graph G by CS3, printed;
+# LCRL training run on peg-in-hole (peg-group1, docs/peg.md):
+#   1. its connection graph G by CS3, printed (the run's own samples and seed);
 #   2. `lcrl run`: graph builder, learner and an actor as processes (shared
 #      memory between actor and learner), PPO with the locally connected
-#      actor for the preset's 1000 episodes, then the final policy evaluated
-#      against the best controller that sees only G's states (~10 s).
-# Results go to runs/lti-paper/. Extra arguments go to `lcrl run`.
+#      actor for the preset's 900 episodes, residual on the best constant
+#      compliance (configs/peg.toml); then the final policy evaluated on 100
+#      starts beside a = 0, the best constant (the bar) and the headroom
+#      reference (references/peg-group1/best_policy.json) on the same starts.
+# About 75 s on 2 cores once built. Results go to runs/peg-group1/. Extra
+# arguments go to `lcrl run`. The linear example is quicker (about 10 s):
+#   target/debug/lcrl run --config configs/lti-paper.toml
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 cargo build --workspace --bins
-target/debug/lcrl graph --env lti-paper --samples 256
+target/debug/lcrl graph --env peg-group1 --samples 64 --seed 0
 echo
-rm -rf runs/lti-paper
-target/debug/lcrl run --config configs/lti-paper.toml --run-dir runs/lti-paper "$@"
+rm -rf runs/peg-group1
+target/debug/lcrl run --config configs/peg-group1-ppo-local.toml --run-dir runs/peg-group1 "$@"

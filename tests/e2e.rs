@@ -3,18 +3,18 @@
 
 mod e2e {
     pub mod common;
-    mod doctor;
-    mod graph_cli;
-    mod graph_service;
-    mod sim_cli;
-    mod train_cli;
+    mod deploy;
     mod distributed;
     mod distributed_learning;
-    mod observability;
-    mod deploy;
-    mod run_cli;
+    mod doctor;
     mod experiment_cli;
-    mod security;
+    mod graph_cli;
+    mod graph_service;
     mod hostile;
+    mod observability;
+    mod run_cli;
+    mod security;
     mod served_env;
+    mod sim_cli;
+    mod train_cli;
 }

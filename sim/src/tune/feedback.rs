@@ -16,7 +16,7 @@
 
 use std::time::Instant;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::{action_of, constant_return, u_of, ConstantResult, TuneError, TuneOptions};
 use crate::env::{Env, EnvError, ReturnColumns};
@@ -27,7 +27,7 @@ use crate::evaluate::{evaluate, run_episode};
 pub const ENTRY_MM: f64 = 2.0;
 
 /// The policy families `lcrl tune --policy` searches.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Family {
     /// u = clip(u₀ + K ŝ).
@@ -36,8 +36,18 @@ pub enum Family {
     DepthSwitched,
 }
 
+impl Family {
+    /// The name `lcrl tune --policy` takes.
+    pub fn name(self) -> &'static str {
+        match self {
+            Family::Affine => "affine",
+            Family::DepthSwitched => "depth-switched",
+        }
+    }
+}
+
 /// A state-feedback policy of one family.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FeedbackPolicy {
     pub family: Family,
     /// u₀, in the box mapped to [−1, 1].
@@ -63,12 +73,31 @@ impl FeedbackPolicy {
     }
 
     /// Parameters: u₀ (n), then each phase's K row by row (n·m).
-    fn from_params(family: Family, theta: &[f64], n: usize, m: usize, switch_depth_mm: Option<f64>) -> Self {
+    fn from_params(
+        family: Family,
+        theta: &[f64],
+        n: usize,
+        m: usize,
+        switch_depth_mm: Option<f64>,
+    ) -> Self {
         let scale = GAIN_SCALE / (m as f64).sqrt();
         let gains = (0..Self::phases(family))
-            .map(|p| (0..n).map(|i| (0..m).map(|j| scale * theta[n + p * n * m + i * m + j]).collect()).collect())
+            .map(|p| {
+                (0..n)
+                    .map(|i| {
+                        (0..m)
+                            .map(|j| scale * theta[n + p * n * m + i * m + j])
+                            .collect()
+                    })
+                    .collect()
+            })
             .collect();
-        FeedbackPolicy { family, u0: theta[..n].to_vec(), gains, switch_depth_mm }
+        FeedbackPolicy {
+            family,
+            u0: theta[..n].to_vec(),
+            gains,
+            switch_depth_mm,
+        }
     }
 
     /// The action for a raw state.
@@ -80,18 +109,33 @@ impl FeedbackPolicy {
             _ => 0,
         };
         let k = &self.gains[phase.min(self.gains.len() - 1)];
-        let u: Vec<f64> = self.u0.iter().zip(k).map(|(u0, row)| u0 + row.iter().zip(&s).map(|(g, x)| g * x).sum::<f64>()).collect();
+        let u: Vec<f64> = self
+            .u0
+            .iter()
+            .zip(k)
+            .map(|(u0, row)| u0 + row.iter().zip(&s).map(|(g, x)| g * x).sum::<f64>())
+            .collect();
         action_of(env.spec(), &u)
     }
 }
 
 /// Mean return of a policy over `episodes` starts from `seed`.
-fn policy_return(template: &dyn Env, policy: &FeedbackPolicy, episodes: usize, seed: u64) -> Result<f64, EnvError> {
+fn policy_return(
+    template: &dyn Env,
+    policy: &FeedbackPolicy,
+    episodes: usize,
+    seed: u64,
+) -> Result<f64, EnvError> {
     let mut env = template.fresh();
     let probe = template.fresh();
     let mut total = 0.0;
     for k in 0..episodes {
-        let record = run_episode(env.as_mut(), seed.wrapping_add(k as u64), &mut |s| policy.act(probe.as_ref(), s), false)?;
+        let record = run_episode(
+            env.as_mut(),
+            seed.wrapping_add(k as u64),
+            &mut |s| policy.act(probe.as_ref(), s),
+            false,
+        )?;
         total += record.episode_return;
     }
     Ok(total / episodes as f64)
@@ -118,6 +162,11 @@ pub struct PolicyReport {
     pub start_constant: ConstantResult,
     /// The constant compliance controller (a = 0) on the same starts.
     pub zero_action: ConstantResult,
+    /// On linear systems, LQR's mean return on the same evaluation starts
+    /// (the known optimum the search is measured against); filled by the
+    /// caller, which has the Riccati solver.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lqr_return: Option<f64>,
     pub tuning_episodes: usize,
     pub tuning_seed: u64,
     pub eval_episodes: usize,
@@ -127,8 +176,78 @@ pub struct PolicyReport {
     pub elapsed_s: f64,
 }
 
+/// The parts of a best_policy.json a reader needs: the policy and where
+/// its figures were measured.
+#[derive(Debug, Clone, Deserialize)]
+pub struct StoredPolicy {
+    pub env: String,
+    pub mean_return: f64,
+    pub policy: FeedbackPolicy,
+    pub eval_episodes: usize,
+    pub eval_seed: u64,
+}
+
+impl StoredPolicy {
+    /// Reads a best_policy.json of `lcrl tune --policy`, checking the
+    /// policy's shape against the file's own claims.
+    pub fn read(path: &std::path::Path) -> Result<StoredPolicy, TuneError> {
+        let bad = |why: String| {
+            TuneError::Options(format!(
+                "{}: not a best_policy.json of `lcrl tune --policy`: {why}",
+                path.display()
+            ))
+        };
+        let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
+        let stored: StoredPolicy = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
+        let p = &stored.policy;
+        let n = p.u0.len();
+        let phases = FeedbackPolicy::phases(p.family);
+        let m = p.gains.first().and_then(|k| k.first()).map_or(0, Vec::len);
+        if p.gains.len() != phases
+            || p.gains
+                .iter()
+                .any(|k| k.len() != n || k.iter().any(|row| row.len() != m))
+            || m == 0
+        {
+            return Err(bad(format!(
+                "{:?} needs {phases} gain matrices of {n} rows of equal, non-zero length",
+                p.family
+            )));
+        }
+        if (p.family == Family::DepthSwitched) != p.switch_depth_mm.is_some() {
+            return Err(bad(
+                "switch_depth_mm is set exactly for the depth-switched family".into(),
+            ));
+        }
+        Ok(stored)
+    }
+
+    /// Checks the policy fits `env` (state and action sizes).
+    pub fn check_env(&self, env: &dyn Env) -> Result<(), TuneError> {
+        let spec = env.spec();
+        let m = self.policy.gains[0][0].len();
+        if self.policy.u0.len() != spec.action_dim() || m != spec.state_dim() {
+            return Err(TuneError::Options(format!(
+                "the stored policy of {} has {} actions and {m} states; {} has {} and {}",
+                self.env,
+                self.policy.u0.len(),
+                spec.name,
+                spec.action_dim(),
+                spec.state_dim()
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// Searches `family` from the constant `start` (an action in the box).
-pub fn tune_policy(template: &dyn Env, family: Family, start: &[f64], opts: &TuneOptions, on_candidate: &(dyn Fn(f64) + Sync)) -> Result<PolicyReport, TuneError> {
+pub fn tune_policy(
+    template: &dyn Env,
+    family: Family,
+    start: &[f64],
+    opts: &TuneOptions,
+    on_candidate: &(dyn Fn(f64) + Sync),
+) -> Result<PolicyReport, TuneError> {
     opts.check()?;
     let started = Instant::now();
     let spec = template.spec().clone();
@@ -138,7 +257,10 @@ pub fn tune_policy(template: &dyn Env, family: Family, start: &[f64], opts: &Tun
         Family::Affine => None,
         Family::DepthSwitched => {
             let depth = template.depth_reference_mm().ok_or_else(|| {
-                TuneError::Options(format!("--policy depth-switched needs an insertion depth; {} has none (use affine)", spec.name))
+                TuneError::Options(format!(
+                    "--policy depth-switched needs an insertion depth; {} has none (use affine)",
+                    spec.name
+                ))
             })?;
             Some(depth - ENTRY_MM)
         }
@@ -149,7 +271,14 @@ pub fn tune_policy(template: &dyn Env, family: Family, start: &[f64], opts: &Tun
     let start_policy = FeedbackPolicy::from_params(family, &theta0, n, m, switch);
     let start_return = policy_return(template, &start_policy, opts.episodes, opts.seed)?;
 
-    let objective = |theta: &[f64]| policy_return(template, &FeedbackPolicy::from_params(family, theta, n, m, switch), opts.episodes, opts.seed);
+    let objective = |theta: &[f64]| {
+        policy_return(
+            template,
+            &FeedbackPolicy::from_params(family, theta, n, m, switch),
+            opts.episodes,
+            opts.seed,
+        )
+    };
     let (found, evaluations) = super::search(theta0, start_return, opts, &objective, on_candidate)?;
     let (policy, best_return) = match found {
         Some((theta, r)) => (FeedbackPolicy::from_params(family, &theta, n, m, switch), r),
@@ -159,12 +288,33 @@ pub fn tune_policy(template: &dyn Env, family: Family, start: &[f64], opts: &Tun
     let mut env = template.fresh();
     let probe = template.fresh();
     let label = format!("{family:?} policy");
-    let (eval, _) = evaluate(env.as_mut(), &label, opts.eval_episodes, opts.eval_seed, &mut |s| policy.act(probe.as_ref(), s), &mut |_| {})?;
+    let (eval, _) = evaluate(
+        env.as_mut(),
+        &label,
+        opts.eval_episodes,
+        opts.eval_seed,
+        &mut |s| policy.act(probe.as_ref(), s),
+        &mut |_| {},
+    )?;
     let action = action_of(&spec, &policy.u0);
-    let best = ConstantResult { action: action.clone(), tuning_return: best_return, eval };
-    let start_constant = super::evaluate_constant(template, start, constant_return(template, start, opts.episodes, opts.seed)?, opts)?;
+    let best = ConstantResult {
+        action: action.clone(),
+        tuning_return: best_return,
+        eval,
+    };
+    let start_constant = super::evaluate_constant(
+        template,
+        start,
+        constant_return(template, start, opts.episodes, opts.seed)?,
+        opts,
+    )?;
     let zero = vec![0.0; n];
-    let zero_action = super::evaluate_constant(template, &zero, constant_return(template, &zero, opts.episodes, opts.seed)?, opts)?;
+    let zero_action = super::evaluate_constant(
+        template,
+        &zero,
+        constant_return(template, &zero, opts.episodes, opts.seed)?,
+        opts,
+    )?;
     Ok(PolicyReport {
         env: spec.name.clone(),
         action_names: spec.action_names.clone(),
@@ -178,6 +328,7 @@ pub fn tune_policy(template: &dyn Env, family: Family, start: &[f64], opts: &Tun
         best,
         start_constant,
         zero_action,
+        lqr_return: None,
         tuning_episodes: opts.episodes,
         tuning_seed: opts.seed,
         eval_episodes: opts.eval_episodes,
@@ -208,12 +359,82 @@ mod tests {
         cfg.initial_state_high = Some(vec![1.0]);
         cfg.episode_steps = 3;
         let env = LtiEnv::new("one", &cfg).unwrap();
-        let opts = TuneOptions { episodes: 16, evaluations: 300, eval_episodes: 32, ..TuneOptions::default() };
+        let opts = TuneOptions {
+            episodes: 16,
+            evaluations: 300,
+            eval_episodes: 32,
+            ..TuneOptions::default()
+        };
         let report = tune_policy(&env, Family::Affine, &[0.0], &opts, &|_| {}).unwrap();
         let gain = report.policy.gains[0][0][0];
         assert!(gain < -0.1, "the gain on s must be negative, got {gain}");
-        assert!(report.mean_return > report.start_constant.eval.mean_return + 0.1, "{} vs {}", report.mean_return, report.start_constant.eval.mean_return);
+        assert!(
+            report.mean_return > report.start_constant.eval.mean_return + 0.1,
+            "{} vs {}",
+            report.mean_return,
+            report.start_constant.eval.mean_return
+        );
         // An environment without a depth has no depth-switched family.
         assert!(tune_policy(&env, Family::DepthSwitched, &[0.0], &opts, &|_| {}).is_err());
+    }
+
+    /// The headroom references shipped in references/ (what `lcrl run`
+    /// prints beside a trained policy) are recomputed here: the stored
+    /// policy, a = 0 and the constant it started from, on the file's own
+    /// evaluation starts, give the file's figures (the simulator is
+    /// deterministic), and that constant is the bar the code records.
+    #[test]
+    fn shipped_headroom_references_recompute() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../references");
+        let mut checked = 0;
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path().join("best_policy.json");
+            let stored = StoredPolicy::read(&path).unwrap();
+            let raw: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+            let template = crate::make_env(&stored.env).unwrap();
+            stored.check_env(template.as_ref()).unwrap();
+            let n = template.spec().action_dim();
+            let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * b.abs().max(1.0);
+            let policy_return = super::policy_return(
+                template.as_ref(),
+                &stored.policy,
+                stored.eval_episodes,
+                stored.eval_seed,
+            )
+            .unwrap();
+            assert!(
+                close(policy_return, stored.mean_return),
+                "{}: {policy_return} vs stored {}",
+                path.display(),
+                stored.mean_return
+            );
+            let start: Vec<f64> =
+                serde_json::from_value(raw["start_constant"]["action"].clone()).unwrap();
+            let bar = crate::peg::measured_best_constant(&stored.env).unwrap();
+            assert_eq!(
+                start,
+                bar.to_vec(),
+                "{}: the search did not start from the recorded best constant",
+                path.display()
+            );
+            for (key, action) in [("start_constant", start), ("zero_action", vec![0.0; n])] {
+                let recorded = raw[key]["eval"]["mean_return"].as_f64().unwrap();
+                let got = constant_return(
+                    template.as_ref(),
+                    &action,
+                    stored.eval_episodes,
+                    stored.eval_seed,
+                )
+                .unwrap();
+                assert!(
+                    close(got, recorded),
+                    "{}: {key} {got} vs stored {recorded}",
+                    path.display()
+                );
+            }
+            checked += 1;
+        }
+        assert!(checked > 0, "no references in {}", dir.display());
     }
 }
