@@ -25,30 +25,12 @@ pub struct Panel {
 impl Panel {
     /// A panel of series with no band, references or clipping.
     pub fn lines(y_label: impl Into<String>, series: Vec<(String, Vec<f64>)>) -> Self {
-        Panel {
-            y_label: y_label.into(),
-            series,
-            bands: Vec::new(),
-            x: None,
-            references: Vec::new(),
-            clip_low_outliers: false,
-        }
+        Panel { y_label: y_label.into(), series, bands: Vec::new(), x: None, references: Vec::new(), clip_low_outliers: false }
     }
 
     /// A reward-curve panel: low outliers clipped, with reference lines.
-    pub fn rewards(
-        y_label: impl Into<String>,
-        series: Vec<(String, Vec<f64>)>,
-        references: Vec<(String, f64)>,
-    ) -> Self {
-        Panel {
-            y_label: y_label.into(),
-            series,
-            bands: Vec::new(),
-            x: None,
-            references,
-            clip_low_outliers: true,
-        }
+    pub fn rewards(y_label: impl Into<String>, series: Vec<(String, Vec<f64>)>, references: Vec<(String, f64)>) -> Self {
+        Panel { y_label: y_label.into(), series, bands: Vec::new(), x: None, references, clip_low_outliers: true }
     }
 }
 
@@ -58,12 +40,7 @@ impl Panel {
 /// the axis's bottom edge. None when nothing lies below it (or a curve is
 /// too short to have a settled half): then the whole curve is drawn.
 pub fn robust_low(series: &[&[f64]]) -> Option<f64> {
-    let finite = |v: &[f64]| {
-        v.iter()
-            .copied()
-            .filter(|x| x.is_finite())
-            .collect::<Vec<f64>>()
-    };
+    let finite = |v: &[f64]| v.iter().copied().filter(|x| x.is_finite()).collect::<Vec<f64>>();
     let mut late_min = f64::INFINITY;
     let (mut lowest, mut highest) = (f64::INFINITY, f64::NEG_INFINITY);
     for values in series {
@@ -90,66 +67,29 @@ const COLORS: [RGBColor; 6] = [
 ];
 
 /// Reference lines: black, grey, dark green, purple (dashed).
-const REFERENCE_COLORS: [RGBColor; 4] = [
-    RGBColor(0, 0, 0),
-    RGBColor(120, 120, 120),
-    RGBColor(0, 100, 0),
-    RGBColor(120, 0, 120),
-];
+const REFERENCE_COLORS: [RGBColor; 4] = [RGBColor(0, 0, 0), RGBColor(120, 120, 120), RGBColor(0, 100, 0), RGBColor(120, 0, 120)];
 
 /// Draws `panels` top to bottom against `x` into a PNG.
-pub fn line_panels(
-    path: &Path,
-    title: &str,
-    x: &[f64],
-    x_label: &str,
-    panels: &[Panel],
-) -> anyhow::Result<()> {
+pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &[Panel]) -> anyhow::Result<()> {
     lcrl_graph_builder::plot::register_fonts();
     let height = 60 + 260 * panels.len() as u32;
     let root = BitMapBackend::new(path, (900, height)).into_drawing_area();
-    let draw_err =
-        |e: &dyn std::fmt::Display| anyhow::anyhow!("cannot draw {}: {e}", path.display());
+    let draw_err = |e: &dyn std::fmt::Display| anyhow::anyhow!("cannot draw {}: {e}", path.display());
     root.fill(&WHITE).map_err(|e| draw_err(&e))?;
-    let root = root
-        .titled(title, ("sans-serif", 20))
-        .map_err(|e| draw_err(&e))?;
+    let root = root.titled(title, ("sans-serif", 20)).map_err(|e| draw_err(&e))?;
     let areas = root.split_evenly((panels.len(), 1));
     for (area, panel) in areas.iter().zip(panels) {
         let x = panel.x.as_deref().unwrap_or(x);
         let (x0, x1) = range(x.iter().copied());
-        let values: Vec<f64> = panel
-            .series
-            .iter()
-            .flat_map(|(_, v)| v.iter().copied())
-            .collect();
-        let band = panel
-            .bands
-            .iter()
-            .flat_map(|(_, lo, hi)| lo.iter().chain(hi).copied());
+        let values: Vec<f64> = panel.series.iter().flat_map(|(_, v)| v.iter().copied()).collect();
+        let band = panel.bands.iter().flat_map(|(_, lo, hi)| lo.iter().chain(hi).copied());
         let references = panel.references.iter().map(|(_, y)| *y);
         let curves: Vec<&[f64]> = panel.series.iter().map(|(_, v)| v.as_slice()).collect();
-        let floor = if panel.clip_low_outliers && !curves.is_empty() {
-            robust_low(&curves)
-        } else {
-            None
-        };
-        let kept = values
-            .iter()
-            .copied()
-            .filter(|v| floor.is_none_or(|f| *v >= f));
+        let floor = if panel.clip_low_outliers && !curves.is_empty() { robust_low(&curves) } else { None };
+        let kept = values.iter().copied().filter(|v| floor.is_none_or(|f| *v >= f));
         let (y0, y1) = range(kept.chain(band).chain(references).chain(floor));
-        let below = floor.map_or(0, |f| {
-            panel
-                .series
-                .first()
-                .map_or(0, |(_, v)| v.iter().filter(|x| **x < f).count())
-        });
-        let y_label = if below > 0 {
-            format!("{} ({below} values below the axis)", panel.y_label)
-        } else {
-            panel.y_label.clone()
-        };
+        let below = floor.map_or(0, |f| panel.series.first().map_or(0, |(_, v)| v.iter().filter(|x| **x < f).count()));
+        let y_label = if below > 0 { format!("{} ({below} values below the axis)", panel.y_label) } else { panel.y_label.clone() };
         let mut chart = ChartBuilder::on(area)
             .margin(12)
             .x_label_area_size(35)
@@ -164,53 +104,27 @@ pub fn line_panels(
             .draw()
             .map_err(|e| draw_err(&e))?;
         for (k, lo, hi) in &panel.bands {
-            let clamp = |v: &[f64]| -> Vec<(f64, f64)> {
-                x.iter()
-                    .copied()
-                    .zip(v.iter().map(|y| y.clamp(y0, y1)))
-                    .collect()
-            };
-            let polygon: Vec<(f64, f64)> = clamp(hi)
-                .into_iter()
-                .chain(clamp(lo).into_iter().rev())
-                .collect();
+            let clamp = |v: &[f64]| -> Vec<(f64, f64)> { x.iter().copied().zip(v.iter().map(|y| y.clamp(y0, y1))).collect() };
+            let polygon: Vec<(f64, f64)> = clamp(hi).into_iter().chain(clamp(lo).into_iter().rev()).collect();
             let color = COLORS[k % COLORS.len()];
-            chart
-                .draw_series(std::iter::once(Polygon::new(
-                    polygon,
-                    color.mix(0.18).filled(),
-                )))
-                .map_err(|e| draw_err(&e))?;
+            chart.draw_series(std::iter::once(Polygon::new(polygon, color.mix(0.18).filled()))).map_err(|e| draw_err(&e))?;
         }
         for (k, (name, values)) in panel.series.iter().enumerate() {
             let color = COLORS[k % COLORS.len()];
-            let points = x
-                .iter()
-                .copied()
-                .zip(values.iter().map(|y| y.max(y0)))
-                .filter(|(_, y)| y.is_finite());
+            let points = x.iter().copied().zip(values.iter().map(|y| y.max(y0))).filter(|(_, y)| y.is_finite());
             chart
                 .draw_series(LineSeries::new(points, color.stroke_width(2)))
                 .map_err(|e| draw_err(&e))?
                 .label(name.as_str())
-                .legend(move |(lx, ly)| {
-                    PathElement::new(vec![(lx, ly), (lx + 18, ly)], color.stroke_width(2))
-                });
+                .legend(move |(lx, ly)| PathElement::new(vec![(lx, ly), (lx + 18, ly)], color.stroke_width(2)));
         }
         for (k, (name, y)) in panel.references.iter().enumerate() {
             let color = REFERENCE_COLORS[k % REFERENCE_COLORS.len()];
             chart
-                .draw_series(DashedLineSeries::new(
-                    vec![(x0, *y), (x1, *y)],
-                    8,
-                    5,
-                    color.stroke_width(2),
-                ))
+                .draw_series(DashedLineSeries::new(vec![(x0, *y), (x1, *y)], 8, 5, color.stroke_width(2)))
                 .map_err(|e| draw_err(&e))?
                 .label(format!("{name} ({y:.3})"))
-                .legend(move |(lx, ly)| {
-                    PathElement::new(vec![(lx, ly), (lx + 18, ly)], color.stroke_width(2))
-                });
+                .legend(move |(lx, ly)| PathElement::new(vec![(lx, ly), (lx + 18, ly)], color.stroke_width(2)));
         }
         chart
             .configure_series_labels()
@@ -220,18 +134,12 @@ pub fn line_panels(
             .draw()
             .map_err(|e| draw_err(&e))?;
     }
-    root.present()
-        .map_err(|e| draw_err(&e))
-        .with_context(|| format!("writing {}", path.display()))
+    root.present().map_err(|e| draw_err(&e)).with_context(|| format!("writing {}", path.display()))
 }
 
 /// A padded [min, max] range that is never empty.
 fn range(values: impl Iterator<Item = f64>) -> (f64, f64) {
-    let (lo, hi) = values
-        .filter(|v| v.is_finite())
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
-            (a.min(v), b.max(v))
-        });
+    let (lo, hi) = values.filter(|v| v.is_finite()).fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(v), b.max(v)));
     if !lo.is_finite() {
         return (0.0, 1.0);
     }
@@ -246,15 +154,7 @@ mod tests {
     #[test]
     fn early_disasters_do_not_set_the_axis() {
         // 40 terrible early episodes of 150, then a run settling near −2.
-        let returns: Vec<f64> = (0..150)
-            .map(|k| {
-                if k < 40 {
-                    -3000.0 + k as f64
-                } else {
-                    -2.0 - 10.0 / (k as f64)
-                }
-            })
-            .collect();
+        let returns: Vec<f64> = (0..150).map(|k| if k < 40 { -3000.0 + k as f64 } else { -2.0 - 10.0 / (k as f64) }).collect();
         let low = robust_low(&[&returns]).unwrap();
         assert!(low > -10.0 && low < -2.0, "{low}");
         // A run with nothing far below its settled half: no clipping.

@@ -80,12 +80,7 @@ impl EnvServer {
 
     /// The server's command line, listening on `listen` (HOST:PORT);
     /// relative paths are taken from `preset_dir`.
-    pub fn command(
-        &self,
-        listen: &str,
-        instances: usize,
-        preset_dir: &Path,
-    ) -> anyhow::Result<std::process::Command> {
+    pub fn command(&self, listen: &str, instances: usize, preset_dir: &Path) -> anyhow::Result<std::process::Command> {
         let python = match &self.python {
             Some(p) => preset_dir.join(p),
             None => lcrl_python()?,
@@ -94,15 +89,7 @@ impl EnvServer {
             bail!("[env_server] python = {} is missing", python.display());
         }
         let mut cmd = std::process::Command::new(python);
-        cmd.args([
-            "-m",
-            "lcrl_env",
-            "serve",
-            "--listen",
-            listen,
-            "--instances",
-            &instances.to_string(),
-        ]);
+        cmd.args(["-m", "lcrl_env", "serve", "--listen", listen, "--instances", &instances.to_string()]);
         match (&self.gym, &self.entry_point) {
             (Some(id), _) => cmd.args(["--env", id]),
             (None, Some(entry)) => cmd.args(["--entry-point", entry]),
@@ -116,11 +103,7 @@ impl EnvServer {
         }
         if let Some(extra) = &self.pythonpath {
             let mut paths = vec![preset_dir.join(extra)];
-            paths.extend(
-                std::env::var_os("PYTHONPATH")
-                    .iter()
-                    .flat_map(std::env::split_paths),
-            );
+            paths.extend(std::env::var_os("PYTHONPATH").iter().flat_map(std::env::split_paths));
             cmd.env("PYTHONPATH", std::env::join_paths(paths)?);
         }
         Ok(cmd)
@@ -144,40 +127,21 @@ pub struct Preset {
 impl Preset {
     /// Reads and checks a preset, its environment included.
     pub fn load(path: &Path) -> anyhow::Result<Preset> {
-        let text =
-            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-        let mut table: toml::Table =
-            toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
-        let job_value = table.remove("job").with_context(|| {
-            format!(
-                "{} has no [job] section (env, algo, connection, episodes)",
-                path.display()
-            )
-        })?;
-        let mut job: Job = job_value
-            .try_into()
-            .with_context(|| format!("{}: [job]", path.display()))?;
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let mut table: toml::Table = toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+        let job_value = table.remove("job").with_context(|| format!("{} has no [job] section (env, algo, connection, episodes)", path.display()))?;
+        let mut job: Job = job_value.try_into().with_context(|| format!("{}: [job]", path.display()))?;
         if let Some(headroom) = &job.headroom {
             job.headroom = Some(path.parent().unwrap_or(Path::new(".")).join(headroom));
         }
         let env_server: Option<EnvServer> = match table.remove("env_server") {
-            Some(value) => Some(
-                value
-                    .try_into()
-                    .with_context(|| format!("{}: [env_server]", path.display()))?,
-            ),
+            Some(value) => Some(value.try_into().with_context(|| format!("{}: [env_server]", path.display()))?),
             None => None,
         };
         // Keys a preset leaves out keep the environment's own settings
         // (configs/peg.toml on the peg presets), as `lcrl train` does.
-        let train = TrainConfig::for_env_with(&job.env, &table)
-            .with_context(|| format!("{}: training sections", path.display()))?;
-        let preset = Preset {
-            job,
-            env_server,
-            train,
-            text,
-        };
+        let train = TrainConfig::for_env_with(&job.env, &table).with_context(|| format!("{}: training sections", path.display()))?;
+        let preset = Preset { job, env_server, train, text };
         preset.check()?;
         Ok(preset)
     }
@@ -206,15 +170,10 @@ impl Preset {
     /// The preset's headroom reference (`job.headroom`), read and checked
     /// against its environment; None when the preset names none.
     pub fn headroom(&self) -> anyhow::Result<Option<lcrl_sim::tune::feedback::StoredPolicy>> {
-        let Some(path) = &self.job.headroom else {
-            return Ok(None);
-        };
-        let stored = lcrl_sim::tune::feedback::StoredPolicy::read(path)
-            .with_context(|| format!("job.headroom = {}", path.display()))?;
+        let Some(path) = &self.job.headroom else { return Ok(None) };
+        let stored = lcrl_sim::tune::feedback::StoredPolicy::read(path).with_context(|| format!("job.headroom = {}", path.display()))?;
         if self.env_server.is_none() {
-            stored
-                .check_env(lcrl_sim::make_env(&self.job.env)?.as_ref())
-                .with_context(|| format!("job.headroom = {}", path.display()))?;
+            stored.check_env(lcrl_sim::make_env(&self.job.env)?.as_ref()).with_context(|| format!("job.headroom = {}", path.display()))?;
         }
         Ok(Some(stored))
     }
@@ -222,48 +181,28 @@ impl Preset {
     /// Writes the training sections alone (what `lcrl-learner --config`
     /// reads) to `path`.
     pub fn write_train_config(&self, path: &Path) -> anyhow::Result<()> {
-        std::fs::write(path, toml::to_string_pretty(&self.train)?)
-            .with_context(|| format!("writing {}", path.display()))
+        std::fs::write(path, toml::to_string_pretty(&self.train)?).with_context(|| format!("writing {}", path.display()))
     }
 
     /// `lcrl-graph-builder`'s arguments: CS3 samples and seed from [run];
     /// graph.json and graph.png into `run_dir`.
     pub fn graph_builder_args(&self, listen: &str, run_dir: &Path) -> Vec<OsString> {
         let mut args = os(&["--env", &self.job.env, "--listen", listen]);
-        args.extend(os(&[
-            "--samples",
-            &self.train.run.graph_samples.to_string(),
-            "--seed",
-            &self.train.run.seed.to_string(),
-        ]));
+        args.extend(os(&["--samples", &self.train.run.graph_samples.to_string(), "--seed", &self.train.run.seed.to_string()]));
         if let Some(t) = self.job.graph_threshold {
             args.extend(os(&["--threshold", &t.to_string()]));
         }
-        args.extend([
-            OsString::from("--out"),
-            run_dir.join("graph.json").into(),
-            OsString::from("--plot"),
-            run_dir.join("graph.png").into(),
-        ]);
+        args.extend([OsString::from("--out"), run_dir.join("graph.json").into(), OsString::from("--plot"), run_dir.join("graph.png").into()]);
         args
     }
 
     /// `lcrl-learner`'s arguments; the graph (connection local) comes from
     /// `graph_builder`, a gRPC URL.
-    pub fn learner_args(
-        &self,
-        listen: &str,
-        run_id: &str,
-        train_config: &Path,
-        learner_dir: &Path,
-        graph_builder: Option<&str>,
-    ) -> anyhow::Result<Vec<OsString>> {
+    pub fn learner_args(&self, listen: &str, run_id: &str, train_config: &Path, learner_dir: &Path, graph_builder: Option<&str>) -> anyhow::Result<Vec<OsString>> {
         let mut args = self.learner_base_args(listen, run_id, train_config, learner_dir);
         match (self.job.connection, graph_builder) {
             (Connection::Local, Some(url)) => args.extend(os(&["--graph-builder", url])),
-            (Connection::Local, None) => {
-                bail!("connection local needs the graph builder's URL (--graph-builder)")
-            }
+            (Connection::Local, None) => bail!("connection local needs the graph builder's URL (--graph-builder)"),
             _ => {}
         }
         Ok(args)
@@ -272,14 +211,7 @@ impl Preset {
     /// `lcrl-learner`'s arguments with the graph (connection local) from a
     /// graph.json file instead of a graph builder (`lcrl scale` builds it
     /// once for all its points).
-    pub fn learner_args_with_graph_file(
-        &self,
-        listen: &str,
-        run_id: &str,
-        train_config: &Path,
-        learner_dir: &Path,
-        graph: &Path,
-    ) -> Vec<OsString> {
+    pub fn learner_args_with_graph_file(&self, listen: &str, run_id: &str, train_config: &Path, learner_dir: &Path, graph: &Path) -> Vec<OsString> {
         let mut args = self.learner_base_args(listen, run_id, train_config, learner_dir);
         if self.job.connection == Connection::Local {
             args.extend([OsString::from("--graph"), graph.into()]);
@@ -288,68 +220,24 @@ impl Preset {
     }
 
     /// Everything but where the graph comes from.
-    fn learner_base_args(
-        &self,
-        listen: &str,
-        run_id: &str,
-        train_config: &Path,
-        learner_dir: &Path,
-    ) -> Vec<OsString> {
-        let mut args = os(&[
-            "--env",
-            &self.job.env,
-            "--listen",
-            listen,
-            "--run-id",
-            run_id,
-            "--checkpoint-secs",
-            "30",
-        ]);
-        args.extend(os(&[
-            "--algo",
-            algo_name(self.job.algo),
-            "--connection",
-            connection_name(self.job.connection),
-        ]));
+    fn learner_base_args(&self, listen: &str, run_id: &str, train_config: &Path, learner_dir: &Path) -> Vec<OsString> {
+        let mut args = os(&["--env", &self.job.env, "--listen", listen, "--run-id", run_id, "--checkpoint-secs", "30"]);
+        args.extend(os(&["--algo", algo_name(self.job.algo), "--connection", connection_name(self.job.connection)]));
         // The run's budget lives in the learner: it drives the schedules
         // and ends training (compose and Kubernetes get it the same way).
         args.extend(os(&["--episodes", &self.job.episodes.to_string()]));
         if let Some(ratio) = &self.job.replay_ratio {
             args.extend(os(&["--replay-ratio", ratio]));
         }
-        args.extend([
-            OsString::from("--config"),
-            train_config.into(),
-            OsString::from("--run-dir"),
-            learner_dir.into(),
-        ]);
+        args.extend([OsString::from("--config"), train_config.into(), OsString::from("--run-dir"), learner_dir.into()]);
         args
     }
 
     /// `lcrl-actor`'s arguments. `actor_id` None: the actor names itself
     /// (host name and process id), as replicas in containers must.
-    pub fn actor_args(
-        &self,
-        learner: &str,
-        run_id: &str,
-        transport: &str,
-        actor_id: Option<&str>,
-        seed_offset: u64,
-    ) -> Vec<OsString> {
-        let mut args = os(&[
-            "--learner",
-            learner,
-            "--run-id",
-            run_id,
-            "--transport",
-            transport,
-        ]);
-        args.extend(os(&[
-            "--envs",
-            &self.job.envs_per_actor.to_string(),
-            "--seed",
-            &(self.train.run.seed + seed_offset).to_string(),
-        ]));
+    pub fn actor_args(&self, learner: &str, run_id: &str, transport: &str, actor_id: Option<&str>, seed_offset: u64) -> Vec<OsString> {
+        let mut args = os(&["--learner", learner, "--run-id", run_id, "--transport", transport]);
+        args.extend(os(&["--envs", &self.job.envs_per_actor.to_string(), "--seed", &(self.train.run.seed + seed_offset).to_string()]));
         if let Some(id) = actor_id {
             args.extend(os(&["--actor-id", id]));
         }
@@ -387,8 +275,7 @@ impl Preset {
     /// the job's actors (one core each): 0 ("auto") becomes the cores left
     /// over, so learner and actors do not fight for cores.
     pub fn pin_learner_threads(&mut self) {
-        self.train.run.threads =
-            lcrl_learner::device::resolve_threads(self.train.run.threads, self.job.actors);
+        self.train.run.threads = lcrl_learner::device::resolve_threads(self.train.run.threads, self.job.actors);
     }
 }
 
@@ -428,10 +315,7 @@ impl RunSecurity {
     }
 
     fn token_args(&self) -> Vec<OsString> {
-        self.token_file
-            .iter()
-            .flat_map(|t| [OsString::from("--token-file"), t.clone().into_os_string()])
-            .collect()
+        self.token_file.iter().flat_map(|t| [OsString::from("--token-file"), t.clone().into_os_string()]).collect()
     }
 
     /// A server's flags (graph builder; learner, which with `graph_client`
@@ -439,21 +323,10 @@ impl RunSecurity {
     pub fn server_args(&self, graph_client: bool) -> anyhow::Result<Vec<OsString>> {
         let mut args = Vec::new();
         if let Some(dir) = &self.tls_dir {
-            args.extend([
-                OsString::from("--tls-cert"),
-                Self::file(dir, "server.pem")?,
-                "--tls-key".into(),
-                Self::file(dir, "server.key")?,
-            ]);
-            args.extend([
-                OsString::from("--tls-client-ca"),
-                Self::file(dir, "ca.pem")?,
-            ]);
+            args.extend([OsString::from("--tls-cert"), Self::file(dir, "server.pem")?, "--tls-key".into(), Self::file(dir, "server.key")?]);
+            args.extend([OsString::from("--tls-client-ca"), Self::file(dir, "ca.pem")?]);
             if graph_client {
-                args.extend([
-                    OsString::from("--graph-builder-tls-ca"),
-                    Self::file(dir, "ca.pem")?,
-                ]);
+                args.extend([OsString::from("--graph-builder-tls-ca"), Self::file(dir, "ca.pem")?]);
             }
         }
         args.extend(self.token_args());
@@ -464,16 +337,8 @@ impl RunSecurity {
     pub fn client_args(&self) -> anyhow::Result<Vec<OsString>> {
         let mut args = Vec::new();
         if let Some(dir) = &self.tls_dir {
-            args.extend([
-                OsString::from("--tls-ca"),
-                Self::file(dir, "ca.pem")?,
-                "--tls-client-cert".into(),
-                Self::file(dir, "client.pem")?,
-            ]);
-            args.extend([
-                OsString::from("--tls-client-key"),
-                Self::file(dir, "client.key")?,
-            ]);
+            args.extend([OsString::from("--tls-ca"), Self::file(dir, "ca.pem")?, "--tls-client-cert".into(), Self::file(dir, "client.pem")?]);
+            args.extend([OsString::from("--tls-client-key"), Self::file(dir, "client.key")?]);
         }
         args.extend(self.token_args());
         Ok(args)
@@ -486,14 +351,8 @@ impl RunSecurity {
     pub fn export_env_client(&self) -> anyhow::Result<()> {
         if let Some(dir) = &self.tls_dir {
             std::env::set_var(lcrl_sim::remote::TLS_CA_ENV, Self::file(dir, "ca.pem")?);
-            std::env::set_var(
-                lcrl_sim::remote::TLS_CLIENT_CERT_ENV,
-                Self::file(dir, "client.pem")?,
-            );
-            std::env::set_var(
-                lcrl_sim::remote::TLS_CLIENT_KEY_ENV,
-                Self::file(dir, "client.key")?,
-            );
+            std::env::set_var(lcrl_sim::remote::TLS_CLIENT_CERT_ENV, Self::file(dir, "client.pem")?);
+            std::env::set_var(lcrl_sim::remote::TLS_CLIENT_KEY_ENV, Self::file(dir, "client.key")?);
         }
         if let Some(token) = &self.token_file {
             std::env::set_var(lcrl_proto::security::TOKEN_FILE_ENV, token);
@@ -511,11 +370,7 @@ impl RunSecurity {
             None => (None, None, None),
         };
         let identity = cert.as_deref().zip(key.as_deref());
-        Ok(lcrl_proto::security::ClientSecurity::new(
-            ca.as_deref(),
-            identity,
-            self.token_file.as_deref(),
-        )?)
+        Ok(lcrl_proto::security::ClientSecurity::new(ca.as_deref(), identity, self.token_file.as_deref())?)
     }
 }
 
@@ -557,10 +412,7 @@ pub(crate) fn connection_name(connection: Connection) -> &'static str {
 pub fn sibling(name: &str) -> anyhow::Result<PathBuf> {
     let path = std::env::current_exe()?.with_file_name(name);
     if !path.is_file() {
-        bail!(
-            "{} is missing; build it with `cargo build --workspace --bins`",
-            path.display()
-        );
+        bail!("{} is missing; build it with `cargo build --workspace --bins`", path.display());
     }
     Ok(path)
 }
@@ -578,17 +430,12 @@ mod tests {
     }
 
     fn strings(args: &[OsString]) -> Vec<String> {
-        args.iter()
-            .map(|a| a.to_string_lossy().into_owned())
-            .collect()
+        args.iter().map(|a| a.to_string_lossy().into_owned()).collect()
     }
 
     /// The value after `flag` in `args`.
     fn value<'a>(args: &'a [String], flag: &str) -> Option<&'a str> {
-        args.iter()
-            .position(|a| a == flag)
-            .and_then(|k| args.get(k + 1))
-            .map(String::as_str)
+        args.iter().position(|a| a == flag).and_then(|k| args.get(k + 1)).map(String::as_str)
     }
 
     /// Every process of a run is told the preset's settings: the graph
@@ -600,26 +447,10 @@ mod tests {
         let p = preset("replay_ratio = \"unlimited\"\ngraph_threshold = 0.25\n");
         let graph = strings(&p.graph_builder_args("127.0.0.1:0", Path::new("/runs/x")));
         assert_eq!(value(&graph, "--env"), Some("lti-paper"));
-        assert_eq!(
-            (
-                value(&graph, "--samples"),
-                value(&graph, "--seed"),
-                value(&graph, "--threshold")
-            ),
-            (Some("32"), Some("5"), Some("0.25"))
-        );
+        assert_eq!((value(&graph, "--samples"), value(&graph, "--seed"), value(&graph, "--threshold")), (Some("32"), Some("5"), Some("0.25")));
         assert_eq!(value(&graph, "--out"), Some("/runs/x/graph.json"));
 
-        let learner = strings(
-            &p.learner_args(
-                "127.0.0.1:0",
-                "run-a",
-                Path::new("/t.toml"),
-                Path::new("/runs/x/learner"),
-                Some("http://g:1"),
-            )
-            .unwrap(),
-        );
+        let learner = strings(&p.learner_args("127.0.0.1:0", "run-a", Path::new("/t.toml"), Path::new("/runs/x/learner"), Some("http://g:1")).unwrap());
         for (flag, expected) in [
             ("--env", "lti-paper"),
             ("--algo", "ddpg"),
@@ -631,44 +462,18 @@ mod tests {
             ("--run-dir", "/runs/x/learner"),
             ("--graph-builder", "http://g:1"),
         ] {
-            assert_eq!(
-                value(&learner, flag),
-                Some(expected),
-                "{flag} in {learner:?}"
-            );
+            assert_eq!(value(&learner, flag), Some(expected), "{flag} in {learner:?}");
         }
         // A locally connected learner cannot run without its graph.
-        assert!(p
-            .learner_args("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), None)
-            .is_err());
-        let from_file = strings(&p.learner_args_with_graph_file(
-            "127.0.0.1:0",
-            "r",
-            Path::new("/t"),
-            Path::new("/l"),
-            Path::new("/g.json"),
-        ));
+        assert!(p.learner_args("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), None).is_err());
+        let from_file = strings(&p.learner_args_with_graph_file("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), Path::new("/g.json")));
         assert_eq!(value(&from_file, "--graph"), Some("/g.json"));
 
         let first = strings(&p.actor_args("http://l:2", "run-a", "shm", None, 0));
         let third = strings(&p.actor_args("http://l:2", "run-a", "shm", Some("actor-2"), 2));
-        assert_eq!(
-            (
-                value(&first, "--learner"),
-                value(&first, "--transport"),
-                value(&first, "--envs")
-            ),
-            (Some("http://l:2"), Some("shm"), Some("2"))
-        );
-        assert_eq!(
-            (value(&first, "--seed"), value(&third, "--seed")),
-            (Some("5"), Some("7")),
-            "actors explore with distinct seeds"
-        );
-        assert_eq!(
-            (value(&first, "--actor-id"), value(&third, "--actor-id")),
-            (None, Some("actor-2"))
-        );
+        assert_eq!((value(&first, "--learner"), value(&first, "--transport"), value(&first, "--envs")), (Some("http://l:2"), Some("shm"), Some("2")));
+        assert_eq!((value(&first, "--seed"), value(&third, "--seed")), (Some("5"), Some("7")), "actors explore with distinct seeds");
+        assert_eq!((value(&first, "--actor-id"), value(&third, "--actor-id")), (None, Some("actor-2")));
     }
 
     /// Without a replay ratio or threshold the processes get none (their own
@@ -679,30 +484,12 @@ mod tests {
         let p = preset("");
         let graph = strings(&p.graph_builder_args("127.0.0.1:0", Path::new("/r")));
         assert_eq!(value(&graph, "--threshold"), None);
-        let learner = strings(
-            &p.learner_args(
-                "127.0.0.1:0",
-                "r",
-                Path::new("/t"),
-                Path::new("/l"),
-                Some("http://g:1"),
-            )
-            .unwrap(),
-        );
+        let learner = strings(&p.learner_args("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), Some("http://g:1")).unwrap());
         assert_eq!(value(&learner, "--replay-ratio"), None);
         let mut global = p.clone();
         global.job.connection = Connection::Global;
-        let learner = strings(
-            &global
-                .learner_args("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), None)
-                .unwrap(),
-        );
-        assert!(
-            !learner
-                .iter()
-                .any(|a| a == "--graph-builder" || a == "--graph"),
-            "{learner:?}"
-        );
+        let learner = strings(&global.learner_args("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), None).unwrap());
+        assert!(!learner.iter().any(|a| a == "--graph-builder" || a == "--graph"), "{learner:?}");
     }
 
     /// `--threads 0` (automatic) leaves a run's learner the cores its
@@ -711,25 +498,10 @@ mod tests {
     #[test]
     fn learner_compute_overrides_are_checked_and_threads_pinned() {
         let mut p = preset("");
-        p.set_compute(&LearnerCompute {
-            device: Some("cpu".into()),
-            threads: Some(0),
-        })
-        .unwrap();
+        p.set_compute(&LearnerCompute { device: Some("cpu".into()), threads: Some(0) }).unwrap();
         p.pin_learner_threads();
-        assert_eq!(
-            p.train.run.threads,
-            lcrl_learner::device::available_cores()
-                .saturating_sub(3)
-                .max(1)
-        );
-        let err = p
-            .set_compute(&LearnerCompute {
-                device: None,
-                threads: Some(1 << 20),
-            })
-            .unwrap_err()
-            .to_string();
+        assert_eq!(p.train.run.threads, lcrl_learner::device::available_cores().saturating_sub(3).max(1));
+        let err = p.set_compute(&LearnerCompute { device: None, threads: Some(1 << 20) }).unwrap_err().to_string();
         assert!(err.contains("run.threads"), "{err}");
     }
 }

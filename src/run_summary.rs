@@ -76,135 +76,66 @@ impl Reference {
     }
 }
 
-/// The reference controllers of `env` evaluated on `episodes` starts from
-/// `first`: a = 0, the recorded best constant (docs/peg.md, "The bar") and
-/// the headroom policy, when there are.
-fn references(
-    env: &mut dyn lcrl_sim::Env,
-    headroom: Option<&StoredPolicy>,
-    episodes: usize,
-    first: u64,
-) -> anyhow::Result<Vec<Reference>> {
-    let n = env.spec().action_dim();
-    let mut out = vec![Reference::of(
-        &evaluate(
-            env,
-            ZERO_ACTION,
-            episodes,
-            first,
-            &mut |_| vec![0.0; n],
-            &mut |_| {},
-        )?
-        .0,
-    )];
-    if let Some(best) = lcrl_sim::peg::measured_best_constant(&env.spec().name) {
-        out.push(Reference::of(
-            &evaluate(
-                env,
-                BEST_CONSTANT,
-                episodes,
-                first,
-                &mut |_| best.to_vec(),
-                &mut |_| {},
-            )?
-            .0,
-        ));
-    }
-    if let Some(stored) = headroom {
-        let probe = env.fresh();
-        let label = format!("headroom: {} feedback", stored.policy.family.name());
-        out.push(Reference::of(
-            &evaluate(
-                env,
-                &label,
-                episodes,
-                first,
-                &mut |s| stored.policy.act(probe.as_ref(), s),
-                &mut |_| {},
-            )?
-            .0,
-        ));
-    }
-    Ok(out)
-}
-
 /// The labels of the references every run has, as `references` names them.
 pub const ZERO_ACTION: &str = "a = 0";
 pub const BEST_CONSTANT: &str = "best constant";
 
+/// The reference controllers of `env` evaluated on `episodes` starts from
+/// `first`: a = 0, the recorded best constant (docs/peg.md, "The bar") and
+/// the headroom policy, when there are.
+fn references(env: &mut dyn lcrl_sim::Env, headroom: Option<&StoredPolicy>, episodes: usize, first: u64) -> anyhow::Result<Vec<Reference>> {
+    let n = env.spec().action_dim();
+    let mut out = vec![Reference::of(&evaluate(env, ZERO_ACTION, episodes, first, &mut |_| vec![0.0; n], &mut |_| {})?.0)];
+    if let Some(best) = lcrl_sim::peg::measured_best_constant(&env.spec().name) {
+        out.push(Reference::of(&evaluate(env, BEST_CONSTANT, episodes, first, &mut |_| best.to_vec(), &mut |_| {})?.0));
+    }
+    if let Some(stored) = headroom {
+        let probe = env.fresh();
+        let label = format!("headroom: {} feedback", stored.policy.family.name());
+        out.push(Reference::of(&evaluate(env, &label, episodes, first, &mut |s| stored.policy.act(probe.as_ref(), s), &mut |_| {})?.0));
+    }
+    Ok(out)
+}
+
 /// Evaluates the newest checkpoint of the run's learner and writes
 /// summary.json into `run_dir`.
-pub fn evaluate_run(
-    preset: &Preset,
-    run_dir: &Path,
-    status: &LearnerStatus,
-    wall_seconds: f64,
-    actors: usize,
-    transport: &str,
-) -> anyhow::Result<RunSummary> {
+pub fn evaluate_run(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wall_seconds: f64, actors: usize, transport: &str) -> anyhow::Result<RunSummary> {
     let job = &preset.job;
     let learner_dir = run_dir.join("learner");
-    let policy = Policy::load(&learner_dir)
-        .with_context(|| format!("loading the final policy from {}", learner_dir.display()))?;
+    let policy = Policy::load(&learner_dir).with_context(|| format!("loading the final policy from {}", learner_dir.display()))?;
     let mut env = lcrl_sim::make_env(&job.env)?;
     policy.check_env(env.as_ref())?;
     let seed = preset.train.run.seed;
     let episodes = preset.train.run.eval_episodes.max(1);
     let scales = env.fresh();
     let first = eval_seed(seed, 0);
-    let (eval, _) = evaluate(
-        env.as_mut(),
-        "policy",
-        episodes,
-        first,
-        &mut |s: &[f64]| policy.act(scales.as_ref(), s),
-        &mut |_| {},
-    )?;
+    let (eval, _) = evaluate(env.as_mut(), "policy", episodes, first, &mut |s: &[f64]| policy.act(scales.as_ref(), s), &mut |_| {})?;
     let headroom = preset.headroom()?;
     let references = references(env.as_mut(), headroom.as_ref(), episodes, first)?;
-    let lqr = env
-        .as_lti()
-        .and_then(|lti| lcrl_learner::lqr::lqr_return(lti, episodes, first));
-    let masked = env.as_lti().and_then(|lti| {
-        lcrl_learner::lqr::masked_lqr_return(lti, &policy.architecture.shape.mask, episodes, first)
-    });
-    let learner: Option<LearnerSummary> = std::fs::read_to_string(learner_dir.join("summary.json"))
-        .ok()
-        .and_then(|t| serde_json::from_str(&t).ok());
+    let lqr = env.as_lti().and_then(|lti| lcrl_learner::lqr::lqr_return(lti, episodes, first));
+    let masked = env.as_lti().and_then(|lti| lcrl_learner::lqr::masked_lqr_return(lti, &policy.architecture.shape.mask, episodes, first));
+    let learner: Option<LearnerSummary> = std::fs::read_to_string(learner_dir.join("summary.json")).ok().and_then(|t| serde_json::from_str(&t).ok());
     let graph_seconds = std::fs::read_to_string(run_dir.join("graph.json"))
         .ok()
         .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
         .and_then(|v| v["elapsed_s"].as_f64())
         .unwrap_or(0.0);
-    let ratio = if status.inserted > 0 {
-        status.sampled as f64 / status.inserted as f64
-    } else {
-        0.0
-    };
+    let ratio = if status.inserted > 0 { status.sampled as f64 / status.inserted as f64 } else { 0.0 };
     let summary = RunSummary {
         env: job.env.clone(),
         algo: job.algo,
         connection: job.connection,
         seed,
         episodes: status.episodes,
-        final_return: learner
-            .as_ref()
-            .map_or(status.recent_return, |l| l.final_return),
+        final_return: learner.as_ref().map_or(status.recent_return, |l| l.final_return),
         eval_return: eval.mean_return,
         eval_episodes: episodes,
         eval_success_rate: eval.success_rate,
         eval_peak_force_n: eval.mean_peak_force_n,
         eval_terms: eval.terms,
         lqr_return: lqr,
-        masked_lqr_return: if job.connection == Connection::Local {
-            masked
-        } else {
-            None
-        },
-        zero_action_return: references
-            .iter()
-            .find(|r| r.controller == ZERO_ACTION)
-            .map(|r| r.mean_return),
+        masked_lqr_return: if job.connection == Connection::Local { masked } else { None },
+        zero_action_return: references.iter().find(|r| r.controller == ZERO_ACTION).map(|r| r.mean_return),
         references,
         graph_seconds,
         total_seconds: wall_seconds,
@@ -212,18 +143,13 @@ pub fn evaluate_run(
         updates: status.updates,
         replay_ratio: ratio,
         replay_ratio_target: status.replay_ratio_target,
-        policy_lag: PolicyLag {
-            min: status.policy_lag_min,
-            mean: status.policy_lag_mean,
-            max: status.policy_lag_max,
-        },
+        policy_lag: PolicyLag { min: status.policy_lag_min, mean: status.policy_lag_mean, max: status.policy_lag_max },
         actors_waited_s: status.actors_waited_s,
         learner_waited_s: status.learner_waited_s,
         actors,
         transport: transport.to_string(),
     };
     let path = run_dir.join("summary.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&summary)? + "\n")
-        .with_context(|| format!("writing {}", path.display()))?;
+    std::fs::write(&path, serde_json::to_string_pretty(&summary)? + "\n").with_context(|| format!("writing {}", path.display()))?;
     Ok(summary)
 }

@@ -16,19 +16,9 @@ use tonic_health::pb::{health_client::HealthClient, HealthCheckRequest};
 
 /// Whether `service` at `url` reports SERVING (health checks need no
 /// token; TLS where `security` says).
-pub async fn is_serving(
-    url: &str,
-    service: &str,
-    security: &ClientSecurity,
-) -> anyhow::Result<bool> {
+pub async fn is_serving(url: &str, service: &str, security: &ClientSecurity) -> anyhow::Result<bool> {
     let channel = security.connect(url).await?;
-    let status = HealthClient::new(channel)
-        .check(HealthCheckRequest {
-            service: service.into(),
-        })
-        .await?
-        .into_inner()
-        .status;
+    let status = HealthClient::new(channel).check(HealthCheckRequest { service: service.into() }).await?.into_inner().status;
     Ok(status == ServingStatus::Serving as i32)
 }
 
@@ -43,35 +33,16 @@ impl Managed {
     /// Starts `command` with stderr to logs/NAME.log. A server prints
     /// "listening on ADDR" as its first line; with `server` that address is
     /// read and returned.
-    pub fn spawn(
-        name: &str,
-        mut command: Command,
-        logs: &Path,
-        server: bool,
-    ) -> anyhow::Result<(Managed, Option<String>)> {
+    pub fn spawn(name: &str, mut command: Command, logs: &Path, server: bool) -> anyhow::Result<(Managed, Option<String>)> {
         let log = fs::File::create(logs.join(format!("{name}.log")))?;
-        let stdout = if server {
-            Stdio::piped()
-        } else {
-            Stdio::null()
-        };
-        let child = command
-            .stdout(stdout)
-            .stderr(log)
-            .spawn()
-            .with_context(|| format!("starting {name}"))?;
-        let mut managed = Managed {
-            name: name.to_string(),
-            child,
-        };
+        let stdout = if server { Stdio::piped() } else { Stdio::null() };
+        let child = command.stdout(stdout).stderr(log).spawn().with_context(|| format!("starting {name}"))?;
+        let mut managed = Managed { name: name.to_string(), child };
         let mut address = None;
         if let Some(stdout) = managed.child.stdout.take() {
             let mut line = String::new();
             if BufReader::new(stdout).read_line(&mut line).is_ok() {
-                address = line
-                    .trim()
-                    .strip_prefix("listening on ")
-                    .map(|a| a.trim().to_string());
+                address = line.trim().strip_prefix("listening on ").map(|a| a.trim().to_string());
             }
         }
         Ok((managed, address))
@@ -85,9 +56,7 @@ impl Managed {
         if matches!(self.child.try_wait(), Ok(Some(_))) {
             return;
         }
-        let _ = Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
-            .status();
+        let _ = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status();
         let deadline = Instant::now() + grace;
         while Instant::now() < deadline {
             if matches!(self.child.try_wait(), Ok(Some(_))) {
@@ -95,11 +64,7 @@ impl Managed {
             }
             std::thread::sleep(Duration::from_millis(50));
         }
-        tracing::warn!(
-            "{} did not stop within {} s; killing it",
-            self.name,
-            grace.as_secs()
-        );
+        tracing::warn!("{} did not stop within {} s; killing it", self.name, grace.as_secs());
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
@@ -136,23 +101,14 @@ pub fn die_with_parent(command: &mut Command) {
 #[cfg(not(target_os = "linux"))]
 pub fn die_with_parent(_command: &mut Command) {}
 
-pub async fn wait_healthy(
-    url: &str,
-    service: &str,
-    what: &str,
-    timeout: Duration,
-    security: &ClientSecurity,
-) -> anyhow::Result<()> {
+pub async fn wait_healthy(url: &str, service: &str, what: &str, timeout: Duration, security: &ClientSecurity) -> anyhow::Result<()> {
     let deadline = Instant::now() + timeout;
     loop {
         if let Ok(true) = is_serving(url, service, security).await {
             return Ok(());
         }
         if Instant::now() > deadline {
-            bail!(
-                "{what} did not become healthy within {} s; see its log",
-                timeout.as_secs()
-            );
+            bail!("{what} did not become healthy within {} s; see its log", timeout.as_secs());
         }
         tokio::time::sleep(Duration::from_millis(200)).await;
     }

@@ -3,18 +3,18 @@
 
 mod e2e {
     pub mod common;
-    mod deploy;
-    mod distributed;
-    mod distributed_learning;
     mod doctor;
-    mod experiment_cli;
     mod graph_cli;
     mod graph_service;
-    mod hostile;
-    mod observability;
-    mod run_cli;
-    mod security;
-    mod served_env;
     mod sim_cli;
     mod train_cli;
+    mod distributed;
+    mod distributed_learning;
+    mod observability;
+    mod deploy;
+    mod run_cli;
+    mod experiment_cli;
+    mod security;
+    mod hostile;
+    mod served_env;
 }

@@ -9,14 +9,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+
 use anyhow::{bail, Context};
 use clap::Parser;
-use lcrl_actor::metrics::ActorMetrics;
-use lcrl_actor::transport::{
-    connect, open_feed, refused, send_batches, watch_policy, PolicySource, Sink,
-};
-use lcrl_actor::worker::{Rollout, RolloutSettings};
 use lcrl_proto::process::shutdown_signal;
+use lcrl_actor::metrics::ActorMetrics;
+use lcrl_actor::transport::{connect, open_feed, refused, send_batches, watch_policy, PolicySource, Sink};
+use lcrl_actor::worker::{RolloutSettings, Rollout};
 use lcrl_proto::security::{ClientSecurity, ClientSecurityArgs};
 use lcrl_proto::v1::{GetPolicyRequest, TransitionBatch};
 use tokio::sync::{mpsc, watch};
@@ -31,10 +30,7 @@ enum Transport {
 }
 
 #[derive(Debug, Parser)]
-#[command(
-    version,
-    about = "An LCRL actor: simulators streaming transitions to the learner"
-)]
+#[command(version, about = "An LCRL actor: simulators streaming transitions to the learner")]
 struct Args {
     /// The learner's gRPC URL.
     #[arg(long, default_value = "http://127.0.0.1:50052")]
@@ -88,32 +84,19 @@ async fn run(args: Args) -> anyhow::Result<()> {
     if args.envs == 0 || args.batch == 0 {
         bail!("--envs and --batch must be at least 1");
     }
-    if matches!(args.transport, Transport::Shm)
-        && args.batch > lcrl_learner::service::shm::MAX_TRANSITIONS
-    {
-        bail!(
-            "--transport shm carries at most {} transitions per batch; lower --batch",
-            lcrl_learner::service::shm::MAX_TRANSITIONS
-        );
+    if matches!(args.transport, Transport::Shm) && args.batch > lcrl_learner::service::shm::MAX_TRANSITIONS {
+        bail!("--transport shm carries at most {} transitions per batch; lower --batch", lcrl_learner::service::shm::MAX_TRANSITIONS);
     }
     let deadline = Duration::from_secs(args.connect_deadline);
     let security = ClientSecurity::from_args(&args.security)?;
     let metrics = ActorMetrics::default();
     if let Some(addr) = args.metrics_listen {
         let registry = Arc::new(metrics.registry());
-        let (listener, bound) = lcrl_learner::service::metrics::bind(addr)
-            .await
-            .with_context(|| {
-                format!("cannot serve metrics on {addr}; is another process using it?")
-            })?;
+        let (listener, bound) = lcrl_learner::service::metrics::bind(addr).await.with_context(|| format!("cannot serve metrics on {addr}; is another process using it?"))?;
         // Not println!: a launcher may have stopped reading stdout.
-        let _ =
-            std::io::Write::write_fmt(&mut std::io::stdout(), format_args!("metrics on {bound}\n"));
+        let _ = std::io::Write::write_fmt(&mut std::io::stdout(), format_args!("metrics on {bound}\n"));
         tokio::spawn(async move {
-            if let Err(e) =
-                lcrl_learner::service::metrics::serve(listener, registry, std::future::pending())
-                    .await
-            {
+            if let Err(e) = lcrl_learner::service::metrics::serve(listener, registry, std::future::pending()).await {
                 tracing::warn!("metrics endpoint stopped: {e}");
             }
         });
@@ -123,65 +106,33 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let (client, policy_source) = match args.transport {
         Transport::Grpc => {
             let mut client = connect(&args.learner, &security, deadline).await?;
-            let first = client
-                .get_policy(GetPolicyRequest {})
-                .await
-                .map_err(refused)
-                .context("asking the learner for its policy")?
-                .into_inner();
+            let first = client.get_policy(GetPolicyRequest {}).await.map_err(refused).context("asking the learner for its policy")?.into_inner();
             tracing::info!(version = first.version, learner = %args.learner, "connected");
             let (policy_tx, policy_rx) = watch::channel(Arc::new(first));
-            tokio::spawn(watch_policy(
-                args.learner.clone(),
-                security.clone(),
-                policy_tx,
-            ));
+            tokio::spawn(watch_policy(args.learner.clone(), security.clone(), policy_tx));
             (Some(client), PolicySource::Grpc(policy_rx))
         }
         Transport::Shm => (None, PolicySource::Shm(args.run_id.clone(), deadline)),
     };
     let stop = Arc::new(AtomicBool::new(false));
     let finished = Arc::new(AtomicBool::new(false));
-    let actor_id = args
-        .actor_id
-        .clone()
-        .unwrap_or_else(|| format!("{}-{}", hostname(), std::process::id()));
+    let actor_id = args.actor_id.clone().unwrap_or_else(|| format!("{}-{}", hostname(), std::process::id()));
     let (sink, sender) = match client {
         Some(client) => {
             let (batches_tx, batches_rx) = mpsc::channel::<TransitionBatch>(2);
-            (
-                Sink::Grpc(batches_tx),
-                Some(tokio::spawn(send_batches(
-                    args.learner.clone(),
-                    security.clone(),
-                    client,
-                    batches_rx,
-                    deadline,
-                    metrics.clone(),
-                ))),
-            )
+            (Sink::Grpc(batches_tx), Some(tokio::spawn(send_batches(args.learner.clone(), security.clone(), client, batches_rx, deadline, metrics.clone()))))
         }
         None => (Sink::Shm(args.run_id.clone()), None),
     };
     let worker = {
         let (stop, finished) = (stop.clone(), finished.clone());
-        let settings = RolloutSettings {
-            envs: args.envs,
-            batch: args.batch,
-            noise: args.noise,
-            seed: args.seed,
-            episodes: args.episodes,
-            run_id: args.run_id.clone(),
-            actor_id,
-        };
+        let settings = RolloutSettings { envs: args.envs, batch: args.batch, noise: args.noise, seed: args.seed, episodes: args.episodes, run_id: args.run_id.clone(), actor_id };
         let metrics = metrics.clone();
-        std::thread::Builder::new()
-            .name("envs".into())
-            .spawn(move || {
-                let result = work(settings, policy_source, sink, stop, metrics);
-                finished.store(true, Ordering::Relaxed);
-                result
-            })?
+        std::thread::Builder::new().name("envs".into()).spawn(move || {
+            let result = work(settings, policy_source, sink, stop, metrics);
+            finished.store(true, Ordering::Relaxed);
+            result
+        })?
     };
     match sender {
         Some(sender) => tokio::select! {
@@ -206,27 +157,17 @@ async fn run(args: Args) -> anyhow::Result<()> {
         tracing::warn!("the environment thread is blocked sending to a learner that holds actors back; exiting without it");
         return Ok(());
     }
-    worker
-        .join()
-        .map_err(|_| anyhow::anyhow!("the environment thread panicked"))??;
+    worker.join().map_err(|_| anyhow::anyhow!("the environment thread panicked"))??;
     Ok(())
 }
 
 fn hostname() -> String {
-    std::fs::read_to_string("/etc/hostname")
-        .map(|h| h.trim().to_string())
-        .unwrap_or_else(|_| "actor".into())
+    std::fs::read_to_string("/etc/hostname").map(|h| h.trim().to_string()).unwrap_or_else(|_| "actor".into())
 }
 
 /// The environment loop (blocking thread): the newest policy, one step of
 /// every environment, a batch out when one is full.
-fn work(
-    settings: RolloutSettings,
-    source: PolicySource,
-    sink: Sink,
-    stop: Arc<AtomicBool>,
-    metrics: ActorMetrics,
-) -> anyhow::Result<()> {
+fn work(settings: RolloutSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBool>, metrics: ActorMetrics) -> anyhow::Result<()> {
     tch::set_num_threads(1);
     let out = sink.open()?;
     let (mut feed, mut policy, explore) = open_feed(source, &stop)?;

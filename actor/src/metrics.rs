@@ -21,37 +21,13 @@ pub struct ActorMetrics {
 impl ActorMetrics {
     pub fn registry(&self) -> Registry {
         let mut registry = Registry::with_prefix("lcrl_actor");
-        registry.register(
-            "env_steps",
-            "Environment steps taken",
-            self.env_steps.clone(),
-        );
+        registry.register("env_steps", "Environment steps taken", self.env_steps.clone());
         registry.register("episodes", "Episodes finished", self.episodes.clone());
-        registry.register(
-            "batches_sent",
-            "Transition batches handed to the transport",
-            self.batches_sent.clone(),
-        );
-        registry.register(
-            "transitions_sent",
-            "Transitions handed to the transport",
-            self.transitions_sent.clone(),
-        );
-        registry.register(
-            "reconnects",
-            "Reconnections to the learner after losing it",
-            self.reconnects.clone(),
-        );
-        registry.register(
-            "policy_version",
-            "Version of the policy acting now",
-            self.policy_version.clone(),
-        );
-        registry.register(
-            "pending_batches",
-            "Batches sent but not yet acknowledged by the learner (gRPC)",
-            self.pending_batches.clone(),
-        );
+        registry.register("batches_sent", "Transition batches handed to the transport", self.batches_sent.clone());
+        registry.register("transitions_sent", "Transitions handed to the transport", self.transitions_sent.clone());
+        registry.register("reconnects", "Reconnections to the learner after losing it", self.reconnects.clone());
+        registry.register("policy_version", "Version of the policy acting now", self.policy_version.clone());
+        registry.register("pending_batches", "Batches sent but not yet acknowledged by the learner (gRPC)", self.pending_batches.clone());
         registry
     }
 }

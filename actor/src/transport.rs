@@ -23,53 +23,27 @@ use crate::worker::Exploration;
 pub const MAX_PENDING_BATCHES: usize = 8;
 
 /// Connects, retrying with backoff until `deadline`.
-pub async fn connect(
-    url: &str,
-    security: &ClientSecurity,
-    deadline: Duration,
-) -> anyhow::Result<LearnerClient<AuthChannel>> {
+pub async fn connect(url: &str, security: &ClientSecurity, deadline: Duration) -> anyhow::Result<LearnerClient<AuthChannel>> {
     let give_up = Instant::now() + deadline;
     let mut delay = Duration::from_millis(100);
     loop {
         match security.connect(url).await {
-            Ok(channel) => {
-                return Ok(LearnerClient::new(channel)
-                    .max_decoding_message_size(16 << 20)
-                    .max_encoding_message_size(16 << 20))
-            }
+            Ok(channel) => return Ok(LearnerClient::new(channel).max_decoding_message_size(16 << 20).max_encoding_message_size(16 << 20)),
             Err(e) if Instant::now() < give_up => {
-                tracing::warn!(
-                    "learner at {url} unreachable ({e}); retrying in {:.1} s",
-                    delay.as_secs_f64()
-                );
+                tracing::warn!("learner at {url} unreachable ({e}); retrying in {:.1} s", delay.as_secs_f64());
                 tokio::time::sleep(delay).await;
                 delay = (delay * 2).min(Duration::from_secs(5));
             }
-            Err(e) => bail!(
-                "the learner at {url} stayed unreachable for {} s ({e}); is lcrl-learner running?",
-                deadline.as_secs()
-            ),
+            Err(e) => bail!("the learner at {url} stayed unreachable for {} s ({e}); is lcrl-learner running?", deadline.as_secs()),
         }
     }
 }
 
 /// Keeps `policy` at the learner's newest version, reconnecting forever.
-pub async fn watch_policy(
-    url: String,
-    security: ClientSecurity,
-    policy: watch::Sender<Arc<PolicySnapshot>>,
-) {
+pub async fn watch_policy(url: String, security: ClientSecurity, policy: watch::Sender<Arc<PolicySnapshot>>) {
     loop {
         let after = policy.borrow().version;
-        let stream = async {
-            LearnerClient::new(security.connect(&url).await?)
-                .max_decoding_message_size(16 << 20)
-                .watch_policy(WatchPolicyRequest {
-                    after_version: after,
-                })
-                .await
-                .map_err(anyhow::Error::from)
-        };
+        let stream = async { LearnerClient::new(security.connect(&url).await?).max_decoding_message_size(16 << 20).watch_policy(WatchPolicyRequest { after_version: after }).await.map_err(anyhow::Error::from) };
         match stream.await {
             Ok(response) => {
                 let mut updates = response.into_inner();
@@ -89,14 +63,7 @@ pub async fn watch_policy(
 /// reconnect (the learner drops duplicates). Returns when the worker is done
 /// and every batch is acknowledged, or fails after `deadline` without a
 /// learner.
-pub async fn send_batches(
-    url: String,
-    security: ClientSecurity,
-    mut client: LearnerClient<AuthChannel>,
-    mut batches: mpsc::Receiver<TransitionBatch>,
-    deadline: Duration,
-    metrics: ActorMetrics,
-) -> anyhow::Result<()> {
+pub async fn send_batches(url: String, security: ClientSecurity, mut client: LearnerClient<AuthChannel>, mut batches: mpsc::Receiver<TransitionBatch>, deadline: Duration, metrics: ActorMetrics) -> anyhow::Result<()> {
     let mut pending: VecDeque<TransitionBatch> = VecDeque::new();
     let mut worker_done = false;
     loop {
@@ -104,14 +71,9 @@ pub async fn send_batches(
         for batch in &pending {
             let _ = requests.try_send(batch.clone());
         }
-        let acks = match client
-            .stream_transitions(ReceiverStream::new(request_rx))
-            .await
-        {
+        let acks = match client.stream_transitions(ReceiverStream::new(request_rx)).await {
             Ok(response) => Some(response.into_inner()),
-            Err(status) if status.code() == tonic::Code::Unauthenticated => {
-                return Err(refused(status))
-            }
+            Err(status) if status.code() == tonic::Code::Unauthenticated => return Err(refused(status)),
             Err(status) => {
                 tracing::warn!("cannot stream to the learner: {status}");
                 None
@@ -189,33 +151,21 @@ pub enum Feed {
 }
 
 /// Opens the source and returns it with the first policy.
-pub fn open_feed(
-    source: PolicySource,
-    stop: &AtomicBool,
-) -> anyhow::Result<(Feed, Policy, Exploration)> {
+pub fn open_feed(source: PolicySource, stop: &AtomicBool) -> anyhow::Result<(Feed, Policy, Exploration)> {
     match source {
         PolicySource::Grpc(mut rx) => {
             let snapshot = rx.borrow_and_update().clone();
-            let policy =
-                Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
+            let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
             Ok((Feed::Grpc(rx), policy, Exploration::of(&snapshot)))
         }
         PolicySource::Shm(run_id, deadline) => {
-            let subscriber = lcrl_learner::service::shm::PolicySubscriber::open(&run_id)
-                .map_err(anyhow::Error::msg)?;
+            let subscriber = lcrl_learner::service::shm::PolicySubscriber::open(&run_id).map_err(anyhow::Error::msg)?;
             let started = Instant::now();
             let mut last_log = Instant::now() - Duration::from_secs(10);
             loop {
                 if let Some(snapshot) = subscriber.newest().map_err(anyhow::Error::msg)? {
-                    tracing::info!(
-                        version = snapshot.version,
-                        "policy received over shared memory"
-                    );
-                    let policy = Policy::from_snapshot(
-                        &snapshot.architecture,
-                        &snapshot.weights,
-                        snapshot.version,
-                    )?;
+                    tracing::info!(version = snapshot.version, "policy received over shared memory");
+                    let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
                     return Ok((Feed::Shm(subscriber), policy, Exploration::of(&snapshot)));
                 }
                 if stop.load(Ordering::Relaxed) {
@@ -225,9 +175,7 @@ pub fn open_feed(
                     bail!("no policy of run '{run_id}' on shared memory within {} s; is lcrl-learner running on this host with --run-id {run_id}?", deadline.as_secs());
                 }
                 if last_log.elapsed() > Duration::from_secs(2) {
-                    tracing::warn!(
-                        "waiting for the policy of run '{run_id}' on shared memory; retrying"
-                    );
+                    tracing::warn!("waiting for the policy of run '{run_id}' on shared memory; retrying");
                     last_log = Instant::now();
                 }
                 std::thread::sleep(Duration::from_millis(50));
@@ -281,10 +229,7 @@ impl Sink {
     pub fn open(self) -> anyhow::Result<Out> {
         Ok(match self {
             Sink::Grpc(batches) => Out::Grpc(batches),
-            Sink::Shm(run_id) => Out::Shm(
-                lcrl_learner::service::shm::ShmPublisher::open(&run_id)
-                    .map_err(anyhow::Error::msg)?,
-            ),
+            Sink::Shm(run_id) => Out::Shm(lcrl_learner::service::shm::ShmPublisher::open(&run_id).map_err(anyhow::Error::msg)?),
         })
     }
 }
@@ -294,10 +239,7 @@ impl Out {
     /// memory). False: the gRPC sender is gone (the actor is stopping).
     pub fn send(&self, batch: TransitionBatch) -> anyhow::Result<bool> {
         match self {
-            Out::Shm(publisher) => publisher
-                .send(&batch)
-                .map_err(anyhow::Error::msg)
-                .map(|()| true),
+            Out::Shm(publisher) => publisher.send(&batch).map_err(anyhow::Error::msg).map(|()| true),
             Out::Grpc(batches) => Ok(batches.blocking_send(batch).is_ok()),
         }
     }

@@ -23,10 +23,7 @@ pub struct Exploration {
 
 impl Exploration {
     pub fn of(snapshot: &PolicySnapshot) -> Self {
-        Exploration {
-            uniform: snapshot.explore_uniform,
-            noise: snapshot.exploration_noise,
-        }
+        Exploration { uniform: snapshot.explore_uniform, noise: snapshot.exploration_noise }
     }
 }
 
@@ -50,22 +47,12 @@ pub struct RolloutSettings {
 /// the learner's schedule (DDPG; `noise` when the learner sets none), in
 /// normalized action units.
 fn exploration_normals(policy: &Policy, exploration: Exploration, noise: f64) -> Vec<Normal<f64>> {
-    let noise = if exploration.noise > 0.0 {
-        exploration.noise
-    } else {
-        noise
-    };
-    let std: Vec<f64> = policy.exploration_std().map_or_else(
-        || vec![noise; policy.architecture.shape.action_dim],
-        |v| v.iter().map(|&x| f64::from(x)).collect(),
-    );
+    let noise = if exploration.noise > 0.0 { exploration.noise } else { noise };
+    let std: Vec<f64> = policy.exploration_std().map_or_else(|| vec![noise; policy.architecture.shape.action_dim], |v| v.iter().map(|&x| f64::from(x)).collect());
     // A non-finite or non-positive std (a diverged policy, a bad flag) acts
     // greedily rather than failing; the argument below is then always valid.
     std.iter()
-        .map(|&sd| {
-            Normal::new(0.0, if sd.is_finite() && sd > 0.0 { sd } else { 1e-9 })
-                .expect("finite positive std")
-        })
+        .map(|&sd| Normal::new(0.0, if sd.is_finite() && sd > 0.0 { sd } else { 1e-9 }).expect("finite positive std"))
         .collect()
 }
 
@@ -96,18 +83,12 @@ pub struct Rollout {
 
 impl Rollout {
     /// K fresh environments of the policy's environment, reset.
-    pub fn new(
-        settings: RolloutSettings,
-        policy: &Policy,
-        explore: Exploration,
-    ) -> anyhow::Result<Self> {
+    pub fn new(settings: RolloutSettings, policy: &Policy, explore: Exploration) -> anyhow::Result<Self> {
         if settings.envs == 0 || settings.batch == 0 {
             anyhow::bail!("a rollout needs at least one environment and one transition per batch");
         }
         let name = &policy.architecture.shape.env;
-        let mut envs: Vec<Box<dyn lcrl_sim::Env>> = (0..settings.envs)
-            .map(|_| lcrl_sim::make_env(name))
-            .collect::<Result<_, _>>()?;
+        let mut envs: Vec<Box<dyn lcrl_sim::Env>> = (0..settings.envs).map(|_| lcrl_sim::make_env(name)).collect::<Result<_, _>>()?;
         policy.check_env(envs[0].as_ref())?;
         let action_map = policy.action_map(envs[0].as_ref())?;
         // Actors differ by name (container replicas all run as process 1),
@@ -144,9 +125,7 @@ impl Rollout {
             // what is not above it. Starting from the clock (µs) keeps a
             // restarted actor with the same id above everything its
             // previous life sent.
-            sequence: std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(0, |d| d.as_micros() as u64),
+            sequence: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64),
             episodes_done: 0,
             settings,
         })
@@ -160,9 +139,7 @@ impl Rollout {
 
     /// Whether the episode budget is used up.
     pub fn finished(&self) -> bool {
-        self.settings
-            .episodes
-            .is_some_and(|limit| self.episodes_done >= limit)
+        self.settings.episodes.is_some_and(|limit| self.episodes_done >= limit)
     }
 
     pub fn episodes_done(&self) -> u64 {
@@ -171,28 +148,17 @@ impl Rollout {
 
     /// Steps every environment once with `policy`; returns a batch when
     /// `batch` transitions are collected (or the budget ends).
-    pub fn step(
-        &mut self,
-        policy: &Policy,
-        metrics: &ActorMetrics,
-    ) -> anyhow::Result<Option<TransitionBatch>> {
+    pub fn step(&mut self, policy: &Policy, metrics: &ActorMetrics) -> anyhow::Result<Option<TransitionBatch>> {
         let mut actions = Vec::with_capacity(self.envs.len());
         for (k, env) in self.envs.iter().enumerate() {
             let obs = lcrl_learner::trainer::observe(env.as_ref(), &self.states[k]);
             let u: Vec<f32> = if self.explore.uniform && !self.own_distribution {
                 // The learner is filling its replay buffer: uniformly random
                 // actions, as `lcrl train` warms up.
-                (0..policy.architecture.shape.action_dim)
-                    .map(|_| rand::Rng::random_range(&mut self.rng, -1.0f32..=1.0))
-                    .collect()
+                (0..policy.architecture.shape.action_dim).map(|_| rand::Rng::random_range(&mut self.rng, -1.0f32..=1.0)).collect()
             } else {
                 let rng = &mut self.rng;
-                policy
-                    .act_normalized(&obs)
-                    .iter()
-                    .zip(&self.normals)
-                    .map(|(&a, noise)| (f64::from(a) + noise.sample(rng)).clamp(-1.0, 1.0) as f32)
-                    .collect()
+                policy.act_normalized(&obs).iter().zip(&self.normals).map(|(&a, noise)| (f64::from(a) + noise.sample(rng)).clamp(-1.0, 1.0) as f32).collect()
             };
             actions.push(self.action_map.to_env(&u));
         }
@@ -213,11 +179,7 @@ impl Rollout {
             });
             if step.terminated || step.truncated {
                 let success = self.envs[k].episode_metrics().success;
-                self.episodes_in_batch.push(EpisodeSummary {
-                    episode_return: self.returns[k],
-                    length: self.lengths[k],
-                    success,
-                });
+                self.episodes_in_batch.push(EpisodeSummary { episode_return: self.returns[k], length: self.lengths[k], success });
                 self.episodes_done += 1;
                 metrics.episodes.inc();
                 (self.returns[k], self.lengths[k]) = (0.0, 0);
@@ -231,11 +193,7 @@ impl Rollout {
         if collected < self.settings.batch && !(self.finished() && collected > 0) {
             return Ok(None);
         }
-        let mut batch = TransitionBatch {
-            run_id: self.settings.run_id.clone(),
-            actor_id: self.settings.actor_id.clone(),
-            ..Default::default()
-        };
+        let mut batch = TransitionBatch { run_id: self.settings.run_id.clone(), actor_id: self.settings.actor_id.clone(), ..Default::default() };
         for segment in self.segments.iter_mut() {
             // A batch boundary is not an episode end, but each
             // environment's stream is cut there for PPO's advantages.
@@ -250,9 +208,7 @@ impl Rollout {
         batch.episode_id = self.episodes_done;
         batch.policy_version = policy.version;
         metrics.batches_sent.inc();
-        metrics
-            .transitions_sent
-            .inc_by(batch.transitions.len() as u64);
+        metrics.transitions_sent.inc_by(batch.transitions.len() as u64);
         Ok(Some(batch))
     }
 }
@@ -266,62 +222,27 @@ mod tests {
     fn policy(algo: Algo) -> Policy {
         let cfg = TrainConfig::for_env("lti-paper").0;
         let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
-        let agent =
-            lcrl_learner::trainer::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
-        let shape = lcrl_learner::snapshot::ActorShape {
-            env: "lti-paper".into(),
-            algo,
-            connection: Connection::Local,
-            state_dim: 3,
-            action_dim: 3,
-            mask,
-        };
-        let architecture = lcrl_learner::snapshot::Architecture {
-            shape,
-            network: cfg.network.clone(),
-            base: None,
-        };
-        let snapshot =
-            lcrl_learner::service::runtime::snapshot(agent.as_ref(), &architecture, 7).unwrap();
+        let agent = lcrl_learner::trainer::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
+        let shape = lcrl_learner::snapshot::ActorShape { env: "lti-paper".into(), algo, connection: Connection::Local, state_dim: 3, action_dim: 3, mask };
+        let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: None };
+        let snapshot = lcrl_learner::service::runtime::snapshot(agent.as_ref(), &architecture, 7).unwrap();
         Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap()
     }
 
     fn settings(episodes: u64) -> RolloutSettings {
-        RolloutSettings {
-            envs: 3,
-            batch: 50,
-            noise: 0.1,
-            seed: 4,
-            episodes: Some(episodes),
-            run_id: "r".into(),
-            actor_id: "a".into(),
-        }
+        RolloutSettings { envs: 3, batch: 50, noise: 0.1, seed: 4, episodes: Some(episodes), run_id: "r".into(), actor_id: "a".into() }
     }
 
     fn run(algo: Algo, episodes: u64) -> Vec<TransitionBatch> {
         let policy = policy(algo);
-        let mut rollout = Rollout::new(
-            settings(episodes),
-            &policy,
-            Exploration {
-                uniform: false,
-                noise: 0.0,
-            },
-        )
-        .unwrap();
+        let mut rollout = Rollout::new(settings(episodes), &policy, Exploration { uniform: false, noise: 0.0 }).unwrap();
         let metrics = ActorMetrics::default();
         let mut batches = Vec::new();
         while !rollout.finished() {
             batches.extend(rollout.step(&policy, &metrics).unwrap());
         }
         assert_eq!(metrics.episodes.get(), rollout.episodes_done());
-        assert_eq!(
-            metrics.transitions_sent.get(),
-            batches
-                .iter()
-                .map(|b| b.transitions.len() as u64)
-                .sum::<u64>()
-        );
+        assert_eq!(metrics.transitions_sent.get(), batches.iter().map(|b| b.transitions.len() as u64).sum::<u64>());
         batches
     }
 
@@ -337,48 +258,25 @@ mod tests {
             assert!(episodes.len() >= 5, "{algo:?}: {} episodes", episodes.len());
             let steps: u64 = batches.iter().map(|b| b.transitions.len() as u64).sum();
             let finished: u64 = episodes.iter().map(|e| u64::from(e.length)).sum();
-            assert!(
-                steps >= finished,
-                "every finished episode's steps were sent"
-            );
+            assert!(steps >= finished, "every finished episode's steps were sent");
             for (k, batch) in batches.iter().enumerate() {
-                assert!(
-                    batch.transitions.len() >= 50 || k == batches.len() - 1,
-                    "only the last batch may be short"
-                );
-                assert!(batch
-                    .transitions
-                    .iter()
-                    .all(|t| t.policy_version == 7 && t.state.len() == 3 && t.action.len() == 3));
+                assert!(batch.transitions.len() >= 50 || k == batches.len() - 1, "only the last batch may be short");
+                assert!(batch.transitions.iter().all(|t| t.policy_version == 7 && t.state.len() == 3 && t.action.len() == 3));
                 // Contiguity: within a segment next_state is the next state.
                 for pair in batch.transitions.windows(2) {
                     if !(pair[0].terminated || pair[0].truncated) {
-                        assert_eq!(
-                            pair[0].next_state, pair[1].state,
-                            "{algo:?}: a segment was interleaved"
-                        );
+                        assert_eq!(pair[0].next_state, pair[1].state, "{algo:?}: a segment was interleaved");
                     }
                 }
                 let last = batch.transitions.last().unwrap();
-                assert!(
-                    last.terminated || last.truncated,
-                    "each batch ends a segment"
-                );
+                assert!(last.terminated || last.truncated, "each batch ends a segment");
                 if k > 0 {
                     assert_eq!(batch.sequence, batches[k - 1].sequence + 1);
                 }
             }
             let again = run(algo, 5);
-            let strip = |b: &[TransitionBatch]| {
-                b.iter()
-                    .map(|b| (b.transitions.clone(), b.episodes.clone()))
-                    .collect::<Vec<_>>()
-            };
-            assert_eq!(
-                strip(&batches),
-                strip(&again),
-                "{algo:?}: same seed, same batches"
-            );
+            let strip = |b: &[TransitionBatch]| b.iter().map(|b| (b.transitions.clone(), b.episodes.clone())).collect::<Vec<_>>();
+            assert_eq!(strip(&batches), strip(&again), "{algo:?}: same seed, same batches");
         }
     }
 
@@ -387,30 +285,15 @@ mod tests {
     #[test]
     fn uniform_warm_up_covers_the_box() {
         let policy = policy(Algo::Ddpg);
-        let mut rollout = Rollout::new(
-            settings(2),
-            &policy,
-            Exploration {
-                uniform: true,
-                noise: 0.0,
-            },
-        )
-        .unwrap();
+        let mut rollout = Rollout::new(settings(2), &policy, Exploration { uniform: true, noise: 0.0 }).unwrap();
         let metrics = ActorMetrics::default();
         let mut batches = Vec::new();
         while !rollout.finished() {
             batches.extend(rollout.step(&policy, &metrics).unwrap());
         }
-        let spread = batches
-            .iter()
-            .flat_map(|b| &b.transitions)
-            .flat_map(|t| t.action.clone())
-            .fold(0.0f32, |m, a| m.max(a.abs()));
+        let spread = batches.iter().flat_map(|b| &b.transitions).flat_map(|t| t.action.clone()).fold(0.0f32, |m, a| m.max(a.abs()));
         let env = lcrl_sim::make_env("lti-paper").unwrap();
         let high = env.spec().action_high[0] as f32;
-        assert!(
-            spread > 0.8 * high,
-            "uniform actions reach {spread} of a box up to {high}"
-        );
+        assert!(spread > 0.8 * high, "uniform actions reach {spread} of a box up to {high}");
     }
 }

@@ -6,9 +6,7 @@ use std::path::{Path, PathBuf};
 use indicatif::{ProgressBar, ProgressStyle};
 use tempfile::NamedTempFile;
 
-use crate::{
-    build_graph, plot, Cs3Config, GraphError, GraphOptions, GraphReport, Rule, EXACT_TOLERANCE,
-};
+use crate::{build_graph, plot, Cs3Config, GraphError, GraphOptions, GraphReport, Rule, EXACT_TOLERANCE};
 
 /// Build the LCRL connection graph G with CS3 (docs/method.md Algorithm 1).
 #[derive(Debug, Clone, clap::Args)]
@@ -28,13 +26,7 @@ pub struct GraphArgs {
     /// A threshold sweep: G at each T (eq. 7) with its edge count, the
     /// edges that flip between consecutive T, one heatmap panel per T; the
     /// first T is the graph's own (its `g` in the JSON).
-    #[arg(
-        long,
-        value_delimiter = ',',
-        conflicts_with = "exact",
-        allow_hyphen_values = true,
-        value_name = "T1,T2,…"
-    )]
+    #[arg(long, value_delimiter = ',', conflicts_with = "exact", allow_hyphen_values = true, value_name = "T1,T2,…")]
     pub thresholds: Option<Vec<f64>>,
     /// Where CS3's start states s_0 come from: `trajectory` (a state along
     /// an episode of the a = 0 controller, so often in contact; the default
@@ -68,20 +60,13 @@ pub struct GraphArgs {
 impl GraphArgs {
     pub fn options(&self) -> GraphOptions {
         let rule = if self.exact {
-            Rule::Exact {
-                tolerance: self.tolerance,
-            }
+            Rule::Exact { tolerance: self.tolerance }
         } else {
             let first = self.thresholds.as_ref().and_then(|t| t.first().copied());
             Rule::Threshold(self.threshold.or(first).unwrap_or(crate::PAPER_THRESHOLD))
         };
         GraphOptions {
-            cs3: Cs3Config {
-                samples: self.samples,
-                seed: self.seed,
-                threads: self.threads,
-                start: self.start,
-            },
+            cs3: Cs3Config { samples: self.samples, seed: self.seed, threads: self.threads, start: self.start },
             rule,
             bootstrap: self.bootstrap,
         }
@@ -99,22 +84,12 @@ impl GraphArgs {
             return Err(GraphError::Threshold(*bad));
         }
         let env = lcrl_sim::make_env(&self.env)?;
-        let json_out = self
-            .out
-            .as_deref()
-            .map(|p| PendingFile::new(p, ".json"))
-            .transpose()?;
-        let plot_out = self
-            .plot
-            .as_deref()
-            .map(|p| PendingFile::new(p, ".png"))
-            .transpose()?;
+        let json_out = self.out.as_deref().map(|p| PendingFile::new(p, ".json")).transpose()?;
+        let plot_out = self.plot.as_deref().map(|p| PendingFile::new(p, ".png")).transpose()?;
 
         let total = env.spec().action_dim() * self.samples;
         let bar = ProgressBar::new(total as u64).with_message("CS3 rollouts");
-        if let Ok(style) = ProgressStyle::with_template(
-            "{msg} [{bar:30}] {pos}/{len} samples, {elapsed} (eta {eta})",
-        ) {
+        if let Ok(style) = ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} samples, {elapsed} (eta {eta})") {
             bar.set_style(style.progress_chars("=> "));
         }
         let report = build_graph(env.as_ref(), &options, &|| bar.inc(1));
@@ -148,24 +123,17 @@ impl PendingFile {
             _ => Path::new("."),
         };
         if target.is_dir() {
-            return Err(GraphError::Output {
-                path: target.into(),
-                message: "is a directory; give a file name".into(),
-            });
+            return Err(GraphError::Output { path: target.into(), message: "is a directory; give a file name".into() });
         }
         let mut builder = tempfile::Builder::new();
         builder.prefix(".lcrl-").suffix(suffix);
         // tempfile's 0600 is for secrets; results are ordinary files (umask applies).
         #[cfg(unix)]
         builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o666));
-        let temp = builder.tempfile_in(dir).map_err(|e| GraphError::Output {
-            path: target.into(),
-            message: e.to_string(),
-        })?;
-        Ok(PendingFile {
-            target: target.into(),
-            temp,
-        })
+        let temp = builder
+            .tempfile_in(dir)
+            .map_err(|e| GraphError::Output { path: target.into(), message: e.to_string() })?;
+        Ok(PendingFile { target: target.into(), temp })
     }
 
     fn commit(self) -> Result<(), GraphError> {
@@ -173,9 +141,6 @@ impl PendingFile {
         self.temp
             .persist(&target)
             .map(|_| ())
-            .map_err(|e| GraphError::Output {
-                path: target,
-                message: e.error.to_string(),
-            })
+            .map_err(|e| GraphError::Output { path: target, message: e.error.to_string() })
     }
 }

@@ -17,9 +17,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
 /// Where the paired branches of a CS3 sample start (docs/method.md §2).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum Start {
     /// s_0 is an episode start: `reset(seed)`.
@@ -34,11 +32,7 @@ pub enum Start {
 impl Start {
     /// The start an environment gets when none is asked for.
     pub fn default_for(env: &dyn Env) -> Start {
-        if env.prefers_trajectory_starts() {
-            Start::Trajectory
-        } else {
-            Start::Reset
-        }
+        if env.prefers_trajectory_starts() { Start::Trajectory } else { Start::Reset }
     }
 
     pub fn name(&self) -> &'static str {
@@ -65,12 +59,7 @@ pub struct Cs3Config {
 
 impl Default for Cs3Config {
     fn default() -> Self {
-        Cs3Config {
-            samples: 256,
-            seed: 0,
-            threads: 0,
-            start: None,
-        }
+        Cs3Config { samples: 256, seed: 0, threads: 0, start: None }
     }
 }
 
@@ -110,9 +99,7 @@ impl Cs3Samples {
                         if self.samples < 2 {
                             return 0.0;
                         }
-                        let ss: f64 = (0..self.samples)
-                            .map(|k| (self.sample(i, k)[j] - phi[i][j]).powi(2))
-                            .sum();
+                        let ss: f64 = (0..self.samples).map(|k| (self.sample(i, k)[j] - phi[i][j]).powi(2)).sum();
                         (ss / (st - 1.0)).sqrt() / st.sqrt()
                     })
                     .collect()
@@ -141,11 +128,7 @@ impl Cs3Samples {
 /// Runs Algorithm 1's rollouts on snapshots of `env` (its own state is not
 /// touched), on the current rayon pool (see [`thread_pool`]). `on_sample` is
 /// called once per finished sample (progress).
-pub fn measure(
-    env: &dyn Env,
-    cfg: &Cs3Config,
-    on_sample: &(dyn Fn() + Sync),
-) -> Result<Cs3Samples, Cs3Error> {
+pub fn measure(env: &dyn Env, cfg: &Cs3Config, on_sample: &(dyn Fn() + Sync)) -> Result<Cs3Samples, Cs3Error> {
     if cfg.samples == 0 {
         return Err(Cs3Error::NoSamples);
     }
@@ -167,21 +150,11 @@ pub fn measure(
     for sums in per_sample {
         values.extend(sums?);
     }
-    Ok(Cs3Samples {
-        actions: n,
-        states: m,
-        samples: cfg.samples,
-        values,
-    })
+    Ok(Cs3Samples { actions: n, states: m, samples: cfg.samples, values })
 }
 
 /// One sample of eq. 5 for action i: two branches from one s_0, m steps.
-fn paired_rollout(
-    template: &dyn Env,
-    start: Start,
-    i: usize,
-    seed: u64,
-) -> Result<Vec<f64>, EnvError> {
+fn paired_rollout(template: &dyn Env, start: Start, i: usize, seed: u64) -> Result<Vec<f64>, EnvError> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let spec = template.spec();
     let (n, m) = (spec.action_dim(), spec.state_dim());
@@ -198,19 +171,14 @@ fn paired_rollout(
 
     // L ⊆ A \ A_i: each other action component is in L with probability ½.
     let in_subspace: Vec<bool> = (0..n).map(|k| k != i && rng.random_bool(0.5)).collect();
-    let draw =
-        |rng: &mut ChaCha8Rng, k: usize| rng.random_range(spec.action_low[k]..=spec.action_high[k]);
+    let draw = |rng: &mut ChaCha8Rng, k: usize| rng.random_range(spec.action_low[k]..=spec.action_high[k]);
 
     let mut sums = vec![0.0; m];
     let mut a1 = vec![0.0; n];
     for _t in 0..m {
         // a1_t ∈ L (components outside L stay at the neutral 0); a2_t ∈ A_i.
         for k in 0..n {
-            a1[k] = if in_subspace[k] {
-                draw(&mut rng, k)
-            } else {
-                0.0
-            };
+            a1[k] = if in_subspace[k] { draw(&mut rng, k) } else { 0.0 };
         }
         let mut a1_plus_a2 = a1.clone();
         a1_plus_a2[i] = draw(&mut rng, i);
@@ -235,11 +203,7 @@ fn paired_rollout(
 /// and a few snapshots suffice. The final, ended state is never kept: an
 /// ended episode cannot be stepped. The copy is an exact snapshot, so both
 /// branches continue from it bit-identically.
-pub fn draw_start(
-    template: &dyn Env,
-    start: Start,
-    rng: &mut ChaCha8Rng,
-) -> Result<Box<dyn Env>, EnvError> {
+pub fn draw_start(template: &dyn Env, start: Start, rng: &mut ChaCha8Rng) -> Result<Box<dyn Env>, EnvError> {
     let mut env = template.fresh();
     env.reset(rng.random())?;
     if start == Start::Reset {

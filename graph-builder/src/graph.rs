@@ -77,16 +77,9 @@ pub fn connection_graph(phi: &[Vec<f64>], rule: Rule) -> ConnectionGraph {
 pub fn margins(phi: &[Vec<f64>], threshold: f64) -> Vec<Vec<f64>> {
     let n = phi.len();
     let m = phi.first().map_or(0, Vec::len);
-    let cuts: Vec<f64> = (0..m)
-        .map(|j| threshold * phi.iter().map(|row| row[j]).sum::<f64>() / n as f64)
-        .collect();
+    let cuts: Vec<f64> = (0..m).map(|j| threshold * phi.iter().map(|row| row[j]).sum::<f64>() / n as f64).collect();
     phi.iter()
-        .map(|row| {
-            row.iter()
-                .zip(&cuts)
-                .map(|(v, cut)| if *cut > 0.0 { v / cut } else { 0.0 })
-                .collect()
-        })
+        .map(|row| row.iter().zip(&cuts).map(|(v, cut)| if *cut > 0.0 { v / cut } else { 0.0 }).collect())
         .collect()
 }
 
@@ -95,12 +88,7 @@ pub fn normalized(phi: &[Vec<f64>]) -> Vec<Vec<f64>> {
     let m = phi.first().map_or(0, Vec::len);
     let sums: Vec<f64> = (0..m).map(|j| phi.iter().map(|row| row[j]).sum()).collect();
     phi.iter()
-        .map(|row| {
-            row.iter()
-                .zip(&sums)
-                .map(|(v, s)| if *s > 0.0 { v / s } else { 0.0 })
-                .collect()
-        })
+        .map(|row| row.iter().zip(&sums).map(|(v, s)| if *s > 0.0 { v / s } else { 0.0 }).collect())
         .collect()
 }
 
@@ -108,13 +96,7 @@ pub fn normalized(phi: &[Vec<f64>]) -> Vec<Vec<f64>> {
 /// samples of every action drawn again with replacement) whose graph has
 /// the same G_ij as `reference`. 1.0 everywhere means a clear-cut graph;
 /// values near 0.5 mark borderline edges.
-pub fn stability(
-    samples: &Cs3Samples,
-    rule: Rule,
-    reference: &ConnectionGraph,
-    resamples: usize,
-    seed: u64,
-) -> Vec<Vec<f64>> {
+pub fn stability(samples: &Cs3Samples, rule: Rule, reference: &ConnectionGraph, resamples: usize, seed: u64) -> Vec<Vec<f64>> {
     let (n, m, st) = (samples.actions, samples.states, samples.samples);
     if resamples == 0 {
         return vec![vec![f64::NAN; m]; n];
@@ -124,20 +106,12 @@ pub fn stability(
     let agree = (0..resamples)
         .into_par_iter()
         .map(|r| {
-            let mut rng =
-                ChaCha8Rng::seed_from_u64(sample_seed(seed ^ 0x5EED_B007_5742_0000, usize::MAX, r));
-            let picks: Vec<Vec<usize>> = (0..n)
-                .map(|_| (0..st).map(|_| rng.random_range(0..st)).collect())
-                .collect();
+            let mut rng = ChaCha8Rng::seed_from_u64(sample_seed(seed ^ 0x5EED_B007_5742_0000, usize::MAX, r));
+            let picks: Vec<Vec<usize>> = (0..n).map(|_| (0..st).map(|_| rng.random_range(0..st)).collect()).collect();
             let g = connection_graph(&samples.phi_of(|i| &picks[i]), rule).g;
             g.iter()
                 .zip(&reference.g)
-                .map(|(row, reference_row)| {
-                    row.iter()
-                        .zip(reference_row)
-                        .map(|(a, b)| usize::from(a == b))
-                        .collect()
-                })
+                .map(|(row, reference_row)| row.iter().zip(reference_row).map(|(a, b)| usize::from(a == b)).collect())
                 .collect::<Vec<Vec<usize>>>()
         })
         .reduce(
@@ -149,10 +123,7 @@ pub fn stability(
                 total
             },
         );
-    agree
-        .iter()
-        .map(|row| row.iter().map(|&c| c as f64 / resamples as f64).collect())
-        .collect()
+    agree.iter().map(|row| row.iter().map(|&c| c as f64 / resamples as f64).collect()).collect()
 }
 
 #[cfg(test)]
@@ -164,11 +135,7 @@ mod tests {
         // Column 0: mean 4/3, cut 0.4 · 4/3 ≈ 0.53 → 0.5 is dropped, 1.0 kept.
         // Column 1: all zero → unmoved, all zeros (the §3 decision).
         // Column 2: scale is irrelevant: 1e-6 ≥ 0.4 · mean(1e-6, 1e-6, 0).
-        let phi = vec![
-            vec![2.5, 0.0, 1e-6],
-            vec![1.0, 0.0, 1e-6],
-            vec![0.5, 0.0, 0.0],
-        ];
+        let phi = vec![vec![2.5, 0.0, 1e-6], vec![1.0, 0.0, 1e-6], vec![0.5, 0.0, 0.0]];
         let graph = connection_graph(&phi, Rule::Threshold(0.4));
         assert_eq!(graph.g, vec![vec![1, 0, 1], vec![1, 0, 1], vec![0, 0, 0]]);
         assert_eq!(graph.unmoved_states, vec![1]);
@@ -177,23 +144,14 @@ mod tests {
     #[test]
     fn eq6_ignores_rounding_dust_but_keeps_small_real_effects() {
         let phi = vec![vec![1.0, 1e-18], vec![1e-6, 0.0]];
-        let graph = connection_graph(
-            &phi,
-            Rule::Exact {
-                tolerance: EXACT_TOLERANCE,
-            },
-        );
+        let graph = connection_graph(&phi, Rule::Exact { tolerance: EXACT_TOLERANCE });
         assert_eq!(graph.g, vec![vec![1, 0], vec![1, 0]]);
         assert_eq!(graph.unmoved_states, vec![1]);
     }
 
     #[test]
     fn margins_are_phi_over_the_cut_and_agree_with_g() {
-        let phi = vec![
-            vec![2.5, 0.0, 1e-6],
-            vec![1.0, 0.0, 1e-6],
-            vec![0.5, 0.0, 0.0],
-        ];
+        let phi = vec![vec![2.5, 0.0, 1e-6], vec![1.0, 0.0, 1e-6], vec![0.5, 0.0, 0.0]];
         let margin = margins(&phi, 0.4);
         // Column 0: cut 0.4 · 4/3; 2.5 / (1.6/3) = 4.6875.
         assert!((margin[0][0] - 4.6875).abs() < 1e-12);

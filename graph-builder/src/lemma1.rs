@@ -22,9 +22,7 @@ pub fn lemma1_h(e: &DMatrix<f64>, f: &DMatrix<f64>) -> DMatrix<f64> {
 /// transposed (the docs/method.md §4 decision on the publication's eq. 10 slip).
 pub fn lemma1_graph(e: &DMatrix<f64>, f: &DMatrix<f64>) -> Vec<Vec<u8>> {
     let h = lemma1_h(e, f);
-    (0..h.ncols())
-        .map(|i| (0..h.nrows()).map(|j| u8::from(h[(j, i)] > 0.0)).collect())
-        .collect()
+    (0..h.ncols()).map(|i| (0..h.nrows()).map(|j| u8::from(h[(j, i)] > 0.0)).collect()).collect()
 }
 
 #[cfg(test)]
@@ -36,13 +34,7 @@ mod tests {
         let e = DMatrix::from_row_slice(3, 3, &[-1.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
         let f = DMatrix::identity(3, 3);
         let h = lemma1_h(&e, &f);
-        assert_eq!(
-            h,
-            DMatrix::from_row_slice(3, 3, &[2.0, 2.0, 0.0, 0.0, 6.0, 0.0, 0.0, 0.0, 6.0])
-        );
-        assert_eq!(
-            lemma1_graph(&e, &f),
-            vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]]
-        );
+        assert_eq!(h, DMatrix::from_row_slice(3, 3, &[2.0, 2.0, 0.0, 0.0, 6.0, 0.0, 0.0, 0.0, 6.0]));
+        assert_eq!(lemma1_graph(&e, &f), vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]]);
     }
 }

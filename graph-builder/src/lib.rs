@@ -39,16 +39,7 @@ impl GraphOptions {
     /// `samples` CS3 samples per action with `seed`, on every core, with
     /// `bootstrap` stability resamples.
     pub fn paper(samples: usize, seed: u64, bootstrap: usize) -> Self {
-        GraphOptions {
-            cs3: Cs3Config {
-                samples,
-                seed,
-                threads: 0,
-                start: None,
-            },
-            rule: Rule::Threshold(PAPER_THRESHOLD),
-            bootstrap,
-        }
+        GraphOptions { cs3: Cs3Config { samples, seed, threads: 0, start: None }, rule: Rule::Threshold(PAPER_THRESHOLD), bootstrap }
     }
 
     /// Rejects settings that cannot give a meaningful graph.
@@ -67,11 +58,7 @@ impl GraphOptions {
 }
 
 /// Algorithm 1 end to end: CS3 rollouts, the rule, normalized phi, stability.
-pub fn build_graph(
-    env: &dyn Env,
-    opts: &GraphOptions,
-    on_sample: &(dyn Fn() + Sync),
-) -> Result<GraphReport, GraphError> {
+pub fn build_graph(env: &dyn Env, opts: &GraphOptions, on_sample: &(dyn Fn() + Sync)) -> Result<GraphReport, GraphError> {
     opts.validate()?;
     let started = Instant::now();
     let pool = cs3::thread_pool(opts.cs3.threads)?;
@@ -79,8 +66,7 @@ pub fn build_graph(
         let samples = cs3::measure(env, &opts.cs3, on_sample)?;
         let phi = samples.phi();
         let graph = graph::connection_graph(&phi, opts.rule);
-        let stability =
-            graph::stability(&samples, opts.rule, &graph, opts.bootstrap, opts.cs3.seed);
+        let stability = graph::stability(&samples, opts.rule, &graph, opts.bootstrap, opts.cs3.seed);
         Ok((samples, phi, graph, stability))
     })?;
     drop(samples);
@@ -109,13 +95,7 @@ pub fn build_graph(
         g: graph.g,
         stability,
         unmoved_states: graph.unmoved_states,
-        start: Some(
-            opts.cs3
-                .start
-                .unwrap_or_else(|| cs3::Start::default_for(env))
-                .name()
-                .to_string(),
-        ),
+        start: Some(opts.cs3.start.unwrap_or_else(|| cs3::Start::default_for(env)).name().to_string()),
         margin,
         sweep: Vec::new(),
         elapsed_s: started.elapsed().as_secs_f64(),
@@ -134,10 +114,7 @@ pub enum GraphError {
     #[error("--tolerance must be a finite number ≥ 0, got {0}")]
     Tolerance(f64),
     #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    Io { path: PathBuf, source: std::io::Error },
     #[error("cannot write {path}: {message}")]
     Output { path: PathBuf, message: String },
     #[error("graph file {path} is not a valid graph.json: {message}")]

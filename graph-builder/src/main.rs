@@ -7,17 +7,14 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use clap::Parser;
+use lcrl_proto::process::shutdown_signal;
 use lcrl_graph_builder::cli::GraphArgs;
 use lcrl_graph_builder::service::{self, GraphState};
-use lcrl_proto::process::shutdown_signal;
 use lcrl_proto::security::{ServerSecurity, ServerSecurityArgs};
 use tokio::sync::watch;
 
 #[derive(Debug, Parser)]
-#[command(
-    version,
-    about = "Build the LCRL connection graph with CS3, then serve it over gRPC"
-)]
+#[command(version, about = "Build the LCRL connection graph with CS3, then serve it over gRPC")]
 struct Args {
     #[command(flatten)]
     graph: GraphArgs,
@@ -45,12 +42,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let security = ServerSecurity::from_args(&args.security)?;
     let listener = tokio::net::TcpListener::bind(args.listen)
         .await
-        .with_context(|| {
-            format!(
-                "cannot listen on {}; is another process using it?",
-                args.listen
-            )
-        })?;
+        .with_context(|| format!("cannot listen on {}; is another process using it?", args.listen))?;
     let addr = listener.local_addr()?;
     println!("listening on {addr}");
     security.warn_if_exposed(addr);
@@ -58,14 +50,9 @@ async fn run(args: Args) -> anyhow::Result<()> {
 
     let (state_tx, state_rx) = watch::channel(GraphState::Building);
     let (stop_tx, mut stop_rx) = watch::channel(false);
-    let server = tokio::spawn(service::serve(
-        listener,
-        state_rx,
-        security.clone(),
-        async move {
-            let _ = stop_rx.wait_for(|stop| *stop).await;
-        },
-    ));
+    let server = tokio::spawn(service::serve(listener, state_rx, security.clone(), async move {
+        let _ = stop_rx.wait_for(|stop| *stop).await;
+    }));
 
     let graph_args = args.graph.clone();
     let built = tokio::task::spawn_blocking(move || graph_args.run());
@@ -89,9 +76,6 @@ async fn run(args: Args) -> anyhow::Result<()> {
     shutdown_signal().await;
     tracing::info!("shutting down");
     let _ = stop_tx.send(true);
-    server
-        .await
-        .context("the gRPC server task panicked")?
-        .context("the gRPC server failed")?;
+    server.await.context("the gRPC server task panicked")?.context("the gRPC server failed")?;
     Ok(())
 }

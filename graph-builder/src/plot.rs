@@ -15,9 +15,7 @@ pub fn png_path(arg: &str) -> Result<std::path::PathBuf, String> {
     let path = std::path::PathBuf::from(arg);
     match path.extension().and_then(|e| e.to_str()) {
         Some(ext) if ext.eq_ignore_ascii_case("png") => Ok(path),
-        _ => Err(format!(
-            "plots are PNG images: give a file name ending in .png (e.g. {arg}.png)"
-        )),
+        _ => Err(format!("plots are PNG images: give a file name ending in .png (e.g. {arg}.png)")),
     }
 }
 
@@ -27,11 +25,7 @@ pub fn register_fonts() {
     static ONCE: std::sync::Once = std::sync::Once::new();
     ONCE.call_once(|| {
         // Cannot fail on a valid embedded TTF; a failure would only lose text.
-        let _ = plotters::style::register_font(
-            "sans-serif",
-            FontStyle::Normal,
-            dejavu::sans::regular(),
-        );
+        let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular());
         let _ = plotters::style::register_font("sans-serif", FontStyle::Bold, dejavu::sans::bold());
     });
 }
@@ -44,40 +38,17 @@ pub fn heatmap(report: &GraphReport, path: &Path) -> Result<(), GraphError> {
     let (n, m) = (report.actions(), report.states());
     let cell = 64u32;
     let panels: Vec<(String, &Vec<Vec<u8>>)> = if report.sweep.is_empty() {
-        vec![(
-            format!(
-                "normalized CS3 of {} ({}); dot: G = 1",
-                short(&report.env),
-                report.rule_text()
-            ),
-            &report.g,
-        )]
+        vec![(format!("normalized CS3 of {} ({}); dot: G = 1", short(&report.env), report.rule_text()), &report.g)]
     } else {
         report
             .sweep
             .iter()
-            .map(|e| {
-                (
-                    format!(
-                        "normalized CS3 of {}; dot: G = 1 at T = {} ({} edges)",
-                        short(&report.env),
-                        e.threshold,
-                        e.edges
-                    ),
-                    &e.g,
-                )
-            })
+            .map(|e| (format!("normalized CS3 of {}; dot: G = 1 at T = {} ({} edges)", short(&report.env), e.threshold, e.edges), &e.g))
             .collect()
     };
     let panel_height = 120 + cell * n as u32;
-    let size = (
-        (170 + cell * m as u32).max(560),
-        panel_height * panels.len() as u32,
-    );
-    let plot_err = |e: &dyn std::fmt::Display| GraphError::Plot {
-        path: path.into(),
-        message: e.to_string(),
-    };
+    let size = ((170 + cell * m as u32).max(560), panel_height * panels.len() as u32);
+    let plot_err = |e: &dyn std::fmt::Display| GraphError::Plot { path: path.into(), message: e.to_string() };
     let root = BitMapBackend::new(path, size).into_drawing_area();
     root.fill(&WHITE).map_err(|e| plot_err(&e))?;
     for (area, (title, g)) in root.split_evenly((panels.len(), 1)).iter().zip(&panels) {
@@ -89,12 +60,7 @@ pub fn heatmap(report: &GraphReport, path: &Path) -> Result<(), GraphError> {
 
 type Area<'a> = DrawingArea<BitMapBackend<'a>, plotters::coord::Shift>;
 
-fn panel(
-    area: &Area,
-    report: &GraphReport,
-    title: &str,
-    g: &[Vec<u8>],
-) -> Result<(), Box<dyn std::error::Error>> {
+fn panel(area: &Area, report: &GraphReport, title: &str, g: &[Vec<u8>]) -> Result<(), Box<dyn std::error::Error>> {
     let (n, m) = (report.actions(), report.states());
     let mut chart = ChartBuilder::on(area)
         .caption(title, ("sans-serif", 16))
@@ -107,15 +73,9 @@ fn panel(
         SegmentValue::CenterOf(k) => Some(*k),
         _ => None,
     };
-    let state_label = |v: &SegmentValue<usize>| {
-        centre(v)
-            .and_then(|j| report.state_names.get(j).cloned())
-            .unwrap_or_default()
-    };
+    let state_label = |v: &SegmentValue<usize>| centre(v).and_then(|j| report.state_names.get(j).cloned()).unwrap_or_default();
     let action_label = |v: &SegmentValue<usize>| {
-        centre(v)
-            .and_then(|y| report.action_names.get(n.checked_sub(y + 1)?).cloned())
-            .unwrap_or_default()
+        centre(v).and_then(|y| report.action_names.get(n.checked_sub(y + 1)?).cloned()).unwrap_or_default()
     };
     chart
         .configure_mesh()
@@ -134,10 +94,7 @@ fn panel(
         let shade = |c: u8| (255.0 - (255.0 - f64::from(c)) * v) as u8;
         let y = n - 1 - i;
         Rectangle::new(
-            [
-                (SegmentValue::Exact(j), SegmentValue::Exact(y)),
-                (SegmentValue::Exact(j + 1), SegmentValue::Exact(y + 1)),
-            ],
+            [(SegmentValue::Exact(j), SegmentValue::Exact(y)), (SegmentValue::Exact(j + 1), SegmentValue::Exact(y + 1))],
             RGBColor(shade(8), shade(48), shade(107)).filled(),
         )
     }))?;
@@ -152,11 +109,7 @@ fn panel(
         let v = report.phi_normalized[i][j];
         let ink = if v > 0.5 { WHITE } else { BLACK };
         let text = format!("{v:.2}");
-        area.draw(&Text::new(
-            text,
-            (cx - 12, cy + 8),
-            ("sans-serif", 12).into_font().color(&ink),
-        ))?;
+        area.draw(&Text::new(text, (cx - 12, cy + 8), ("sans-serif", 12).into_font().color(&ink)))?;
         if g[i][j] == 1 {
             area.draw(&Circle::new((cx, cy - 8), 6, BLACK.filled()))?;
             area.draw(&Circle::new((cx, cy - 8), 7, WHITE.stroke_width(1)))?;
@@ -166,8 +119,5 @@ fn panel(
 }
 
 fn short(env: &str) -> &str {
-    Path::new(env)
-        .file_name()
-        .and_then(|s| s.to_str())
-        .unwrap_or(env)
+    Path::new(env).file_name().and_then(|s| s.to_str()).unwrap_or(env)
 }

@@ -74,12 +74,7 @@ impl GraphReport {
             .map(|&t| {
                 let g = crate::graph::connection_graph(&self.phi, crate::Rule::Threshold(t)).g;
                 let edges = g.iter().flatten().filter(|&&v| v == 1).count();
-                SweepEntry {
-                    threshold: t,
-                    g,
-                    edges,
-                    margin: crate::graph::margins(&self.phi, t),
-                }
+                SweepEntry { threshold: t, g, edges, margin: crate::graph::margins(&self.phi, t) }
             })
             .collect();
         self
@@ -98,19 +93,9 @@ impl GraphReport {
             return out;
         }
         let label = self.action_names.iter().map(|s| s.len()).max().unwrap_or(0);
-        let _ = writeln!(
-            out,
-            "\nthreshold sweep (eq. 7), columns {}:",
-            self.state_names.join(" ")
-        );
+        let _ = writeln!(out, "\nthreshold sweep (eq. 7), columns {}:", self.state_names.join(" "));
         for (k, entry) in self.sweep.iter().enumerate() {
-            let _ = writeln!(
-                out,
-                "T = {}: {} of {} edges",
-                entry.threshold,
-                entry.edges,
-                self.actions() * self.states()
-            );
+            let _ = writeln!(out, "T = {}: {} of {} edges", entry.threshold, entry.edges, self.actions() * self.states());
             for (i, name) in self.action_names.iter().enumerate() {
                 let row: Vec<String> = entry.g[i].iter().map(u8::to_string).collect();
                 let _ = writeln!(out, "  {name:<label$} [{}]", row.join(", "));
@@ -124,16 +109,8 @@ impl GraphReport {
                         format!("{sign}{}→{}", self.action_names[i], self.state_names[j])
                     })
                     .collect();
-                let listed = if flips.is_empty() {
-                    "none".to_string()
-                } else {
-                    flips.join(", ")
-                };
-                let _ = writeln!(
-                    out,
-                    "  flips from T = {} to T = {}: {listed}",
-                    entry.threshold, next.threshold
-                );
+                let listed = if flips.is_empty() { "none".to_string() } else { flips.join(", ") };
+                let _ = writeln!(out, "  flips from T = {} to T = {}: {listed}", entry.threshold, next.threshold);
             }
         }
         out
@@ -150,57 +127,32 @@ impl GraphReport {
     /// Reads a `graph.json`, checking that its matrices have the shapes its
     /// names announce and that G holds only 0 and 1.
     pub fn load(path: &Path) -> Result<Self, GraphError> {
-        let text = std::fs::read_to_string(path).map_err(|source| GraphError::Io {
-            path: path.into(),
-            source,
-        })?;
-        let report: GraphReport =
-            serde_json::from_str(&text).map_err(|e| GraphError::BadGraphFile {
-                path: path.into(),
-                message: e.to_string(),
-            })?;
+        let text = std::fs::read_to_string(path).map_err(|source| GraphError::Io { path: path.into(), source })?;
+        let report: GraphReport = serde_json::from_str(&text)
+            .map_err(|e| GraphError::BadGraphFile { path: path.into(), message: e.to_string() })?;
         let (n, m) = (report.actions(), report.states());
-        let bad = |message: String| GraphError::BadGraphFile {
-            path: path.into(),
-            message,
-        };
+        let bad = |message: String| GraphError::BadGraphFile { path: path.into(), message };
         for (name, rows) in [("phi", report.phi.len()), ("g", report.g.len())] {
             if rows != n {
-                return Err(bad(format!(
-                    "`{name}` has {rows} rows, expected {n} (one per action name)"
-                )));
+                return Err(bad(format!("`{name}` has {rows} rows, expected {n} (one per action name)")));
             }
         }
-        if let Some(i) = report
-            .g
-            .iter()
-            .position(|row| row.len() != m || row.iter().any(|&v| v > 1))
-        {
-            return Err(bad(format!(
-                "`g` row {} must hold {m} entries, each 0 or 1",
-                i + 1
-            )));
+        if let Some(i) = report.g.iter().position(|row| row.len() != m || row.iter().any(|&v| v > 1)) {
+            return Err(bad(format!("`g` row {} must hold {m} entries, each 0 or 1", i + 1)));
         }
         Ok(report)
     }
 
     /// Writes pretty JSON.
     pub fn write_json(&self, path: &Path) -> Result<(), GraphError> {
-        let text =
-            serde_json::to_string_pretty(self).map_err(|e| GraphError::Json(e.to_string()))?;
-        std::fs::write(path, text + "\n").map_err(|source| GraphError::Io {
-            path: path.into(),
-            source,
-        })
+        let text = serde_json::to_string_pretty(self).map_err(|e| GraphError::Json(e.to_string()))?;
+        std::fs::write(path, text + "\n").map_err(|source| GraphError::Io { path: path.into(), source })
     }
 
     /// The rule, in words, for headings.
     pub fn rule_text(&self) -> String {
         match (self.exact, self.threshold) {
-            (true, _) => format!(
-                "eq. 6, exact (tolerance {:e} × max phi)",
-                self.tolerance.unwrap_or(0.0)
-            ),
+            (true, _) => format!("eq. 6, exact (tolerance {:e} × max phi)", self.tolerance.unwrap_or(0.0)),
             (false, Some(t)) => format!("eq. 7, T = {t}"),
             (false, None) => "eq. 7".into(),
         }
@@ -220,34 +172,14 @@ impl GraphReport {
             self.seed,
             self.elapsed_s
         );
-        let _ = writeln!(
-            out,
-            "phi(i, j) (eq. 5); * marks G_ij = 1 (action i sees state j)"
-        );
+        let _ = writeln!(out, "phi(i, j) (eq. 5); * marks G_ij = 1 (action i sees state j)");
         let label = self.action_names.iter().map(|s| s.len()).max().unwrap_or(0);
-        out.push_str(&self.matrix(|i, j| {
-            format!(
-                "{}{}",
-                format_phi(self.phi[i][j]),
-                if self.g[i][j] == 1 { '*' } else { ' ' }
-            )
-        }));
+        out.push_str(&self.matrix(|i, j| format!("{}{}", format_phi(self.phi[i][j]), if self.g[i][j] == 1 { '*' } else { ' ' })));
         if !self.margin.is_empty() {
             let _ = writeln!(out, "\nmargin of each kept edge, phi / (T × column mean) (≥ 1 kept; the edge survives up to margin × T):");
-            out.push_str(&self.matrix(|i, j| {
-                if self.g[i][j] == 1 {
-                    format!("{:.2}", self.margin[i][j])
-                } else {
-                    ".".to_string()
-                }
-            }));
+            out.push_str(&self.matrix(|i, j| if self.g[i][j] == 1 { format!("{:.2}", self.margin[i][j]) } else { ".".to_string() }));
         }
-        let _ = writeln!(
-            out,
-            "\nG (action × state), {} of {} edges:",
-            self.edges(),
-            self.actions() * self.states()
-        );
+        let _ = writeln!(out, "\nG (action × state), {} of {} edges:", self.edges(), self.actions() * self.states());
         for (i, name) in self.action_names.iter().enumerate() {
             let row: Vec<String> = self.g[i].iter().map(u8::to_string).collect();
             let _ = writeln!(out, "{name:<label$} [{}]", row.join(", "));
@@ -255,34 +187,14 @@ impl GraphReport {
         let borderline: Vec<String> = (0..self.actions())
             .flat_map(|i| (0..self.states()).map(move |j| (i, j)))
             .filter(|&(i, j)| self.stability[i][j] < 0.95)
-            .map(|(i, j)| {
-                format!(
-                    "{}→{} ({:.0}%)",
-                    self.action_names[i],
-                    self.state_names[j],
-                    100.0 * self.stability[i][j]
-                )
-            })
+            .map(|(i, j)| format!("{}→{} ({:.0}%)", self.action_names[i], self.state_names[j], 100.0 * self.stability[i][j]))
             .collect();
         if !borderline.is_empty() {
-            let _ = writeln!(
-                out,
-                "\nborderline entries (share of {} bootstrap resamples that agree): {}",
-                self.bootstrap_resamples,
-                borderline.join(", ")
-            );
+            let _ = writeln!(out, "\nborderline entries (share of {} bootstrap resamples that agree): {}", self.bootstrap_resamples, borderline.join(", "));
         }
         if !self.unmoved_states.is_empty() {
-            let names: Vec<&str> = self
-                .unmoved_states
-                .iter()
-                .map(|&j| self.state_names[j].as_str())
-                .collect();
-            let _ = writeln!(
-                out,
-                "\nno action moves: {} (their columns are all 0)",
-                names.join(", ")
-            );
+            let names: Vec<&str> = self.unmoved_states.iter().map(|&j| self.state_names[j].as_str()).collect();
+            let _ = writeln!(out, "\nno action moves: {} (their columns are all 0)", names.join(", "));
         }
         out
     }
@@ -292,14 +204,7 @@ impl GraphReport {
     /// An action × state table of `cell(i, j)` with labelled rows and columns.
     fn matrix(&self, cell: impl Fn(usize, usize) -> String) -> String {
         let mut out = String::new();
-        let width = self
-            .state_names
-            .iter()
-            .map(|s| s.len())
-            .max()
-            .unwrap_or(0)
-            .max(10)
-            + 1;
+        let width = self.state_names.iter().map(|s| s.len()).max().unwrap_or(0).max(10) + 1;
         let label = self.action_names.iter().map(|s| s.len()).max().unwrap_or(0);
         let _ = write!(out, "{:<label$}", "");
         for name in &self.state_names {
@@ -320,10 +225,7 @@ impl GraphReport {
 /// JSON has no NaN: serde_json writes it as null; read null back as NaN.
 fn nullable_matrix<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<Vec<f64>>, D::Error> {
     let rows: Vec<Vec<Option<f64>>> = Deserialize::deserialize(d)?;
-    Ok(rows
-        .into_iter()
-        .map(|row| row.into_iter().map(|v| v.unwrap_or(f64::NAN)).collect())
-        .collect())
+    Ok(rows.into_iter().map(|row| row.into_iter().map(|v| v.unwrap_or(f64::NAN)).collect()).collect())
 }
 
 fn format_phi(v: f64) -> String {
@@ -339,42 +241,20 @@ fn format_phi(v: f64) -> String {
 /// G (n rows of m 0/1 entries) from a graph builder's message, checked
 /// against the environment that will use it: a peer's malformed graph is
 /// refused here with what is wrong, never reshaped into a network.
-pub fn mask_from_message(
-    graph: &lcrl_proto::v1::ConnectionGraph,
-    n: usize,
-    m: usize,
-) -> Result<Vec<Vec<u8>>, String> {
+pub fn mask_from_message(graph: &lcrl_proto::v1::ConnectionGraph, n: usize, m: usize) -> Result<Vec<Vec<u8>>, String> {
     if (graph.actions as usize, graph.states as usize) != (n, m) {
-        return Err(format!(
-            "the graph builder's graph is {}×{} but this environment needs {n}×{m}",
-            graph.actions, graph.states
-        ));
+        return Err(format!("the graph builder's graph is {}×{} but this environment needs {n}×{m}", graph.actions, graph.states));
     }
     if n == 0 || m == 0 {
-        return Err(format!(
-            "the graph builder's graph is {n}×{m}: it has no rows or no columns"
-        ));
+        return Err(format!("the graph builder's graph is {n}×{m}: it has no rows or no columns"));
     }
     if graph.g.len() != n * m {
-        return Err(format!(
-            "the graph builder's G has {} entries but a {n}×{m} graph needs {}",
-            graph.g.len(),
-            n * m
-        ));
+        return Err(format!("the graph builder's G has {} entries but a {n}×{m} graph needs {}", graph.g.len(), n * m));
     }
     if let Some(k) = graph.g.iter().position(|&v| v > 1) {
-        return Err(format!(
-            "the graph builder's G[{}][{}] = {}: entries must be 0 or 1",
-            k / m,
-            k % m,
-            graph.g[k]
-        ));
+        return Err(format!("the graph builder's G[{}][{}] = {}: entries must be 0 or 1", k / m, k % m, graph.g[k]));
     }
-    Ok(graph
-        .g
-        .chunks(m)
-        .map(|row| row.iter().map(|&v| v as u8).collect())
-        .collect())
+    Ok(graph.g.chunks(m).map(|row| row.iter().map(|&v| v as u8).collect()).collect())
 }
 
 impl From<&GraphReport> for lcrl_proto::v1::ConnectionGraph {

@@ -5,13 +5,13 @@
 use std::future::Future;
 use std::sync::Arc;
 
-use lcrl_proto::security::ServerSecurity;
 use lcrl_proto::v1::graph_server::{Graph, GraphServer};
 use lcrl_proto::v1::{ConnectionGraph, GetGraphRequest, WatchGraphRequest};
-use tokio::net::TcpListener;
-use tokio::sync::watch;
 use tokio_stream::wrappers::WatchStream;
 use tokio_stream::{Stream, StreamExt};
+use tokio::net::TcpListener;
+use tokio::sync::watch;
+use lcrl_proto::security::ServerSecurity;
 use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status};
 use tonic_health::ServingStatus;
@@ -39,18 +39,14 @@ impl GraphService {
 }
 
 /// The stream of `WatchGraph`: each Ready state of the watch channel.
-pub type GraphStream =
-    std::pin::Pin<Box<dyn Stream<Item = Result<ConnectionGraph, Status>> + Send>>;
+pub type GraphStream = std::pin::Pin<Box<dyn Stream<Item = Result<ConnectionGraph, Status>> + Send>>;
 
 #[tonic::async_trait]
 impl Graph for GraphService {
     type WatchGraphStream = GraphStream;
 
     #[tracing::instrument(skip_all, name = "WatchGraph")]
-    async fn watch_graph(
-        &self,
-        _request: Request<WatchGraphRequest>,
-    ) -> Result<Response<GraphStream>, Status> {
+    async fn watch_graph(&self, _request: Request<WatchGraphRequest>) -> Result<Response<GraphStream>, Status> {
         let stream = WatchStream::new(self.state.clone()).filter_map(|state| match state {
             GraphState::Ready(graph) => Some(Ok((*graph).clone())),
             _ => None,
@@ -59,16 +55,11 @@ impl Graph for GraphService {
     }
 
     #[tracing::instrument(skip_all, name = "GetGraph")]
-    async fn get_graph(
-        &self,
-        _request: Request<GetGraphRequest>,
-    ) -> Result<Response<ConnectionGraph>, Status> {
+    async fn get_graph(&self, _request: Request<GetGraphRequest>) -> Result<Response<ConnectionGraph>, Status> {
         let state = self.state.borrow().clone();
         match state {
             GraphState::Ready(graph) => Ok(Response::new((*graph).clone())),
-            GraphState::Building => Err(Status::unavailable(
-                "the connection graph is still being built; retry shortly",
-            )),
+            GraphState::Building => Err(Status::unavailable("the connection graph is still being built; retry shortly")),
             GraphState::Empty => Err(Status::not_found("this service holds no connection graph")),
         }
     }
@@ -89,11 +80,7 @@ pub async fn serve(
     let mut watcher = state.clone();
     let ready = |w: &mut watch::Receiver<GraphState>| {
         let status = matches!(*w.borrow_and_update(), GraphState::Ready(_));
-        if status {
-            ServingStatus::Serving
-        } else {
-            ServingStatus::NotServing
-        }
+        if status { ServingStatus::Serving } else { ServingStatus::NotServing }
     };
     // Set before the first connection is accepted, so no client ever sees
     // the reporter's default SERVING for "" while the graph is missing.
@@ -111,11 +98,6 @@ pub async fn serve(
     let router = tonic::transport::Server::builder()
         .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
         .add_service(health_service)
-        .add_service(InterceptedService::new(
-            GraphServer::new(GraphService::new(state)),
-            check.clone(),
-        ));
-    lcrl_proto::process::add_reflection(router, &check)
-        .serve_with_incoming_shutdown(security.incoming(listener), shutdown)
-        .await
+        .add_service(InterceptedService::new(GraphServer::new(GraphService::new(state)), check.clone()));
+    lcrl_proto::process::add_reflection(router, &check).serve_with_incoming_shutdown(security.incoming(listener), shutdown).await
 }

@@ -13,27 +13,13 @@ use crate::{build_graph, Cs3Config, GraphOptions, Rule, EXACT_TOLERANCE};
 const PAPER_G: [[u8; 3]; 3] = [[1, 0, 0], [1, 1, 0], [0, 0, 1]];
 
 fn options(samples: usize, rule: Rule, threads: usize, seed: u64) -> GraphOptions {
-    GraphOptions {
-        cs3: Cs3Config {
-            samples,
-            seed,
-            threads,
-            start: None,
-        },
-        rule,
-        bootstrap: 50,
-    }
+    GraphOptions { cs3: Cs3Config { samples, seed, threads, start: None }, rule, bootstrap: 50 }
 }
 
 #[test]
 fn lti_paper_graph_under_eq6_and_eq7() {
     let env = make_env("lti-paper").unwrap();
-    for rule in [
-        Rule::Exact {
-            tolerance: EXACT_TOLERANCE,
-        },
-        Rule::Threshold(0.1),
-    ] {
+    for rule in [Rule::Exact { tolerance: EXACT_TOLERANCE }, Rule::Threshold(0.1)] {
         let report = build_graph(env.as_ref(), &options(64, rule, 0, 3), &|| {}).unwrap();
         assert_eq!(report.g, PAPER_G.map(Vec::from).to_vec(), "rule {rule:?}");
         assert!(report.unmoved_states.is_empty());
@@ -59,10 +45,7 @@ fn result_does_not_depend_on_thread_count() {
 #[test]
 fn unmoved_state_column_is_all_zero_and_reported() {
     // s2 has no input and no coupling: no action moves it (docs/method.md §3 decision).
-    let cfg = LtiConfig::from_matrices(
-        vec![vec![0.5, 0.0], vec![0.0, 0.9]],
-        vec![vec![1.0, 1.0], vec![0.0, 0.0]],
-    );
+    let cfg = LtiConfig::from_matrices(vec![vec![0.5, 0.0], vec![0.0, 0.9]], vec![vec![1.0, 1.0], vec![0.0, 0.0]]);
     let env = LtiEnv::new("u", &cfg).unwrap();
     let report = build_graph(&env, &options(16, Rule::Threshold(0.1), 1, 0), &|| {}).unwrap();
     assert_eq!(report.g, vec![vec![1, 0], vec![1, 0]]);
@@ -75,34 +58,15 @@ fn unmoved_state_column_is_all_zero_and_reported() {
 /// recovers the exact graph from ST = 64 on, for every seed tried.
 #[test]
 fn noisy_linear_system_still_gives_the_right_graph_with_eq7() {
-    let cfg = LtiConfig {
-        noise_std: 0.01,
-        ..LtiConfig::paper_example()
-    };
+    let cfg = LtiConfig { noise_std: 0.01, ..LtiConfig::paper_example() };
     let env = LtiEnv::new("lti-paper-noisy", &cfg).unwrap();
     for seed in 0..5 {
-        let report =
-            build_graph(&env, &options(64, Rule::Threshold(0.1), 0, seed), &|| {}).unwrap();
+        let report = build_graph(&env, &options(64, Rule::Threshold(0.1), 0, seed), &|| {}).unwrap();
         assert_eq!(report.g, PAPER_G.map(Vec::from).to_vec(), "seed {seed}");
-        assert!(
-            report.phi[0][1] > 0.0,
-            "noise must reach unconnected entries"
-        );
+        assert!(report.phi[0][1] > 0.0, "noise must reach unconnected entries");
     }
     // ...whereas the exact rule sees the noise floor as connections.
-    let exact = build_graph(
-        &env,
-        &options(
-            64,
-            Rule::Exact {
-                tolerance: EXACT_TOLERANCE,
-            },
-            0,
-            0,
-        ),
-        &|| {},
-    )
-    .unwrap();
+    let exact = build_graph(&env, &options(64, Rule::Exact { tolerance: EXACT_TOLERANCE }, 0, 0), &|| {}).unwrap();
     assert!(exact.g.iter().flatten().all(|&v| v == 1));
 }
 
@@ -141,14 +105,8 @@ proptest! {
 fn peg_trajectory_starts_are_mostly_in_contact() {
     use rand::SeedableRng;
     let env = make_env("peg-group1").unwrap();
-    assert_eq!(
-        crate::Start::default_for(env.as_ref()),
-        crate::Start::Trajectory
-    );
-    assert_eq!(
-        crate::Start::default_for(make_env("lti-paper").unwrap().as_ref()),
-        crate::Start::Reset
-    );
+    assert_eq!(crate::Start::default_for(env.as_ref()), crate::Start::Trajectory);
+    assert_eq!(crate::Start::default_for(make_env("lti-paper").unwrap().as_ref()), crate::Start::Reset);
     let in_contact = |start: crate::Start| {
         (0..64u64)
             .filter(|&k| {
@@ -158,32 +116,16 @@ fn peg_trajectory_starts_are_mostly_in_contact() {
             })
             .count()
     };
-    let (trajectory, reset) = (
-        in_contact(crate::Start::Trajectory),
-        in_contact(crate::Start::Reset),
-    );
+    let (trajectory, reset) = (in_contact(crate::Start::Trajectory), in_contact(crate::Start::Reset));
     assert_eq!(reset, 0);
-    assert!(
-        trajectory > 40,
-        "only {trajectory} of 64 trajectory starts touch the hole"
-    );
+    assert!(trajectory > 40, "only {trajectory} of 64 trajectory starts touch the hole");
 }
 
 #[test]
 fn peg_trajectory_graph_does_not_depend_on_thread_count() {
     let env = make_env("peg-group1").unwrap();
-    let one = build_graph(
-        env.as_ref(),
-        &options(4, Rule::Threshold(0.1), 1, 7),
-        &|| {},
-    )
-    .unwrap();
-    let two = build_graph(
-        env.as_ref(),
-        &options(4, Rule::Threshold(0.1), 2, 7),
-        &|| {},
-    )
-    .unwrap();
+    let one = build_graph(env.as_ref(), &options(4, Rule::Threshold(0.1), 1, 7), &|| {}).unwrap();
+    let two = build_graph(env.as_ref(), &options(4, Rule::Threshold(0.1), 2, 7), &|| {}).unwrap();
     assert_eq!(one.start.as_deref(), Some("trajectory"));
     assert_eq!(one.phi, two.phi); // bit-identical f64
     assert_eq!(one.stability, two.stability);
@@ -212,17 +154,7 @@ fn peg_phi_is_mirror_symmetric_under_x_y_swap() {
     mirrored.episode.angle_offset_deg = [0.0, -0.3, -0.1];
     let cs3 = |cfg: PegConfig, seed: u64| {
         let env = PegEnv::new("mirror", cfg).unwrap();
-        let samples = crate::cs3::measure(
-            &env,
-            &Cs3Config {
-                samples: 96,
-                seed,
-                threads: 0,
-                start: None,
-            },
-            &|| {},
-        )
-        .unwrap();
+        let samples = crate::cs3::measure(&env, &Cs3Config { samples: 96, seed, threads: 0, start: None }, &|| {}).unwrap();
         (samples.phi(), samples.phi_stderr())
     };
     let (phi, se) = cs3(cfg, 1);
@@ -233,33 +165,19 @@ fn peg_phi_is_mirror_symmetric_under_x_y_swap() {
     for i in 0..6 {
         for j in 0..12 {
             let (a, b) = (phi[i][j], phi_m[actions[i]][states[j]]);
-            let tolerance = 4.0 * (se[i][j].powi(2) + se_m[actions[i]][states[j]].powi(2)).sqrt()
-                + 0.02 * a.max(b);
+            let tolerance = 4.0 * (se[i][j].powi(2) + se_m[actions[i]][states[j]].powi(2)).sqrt() + 0.02 * a.max(b);
             let z = (a - b).abs() / tolerance;
             if z > worst.0 {
                 worst = (z, i, j);
             }
-            assert!(
-                (a - b).abs() <= tolerance,
-                "phi({i},{j}) = {a} but its mirror phi({},{}) = {b} (tolerance {tolerance})",
-                actions[i],
-                states[j]
-            );
+            assert!((a - b).abs() <= tolerance, "phi({i},{j}) = {a} but its mirror phi({},{}) = {b} (tolerance {tolerance})", actions[i], states[j]);
         }
     }
     // The mirror must also be different from the identity: a lopsided
     // distribution makes x and y columns differ, so the test has teeth.
-    let unswapped_gap = (0..6)
-        .map(|i| (phi[i][0] - phi_m[i][0]).abs() / phi[i][0].max(phi_m[i][0]))
-        .fold(0.0, f64::max);
-    assert!(
-        unswapped_gap > 0.2,
-        "the distributions are too symmetric for the test to mean anything ({unswapped_gap})"
-    );
-    eprintln!(
-        "worst mirror difference: {:.2} of the tolerance at ({}, {})",
-        worst.0, worst.1, worst.2
-    );
+    let unswapped_gap = (0..6).map(|i| (phi[i][0] - phi_m[i][0]).abs() / phi[i][0].max(phi_m[i][0])).fold(0.0, f64::max);
+    assert!(unswapped_gap > 0.2, "the distributions are too symmetric for the test to mean anything ({unswapped_gap})");
+    eprintln!("worst mirror difference: {:.2} of the tolerance at ({}, {})", worst.0, worst.1, worst.2);
 }
 
 /// A graph builder's message becomes G only when it is whole: the right
@@ -267,57 +185,18 @@ fn peg_phi_is_mirror_symmetric_under_x_y_swap() {
 #[test]
 fn a_malformed_graph_message_is_refused_with_what_is_wrong() {
     use crate::report::mask_from_message;
-    let good = lcrl_proto::v1::ConnectionGraph {
-        actions: 2,
-        states: 3,
-        g: vec![1, 0, 1, 0, 0, 0],
-        ..Default::default()
-    };
-    assert_eq!(
-        mask_from_message(&good, 2, 3).unwrap(),
-        vec![vec![1, 0, 1], vec![0, 0, 0]]
-    );
+    let good = lcrl_proto::v1::ConnectionGraph { actions: 2, states: 3, g: vec![1, 0, 1, 0, 0, 0], ..Default::default() };
+    assert_eq!(mask_from_message(&good, 2, 3).unwrap(), vec![vec![1, 0, 1], vec![0, 0, 0]]);
     let cases = [
-        (
-            lcrl_proto::v1::ConnectionGraph {
-                g: vec![1, 0, 1],
-                ..good.clone()
-            },
-            "has 3 entries but a 2×3 graph needs 6",
-        ),
-        (
-            lcrl_proto::v1::ConnectionGraph {
-                g: vec![1, 0, 1, 0, 0, 0, 1],
-                ..good.clone()
-            },
-            "has 7 entries",
-        ),
-        (
-            lcrl_proto::v1::ConnectionGraph {
-                g: vec![1, 0, 1, 0, 7, 0],
-                ..good.clone()
-            },
-            "G[1][1] = 7",
-        ),
-        (
-            lcrl_proto::v1::ConnectionGraph {
-                actions: 3,
-                ..good.clone()
-            },
-            "is 3×3 but this environment needs 2×3",
-        ),
+        (lcrl_proto::v1::ConnectionGraph { g: vec![1, 0, 1], ..good.clone() }, "has 3 entries but a 2×3 graph needs 6"),
+        (lcrl_proto::v1::ConnectionGraph { g: vec![1, 0, 1, 0, 0, 0, 1], ..good.clone() }, "has 7 entries"),
+        (lcrl_proto::v1::ConnectionGraph { g: vec![1, 0, 1, 0, 7, 0], ..good.clone() }, "G[1][1] = 7"),
+        (lcrl_proto::v1::ConnectionGraph { actions: 3, ..good.clone() }, "is 3×3 but this environment needs 2×3"),
     ];
     for (message, needle) in cases {
         let err = mask_from_message(&message, 2, 3).unwrap_err();
         assert!(err.contains(needle), "{err}");
     }
-    let empty = lcrl_proto::v1::ConnectionGraph {
-        actions: 0,
-        states: 3,
-        g: vec![],
-        ..Default::default()
-    };
-    assert!(mask_from_message(&empty, 0, 3)
-        .unwrap_err()
-        .contains("no rows"));
+    let empty = lcrl_proto::v1::ConnectionGraph { actions: 0, states: 3, g: vec![], ..Default::default() };
+    assert!(mask_from_message(&empty, 0, 3).unwrap_err().contains("no rows"));
 }

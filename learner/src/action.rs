@@ -29,18 +29,8 @@ pub struct ActionMap {
 impl ActionMap {
     /// The plain map onto the box (no base controller).
     pub fn plain(spec: &EnvSpec) -> Self {
-        let centre = spec
-            .action_low
-            .iter()
-            .zip(&spec.action_high)
-            .map(|(lo, hi)| 0.5 * (lo + hi))
-            .collect();
-        ActionMap {
-            low: spec.action_low.clone(),
-            high: spec.action_high.clone(),
-            centre,
-            base: None,
-        }
+        let centre = spec.action_low.iter().zip(&spec.action_high).map(|(lo, hi)| 0.5 * (lo + hi)).collect();
+        ActionMap { low: spec.action_low.clone(), high: spec.action_high.clone(), centre, base: None }
     }
 
     /// The map around a base action (None: [`ActionMap::plain`]), which must
@@ -66,8 +56,7 @@ impl ActionMap {
             .enumerate()
             .map(|(i, &u)| {
                 let half = 0.5 * (self.high[i] - self.low[i]);
-                (self.centre[i] + f64::from(u).clamp(-1.0, 1.0) * half)
-                    .clamp(self.low[i], self.high[i])
+                (self.centre[i] + f64::from(u).clamp(-1.0, 1.0) * half).clamp(self.low[i], self.high[i])
             })
             .collect()
     }
@@ -79,11 +68,7 @@ impl ActionMap {
             .enumerate()
             .map(|(i, &a)| {
                 let half = 0.5 * (self.high[i] - self.low[i]);
-                if half > 0.0 {
-                    ((a - self.centre[i]) / half).clamp(-1.0, 1.0) as f32
-                } else {
-                    0.0
-                }
+                if half > 0.0 { ((a - self.centre[i]) / half).clamp(-1.0, 1.0) as f32 } else { 0.0 }
             })
             .collect()
     }
@@ -92,11 +77,7 @@ impl ActionMap {
 fn check_base(spec: &EnvSpec, base: &[f64]) -> Result<(), LearnerError> {
     let n = spec.action_dim();
     if base.len() != n {
-        return Err(LearnerError::Config(format!(
-            "controller.base has {} components but {} has {n} actions",
-            base.len(),
-            spec.name
-        )));
+        return Err(LearnerError::Config(format!("controller.base has {} components but {} has {n} actions", base.len(), spec.name)));
     }
     for (i, &b) in base.iter().enumerate() {
         let (lo, hi) = (spec.action_low[i], spec.action_high[i]);
@@ -119,15 +100,9 @@ struct TunedAction {
 
 /// Reads the `action` of a best_constant.json.
 pub fn read_best_constant(path: &std::path::Path) -> Result<Vec<f64>, LearnerError> {
-    let text = std::fs::read_to_string(path).map_err(|source| LearnerError::Io {
-        path: path.into(),
-        source,
-    })?;
+    let text = std::fs::read_to_string(path).map_err(|source| LearnerError::Io { path: path.into(), source })?;
     let tuned: TunedAction = serde_json::from_str(&text).map_err(|e| {
-        LearnerError::Config(format!(
-            "{}: not a best_constant.json of `lcrl tune` (an object with an `action` list): {e}",
-            path.display()
-        ))
+        LearnerError::Config(format!("{}: not a best_constant.json of `lcrl tune` (an object with an `action` list): {e}", path.display()))
     })?;
     Ok(tuned.action)
 }
@@ -135,10 +110,7 @@ pub fn read_best_constant(path: &std::path::Path) -> Result<Vec<f64>, LearnerErr
 /// The numeric base action of a controller setting on `spec`'s environment:
 /// None without a base; the best constant from `controller.best_constant_file`,
 /// else the one measured for a registered peg preset (docs/peg.md).
-pub fn resolve_base(
-    controller: &ControllerConfig,
-    spec: &EnvSpec,
-) -> Result<Option<Vec<f64>>, LearnerError> {
+pub fn resolve_base(controller: &ControllerConfig, spec: &EnvSpec) -> Result<Option<Vec<f64>>, LearnerError> {
     let base = match &controller.base {
         BaseController::None => return Ok(None),
         BaseController::Zero => vec![0.0; spec.action_dim()],
@@ -175,10 +147,7 @@ mod tests {
         let a = map.to_env(&u);
         assert_eq!(a, vec![-1.0, 0.5, 2.0, -1.0, 1.5, 4.0]);
         let back = map.to_normalized(&a);
-        assert!(
-            back.iter().zip(&u).all(|(x, y)| (x - y).abs() < 1e-6),
-            "{back:?}"
-        );
+        assert!(back.iter().zip(&u).all(|(x, y)| (x - y).abs() < 1e-6), "{back:?}");
     }
 
     #[test]
@@ -196,26 +165,16 @@ mod tests {
         // The inverse recovers u wherever the box did not clip.
         let u = [-0.3f32, -0.2, 0.1, 0.4, -0.1, 0.2];
         let back = map.to_normalized(&map.to_env(&u));
-        assert!(
-            back.iter().zip(&u).all(|(x, y)| (x - y).abs() < 1e-6),
-            "{back:?}"
-        );
+        assert!(back.iter().zip(&u).all(|(x, y)| (x - y).abs() < 1e-6), "{back:?}");
     }
 
     #[test]
     fn bad_bases_are_refused_with_the_component() {
         let spec = spec();
-        let err = ActionMap::new(&spec, Some(&[0.0; 5]))
-            .unwrap_err()
-            .to_string();
+        let err = ActionMap::new(&spec, Some(&[0.0; 5])).unwrap_err().to_string();
         assert!(err.contains("5 components"), "{err}");
-        let err = ActionMap::new(&spec, Some(&[0.0, 0.0, 0.0, 9.0, 0.0, 0.0]))
-            .unwrap_err()
-            .to_string();
-        assert!(
-            err.contains("controller.base[3]") && err.contains("dalpha"),
-            "{err}"
-        );
+        let err = ActionMap::new(&spec, Some(&[0.0, 0.0, 0.0, 9.0, 0.0, 0.0])).unwrap_err().to_string();
+        assert!(err.contains("controller.base[3]") && err.contains("dalpha"), "{err}");
     }
 
     #[test]
@@ -226,30 +185,19 @@ mod tests {
         c.base = BaseController::Zero;
         assert_eq!(resolve_base(&c, &spec).unwrap(), Some(vec![0.0; 6]));
         c.base = BaseController::BestConstant;
-        let measured = lcrl_sim::peg::measured_best_constant("peg-group1")
-            .unwrap()
-            .to_vec();
+        let measured = lcrl_sim::peg::measured_best_constant("peg-group1").unwrap().to_vec();
         assert_eq!(resolve_base(&c, &spec).unwrap(), Some(measured));
         // From a file, as `lcrl tune` writes it.
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("best_constant.json");
         std::fs::write(&path, r#"{"env": "peg-group1", "action": [1.0, 1.0, 0.0, 0.5, 0.5, 0.5], "mean_return": -3.0}"#).unwrap();
         c.best_constant_file = Some(path.clone());
-        assert_eq!(
-            resolve_base(&c, &spec).unwrap(),
-            Some(vec![1.0, 1.0, 0.0, 0.5, 0.5, 0.5])
-        );
+        assert_eq!(resolve_base(&c, &spec).unwrap(), Some(vec![1.0, 1.0, 0.0, 0.5, 0.5, 0.5]));
         std::fs::write(&path, "{}").unwrap();
-        assert!(resolve_base(&c, &spec)
-            .unwrap_err()
-            .to_string()
-            .contains("not a best_constant.json"));
+        assert!(resolve_base(&c, &spec).unwrap_err().to_string().contains("not a best_constant.json"));
         // No recorded constant for an unregistered environment.
         c.best_constant_file = None;
         let lti = lcrl_sim::make_env("lti-paper").unwrap().spec().clone();
-        assert!(resolve_base(&c, &lti)
-            .unwrap_err()
-            .to_string()
-            .contains("lcrl tune --env lti-paper"));
+        assert!(resolve_base(&c, &lti).unwrap_err().to_string().contains("lcrl tune --env lti-paper"));
     }
 }

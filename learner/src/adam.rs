@@ -27,14 +27,7 @@ impl Adam {
                 (name, (p, m, v))
             })
             .collect();
-        Adam {
-            lr,
-            beta1: 0.9,
-            beta2: 0.999,
-            eps: 1e-8,
-            step: 0,
-            slots,
-        }
+        Adam { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, step: 0, slots }
     }
 
     pub fn set_lr(&mut self, lr: f64) {
@@ -81,12 +74,8 @@ impl Adam {
                 if !g.defined() {
                     continue;
                 }
-                let _ = m
-                    .g_mul_scalar_(self.beta1)
-                    .g_add_(&(&g * (1.0 - self.beta1)));
-                let _ = v
-                    .g_mul_scalar_(self.beta2)
-                    .g_add_(&(&g * &g * (1.0 - self.beta2)));
+                let _ = m.g_mul_scalar_(self.beta1).g_add_(&(&g * (1.0 - self.beta1)));
+                let _ = v.g_mul_scalar_(self.beta2).g_add_(&(&g * &g * (1.0 - self.beta2)));
                 let denom = (&*v / bias2).sqrt() + self.eps;
                 let _ = p.g_sub_(&(&*m / denom * step_size));
             }
@@ -98,12 +87,7 @@ impl Adam {
         let mut out: Vec<(String, Tensor)> = self
             .slots
             .iter()
-            .flat_map(|(name, (_, m, v))| {
-                [
-                    (format!("{name}.m"), m.shallow_clone()),
-                    (format!("{name}.v"), v.shallow_clone()),
-                ]
-            })
+            .flat_map(|(name, (_, m, v))| [(format!("{name}.m"), m.shallow_clone()), (format!("{name}.v"), v.shallow_clone())])
             .collect();
         out.push(("step".into(), Tensor::from(self.step)));
         out
@@ -115,16 +99,10 @@ impl Adam {
         let step = find("step").ok_or("optimizer state lacks `step`")?;
         self.step = i64::try_from(step).map_err(|e| e.to_string())?;
         for (name, (_, m, v)) in self.slots.iter_mut() {
-            let saved_m = find(&format!("{name}.m"))
-                .ok_or_else(|| format!("optimizer state lacks {name}.m"))?;
-            let saved_v = find(&format!("{name}.v"))
-                .ok_or_else(|| format!("optimizer state lacks {name}.v"))?;
+            let saved_m = find(&format!("{name}.m")).ok_or_else(|| format!("optimizer state lacks {name}.m"))?;
+            let saved_v = find(&format!("{name}.v")).ok_or_else(|| format!("optimizer state lacks {name}.v"))?;
             if saved_m.size() != m.size() {
-                return Err(format!(
-                    "optimizer state for {name} has shape {:?}, expected {:?}",
-                    saved_m.size(),
-                    m.size()
-                ));
+                return Err(format!("optimizer state for {name} has shape {:?}, expected {:?}", saved_m.size(), m.size()));
             }
             tch::no_grad(|| {
                 m.copy_(saved_m);

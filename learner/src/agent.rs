@@ -89,31 +89,11 @@ pub trait Agent: Send {
 /// Builds the actor for a connection pattern. `mask` is G (n × m) for
 /// `Local`; ignored otherwise.
 /// Initial weights come from `seed` alone.
-pub fn build_actor(
-    path: &nn::Path,
-    connection: Connection,
-    mask: &[Vec<u8>],
-    m: usize,
-    n: usize,
-    cfg: &NetworkConfig,
-    seed: u64,
-) -> ActorNet {
+pub fn build_actor(path: &nn::Path, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, cfg: &NetworkConfig, seed: u64) -> ActorNet {
     let rng = &mut ChaCha8Rng::seed_from_u64(seed);
     match connection {
-        Connection::Local => ActorNet::Subnets(SubnetActor::new(
-            path,
-            mask,
-            &cfg.subnet_hidden,
-            cfg.activation,
-            rng,
-        )),
-        Connection::FullSubnets => ActorNet::Subnets(SubnetActor::new(
-            path,
-            &vec![vec![1; m]; n],
-            &cfg.subnet_hidden,
-            cfg.activation,
-            rng,
-        )),
+        Connection::Local => ActorNet::Subnets(SubnetActor::new(path, mask, &cfg.subnet_hidden, cfg.activation, rng)),
+        Connection::FullSubnets => ActorNet::Subnets(SubnetActor::new(path, &vec![vec![1; m]; n], &cfg.subnet_hidden, cfg.activation, rng)),
         Connection::Global => {
             let mut sizes = vec![m];
             sizes.extend_from_slice(&cfg.global_hidden);
@@ -128,12 +108,7 @@ pub fn build_critic(path: &nn::Path, inputs: usize, cfg: &NetworkConfig, seed: u
     let mut sizes = vec![inputs];
     sizes.extend_from_slice(&cfg.critic_hidden);
     sizes.push(1);
-    Mlp::new(
-        path,
-        &sizes,
-        cfg.activation,
-        &mut ChaCha8Rng::seed_from_u64(seed),
-    )
+    Mlp::new(path, &sizes, cfg.activation, &mut ChaCha8Rng::seed_from_u64(seed))
 }
 
 /// An RNG's exact position, for checkpoints.
@@ -147,23 +122,12 @@ pub struct RngState {
 
 impl RngState {
     pub fn of(rng: &ChaCha8Rng) -> Self {
-        RngState {
-            seed: rng.get_seed().to_vec(),
-            stream: rng.get_stream(),
-            word_pos: rng.get_word_pos().to_string(),
-        }
+        RngState { seed: rng.get_seed().to_vec(), stream: rng.get_stream(), word_pos: rng.get_word_pos().to_string() }
     }
 
     pub fn restore(&self) -> Result<ChaCha8Rng, LearnerError> {
-        let seed: [u8; 32] = self
-            .seed
-            .as_slice()
-            .try_into()
-            .map_err(|_| LearnerError::Checkpoint("bad RNG seed".into()))?;
-        let word_pos: u128 = self
-            .word_pos
-            .parse()
-            .map_err(|_| LearnerError::Checkpoint("bad RNG position".into()))?;
+        let seed: [u8; 32] = self.seed.as_slice().try_into().map_err(|_| LearnerError::Checkpoint("bad RNG seed".into()))?;
+        let word_pos: u128 = self.word_pos.parse().map_err(|_| LearnerError::Checkpoint("bad RNG position".into()))?;
         let mut rng = ChaCha8Rng::from_seed(seed);
         rng.set_stream(self.stream);
         rng.set_word_pos(word_pos);
@@ -173,63 +137,41 @@ impl RngState {
 
 /// Saves named tensors as safetensors, mapping errors.
 pub fn write_tensors(path: &Path, named: &[(String, tch::Tensor)]) -> Result<(), LearnerError> {
-    tch::Tensor::write_safetensors(named, path)
-        .map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+    tch::Tensor::write_safetensors(named, path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
 }
 
 pub fn read_tensors(path: &Path) -> Result<Vec<(String, tch::Tensor)>, LearnerError> {
-    tch::Tensor::read_safetensors(path)
-        .map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+    tch::Tensor::read_safetensors(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
 }
 
 pub fn save_vs(vs: &nn::VarStore, path: &Path) -> Result<(), LearnerError> {
-    vs.save(path)
-        .map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+    vs.save(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
 }
 
 pub fn load_vs(vs: &mut nn::VarStore, path: &Path) -> Result<(), LearnerError> {
-    vs.load(path)
-        .map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+    vs.load(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
 }
 
 /// Saves the actor and critic optimizers' state next to the weights.
-pub fn save_optimizers(
-    dir: &Path,
-    actor: &crate::adam::Adam,
-    critic: &crate::adam::Adam,
-) -> Result<(), LearnerError> {
+pub fn save_optimizers(dir: &Path, actor: &crate::adam::Adam, critic: &crate::adam::Adam) -> Result<(), LearnerError> {
     save_optimizer(dir, "actor", actor)?;
     save_optimizer(dir, "critic", critic)
 }
 
 /// Restores what [`save_optimizers`] wrote.
-pub fn load_optimizers(
-    dir: &Path,
-    actor: &mut crate::adam::Adam,
-    critic: &mut crate::adam::Adam,
-) -> Result<(), LearnerError> {
+pub fn load_optimizers(dir: &Path, actor: &mut crate::adam::Adam, critic: &mut crate::adam::Adam) -> Result<(), LearnerError> {
     load_optimizer(dir, "actor", actor)?;
     load_optimizer(dir, "critic", critic)
 }
 
 /// Writes one optimizer's state as `{name}_optimizer.safetensors`.
 pub fn save_optimizer(dir: &Path, name: &str, opt: &crate::adam::Adam) -> Result<(), LearnerError> {
-    write_tensors(
-        &dir.join(format!("{name}_optimizer.safetensors")),
-        &opt.state(),
-    )
+    write_tensors(&dir.join(format!("{name}_optimizer.safetensors")), &opt.state())
 }
 
 /// Restores what [`save_optimizer`] wrote.
-pub fn load_optimizer(
-    dir: &Path,
-    name: &str,
-    opt: &mut crate::adam::Adam,
-) -> Result<(), LearnerError> {
-    opt.load_state(&read_tensors(
-        &dir.join(format!("{name}_optimizer.safetensors")),
-    )?)
-    .map_err(LearnerError::Checkpoint)
+pub fn load_optimizer(dir: &Path, name: &str, opt: &mut crate::adam::Adam) -> Result<(), LearnerError> {
+    opt.load_state(&read_tensors(&dir.join(format!("{name}_optimizer.safetensors")))?).map_err(LearnerError::Checkpoint)
 }
 
 /// Writes an agent's non-tensor state (RNG, counters, …) as `agent.json`.
@@ -242,12 +184,8 @@ pub fn write_agent_state<T: Serialize>(dir: &Path, state: &T) -> Result<(), Lear
 /// Reads what [`write_agent_state`] wrote.
 pub fn read_agent_state<T: serde::de::DeserializeOwned>(dir: &Path) -> Result<T, LearnerError> {
     let path = dir.join("agent.json");
-    let text = std::fs::read_to_string(&path).map_err(|source| LearnerError::Io {
-        path: path.clone(),
-        source,
-    })?;
-    serde_json::from_str(&text)
-        .map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+    let text = std::fs::read_to_string(&path).map_err(|source| LearnerError::Io { path: path.clone(), source })?;
+    serde_json::from_str(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
 }
 
 /// A VarStore's variables sorted by name (stable order for publishing).

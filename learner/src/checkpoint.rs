@@ -14,10 +14,7 @@ use crate::snapshot::ActorShape;
 use crate::LearnerError;
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
-    move |source| LearnerError::Io {
-        path: path.to_path_buf(),
-        source,
-    }
+    move |source| LearnerError::Io { path: path.to_path_buf(), source }
 }
 
 /// Written next to the tensors of every checkpoint.
@@ -49,25 +46,10 @@ impl CheckpointMeta {
     /// The metadata of a run at its start (episode 0, nothing timed, no
     /// distributed state): what every writer fills in from.
     #[allow(clippy::too_many_arguments)]
-    pub fn start(
-        env: &str,
-        algo: Algo,
-        connection: Connection,
-        state_dim: usize,
-        action_dim: usize,
-        mask: Vec<Vec<u8>>,
-        config: TrainConfig,
-    ) -> Self {
+    pub fn start(env: &str, algo: Algo, connection: Connection, state_dim: usize, action_dim: usize, mask: Vec<Vec<u8>>, config: TrainConfig) -> Self {
         CheckpointMeta {
             episode: 0,
-            shape: ActorShape {
-                env: env.to_string(),
-                algo,
-                connection,
-                state_dim,
-                action_dim,
-                mask,
-            },
+            shape: ActorShape { env: env.to_string(), algo, connection, state_dim, action_dim, mask },
             config,
             graph_seconds: 0.0,
             optimization_seconds: 0.0,
@@ -102,16 +84,11 @@ pub fn latest_checkpoint(run_dir: &Path) -> Option<PathBuf> {
 pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, LearnerError> {
     let path = dir.join("checkpoint.json");
     let text = std::fs::read_to_string(&path).map_err(io(&path))?;
-    serde_json::from_str(&text)
-        .map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+    serde_json::from_str(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
 }
 
 /// Writes a checkpoint atomically: into a temporary folder, then renamed.
-pub fn write_checkpoint(
-    run_dir: &Path,
-    agent: &dyn Agent,
-    meta: &CheckpointMeta,
-) -> Result<PathBuf, LearnerError> {
+pub fn write_checkpoint(run_dir: &Path, agent: &dyn Agent, meta: &CheckpointMeta) -> Result<PathBuf, LearnerError> {
     let root = run_dir.join("checkpoints");
     std::fs::create_dir_all(&root).map_err(io(&root))?;
     let name = format!("ep{:06}", meta.episode);
@@ -119,8 +96,7 @@ pub fn write_checkpoint(
     let _ = std::fs::remove_dir_all(&staging);
     std::fs::create_dir_all(&staging).map_err(io(&staging))?;
     agent.save(&staging, meta.config.run.save_replay)?;
-    let text =
-        serde_json::to_string_pretty(meta).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    let text = serde_json::to_string_pretty(meta).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
     std::fs::write(staging.join("checkpoint.json"), text).map_err(io(&staging))?;
     let target = root.join(name);
     let _ = std::fs::remove_dir_all(&target);
@@ -135,9 +111,7 @@ pub const KEEP_CHECKPOINTS: usize = 3;
 
 /// Deletes all but the newest `keep` complete checkpoints.
 fn prune_checkpoints(root: &Path, keep: usize) {
-    let Ok(entries) = std::fs::read_dir(root) else {
-        return;
-    };
+    let Ok(entries) = std::fs::read_dir(root) else { return };
     let mut complete: Vec<PathBuf> = entries
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.join("checkpoint.json").is_file())

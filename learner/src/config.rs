@@ -339,13 +339,8 @@ impl TrainConfig {
     /// gets Table I's defaults (configs/table1-ddpg.toml, table1-ppo.toml).
     pub fn for_env(env: &str) -> (TrainConfig, &'static str) {
         let embedded = match env {
-            "lti-paper" => Some((
-                LTI_FAST,
-                "configs/lti-fast.toml (the settings for lti-paper)",
-            )),
-            name if lcrl_sim::peg::PegConfig::preset(name).is_some() => {
-                Some((PEG, "configs/peg.toml (the settings for the peg presets)"))
-            }
+            "lti-paper" => Some((LTI_FAST, "configs/lti-fast.toml (the settings for lti-paper)")),
+            name if lcrl_sim::peg::PegConfig::preset(name).is_some() => Some((PEG, "configs/peg.toml (the settings for the peg presets)")),
             _ => None,
         };
         match embedded {
@@ -363,36 +358,25 @@ impl TrainConfig {
     /// overrides laid over them (sections merge key by key), checked.
     pub fn for_env_with(env: &str, overrides: &toml::Table) -> Result<TrainConfig, LearnerError> {
         let (defaults, _) = Self::for_env(env);
-        let mut merged =
-            toml::Table::try_from(&defaults).map_err(|e| LearnerError::Config(e.to_string()))?;
+        let mut merged = toml::Table::try_from(&defaults).map_err(|e| LearnerError::Config(e.to_string()))?;
         overlay(&mut merged, overrides);
-        let cfg: TrainConfig = toml::Value::Table(merged)
-            .try_into()
-            .map_err(|e: toml::de::Error| LearnerError::Config(e.to_string()))?;
+        let cfg: TrainConfig = toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| LearnerError::Config(e.to_string()))?;
         cfg.validate()?;
         Ok(cfg)
     }
 
     /// Reads a TOML file whose missing keys keep `env`'s settings.
     pub fn load_for_env(path: &Path, env: &str) -> Result<Self, LearnerError> {
-        let text = std::fs::read_to_string(path).map_err(|source| LearnerError::Io {
-            path: path.into(),
-            source,
-        })?;
-        let table: toml::Table = toml::from_str(&text)
-            .map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))?;
-        Self::for_env_with(env, &table)
-            .map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))
+        let text = std::fs::read_to_string(path).map_err(|source| LearnerError::Io { path: path.into(), source })?;
+        let table: toml::Table = toml::from_str(&text).map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))?;
+        Self::for_env_with(env, &table).map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))
     }
 
     /// Reads a TOML file (missing keys keep their defaults).
     pub fn load(path: &Path) -> Result<Self, LearnerError> {
-        let text = std::fs::read_to_string(path).map_err(|source| LearnerError::Io {
-            path: path.into(),
-            source,
-        })?;
-        let cfg: TrainConfig = toml::from_str(&text)
-            .map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))?;
+        let text = std::fs::read_to_string(path).map_err(|source| LearnerError::Io { path: path.into(), source })?;
+        let cfg: TrainConfig =
+            toml::from_str(&text).map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -414,24 +398,12 @@ impl TrainConfig {
                 return bad(field, &format!("must be a finite number > 0, got {v}"));
             }
         }
-        for (field, v) in [
-            ("ddpg.gamma", self.ddpg.gamma),
-            ("ppo.gamma", self.ppo.gamma),
-            ("ppo.gae_lambda", self.ppo.gae_lambda),
-            ("ddpg.tau", self.ddpg.tau),
-        ] {
+        for (field, v) in [("ddpg.gamma", self.ddpg.gamma), ("ppo.gamma", self.ppo.gamma), ("ppo.gae_lambda", self.ppo.gae_lambda), ("ddpg.tau", self.ddpg.tau)] {
             if !(0.0..=1.0).contains(&v) {
                 return bad(field, &format!("must be within [0, 1], got {v}"));
             }
         }
-        for (field, v) in [
-            ("ddpg.noise_start", self.ddpg.noise_start),
-            ("ddpg.noise_end", self.ddpg.noise_end),
-            ("ddpg.target_noise", self.ddpg.target_noise),
-            ("ddpg.preactivation_l2", self.ddpg.preactivation_l2),
-            ("ddpg.huber_delta", self.ddpg.huber_delta),
-            ("ppo.entropy_coef", self.ppo.entropy_coef),
-        ] {
+        for (field, v) in [("ddpg.noise_start", self.ddpg.noise_start), ("ddpg.noise_end", self.ddpg.noise_end), ("ddpg.target_noise", self.ddpg.target_noise), ("ddpg.preactivation_l2", self.ddpg.preactivation_l2), ("ddpg.huber_delta", self.ddpg.huber_delta), ("ppo.entropy_coef", self.ppo.entropy_coef)] {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(field, &format!("must be a finite number ≥ 0, got {v}"));
             }
@@ -457,30 +429,16 @@ impl TrainConfig {
                 return bad(field, "must be at least 1");
             }
         }
-        for (field, sizes) in [
-            ("network.global_hidden", &self.network.global_hidden),
-            ("network.subnet_hidden", &self.network.subnet_hidden),
-            ("network.critic_hidden", &self.network.critic_hidden),
-        ] {
+        for (field, sizes) in [("network.global_hidden", &self.network.global_hidden), ("network.subnet_hidden", &self.network.subnet_hidden), ("network.critic_hidden", &self.network.critic_hidden)] {
             if sizes.is_empty() || sizes.contains(&0) {
                 return bad(field, "must list at least one layer width, each at least 1");
             }
         }
         if self.run.threads > crate::device::MAX_THREADS {
-            return bad(
-                "run.threads",
-                &format!(
-                    "must be 0 (automatic) or a thread count up to {}, got {}",
-                    crate::device::MAX_THREADS,
-                    self.run.threads
-                ),
-            );
+            return bad("run.threads", &format!("must be 0 (automatic) or a thread count up to {}, got {}", crate::device::MAX_THREADS, self.run.threads));
         }
         if !matches!(self.run.device.as_str(), "cpu" | "cuda") {
-            return bad(
-                "run.device",
-                &format!("must be \"cpu\" or \"cuda\", got \"{}\"", self.run.device),
-            );
+            return bad("run.device", &format!("must be \"cpu\" or \"cuda\", got \"{}\"", self.run.device));
         }
         Ok(())
     }
@@ -506,10 +464,7 @@ mod tests {
     fn defaults_follow_table_1_and_validate() {
         let cfg = TrainConfig::default();
         cfg.validate().unwrap();
-        assert_eq!(
-            (cfg.ddpg.actor_lr, cfg.ddpg.critic_lr, cfg.ddpg.tau),
-            (1e-3, 1e-2, 1e-3)
-        );
+        assert_eq!((cfg.ddpg.actor_lr, cfg.ddpg.critic_lr, cfg.ddpg.tau), (1e-3, 1e-2, 1e-3));
         assert_eq!((cfg.ppo.actor_lr, cfg.ppo.critic_lr), (1e-4, 1e-3));
     }
 
@@ -520,10 +475,7 @@ mod tests {
         let file: TrainConfig = toml::from_str(LTI_FAST).unwrap();
         assert_eq!(lti, file);
         lti.validate().unwrap();
-        assert_eq!(
-            lti.run.episodes, 1000,
-            "lti-fast.toml's budget is 1000 episodes"
-        );
+        assert_eq!(lti.run.episodes, 1000, "lti-fast.toml's budget is 1000 episodes");
         assert_eq!(lti.network.activation, Activation::Elu);
         let (peg, source) = TrainConfig::for_env("peg-group1");
         assert!(source.contains("configs/peg.toml"), "{source}");
@@ -532,10 +484,7 @@ mod tests {
         for name in lcrl_sim::peg::PegConfig::NAMES {
             assert_eq!(TrainConfig::for_env(name).0, peg, "{name}");
         }
-        assert_eq!(
-            TrainConfig::for_env("grpc://127.0.0.1:1").0,
-            TrainConfig::default()
-        );
+        assert_eq!(TrainConfig::for_env("grpc://127.0.0.1:1").0, TrainConfig::default());
     }
 
     /// The named Table I files hold exactly the publication's settings
@@ -544,24 +493,14 @@ mod tests {
     #[test]
     fn table1_files_are_table1_over_any_environment() {
         for name in ["table1-ddpg.toml", "table1-ppo.toml"] {
-            let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-                .join("../configs")
-                .join(name);
+            let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs").join(name);
             for env in ["peg-group1", "lti-paper"] {
                 let cfg = TrainConfig::load_for_env(&path, env).unwrap();
                 let table1 = TrainConfig::default();
                 if name.contains("ddpg") {
-                    assert_eq!(
-                        (&cfg.ddpg, &cfg.network, &cfg.controller),
-                        (&table1.ddpg, &table1.network, &table1.controller),
-                        "{name} over {env}"
-                    );
+                    assert_eq!((&cfg.ddpg, &cfg.network, &cfg.controller), (&table1.ddpg, &table1.network, &table1.controller), "{name} over {env}");
                 } else {
-                    assert_eq!(
-                        (&cfg.ppo, &cfg.network, &cfg.controller),
-                        (&table1.ppo, &table1.network, &table1.controller),
-                        "{name} over {env}"
-                    );
+                    assert_eq!((&cfg.ppo, &cfg.network, &cfg.controller), (&table1.ppo, &table1.network, &table1.controller), "{name} over {env}");
                 }
             }
         }
@@ -570,10 +509,7 @@ mod tests {
     #[test]
     fn bad_values_name_the_field() {
         let err = |text: &str| -> String {
-            match toml::from_str::<TrainConfig>(text)
-                .map_err(|e| e.to_string())
-                .and_then(|c| c.validate().map_err(|e| e.to_string()))
-            {
+            match toml::from_str::<TrainConfig>(text).map_err(|e| e.to_string()).and_then(|c| c.validate().map_err(|e| e.to_string())) {
                 Err(e) => e,
                 Ok(()) => panic!("accepted {text}"),
             }

@@ -25,9 +25,8 @@ use tch::{nn, Device, Kind, Tensor};
 
 use crate::adam::Adam;
 use crate::agent::{
-    build_actor, build_critic, load_optimizer, load_vs, read_agent_state, read_tensors,
-    save_optimizer, save_vs, write_agent_state, write_tensors, Agent, Counters, RngState,
-    Transition,
+    build_actor, build_critic, load_optimizer, load_vs, read_agent_state, read_tensors, save_optimizer, save_vs, write_agent_state, write_tensors, Agent,
+    Counters, RngState, Transition,
 };
 use crate::config::{Connection, DdpgConfig, NetworkConfig};
 use crate::nets::{batch, ActorNet, Mlp};
@@ -70,48 +69,25 @@ struct Critic {
 }
 
 impl Critic {
-    fn new(
-        name: &'static str,
-        cfg: &DdpgConfig,
-        net: &NetworkConfig,
-        inputs: usize,
-        seed: u64,
-        device: Device,
-    ) -> Self {
+    fn new(name: &'static str, cfg: &DdpgConfig, net: &NetworkConfig, inputs: usize, seed: u64, device: Device) -> Self {
         let vs = nn::VarStore::new(device);
         let critic = build_critic(&vs.root(), inputs, net, seed);
         let mut target_vs = nn::VarStore::new(device);
         let target = build_critic(&target_vs.root(), inputs, net, seed);
         // The target starts as an exact copy (same variable names by construction).
         let _ = target_vs.copy(&vs);
-        Critic {
-            name,
-            opt: Adam::new(&vs, cfg.critic_lr),
-            vs,
-            net: critic,
-            target_vs,
-            target,
-        }
+        Critic { name, opt: Adam::new(&vs, cfg.critic_lr), vs, net: critic, target_vs, target }
     }
 
     fn save(&self, dir: &Path) -> Result<(), LearnerError> {
         save_vs(&self.vs, &dir.join(format!("{}.safetensors", self.name)))?;
-        save_vs(
-            &self.target_vs,
-            &dir.join(format!("{}_target.safetensors", self.name)),
-        )?;
+        save_vs(&self.target_vs, &dir.join(format!("{}_target.safetensors", self.name)))?;
         save_optimizer(dir, self.name, &self.opt)
     }
 
     fn load(&mut self, dir: &Path) -> Result<(), LearnerError> {
-        load_vs(
-            &mut self.vs,
-            &dir.join(format!("{}.safetensors", self.name)),
-        )?;
-        load_vs(
-            &mut self.target_vs,
-            &dir.join(format!("{}_target.safetensors", self.name)),
-        )?;
+        load_vs(&mut self.vs, &dir.join(format!("{}.safetensors", self.name)))?;
+        load_vs(&mut self.target_vs, &dir.join(format!("{}_target.safetensors", self.name)))?;
         load_optimizer(dir, self.name, &mut self.opt)
     }
 }
@@ -126,51 +102,19 @@ struct DdpgState {
 
 impl Ddpg {
     #[allow(clippy::too_many_arguments)]
-    pub fn new(
-        cfg: &DdpgConfig,
-        net: &NetworkConfig,
-        connection: Connection,
-        mask: &[Vec<u8>],
-        m: usize,
-        n: usize,
-        seed: u64,
-        device: Device,
-    ) -> Self {
+    pub fn new(cfg: &DdpgConfig, net: &NetworkConfig, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, seed: u64, device: Device) -> Self {
         let actor_vs = nn::VarStore::new(device);
         let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
         let mut actor_target_vs = nn::VarStore::new(device);
-        let actor_target = build_actor(
-            &actor_target_vs.root(),
-            connection,
-            mask,
-            m,
-            n,
-            net,
-            seed ^ 0xAC70,
-        );
+        let actor_target = build_actor(&actor_target_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
         // The target starts as an exact copy (same variable names by construction).
         let _ = actor_target_vs.copy(&actor_vs);
-        let mut critics = vec![Critic::new(
-            "critic",
-            cfg,
-            net,
-            m + n,
-            seed ^ 0xC717,
-            device,
-        )];
+        let mut critics = vec![Critic::new("critic", cfg, net, m + n, seed ^ 0xC717, device)];
         if cfg.twin_critics {
-            critics.push(Critic::new(
-                "critic2",
-                cfg,
-                net,
-                m + n,
-                seed ^ 0xC718,
-                device,
-            ));
+            critics.push(Critic::new("critic2", cfg, net, m + n, seed ^ 0xC718, device));
         }
         let mut soft_pairs = Vec::new();
-        let stores = std::iter::once((&actor_target_vs, &actor_vs))
-            .chain(critics.iter().map(|c| (&c.target_vs, &c.vs)));
+        let stores = std::iter::once((&actor_target_vs, &actor_vs)).chain(critics.iter().map(|c| (&c.target_vs, &c.vs)));
         for (target, source) in stores {
             let sources = source.variables();
             for (name, t) in target.variables() {
@@ -207,31 +151,18 @@ impl Ddpg {
 
     /// One DDPG update on a minibatch from the replay buffer.
     fn update(&mut self) {
-        let b = self
-            .replay
-            .sample(self.cfg.batch_size, &mut self.rng)
-            .to_device(self.device);
+        let b = self.replay.sample(self.cfg.batch_size, &mut self.rng).to_device(self.device);
         let target: Tensor = tch::no_grad(|| {
             let mut next_action = self.actor_target.forward(&b.next_obs);
             if self.cfg.target_noise > 0.0 {
-                let noise =
-                    Normal::new(0.0, self.cfg.target_noise).expect("validated target_noise");
-                let values: Vec<f32> = (0..next_action.numel())
-                    .map(|_| noise.sample(&mut self.rng).clamp(-0.5, 0.5) as f32)
-                    .collect();
-                let noise = Tensor::from_slice(&values)
-                    .to_device(self.device)
-                    .view_as(&next_action);
+                let noise = Normal::new(0.0, self.cfg.target_noise).expect("validated target_noise");
+                let values: Vec<f32> = (0..next_action.numel()).map(|_| noise.sample(&mut self.rng).clamp(-0.5, 0.5) as f32).collect();
+                let noise = Tensor::from_slice(&values).to_device(self.device).view_as(&next_action);
                 next_action = (next_action + noise).clamp(-1.0, 1.0);
             }
             // With twin critics, the smaller of the two target values (TD3).
             let next_input = Tensor::cat(&[&b.next_obs, &next_action], 1);
-            let next_q = self
-                .critics
-                .iter()
-                .map(|c| c.target.forward(&next_input))
-                .reduce(|a, b| a.minimum(&b))
-                .expect("at least one critic");
+            let next_q = self.critics.iter().map(|c| c.target.forward(&next_input)).reduce(|a, b| a.minimum(&b)).expect("at least one critic");
             &b.reward + self.cfg.gamma * (1.0 - &b.done) * next_q
         });
         let input = Tensor::cat(&[&b.obs, &b.action], 1);
@@ -252,14 +183,8 @@ impl Ddpg {
         }
 
         let raw = self.actor.forward_raw(&b.obs);
-        let q = self.critics[0]
-            .net
-            .forward(&Tensor::cat(&[&b.obs, &raw.tanh()], 1));
-        let l2 = if self.cfg.preactivation_anneal {
-            self.cfg.preactivation_l2 * (1.0 - self.progress)
-        } else {
-            self.cfg.preactivation_l2
-        };
+        let q = self.critics[0].net.forward(&Tensor::cat(&[&b.obs, &raw.tanh()], 1));
+        let l2 = if self.cfg.preactivation_anneal { self.cfg.preactivation_l2 * (1.0 - self.progress) } else { self.cfg.preactivation_l2 };
         let actor_loss = -q.mean(Kind::Float) + l2 * raw.square().mean(Kind::Float);
         self.actor_opt.zero_grad();
         actor_loss.backward();
@@ -279,17 +204,13 @@ impl Ddpg {
 impl Agent for Ddpg {
     fn explore(&mut self, obs: &[f32], episode: usize) -> Vec<f32> {
         if self.replay.len() < self.cfg.warmup_steps {
-            return (0..self.action_dim)
-                .map(|_| self.rng.random_range(-1.0..=1.0))
-                .collect();
+            return (0..self.action_dim).map(|_| self.rng.random_range(-1.0..=1.0)).collect();
         }
         let std = self.noise_std(episode);
         let mean = self.act(obs);
         // Cannot fail: std is finite and ≥ 0 (validated config).
         let noise = Normal::new(0.0, std).expect("validated noise");
-        mean.iter()
-            .map(|&a| (f64::from(a) + noise.sample(&mut self.rng)).clamp(-1.0, 1.0) as f32)
-            .collect()
+        mean.iter().map(|&a| (f64::from(a) + noise.sample(&mut self.rng)).clamp(-1.0, 1.0) as f32).collect()
     }
 
     fn act(&self, obs: &[f32]) -> Vec<f32> {
@@ -300,8 +221,7 @@ impl Agent for Ddpg {
     }
 
     fn store(&mut self, t: Transition) {
-        self.replay
-            .push(t.obs, t.action, t.reward, t.next_obs, t.terminated);
+        self.replay.push(t.obs, t.action, t.reward, t.next_obs, t.terminated);
         self.counters.env_steps += 1;
     }
 
@@ -343,10 +263,7 @@ impl Agent for Ddpg {
     }
 
     fn exploration(&self, episodes: usize) -> Option<(bool, f64)> {
-        Some((
-            self.replay.len() < self.cfg.warmup_steps,
-            self.noise_std(episodes),
-        ))
+        Some((self.replay.len() < self.cfg.warmup_steps, self.noise_std(episodes)))
     }
 
     fn samples_per_update(&self) -> usize {
@@ -379,33 +296,21 @@ impl Agent for Ddpg {
         if include_buffer {
             write_tensors(&dir.join("replay.safetensors"), &self.replay.to_tensors())?;
         }
-        let state = DdpgState {
-            rng: RngState::of(&self.rng),
-            counters: self.counters,
-            critic_updates: self.critic_updates,
-        };
+        let state = DdpgState { rng: RngState::of(&self.rng), counters: self.counters, critic_updates: self.critic_updates };
         write_agent_state(dir, &state)
     }
 
     fn load(&mut self, dir: &Path) -> Result<(), LearnerError> {
         load_vs(&mut self.actor_vs, &dir.join("actor.safetensors"))?;
-        load_vs(
-            &mut self.actor_target_vs,
-            &dir.join("actor_target.safetensors"),
-        )?;
+        load_vs(&mut self.actor_target_vs, &dir.join("actor_target.safetensors"))?;
         load_optimizer(dir, "actor", &mut self.actor_opt)?;
         for critic in &mut self.critics {
             critic.load(dir)?;
         }
         let replay = dir.join("replay.safetensors");
         if replay.is_file() {
-            self.replay = ReplayBuffer::from_tensors(
-                self.cfg.buffer_capacity,
-                self.obs_dim,
-                self.action_dim,
-                &read_tensors(&replay)?,
-            )
-            .map_err(LearnerError::Checkpoint)?;
+            self.replay = ReplayBuffer::from_tensors(self.cfg.buffer_capacity, self.obs_dim, self.action_dim, &read_tensors(&replay)?)
+                .map_err(LearnerError::Checkpoint)?;
         }
         let state: DdpgState = read_agent_state(dir)?;
         self.rng = state.rng.restore()?;
@@ -438,45 +343,21 @@ mod tests {
             let mut cfg = TrainConfig::default();
             cfg.network.global_hidden = vec![64, 64];
             cfg.network.critic_hidden = vec![64, 64];
-            let ddpg = DdpgConfig {
-                actor_lr: 1e-3,
-                critic_lr: 1e-3,
-                tau: 0.01,
-                gamma: 0.95,
-                batch_size: 128,
-                warmup_steps: 0,
-                twin_critics,
-                ..cfg.ddpg
-            };
-            let mut agent = Ddpg::new(
-                &ddpg,
-                &cfg.network,
-                Connection::Global,
-                &[vec![1]],
-                1,
-                1,
-                3,
-                Device::Cpu,
-            );
+            let ddpg = DdpgConfig { actor_lr: 1e-3, critic_lr: 1e-3, tau: 0.01, gamma: 0.95, batch_size: 128, warmup_steps: 0, twin_critics, ..cfg.ddpg };
+            let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1]], 1, 1, 3, Device::Cpu);
             assert_eq!(agent.critics.len(), if twin_critics { 2 } else { 1 });
             let mut rng = ChaCha8Rng::seed_from_u64(4);
             for _ in 0..5000 {
                 let s: f32 = rng.random_range(-2.0..2.0);
                 let a: f32 = rng.random_range(-1.0..1.0);
-                agent
-                    .replay
-                    .push(&[s], &[a], -(s * s + 0.1 * a * a), &[s + a], false);
+                agent.replay.push(&[s], &[a], -(s * s + 0.1 * a * a), &[s + a], false);
             }
             for _ in 0..4000 {
                 agent.update();
             }
             for s in [-0.5f32, -0.25, 0.25, 0.5] {
                 let a = agent.act(&[s])[0];
-                assert!(
-                    (a + 0.91 * s).abs() < 0.1,
-                    "twin critics {twin_critics}: μ({s}) = {a}, optimum {}",
-                    -0.91 * s
-                );
+                assert!((a + 0.91 * s).abs() < 0.1, "twin critics {twin_critics}: μ({s}) = {a}, optimum {}", -0.91 * s);
             }
         }
     }

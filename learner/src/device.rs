@@ -51,9 +51,7 @@ impl std::fmt::Display for CudaLibrary {
 pub fn load_cuda() -> &'static CudaLibrary {
     static LOADED: OnceLock<CudaLibrary> = OnceLock::new();
     LOADED.get_or_init(|| {
-        let Some(dir) = LIBTORCH_LIB else {
-            return CudaLibrary::CpuOnlyBuild;
-        };
+        let Some(dir) = LIBTORCH_LIB else { return CudaLibrary::CpuOnlyBuild };
         let path = PathBuf::from(dir).join("libtorch_cuda.so");
         if !path.is_file() {
             return CudaLibrary::CpuOnlyBuild;
@@ -96,9 +94,7 @@ pub fn resolve_device(name: &str) -> Result<tch::Device, LearnerError> {
             };
             Err(LearnerError::Config(format!("device \"cuda\" asked for, but CUDA is not available: {why}; use device \"cpu\" (`lcrl doctor` shows what libtorch sees)")))
         }
-        other => Err(LearnerError::Config(format!(
-            "device must be \"cpu\" or \"cuda\", got {other:?}"
-        ))),
+        other => Err(LearnerError::Config(format!("device must be \"cpu\" or \"cuda\", got {other:?}"))),
     }
 }
 
@@ -149,16 +145,12 @@ mod tests {
     /// backend library is really mapped into this process afterwards.
     #[test]
     fn the_cuda_backend_library_is_loaded_when_libtorch_has_one() {
-        let has_cuda_build =
-            LIBTORCH_LIB.is_some_and(|dir| PathBuf::from(dir).join("libtorch_cuda.so").is_file());
+        let has_cuda_build = LIBTORCH_LIB.is_some_and(|dir| PathBuf::from(dir).join("libtorch_cuda.so").is_file());
         let status = load_cuda();
         let maps = std::fs::read_to_string("/proc/self/maps").unwrap_or_default();
         if has_cuda_build {
             assert!(matches!(status, CudaLibrary::Loaded(_)), "{status}");
-            assert!(
-                maps.contains("libtorch_cuda.so"),
-                "libtorch_cuda.so is not mapped after load_cuda"
-            );
+            assert!(maps.contains("libtorch_cuda.so"), "libtorch_cuda.so is not mapped after load_cuda");
         } else {
             assert_eq!(*status, CudaLibrary::CpuOnlyBuild);
         }
@@ -173,10 +165,7 @@ mod tests {
             Err(e) => {
                 assert!(!cuda_available());
                 let text = e.to_string();
-                assert!(
-                    text.contains("CUDA is not available") && text.contains("use device \"cpu\""),
-                    "{text}"
-                );
+                assert!(text.contains("CUDA is not available") && text.contains("use device \"cpu\""), "{text}");
             }
         }
     }

@@ -21,27 +21,15 @@ fn vector() -> impl Strategy<Value = Vec<f32>> {
 }
 
 fn transition() -> impl Strategy<Value = Transition> {
-    (
-        vector(),
-        vector(),
-        value(),
-        vector(),
-        any::<(bool, bool)>(),
-        any::<u64>(),
-    )
-        .prop_map(
-            |(state, action, reward, next_state, (terminated, truncated), policy_version)| {
-                Transition {
-                    state,
-                    action,
-                    reward,
-                    next_state,
-                    terminated,
-                    truncated,
-                    policy_version,
-                }
-            },
-        )
+    (vector(), vector(), value(), vector(), any::<(bool, bool)>(), any::<u64>()).prop_map(|(state, action, reward, next_state, (terminated, truncated), policy_version)| Transition {
+        state,
+        action,
+        reward,
+        next_state,
+        terminated,
+        truncated,
+        policy_version,
+    })
 }
 
 fn batch() -> impl Strategy<Value = TransitionBatch> {
@@ -53,68 +41,37 @@ fn batch() -> impl Strategy<Value = TransitionBatch> {
         proptest::collection::vec(transition(), 0..40),
         proptest::collection::vec((any::<f64>(), any::<u32>(), any::<Option<bool>>()), 0..5),
     )
-        .prop_map(
-            |(run_id, actor_id, sequence, policy_version, transitions, episodes)| TransitionBatch {
-                run_id,
-                actor_id,
-                sequence,
-                episode_id: 0,
-                policy_version,
-                transitions,
-                episodes: episodes
-                    .into_iter()
-                    .map(|(episode_return, length, success)| EpisodeSummary {
-                        episode_return,
-                        length,
-                        success,
-                    })
-                    .collect(),
-            },
-        )
+        .prop_map(|(run_id, actor_id, sequence, policy_version, transitions, episodes)| TransitionBatch {
+            run_id,
+            actor_id,
+            sequence,
+            episode_id: 0,
+            policy_version,
+            transitions,
+            episodes: episodes.into_iter().map(|(episode_return, length, success)| EpisodeSummary { episode_return, length, success }).collect(),
+        })
 }
 
 fn ingest() -> Ingest {
-    Ingest::new(
-        "run-a",
-        lcrl_sim::make_env("lti-paper").expect("registered"),
-        Some(2),
-    )
+    Ingest::new("run-a", lcrl_sim::make_env("lti-paper").expect("registered"), Some(2))
 }
 
 /// Checks one batch and the invariants of its verdict.
 fn check_invariants(ingest: &mut Ingest, batch: &TransitionBatch) -> Result<(), TestCaseError> {
-    let (accepted_before, refused_before) =
-        (ingest.accepted, ingest.rejected.values().sum::<u64>());
+    let (accepted_before, refused_before) = (ingest.accepted, ingest.rejected.values().sum::<u64>());
     match ingest.check(batch, 5) {
         Verdict::Accept(accepted) => {
             prop_assert_eq!(accepted.transitions.len(), batch.transitions.len());
-            prop_assert_eq!(
-                ingest.accepted,
-                accepted_before + batch.transitions.len() as u64
-            );
+            prop_assert_eq!(ingest.accepted, accepted_before + batch.transitions.len() as u64);
             for t in &accepted.transitions {
                 prop_assert!(t.obs.len() == 3 && t.next_obs.len() == 3 && t.action.len() == 3);
-                prop_assert!(
-                    t.obs
-                        .iter()
-                        .chain(&t.next_obs)
-                        .chain(&t.action)
-                        .all(|v| v.is_finite())
-                        && t.reward.is_finite()
-                );
+                prop_assert!(t.obs.iter().chain(&t.next_obs).chain(&t.action).all(|v| v.is_finite()) && t.reward.is_finite());
                 prop_assert!(t.action.iter().all(|a| (-1.0..=1.0).contains(a)));
             }
         }
         _ => {
-            prop_assert_eq!(
-                ingest.accepted,
-                accepted_before,
-                "a refused batch stores nothing"
-            );
-            prop_assert!(
-                ingest.rejected.values().sum::<u64>() > refused_before,
-                "every refusal is counted"
-            );
+            prop_assert_eq!(ingest.accepted, accepted_before, "a refused batch stores nothing");
+            prop_assert!(ingest.rejected.values().sum::<u64>() > refused_before, "every refusal is counted");
         }
     }
     Ok(())
@@ -199,34 +156,17 @@ fn snapshot_weights_with_nan_or_the_wrong_shape_are_refused() {
     let good = Policy::from_snapshot(&a, &valid_weights(None), 1);
     assert!(good.is_ok(), "{:?}", good.err());
     let nan = valid_weights(Some(f32::NAN));
-    assert!(Policy::from_snapshot(&a, &nan, 1)
-        .err()
-        .map(|e| e.to_string())
-        .unwrap_or_default()
-        .contains("non-finite"));
-    let wrong = crate::snapshot::encode_weights(&[(
-        "nets.0.layer0.weight".into(),
-        Tensor::zeros([2, 2], (tch::Kind::Float, tch::Device::Cpu)),
-    )])
-    .expect("encodes");
+    assert!(Policy::from_snapshot(&a, &nan, 1).err().map(|e| e.to_string()).unwrap_or_default().contains("non-finite"));
+    let wrong = crate::snapshot::encode_weights(&[("nets.0.layer0.weight".into(), Tensor::zeros([2, 2], (tch::Kind::Float, tch::Device::Cpu)))]).expect("encodes");
     assert!(Policy::from_snapshot(&a, &wrong, 1).is_err());
 }
 
 /// The weights of a freshly built actor of `architecture()`, optionally
 /// with one value replaced.
 fn valid_weights(poison: Option<f32>) -> Vec<u8> {
-    let arch: crate::snapshot::Architecture =
-        serde_json::from_value(architecture()).expect("valid architecture");
+    let arch: crate::snapshot::Architecture = serde_json::from_value(architecture()).expect("valid architecture");
     let vs = tch::nn::VarStore::new(tch::Device::Cpu);
-    let _actor = crate::agent::build_actor(
-        &vs.root(),
-        arch.shape.connection,
-        &arch.shape.mask,
-        3,
-        3,
-        &arch.network,
-        0,
-    );
+    let _actor = crate::agent::build_actor(&vs.root(), arch.shape.connection, &arch.shape.mask, 3, 3, &arch.network, 0);
     let named: Vec<(String, tch::Tensor)> = vs
         .variables()
         .into_iter()

@@ -50,16 +50,13 @@ pub enum LearnerError {
     #[error("training config: {0}")]
     Config(String),
     #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    Io { path: PathBuf, source: std::io::Error },
     #[error("checkpoint: {0}")]
     Checkpoint(String),
     #[error("{0}")]
     Mismatch(String),
 }
 #[cfg(test)]
-mod hostile_tests;
-#[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod hostile_tests;

@@ -15,13 +15,7 @@ use lcrl_sim::lti::LtiEnv;
 use nalgebra::{DMatrix, DVector};
 
 /// The time-varying LQR gains K_0 … K_{T−1}.
-pub fn lqr_gains(
-    e: &DMatrix<f64>,
-    f: &DMatrix<f64>,
-    q: &DMatrix<f64>,
-    r: &DMatrix<f64>,
-    horizon: usize,
-) -> Option<Vec<DMatrix<f64>>> {
+pub fn lqr_gains(e: &DMatrix<f64>, f: &DMatrix<f64>, q: &DMatrix<f64>, r: &DMatrix<f64>, horizon: usize) -> Option<Vec<DMatrix<f64>>> {
     let mut p = DMatrix::zeros(e.nrows(), e.nrows());
     let mut gains = Vec::with_capacity(horizon);
     for _ in 0..horizon {
@@ -37,13 +31,7 @@ pub fn lqr_gains(
 /// `seed`, `seed + 1`, …; None when the Riccati recursion is singular.
 pub fn lqr_return(env: &LtiEnv, episodes: usize, seed: u64) -> Option<f64> {
     let system = env.system();
-    let gains = lqr_gains(
-        &system.e,
-        &system.f,
-        &system.q,
-        &system.r,
-        system.episode_steps,
-    )?;
+    let gains = lqr_gains(&system.e, &system.f, &system.q, &system.r, system.episode_steps)?;
     let mut env = env.clone();
     let mut total = 0.0;
     for k in 0..episodes {
@@ -53,24 +41,14 @@ pub fn lqr_return(env: &LtiEnv, episodes: usize, seed: u64) -> Option<f64> {
             t += 1;
             a.as_slice().to_vec()
         };
-        total += run_episode(&mut env, seed.wrapping_add(k as u64), &mut policy, false)
-            .ok()?
-            .episode_return;
+        total += run_episode(&mut env, seed.wrapping_add(k as u64), &mut policy, false).ok()?.episode_return;
     }
     Some(total / episodes.max(1) as f64)
 }
 
 /// Expected cost Σ_t E[sᵀQs + aᵀRa] over `horizon` steps of a = −K s, for
 /// s_0 with second moment `sigma0` (clipping ignored).
-fn linear_policy_cost(
-    e: &DMatrix<f64>,
-    f: &DMatrix<f64>,
-    q: &DMatrix<f64>,
-    r: &DMatrix<f64>,
-    k: &DMatrix<f64>,
-    sigma0: &DMatrix<f64>,
-    horizon: usize,
-) -> f64 {
+fn linear_policy_cost(e: &DMatrix<f64>, f: &DMatrix<f64>, q: &DMatrix<f64>, r: &DMatrix<f64>, k: &DMatrix<f64>, sigma0: &DMatrix<f64>, horizon: usize) -> f64 {
     let closed = e - f * k;
     let stage = q + k.transpose() * r * k;
     let mut sigma = sigma0.clone();
@@ -94,19 +72,10 @@ pub fn masked_lqr_gain(env: &LtiEnv, mask: &[Vec<u8>]) -> Option<DMatrix<f64>> {
     let sigma0 = DMatrix::from_fn(m, m, |i, j| {
         let (lo, hi) = (s.initial_low[i], s.initial_high[i]);
         let mean = |k: usize| (s.initial_low[k] + s.initial_high[k]) / 2.0;
-        if i == j {
-            (hi - lo).powi(2) / 12.0 + mean(i).powi(2)
-        } else {
-            mean(i) * mean(j)
-        }
+        if i == j { (hi - lo).powi(2) / 12.0 + mean(i).powi(2) } else { mean(i) * mean(j) }
     });
-    let free: Vec<(usize, usize)> = (0..mask.len())
-        .flat_map(|i| (0..m).map(move |j| (i, j)))
-        .filter(|&(i, j)| mask[i][j] == 1)
-        .collect();
-    let mut k = lqr_gains(&s.e, &s.f, &s.q, &s.r, horizon)?
-        .into_iter()
-        .next()?;
+    let free: Vec<(usize, usize)> = (0..mask.len()).flat_map(|i| (0..m).map(move |j| (i, j))).filter(|&(i, j)| mask[i][j] == 1).collect();
+    let mut k = lqr_gains(&s.e, &s.f, &s.q, &s.r, horizon)?.into_iter().next()?;
     for (i, row) in mask.iter().enumerate() {
         for (j, &g) in row.iter().enumerate() {
             if g == 0 {
@@ -148,20 +117,13 @@ pub fn masked_lqr_gain(env: &LtiEnv, mask: &[Vec<u8>]) -> Option<DMatrix<f64>> {
 
 /// Mean return of the best G-structured linear controller, run on the
 /// environment like [`lqr_return`].
-pub fn masked_lqr_return(
-    env: &LtiEnv,
-    mask: &[Vec<u8>],
-    episodes: usize,
-    seed: u64,
-) -> Option<f64> {
+pub fn masked_lqr_return(env: &LtiEnv, mask: &[Vec<u8>], episodes: usize, seed: u64) -> Option<f64> {
     let k = masked_lqr_gain(env, mask)?;
     let mut env = env.clone();
     let mut total = 0.0;
     for n in 0..episodes {
         let mut policy = |s: &[f64]| (-&k * DVector::from_column_slice(s)).as_slice().to_vec();
-        total += run_episode(&mut env, seed.wrapping_add(n as u64), &mut policy, false)
-            .ok()?
-            .episode_return;
+        total += run_episode(&mut env, seed.wrapping_add(n as u64), &mut policy, false).ok()?.episode_return;
     }
     Some(total / episodes.max(1) as f64)
 }
@@ -186,24 +148,15 @@ mod tests {
         let env = LtiEnv::new("lti-paper", &LtiConfig::paper_example()).unwrap();
         let g = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
         let k = masked_lqr_gain(&env, &g).unwrap();
-        assert_eq!(
-            (k[(0, 1)], k[(0, 2)], k[(1, 2)], k[(2, 0)], k[(2, 1)]),
-            (0.0, 0.0, 0.0, 0.0, 0.0)
-        );
+        assert_eq!((k[(0, 1)], k[(0, 2)], k[(1, 2)], k[(2, 0)], k[(2, 1)]), (0.0, 0.0, 0.0, 0.0, 0.0));
         let full = lqr_return(&env, 200, 0).unwrap();
         let local = masked_lqr_return(&env, &g, 200, 0).unwrap();
         // a1 cannot see s2, which pushes s1 (s1' = −s1 + s2 + a1): the local
         // ceiling is strictly lower, by about E[s2²] = 1/3 at the first step.
-        assert!(
-            local < full - 0.15 && local > full - 0.6,
-            "local {local} vs full {full}"
-        );
+        assert!(local < full - 0.15 && local > full - 0.6, "local {local} vs full {full}");
         // With every state connected the masked optimum is the LQR optimum.
         let everything = masked_lqr_return(&env, &vec![vec![1; 3]; 3], 200, 0).unwrap();
-        assert!(
-            (everything - full).abs() < 0.05 * full.abs(),
-            "{everything} vs {full}"
-        );
+        assert!((everything - full).abs() < 0.05 * full.abs(), "{everything} vs {full}");
     }
 
     #[test]
@@ -211,14 +164,7 @@ mod tests {
         let env = LtiEnv::new("lti-paper", &LtiConfig::paper_example()).unwrap();
         let lqr = lqr_return(&env, 50, 0).unwrap();
         let mut idle = env.clone();
-        let zero: f64 = (0..50u64)
-            .map(|k| {
-                run_episode(&mut idle, k, &mut |_| vec![0.0; 3], false)
-                    .unwrap()
-                    .episode_return
-            })
-            .sum::<f64>()
-            / 50.0;
+        let zero: f64 = (0..50u64).map(|k| run_episode(&mut idle, k, &mut |_| vec![0.0; 3], false).unwrap().episode_return).sum::<f64>() / 50.0;
         assert!(lqr > 0.5 * zero, "LQR {lqr} vs zero action {zero}");
         assert!(lqr < 0.0);
     }
@@ -232,19 +178,11 @@ mod tests {
         use lcrl_sim::tune::feedback::{tune_policy, Family};
         use lcrl_sim::tune::TuneOptions;
         let env = LtiEnv::new("lti-paper", &LtiConfig::paper_example()).unwrap();
-        let opts = TuneOptions {
-            evaluations: 1500,
-            sigma: 0.1,
-            ..TuneOptions::default()
-        };
+        let opts = TuneOptions { evaluations: 1500, sigma: 0.1, ..TuneOptions::default() };
         let report = tune_policy(&env, Family::Affine, &[0.0; 3], &opts, &|_| {}).unwrap();
         let lqr = lqr_return(&env, opts.eval_episodes, opts.eval_seed).unwrap();
         let zero = report.zero_action.eval.mean_return;
-        assert!(
-            (report.mean_return - lqr).abs() <= 0.10 * lqr.abs(),
-            "affine {} vs LQR {lqr} (a = 0: {zero})",
-            report.mean_return
-        );
+        assert!((report.mean_return - lqr).abs() <= 0.10 * lqr.abs(), "affine {} vs LQR {lqr} (a = 0: {zero})", report.mean_return);
         // And it is a real gain: a = 0 is far from both.
         assert!(zero < lqr - 0.5 * lqr.abs(), "a = 0 {zero} vs LQR {lqr}");
     }

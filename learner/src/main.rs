@@ -13,19 +13,19 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use clap::Parser;
-use lcrl_learner::checkpoint::{latest_checkpoint, read_meta, CheckpointMeta};
+use lcrl_proto::process::shutdown_signal;
 use lcrl_learner::config::{Algo, Connection, TrainConfig};
 use lcrl_learner::service::ingest::Ingest;
 use lcrl_learner::service::runtime::{run_training, snapshot, Schedule, Shared};
 use lcrl_learner::service::server::{LearnerService, PolicyService};
+use lcrl_learner::checkpoint::{latest_checkpoint, read_meta, CheckpointMeta};
 use lcrl_learner::trainer::make_agent;
-use lcrl_proto::process::shutdown_signal;
 use lcrl_proto::security::{ClientSecurity, ServerSecurity, ServerSecurityArgs};
 use lcrl_proto::v1::graph_client::GraphClient;
+use tonic::service::interceptor::InterceptedService;
 use lcrl_proto::v1::learner_server::LearnerServer;
 use lcrl_proto::v1::policy_server::PolicyServer;
 use tokio::sync::{mpsc, watch};
-use tonic::service::interceptor::InterceptedService;
 
 /// Message size limit of every service: a policy snapshot is ~0.3 MB at the
 /// default sizes and a batch of 1000 peg transitions ~0.15 MB; 16 MB leaves
@@ -33,10 +33,7 @@ use tonic::service::interceptor::InterceptedService;
 const MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
 
 #[derive(Debug, Parser)]
-#[command(
-    version,
-    about = "The LCRL learner process: ingests actors' transitions, trains, publishes policies"
-)]
+#[command(version, about = "The LCRL learner process: ingests actors' transitions, trains, publishes policies")]
 struct Args {
     /// Environment (registered name, .toml path or grpc://HOST:PORT);
     /// actors run the same one.
@@ -133,39 +130,24 @@ fn main() -> std::process::ExitCode {
 }
 
 /// G from a graph builder, retrying while it is unreachable or building.
-async fn fetch_graph(
-    url: &str,
-    security: &ClientSecurity,
-    timeout: Duration,
-    n: usize,
-    m: usize,
-) -> anyhow::Result<Vec<Vec<u8>>> {
+async fn fetch_graph(url: &str, security: &ClientSecurity, timeout: Duration, n: usize, m: usize) -> anyhow::Result<Vec<Vec<u8>>> {
     let deadline = Instant::now() + timeout;
     let mut delay = Duration::from_millis(200);
     loop {
         let attempt = async {
             let mut client = GraphClient::new(security.connect(url).await?);
-            let graph = client
-                .get_graph(lcrl_proto::v1::GetGraphRequest {})
-                .await?
-                .into_inner();
+            let graph = client.get_graph(lcrl_proto::v1::GetGraphRequest {}).await?.into_inner();
             anyhow::Ok(graph)
         };
         match attempt.await {
             // A malformed graph is refused at once: retrying would not mend it.
-            Ok(graph) => {
-                return lcrl_graph_builder::report::mask_from_message(&graph, n, m)
-                    .map_err(|e| anyhow::anyhow!("{url}: {e}"))
-            }
+            Ok(graph) => return lcrl_graph_builder::report::mask_from_message(&graph, n, m).map_err(|e| anyhow::anyhow!("{url}: {e}")),
             Err(e) if Instant::now() < deadline => {
                 tracing::info!("waiting for the graph builder at {url}: {e}");
                 tokio::time::sleep(delay).await;
                 delay = (delay * 2).min(Duration::from_secs(5));
             }
-            Err(e) => bail!(
-                "no graph from {url} within {} s (last error: {e}); is lcrl-graph-builder running?",
-                timeout.as_secs()
-            ),
+            Err(e) => bail!("no graph from {url} within {} s (last error: {e}); is lcrl-graph-builder running?", timeout.as_secs()),
         }
     }
 }
@@ -173,29 +155,15 @@ async fn fetch_graph(
 async fn run(args: Args) -> anyhow::Result<()> {
     // Certificates and tokens are checked before any work.
     let security = ServerSecurity::from_args(&args.security)?;
-    let own_identity = args
-        .security
-        .tls_cert
-        .as_deref()
-        .zip(args.security.tls_key.as_deref());
-    let graph_builder_security = ClientSecurity::new(
-        args.graph_builder_tls_ca.as_deref(),
-        own_identity,
-        args.security.token_file.as_deref(),
-    )?;
+    let own_identity = args.security.tls_cert.as_deref().zip(args.security.tls_key.as_deref());
+    let graph_builder_security = ClientSecurity::new(args.graph_builder_tls_ca.as_deref(), own_identity, args.security.token_file.as_deref())?;
     let env = lcrl_sim::make_env(&args.env)?;
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
-    std::fs::create_dir_all(&args.run_dir)
-        .with_context(|| format!("creating {}", args.run_dir.display()))?;
-    let resume = latest_checkpoint(&args.run_dir)
-        .map(|dir| read_meta(&dir).map(|meta| (dir, meta)))
-        .transpose()?;
+    std::fs::create_dir_all(&args.run_dir).with_context(|| format!("creating {}", args.run_dir.display()))?;
+    let resume = latest_checkpoint(&args.run_dir).map(|dir| read_meta(&dir).map(|meta| (dir, meta))).transpose()?;
     let (config, mask, meta) = match &resume {
         Some((dir, meta)) => {
-            if meta.shape.env != args.env
-                || meta.shape.algo != args.algo
-                || meta.shape.connection != args.connection
-            {
+            if meta.shape.env != args.env || meta.shape.algo != args.algo || meta.shape.connection != args.connection {
                 bail!("{} holds a run of {} with {:?}/{:?}; start with the same --env, --algo and --connection, or another --run-dir", dir.display(), meta.shape.env, meta.shape.algo, meta.shape.connection);
             }
             tracing::info!(checkpoint = %dir.display(), episodes = meta.episode, "resuming");
@@ -208,56 +176,26 @@ async fn run(args: Args) -> anyhow::Result<()> {
             };
             // The base controller as numbers, recorded in every checkpoint.
             let base = lcrl_learner::action::resolve_base(&config.controller, env.spec())?;
-            config.controller.base = base.map_or(
-                lcrl_learner::config::BaseController::None,
-                lcrl_learner::config::BaseController::Action,
-            );
+            config.controller.base = base.map_or(lcrl_learner::config::BaseController::None, lcrl_learner::config::BaseController::Action);
             config.controller.best_constant_file = None;
             let mask = match (args.connection, &args.graph, &args.graph_builder) {
                 (Connection::Local, Some(path), _) => {
                     let report = lcrl_graph_builder::GraphReport::load(path)?;
                     if (report.actions(), report.states()) != (n, m) {
-                        bail!(
-                            "{} is {}×{} but {} needs {n}×{m}",
-                            path.display(),
-                            report.actions(),
-                            report.states(),
-                            args.env
-                        );
+                        bail!("{} is {}×{} but {} needs {n}×{m}", path.display(), report.actions(), report.states(), args.env);
                     }
                     report.g
                 }
-                (Connection::Local, None, Some(url)) => {
-                    fetch_graph(
-                        url,
-                        &graph_builder_security,
-                        Duration::from_secs(args.graph_timeout),
-                        n,
-                        m,
-                    )
-                    .await?
-                }
+                (Connection::Local, None, Some(url)) => fetch_graph(url, &graph_builder_security, Duration::from_secs(args.graph_timeout), n, m).await?,
                 (Connection::Local, None, None) => {
-                    let options = lcrl_graph_builder::GraphOptions::paper(
-                        config.run.graph_samples,
-                        config.run.seed,
-                        lcrl_graph_builder::DEFAULT_BOOTSTRAP,
-                    );
+                    let options = lcrl_graph_builder::GraphOptions::paper(config.run.graph_samples, config.run.seed, lcrl_graph_builder::DEFAULT_BOOTSTRAP);
                     let report = lcrl_graph_builder::build_graph(env.as_ref(), &options, &|| {})?;
                     report.write_json(&args.run_dir.join("graph.json"))?;
                     report.g
                 }
                 _ => vec![vec![1; m]; n],
             };
-            let meta = CheckpointMeta::start(
-                &args.env,
-                args.algo,
-                args.connection,
-                m,
-                n,
-                mask.clone(),
-                config.clone(),
-            );
+            let meta = CheckpointMeta::start(&args.env, args.algo, args.connection, m, n, mask.clone(), config.clone());
             (config, mask, meta)
         }
     };
@@ -277,11 +215,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     }
     let architecture = meta.architecture();
     let actions = lcrl_learner::action::ActionMap::new(env.spec(), architecture.base.as_deref())?;
-    let (policy, _) = watch::channel(Arc::new(snapshot(
-        agent.as_ref(),
-        &architecture,
-        meta.policy_version,
-    )?));
+    let (policy, _) = watch::channel(Arc::new(snapshot(agent.as_ref(), &architecture, meta.policy_version)?));
     let staleness = (args.algo == Algo::Ppo).then_some(args.max_staleness);
     let counters = agent.counters();
     let shared = Arc::new(Shared {
@@ -316,29 +250,12 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 None => config.ddpg.samples_per_insert(),
                 Some(text) => text.parse::<f64>().map_err(|_| anyhow::anyhow!("--replay-ratio must be a number of samples per insert or `unlimited`, got {text}"))?,
             };
-            let fresh = lcrl_learner::rate_limiter::RateLimiter::new(
-                spi,
-                agent.min_size_to_sample() as u64,
-                spi * args.replay_slack as f64,
-            )
-            .map_err(|e| anyhow::anyhow!("--replay-ratio: {e}"))?;
-            fresh
-                .check_steps(
-                    lcrl_learner::service::shm::MAX_TRANSITIONS as u64,
-                    agent.samples_per_update() as u64,
-                )
-                .map_err(|e| anyhow::anyhow!("{e}; raise --replay-slack"))?;
+            let fresh = lcrl_learner::rate_limiter::RateLimiter::new(spi, agent.min_size_to_sample() as u64, spi * args.replay_slack as f64).map_err(|e| anyhow::anyhow!("--replay-ratio: {e}"))?;
+            fresh.check_steps(lcrl_learner::service::shm::MAX_TRANSITIONS as u64, agent.samples_per_update() as u64).map_err(|e| anyhow::anyhow!("{e}; raise --replay-slack"))?;
             // A resumed run keeps its counters (no burst of updates on a
             // buffer that the checkpoint restored).
-            match resume
-                .as_ref()
-                .and_then(|(_, meta)| meta.rate_limiter.clone())
-            {
-                Some(saved) => Some(lcrl_learner::rate_limiter::RateLimiter {
-                    samples_per_insert: spi,
-                    error_buffer: fresh.error_buffer,
-                    ..saved
-                }),
+            match resume.as_ref().and_then(|(_, meta)| meta.rate_limiter.clone()) {
+                Some(saved) => Some(lcrl_learner::rate_limiter::RateLimiter { samples_per_insert: spi, error_buffer: fresh.error_buffer, ..saved }),
                 None => Some(fresh),
             }
         }
@@ -399,14 +316,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
             }
         })
         .context("cannot start the policy broadcast thread")?;
-    let listener = tokio::net::TcpListener::bind(args.listen)
-        .await
-        .with_context(|| {
-            format!(
-                "cannot listen on {}; is another process using it?",
-                args.listen
-            )
-        })?;
+    let listener = tokio::net::TcpListener::bind(args.listen).await.with_context(|| format!("cannot listen on {}; is another process using it?", args.listen))?;
     let addr = listener.local_addr()?;
     println!("listening on {addr}");
     security.warn_if_exposed(addr);
@@ -416,45 +326,26 @@ async fn run(args: Args) -> anyhow::Result<()> {
     health.set_serving::<PolicyServer<PolicyService>>().await;
     let check = security.token_check();
     let stopper = shared.clone();
-    let learner = LearnerServer::new(LearnerService {
-        shared: shared.clone(),
-        commands: commands.clone(),
-    })
-    .max_decoding_message_size(MAX_MESSAGE_BYTES)
-    .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let learner = LearnerServer::new(LearnerService { shared: shared.clone(), commands: commands.clone() })
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let act_latency = lcrl_learner::service::metrics::act_latency_histogram();
     if let Some(addr) = args.metrics_listen {
-        let registry = Arc::new(lcrl_learner::service::metrics::learner_registry(
-            shared.clone(),
-            commands.clone(),
-            act_latency.clone(),
-        ));
-        let (listener, bound) = lcrl_learner::service::metrics::bind(addr)
-            .await
-            .with_context(|| {
-                format!("cannot serve metrics on {addr}; is another process using it?")
-            })?;
+        let registry = Arc::new(lcrl_learner::service::metrics::learner_registry(shared.clone(), commands.clone(), act_latency.clone()));
+        let (listener, bound) = lcrl_learner::service::metrics::bind(addr).await.with_context(|| format!("cannot serve metrics on {addr}; is another process using it?"))?;
         // Second line of stdout, after "listening on", for launchers and tests.
         // Not println!: a launcher may have stopped reading stdout.
-        let _ =
-            std::io::Write::write_fmt(&mut std::io::stdout(), format_args!("metrics on {bound}\n"));
+        let _ = std::io::Write::write_fmt(&mut std::io::stdout(), format_args!("metrics on {bound}\n"));
         let stopping = shared.stopping();
         tokio::spawn(async move {
-            if let Err(e) =
-                lcrl_learner::service::metrics::serve(listener, registry, stopping).await
-            {
+            if let Err(e) = lcrl_learner::service::metrics::serve(listener, registry, stopping).await {
                 tracing::warn!("metrics endpoint stopped: {e}");
             }
         });
     }
-    let policy = PolicyServer::new(PolicyService {
-        shared: shared.clone(),
-        env: Mutex::new(lcrl_sim::make_env(&args.env)?),
-        serving: Mutex::new(None),
-        act_latency,
-    })
-    .max_decoding_message_size(MAX_MESSAGE_BYTES)
-    .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let policy = PolicyServer::new(PolicyService { shared: shared.clone(), env: Mutex::new(lcrl_sim::make_env(&args.env)?), serving: Mutex::new(None), act_latency })
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
     let mut server = tokio::spawn(
         lcrl_proto::process::add_reflection(
@@ -466,10 +357,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 .add_service(InterceptedService::new(policy, check.clone())),
             &check,
         )
-        // TLS where configured; TCP_NODELAY on accepted sockets.
-        .serve_with_incoming_shutdown(security.incoming(listener), async move {
-            let _ = server_stopped.await;
-        }),
+            // TLS where configured; TCP_NODELAY on accepted sockets.
+            .serve_with_incoming_shutdown(security.incoming(listener), async move {
+                let _ = server_stopped.await;
+            }),
     );
     tokio::select! {
         _ = shutdown_signal() => {}
@@ -482,21 +373,14 @@ async fn run(args: Args) -> anyhow::Result<()> {
     // period (an actor mid-reconnect, say) are dropped rather than waited on.
     stopper.shutdown.send_replace(true);
     let _ = stop_server.send(());
-    if tokio::time::timeout(Duration::from_secs(5), &mut server)
-        .await
-        .is_err()
-    {
+    if tokio::time::timeout(Duration::from_secs(5), &mut server).await.is_err() {
         tracing::warn!("connections still open after 5 s; closing them");
         server.abort();
     }
     let _ = tokio::task::spawn_blocking(move || (shm.join(), policy_broadcast.join())).await;
     tracing::info!("stopping: writing a checkpoint");
-    let _ = commands
-        .send(lcrl_learner::service::runtime::Command::Stop)
-        .await;
+    let _ = commands.send(lcrl_learner::service::runtime::Command::Stop).await;
     drop(commands);
-    trainer
-        .join()
-        .map_err(|_| anyhow::anyhow!("the training thread panicked"))??;
+    trainer.join().map_err(|_| anyhow::anyhow!("the training thread panicked"))??;
     Ok(())
 }

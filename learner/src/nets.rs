@@ -30,33 +30,21 @@ fn activate(x: Tensor, act: Activation) -> Tensor {
 /// (one bound per leading index), from a seeded Rust RNG: initial weights
 /// depend on the seed alone, never on libtorch's global generator (which
 /// concurrent tests or threads would share).
-fn uniform_var(
-    path: &nn::Path,
-    name: &str,
-    shape: &[i64],
-    bounds: &[f64],
-    rng: &mut ChaCha8Rng,
-) -> Tensor {
+fn uniform_var(path: &nn::Path, name: &str, shape: &[i64], bounds: &[f64], rng: &mut ChaCha8Rng) -> Tensor {
     let per_row = (shape.iter().product::<i64>() as usize) / bounds.len();
     let values: Vec<f32> = bounds
         .iter()
         .flat_map(|&b| (0..per_row).map(move |_| b))
         .map(|b| rng.random_range(-b..=b) as f32)
         .collect();
-    let init = Tensor::from_slice(&values)
-        .view(shape)
-        .to_device(path.device());
+    let init = Tensor::from_slice(&values).view(shape).to_device(path.device());
     path.var_copy(name, &init)
 }
 
 /// PyTorch's default linear init bound, 1/√fan_in; the last layer of actors
 /// and critics gets 3e-3 so initial outputs are near 0 (DDPG paper practice).
 fn init_bound(fan_in: usize, last: bool) -> f64 {
-    if last {
-        3e-3
-    } else {
-        1.0 / (fan_in.max(1) as f64).sqrt()
-    }
+    if last { 3e-3 } else { 1.0 / (fan_in.max(1) as f64).sqrt() }
 }
 
 /// A plain MLP: linear layers with `act` between them.
@@ -74,13 +62,7 @@ impl Mlp {
             .enumerate()
             .map(|(k, w)| {
                 let bound = [init_bound(w[0], k == last)];
-                let weight = uniform_var(
-                    path,
-                    &format!("w{k}"),
-                    &[w[0] as i64, w[1] as i64],
-                    &bound,
-                    rng,
-                );
+                let weight = uniform_var(path, &format!("w{k}"), &[w[0] as i64, w[1] as i64], &bound, rng);
                 let bias = uniform_var(path, &format!("b{k}"), &[w[1] as i64], &bound, rng);
                 (weight, bias)
             })
@@ -119,23 +101,12 @@ pub struct SubnetActor {
 
 impl SubnetActor {
     /// `g` is the n × m 0/1 connection graph (all ones for full-subnets).
-    pub fn new(
-        path: &nn::Path,
-        g: &[Vec<u8>],
-        hidden: &[usize],
-        act: Activation,
-        rng: &mut ChaCha8Rng,
-    ) -> Self {
+    pub fn new(path: &nn::Path, g: &[Vec<u8>], hidden: &[usize], act: Activation, rng: &mut ChaCha8Rng) -> Self {
         let n = g.len();
         let m = g.first().map_or(0, Vec::len);
-        let inputs: Vec<usize> = g
-            .iter()
-            .map(|row| row.iter().map(|&v| usize::from(v)).sum())
-            .collect();
+        let inputs: Vec<usize> = g.iter().map(|row| row.iter().map(|&v| usize::from(v)).sum()).collect();
         let mask_values: Vec<f32> = g.iter().flatten().map(|&v| f32::from(v)).collect();
-        let mask = Tensor::from_slice(&mask_values)
-            .view([n as i64, m as i64, 1])
-            .to_device(path.device());
+        let mask = Tensor::from_slice(&mask_values).view([n as i64, m as i64, 1]).to_device(path.device());
         let mut sizes = vec![m];
         sizes.extend_from_slice(hidden);
         sizes.push(1);
@@ -146,32 +117,13 @@ impl SubnetActor {
             .map(|(k, w)| {
                 // Each subnetwork gets the init of its own fan-in: the first
                 // layer's fan-in is its number of connected states.
-                let bounds: Vec<f64> = (0..n)
-                    .map(|i| init_bound(if k == 0 { inputs[i] } else { w[0] }, k == last))
-                    .collect();
-                let weight = uniform_var(
-                    path,
-                    &format!("w{k}"),
-                    &[n as i64, w[0] as i64, w[1] as i64],
-                    &bounds,
-                    rng,
-                );
-                let bias = uniform_var(
-                    path,
-                    &format!("b{k}"),
-                    &[n as i64, 1, w[1] as i64],
-                    &bounds,
-                    rng,
-                );
+                let bounds: Vec<f64> = (0..n).map(|i| init_bound(if k == 0 { inputs[i] } else { w[0] }, k == last)).collect();
+                let weight = uniform_var(path, &format!("w{k}"), &[n as i64, w[0] as i64, w[1] as i64], &bounds, rng);
+                let bias = uniform_var(path, &format!("b{k}"), &[n as i64, 1, w[1] as i64], &bounds, rng);
                 (weight, bias)
             })
             .collect();
-        SubnetActor {
-            layers,
-            mask,
-            inputs,
-            act,
-        }
+        SubnetActor { layers, mask, inputs, act }
     }
 
     /// The raw outputs [B, n] (before tanh).
@@ -180,11 +132,7 @@ impl SubnetActor {
         // [1, B, m] × [n, m, h] → [n, B, h]: every subnetwork sees the batch.
         let mut h = x.unsqueeze(0);
         for (k, (w, b)) in self.layers.iter().enumerate() {
-            let w = if k == 0 {
-                w * &self.mask
-            } else {
-                w.shallow_clone()
-            };
+            let w = if k == 0 { w * &self.mask } else { w.shallow_clone() };
             h = h.matmul(&w) + b;
             if k < last {
                 h = activate(h, self.act);
@@ -197,13 +145,8 @@ impl SubnetActor {
     /// Parameters that can be non-zero: masked first-layer weights excluded.
     pub fn param_count(&self) -> usize {
         let hidden0 = self.layers[0].0.size()[2] as usize;
-        let first: usize =
-            self.inputs.iter().map(|&m_i| m_i * hidden0).sum::<usize>() + self.layers[0].1.numel();
-        first
-            + self.layers[1..]
-                .iter()
-                .map(|(w, b)| w.numel() + b.numel())
-                .sum::<usize>()
+        let first: usize = self.inputs.iter().map(|&m_i| m_i * hidden0).sum::<usize>() + self.layers[0].1.numel();
+        first + self.layers[1..].iter().map(|(w, b)| w.numel() + b.numel()).sum::<usize>()
     }
 
     /// Subnetwork i's parameters, with only its connected input rows of the
@@ -216,11 +159,7 @@ impl SubnetActor {
             .enumerate()
             .map(|(k, (w, b))| {
                 let w_i = w.get(i as i64);
-                let w_i = if k == 0 {
-                    w_i.index_select(0, &index)
-                } else {
-                    w_i
-                };
+                let w_i = if k == 0 { w_i.index_select(0, &index) } else { w_i };
                 (w_i, b.get(i as i64).squeeze_dim(0))
             })
             .collect()
@@ -271,9 +210,7 @@ pub fn global_actor_params(cfg: &crate::config::NetworkConfig, (m, n): (usize, u
 
 /// A [B, width] tensor from flat f32 rows.
 pub fn batch(rows: &[f32], width: usize, device: Device) -> Tensor {
-    Tensor::from_slice(rows)
-        .view([(rows.len() / width.max(1)) as i64, width as i64])
-        .to_device(device)
+    Tensor::from_slice(rows).view([(rows.len() / width.max(1)) as i64, width as i64]).to_device(device)
 }
 
 #[cfg(test)]
@@ -288,21 +225,14 @@ mod tests {
 
     /// A graph with an empty row, a full row and a partial row.
     fn graph() -> Vec<Vec<u8>> {
-        vec![
-            vec![1, 0, 0, 1, 0],
-            vec![1, 1, 1, 1, 1],
-            vec![0, 0, 1, 0, 0],
-            vec![0, 0, 0, 0, 0],
-        ]
+        vec![vec![1, 0, 0, 1, 0], vec![1, 1, 1, 1, 1], vec![0, 0, 1, 0, 0], vec![0, 0, 0, 0, 0]]
     }
 
     /// Subnetwork i as a separate MLP on its gathered inputs.
     fn separate(net: &SubnetActor, g: &[Vec<u8>], x: &Tensor) -> Tensor {
         let columns: Vec<Tensor> = (0..g.len())
             .map(|i| {
-                let connected: Vec<i64> = (0..g[i].len() as i64)
-                    .filter(|&j| g[i][j as usize] == 1)
-                    .collect();
+                let connected: Vec<i64> = (0..g[i].len() as i64).filter(|&j| g[i][j as usize] == 1).collect();
                 let params = net.subnet_params(i, &connected);
                 let last = params.len() - 1;
                 let mut h = x.index_select(1, &Tensor::from_slice(&connected));
@@ -341,14 +271,8 @@ mod tests {
         let x = Tensor::randn([7, 5], (Kind::Float, Device::Cpu)).set_requires_grad(true);
         let out = ActorNet::Subnets(net).forward(&x);
         for (i, row) in g.iter().enumerate() {
-            let grads = Tensor::run_backward(
-                &[out.select(1, i as i64).sum(Kind::Float)],
-                &[&x],
-                true,
-                false,
-            );
-            let grad: Vec<f32> =
-                Vec::try_from(grads[0].abs().sum_dim_intlist(0, false, Kind::Float)).unwrap();
+            let grads = Tensor::run_backward(&[out.select(1, i as i64).sum(Kind::Float)], &[&x], true, false);
+            let grad: Vec<f32> = Vec::try_from(grads[0].abs().sum_dim_intlist(0, false, Kind::Float)).unwrap();
             for (j, &connected) in row.iter().enumerate() {
                 if connected == 0 {
                     assert_eq!(grad[j], 0.0, "action {i} must not see state {j}");
@@ -363,37 +287,14 @@ mod tests {
     fn shapes_and_parameter_counts() {
         let vs = nn::VarStore::new(Device::Cpu);
         let g = graph();
-        let local = SubnetActor::new(
-            &vs.root().sub("local"),
-            &g,
-            &[16, 8],
-            Activation::Relu,
-            &mut rng(),
-        );
+        let local = SubnetActor::new(&vs.root().sub("local"), &g, &[16, 8], Activation::Relu, &mut rng());
         // First layer: (2 + 5 + 1 + 0) connected inputs × 16, plus 4 × 16 biases;
         // then 4 × (16·8 + 8) and 4 × (8·1 + 1).
-        assert_eq!(
-            local.param_count(),
-            8 * 16 + 4 * 16 + 4 * (16 * 8 + 8) + 4 * (8 + 1)
-        );
-        let full = SubnetActor::new(
-            &vs.root().sub("full"),
-            &vec![vec![1; 5]; 4],
-            &[16, 8],
-            Activation::Relu,
-            &mut rng(),
-        );
+        assert_eq!(local.param_count(), 8 * 16 + 4 * 16 + 4 * (16 * 8 + 8) + 4 * (8 + 1));
+        let full = SubnetActor::new(&vs.root().sub("full"), &vec![vec![1; 5]; 4], &[16, 8], Activation::Relu, &mut rng());
         assert_eq!(full.param_count(), 4 * (5 * 16 + 16 + 16 * 8 + 8 + 8 + 1));
-        let global = Mlp::new(
-            &vs.root().sub("global"),
-            &[5, 32, 32, 4],
-            Activation::Relu,
-            &mut rng(),
-        );
-        assert_eq!(
-            global.param_count(),
-            5 * 32 + 32 + 32 * 32 + 32 + 32 * 4 + 4
-        );
+        let global = Mlp::new(&vs.root().sub("global"), &[5, 32, 32, 4], Activation::Relu, &mut rng());
+        assert_eq!(global.param_count(), 5 * 32 + 32 + 32 * 32 + 32 + 32 * 4 + 4);
         let x = Tensor::randn([3, 5], (Kind::Float, Device::Cpu));
         for actor in [ActorNet::Subnets(full), ActorNet::Global(global)] {
             let a = actor.forward(&x);

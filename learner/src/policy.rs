@@ -8,9 +8,9 @@ use tch::nn;
 
 use crate::action::ActionMap;
 use crate::agent::{build_actor, load_vs};
-use crate::checkpoint::{latest_checkpoint, read_meta};
 use crate::nets::{batch, ActorNet};
 use crate::snapshot::{decode_weights, Architecture};
+use crate::checkpoint::{latest_checkpoint, read_meta};
 use crate::LearnerError;
 
 /// The deterministic policy of a checkpoint or snapshot.
@@ -31,15 +31,7 @@ impl Policy {
         let vs = nn::VarStore::new(tch::Device::Cpu);
         let a = &architecture;
         // The weights are overwritten right after; the seed is irrelevant.
-        let actor = build_actor(
-            &vs.root(),
-            a.shape.connection,
-            &a.shape.mask,
-            a.shape.state_dim,
-            a.shape.action_dim,
-            &a.network,
-            0,
-        );
+        let actor = build_actor(&vs.root(), a.shape.connection, &a.shape.mask, a.shape.state_dim, a.shape.action_dim, &a.network, 0);
         (vs, actor, architecture)
     }
 
@@ -49,44 +41,21 @@ impl Policy {
         let dir = if dir.join("checkpoint.json").is_file() {
             dir.to_path_buf()
         } else {
-            latest_checkpoint(dir).ok_or_else(|| {
-                LearnerError::Checkpoint(format!(
-                    "{} holds no checkpoint (checkpoint.json)",
-                    dir.display()
-                ))
-            })?
+            latest_checkpoint(dir).ok_or_else(|| LearnerError::Checkpoint(format!("{} holds no checkpoint (checkpoint.json)", dir.display())))?
         };
         let meta = read_meta(&dir)?;
         let (mut vs, actor, architecture) = Self::empty(meta.architecture());
         load_vs(&mut vs, &dir.join("actor.safetensors"))?;
-        Ok(Policy {
-            architecture,
-            episode: Some(meta.episode),
-            version: meta.policy_version,
-            vs,
-            actor,
-            log_std: None,
-        })
+        Ok(Policy { architecture, episode: Some(meta.episode), version: meta.policy_version, vs, actor, log_std: None })
     }
 
     /// Builds the policy of a published snapshot.
-    pub fn from_snapshot(
-        architecture_json: &str,
-        weights: &[u8],
-        version: u64,
-    ) -> Result<Self, LearnerError> {
-        let architecture: Architecture = serde_json::from_str(architecture_json)
-            .map_err(|e| LearnerError::Checkpoint(format!("policy architecture: {e}")))?;
+    pub fn from_snapshot(architecture_json: &str, weights: &[u8], version: u64) -> Result<Self, LearnerError> {
+        let architecture: Architecture =
+            serde_json::from_str(architecture_json).map_err(|e| LearnerError::Checkpoint(format!("policy architecture: {e}")))?;
         architecture.validate()?;
         let (vs, actor, architecture) = Self::empty(architecture);
-        let mut policy = Policy {
-            architecture,
-            episode: None,
-            version,
-            vs,
-            actor,
-            log_std: None,
-        };
+        let mut policy = Policy { architecture, episode: None, version, vs, actor, log_std: None };
         policy.update(weights, version)?;
         Ok(policy)
     }
@@ -94,37 +63,18 @@ impl Policy {
     /// Replaces the weights with those of a newer snapshot of the same actor.
     pub fn update(&mut self, weights: &[u8], version: u64) -> Result<(), LearnerError> {
         let named = decode_weights(weights)?;
-        let log_std = named
-            .iter()
-            .find(|(n, _)| n == "log_std")
-            .and_then(|(_, t)| Vec::<f32>::try_from(t).ok());
-        if log_std.as_ref().is_some_and(|l| {
-            l.len() != self.architecture.shape.action_dim || l.iter().any(|v| !v.is_finite())
-        }) {
-            return Err(LearnerError::Checkpoint(
-                "snapshot log_std must hold one finite number per action".into(),
-            ));
+        let log_std = named.iter().find(|(n, _)| n == "log_std").and_then(|(_, t)| Vec::<f32>::try_from(t).ok());
+        if log_std.as_ref().is_some_and(|l| l.len() != self.architecture.shape.action_dim || l.iter().any(|v| !v.is_finite())) {
+            return Err(LearnerError::Checkpoint("snapshot log_std must hold one finite number per action".into()));
         }
         let mut variables = self.vs.variables();
         for (name, target) in variables.iter_mut() {
-            let source = named
-                .iter()
-                .find(|(n, _)| n == name)
-                .map(|(_, t)| t)
-                .ok_or_else(|| {
-                    LearnerError::Checkpoint(format!("snapshot lacks weights {name}"))
-                })?;
+            let source = named.iter().find(|(n, _)| n == name).map(|(_, t)| t).ok_or_else(|| LearnerError::Checkpoint(format!("snapshot lacks weights {name}")))?;
             if source.size() != target.size() {
-                return Err(LearnerError::Checkpoint(format!(
-                    "snapshot weights {name} have shape {:?}, expected {:?}",
-                    source.size(),
-                    target.size()
-                )));
+                return Err(LearnerError::Checkpoint(format!("snapshot weights {name} have shape {:?}, expected {:?}", source.size(), target.size())));
             }
             if !bool::try_from(source.isfinite().all()).unwrap_or(false) {
-                return Err(LearnerError::Checkpoint(format!(
-                    "snapshot weights {name} hold non-finite numbers"
-                )));
+                return Err(LearnerError::Checkpoint(format!("snapshot weights {name} hold non-finite numbers")));
             }
             tch::no_grad(|| target.copy_(source));
         }
@@ -135,19 +85,13 @@ impl Policy {
 
     /// PPO's exploration standard deviations (normalized action units).
     pub fn exploration_std(&self) -> Option<Vec<f32>> {
-        self.log_std
-            .as_ref()
-            .map(|l| l.iter().map(|v| v.exp()).collect())
+        self.log_std.as_ref().map(|l| l.iter().map(|v| v.exp()).collect())
     }
 
     /// Normalized actions in [−1, 1] for rows of normalized observations.
     pub fn act_normalized(&self, obs: &[f32]) -> Vec<f32> {
         tch::no_grad(|| {
-            let out = self.actor.forward(&batch(
-                obs,
-                self.architecture.shape.state_dim,
-                tch::Device::Cpu,
-            ));
+            let out = self.actor.forward(&batch(obs, self.architecture.shape.state_dim, tch::Device::Cpu));
             Vec::<f32>::try_from(out.flatten(0, -1)).unwrap_or_default()
         })
     }

@@ -24,8 +24,8 @@ use tch::{nn, Device, Kind, Tensor};
 
 use crate::adam::Adam;
 use crate::agent::{
-    build_actor, build_critic, load_optimizers, load_vs, read_agent_state, save_optimizers,
-    save_vs, write_agent_state, Agent, Counters, RngState, Transition,
+    build_actor, build_critic, load_optimizers, load_vs, read_agent_state, save_optimizers, save_vs, write_agent_state, Agent,
+    Counters, RngState, Transition,
 };
 use crate::config::{Connection, NetworkConfig, PpoConfig};
 use crate::nets::{batch, ActorNet, Mlp};
@@ -70,22 +70,10 @@ struct PpoState {
 
 impl Ppo {
     #[allow(clippy::too_many_arguments)]
-    pub fn new(
-        cfg: &PpoConfig,
-        net: &NetworkConfig,
-        connection: Connection,
-        mask: &[Vec<u8>],
-        m: usize,
-        n: usize,
-        seed: u64,
-        device: Device,
-    ) -> Self {
+    pub fn new(cfg: &PpoConfig, net: &NetworkConfig, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, seed: u64, device: Device) -> Self {
         let actor_vs = nn::VarStore::new(device);
         let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
-        let log_std =
-            actor_vs
-                .root()
-                .var("log_std", &[n as i64], nn::Init::Const(cfg.log_std_init));
+        let log_std = actor_vs.root().var("log_std", &[n as i64], nn::Init::Const(cfg.log_std_init));
         let critic_vs = nn::VarStore::new(device);
         let critic = build_critic(&critic_vs.root(), m, net, seed ^ 0xC717);
         Ppo {
@@ -110,11 +98,7 @@ impl Ppo {
     fn log_prob(&self, mean: &Tensor, actions: &Tensor) -> Tensor {
         let std = self.log_std.exp();
         let z = (actions - mean) / &std;
-        (z.square() * -0.5 - &self.log_std - 0.5 * (2.0 * PI).ln()).sum_dim_intlist(
-            -1,
-            false,
-            Kind::Float,
-        )
+        (z.square() * -0.5 - &self.log_std - 0.5 * (2.0 * PI).ln()).sum_dim_intlist(-1, false, Kind::Float)
     }
 
     fn value(&self, obs: &[f32]) -> f32 {
@@ -131,25 +115,13 @@ impl Ppo {
         let mut advantages = vec![0.0f32; r.rewards.len()];
         let mut next = 0.0f32;
         for t in (0..r.rewards.len()).rev() {
-            let bootstrap = if r.terminated[t] {
-                0.0
-            } else {
-                gamma * r.next_values[t]
-            };
+            let bootstrap = if r.terminated[t] { 0.0 } else { gamma * r.next_values[t] };
             let delta = r.rewards[t] + bootstrap - r.values[t];
-            let carry = if r.ended[t] {
-                0.0
-            } else {
-                gamma * lambda * next
-            };
+            let carry = if r.ended[t] { 0.0 } else { gamma * lambda * next };
             next = delta + carry;
             advantages[t] = next;
         }
-        let returns = advantages
-            .iter()
-            .zip(&r.values)
-            .map(|(a, v)| a + v)
-            .collect();
+        let returns = advantages.iter().zip(&r.values).map(|(a, v)| a + v).collect();
         (advantages, returns)
     }
 
@@ -171,25 +143,18 @@ impl Ppo {
                 let adv = advantages.index_select(0, &index);
                 let adv = (&adv - adv.mean(Kind::Float)) / (adv.std(true) + 1e-8);
                 let mb_obs = obs.index_select(0, &index);
-                let log_probs = self.log_prob(
-                    &self.actor.forward(&mb_obs),
-                    &actions.index_select(0, &index),
-                );
+                let log_probs = self.log_prob(&self.actor.forward(&mb_obs), &actions.index_select(0, &index));
                 let ratio = (log_probs - old_log_probs.index_select(0, &index)).exp();
                 let clipped = ratio.clamp(1.0 - self.cfg.clip, 1.0 + self.cfg.clip);
-                let entropy =
-                    (&self.log_std + 0.5 * (2.0 * PI * std::f64::consts::E).ln()).sum(Kind::Float);
-                let policy_loss = -(&ratio * &adv).minimum(&(clipped * &adv)).mean(Kind::Float)
-                    - self.cfg.entropy_coef * entropy;
+                let entropy = (&self.log_std + 0.5 * (2.0 * PI * std::f64::consts::E).ln()).sum(Kind::Float);
+                let policy_loss = -(&ratio * &adv).minimum(&(clipped * &adv)).mean(Kind::Float) - self.cfg.entropy_coef * entropy;
                 self.actor_opt.zero_grad();
                 policy_loss.backward();
                 self.actor_opt.clip_grad_norm(self.cfg.max_grad_norm);
                 self.actor_opt.step();
 
                 let values = self.critic.forward(&mb_obs).flatten(0, -1);
-                let value_loss = (values - returns.index_select(0, &index))
-                    .square()
-                    .mean(Kind::Float);
+                let value_loss = (values - returns.index_select(0, &index)).square().mean(Kind::Float);
                 self.critic_opt.zero_grad();
                 value_loss.backward();
                 self.critic_opt.clip_grad_norm(self.cfg.max_grad_norm);
@@ -203,8 +168,7 @@ impl Ppo {
 impl Agent for Ppo {
     fn explore(&mut self, obs: &[f32], _episode: usize) -> Vec<f32> {
         let mean = self.act(obs);
-        let std: Vec<f32> =
-            Vec::try_from(self.log_std.exp().detach().to_device(Device::Cpu)).unwrap_or_default();
+        let std: Vec<f32> = Vec::try_from(self.log_std.exp().detach().to_device(Device::Cpu)).unwrap_or_default();
         mean.iter()
             .zip(&std)
             .map(|(m, s)| {
@@ -225,11 +189,7 @@ impl Agent for Ppo {
     /// in one process that is the policy that just acted; for a distributed
     /// actor, the learner keeps only transitions of recent enough versions.
     fn store(&mut self, t: Transition) {
-        let next_value = if t.terminated {
-            0.0
-        } else {
-            self.value(t.next_obs)
-        };
+        let next_value = if t.terminated { 0.0 } else { self.value(t.next_obs) };
         let log_prob = tch::no_grad(|| {
             let mean = self.actor.forward(&batch(t.obs, self.obs_dim, self.device));
             let sample = batch(t.action, self.action_dim, self.device);
@@ -275,10 +235,7 @@ impl Agent for Ppo {
     }
 
     fn param_counts(&self) -> (usize, usize) {
-        (
-            self.actor.param_count() + self.action_dim,
-            self.critic.param_count(),
-        )
+        (self.actor.param_count() + self.action_dim, self.critic.param_count())
     }
 
     fn save(&self, dir: &Path, _include_buffer: bool) -> Result<(), LearnerError> {
@@ -286,11 +243,7 @@ impl Agent for Ppo {
         save_vs(&self.critic_vs, &dir.join("critic.safetensors"))?;
         save_optimizers(dir, &self.actor_opt, &self.critic_opt)?;
         // The unfinished rollout is part of the state: PPO resumes mid-rollout.
-        let state = PpoState {
-            rng: RngState::of(&self.rng),
-            counters: self.counters,
-            rollout: self.rollout.clone(),
-        };
+        let state = PpoState { rng: RngState::of(&self.rng), counters: self.counters, rollout: self.rollout.clone() };
         write_agent_state(dir, &state)
     }
 

@@ -47,28 +47,14 @@ impl RateLimiter {
     /// one insert of `largest_insert` transitions and one sample of
     /// `largest_sample` through, or the learner and its actors would wait
     /// on each other forever.
-    pub fn new(
-        samples_per_insert: f64,
-        min_size_to_sample: u64,
-        error_buffer: f64,
-    ) -> Result<Self, String> {
+    pub fn new(samples_per_insert: f64, min_size_to_sample: u64, error_buffer: f64) -> Result<Self, String> {
         if !(samples_per_insert.is_finite() && samples_per_insert > 0.0) {
-            return Err(format!(
-                "samples per insert must be a finite number > 0, got {samples_per_insert}"
-            ));
+            return Err(format!("samples per insert must be a finite number > 0, got {samples_per_insert}"));
         }
         if !(error_buffer.is_finite() && error_buffer > 0.0) {
-            return Err(format!(
-                "the error buffer must be a finite number > 0, got {error_buffer}"
-            ));
+            return Err(format!("the error buffer must be a finite number > 0, got {error_buffer}"));
         }
-        Ok(RateLimiter {
-            samples_per_insert,
-            min_size_to_sample,
-            error_buffer,
-            inserts: 0,
-            samples: 0,
-        })
+        Ok(RateLimiter { samples_per_insert, min_size_to_sample, error_buffer, inserts: 0, samples: 0 })
     }
 
     /// Checks that inserts of up to `largest_insert` and samples of up to
@@ -111,8 +97,7 @@ impl RateLimiter {
         if self.inserts + count <= self.min_size_to_sample {
             return true;
         }
-        (self.inserts + count) as f64 * self.samples_per_insert - self.samples as f64
-            <= self.max_diff()
+        (self.inserts + count) as f64 * self.samples_per_insert - self.samples as f64 <= self.max_diff()
     }
 
     /// Whether `count` transitions may be sampled now.
@@ -140,11 +125,7 @@ impl RateLimiter {
 
     /// Samples per insert achieved so far (0 before the first insert).
     pub fn achieved_ratio(&self) -> f64 {
-        if self.inserts == 0 {
-            0.0
-        } else {
-            self.samples as f64 / self.inserts as f64
-        }
+        if self.inserts == 0 { 0.0 } else { self.samples as f64 / self.inserts as f64 }
     }
 }
 
@@ -211,10 +192,7 @@ mod tests {
                 l.sample(256);
             }
             let expected = 256.0 * (l.inserts as f64 - 1000.0).max(0.0);
-            assert!(
-                (l.samples as f64 - expected).abs() <= l.error_buffer + 256.0 * 64.0,
-                "{l:?}"
-            );
+            assert!((l.samples as f64 - expected).abs() <= l.error_buffer + 256.0 * 64.0, "{l:?}");
         }
         assert!(l.inserts > 1_000_000);
     }
@@ -230,21 +208,11 @@ mod tests {
 
     #[test]
     fn bad_settings_are_refused_with_reasons() {
-        assert!(RateLimiter::new(0.0, 1, 1.0)
-            .unwrap_err()
-            .contains("samples per insert"));
-        assert!(RateLimiter::new(1.0, 1, f64::NAN)
-            .unwrap_err()
-            .contains("error buffer"));
+        assert!(RateLimiter::new(0.0, 1, 1.0).unwrap_err().contains("samples per insert"));
+        assert!(RateLimiter::new(1.0, 1, f64::NAN).unwrap_err().contains("error buffer"));
         let tight = RateLimiter::new(256.0, 1000, 1000.0).unwrap();
-        assert!(tight
-            .check_steps(64, 256)
-            .unwrap_err()
-            .contains("too small"));
-        assert!(RateLimiter::new(256.0, 1000, 256.0 * 40.0)
-            .unwrap()
-            .check_steps(64, 256)
-            .is_ok());
+        assert!(tight.check_steps(64, 256).unwrap_err().contains("too small"));
+        assert!(RateLimiter::new(256.0, 1000, 256.0 * 40.0).unwrap().check_steps(64, 256).is_ok());
     }
 
     #[test]

@@ -106,44 +106,22 @@ impl ReplayBuffer {
     pub fn to_tensors(&self) -> Vec<(String, Tensor)> {
         let n = self.len() as i64;
         vec![
-            (
-                "obs".into(),
-                Tensor::from_slice(&self.obs).view([n, self.obs_dim as i64]),
-            ),
-            (
-                "action".into(),
-                Tensor::from_slice(&self.action).view([n, self.action_dim as i64]),
-            ),
+            ("obs".into(), Tensor::from_slice(&self.obs).view([n, self.obs_dim as i64])),
+            ("action".into(), Tensor::from_slice(&self.action).view([n, self.action_dim as i64])),
             ("reward".into(), Tensor::from_slice(&self.reward)),
-            (
-                "next_obs".into(),
-                Tensor::from_slice(&self.next_obs).view([n, self.obs_dim as i64]),
-            ),
+            ("next_obs".into(), Tensor::from_slice(&self.next_obs).view([n, self.obs_dim as i64])),
             ("done".into(), Tensor::from_slice(&self.done)),
             ("cursor".into(), Tensor::from(self.cursor as i64)),
         ]
     }
 
     /// Rebuilds a buffer from [`ReplayBuffer::to_tensors`].
-    pub fn from_tensors(
-        capacity: usize,
-        obs_dim: usize,
-        action_dim: usize,
-        named: &[(String, Tensor)],
-    ) -> Result<Self, String> {
+    pub fn from_tensors(capacity: usize, obs_dim: usize, action_dim: usize, named: &[(String, Tensor)]) -> Result<Self, String> {
         let get = |key: &str| -> Result<Vec<f32>, String> {
-            let t = named
-                .iter()
-                .find(|(n, _)| n == key)
-                .map(|(_, t)| t)
-                .ok_or_else(|| format!("replay buffer lacks {key}"))?;
+            let t = named.iter().find(|(n, _)| n == key).map(|(_, t)| t).ok_or_else(|| format!("replay buffer lacks {key}"))?;
             Vec::<f32>::try_from(t.flatten(0, -1)).map_err(|e| e.to_string())
         };
-        let cursor = named
-            .iter()
-            .find(|(n, _)| n == "cursor")
-            .map(|(_, t)| i64::try_from(t))
-            .ok_or("replay buffer lacks cursor")?;
+        let cursor = named.iter().find(|(n, _)| n == "cursor").map(|(_, t)| i64::try_from(t)).ok_or("replay buffer lacks cursor")?;
         let buffer = ReplayBuffer {
             capacity,
             obs_dim,
@@ -155,9 +133,7 @@ impl ReplayBuffer {
             done: get("done")?,
             cursor: cursor.map_err(|e| e.to_string())? as usize,
         };
-        if buffer.obs.len() != buffer.len() * obs_dim
-            || buffer.action.len() != buffer.len() * action_dim
-        {
+        if buffer.obs.len() != buffer.len() * obs_dim || buffer.action.len() != buffer.len() * action_dim {
             return Err("replay buffer shapes do not match the environment".into());
         }
         Ok(buffer)

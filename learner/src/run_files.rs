@@ -10,10 +10,7 @@ use crate::config::{Algo, Connection};
 use crate::LearnerError;
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
-    move |source| LearnerError::Io {
-        path: path.to_path_buf(),
-        source,
-    }
+    move |source| LearnerError::Io { path: path.to_path_buf(), source }
 }
 
 /// One row of metrics.csv.
@@ -123,8 +120,7 @@ pub struct TrainSummary {
 
 /// The first `keep` rows of a metrics.csv (a resumed run's history).
 pub fn read_rows(path: &Path, keep: usize) -> Result<Vec<EpisodeRow>, LearnerError> {
-    let mut reader = csv::Reader::from_path(path)
-        .map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))?;
+    let mut reader = csv::Reader::from_path(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))?;
     let rows: Result<Vec<EpisodeRow>, _> = reader.deserialize().take(keep).collect();
     rows.map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
 }
@@ -151,36 +147,23 @@ impl MetricsLog {
     /// starting it with the header when it is new.
     pub fn append(path: &Path) -> Result<Self, LearnerError> {
         let new = std::fs::metadata(path).map_or(true, |m| m.len() == 0);
-        let file = std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(path)
-            .map_err(io(path))?;
+        let file = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(io(path))?;
         Self::over(path, file, new)
     }
 
     fn over(path: &Path, file: std::fs::File, header: bool) -> Result<Self, LearnerError> {
         // The header is written by hand, now (serde's automatic header
         // waits for a first row).
-        let mut writer = csv::WriterBuilder::new()
-            .has_headers(false)
-            .from_writer(file);
+        let mut writer = csv::WriterBuilder::new().has_headers(false).from_writer(file);
         if header {
-            writer
-                .write_record(METRICS_COLUMNS)
-                .map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+            writer.write_record(METRICS_COLUMNS).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
             writer.flush().map_err(io(path))?;
         }
-        Ok(MetricsLog {
-            path: path.to_path_buf(),
-            writer,
-        })
+        Ok(MetricsLog { path: path.to_path_buf(), writer })
     }
 
     pub fn push(&mut self, row: &EpisodeRow) -> Result<(), LearnerError> {
-        self.writer
-            .serialize(row)
-            .map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", self.path.display())))?;
+        self.writer.serialize(row).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", self.path.display())))?;
         self.writer.flush().map_err(io(&self.path))
     }
 }
@@ -190,8 +173,7 @@ impl MetricsLog {
 /// skips it), so it must never be half a file.
 pub fn write_summary<T: Serialize>(run_dir: &Path, value: &T) -> Result<(), LearnerError> {
     let path = run_dir.join("summary.json");
-    let text =
-        serde_json::to_string_pretty(value).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    let text = serde_json::to_string_pretty(value).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
     let partial = run_dir.join(".summary.json.partial");
     std::fs::write(&partial, text + "\n").map_err(io(&partial))?;
     std::fs::rename(&partial, &path).map_err(io(&path))

@@ -46,33 +46,15 @@ pub const MAX_ACTOR_PARAMS: usize = 50_000_000;
 impl Architecture {
     /// Checks what a peer could get wrong before anything is built from it.
     pub fn validate(&self) -> Result<(), LearnerError> {
-        let bad = |why: String| {
-            Err(LearnerError::Mismatch(format!(
-                "policy architecture: {why}"
-            )))
-        };
+        let bad = |why: String| Err(LearnerError::Mismatch(format!("policy architecture: {why}")));
         let (m, n) = (self.shape.state_dim, self.shape.action_dim);
         if !(1..=MAX_DIM).contains(&m) || !(1..=MAX_DIM).contains(&n) {
-            return bad(format!(
-                "state_dim {m} and action_dim {n} must lie in 1..={MAX_DIM}"
-            ));
+            return bad(format!("state_dim {m} and action_dim {n} must lie in 1..={MAX_DIM}"));
         }
-        if self.shape.mask.len() != n
-            || self
-                .shape
-                .mask
-                .iter()
-                .any(|row| row.len() != m || row.iter().any(|&v| v > 1))
-        {
+        if self.shape.mask.len() != n || self.shape.mask.iter().any(|row| row.len() != m || row.iter().any(|&v| v > 1)) {
             return bad(format!("the mask must be {n}×{m} of 0/1"));
         }
-        if self.shape.connection == Connection::Local
-            && self
-                .shape
-                .mask
-                .iter()
-                .any(|row| row.iter().all(|&v| v == 0))
-        {
+        if self.shape.connection == Connection::Local && self.shape.mask.iter().any(|row| row.iter().all(|&v| v == 0)) {
             return bad("a local actor's mask row sees no state".into());
         }
         if let Some(base) = &self.base {
@@ -81,34 +63,14 @@ impl Architecture {
             }
         }
         let net = &self.network;
-        for (name, widths) in [
-            ("global_hidden", &net.global_hidden),
-            ("subnet_hidden", &net.subnet_hidden),
-            ("critic_hidden", &net.critic_hidden),
-        ] {
-            if widths.is_empty()
-                || widths.len() > MAX_LAYERS
-                || widths.iter().any(|&w| !(1..=MAX_DIM).contains(&w))
-            {
-                return bad(format!(
-                    "network.{name} must list 1..={MAX_LAYERS} widths in 1..={MAX_DIM}"
-                ));
+        for (name, widths) in [("global_hidden", &net.global_hidden), ("subnet_hidden", &net.subnet_hidden), ("critic_hidden", &net.critic_hidden)] {
+            if widths.is_empty() || widths.len() > MAX_LAYERS || widths.iter().any(|&w| !(1..=MAX_DIM).contains(&w)) {
+                return bad(format!("network.{name} must list 1..={MAX_LAYERS} widths in 1..={MAX_DIM}"));
             }
         }
-        let widths = if self.shape.connection == Connection::Global {
-            &net.global_hidden
-        } else {
-            &net.subnet_hidden
-        };
-        let (nets, outputs) = if self.shape.connection == Connection::Global {
-            (1, n)
-        } else {
-            (n, 1)
-        };
-        let layers: Vec<usize> = std::iter::once(m)
-            .chain(widths.iter().copied())
-            .chain([outputs])
-            .collect();
+        let widths = if self.shape.connection == Connection::Global { &net.global_hidden } else { &net.subnet_hidden };
+        let (nets, outputs) = if self.shape.connection == Connection::Global { (1, n) } else { (n, 1) };
+        let layers: Vec<usize> = std::iter::once(m).chain(widths.iter().copied()).chain([outputs]).collect();
         let params = nets * layers.windows(2).map(|w| w[0] * w[1]).sum::<usize>();
         if params > MAX_ACTOR_PARAMS {
             return bad(format!("an actor of {params} weights is larger than the {MAX_ACTOR_PARAMS} this build accepts"));
@@ -123,12 +85,8 @@ pub fn encode_weights(named: &[(String, Tensor)]) -> Result<Vec<u8>, LearnerErro
         .iter()
         .map(|(name, t)| {
             let shape = t.size().iter().map(|&d| d as usize).collect();
-            let values: Vec<f32> = Vec::try_from(
-                t.to_kind(tch::Kind::Float)
-                    .flatten(0, -1)
-                    .to_device(tch::Device::Cpu),
-            )
-            .map_err(|e| LearnerError::Checkpoint(format!("weights {name}: {e}")))?;
+            let values: Vec<f32> = Vec::try_from(t.to_kind(tch::Kind::Float).flatten(0, -1).to_device(tch::Device::Cpu))
+                .map_err(|e| LearnerError::Checkpoint(format!("weights {name}: {e}")))?;
             let bytes = values.iter().flat_map(|v| v.to_le_bytes()).collect();
             Ok((name.clone(), shape, bytes))
         })
@@ -141,21 +99,17 @@ pub fn encode_weights(named: &[(String, Tensor)]) -> Result<Vec<u8>, LearnerErro
                 .map_err(|e| LearnerError::Checkpoint(format!("weights {name}: {e:?}")))
         })
         .collect::<Result<Vec<_>, _>>()?;
-    safetensors::tensor::serialize(views, &None)
-        .map_err(|e| LearnerError::Checkpoint(format!("encoding weights: {e:?}")))
+    safetensors::tensor::serialize(views, &None).map_err(|e| LearnerError::Checkpoint(format!("encoding weights: {e:?}")))
 }
 
 /// The inverse of [`encode_weights`].
 pub fn decode_weights(bytes: &[u8]) -> Result<Vec<(String, Tensor)>, LearnerError> {
-    let tensors = safetensors::SafeTensors::deserialize(bytes)
-        .map_err(|e| LearnerError::Checkpoint(format!("decoding weights: {e:?}")))?;
+    let tensors = safetensors::SafeTensors::deserialize(bytes).map_err(|e| LearnerError::Checkpoint(format!("decoding weights: {e:?}")))?;
     tensors
         .tensors()
         .into_iter()
         .map(|(name, view)| {
-            Tensor::try_from(view)
-                .map(|t| (name.clone(), t))
-                .map_err(|e| LearnerError::Checkpoint(format!("weights {name}: {e}")))
+            Tensor::try_from(view).map(|t| (name.clone(), t)).map_err(|e| LearnerError::Checkpoint(format!("weights {name}: {e}")))
         })
         .collect()
 }
@@ -168,18 +122,9 @@ mod tests {
     fn weights_round_trip_exactly() {
         let a = Tensor::from_slice(&[1.5f32, -2.0, 3.25, 0.0]).view([2, 2]);
         let b = Tensor::from_slice(&[7.0f32]);
-        let bytes = encode_weights(&[
-            ("w0".into(), a.shallow_clone()),
-            ("b0".into(), b.shallow_clone()),
-        ])
-        .unwrap();
+        let bytes = encode_weights(&[("w0".into(), a.shallow_clone()), ("b0".into(), b.shallow_clone())]).unwrap();
         let back = decode_weights(&bytes).unwrap();
-        let find = |n: &str| {
-            back.iter()
-                .find(|(name, _)| name == n)
-                .map(|(_, t)| t.shallow_clone())
-                .unwrap()
-        };
+        let find = |n: &str| back.iter().find(|(name, _)| name == n).map(|(_, t)| t.shallow_clone()).unwrap();
         assert!(find("w0").equal(&a) && find("b0").equal(&b));
         assert!(decode_weights(b"not safetensors").is_err());
     }

@@ -67,24 +67,10 @@ impl EventWriter {
     /// file per process: TensorBoard reads every file in the directory.
     pub fn create(dir: &Path) -> std::io::Result<EventWriter> {
         std::fs::create_dir_all(dir)?;
-        let host = std::fs::read_to_string("/etc/hostname")
-            .map(|h| h.trim().to_string())
-            .unwrap_or_else(|_| "lcrl".into());
-        let path = dir.join(format!(
-            "events.out.tfevents.{}.{host}.{}",
-            now().floor() as u64,
-            std::process::id()
-        ));
-        let mut writer = EventWriter {
-            file: BufWriter::new(File::create(&path)?),
-            path,
-        };
-        writer.write_event(&Event {
-            wall_time: now(),
-            step: 0,
-            file_version: Some("brain.Event:2".into()),
-            summary: None,
-        })?;
+        let host = std::fs::read_to_string("/etc/hostname").map(|h| h.trim().to_string()).unwrap_or_else(|_| "lcrl".into());
+        let path = dir.join(format!("events.out.tfevents.{}.{host}.{}", now().floor() as u64, std::process::id()));
+        let mut writer = EventWriter { file: BufWriter::new(File::create(&path)?), path };
+        writer.write_event(&Event { wall_time: now(), step: 0, file_version: Some("brain.Event:2".into()), summary: None })?;
         writer.file.flush()?;
         Ok(writer)
     }
@@ -95,19 +81,8 @@ impl EventWriter {
 
     /// Records `values` (tag, value) at `step`; written through on flush.
     pub fn scalars(&mut self, step: i64, values: &[(&str, f64)]) -> std::io::Result<()> {
-        let value = values
-            .iter()
-            .map(|(tag, v)| SummaryValue {
-                tag: tag.to_string(),
-                simple_value: Some(*v as f32),
-            })
-            .collect();
-        self.write_event(&Event {
-            wall_time: now(),
-            step,
-            file_version: None,
-            summary: Some(Summary { value }),
-        })
+        let value = values.iter().map(|(tag, v)| SummaryValue { tag: tag.to_string(), simple_value: Some(*v as f32) }).collect();
+        self.write_event(&Event { wall_time: now(), step, file_version: None, summary: Some(Summary { value }) })
     }
 
     pub fn flush(&mut self) -> std::io::Result<()> {
@@ -125,38 +100,24 @@ impl EventWriter {
 }
 
 fn now() -> f64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0.0, |d| d.as_secs_f64())
+    SystemTime::now().duration_since(UNIX_EPOCH).map_or(0.0, |d| d.as_secs_f64())
 }
 
 /// Reads an event file back, checking every checksum (for tests and tools).
 pub fn read_events(path: &Path) -> std::io::Result<Vec<Event>> {
     let mut bytes = Vec::new();
     File::open(path)?.read_to_end(&mut bytes)?;
-    let bad = |what: &str| {
-        std::io::Error::new(
-            std::io::ErrorKind::InvalidData,
-            format!("{}: {what}", path.display()),
-        )
-    };
+    let bad = |what: &str| std::io::Error::new(std::io::ErrorKind::InvalidData, format!("{}: {what}", path.display()));
     let mut events = Vec::new();
     let mut at = 0;
     while at < bytes.len() {
-        let header = bytes
-            .get(at..at + 12)
-            .ok_or_else(|| bad("truncated record header"))?;
-        let length =
-            u64::from_le_bytes(header[..8].try_into().map_err(|_| bad("header"))?) as usize;
+        let header = bytes.get(at..at + 12).ok_or_else(|| bad("truncated record header"))?;
+        let length = u64::from_le_bytes(header[..8].try_into().map_err(|_| bad("header"))?) as usize;
         if masked_crc(&header[..8]).to_le_bytes() != header[8..12] {
             return Err(bad("length checksum mismatch"));
         }
-        let data = bytes
-            .get(at + 12..at + 12 + length)
-            .ok_or_else(|| bad("truncated record"))?;
-        let crc = bytes
-            .get(at + 12 + length..at + 16 + length)
-            .ok_or_else(|| bad("truncated checksum"))?;
+        let data = bytes.get(at + 12..at + 12 + length).ok_or_else(|| bad("truncated record"))?;
+        let crc = bytes.get(at + 12 + length..at + 16 + length).ok_or_else(|| bad("truncated checksum"))?;
         if masked_crc(data).to_le_bytes() != crc {
             return Err(bad("data checksum mismatch"));
         }
@@ -176,38 +137,23 @@ mod tests {
         // mask is tensorflow's ((crc >> 15) | (crc << 17)) + 0xa282ead8.
         assert_eq!(crc32c::crc32c(b"123456789"), 0xE306_9283);
         let crc = 0xE306_9283u32;
-        assert_eq!(
-            masked_crc(b"123456789"),
-            ((crc >> 15) | (crc << 17)).wrapping_add(0xa282_ead8)
-        );
+        assert_eq!(masked_crc(b"123456789"), ((crc >> 15) | (crc << 17)).wrapping_add(0xa282_ead8));
     }
 
     #[test]
     fn scalars_round_trip_through_an_event_file() {
         let dir = tempfile::tempdir().unwrap();
         let mut writer = EventWriter::create(dir.path()).unwrap();
-        writer
-            .scalars(1, &[("episode/return", -12.5), ("episode/length", 50.0)])
-            .unwrap();
+        writer.scalars(1, &[("episode/return", -12.5), ("episode/length", 50.0)]).unwrap();
         writer.scalars(2, &[("episode/return", -3.25)]).unwrap();
         writer.flush().unwrap();
         let events = read_events(writer.path()).unwrap();
         assert_eq!(events.len(), 3);
         assert_eq!(events[0].file_version.as_deref(), Some("brain.Event:2"));
         let values = &events[1].summary.as_ref().unwrap().value;
-        assert_eq!(
-            (
-                events[1].step,
-                values[0].tag.as_str(),
-                values[0].simple_value
-            ),
-            (1, "episode/return", Some(-12.5))
-        );
+        assert_eq!((events[1].step, values[0].tag.as_str(), values[0].simple_value), (1, "episode/return", Some(-12.5)));
         assert_eq!(values[1].simple_value, Some(50.0));
-        assert_eq!(
-            events[2].summary.as_ref().unwrap().value[0].simple_value,
-            Some(-3.25)
-        );
+        assert_eq!(events[2].summary.as_ref().unwrap().value[0].simple_value, Some(-3.25));
 
         // A flipped byte is caught by the checksum.
         let mut bytes = std::fs::read(writer.path()).unwrap();

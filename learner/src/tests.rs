@@ -5,18 +5,14 @@ use std::path::Path;
 
 use lcrl_sim::make_env;
 
-use crate::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::config::{Algo, Connection, TrainConfig};
 use crate::policy::Policy;
+use crate::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::run_files::EpisodeRow;
 use crate::trainer::{make_agent, train, TrainOutcome, TrainRequest};
 
 fn lti_fast() -> TrainConfig {
-    TrainConfig::load(Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../configs/lti-fast.toml"
-    )))
-    .unwrap()
+    TrainConfig::load(Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../configs/lti-fast.toml"))).unwrap()
 }
 
 /// A very small DDPG setting for mechanics tests (not learning quality).
@@ -33,24 +29,11 @@ fn tiny() -> TrainConfig {
     cfg
 }
 
-fn run(
-    algo: Algo,
-    connection: Connection,
-    cfg: TrainConfig,
-    dir: &Path,
-    resume: bool,
-) -> TrainOutcome {
+fn run(algo: Algo, connection: Connection, cfg: TrainConfig, dir: &Path, resume: bool) -> TrainOutcome {
     run_until(algo, connection, cfg, dir, resume, None)
 }
 
-fn run_until(
-    algo: Algo,
-    connection: Connection,
-    cfg: TrainConfig,
-    dir: &Path,
-    resume: bool,
-    stop_after: Option<usize>,
-) -> TrainOutcome {
+fn run_until(algo: Algo, connection: Connection, cfg: TrainConfig, dir: &Path, resume: bool, stop_after: Option<usize>) -> TrainOutcome {
     let request = TrainRequest {
         env: "lti-paper".into(),
         algo,
@@ -67,9 +50,7 @@ fn run_until(
 
 /// Rows without their wall-clock columns.
 fn timeless(rows: &[EpisodeRow]) -> Vec<(usize, f64, usize)> {
-    rows.iter()
-        .map(|r| (r.episode, r.episode_return, r.length))
-        .collect()
+    rows.iter().map(|r| (r.episode, r.episode_return, r.length)).collect()
 }
 
 fn within(value: f64, reference: f64, share: f64) -> bool {
@@ -86,11 +67,7 @@ fn ppo_global_reaches_lqr() {
     cfg.run.episodes = 1000;
     let s = run(Algo::Ppo, Connection::Global, cfg, dir.path(), false).summary;
     let lqr = s.lqr_return.unwrap();
-    assert!(
-        within(s.eval_return, lqr, 0.10),
-        "eval {} vs LQR {lqr}",
-        s.eval_return
-    );
+    assert!(within(s.eval_return, lqr, 0.10), "eval {} vs LQR {lqr}", s.eval_return);
 }
 
 /// The local actor cannot see s2 from a1 (G of eq. 10), and the LQR gain
@@ -103,11 +80,7 @@ fn ppo_local_reaches_the_g_structured_optimum() {
     cfg.run.episodes = 1000;
     let s = run(Algo::Ppo, Connection::Local, cfg, dir.path(), false).summary;
     let masked = s.masked_lqr_return.unwrap();
-    assert!(
-        within(s.eval_return, masked, 0.10),
-        "eval {} vs masked LQR {masked}",
-        s.eval_return
-    );
+    assert!(within(s.eval_return, masked, 0.10), "eval {} vs masked LQR {masked}", s.eval_return);
     assert!(masked < s.lqr_return.unwrap());
 }
 
@@ -122,11 +95,7 @@ fn ddpg_global_reaches_lqr() {
     cfg.run.episodes = 1000;
     let s = run(Algo::Ddpg, Connection::Global, cfg, dir.path(), false).summary;
     let lqr = s.lqr_return.unwrap();
-    assert!(
-        within(s.eval_return, lqr, 0.10),
-        "eval {} vs LQR {lqr}",
-        s.eval_return
-    );
+    assert!(within(s.eval_return, lqr, 0.10), "eval {} vs LQR {lqr}", s.eval_return);
 }
 
 #[test]
@@ -136,11 +105,7 @@ fn ddpg_local_reaches_the_g_structured_optimum() {
     cfg.run.episodes = 1000;
     let s = run(Algo::Ddpg, Connection::Local, cfg, dir.path(), false).summary;
     let masked = s.masked_lqr_return.unwrap();
-    assert!(
-        within(s.eval_return, masked, 0.10),
-        "eval {} vs masked LQR {masked}",
-        s.eval_return
-    );
+    assert!(within(s.eval_return, masked, 0.10), "eval {} vs masked LQR {masked}", s.eval_return);
 }
 
 #[test]
@@ -155,27 +120,9 @@ fn checkpoint_round_trip_gives_identical_actions() {
         for k in 0..80 {
             let u = agent.explore(&obs, k);
             let next = [obs[0] * 0.9, obs[1] + 0.01 * k as f32, -obs[2]];
-            agent.observe(crate::agent::Transition {
-                obs: &obs,
-                action: &u,
-                reward: -1.0,
-                next_obs: &next,
-                terminated: false,
-                truncated: k % 50 == 49,
-            });
+            agent.observe(crate::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &next, terminated: false, truncated: k % 50 == 49 });
         }
-        let meta = CheckpointMeta {
-            episode: 1,
-            ..CheckpointMeta::start(
-                "lti-paper",
-                algo,
-                Connection::Local,
-                3,
-                3,
-                mask.clone(),
-                cfg.clone(),
-            )
-        };
+        let meta = CheckpointMeta { episode: 1, ..CheckpointMeta::start("lti-paper", algo, Connection::Local, 3, 3, mask.clone(), cfg.clone()) };
         let saved = write_checkpoint(dir.path(), agent.as_ref(), &meta).unwrap();
         let policy = Policy::load(&saved).unwrap();
         let mut restored = make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
@@ -202,42 +149,16 @@ fn resumed_run_continues_exactly() {
     td3.ddpg.anneal_lr = true;
     for (algo, cfg) in [(Algo::Ddpg, tiny()), (Algo::Ddpg, td3), (Algo::Ppo, tiny())] {
         let straight_dir = tempfile::tempdir().unwrap();
-        let straight = run(
-            algo,
-            Connection::Local,
-            cfg.clone(),
-            straight_dir.path(),
-            false,
-        );
+        let straight = run(algo, Connection::Local, cfg.clone(), straight_dir.path(), false);
         let resumed_dir = tempfile::tempdir().unwrap();
-        run_until(
-            algo,
-            Connection::Local,
-            cfg.clone(),
-            resumed_dir.path(),
-            false,
-            Some(2),
-        );
+        run_until(algo, Connection::Local, cfg.clone(), resumed_dir.path(), false, Some(2));
         if cfg.ddpg.twin_critics {
-            assert!(crate::checkpoint::latest_checkpoint(resumed_dir.path())
-                .unwrap()
-                .join("critic2.safetensors")
-                .is_file());
+            assert!(crate::checkpoint::latest_checkpoint(resumed_dir.path()).unwrap().join("critic2.safetensors").is_file());
         }
         let resumed = run(algo, Connection::Local, cfg, resumed_dir.path(), true);
-        assert_eq!(
-            timeless(&straight.rows),
-            timeless(&resumed.rows),
-            "{algo:?}"
-        );
-        assert_eq!(
-            (straight.summary.env_steps, straight.summary.updates),
-            (resumed.summary.env_steps, resumed.summary.updates)
-        );
-        assert_eq!(
-            straight.summary.eval_return, resumed.summary.eval_return,
-            "{algo:?}: final policies differ"
-        );
+        assert_eq!(timeless(&straight.rows), timeless(&resumed.rows), "{algo:?}");
+        assert_eq!((straight.summary.env_steps, straight.summary.updates), (resumed.summary.env_steps, resumed.summary.updates));
+        assert_eq!(straight.summary.eval_return, resumed.summary.eval_return, "{algo:?}: final policies differ");
     }
 }
 
@@ -250,13 +171,7 @@ fn same_seed_gives_identical_metrics() {
     assert_eq!(timeless(&first.rows), timeless(&second.rows));
     let mut other = tiny();
     other.run.seed = 1;
-    let third = run(
-        Algo::Ddpg,
-        Connection::Global,
-        other,
-        tempfile::tempdir().unwrap().path(),
-        false,
-    );
+    let third = run(Algo::Ddpg, Connection::Global, other, tempfile::tempdir().unwrap().path(), false);
     assert_ne!(timeless(&first.rows), timeless(&third.rows));
 }
 
@@ -277,34 +192,18 @@ fn refuses_to_overwrite_a_run_and_rejects_mismatched_graphs() {
     };
     let err = train(&request, &mut |_| {}).err().unwrap().to_string();
     assert!(err.contains("--resume"), "{err}");
-    let resume_other = TrainRequest {
-        algo: Algo::Ppo,
-        resume: true,
-        ..request.clone()
-    };
-    assert!(train(&resume_other, &mut |_| {})
-        .err()
-        .unwrap()
-        .to_string()
-        .contains("same --env, --algo"));
+    let resume_other = TrainRequest { algo: Algo::Ppo, resume: true, ..request.clone() };
+    assert!(train(&resume_other, &mut |_| {}).err().unwrap().to_string().contains("same --env, --algo"));
 
     // A graph built for lti-paper (3×3) does not fit peg-group1 (6×12).
     let graph = dir.path().join("graph.json");
     let options = lcrl_graph_builder::GraphOptions {
-        cs3: lcrl_graph_builder::Cs3Config {
-            samples: 8,
-            seed: 0,
-            threads: 1,
-            start: None,
-        },
+        cs3: lcrl_graph_builder::Cs3Config { samples: 8, seed: 0, threads: 1, start: None },
         rule: lcrl_graph_builder::Rule::Threshold(0.1),
         bootstrap: 0,
     };
     let env = make_env("lti-paper").unwrap();
-    lcrl_graph_builder::build_graph(env.as_ref(), &options, &|| {})
-        .unwrap()
-        .write_json(&graph)
-        .unwrap();
+    lcrl_graph_builder::build_graph(env.as_ref(), &options, &|| {}).unwrap().write_json(&graph).unwrap();
     let peg = TrainRequest {
         env: "peg-group1".into(),
         connection: Connection::Local,
@@ -327,11 +226,7 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
     let dir = tempfile::tempdir().unwrap();
     let base = [2.0, 2.0, 0.2, 0.1, 0.1, 1.5];
     let file = dir.path().join("best_constant.json");
-    std::fs::write(
-        &file,
-        serde_json::json!({ "env": "peg-group1", "action": base }).to_string(),
-    )
-    .unwrap();
+    std::fs::write(&file, serde_json::json!({ "env": "peg-group1", "action": base }).to_string()).unwrap();
     for algo in [Algo::Ddpg, Algo::Ppo] {
         let (mut cfg, _) = TrainConfig::for_env("peg-group1");
         cfg.controller.base = crate::config::BaseController::BestConstant;
@@ -353,13 +248,8 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
             stop_after: None,
         };
         let outcome = train(&request, &mut |_| {}).unwrap();
-        let recorded: TrainConfig =
-            toml::from_str(&std::fs::read_to_string(run_dir.join("config.toml")).unwrap()).unwrap();
-        assert_eq!(
-            recorded.controller.base,
-            crate::config::BaseController::Action(base.to_vec()),
-            "{algo:?}"
-        );
+        let recorded: TrainConfig = toml::from_str(&std::fs::read_to_string(run_dir.join("config.toml")).unwrap()).unwrap();
+        assert_eq!(recorded.controller.base, crate::config::BaseController::Action(base.to_vec()), "{algo:?}");
         assert_eq!(recorded.controller.best_constant_file, None);
         let policy = Policy::load(&run_dir).unwrap();
         assert_eq!(policy.architecture.base.as_deref(), Some(&base[..]));
@@ -368,24 +258,11 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
         let action = policy.act(env.as_ref(), &state);
         // The actor's last layer starts within ±3e-3: u ≈ 0, a ≈ base.
         for (a, b) in action.iter().zip(base) {
-            assert!(
-                (a - b).abs() < 0.05,
-                "{algo:?}: {action:?} against the base {base:?}"
-            );
+            assert!((a - b).abs() < 0.05, "{algo:?}: {action:?} against the base {base:?}");
         }
         // And it scores as the base does on the same starts.
-        let constant = lcrl_sim::tune::constant_return(
-            env.as_ref(),
-            &base,
-            3,
-            crate::trainer::eval_seed(0, 0),
-        )
-        .unwrap();
-        assert!(
-            (outcome.summary.eval_return - constant).abs() < 0.05 * constant.abs(),
-            "{algo:?}: {} vs {constant}",
-            outcome.summary.eval_return
-        );
+        let constant = lcrl_sim::tune::constant_return(env.as_ref(), &base, 3, crate::trainer::eval_seed(0, 0)).unwrap();
+        assert!((outcome.summary.eval_return - constant).abs() < 0.05 * constant.abs(), "{algo:?}: {} vs {constant}", outcome.summary.eval_return);
     }
 }
 
@@ -406,54 +283,22 @@ fn cuda_updates_equal_cpu_updates() {
             let mut cfg = TrainConfig::default();
             cfg.run.device = device.into();
             (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size) = (32, 32);
-            (
-                cfg.ppo.rollout_steps,
-                cfg.ppo.minibatch_size,
-                cfg.ppo.epochs,
-            ) = (64, 16, 2);
-            let mut agent =
-                crate::trainer::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
+            (cfg.ppo.rollout_steps, cfg.ppo.minibatch_size, cfg.ppo.epochs) = (64, 16, 2);
+            let mut agent = crate::trainer::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
             for k in 0..160 {
                 let obs: Vec<f32> = (0..3).map(|j| ((k * 3 + j) as f32 * 0.37).sin()).collect();
                 let action = agent.explore(&obs, 0);
-                let next: Vec<f32> = obs
-                    .iter()
-                    .zip(action.iter().cycle())
-                    .map(|(s, a)| 0.9 * s + 0.1 * a)
-                    .collect();
+                let next: Vec<f32> = obs.iter().zip(action.iter().cycle()).map(|(s, a)| 0.9 * s + 0.1 * a).collect();
                 let reward = -obs.iter().map(|v| v * v).sum::<f32>();
-                agent.observe(crate::agent::Transition {
-                    obs: &obs,
-                    action: &action,
-                    reward,
-                    next_obs: &next,
-                    terminated: false,
-                    truncated: k % 40 == 39,
-                });
+                agent.observe(crate::agent::Transition { obs: &obs, action: &action, reward, next_obs: &next, terminated: false, truncated: k % 40 == 39 });
             }
-            agent
-                .actor_variables()
-                .into_iter()
-                .map(|(name, t)| {
-                    (
-                        name,
-                        Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap(),
-                    )
-                })
-                .collect()
+            agent.actor_variables().into_iter().map(|(name, t)| (name, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect()
         };
         let (cpu, cuda) = (weights("cpu"), weights("cuda"));
         assert_eq!(cpu.len(), cuda.len());
         for ((name, a), (_, b)) in cpu.iter().zip(&cuda) {
-            let worst = a
-                .iter()
-                .zip(b)
-                .map(|(x, y)| (x - y).abs())
-                .fold(0.0f32, f32::max);
-            assert!(
-                worst < 1e-3,
-                "{algo:?} {name}: CUDA and CPU weights differ by {worst}"
-            );
+            let worst = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+            assert!(worst < 1e-3, "{algo:?} {name}: CUDA and CPU weights differ by {worst}");
         }
     }
 }

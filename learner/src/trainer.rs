@@ -18,13 +18,13 @@ use lcrl_sim::evaluate::evaluate;
 use lcrl_sim::{make_env, Env};
 
 use crate::agent::Agent;
+use crate::run_files::{EpisodeRow, TrainSummary};
+use crate::run_files::{read_rows, write_summary, MetricsLog};
 use crate::checkpoint::{latest_checkpoint, read_meta, write_checkpoint, CheckpointMeta};
 use crate::config::{Algo, Connection, TrainConfig};
 use crate::ddpg::Ddpg;
 use crate::lqr::{lqr_return, masked_lqr_return};
 use crate::ppo::Ppo;
-use crate::run_files::{read_rows, write_summary, MetricsLog};
-use crate::run_files::{EpisodeRow, TrainSummary};
 use crate::LearnerError;
 
 /// What to train, and where.
@@ -67,65 +67,29 @@ fn episode_seed(seed: u64, episode: usize) -> u64 {
 }
 
 pub fn eval_seed(seed: u64, k: usize) -> u64 {
-    (seed ^ 0xE7A1_0000_0000)
-        .wrapping_mul(7_919)
-        .wrapping_add(k as u64)
+    (seed ^ 0xE7A1_0000_0000).wrapping_mul(7_919).wrapping_add(k as u64)
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
-    move |source| LearnerError::Io {
-        path: path.to_path_buf(),
-        source,
-    }
+    move |source| LearnerError::Io { path: path.to_path_buf(), source }
 }
 
 /// A raw state as the agent's input: normalized, f32.
 pub fn observe(env: &dyn Env, state: &[f64]) -> Vec<f32> {
-    env.normalize_state(state)
-        .iter()
-        .map(|&v| v as f32)
-        .collect()
+    env.normalize_state(state).iter().map(|&v| v as f32).collect()
 }
 
 /// Builds the agent for the request on `run.device`.
-pub fn make_agent(
-    algo: Algo,
-    connection: Connection,
-    cfg: &TrainConfig,
-    mask: &[Vec<u8>],
-    m: usize,
-    n: usize,
-) -> Result<Box<dyn Agent>, LearnerError> {
+pub fn make_agent(algo: Algo, connection: Connection, cfg: &TrainConfig, mask: &[Vec<u8>], m: usize, n: usize) -> Result<Box<dyn Agent>, LearnerError> {
     let device = crate::device::resolve_device(&cfg.run.device)?;
     Ok(match algo {
-        Algo::Ddpg => Box::new(Ddpg::new(
-            &cfg.ddpg,
-            &cfg.network,
-            connection,
-            mask,
-            m,
-            n,
-            cfg.run.seed,
-            device,
-        )),
-        Algo::Ppo => Box::new(Ppo::new(
-            &cfg.ppo,
-            &cfg.network,
-            connection,
-            mask,
-            m,
-            n,
-            cfg.run.seed,
-            device,
-        )),
+        Algo::Ddpg => Box::new(Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
+        Algo::Ppo => Box::new(Ppo::new(&cfg.ppo, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
     })
 }
 
 /// The mask of the actor: G for local (loaded or built), ones otherwise.
-fn resolve_mask(
-    req: &TrainRequest,
-    env: &dyn Env,
-) -> Result<(Vec<Vec<u8>>, f64, Option<GraphReport>), LearnerError> {
+fn resolve_mask(req: &TrainRequest, env: &dyn Env) -> Result<(Vec<Vec<u8>>, f64, Option<GraphReport>), LearnerError> {
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
     if req.connection != Connection::Local {
         return Ok((vec![vec![1; m]; n], 0.0, None));
@@ -133,11 +97,7 @@ fn resolve_mask(
     let report = match &req.graph {
         Some(path) => GraphReport::load(path)?,
         None => {
-            let options = GraphOptions::paper(
-                req.config.run.graph_samples,
-                req.config.run.seed,
-                lcrl_graph_builder::DEFAULT_BOOTSTRAP,
-            );
+            let options = GraphOptions::paper(req.config.run.graph_samples, req.config.run.seed, lcrl_graph_builder::DEFAULT_BOOTSTRAP);
             build_graph(env, &options, &|| {})?
         }
     };
@@ -149,20 +109,13 @@ fn resolve_mask(
             env.spec().name
         )));
     }
-    let seconds = if req.graph.is_some() {
-        0.0
-    } else {
-        report.elapsed_s
-    };
+    let seconds = if req.graph.is_some() { 0.0 } else { report.elapsed_s };
     Ok((report.g.clone(), seconds, Some(report)))
 }
 
 /// Trains for `config.run.episodes` episodes (in total, counting resumed
 /// ones), writing the run directory as it goes.
-pub fn train(
-    req: &TrainRequest,
-    on_episode: &mut dyn FnMut(&Progress),
-) -> Result<TrainOutcome, LearnerError> {
+pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Result<TrainOutcome, LearnerError> {
     let started = Instant::now();
     let mut env = make_env(&req.env)?;
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
@@ -176,15 +129,10 @@ pub fn train(
     }
 
     let mut cfg = req.config.clone();
-    let (mask, graph_seconds, mut prior_opt, prior_elapsed, mut rows, checkpoint) = match (
-        req.resume, existing,
-    ) {
+    let (mask, graph_seconds, mut prior_opt, prior_elapsed, mut rows, checkpoint) = match (req.resume, existing) {
         (true, Some(dir)) => {
             let meta = read_meta(&dir)?;
-            if meta.shape.env != req.env
-                || meta.shape.algo != req.algo
-                || meta.shape.connection != req.connection
-            {
+            if meta.shape.env != req.env || meta.shape.algo != req.algo || meta.shape.connection != req.connection {
                 return Err(LearnerError::Mismatch(format!(
                     "{} was trained on {} with {:?}/{:?}; resume it with the same --env, --algo and --connection",
                     dir.display(),
@@ -197,14 +145,7 @@ pub fn train(
             cfg = meta.config.clone();
             cfg.run.episodes = episodes.max(meta.episode);
             let rows = read_rows(&req.run_dir.join("metrics.csv"), meta.episode)?;
-            (
-                meta.shape.mask.clone(),
-                meta.graph_seconds,
-                meta.optimization_seconds,
-                meta.elapsed_seconds,
-                rows,
-                Some(dir),
-            )
+            (meta.shape.mask.clone(), meta.graph_seconds, meta.optimization_seconds, meta.elapsed_seconds, rows, Some(dir))
         }
         _ => {
             let (mask, seconds, report) = resolve_mask(req, env.as_ref())?;
@@ -218,10 +159,7 @@ pub fn train(
     // The base controller as numbers, so config.toml and every checkpoint
     // record exactly what the agent acted around.
     let base = crate::action::resolve_base(&cfg.controller, env.spec())?;
-    cfg.controller.base = base.clone().map_or(
-        crate::config::BaseController::None,
-        crate::config::BaseController::Action,
-    );
+    cfg.controller.base = base.clone().map_or(crate::config::BaseController::None, crate::config::BaseController::Action);
     cfg.controller.best_constant_file = None;
     let actions = crate::action::ActionMap::new(env.spec(), base.as_deref())?;
     // lcrl train steps the environment and updates in turn: every core.
@@ -240,31 +178,12 @@ pub fn train(
     }
     let metrics_path = req.run_dir.join("metrics.csv");
     let mut metrics = MetricsLog::create(&metrics_path, &rows)?;
-    let mut tensorboard =
-        crate::tensorboard::EventWriter::create(&req.run_dir).map_err(io(&req.run_dir))?;
+    let mut tensorboard = crate::tensorboard::EventWriter::create(&req.run_dir).map_err(io(&req.run_dir))?;
     let mut optimization = prior_opt;
-    let start = CheckpointMeta {
-        graph_seconds,
-        ..CheckpointMeta::start(
-            &req.env,
-            req.algo,
-            req.connection,
-            m,
-            n,
-            mask.clone(),
-            cfg.clone(),
-        )
-    };
-    let meta_for = |episode: usize, optimization: f64, elapsed: f64| CheckpointMeta {
-        episode,
-        optimization_seconds: optimization,
-        elapsed_seconds: elapsed,
-        ..start.clone()
-    };
+    let start = CheckpointMeta { graph_seconds, ..CheckpointMeta::start(&req.env, req.algo, req.connection, m, n, mask.clone(), cfg.clone()) };
+    let meta_for = |episode: usize, optimization: f64, elapsed: f64| CheckpointMeta { episode, optimization_seconds: optimization, elapsed_seconds: elapsed, ..start.clone() };
 
-    let last_episode = req
-        .stop_after
-        .map_or(cfg.run.episodes, |stop| stop.min(cfg.run.episodes));
+    let last_episode = req.stop_after.map_or(cfg.run.episodes, |stop| stop.min(cfg.run.episodes));
     for episode in rows.len()..last_episode {
         let episode_started = Instant::now();
         agent.set_progress(episode as f64 / cfg.run.episodes as f64);
@@ -310,38 +229,23 @@ pub fn train(
         }
         .with_terms(metrics_now.return_terms);
         metrics.push(&row)?;
-        let mut scalars = vec![
-            ("episode/return", row.episode_return),
-            ("episode/length", row.length as f64),
-            ("time/optimization_s", opt_seconds),
-        ];
+        let mut scalars = vec![("episode/return", row.episode_return), ("episode/length", row.length as f64), ("time/optimization_s", opt_seconds)];
         scalars.extend(row.peak_force_n.map(|f| ("episode/peak_force_n", f)));
-        scalars.extend(
-            row.success
-                .map(|s| ("episode/success", f64::from(u8::from(s)))),
-        );
-        tensorboard
-            .scalars(row.episode as i64, &scalars)
-            .and_then(|()| tensorboard.flush())
-            .map_err(io(tensorboard.path()))?;
+        scalars.extend(row.success.map(|s| ("episode/success", f64::from(u8::from(s)))));
+        tensorboard.scalars(row.episode as i64, &scalars).and_then(|()| tensorboard.flush()).map_err(io(tensorboard.path()))?;
         rows.push(row);
         let recent = &rows[rows.len().saturating_sub(10)..];
         let steps = agent.counters().env_steps - steps_before;
         on_episode(&Progress {
             row: rows.last().unwrap_or(&rows[0]),
             episodes: cfg.run.episodes,
-            moving_average: recent.iter().map(|r| r.episode_return).sum::<f64>()
-                / recent.len() as f64,
+            moving_average: recent.iter().map(|r| r.episode_return).sum::<f64>() / recent.len() as f64,
             env_steps_per_sec: steps as f64 / episode_started.elapsed().as_secs_f64().max(1e-9),
         });
         let done = episode + 1;
         if done % cfg.run.checkpoint_every == 0 || done == last_episode {
             let elapsed = prior_elapsed + started.elapsed().as_secs_f64();
-            write_checkpoint(
-                &req.run_dir,
-                agent.as_ref(),
-                &meta_for(done, optimization, elapsed),
-            )?;
+            write_checkpoint(&req.run_dir, agent.as_ref(), &meta_for(done, optimization, elapsed))?;
         }
     }
     prior_opt = optimization;
@@ -350,28 +254,10 @@ pub fn train(
     let episodes = cfg.run.eval_episodes.max(1);
     let env_ref = env.fresh();
     let mut policy = |s: &[f64]| actions.to_env(&agent.act(&observe(env_ref.as_ref(), s)));
-    let (eval, _) = evaluate(
-        env.as_mut(),
-        "policy",
-        episodes,
-        eval_seed(cfg.run.seed, 0),
-        &mut policy,
-        &mut |_| {},
-    )?;
-    let (zero, _) = evaluate(
-        env.as_mut(),
-        "a = 0",
-        episodes,
-        eval_seed(cfg.run.seed, 0),
-        &mut |_| vec![0.0; n],
-        &mut |_| {},
-    )?;
-    let lqr = env
-        .as_lti()
-        .and_then(|lti| lqr_return(lti, episodes, eval_seed(cfg.run.seed, 0)));
-    let masked_lqr = env
-        .as_lti()
-        .and_then(|lti| masked_lqr_return(lti, &mask, episodes, eval_seed(cfg.run.seed, 0)));
+    let (eval, _) = evaluate(env.as_mut(), "policy", episodes, eval_seed(cfg.run.seed, 0), &mut policy, &mut |_| {})?;
+    let (zero, _) = evaluate(env.as_mut(), "a = 0", episodes, eval_seed(cfg.run.seed, 0), &mut |_| vec![0.0; n], &mut |_| {})?;
+    let lqr = env.as_lti().and_then(|lti| lqr_return(lti, episodes, eval_seed(cfg.run.seed, 0)));
+    let masked_lqr = env.as_lti().and_then(|lti| masked_lqr_return(lti, &mask, episodes, eval_seed(cfg.run.seed, 0)));
     let recent = &rows[rows.len().saturating_sub(10)..];
     let (actor_params, critic_params) = agent.param_counts();
     let counters = agent.counters();
@@ -381,8 +267,7 @@ pub fn train(
         connection: req.connection,
         seed: cfg.run.seed,
         episodes: rows.len(),
-        final_return: recent.iter().map(|r| r.episode_return).sum::<f64>()
-            / recent.len().max(1) as f64,
+        final_return: recent.iter().map(|r| r.episode_return).sum::<f64>() / recent.len().max(1) as f64,
         eval_return: eval.mean_return,
         eval_success_rate: eval.success_rate,
         eval_peak_force_n: eval.mean_peak_force_n,

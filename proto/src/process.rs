@@ -20,11 +20,7 @@ where
     F: Future<Output = anyhow::Result<()>>,
 {
     init_logging(log_json);
-    let runtime = match tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(workers.max(1))
-        .enable_all()
-        .build()
-    {
+    let runtime = match tokio::runtime::Builder::new_multi_thread().worker_threads(workers.max(1)).enable_all().build() {
         Ok(runtime) => runtime,
         Err(e) => {
             eprintln!("{name}: error: cannot start the async runtime: {e}");
@@ -59,8 +55,7 @@ pub async fn shutdown_signal() {
 /// Logging of every lcrl process: to stderr, human-readable by default or
 /// JSON lines with `json`, level from `RUST_LOG` (default `info`).
 pub fn init_logging(json: bool) {
-    let filter =
-        tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into());
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
@@ -75,10 +70,7 @@ pub fn init_logging(json: bool) {
 /// Adds server reflection of lcrl.v1 and grpc.health.v1 in both protocol
 /// versions, behind the token check: v1 (grpcurl, grpcui, newer tools) and
 /// v1alpha (grpcio's `grpcio-reflection`, Postman, older tools).
-pub fn add_reflection<L>(
-    router: tonic::transport::server::Router<L>,
-    check: &TokenCheck,
-) -> tonic::transport::server::Router<L> {
+pub fn add_reflection<L>(router: tonic::transport::server::Router<L>, check: &TokenCheck) -> tonic::transport::server::Router<L> {
     let configure = || {
         reflection::Builder::configure()
             .register_encoded_file_descriptor_set(crate::v1::FILE_DESCRIPTOR_SET)
@@ -86,13 +78,7 @@ pub fn add_reflection<L>(
     };
     // The descriptor sets are compiled in: a failure is a build defect,
     // which every test that starts a server would show.
-    let v1 = configure()
-        .build_v1()
-        .expect("compiled-in descriptor sets are valid");
-    let v1alpha = configure()
-        .build_v1alpha()
-        .expect("compiled-in descriptor sets are valid");
-    router
-        .add_service(InterceptedService::new(v1, check.clone()))
-        .add_service(InterceptedService::new(v1alpha, check.clone()))
+    let v1 = configure().build_v1().expect("compiled-in descriptor sets are valid");
+    let v1alpha = configure().build_v1alpha().expect("compiled-in descriptor sets are valid");
+    router.add_service(InterceptedService::new(v1, check.clone())).add_service(InterceptedService::new(v1alpha, check.clone()))
 }

@@ -23,11 +23,7 @@ pub const TOKEN_FILE_ENV: &str = "LCRL_TOKEN_FILE";
 #[derive(Debug, thiserror::Error)]
 pub enum SecurityError {
     #[error("cannot read {what} {path}: {source}")]
-    Read {
-        what: &'static str,
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    Read { what: &'static str, path: PathBuf, source: std::io::Error },
     #[error("{0}")]
     Invalid(String),
     #[error("cannot connect to {0}")]
@@ -61,14 +57,8 @@ impl Token {
     /// path, the file $LCRL_TOKEN_FILE names; or none.
     pub fn load(path: Option<&Path>) -> Result<Option<Token>, SecurityError> {
         let from_env = std::env::var_os(TOKEN_FILE_ENV).map(PathBuf::from);
-        let Some(path) = path.map(Path::to_path_buf).or(from_env) else {
-            return Ok(None);
-        };
-        let text = std::fs::read_to_string(&path).map_err(|source| SecurityError::Read {
-            what: "token file",
-            path: path.clone(),
-            source,
-        })?;
+        let Some(path) = path.map(Path::to_path_buf).or(from_env) else { return Ok(None) };
+        let text = std::fs::read_to_string(&path).map_err(|source| SecurityError::Read { what: "token file", path: path.clone(), source })?;
         let token = text.trim();
         if token.len() < 16 || !token.bytes().all(|b| b.is_ascii_graphic()) {
             return Err(SecurityError::Invalid(format!(
@@ -85,9 +75,7 @@ impl Token {
     }
 
     fn header(&self) -> Result<MetadataValue<tonic::metadata::Ascii>, SecurityError> {
-        format!("Bearer {}", self.0)
-            .parse()
-            .map_err(|_| SecurityError::Invalid("the token is not valid in a header".into()))
+        format!("Bearer {}", self.0).parse().map_err(|_| SecurityError::Invalid("the token is not valid in a header".into()))
     }
 }
 
@@ -125,28 +113,17 @@ pub struct TokenCheck {
 
 impl Interceptor for TokenCheck {
     fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
-        let Some(token) = &self.token else {
-            return Ok(request);
-        };
+        let Some(token) = &self.token else { return Ok(request) };
         let refuse = |counter: &AtomicU64, why: &str| {
             counter.fetch_add(1, Ordering::Relaxed);
             Err(Status::unauthenticated(why.to_string()))
         };
         match request.metadata().get("authorization") {
-            None => refuse(
-                &self.refusals.missing,
-                "this server needs `authorization: Bearer <token>` (clients: --token-file)",
-            ),
+            None => refuse(&self.refusals.missing, "this server needs `authorization: Bearer <token>` (clients: --token-file)"),
             Some(value) => match value.as_bytes().strip_prefix(b"Bearer ") {
-                None => refuse(
-                    &self.refusals.malformed,
-                    "the authorization header must be `Bearer <token>`",
-                ),
+                None => refuse(&self.refusals.malformed, "the authorization header must be `Bearer <token>`"),
                 Some(presented) if token.matches(presented) => Ok(request),
-                Some(_) => refuse(
-                    &self.refusals.wrong,
-                    "the bearer token is not this server's",
-                ),
+                Some(_) => refuse(&self.refusals.wrong, "the bearer token is not this server's"),
             },
         }
     }
@@ -189,29 +166,17 @@ pub struct ClientSecurityArgs {
 }
 
 fn read(what: &'static str, path: &Path) -> Result<Vec<u8>, SecurityError> {
-    std::fs::read(path).map_err(|source| SecurityError::Read {
-        what,
-        path: path.into(),
-        source,
-    })
+    std::fs::read(path).map_err(|source| SecurityError::Read { what, path: path.into(), source })
 }
 
 /// A rustls server configuration: this certificate, and with `client_ca`
 /// only clients holding a certificate of that CA (mutual TLS).
-pub fn server_config(
-    cert: &[u8],
-    key: &[u8],
-    client_ca: Option<&[u8]>,
-) -> Result<Arc<rustls::ServerConfig>, SecurityError> {
+pub fn server_config(cert: &[u8], key: &[u8], client_ca: Option<&[u8]>) -> Result<Arc<rustls::ServerConfig>, SecurityError> {
     use rustls::pki_types::pem::PemObject;
     use rustls::pki_types::{CertificateDer, PrivateKeyDer};
-    let invalid =
-        |what: &str, e: &dyn std::fmt::Display| SecurityError::Invalid(format!("{what}: {e}"));
-    let chain = CertificateDer::pem_slice_iter(cert)
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|e| invalid("--tls-cert is not a PEM certificate", &e))?;
-    let key = PrivateKeyDer::from_pem_slice(key)
-        .map_err(|e| invalid("--tls-key is not a PEM private key", &e))?;
+    let invalid = |what: &str, e: &dyn std::fmt::Display| SecurityError::Invalid(format!("{what}: {e}"));
+    let chain = CertificateDer::pem_slice_iter(cert).collect::<Result<Vec<_>, _>>().map_err(|e| invalid("--tls-cert is not a PEM certificate", &e))?;
+    let key = PrivateKeyDer::from_pem_slice(key).map_err(|e| invalid("--tls-key is not a PEM private key", &e))?;
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let builder = rustls::ServerConfig::builder_with_provider(provider.clone())
         .with_safe_default_protocol_versions()
@@ -220,23 +185,16 @@ pub fn server_config(
         Some(ca) => {
             let mut roots = rustls::RootCertStore::empty();
             for cert in CertificateDer::pem_slice_iter(ca) {
-                roots
-                    .add(cert.map_err(|e| invalid("--tls-client-ca is not a PEM certificate", &e))?)
-                    .map_err(|e| invalid("--tls-client-ca", &e))?;
+                roots.add(cert.map_err(|e| invalid("--tls-client-ca is not a PEM certificate", &e))?).map_err(|e| invalid("--tls-client-ca", &e))?;
             }
-            let verifier = rustls::server::WebPkiClientVerifier::builder_with_provider(
-                Arc::new(roots),
-                provider,
-            )
-            .build()
-            .map_err(|e| invalid("--tls-client-ca", &e))?;
+            let verifier = rustls::server::WebPkiClientVerifier::builder_with_provider(Arc::new(roots), provider)
+                .build()
+                .map_err(|e| invalid("--tls-client-ca", &e))?;
             builder.with_client_cert_verifier(verifier)
         }
         None => builder.with_no_client_auth(),
     };
-    let mut config = builder
-        .with_single_cert(chain, key)
-        .map_err(|e| invalid("--tls-cert and --tls-key do not match", &e))?;
+    let mut config = builder.with_single_cert(chain, key).map_err(|e| invalid("--tls-cert and --tls-key do not match", &e))?;
     config.alpn_protocols = vec![b"h2".to_vec()];
     Ok(Arc::new(config))
 }
@@ -254,29 +212,14 @@ impl ServerSecurity {
     pub fn from_args(args: &ServerSecurityArgs) -> Result<Self, SecurityError> {
         let tls = match (&args.tls_cert, &args.tls_key) {
             (Some(cert), Some(key)) => {
-                let ca = args
-                    .tls_client_ca
-                    .as_deref()
-                    .map(|ca| read("client CA", ca))
-                    .transpose()?;
-                Some(server_config(
-                    &read("certificate", cert)?,
-                    &read("private key", key)?,
-                    ca.as_deref(),
-                )?)
+                let ca = args.tls_client_ca.as_deref().map(|ca| read("client CA", ca)).transpose()?;
+                Some(server_config(&read("certificate", cert)?, &read("private key", key)?, ca.as_deref())?)
             }
             _ => None,
         };
         let token = Token::load(args.token_file.as_deref())?;
         let mutual = tls.is_some() && args.tls_client_ca.is_some();
-        Ok(ServerSecurity {
-            tls,
-            mutual,
-            check: TokenCheck {
-                token,
-                refusals: Arc::default(),
-            },
-        })
+        Ok(ServerSecurity { tls, mutual, check: TokenCheck { token, refusals: Arc::default() } })
     }
 
     /// The interceptor to put in front of every service but health.
@@ -290,18 +233,11 @@ impl ServerSecurity {
 
     /// The connections `listener` accepts: TLS where configured (failed
     /// handshakes counted), for `serve_with_incoming`.
-    pub fn incoming(
-        &self,
-        listener: tokio::net::TcpListener,
-    ) -> tokio_stream::wrappers::ReceiverStream<std::io::Result<crate::incoming::Conn>> {
+    pub fn incoming(&self, listener: tokio::net::TcpListener) -> tokio_stream::wrappers::ReceiverStream<std::io::Result<crate::incoming::Conn>> {
         let refusals = self.check.refusals.clone();
-        crate::incoming::incoming(
-            listener,
-            self.tls.clone(),
-            Arc::new(move || {
-                refusals.tls_handshake.fetch_add(1, Ordering::Relaxed);
-            }),
-        )
+        crate::incoming::incoming(listener, self.tls.clone(), Arc::new(move || {
+            refusals.tls_handshake.fetch_add(1, Ordering::Relaxed);
+        }))
     }
 
     pub fn describe(&self) -> String {
@@ -310,14 +246,7 @@ impl ServerSecurity {
             (Some(_), false) => "TLS",
             (None, _) => "plain text",
         };
-        format!(
-            "{transport}{}",
-            if self.check.token.is_some() {
-                " + token"
-            } else {
-                ""
-            }
-        )
+        format!("{transport}{}", if self.check.token.is_some() { " + token" } else { "" })
     }
 
     /// A server reachable from other hosts without TLS is worth a warning.
@@ -337,67 +266,42 @@ pub struct ClientSecurity {
 
 impl ClientSecurity {
     pub fn from_args(args: &ClientSecurityArgs) -> Result<Self, SecurityError> {
-        let identity = args
-            .tls_client_cert
-            .as_deref()
-            .zip(args.tls_client_key.as_deref());
+        let identity = args.tls_client_cert.as_deref().zip(args.tls_client_key.as_deref());
         Self::new(args.tls_ca.as_deref(), identity, args.token_file.as_deref())
     }
 
     /// TLS trusting `ca` (with a client identity for mutual TLS), and the
     /// token from `token_file` (or $LCRL_TOKEN_FILE).
-    pub fn new(
-        ca: Option<&Path>,
-        identity: Option<(&Path, &Path)>,
-        token_file: Option<&Path>,
-    ) -> Result<Self, SecurityError> {
+    pub fn new(ca: Option<&Path>, identity: Option<(&Path, &Path)>, token_file: Option<&Path>) -> Result<Self, SecurityError> {
         let tls = match ca {
             Some(ca) => {
-                let mut config = ClientTlsConfig::new()
-                    .ca_certificate(Certificate::from_pem(read("CA certificate", ca)?));
+                let mut config = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(read("CA certificate", ca)?));
                 if let Some((cert, key)) = identity {
-                    config = config.identity(Identity::from_pem(
-                        read("client certificate", cert)?,
-                        read("client key", key)?,
-                    ));
+                    config = config.identity(Identity::from_pem(read("client certificate", cert)?, read("client key", key)?));
                 }
                 Some(config)
             }
             None => None,
         };
-        Ok(ClientSecurity {
-            tls,
-            token: Token::load(token_file)?,
-        })
+        Ok(ClientSecurity { tls, token: Token::load(token_file)? })
     }
 
     /// Connects to `url` (TLS where configured); every call through the
     /// returned channel carries the token.
     pub async fn connect(&self, url: &str) -> Result<AuthChannel, SecurityError> {
-        let channel = self
-            .endpoint(url)?
-            .connect()
-            .await
-            .map_err(|e| SecurityError::Connect(format!("{url}: {}", error_chain(&e))))?;
+        let channel = self.endpoint(url)?.connect().await.map_err(|e| SecurityError::Connect(format!("{url}: {}", error_chain(&e))))?;
         Ok(AuthChannel::new(channel, self.bearer()?))
     }
 
     /// An endpoint for `url` with TLS where configured: https:// needs
     /// --tls-ca, and --tls-ca needs https://.
     pub fn endpoint(&self, url: &str) -> Result<Endpoint, SecurityError> {
-        let endpoint = Endpoint::from_shared(url.to_string())
-            .map_err(|e| SecurityError::Invalid(format!("{url} is not a valid URL: {e}")))?;
+        let endpoint = Endpoint::from_shared(url.to_string()).map_err(|e| SecurityError::Invalid(format!("{url} is not a valid URL: {e}")))?;
         match (&self.tls, url.starts_with("https://")) {
-            (Some(tls), true) => endpoint
-                .tls_config(tls.clone())
-                .map_err(|e| SecurityError::Invalid(format!("TLS for {url}: {e}"))),
+            (Some(tls), true) => endpoint.tls_config(tls.clone()).map_err(|e| SecurityError::Invalid(format!("TLS for {url}: {e}"))),
             (None, false) => Ok(endpoint),
-            (Some(_), false) => Err(SecurityError::Invalid(format!(
-                "--tls-ca is given but {url} is not https://; use https://HOST:PORT"
-            ))),
-            (None, true) => Err(SecurityError::Invalid(format!(
-                "{url} is https:// but no --tls-ca says which CA to trust"
-            ))),
+            (Some(_), false) => Err(SecurityError::Invalid(format!("--tls-ca is given but {url} is not https://; use https://HOST:PORT"))),
+            (None, true) => Err(SecurityError::Invalid(format!("{url} is https:// but no --tls-ca says which CA to trust"))),
         }
     }
 
@@ -414,17 +318,14 @@ pub struct Bearer(Option<MetadataValue<tonic::metadata::Ascii>>);
 impl Interceptor for Bearer {
     fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
         if let Some(value) = &self.0 {
-            request
-                .metadata_mut()
-                .insert("authorization", value.clone());
+            request.metadata_mut().insert("authorization", value.clone());
         }
         Ok(request)
     }
 }
 
 /// A channel whose every call carries the client's token.
-pub type AuthChannel =
-    tonic::service::interceptor::InterceptedService<tonic::transport::Channel, Bearer>;
+pub type AuthChannel = tonic::service::interceptor::InterceptedService<tonic::transport::Channel, Bearer>;
 
 #[cfg(test)]
 mod tests {
@@ -438,18 +339,13 @@ mod tests {
 
     fn check_with(token: &str) -> TokenCheck {
         let file = token_file(token);
-        TokenCheck {
-            token: Token::load(Some(file.path())).unwrap(),
-            refusals: Arc::default(),
-        }
+        TokenCheck { token: Token::load(Some(file.path())).unwrap(), refusals: Arc::default() }
     }
 
     fn call(check: &mut TokenCheck, header: Option<&str>) -> Result<(), tonic::Code> {
         let mut request = Request::new(());
         if let Some(h) = header {
-            request
-                .metadata_mut()
-                .insert("authorization", h.parse().unwrap());
+            request.metadata_mut().insert("authorization", h.parse().unwrap());
         }
         check.call(request).map(|_| ()).map_err(|s| s.code())
     }
@@ -457,34 +353,15 @@ mod tests {
     #[test]
     fn tokens_are_checked_and_refusals_counted_by_reason() {
         let mut check = check_with("  s3cret-token-0123456789\n");
-        assert_eq!(
-            call(&mut check, Some("Bearer s3cret-token-0123456789")),
-            Ok(())
-        );
+        assert_eq!(call(&mut check, Some("Bearer s3cret-token-0123456789")), Ok(()));
         assert_eq!(call(&mut check, None), Err(tonic::Code::Unauthenticated));
-        assert_eq!(
-            call(&mut check, Some("Basic s3cret-token-0123456789")),
-            Err(tonic::Code::Unauthenticated)
-        );
-        assert_eq!(
-            call(&mut check, Some("Bearer s3cret-token-012345678")),
-            Err(tonic::Code::Unauthenticated)
-        );
-        assert_eq!(
-            call(&mut check, Some("Bearer s3cret-token-01234567890")),
-            Err(tonic::Code::Unauthenticated)
-        );
+        assert_eq!(call(&mut check, Some("Basic s3cret-token-0123456789")), Err(tonic::Code::Unauthenticated));
+        assert_eq!(call(&mut check, Some("Bearer s3cret-token-012345678")), Err(tonic::Code::Unauthenticated));
+        assert_eq!(call(&mut check, Some("Bearer s3cret-token-01234567890")), Err(tonic::Code::Unauthenticated));
         let counts: Vec<u64> = check.refusals.counts().iter().map(|(_, n)| *n).collect();
-        assert_eq!(
-            counts,
-            [1, 1, 2, 0],
-            "missing, malformed, wrong, TLS handshake"
-        );
+        assert_eq!(counts, [1, 1, 2, 0], "missing, malformed, wrong, TLS handshake");
         // Without a token, everything passes.
-        let mut open = TokenCheck {
-            token: None,
-            refusals: Arc::default(),
-        };
+        let mut open = TokenCheck { token: None, refusals: Arc::default() };
         assert_eq!(call(&mut open, None), Ok(()));
     }
 
@@ -495,24 +372,14 @@ mod tests {
         assert!(!format!("{token:?}").contains("s3cret"));
         let weak = token_file("short");
         let err = Token::load(Some(weak.path())).unwrap_err().to_string();
-        assert!(
-            err.contains("at least 16") && !err.contains("short"),
-            "{err}"
-        );
-        assert!(Token::load(Some(Path::new("/no/such/token")))
-            .unwrap_err()
-            .to_string()
-            .contains("/no/such/token"));
+        assert!(err.contains("at least 16") && !err.contains("short"), "{err}");
+        assert!(Token::load(Some(Path::new("/no/such/token"))).unwrap_err().to_string().contains("/no/such/token"));
     }
 
     #[test]
     fn scheme_and_tls_settings_must_agree() {
         let plain = ClientSecurity::default();
         assert!(plain.endpoint("http://127.0.0.1:1").is_ok());
-        assert!(plain
-            .endpoint("https://127.0.0.1:1")
-            .unwrap_err()
-            .to_string()
-            .contains("--tls-ca"));
+        assert!(plain.endpoint("https://127.0.0.1:1").unwrap_err().to_string().contains("--tls-ca"));
     }
 }

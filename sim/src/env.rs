@@ -31,16 +31,10 @@ impl EnvSpec {
     /// Rejects an action of the wrong length or with a non-finite component.
     pub fn check_action(&self, action: &[f64]) -> Result<(), EnvError> {
         if action.len() != self.action_dim() {
-            return Err(EnvError::ActionDim {
-                expected: self.action_dim(),
-                got: action.len(),
-            });
+            return Err(EnvError::ActionDim { expected: self.action_dim(), got: action.len() });
         }
         if let Some(index) = action.iter().position(|a| !a.is_finite()) {
-            return Err(EnvError::NonFiniteAction {
-                index,
-                value: action[index],
-            });
+            return Err(EnvError::NonFiniteAction { index, value: action[index] });
         }
         Ok(())
     }
@@ -216,13 +210,7 @@ impl ReturnTerms {
     }
 
     pub fn scale(&self, k: f64) -> ReturnTerms {
-        ReturnTerms {
-            depth: self.depth * k,
-            force: self.force * k,
-            moment: self.moment * k,
-            bonus: self.bonus * k,
-            failure: self.failure * k,
-        }
+        ReturnTerms { depth: self.depth * k, force: self.force * k, moment: self.moment * k, bonus: self.bonus * k, failure: self.failure * k }
     }
 
     /// The mean of several episodes' terms; None when any has none.
@@ -242,24 +230,17 @@ impl ReturnTerms {
 /// Step), which is what makes K environments per actor cheap.
 pub fn step_all(envs: &mut [Box<dyn Env>], actions: &[Vec<f64>]) -> Result<Vec<Step>, EnvError> {
     if envs.len() != actions.len() {
-        return Err(EnvError::invalid(
-            "actions",
-            format!("{} actions for {} environments", actions.len(), envs.len()),
-        ));
+        return Err(EnvError::invalid("actions", format!("{} actions for {} environments", actions.len(), envs.len())));
     }
     if envs.len() > 1 {
-        let remotes: Option<Vec<&mut crate::remote::RemoteEnv>> =
-            envs.iter_mut().map(|e| e.as_remote_mut()).collect();
+        let remotes: Option<Vec<&mut crate::remote::RemoteEnv>> = envs.iter_mut().map(|e| e.as_remote_mut()).collect();
         if let Some(mut remotes) = remotes {
             if remotes.iter().all(|r| r.same_server(remotes[0])) {
                 return crate::remote::RemoteEnv::step_batch(&mut remotes, actions);
             }
         }
     }
-    envs.iter_mut()
-        .zip(actions)
-        .map(|(env, action)| env.step(action))
-        .collect()
+    envs.iter_mut().zip(actions).map(|(env, action)| env.step(action)).collect()
 }
 
 /// Everything that can go wrong when making or stepping an environment.
@@ -274,10 +255,7 @@ pub enum EnvError {
     #[error("unknown environment '{name}': use one of {known}, a path to a .toml file, or grpc://HOST:PORT for a served environment (python -m lcrl_env serve)")]
     Unknown { name: String, known: String },
     #[error("cannot read environment file {path}: {source}")]
-    Read {
-        path: String,
-        source: std::io::Error,
-    },
+    Read { path: String, source: std::io::Error },
     #[error("environment file {path}: {message}")]
     Parse { path: String, message: String },
     #[error("environment config, field `{field}`: {message}")]
@@ -295,9 +273,6 @@ pub enum EnvError {
 
 impl EnvError {
     pub(crate) fn invalid(field: impl Into<String>, message: impl Into<String>) -> Self {
-        EnvError::Invalid {
-            field: field.into(),
-            message: message.into(),
-        }
+        EnvError::Invalid { field: field.into(), message: message.into() }
     }
 }

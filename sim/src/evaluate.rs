@@ -53,13 +53,7 @@ pub fn run_episode(
         steps += 1;
         episode_return += step.reward;
         if record {
-            trace.push(TraceRow {
-                step: steps,
-                time_s: steps as f64 * period,
-                state: step.state.clone(),
-                action,
-                reward: step.reward,
-            });
+            trace.push(TraceRow { step: steps, time_s: steps as f64 * period, state: step.state.clone(), action, reward: step.reward });
         }
         state = step.state;
         if step.terminated || step.truncated {
@@ -127,10 +121,7 @@ pub fn evaluate(
         records.push(record);
     }
     let elapsed = started.elapsed().as_secs_f64();
-    Ok((
-        summarize(env.spec().name.clone(), controller, seed, &records, elapsed),
-        records,
-    ))
+    Ok((summarize(env.spec().name.clone(), controller, seed, &records, elapsed), records))
 }
 
 fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
@@ -139,17 +130,9 @@ fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
 }
 
 /// Aggregates episode records.
-pub fn summarize(
-    env: String,
-    controller: &str,
-    seed: u64,
-    records: &[EpisodeRecord],
-    elapsed_s: f64,
-) -> Summary {
+pub fn summarize(env: String, controller: &str, seed: u64, records: &[EpisodeRecord], elapsed_s: f64) -> Summary {
     let n = records.len();
-    let all = |f: fn(&EpisodeMetrics) -> Option<f64>| -> Option<Vec<f64>> {
-        records.iter().map(|r| f(&r.metrics)).collect()
-    };
+    let all = |f: fn(&EpisodeMetrics) -> Option<f64>| -> Option<Vec<f64>> { records.iter().map(|r| f(&r.metrics)).collect() };
     let successes: Option<Vec<bool>> = records.iter().map(|r| r.metrics.success).collect();
     let peaks = all(|m| m.peak_force_n);
     let total_steps: usize = records.iter().map(|r| r.steps).sum();
@@ -159,35 +142,20 @@ pub fn summarize(
         controller: controller.to_string(),
         episodes: n,
         seed,
-        success_rate: successes
+        success_rate: successes.as_ref().and_then(|s| mean(s.iter().map(|&ok| f64::from(u8::from(ok))))),
+        mean_steps_to_insert: successes
             .as_ref()
-            .and_then(|s| mean(s.iter().map(|&ok| f64::from(u8::from(ok))))),
-        mean_steps_to_insert: successes.as_ref().and_then(|s| {
-            mean(
-                records
-                    .iter()
-                    .zip(s)
-                    .filter(|(_, &ok)| ok)
-                    .map(|(r, _)| r.steps as f64),
-            )
-        }),
+            .and_then(|s| mean(records.iter().zip(s).filter(|(_, &ok)| ok).map(|(r, _)| r.steps as f64))),
         mean_steps: mean(records.iter().map(|r| r.steps as f64)).unwrap_or(0.0),
         mean_peak_force_n: peaks.as_ref().and_then(|p| mean(p.iter().copied())),
-        max_peak_force_n: peaks
-            .as_ref()
-            .and_then(|p| p.iter().copied().reduce(f64::max)),
+        max_peak_force_n: peaks.as_ref().and_then(|p| p.iter().copied().reduce(f64::max)),
         mean_peak_moment_nm: all(|m| m.peak_moment_nm).and_then(|p| mean(p.into_iter())),
-        max_penetration_mm: all(|m| m.max_penetration_mm)
-            .and_then(|p| p.into_iter().reduce(f64::max)),
+        max_penetration_mm: all(|m| m.max_penetration_mm).and_then(|p| p.into_iter().reduce(f64::max)),
         mean_return: mean(returns.clone()).unwrap_or(0.0),
         min_return: returns.clone().fold(f64::INFINITY, f64::min),
         max_return: returns.fold(f64::NEG_INFINITY, f64::max),
         terms: ReturnTerms::mean(records.iter().map(|r| r.metrics.return_terms.as_ref())).into(),
-        control_steps_per_sec: if elapsed_s > 0.0 {
-            total_steps as f64 / elapsed_s
-        } else {
-            0.0
-        },
+        control_steps_per_sec: if elapsed_s > 0.0 { total_steps as f64 / elapsed_s } else { 0.0 },
         elapsed_s,
     }
 }
@@ -200,15 +168,7 @@ mod tests {
     #[test]
     fn constant_controller_on_peg_group1_inserts_and_summary_adds_up() {
         let mut env = make_env("peg-group1").unwrap();
-        let (summary, records) = evaluate(
-            env.as_mut(),
-            "constant",
-            3,
-            5,
-            &mut |_| vec![0.0; 6],
-            &mut |_| {},
-        )
-        .unwrap();
+        let (summary, records) = evaluate(env.as_mut(), "constant", 3, 5, &mut |_| vec![0.0; 6], &mut |_| {}).unwrap();
         assert_eq!(summary.episodes, 3);
         assert_eq!(records[0].trace.len(), records[0].steps);
         assert!(records[1].trace.is_empty());
@@ -221,19 +181,8 @@ mod tests {
     #[test]
     fn linear_systems_have_no_task_figures() {
         let mut env = make_env("lti-paper").unwrap();
-        let (summary, _) = evaluate(
-            env.as_mut(),
-            "zero",
-            2,
-            0,
-            &mut |_| vec![0.0; 3],
-            &mut |_| {},
-        )
-        .unwrap();
-        assert_eq!(
-            (summary.success_rate, summary.mean_peak_force_n),
-            (None, None)
-        );
+        let (summary, _) = evaluate(env.as_mut(), "zero", 2, 0, &mut |_| vec![0.0; 3], &mut |_| {}).unwrap();
+        assert_eq!((summary.success_rate, summary.mean_peak_force_n), (None, None));
         assert_eq!(summary.mean_steps, 50.0);
     }
 }

@@ -66,16 +66,8 @@ impl LtiConfig {
     pub fn paper_example() -> Self {
         LtiConfig {
             kind: Some("lti".into()),
-            e: vec![
-                vec![-1.0, 1.0, 0.0],
-                vec![0.0, 1.0, 0.0],
-                vec![0.0, 0.0, 1.0],
-            ],
-            f: vec![
-                vec![1.0, 0.0, 0.0],
-                vec![0.0, 1.0, 0.0],
-                vec![0.0, 0.0, 1.0],
-            ],
+            e: vec![vec![-1.0, 1.0, 0.0], vec![0.0, 1.0, 0.0], vec![0.0, 0.0, 1.0]],
+            f: vec![vec![1.0, 0.0, 0.0], vec![0.0, 1.0, 0.0], vec![0.0, 0.0, 1.0]],
             action_low: None,
             action_high: None,
             initial_state_low: None,
@@ -91,11 +83,7 @@ impl LtiConfig {
 
     /// A system from matrices, with every other setting at its default.
     pub fn from_matrices(e: Vec<Vec<f64>>, f: Vec<Vec<f64>>) -> Self {
-        LtiConfig {
-            e,
-            f,
-            ..Self::paper_example()
-        }
+        LtiConfig { e, f, ..Self::paper_example() }
     }
 
     /// A seeded random sparse system: each entry of E and F is non-zero with
@@ -107,21 +95,13 @@ impl LtiConfig {
         let entry = |rng: &mut ChaCha8Rng| {
             if rng.random_bool(density) {
                 let v: f64 = rng.random_range(0.2..0.6);
-                if rng.random_bool(0.5) {
-                    v
-                } else {
-                    -v
-                }
+                if rng.random_bool(0.5) { v } else { -v }
             } else {
                 0.0
             }
         };
-        let e = (0..m)
-            .map(|_| (0..m).map(|_| entry(&mut rng)).collect())
-            .collect();
-        let mut f: Vec<Vec<f64>> = (0..m)
-            .map(|_| (0..n).map(|_| entry(&mut rng)).collect())
-            .collect();
+        let e = (0..m).map(|_| (0..m).map(|_| entry(&mut rng)).collect()).collect();
+        let mut f: Vec<Vec<f64>> = (0..m).map(|_| (0..n).map(|_| entry(&mut rng)).collect()).collect();
         for i in 0..n {
             if f.iter().all(|row| row[i] == 0.0) {
                 f[rng.random_range(0..m)][i] = 0.5;
@@ -149,10 +129,7 @@ impl LtiSystem {
     pub fn from_config(name: &str, cfg: &LtiConfig) -> Result<(Self, EnvSpec), EnvError> {
         if let Some(kind) = &cfg.kind {
             if kind != "lti" {
-                return Err(EnvError::invalid(
-                    "kind",
-                    format!("expected \"lti\", found \"{kind}\""),
-                ));
+                return Err(EnvError::invalid("kind", format!("expected \"lti\", found \"{kind}\"")));
             }
         }
         let m = cfg.e.len();
@@ -163,18 +140,12 @@ impl LtiSystem {
         if cfg.f.len() != m {
             return Err(EnvError::invalid(
                 "f",
-                format!(
-                    "has {} rows, expected {m} (one per state, like e)",
-                    cfg.f.len()
-                ),
+                format!("has {} rows, expected {m} (one per state, like e)", cfg.f.len()),
             ));
         }
         let n = cfg.f[0].len();
         if n == 0 {
-            return Err(EnvError::invalid(
-                "f",
-                "must have at least one column (one per action)",
-            ));
+            return Err(EnvError::invalid("f", "must have at least one column (one per action)"));
         }
         let f = matrix("f", &cfg.f, m, n)?;
         let q = match &cfg.q {
@@ -200,45 +171,23 @@ impl LtiSystem {
                 ));
             }
         }
-        let initial_low = vector(
-            "initial_state_low",
-            cfg.initial_state_low.as_deref(),
-            m,
-            -1.0,
-        )?;
-        let initial_high = vector(
-            "initial_state_high",
-            cfg.initial_state_high.as_deref(),
-            m,
-            1.0,
-        )?;
+        let initial_low = vector("initial_state_low", cfg.initial_state_low.as_deref(), m, -1.0)?;
+        let initial_high = vector("initial_state_high", cfg.initial_state_high.as_deref(), m, 1.0)?;
         if let Some(k) = (0..m).find(|&k| initial_low[k] > initial_high[k]) {
             return Err(EnvError::invalid(
                 "initial_state_low/initial_state_high",
-                format!(
-                    "component {k}: low {} is above high {}",
-                    initial_low[k], initial_high[k]
-                ),
+                format!("component {k}: low {} is above high {}", initial_low[k], initial_high[k]),
             ));
         }
         if !cfg.noise_std.is_finite() || cfg.noise_std < 0.0 {
-            return Err(EnvError::invalid(
-                "noise_std",
-                format!("must be finite and ≥ 0, got {}", cfg.noise_std),
-            ));
+            return Err(EnvError::invalid("noise_std", format!("must be finite and ≥ 0, got {}", cfg.noise_std)));
         }
         if cfg.episode_steps == 0 {
             return Err(EnvError::invalid("episode_steps", "must be at least 1"));
         }
         let state_names = names("state_names", cfg.state_names.as_ref(), m, "s")?;
         let action_names = names("action_names", cfg.action_names.as_ref(), n, "a")?;
-        let spec = EnvSpec {
-            name: name.to_string(),
-            state_names,
-            action_names,
-            action_low,
-            action_high,
-        };
+        let spec = EnvSpec { name: name.to_string(), state_names, action_names, action_low, action_high };
         let system = LtiSystem {
             e,
             f,
@@ -255,10 +204,7 @@ impl LtiSystem {
 
 fn matrix(field: &str, rows: &[Vec<f64>], m: usize, n: usize) -> Result<DMatrix<f64>, EnvError> {
     if rows.len() != m {
-        return Err(EnvError::invalid(
-            field,
-            format!("has {} rows, expected {m}", rows.len()),
-        ));
+        return Err(EnvError::invalid(field, format!("has {} rows, expected {m}", rows.len())));
     }
     for (i, row) in rows.iter().enumerate() {
         if row.len() != n {
@@ -270,53 +216,29 @@ fn matrix(field: &str, rows: &[Vec<f64>], m: usize, n: usize) -> Result<DMatrix<
         if let Some(j) = row.iter().position(|v| !v.is_finite()) {
             return Err(EnvError::invalid(
                 field,
-                format!(
-                    "entry ({}, {}) is {}; entries must be finite",
-                    i + 1,
-                    j + 1,
-                    row[j]
-                ),
+                format!("entry ({}, {}) is {}; entries must be finite", i + 1, j + 1, row[j]),
             ));
         }
     }
     Ok(DMatrix::from_fn(m, n, |i, j| rows[i][j]))
 }
 
-fn vector(
-    field: &str,
-    values: Option<&[f64]>,
-    len: usize,
-    default: f64,
-) -> Result<Vec<f64>, EnvError> {
-    let Some(values) = values else {
-        return Ok(vec![default; len]);
-    };
+fn vector(field: &str, values: Option<&[f64]>, len: usize, default: f64) -> Result<Vec<f64>, EnvError> {
+    let Some(values) = values else { return Ok(vec![default; len]) };
     if values.len() != len {
-        return Err(EnvError::invalid(
-            field,
-            format!("has {} entries, expected {len}", values.len()),
-        ));
+        return Err(EnvError::invalid(field, format!("has {} entries, expected {len}", values.len())));
     }
     if let Some(k) = values.iter().position(|v| !v.is_finite()) {
-        return Err(EnvError::invalid(
-            field,
-            format!("entry {} is {}; entries must be finite", k + 1, values[k]),
-        ));
+        return Err(EnvError::invalid(field, format!("entry {} is {}; entries must be finite", k + 1, values[k])));
     }
     Ok(values.to_vec())
 }
 
-fn names(
-    field: &str,
-    given: Option<&Vec<String>>,
-    len: usize,
-    prefix: &str,
-) -> Result<Vec<String>, EnvError> {
+fn names(field: &str, given: Option<&Vec<String>>, len: usize, prefix: &str) -> Result<Vec<String>, EnvError> {
     match given {
-        Some(v) if v.len() != len => Err(EnvError::invalid(
-            field,
-            format!("has {} names, expected {len}", v.len()),
-        )),
+        Some(v) if v.len() != len => {
+            Err(EnvError::invalid(field, format!("has {} names, expected {len}", v.len())))
+        }
         Some(v) => Ok(v.clone()),
         None => Ok((1..=len).map(|k| format!("{prefix}{k}")).collect()),
     }
@@ -369,11 +291,7 @@ impl Env for LtiEnv {
         let s: Vec<f64> = (0..self.spec.state_dim())
             .map(|k| {
                 let (lo, hi) = (self.system.initial_low[k], self.system.initial_high[k]);
-                if lo < hi {
-                    rng.random_range(lo..=hi)
-                } else {
-                    lo
-                }
+                if lo < hi { rng.random_range(lo..=hi) } else { lo }
             })
             .collect();
         self.noise_rng = ChaCha8Rng::seed_from_u64(rng.random());
@@ -451,21 +369,9 @@ mod tests {
         let mut env = LtiEnv::new("lti-paper", &LtiConfig::paper_example()).unwrap();
         env.set_state(&[0.0, 0.0, 0.0]);
         let err = env.step(&[0.0, f64::NAN, 0.0]).unwrap_err();
-        assert!(
-            matches!(err, EnvError::NonFiniteAction { index: 1, .. }),
-            "{err}"
-        );
+        assert!(matches!(err, EnvError::NonFiniteAction { index: 1, .. }), "{err}");
         let err = env.step(&[0.0, 0.0]).unwrap_err();
-        assert!(
-            matches!(
-                err,
-                EnvError::ActionDim {
-                    expected: 3,
-                    got: 2
-                }
-            ),
-            "{err}"
-        );
+        assert!(matches!(err, EnvError::ActionDim { expected: 3, got: 2 }), "{err}");
         assert_eq!(env.state(), &[0.0, 0.0, 0.0]);
         let step = env.step(&[5.0, -5.0, 0.5]).unwrap();
         assert_eq!(step.state, vec![1.0, -1.0, 0.5]);
@@ -473,24 +379,16 @@ mod tests {
 
     #[test]
     fn truncates_at_episode_steps() {
-        let cfg = LtiConfig {
-            episode_steps: 3,
-            ..LtiConfig::paper_example()
-        };
+        let cfg = LtiConfig { episode_steps: 3, ..LtiConfig::paper_example() };
         let mut env = LtiEnv::new("x", &cfg).unwrap();
         env.reset(1).unwrap();
-        let flags: Vec<bool> = (0..3)
-            .map(|_| env.step(&[0.0; 3]).unwrap().truncated)
-            .collect();
+        let flags: Vec<bool> = (0..3).map(|_| env.step(&[0.0; 3]).unwrap().truncated).collect();
         assert_eq!(flags, vec![false, false, true]);
     }
 
     #[test]
     fn snapshot_continues_bit_identically_with_noise() {
-        let cfg = LtiConfig {
-            noise_std: 0.3,
-            ..LtiConfig::paper_example()
-        };
+        let cfg = LtiConfig { noise_std: 0.3, ..LtiConfig::paper_example() };
         let mut env = LtiEnv::new("x", &cfg).unwrap();
         env.reset(7).unwrap();
         env.step(&[0.3, 0.1, -0.2]).unwrap();
@@ -534,40 +432,13 @@ mod tests {
         let mut cfg = base();
         cfg.f[2][0] = f64::INFINITY;
         assert_eq!(invalid_field(cfg), "f");
+        assert_eq!(invalid_field(LtiConfig { noise_std: -1.0, ..base() }), "noise_std");
+        assert_eq!(invalid_field(LtiConfig { action_high: Some(vec![1.0, 1.0]), ..base() }), "action_high");
         assert_eq!(
-            invalid_field(LtiConfig {
-                noise_std: -1.0,
-                ..base()
-            }),
-            "noise_std"
-        );
-        assert_eq!(
-            invalid_field(LtiConfig {
-                action_high: Some(vec![1.0, 1.0]),
-                ..base()
-            }),
-            "action_high"
-        );
-        assert_eq!(
-            invalid_field(LtiConfig {
-                action_low: Some(vec![0.5, -1.0, -1.0]),
-                ..base()
-            }),
+            invalid_field(LtiConfig { action_low: Some(vec![0.5, -1.0, -1.0]), ..base() }),
             "action_low/action_high"
         );
-        assert_eq!(
-            invalid_field(LtiConfig {
-                q: Some(vec![vec![1.0]]),
-                ..base()
-            }),
-            "q"
-        );
-        assert_eq!(
-            invalid_field(LtiConfig {
-                kind: Some("peg".into()),
-                ..base()
-            }),
-            "kind"
-        );
+        assert_eq!(invalid_field(LtiConfig { q: Some(vec![vec![1.0]]), ..base() }), "q");
+        assert_eq!(invalid_field(LtiConfig { kind: Some("peg".into()), ..base() }), "kind");
     }
 }

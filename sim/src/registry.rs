@@ -9,9 +9,7 @@ use crate::peg::{PegConfig, PegEnv};
 
 /// The registered environment names, for help texts and error messages.
 pub fn known_env_names() -> Vec<&'static str> {
-    std::iter::once("lti-paper")
-        .chain(crate::peg::PegConfig::NAMES)
-        .collect()
+    std::iter::once("lti-paper").chain(crate::peg::PegConfig::NAMES).collect()
 }
 
 /// Makes an environment from a registered name, a path to a `.toml` file,
@@ -24,27 +22,16 @@ pub fn make_env(name_or_path: &str) -> Result<Box<dyn Env>, EnvError> {
         return Ok(Box::new(PegEnv::new(name_or_path, cfg)?));
     }
     match name_or_path {
-        "lti-paper" => Ok(Box::new(LtiEnv::new(
-            "lti-paper",
-            &LtiConfig::paper_example(),
-        )?)),
+        "lti-paper" => Ok(Box::new(LtiEnv::new("lti-paper", &LtiConfig::paper_example())?)),
         path if path.ends_with(".toml") || Path::new(path).is_file() => load_file(path),
-        name => Err(EnvError::Unknown {
-            name: name.to_string(),
-            known: known_env_names().join(", "),
-        }),
+        name => Err(EnvError::Unknown { name: name.to_string(), known: known_env_names().join(", ") }),
     }
 }
 
 fn load_file(path: &str) -> Result<Box<dyn Env>, EnvError> {
-    let text = std::fs::read_to_string(path).map_err(|source| EnvError::Read {
-        path: path.to_string(),
-        source,
-    })?;
-    let parse_err = |e: toml::de::Error| EnvError::Parse {
-        path: path.to_string(),
-        message: e.to_string(),
-    };
+    let text = std::fs::read_to_string(path)
+        .map_err(|source| EnvError::Read { path: path.to_string(), source })?;
+    let parse_err = |e: toml::de::Error| EnvError::Parse { path: path.to_string(), message: e.to_string() };
     let table: toml::Table = toml::from_str(&text).map_err(parse_err)?;
     match table.get("kind").and_then(|k| k.as_str()) {
         Some("lti") => {
@@ -57,35 +44,16 @@ fn load_file(path: &str) -> Result<Box<dyn Env>, EnvError> {
             overrides.remove("kind");
             let preset = match overrides.remove("preset") {
                 Some(toml::Value::String(name)) => name,
-                Some(_) => {
-                    return Err(EnvError::invalid(
-                        "preset",
-                        "must be a string such as \"peg-group1\"",
-                    ))
-                }
+                Some(_) => return Err(EnvError::invalid("preset", "must be a string such as \"peg-group1\"")),
                 None => "peg-group1".to_string(),
             };
             let base = PegConfig::preset(&preset).ok_or_else(|| {
-                EnvError::invalid(
-                    "preset",
-                    format!(
-                        "unknown preset \"{preset}\"; use peg-group1, peg-group2 or peg-experiment"
-                    ),
-                )
+                EnvError::invalid("preset", format!("unknown preset \"{preset}\"; use peg-group1, peg-group2 or peg-experiment"))
             })?;
-            Ok(Box::new(PegEnv::new(
-                path,
-                base.with_overrides(&overrides, path)?,
-            )?))
+            Ok(Box::new(PegEnv::new(path, base.with_overrides(&overrides, path)?)?))
         }
-        Some(other) => Err(EnvError::invalid(
-            "kind",
-            format!("unknown environment kind \"{other}\"; known: \"lti\", \"peg\""),
-        )),
-        None => Err(EnvError::invalid(
-            "kind",
-            "missing; say which environment the file describes, e.g. kind = \"lti\"",
-        )),
+        Some(other) => Err(EnvError::invalid("kind", format!("unknown environment kind \"{other}\"; known: \"lti\", \"peg\""))),
+        None => Err(EnvError::invalid("kind", "missing; say which environment the file describes, e.g. kind = \"lti\"")),
     }
 }
 
@@ -102,9 +70,7 @@ mod tests {
 
     #[test]
     fn loads_an_lti_file() {
-        let file = write(
-            "kind = \"lti\"\ne = [[0.5, 0.0], [1.0, 0.5]]\nf = [[1.0], [0.0]]\nnoise_std = 0.1\n",
-        );
+        let file = write("kind = \"lti\"\ne = [[0.5, 0.0], [1.0, 0.5]]\nf = [[1.0], [0.0]]\nnoise_std = 0.1\n");
         let env = make_env(file.path().to_str().unwrap()).unwrap();
         assert_eq!(env.spec().state_dim(), 2);
         assert_eq!(env.spec().action_dim(), 1);
@@ -119,51 +85,26 @@ mod tests {
             assert_eq!(env.spec().action_high, vec![2.0, 2.0, 2.0, 4.0, 4.0, 4.0]);
         }
         let file = write("kind = \"peg\"\npreset = \"peg-group2\"\n[contact]\nfriction = 0.6\n");
-        assert_eq!(
-            make_env(file.path().to_str().unwrap())
-                .unwrap()
-                .spec()
-                .state_dim(),
-            12
-        );
+        assert_eq!(make_env(file.path().to_str().unwrap()).unwrap().spec().state_dim(), 12);
         let file = write("kind = \"peg\"\n[geometry]\npeg_side_mm = 12.0\n");
-        let err = make_env(file.path().to_str().unwrap())
-            .err()
-            .unwrap()
-            .to_string();
+        let err = make_env(file.path().to_str().unwrap()).err().unwrap().to_string();
         assert!(err.contains("geometry.peg_side_mm"), "{err}");
         let file = write("kind = \"peg\"\npreset = \"peg-group9\"\n");
-        assert!(make_env(file.path().to_str().unwrap())
-            .err()
-            .unwrap()
-            .to_string()
-            .contains("peg-group9"));
+        assert!(make_env(file.path().to_str().unwrap()).err().unwrap().to_string().contains("peg-group9"));
     }
 
     #[test]
     fn errors_name_what_is_wrong() {
         let err = make_env("no-such-env").err().unwrap().to_string();
-        assert!(
-            err.contains("unknown environment 'no-such-env'") && err.contains("lti-paper"),
-            "{err}"
-        );
+        assert!(err.contains("unknown environment 'no-such-env'") && err.contains("lti-paper"), "{err}");
         let file = write("kind = \"lti\"\ne = [[0.5, 0.0], [1.0]]\nf = [[1.0], [0.0]]\n");
-        let err = make_env(file.path().to_str().unwrap())
-            .err()
-            .unwrap()
-            .to_string();
+        let err = make_env(file.path().to_str().unwrap()).err().unwrap().to_string();
         assert!(err.contains("`e`") && err.contains("row 2"), "{err}");
         let file = write("kind = \"lti\"\ne = [[0.5]]\nf = [[1.0]]\nnoise = 1.0\n");
-        let err = make_env(file.path().to_str().unwrap())
-            .err()
-            .unwrap()
-            .to_string();
+        let err = make_env(file.path().to_str().unwrap()).err().unwrap().to_string();
         assert!(err.contains("noise"), "{err}");
         let file = write("kind = \"lti\"\ne = [[nan]]\nf = [[1.0]]\n");
-        let err = make_env(file.path().to_str().unwrap())
-            .err()
-            .unwrap()
-            .to_string();
+        let err = make_env(file.path().to_str().unwrap()).err().unwrap().to_string();
         assert!(err.contains("`e`") && err.contains("finite"), "{err}");
         let err = make_env("/nonexistent/x.toml").err().unwrap().to_string();
         assert!(err.contains("cannot read"), "{err}");

@@ -10,17 +10,14 @@
 //! hand the answer back over a channel, so they work from rayon's CS3
 //! threads, an actor's environment thread and async code alike.
 
-use std::collections::HashMap;
 use std::future::Future;
+use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::Duration;
 
 use lcrl_proto::security::{AuthChannel, ClientSecurity};
 use lcrl_proto::v1::environment_client::EnvironmentClient;
-use lcrl_proto::v1::{
-    CloseRequest, ForkRequest, GetSpecRequest, OpenRequest, ResetRequest, SessionReset,
-    SessionStep, StepRequest,
-};
+use lcrl_proto::v1::{CloseRequest, ForkRequest, GetSpecRequest, OpenRequest, ResetRequest, SessionReset, SessionStep, StepRequest};
 
 use crate::env::{Env, EnvError, EnvSpec, Step};
 
@@ -44,8 +41,7 @@ pub fn is_served(name: &str) -> bool {
 
 /// HOST:PORT of a served environment's URL.
 pub fn address(name: &str) -> Option<&str> {
-    name.strip_prefix(SCHEME)
-        .or_else(|| name.strip_prefix(TLS_SCHEME))
+    name.strip_prefix(SCHEME).or_else(|| name.strip_prefix(TLS_SCHEME))
 }
 
 /// How long a server may take to accept a connection.
@@ -96,23 +92,17 @@ fn runtime() -> Result<&'static tokio::runtime::Runtime, String> {
 }
 
 /// Runs `call` on the runtime and waits for it on this thread.
-fn blocking<T: Send + 'static>(
-    call: impl Future<Output = T> + Send + 'static,
-) -> Result<T, String> {
+fn blocking<T: Send + 'static>(call: impl Future<Output = T> + Send + 'static) -> Result<T, String> {
     let (tx, rx) = std::sync::mpsc::sync_channel(1);
     runtime()?.spawn(async move {
         let _ = tx.send(call.await);
     });
-    rx.recv()
-        .map_err(|_| "the call was dropped (the process is shutting down)".to_string())
+    rx.recv().map_err(|_| "the call was dropped (the process is shutting down)".to_string())
 }
 
 impl Connection {
     fn error(&self, message: impl Into<String>) -> EnvError {
-        EnvError::Remote {
-            url: self.url.clone(),
-            message: message.into(),
-        }
+        EnvError::Remote { url: self.url.clone(), message: message.into() }
     }
 
     /// A failed call as an error that says what to do.
@@ -126,11 +116,7 @@ impl Connection {
     }
 
     /// Runs one call of the client, mapping transport and status errors.
-    fn call<T: Send + 'static, F>(
-        &self,
-        what: &str,
-        call: impl FnOnce(EnvironmentClient<AuthChannel>) -> F,
-    ) -> Result<T, EnvError>
+    fn call<T: Send + 'static, F>(&self, what: &str, call: impl FnOnce(EnvironmentClient<AuthChannel>) -> F) -> Result<T, EnvError>
     where
         F: Future<Output = Result<tonic::Response<T>, tonic::Status>> + Send + 'static,
     {
@@ -165,9 +151,7 @@ impl RemoteEnv {
     pub fn connect(url: &str) -> Result<RemoteEnv, EnvError> {
         static SERVERS: OnceLock<Mutex<HashMap<String, Weak<Server>>>> = OnceLock::new();
         let servers = SERVERS.get_or_init(Default::default);
-        let mut servers = servers
-            .lock()
-            .unwrap_or_else(|poisoned| poisoned.into_inner());
+        let mut servers = servers.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
         let server = match servers.get(url).and_then(Weak::upgrade) {
             Some(server) => server,
             None => {
@@ -177,29 +161,18 @@ impl RemoteEnv {
                 server
             }
         };
-        Ok(RemoteEnv {
-            state: vec![0.0; server.spec.state_dim()],
-            server,
-            session: None,
-        })
+        Ok(RemoteEnv { state: vec![0.0; server.spec.state_dim()], server, session: None })
     }
 
     fn connect_server(url: &str) -> Result<Server, EnvError> {
-        let unreachable = |message: String| EnvError::Remote {
-            url: url.to_string(),
-            message,
-        };
+        let unreachable = |message: String| EnvError::Remote { url: url.to_string(), message };
         let address = address(url)
             .filter(|rest| rest.rsplit_once(':').is_some_and(|(host, port)| !host.is_empty() && port.parse::<u16>().is_ok()))
             .ok_or_else(|| unreachable(format!("not a server address; write {SCHEME}HOST:PORT (or {TLS_SCHEME}HOST:PORT under TLS), e.g. {SCHEME}127.0.0.1:50070")))?;
         let tls = url.starts_with(TLS_SCHEME);
         let security = client_security(tls).map_err(unreachable)?;
         let http = if tls { "https" } else { "http" };
-        let endpoint = security
-            .endpoint(&format!("{http}://{address}"))
-            .map_err(|e| unreachable(e.to_string()))?
-            .connect_timeout(CONNECT_TIMEOUT)
-            .timeout(CALL_TIMEOUT);
+        let endpoint = security.endpoint(&format!("{http}://{address}")).map_err(|e| unreachable(e.to_string()))?.connect_timeout(CONNECT_TIMEOUT).timeout(CALL_TIMEOUT);
         let bearer = security.bearer().map_err(|e| unreachable(e.to_string()))?;
         let channel = blocking(async move { endpoint.connect().await })
             .map_err(unreachable)?
@@ -210,39 +183,18 @@ impl RemoteEnv {
                 ))
             })?;
         let channel = tonic::service::interceptor::InterceptedService::new(channel, bearer);
-        let client = EnvironmentClient::new(channel)
-            .max_decoding_message_size(16 << 20)
-            .max_encoding_message_size(16 << 20);
-        let connection = Connection {
-            url: url.to_string(),
-            client,
-        };
-        let spec = connection.call("GetSpec", |mut c| async move {
-            c.get_spec(GetSpecRequest {}).await
-        })?;
+        let client = EnvironmentClient::new(channel).max_decoding_message_size(16 << 20).max_encoding_message_size(16 << 20);
+        let connection = Connection { url: url.to_string(), client };
+        let spec = connection.call("GetSpec", |mut c| async move { c.get_spec(GetSpecRequest {}).await })?;
         let (m, n) = (spec.state_names.len(), spec.action_names.len());
         if m == 0 || n == 0 {
-            return Err(connection.error(format!(
-                "the server reports {m} states and {n} actions; both must be at least 1"
-            )));
+            return Err(connection.error(format!("the server reports {m} states and {n} actions; both must be at least 1")));
         }
-        if spec.action_low.len() != n
-            || spec.action_high.len() != n
-            || spec.state_low.len() != m
-            || spec.state_high.len() != m
-        {
-            return Err(connection
-                .error("the spec's bounds do not match its names (a server of another version?)"));
+        if spec.action_low.len() != n || spec.action_high.len() != n || spec.state_low.len() != m || spec.state_high.len() != m {
+            return Err(connection.error("the spec's bounds do not match its names (a server of another version?)"));
         }
-        if let Some(i) = (0..n).find(|&i| {
-            !(spec.action_low[i].is_finite()
-                && spec.action_high[i].is_finite()
-                && spec.action_low[i] < spec.action_high[i])
-        }) {
-            return Err(connection.error(format!(
-                "action {i} has bounds [{}, {}]; they must be finite and increasing",
-                spec.action_low[i], spec.action_high[i]
-            )));
+        if let Some(i) = (0..n).find(|&i| !(spec.action_low[i].is_finite() && spec.action_high[i].is_finite() && spec.action_low[i] < spec.action_high[i])) {
+            return Err(connection.error(format!("action {i} has bounds [{}, {}]; they must be finite and increasing", spec.action_low[i], spec.action_high[i])));
         }
         let state_scale = spec
             .state_low
@@ -250,30 +202,14 @@ impl RemoteEnv {
             .zip(&spec.state_high)
             .map(|(lo, hi)| {
                 let bound = lo.abs().max(hi.abs());
-                if lo.is_finite() && hi.is_finite() && bound > 0.0 {
-                    bound
-                } else {
-                    1.0
-                }
+                if lo.is_finite() && hi.is_finite() && bound > 0.0 { bound } else { 1.0 }
             })
             .collect();
         Ok(Server {
             connection,
-            spec: EnvSpec {
-                name: url.to_string(),
-                state_names: spec.state_names,
-                action_names: spec.action_names,
-                action_low: spec.action_low,
-                action_high: spec.action_high,
-            },
+            spec: EnvSpec { name: url.to_string(), state_names: spec.state_names, action_names: spec.action_names, action_low: spec.action_low, action_high: spec.action_high },
             state_scale,
-            fork_unavailable: (!spec.can_fork).then(|| {
-                if spec.fork_unavailable.is_empty() {
-                    "the server cannot fork".to_string()
-                } else {
-                    spec.fork_unavailable
-                }
-            }),
+            fork_unavailable: (!spec.can_fork).then(|| if spec.fork_unavailable.is_empty() { "the server cannot fork".to_string() } else { spec.fork_unavailable }),
             dt: spec.dt,
         })
     }
@@ -283,66 +219,38 @@ impl RemoteEnv {
         if let Some(session) = self.session {
             return Ok(session);
         }
-        let opened = self.server.connection.call("Open", |mut c| async move {
-            c.open(OpenRequest { count: 1 }).await
-        })?;
-        let session = *opened
-            .sessions
-            .first()
-            .ok_or_else(|| self.server.connection.error("Open returned no session"))?;
+        let opened = self.server.connection.call("Open", |mut c| async move { c.open(OpenRequest { count: 1 }).await })?;
+        let session = *opened.sessions.first().ok_or_else(|| self.server.connection.error("Open returned no session"))?;
         self.session = Some(session);
         Ok(session)
     }
 
     fn checked_state(server: &Server, state: Vec<f64>) -> Result<Vec<f64>, EnvError> {
         if state.len() != server.spec.state_dim() {
-            return Err(server.connection.error(format!(
-                "a state of {} components arrived; the spec has {}",
-                state.len(),
-                server.spec.state_dim()
-            )));
+            return Err(server.connection.error(format!("a state of {} components arrived; the spec has {}", state.len(), server.spec.state_dim())));
         }
         Ok(state)
     }
 
     /// Steps every environment of `envs` by its action in one call. All must
     /// be sessions of one server and reset (see [`crate::step_all`]).
-    pub(crate) fn step_batch(
-        envs: &mut [&mut RemoteEnv],
-        actions: &[Vec<f64>],
-    ) -> Result<Vec<Step>, EnvError> {
-        let Some(first) = envs.first() else {
-            return Ok(Vec::new());
-        };
+    pub(crate) fn step_batch(envs: &mut [&mut RemoteEnv], actions: &[Vec<f64>]) -> Result<Vec<Step>, EnvError> {
+        let Some(first) = envs.first() else { return Ok(Vec::new()) };
         let server = first.server.clone();
         let mut steps = Vec::with_capacity(envs.len());
         for (env, action) in envs.iter().zip(actions) {
             server.spec.check_action(action)?;
-            steps.push(SessionStep {
-                session: env.session.ok_or(EnvError::NotReset)?,
-                action: server.spec.clip_action(action),
-            });
+            steps.push(SessionStep { session: env.session.ok_or(EnvError::NotReset)?, action: server.spec.clip_action(action) });
         }
-        let reply = server.connection.call("Step", |mut c| async move {
-            c.step(StepRequest { steps }).await
-        })?;
+        let reply = server.connection.call("Step", |mut c| async move { c.step(StepRequest { steps }).await })?;
         if reply.results.len() != envs.len() {
-            return Err(server.connection.error(format!(
-                "Step answered {} results for {} sessions",
-                reply.results.len(),
-                envs.len()
-            )));
+            return Err(server.connection.error(format!("Step answered {} results for {} sessions", reply.results.len(), envs.len())));
         }
         envs.iter_mut()
             .zip(reply.results)
             .map(|(env, r)| {
                 env.state = Self::checked_state(&server, r.state)?;
-                Ok(Step {
-                    state: env.state.clone(),
-                    reward: r.reward,
-                    terminated: r.terminated,
-                    truncated: r.truncated,
-                })
+                Ok(Step { state: env.state.clone(), reward: r.reward, terminated: r.terminated, truncated: r.truncated })
             })
             .collect()
     }
@@ -360,17 +268,8 @@ impl Env for RemoteEnv {
 
     fn reset(&mut self, seed: u64) -> Result<Vec<f64>, EnvError> {
         let session = self.session()?;
-        let reply = self.server.connection.call("Reset", |mut c| async move {
-            c.reset(ResetRequest {
-                resets: vec![SessionReset { session, seed }],
-            })
-            .await
-        })?;
-        let state = reply
-            .states
-            .into_iter()
-            .next()
-            .ok_or_else(|| self.server.connection.error("Reset returned no state"))?;
+        let reply = self.server.connection.call("Reset", |mut c| async move { c.reset(ResetRequest { resets: vec![SessionReset { session, seed }] }).await })?;
+        let state = reply.states.into_iter().next().ok_or_else(|| self.server.connection.error("Reset returned no state"))?;
         self.state = Self::checked_state(&self.server, state.state)?;
         Ok(self.state.clone())
     }
@@ -383,17 +282,11 @@ impl Env for RemoteEnv {
         let mut envs = [&mut *self];
         // step_batch checked that one result came back for the one session.
         let mut steps = Self::step_batch(&mut envs, &[action.to_vec()])?;
-        steps
-            .pop()
-            .ok_or_else(|| self.server.connection.error("Step returned no result"))
+        steps.pop().ok_or_else(|| self.server.connection.error("Step returned no result"))
     }
 
     fn fresh(&self) -> Box<dyn Env> {
-        Box::new(RemoteEnv {
-            server: self.server.clone(),
-            session: None,
-            state: vec![0.0; self.server.spec.state_dim()],
-        })
+        Box::new(RemoteEnv { server: self.server.clone(), session: None, state: vec![0.0; self.server.spec.state_dim()] })
     }
 
     fn snapshot(&self) -> Result<Box<dyn Env>, EnvError> {
@@ -402,40 +295,23 @@ impl Env for RemoteEnv {
             return Ok(self.fresh());
         };
         self.check_snapshot()?;
-        let fork = self.server.connection.call("Fork", |mut c| async move {
-            c.fork(ForkRequest { session }).await
-        })?;
-        Ok(Box::new(RemoteEnv {
-            server: self.server.clone(),
-            session: Some(fork.session),
-            state: self.state.clone(),
-        }))
+        let fork = self.server.connection.call("Fork", |mut c| async move { c.fork(ForkRequest { session }).await })?;
+        Ok(Box::new(RemoteEnv { server: self.server.clone(), session: Some(fork.session), state: self.state.clone() }))
     }
 
     fn check_snapshot(&self) -> Result<(), EnvError> {
         match &self.server.fork_unavailable {
-            Some(reason) => Err(EnvError::ForkUnavailable {
-                url: self.server.connection.url.clone(),
-                reason: reason.clone(),
-            }),
+            Some(reason) => Err(EnvError::ForkUnavailable { url: self.server.connection.url.clone(), reason: reason.clone() }),
             None => Ok(()),
         }
     }
 
     fn normalize_state(&self, state: &[f64]) -> Vec<f64> {
-        state
-            .iter()
-            .zip(&self.server.state_scale)
-            .map(|(s, k)| s / k)
-            .collect()
+        state.iter().zip(&self.server.state_scale).map(|(s, k)| s / k).collect()
     }
 
     fn control_period_s(&self) -> f64 {
-        if self.server.dt > 0.0 {
-            self.server.dt
-        } else {
-            1.0
-        }
+        if self.server.dt > 0.0 { self.server.dt } else { 1.0 }
     }
 
     fn as_remote_mut(&mut self) -> Option<&mut RemoteEnv> {
@@ -450,11 +326,7 @@ impl Drop for RemoteEnv {
         if let (Some(session), Ok(runtime)) = (self.session, runtime()) {
             let mut client = self.server.connection.client.clone();
             runtime.spawn(async move {
-                let _ = client
-                    .close(CloseRequest {
-                        sessions: vec![session],
-                    })
-                    .await;
+                let _ = client.close(CloseRequest { sessions: vec![session] }).await;
             });
         }
     }

@@ -72,18 +72,9 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
     match command {
         BenchCommand::Graph { samples, repeats } => bench_graph(samples, repeats.max(1)),
         BenchCommand::Sim { episodes } => bench_sim(episodes.max(1)),
-        BenchCommand::Learner {
-            updates,
-            device,
-            threads,
-            python,
-        } => bench_learner(updates.max(1), &device, &threads, python.as_deref()),
+        BenchCommand::Learner { updates, device, threads, python } => bench_learner(updates.max(1), &device, &threads, python.as_deref()),
         BenchCommand::Transport { seconds } => crate::cmd::bench_transport::run(seconds.max(1.0)),
-        BenchCommand::Env {
-            gym,
-            instances,
-            steps,
-        } => crate::cmd::bench_env::run(&gym, &instances, steps.max(1)),
+        BenchCommand::Env { gym, instances, steps } => crate::cmd::bench_env::run(&gym, &instances, steps.max(1)),
     }
 }
 
@@ -91,21 +82,9 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
 /// rollout: 10 epochs of 64-transition minibatches), local vs global actor,
 /// at the peg task's size with its CS3 graph, for each thread count on
 /// `device`; then the same DDPG update in PyTorch eager (global actor).
-fn bench_learner(
-    updates: usize,
-    device: &str,
-    threads: &[usize],
-    python: Option<&str>,
-) -> anyhow::Result<()> {
-    if threads.is_empty()
-        || threads
-            .iter()
-            .any(|&t| t == 0 || t > lcrl_learner::device::MAX_THREADS)
-    {
-        anyhow::bail!(
-            "--threads takes counts from 1 to {}",
-            lcrl_learner::device::MAX_THREADS
-        );
+fn bench_learner(updates: usize, device: &str, threads: &[usize], python: Option<&str>) -> anyhow::Result<()> {
+    if threads.is_empty() || threads.iter().any(|&t| t == 0 || t > lcrl_learner::device::MAX_THREADS) {
+        anyhow::bail!("--threads takes counts from 1 to {}", lcrl_learner::device::MAX_THREADS);
     }
     let torch_device = lcrl_learner::device::resolve_device(device)?;
     let env = lcrl_sim::make_env("peg-group1")?;
@@ -122,51 +101,24 @@ fn bench_learner(
         cfg.ddpg.batch_size,
         lcrl_learner::device::available_cores()
     );
-    println!(
-        "{:>7} {:<12} {:>13} {:>16} {:>12} {:>20}",
-        "threads", "actor", "actor params", "DDPG update ms", "updates/s", "PPO update (10 ep) s"
-    );
+    println!("{:>7} {:<12} {:>13} {:>16} {:>12} {:>20}", "threads", "actor", "actor params", "DDPG update ms", "updates/s", "PPO update (10 ep) s");
     let mut globals: Vec<(usize, f64)> = Vec::new();
     for &t in threads {
         tch::set_num_threads(t as i32);
         let mut by_connection = Vec::new();
-        for connection in [
-            lcrl_learner::Connection::Global,
-            lcrl_learner::Connection::Local,
-            lcrl_learner::Connection::FullSubnets,
-        ] {
-            let (ddpg, ppo, params) =
-                time_updates(&cfg, connection, &mask, m, n, updates, torch_device)?;
-            println!(
-                "{t:>7} {:<12} {params:>13} {:>16.3} {:>12.0} {ppo:>20.3}",
-                format!("{connection:?}"),
-                ddpg * 1e3,
-                1.0 / ddpg
-            );
+        for connection in [lcrl_learner::Connection::Global, lcrl_learner::Connection::Local, lcrl_learner::Connection::FullSubnets] {
+            let (ddpg, ppo, params) = time_updates(&cfg, connection, &mask, m, n, updates, torch_device)?;
+            println!("{t:>7} {:<12} {params:>13} {:>16.3} {:>12.0} {ppo:>20.3}", format!("{connection:?}"), ddpg * 1e3, 1.0 / ddpg);
             by_connection.push((ddpg, ppo));
         }
         let (global, local) = (by_connection[0], by_connection[1]);
-        println!(
-            "{t:>7} local / global: DDPG update {:.2}×, PPO update {:.2}× (target ≤ 1.3×)",
-            local.0 / global.0,
-            local.1 / global.1
-        );
+        println!("{t:>7} local / global: DDPG update {:.2}×, PPO update {:.2}× (target ≤ 1.3×)", local.0 / global.0, local.1 / global.1);
         if let Some(&(first, seconds)) = globals.first() {
-            println!(
-                "{t:>7} global DDPG update: {:.2}× the speed of {first} thread(s)",
-                seconds / global.0
-            );
+            println!("{t:>7} global DDPG update: {:.2}× the speed of {first} thread(s)", seconds / global.0);
         }
         globals.push((t, global.0));
     }
-    torch_eager(
-        python,
-        device,
-        threads,
-        updates,
-        (m, n, cfg.ddpg.batch_size),
-        &globals,
-    )
+    torch_eager(python, device, threads, updates, (m, n, cfg.ddpg.batch_size), &globals)
 }
 
 /// Seconds per DDPG update and per PPO update, and the actor's parameters.
@@ -187,8 +139,7 @@ fn time_updates(
     use rand::{Rng, SeedableRng};
 
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-    let mut random =
-        |len: usize| -> Vec<f32> { (0..len).map(|_| rng.random_range(-1.0..1.0)).collect() };
+    let mut random = |len: usize| -> Vec<f32> { (0..len).map(|_| rng.random_range(-1.0..1.0)).collect() };
     let sync = || {
         if let tch::Device::Cuda(k) = device {
             tch::Cuda::synchronize(k as i64);
@@ -197,14 +148,7 @@ fn time_updates(
     let mut ddpg = make_agent(Algo::Ddpg, connection, cfg, mask, m, n)?;
     for _ in 0..cfg.ddpg.batch_size {
         let (obs, action, next) = (random(m), random(n), random(m));
-        ddpg.store(Transition {
-            obs: &obs,
-            action: &action,
-            reward: -1.0,
-            next_obs: &next,
-            terminated: false,
-            truncated: false,
-        });
+        ddpg.store(Transition { obs: &obs, action: &action, reward: -1.0, next_obs: &next, terminated: false, truncated: false });
     }
     // Warm-up updates (allocator, kernels' first launches) are not timed.
     for _ in 0..10 {
@@ -224,14 +168,7 @@ fn time_updates(
         let obs = random(m);
         let action = ppo.explore(&obs, 0);
         let next = random(m);
-        ppo_seconds += ppo.observe(Transition {
-            obs: &obs,
-            action: &action,
-            reward: -1.0,
-            next_obs: &next,
-            terminated: false,
-            truncated: false,
-        });
+        ppo_seconds += ppo.observe(Transition { obs: &obs, action: &action, reward: -1.0, next_obs: &next, terminated: false, truncated: false });
     }
     sync();
     Ok((ddpg_seconds, ppo_seconds, ddpg.param_counts().0))
@@ -239,14 +176,7 @@ fn time_updates(
 
 /// The same DDPG update (global actor, Table I sizes) in PyTorch eager, per
 /// thread count, and lcrl's speed against it.
-fn torch_eager(
-    python: Option<&str>,
-    device: &str,
-    threads: &[usize],
-    updates: usize,
-    (m, n, batch): (usize, usize, usize),
-    lcrl: &[(usize, f64)],
-) -> anyhow::Result<()> {
+fn torch_eager(python: Option<&str>, device: &str, threads: &[usize], updates: usize, (m, n, batch): (usize, usize, usize), lcrl: &[(usize, f64)]) -> anyhow::Result<()> {
     let python = match python {
         Some("none") => return Ok(()),
         Some(path) => std::path::PathBuf::from(path),
@@ -258,58 +188,24 @@ fn torch_eager(
             }
         },
     };
-    let script =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/bench_torch_ddpg.py");
-    let threads_arg = threads
-        .iter()
-        .map(ToString::to_string)
-        .collect::<Vec<_>>()
-        .join(",");
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/bench_torch_ddpg.py");
+    let threads_arg = threads.iter().map(ToString::to_string).collect::<Vec<_>>().join(",");
     let out = std::process::Command::new(&python)
         .arg(&script)
-        .args([
-            "--device",
-            device,
-            "--threads",
-            &threads_arg,
-            "--updates",
-            &updates.to_string(),
-        ])
-        .args([
-            "--states",
-            &m.to_string(),
-            "--actions",
-            &n.to_string(),
-            "--batch",
-            &batch.to_string(),
-        ])
+        .args(["--device", device, "--threads", &threads_arg, "--updates", &updates.to_string()])
+        .args(["--states", &m.to_string(), "--actions", &n.to_string(), "--batch", &batch.to_string()])
         .output()
         .map_err(|e| anyhow::anyhow!("starting {}: {e}", python.display()))?;
     if !out.status.success() {
-        println!(
-            "PyTorch eager: skipped ({} failed: {})",
-            script.display(),
-            String::from_utf8_lossy(&out.stderr)
-                .lines()
-                .last()
-                .unwrap_or("no message")
-        );
+        println!("PyTorch eager: skipped ({} failed: {})", script.display(), String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or("no message"));
         return Ok(());
     }
     // Lines "THREADS MS_PER_UPDATE VERSION".
     for line in String::from_utf8_lossy(&out.stdout).lines() {
         let fields: Vec<&str> = line.split_whitespace().collect();
-        let (Some(t), Some(ms), Some(version)) = (
-            fields.first(),
-            fields.get(1).and_then(|v| v.parse::<f64>().ok()),
-            fields.get(2),
-        ) else {
-            continue;
-        };
+        let (Some(t), Some(ms), Some(version)) = (fields.first(), fields.get(1).and_then(|v| v.parse::<f64>().ok()), fields.get(2)) else { continue };
         let against = match lcrl.iter().find(|(lt, _)| lt.to_string() == *t) {
-            Some((_, seconds)) => {
-                format!(", lcrl's global update {:.2}× its time", seconds * 1e3 / ms)
-            }
+            Some((_, seconds)) => format!(", lcrl's global update {:.2}× its time", seconds * 1e3 / ms),
             None => String::new(),
         };
         println!("{t:>7} PyTorch {version} eager DDPG update (global): {ms:.3} ms{against}");
@@ -325,27 +221,14 @@ fn bench_sim(episodes: usize) -> anyhow::Result<()> {
     use lcrl_sim::peg::{PegConfig, PegEnv};
     let default = PegConfig::group1().physics.substeps;
     println!("peg-group1, constant controller, {episodes} episodes, one thread");
-    println!(
-        "{:>9} {:>16} {:>14}",
-        "substeps", "control steps/s", "µs per step"
-    );
+    println!("{:>9} {:>16} {:>14}", "substeps", "control steps/s", "µs per step");
     for substeps in [default / 2, default, default * 2] {
         let mut cfg = PegConfig::group1();
         cfg.physics.substeps = substeps;
         let mut env = PegEnv::new("peg-group1", cfg)?;
-        let (summary, _) = evaluate(
-            &mut env,
-            "constant",
-            episodes,
-            0,
-            &mut |_| vec![0.0; 6],
-            &mut |_| {},
-        )?;
+        let (summary, _) = evaluate(&mut env, "constant", episodes, 0, &mut |_| vec![0.0; 6], &mut |_| {})?;
         let per_step = 1e6 / summary.control_steps_per_sec;
-        println!(
-            "{substeps:>9} {:>16.0} {per_step:>14.1}",
-            summary.control_steps_per_sec
-        );
+        println!("{substeps:>9} {:>16.0} {per_step:>14.1}", summary.control_steps_per_sec);
     }
     Ok(())
 }
@@ -353,37 +236,14 @@ fn bench_sim(episodes: usize) -> anyhow::Result<()> {
 fn bench_graph(samples: usize, repeats: usize) -> anyhow::Result<()> {
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let systems = [
-        (
-            "lti-paper (3×3)",
-            LtiEnv::new("lti-paper", &LtiConfig::paper_example())?,
-        ),
-        (
-            "random 12×6",
-            LtiEnv::new("random-12x6", &LtiConfig::random_sparse(12, 6, 0.25, 42))?,
-        ),
+        ("lti-paper (3×3)", LtiEnv::new("lti-paper", &LtiConfig::paper_example())?),
+        ("random 12×6", LtiEnv::new("random-12x6", &LtiConfig::random_sparse(12, 6, 0.25, 42))?),
     ];
-    println!(
-        "CS3 graph build, ST = {samples}, eq. 7, {} bootstrap resamples; median of {repeats}",
-        lcrl_graph_builder::DEFAULT_BOOTSTRAP
-    );
-    println!(
-        "{:<18} {:>12} {:>12} {:>14}",
-        "system",
-        "1 thread",
-        format!("{cores} threads"),
-        "speed-up"
-    );
+    println!("CS3 graph build, ST = {samples}, eq. 7, {} bootstrap resamples; median of {repeats}", lcrl_graph_builder::DEFAULT_BOOTSTRAP);
+    println!("{:<18} {:>12} {:>12} {:>14}", "system", "1 thread", format!("{cores} threads"), "speed-up");
     for (label, env) in &systems {
         let time = |threads: usize| -> anyhow::Result<f64> {
-            let options = GraphOptions {
-                cs3: Cs3Config {
-                    samples,
-                    seed: 0,
-                    threads,
-                    start: None,
-                },
-                ..GraphOptions::paper(samples, 0, lcrl_graph_builder::DEFAULT_BOOTSTRAP)
-            };
+            let options = GraphOptions { cs3: Cs3Config { samples, seed: 0, threads, start: None }, ..GraphOptions::paper(samples, 0, lcrl_graph_builder::DEFAULT_BOOTSTRAP) };
             let mut runs = Vec::with_capacity(repeats);
             for _ in 0..repeats {
                 let started = Instant::now();
@@ -395,12 +255,7 @@ fn bench_graph(samples: usize, repeats: usize) -> anyhow::Result<()> {
         };
         let one = time(1)?;
         let all = time(cores)?;
-        println!(
-            "{label:<18} {:>10.2}ms {:>10.2}ms {:>13.2}×",
-            one * 1e3,
-            all * 1e3,
-            one / all
-        );
+        println!("{label:<18} {:>10.2}ms {:>10.2}ms {:>13.2}×", one * 1e3, all * 1e3, one / all);
     }
     Ok(())
 }

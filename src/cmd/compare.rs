@@ -55,20 +55,12 @@ struct ZeroAction {
 /// A run's reference lines: the LQR optimum and the best controller with
 /// the actor's connection pattern (linear systems), and a = 0.
 pub fn references(s: &TrainSummary) -> Vec<(String, f64)> {
-    let masked = if s.connection == lcrl_learner::Connection::Local {
-        s.masked_lqr_return
-    } else {
-        None
-    };
+    let masked = if s.connection == lcrl_learner::Connection::Local { s.masked_lqr_return } else { None };
     reference_lines(s.lqr_return, masked, s.zero_action_return)
 }
 
 /// Reference lines from their values, where a run has them.
-pub fn reference_lines(
-    lqr: Option<f64>,
-    masked_lqr: Option<f64>,
-    zero_action: Option<f64>,
-) -> Vec<(String, f64)> {
+pub fn reference_lines(lqr: Option<f64>, masked_lqr: Option<f64>, zero_action: Option<f64>) -> Vec<(String, f64)> {
     let mut lines = Vec::new();
     lines.extend(lqr.map(|v| ("LQR".to_string(), v)));
     lines.extend(masked_lqr.map(|v| ("masked LQR (best with G)".to_string(), v)));
@@ -80,11 +72,8 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
     let read = |path: &Option<PathBuf>, what: &str| -> anyhow::Result<Option<BestConstant>> {
         match path {
             Some(path) => {
-                let text = std::fs::read_to_string(path)
-                    .with_context(|| format!("reading {}", path.display()))?;
-                Ok(Some(serde_json::from_str(&text).with_context(|| {
-                    format!("{} is not a {what} written by `lcrl tune`", path.display())
-                })?))
+                let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+                Ok(Some(serde_json::from_str(&text).with_context(|| format!("{} is not a {what} written by `lcrl tune`", path.display()))?))
             }
             None => Ok(None),
         }
@@ -94,24 +83,11 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
     let mut series = Vec::new();
     let mut longest: Vec<f64> = Vec::new();
     let mut lines = Vec::new();
-    println!(
-        "{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11} {:>8}",
-        "run",
-        "episodes",
-        "graph s",
-        "optimization s",
-        "total s",
-        "final return",
-        "eval return",
-        "success"
-    );
+    println!("{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11} {:>8}", "run", "episodes", "graph s", "optimization s", "total s", "final return", "eval return", "success");
     for dir in &args.runs {
         let path = dir.join("summary.json");
-        let text = std::fs::read_to_string(&path).with_context(|| {
-            format!("{} is not a finished run (no summary.json)", dir.display())
-        })?;
-        let s: TrainSummary =
-            serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
+        let text = std::fs::read_to_string(&path).with_context(|| format!("{} is not a finished run (no summary.json)", dir.display()))?;
+        let s: TrainSummary = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
         for (reference, what) in [(&bar, "best constant"), (&headroom, "best policy")] {
             if let Some(r) = reference {
                 if r.env != s.env {
@@ -135,14 +111,10 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
             s.total_seconds,
             s.final_return,
             s.eval_return,
-            s.eval_success_rate
-                .map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r)),
+            s.eval_success_rate.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r)),
         );
         for line in references(&s) {
-            if !lines
-                .iter()
-                .any(|(name, _): &(String, f64)| *name == line.0)
-            {
+            if !lines.iter().any(|(name, _): &(String, f64)| *name == line.0) {
                 lines.push(line);
             }
         }
@@ -160,9 +132,7 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
         series.push((label, smooth));
     }
     if let Some(bar) = &bar {
-        let pct = bar
-            .success_rate
-            .map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
+        let pct = bar.success_rate.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
         println!(
             "{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11.3} {:>8}",
             "best constant (lcrl tune)", "-", "-", "-", "-", "-", bar.mean_return, pct
@@ -179,9 +149,7 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
         lines.push(("best constant".to_string(), bar.mean_return));
     }
     if let Some(policy) = &headroom {
-        let pct = policy
-            .success_rate
-            .map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
+        let pct = policy.success_rate.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
         println!(
             "{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11.3} {:>8}",
             "best feedback policy (lcrl tune)", "-", "-", "-", "-", "-", policy.mean_return, pct
@@ -193,11 +161,7 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
     for (_, values) in series.iter_mut() {
         values.resize(longest.len(), f64::NAN);
     }
-    let panel = Panel::rewards(
-        format!("return, moving average ({})", args.window),
-        series,
-        lines,
-    );
+    let panel = Panel::rewards(format!("return, moving average ({})", args.window), series, lines);
     line_panels(&args.out, "reward curves", &longest, "episode", &[panel])?;
     println!("wrote {}", args.out.display());
     Ok(())

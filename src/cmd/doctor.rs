@@ -10,26 +10,16 @@ pub fn run() -> anyhow::Result<()> {
     let sum = tensor_smoke_check()?;
     println!("libtorch: ok (2 · [1, 2, 3] sums to {sum})");
     println!("cores: {}", lcrl_learner::device::available_cores());
-    println!(
-        "torch threads: {} (run.threads = 0 uses every core, or what the actors leave over)",
-        tch::get_num_threads()
-    );
+    println!("torch threads: {} (run.threads = 0 uses every core, or what the actors leave over)", tch::get_num_threads());
     println!("libtorch_cuda: {cuda_library}");
     let available = tch::Cuda::is_available();
     println!("cuda available: {available}");
     if available {
-        println!(
-            "cuda devices: {} (cudnn: {})",
-            tch::Cuda::device_count(),
-            tch::Cuda::cudnn_is_available()
-        );
+        println!("cuda devices: {} (cudnn: {})", tch::Cuda::device_count(), tch::Cuda::cudnn_is_available());
         // A computation on the GPU, read back: the device works, not only exists.
         let t = tch::Tensor::from_slice(&[1.0f32, 2.0, 3.0]).to_device(tch::Device::Cuda(0));
         let sum = (t * 2.0).sum(tch::Kind::Float).double_value(&[]);
-        ensure!(
-            sum == 12.0,
-            "CUDA computed 2·[1,2,3] summed as {sum}, expected 12"
-        );
+        ensure!(sum == 12.0, "CUDA computed 2·[1,2,3] summed as {sum}, expected 12");
         println!("cuda: ok (2 · [1, 2, 3] sums to {sum} on cuda:0)");
     }
     Ok(())
@@ -39,9 +29,6 @@ pub fn run() -> anyhow::Result<()> {
 pub fn tensor_smoke_check() -> anyhow::Result<f64> {
     let t = tch::Tensor::from_slice(&[1.0f32, 2.0, 3.0]);
     let sum = (t * 2.0).sum(tch::Kind::Float).double_value(&[]);
-    ensure!(
-        sum == 12.0,
-        "libtorch computed 2·[1,2,3] summed as {sum}, expected 12"
-    );
+    ensure!(sum == 12.0, "libtorch computed 2·[1,2,3] summed as {sum}, expected 12");
     Ok(sum)
 }

@@ -78,43 +78,25 @@ pub fn command_line(args: &LaunchArgs) -> anyhow::Result<(&'static str, Vec<OsSt
     let (binary, mut argv) = match args.role {
         Role::GraphBuilder => {
             let listen = args.listen.as_deref().unwrap_or("0.0.0.0:50051");
-            (
-                "lcrl-graph-builder",
-                preset.graph_builder_args(listen, &args.run_dir),
-            )
+            ("lcrl-graph-builder", preset.graph_builder_args(listen, &args.run_dir))
         }
         Role::Learner => {
             let listen = args.listen.as_deref().unwrap_or("0.0.0.0:50052");
-            std::fs::create_dir_all(&args.run_dir)
-                .with_context(|| format!("creating {}", args.run_dir.display()))?;
+            std::fs::create_dir_all(&args.run_dir).with_context(|| format!("creating {}", args.run_dir.display()))?;
             let train = args.run_dir.join("train.toml");
             preset.write_train_config(&train)?;
             let url = args.security.url(&args.graph_builder);
-            (
-                "lcrl-learner",
-                preset.learner_args(
-                    listen,
-                    &args.run_id,
-                    &train,
-                    &args.run_dir.join("learner"),
-                    Some(url.as_str()),
-                )?,
-            )
+            ("lcrl-learner", preset.learner_args(listen, &args.run_id, &train, &args.run_dir.join("learner"), Some(url.as_str()))?)
         }
         // Replicas name themselves (host name), which also sets their seeds apart.
         Role::Actor => {
             let url = args.security.url(&args.learner);
-            (
-                "lcrl-actor",
-                preset.actor_args(&url, &args.run_id, "grpc", None, 0),
-            )
+            ("lcrl-actor", preset.actor_args(&url, &args.run_id, "grpc", None, 0))
         }
     };
     argv.extend(match args.role {
         Role::GraphBuilder => args.security.server_args(false)?,
-        Role::Learner => args
-            .security
-            .server_args(preset.job.connection == lcrl_learner::Connection::Local)?,
+        Role::Learner => args.security.server_args(preset.job.connection == lcrl_learner::Connection::Local)?,
         Role::Actor => args.security.client_args()?,
     });
     if let (Some(addr), Role::Learner | Role::Actor) = (&args.metrics_listen, args.role) {
@@ -129,10 +111,7 @@ pub fn command_line(args: &LaunchArgs) -> anyhow::Result<(&'static str, Vec<OsSt
 pub fn run(args: &LaunchArgs) -> anyhow::Result<()> {
     let (binary, argv) = command_line(args)?;
     if args.dry_run {
-        let words: Vec<String> = argv
-            .iter()
-            .map(|a| a.to_string_lossy().into_owned())
-            .collect();
+        let words: Vec<String> = argv.iter().map(|a| a.to_string_lossy().into_owned()).collect();
         println!("{binary} {}", words.join(" "));
         return Ok(());
     }

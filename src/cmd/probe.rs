@@ -5,8 +5,8 @@
 use std::time::Duration;
 
 use anyhow::bail;
-use lcrl::supervise::is_serving;
 use lcrl_proto::security::{ClientSecurity, ClientSecurityArgs};
+use lcrl::supervise::is_serving;
 
 #[derive(Debug, clap::Args)]
 pub struct HealthArgs {
@@ -28,21 +28,9 @@ pub fn health(args: &HealthArgs) -> anyhow::Result<()> {
         bail!("--timeout must be a positive number of seconds");
     }
     let security = ClientSecurity::from_args(&args.security)?;
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()?;
-    let what = if args.service.is_empty() {
-        args.url.clone()
-    } else {
-        format!("{} at {}", args.service, args.url)
-    };
-    match runtime.block_on(async {
-        tokio::time::timeout(
-            Duration::from_secs_f64(args.timeout),
-            is_serving(&args.url, &args.service, &security),
-        )
-        .await
-    }) {
+    let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    let what = if args.service.is_empty() { args.url.clone() } else { format!("{} at {}", args.service, args.url) };
+    match runtime.block_on(async { tokio::time::timeout(Duration::from_secs_f64(args.timeout), is_serving(&args.url, &args.service, &security)).await }) {
         Ok(Ok(true)) => {
             println!("{what}: SERVING");
             Ok(())
@@ -65,21 +53,14 @@ pub struct StatusArgs {
 pub fn status(args: &StatusArgs) -> anyhow::Result<()> {
     use lcrl_proto::v1::{learner_client::LearnerClient, GetStatusRequest};
     let security = ClientSecurity::from_args(&args.security)?;
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()?;
+    let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
     let s = runtime.block_on(async {
         let fetch = async {
             let mut client = LearnerClient::new(security.connect(&args.url).await?);
-            let status = client
-                .get_status(GetStatusRequest {})
-                .await
-                .map_err(|s| anyhow::anyhow!("{}: {}", args.url, s.message()))?;
+            let status = client.get_status(GetStatusRequest {}).await.map_err(|s| anyhow::anyhow!("{}: {}", args.url, s.message()))?;
             anyhow::Ok(status.into_inner())
         };
-        tokio::time::timeout(Duration::from_secs(10), fetch)
-            .await
-            .map_err(|_| anyhow::anyhow!("no answer from {} within 10 s", args.url))?
+        tokio::time::timeout(Duration::from_secs(10), fetch).await.map_err(|_| anyhow::anyhow!("no answer from {} within 10 s", args.url))?
     })?;
     let json = serde_json::json!({
         "run_id": s.run_id, "algo": s.algo, "connection": s.connection,

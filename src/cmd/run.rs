@@ -68,59 +68,28 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     preset.pin_learner_threads();
     if args.check {
         let job = &preset.job;
-        println!(
-            "{}: {} with {:?}/{:?}, {} episodes, {} actor(s) — ok",
-            args.config.display(),
-            job.env,
-            job.algo,
-            job.connection,
-            job.episodes,
-            job.actors
-        );
+        println!("{}: {} with {:?}/{:?}, {} episodes, {} actor(s) — ok", args.config.display(), job.env, job.algo, job.connection, job.episodes, job.actors);
         return Ok(());
     }
-    let name = args
-        .config
-        .file_stem()
-        .and_then(|s| s.to_str())
-        .unwrap_or("run");
-    let run_dir = args
-        .run_dir
-        .clone()
-        .unwrap_or_else(|| PathBuf::from("runs").join(name));
+    let name = args.config.file_stem().and_then(|s| s.to_str()).unwrap_or("run");
+    let run_dir = args.run_dir.clone().unwrap_or_else(|| PathBuf::from("runs").join(name));
     let logs = run_dir.join("logs");
     fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
     fs::write(run_dir.join("config.toml"), &preset.text)?;
     // A served environment lives until the run's end: the final evaluation
     // steps it too. Dropped last, it is stopped after everything else.
     let _env_server = match preset.env_server.clone() {
-        Some(server) => Some(start_env_server(
-            &mut preset,
-            &server,
-            &args.config,
-            &logs,
-            &args.security,
-        )?),
+        Some(server) => Some(start_env_server(&mut preset, &server, &args.config, &logs, &args.security)?),
         None => None,
     };
     let train_path = run_dir.join("train.toml");
     preset.write_train_config(&train_path)?;
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()?;
+    let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
     let transport = match args.transport {
         TransportArg::Grpc => "grpc",
         TransportArg::Shm => "shm",
     };
-    let summary = runtime.block_on(orchestrate(
-        &preset,
-        &train_path,
-        &run_dir,
-        &logs,
-        transport,
-        &args.security,
-    ))?;
+    let summary = runtime.block_on(orchestrate(&preset, &train_path, &run_dir, &logs, transport, &args.security))?;
     println!("{summary}");
     Ok(())
 }
@@ -130,143 +99,61 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
 /// Under --tls-dir / --token-file it is secured like the run's other
 /// servers, and this process and its children (which inherit the
 /// environment) are its clients.
-fn start_env_server(
-    preset: &mut Preset,
-    server: &lcrl::preset::EnvServer,
-    config: &Path,
-    logs: &Path,
-    security: &RunSecurity,
-) -> anyhow::Result<Managed> {
-    let listen = lcrl_sim::remote::address(&preset.job.env)
-        .unwrap_or(&preset.job.env)
-        .to_string();
+fn start_env_server(preset: &mut Preset, server: &lcrl::preset::EnvServer, config: &Path, logs: &Path, security: &RunSecurity) -> anyhow::Result<Managed> {
+    let listen = lcrl_sim::remote::address(&preset.job.env).unwrap_or(&preset.job.env).to_string();
     // Every actor environment, plus the evaluation's, has an instance ready.
     let instances = preset.job.actors * preset.job.envs_per_actor + 1;
-    let mut cmd = server.command(
-        &listen,
-        instances,
-        config.parent().unwrap_or(Path::new(".")),
-    )?;
+    let mut cmd = server.command(&listen, instances, config.parent().unwrap_or(Path::new(".")))?;
     cmd.args(security.server_args(false)?);
     security.export_env_client()?;
     die_with_parent(&mut cmd);
     let (process, address) = Managed::spawn("env-server", cmd, logs, true)?;
     let Some(address) = address else {
         let log = logs.join("env-server.log");
-        let reason = fs::read_to_string(&log).ok().and_then(|t| {
-            t.lines()
-                .rev()
-                .find(|l| l.contains("error"))
-                .map(str::to_string)
-        });
-        bail!(
-            "the environment server did not start: {}",
-            reason.unwrap_or_else(|| format!("see {}", log.display()))
-        );
+        let reason = fs::read_to_string(&log).ok().and_then(|t| t.lines().rev().find(|l| l.contains("error")).map(str::to_string));
+        bail!("the environment server did not start: {}", reason.unwrap_or_else(|| format!("see {}", log.display())));
     };
-    let scheme = if security.tls_dir.is_some() {
-        lcrl_sim::remote::TLS_SCHEME
-    } else {
-        lcrl_sim::remote::SCHEME
-    };
+    let scheme = if security.tls_dir.is_some() { lcrl_sim::remote::TLS_SCHEME } else { lcrl_sim::remote::SCHEME };
     preset.job.env = format!("{scheme}{address}");
-    eprintln!(
-        "environment server at {}: {}",
-        preset.job.env,
-        server
-            .gym
-            .as_deref()
-            .or(server.entry_point.as_deref())
-            .unwrap_or("")
-    );
+    eprintln!("environment server at {}: {}", preset.job.env, server.gym.as_deref().or(server.entry_point.as_deref()).unwrap_or(""));
     preset.check()?;
     Ok(process)
 }
 
-async fn orchestrate(
-    preset: &Preset,
-    train_path: &Path,
-    run_dir: &Path,
-    logs: &Path,
-    transport: &str,
-    security: &RunSecurity,
-) -> anyhow::Result<String> {
+async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &Path, transport: &str, security: &RunSecurity) -> anyhow::Result<String> {
     let job = &preset.job;
     // Certificates and the token are checked before anything starts.
     let client_security = security.client()?;
     let started = Instant::now();
-    let run_id = format!(
-        "{}-{}",
-        std::process::id(),
-        started.elapsed().as_nanos() % 1_000_000
-    );
+    let run_id = format!("{}-{}", std::process::id(), started.elapsed().as_nanos() % 1_000_000);
     let mut graph_builder = None;
     let mut graph_url = None;
     if job.connection == Connection::Local {
         let mut cmd = Command::new(sibling("lcrl-graph-builder")?);
-        cmd.args(preset.graph_builder_args("127.0.0.1:0", run_dir))
-            .args(security.server_args(false)?);
+        cmd.args(preset.graph_builder_args("127.0.0.1:0", run_dir)).args(security.server_args(false)?);
         let (process, address) = Managed::spawn("graph-builder", cmd, logs, true)?;
-        let url = security.url(&format!(
-            "http://{}",
-            address.context("the graph builder did not start; see logs/graph-builder.log")?
-        ));
+        let url = security.url(&format!("http://{}", address.context("the graph builder did not start; see logs/graph-builder.log")?));
         eprintln!("graph builder at {url}: building the connection graph");
-        wait_healthy(
-            &url,
-            "lcrl.v1.Graph",
-            "the graph builder",
-            Duration::from_secs(600),
-            &client_security,
-        )
-        .await?;
+        wait_healthy(&url, "lcrl.v1.Graph", "the graph builder", Duration::from_secs(600), &client_security).await?;
         graph_url = Some(url);
         graph_builder = Some(process);
     }
     let mut learner_cmd = Command::new(sibling("lcrl-learner")?);
-    learner_cmd.args(preset.learner_args(
-        "127.0.0.1:0",
-        &run_id,
-        train_path,
-        &run_dir.join("learner"),
-        graph_url.as_deref(),
-    )?);
+    learner_cmd.args(preset.learner_args("127.0.0.1:0", &run_id, train_path, &run_dir.join("learner"), graph_url.as_deref())?);
     learner_cmd.args(security.server_args(graph_url.is_some())?);
     let (mut learner, address) = Managed::spawn("learner", learner_cmd, logs, true)?;
-    let url = security.url(&format!(
-        "http://{}",
-        address.context("the learner did not start; see logs/learner.log")?
-    ));
-    wait_healthy(
-        &url,
-        "lcrl.v1.Learner",
-        "the learner",
-        Duration::from_secs(120),
-        &client_security,
-    )
-    .await?;
-    eprintln!(
-        "learner at {url}; starting {} actor(s) over {transport}",
-        job.actors
-    );
+    let url = security.url(&format!("http://{}", address.context("the learner did not start; see logs/learner.log")?));
+    wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120), &client_security).await?;
+    eprintln!("learner at {url}; starting {} actor(s) over {transport}", job.actors);
     let mut actors = Vec::new();
     for k in 0..job.actors {
         let mut cmd = Command::new(sibling("lcrl-actor")?);
-        cmd.args(preset.actor_args(
-            &url,
-            &run_id,
-            transport,
-            Some(&format!("actor-{k}")),
-            k as u64,
-        ))
-        .args(security.client_args()?);
+        cmd.args(preset.actor_args(&url, &run_id, transport, Some(&format!("actor-{k}")), k as u64)).args(security.client_args()?);
         actors.push(Managed::spawn(&format!("actor-{k}"), cmd, logs, false)?.0);
     }
 
     let bar = ProgressBar::new(job.episodes);
-    if let Ok(style) =
-        ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})")
-    {
+    if let Ok(style) = ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})") {
         bar.set_style(style.progress_chars("=> "));
     }
     let mut client = LearnerClient::new(client_security.connect(&url).await?);
@@ -297,11 +184,7 @@ async fn orchestrate(
         }
     };
     bar.finish_and_clear();
-    let final_status = client
-        .get_status(GetStatusRequest {})
-        .await
-        .map(|s| s.into_inner())
-        .ok();
+    let final_status = client.get_status(GetStatusRequest {}).await.map(|s| s.into_inner()).ok();
     // Actors first (they would only reconnect), then the learner (it
     // checkpoints on SIGTERM), then the graph builder.
     for actor in actors.iter_mut() {
@@ -313,23 +196,11 @@ async fn orchestrate(
     }
     let s = final_status.unwrap_or_default();
     let wall = started.elapsed().as_secs_f64();
-    let summary =
-        lcrl::run_summary::evaluate_run(preset, run_dir, &s, wall, job.actors, transport)?;
+    let summary = lcrl::run_summary::evaluate_run(preset, run_dir, &s, wall, job.actors, transport)?;
     let curve = run_dir.join("reward_curve.png");
-    plot_curve(
-        &run_dir.join("learner/metrics.csv"),
-        &curve,
-        &job.env,
-        &summary,
-    )?;
-    let reference = match (
-        summary.lqr_return,
-        summary.masked_lqr_return,
-        job.connection,
-    ) {
-        (_, Some(masked), Connection::Local) => {
-            format!("masked LQR (the best controller with G) {masked:.3}")
-        }
+    plot_curve(&run_dir.join("learner/metrics.csv"), &curve, &job.env, &summary)?;
+    let reference = match (summary.lqr_return, summary.masked_lqr_return, job.connection) {
+        (_, Some(masked), Connection::Local) => format!("masked LQR (the best controller with G) {masked:.3}"),
         (Some(lqr), _, _) => format!("LQR {lqr:.3}"),
         _ => reference_table(job, &summary),
     };
@@ -362,62 +233,22 @@ fn reference_table(job: &lcrl::preset::Job, summary: &lcrl::run_summary::RunSumm
     let pct = |r: Option<f64>| r.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
     let force = |f: Option<f64>| f.map_or("n/a".into(), |f| format!("{f:.1} N"));
     let trained = format!("trained: {:?} {:?}", job.algo, job.connection).to_lowercase();
-    let mut rows = vec![(
-        trained,
-        summary.eval_return,
-        summary.eval_success_rate,
-        summary.eval_peak_force_n,
-    )];
-    rows.extend(summary.references.iter().map(|r| {
-        (
-            r.controller.clone(),
-            r.mean_return,
-            r.success_rate,
-            r.mean_peak_force_n,
-        )
-    }));
-    let mut table = format!(
-        "the reference controllers on the same {} starts:\n  {:<34} {:>10} {:>8} {:>11}",
-        summary.eval_episodes, "controller", "return", "success", "peak force"
-    );
+    let mut rows = vec![(trained, summary.eval_return, summary.eval_success_rate, summary.eval_peak_force_n)];
+    rows.extend(summary.references.iter().map(|r| (r.controller.clone(), r.mean_return, r.success_rate, r.mean_peak_force_n)));
+    let mut table = format!("the reference controllers on the same {} starts:\n  {:<34} {:>10} {:>8} {:>11}", summary.eval_episodes, "controller", "return", "success", "peak force");
     for (name, ret, success, peak) in rows {
-        table.push_str(&format!(
-            "\n  {name:<34} {ret:>10.3} {:>8} {:>11}",
-            pct(success),
-            force(peak)
-        ));
+        table.push_str(&format!("\n  {name:<34} {ret:>10.3} {:>8} {:>11}", pct(success), force(peak)));
     }
-    if let Some(bar) = summary
-        .references
-        .iter()
-        .find(|r| r.controller == lcrl::run_summary::BEST_CONSTANT)
-    {
-        let verdict = if summary.eval_return > bar.mean_return {
-            "beats"
-        } else {
-            "does not beat"
-        };
-        table.push_str(&format!(
-            "\n  the trained policy {verdict} the best constant by {:+.3}",
-            summary.eval_return - bar.mean_return
-        ));
+    if let Some(bar) = summary.references.iter().find(|r| r.controller == lcrl::run_summary::BEST_CONSTANT) {
+        let verdict = if summary.eval_return > bar.mean_return { "beats" } else { "does not beat" };
+        table.push_str(&format!("\n  the trained policy {verdict} the best constant by {:+.3}", summary.eval_return - bar.mean_return));
     }
     table
 }
 
-fn plot_curve(
-    metrics: &Path,
-    out: &Path,
-    env: &str,
-    summary: &lcrl::run_summary::RunSummary,
-) -> anyhow::Result<()> {
-    let Ok(mut reader) = csv::Reader::from_path(metrics) else {
-        return Ok(());
-    };
-    let returns: Vec<f64> = reader
-        .records()
-        .filter_map(|r| r.ok()?.get(1)?.parse().ok())
-        .collect();
+fn plot_curve(metrics: &Path, out: &Path, env: &str, summary: &lcrl::run_summary::RunSummary) -> anyhow::Result<()> {
+    let Ok(mut reader) = csv::Reader::from_path(metrics) else { return Ok(()) };
+    let returns: Vec<f64> = reader.records().filter_map(|r| r.ok()?.get(1)?.parse().ok()).collect();
     if returns.is_empty() {
         return Ok(());
     }
@@ -428,31 +259,8 @@ fn plot_curve(
             w.iter().sum::<f64>() / w.len() as f64
         })
         .collect();
-    let mut references = crate::cmd::compare::reference_lines(
-        summary.lqr_return,
-        summary.masked_lqr_return,
-        summary.zero_action_return,
-    );
-    references.extend(
-        summary
-            .references
-            .iter()
-            .filter(|r| r.controller != lcrl::run_summary::ZERO_ACTION)
-            .map(|r| (r.controller.clone(), r.mean_return)),
-    );
-    let panel = lcrl::plots::Panel::rewards(
-        "episode return",
-        vec![
-            ("return".into(), returns),
-            ("moving average (20)".into(), average),
-        ],
-        references,
-    );
-    lcrl::plots::line_panels(
-        out,
-        &format!("{env} — distributed run"),
-        &x,
-        "episode (as reported by actors)",
-        &[panel],
-    )
+    let mut references = crate::cmd::compare::reference_lines(summary.lqr_return, summary.masked_lqr_return, summary.zero_action_return);
+    references.extend(summary.references.iter().filter(|r| r.controller != lcrl::run_summary::ZERO_ACTION).map(|r| (r.controller.clone(), r.mean_return)));
+    let panel = lcrl::plots::Panel::rewards("episode return", vec![("return".into(), returns), ("moving average (20)".into(), average)], references);
+    lcrl::plots::line_panels(out, &format!("{env} — distributed run"), &x, "episode (as reported by actors)", &[panel])
 }

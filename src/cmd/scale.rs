@@ -18,8 +18,8 @@ use lcrl_proto::v1::{ActRequest, GetStatusRequest, LearnerStatus};
 use plotters::prelude::*;
 use serde::Serialize;
 
-use crate::cmd::run::TransportArg;
 use lcrl::preset::{sibling, Preset};
+use crate::cmd::run::TransportArg;
 use lcrl::supervise::{wait_healthy, Managed};
 
 /// Measure throughput against the number of actor processes.
@@ -97,11 +97,7 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
     if args.actors.is_empty() || args.actors.contains(&0) || args.envs_per_actor.contains(&0) {
         bail!("--actors and --envs-per-actor take counts of at least 1");
     }
-    if !(args.seconds.is_finite()
-        && args.seconds > 0.0
-        && args.warmup.is_finite()
-        && args.warmup >= 0.0)
-    {
+    if !(args.seconds.is_finite() && args.seconds > 0.0 && args.warmup.is_finite() && args.warmup >= 0.0) {
         bail!("--seconds must be > 0 and --warmup ≥ 0");
     }
     let mut preset = Preset::load(&args.config)?;
@@ -121,26 +117,15 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
     let graph = args.out.join("graph.json");
     if preset.job.connection == lcrl_learner::Connection::Local && !graph.is_file() {
         let env = lcrl_sim::make_env(&preset.job.env)?;
-        let options = lcrl_graph_builder::GraphOptions::paper(
-            preset.train.run.graph_samples,
-            preset.train.run.seed,
-            0,
-        );
+        let options = lcrl_graph_builder::GraphOptions::paper(preset.train.run.graph_samples, preset.train.run.seed, 0);
         lcrl_graph_builder::build_graph(env.as_ref(), &options, &|| {})?.write_json(&graph)?;
     }
     let mut points = vec![baseline(&preset, args, &graph)?];
-    eprintln!(
-        "baseline (lcrl train loop, 1 process): {:.0} env steps/s, {:.0} updates/s",
-        points[0].env_steps_per_s, points[0].updates_per_s
-    );
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()?;
+    eprintln!("baseline (lcrl train loop, 1 process): {:.0} env steps/s, {:.0} updates/s", points[0].env_steps_per_s, points[0].updates_per_s);
+    let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
     for &envs in &args.envs_per_actor {
         for &actors in &args.actors {
-            let point =
-                runtime.block_on(measure(&preset, args, &graph, actors, envs, transport))?;
+            let point = runtime.block_on(measure(&preset, args, &graph, actors, envs, transport))?;
             eprintln!(
                 "{actors} actor(s) × {envs} env(s): {:.0} env steps/s, {:.0} updates/s, ratio {:.1}, lag {:.1}, CPU learner {:.2} actors {:.2}",
                 point.env_steps_per_s, point.updates_per_s, point.replay_ratio, point.policy_lag_mean, point.learner_cpu, point.actors_cpu
@@ -149,11 +134,9 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
         }
     }
     let json = args.out.join("scale.json");
-    fs::write(&json, serde_json::to_string_pretty(&points)? + "\n")
-        .with_context(|| format!("writing {}", json.display()))?;
+    fs::write(&json, serde_json::to_string_pretty(&points)? + "\n").with_context(|| format!("writing {}", json.display()))?;
     let csv_path = args.out.join("scale.csv");
-    let mut csv = csv::Writer::from_path(&csv_path)
-        .with_context(|| format!("writing {}", csv_path.display()))?;
+    let mut csv = csv::Writer::from_path(&csv_path).with_context(|| format!("writing {}", csv_path.display()))?;
     for p in &points {
         csv.serialize(p)?;
     }
@@ -161,18 +144,7 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
     plot(&points, &args.out.join("scale.png"), &preset.job.env)?;
     println!(
         "{:<24} {:>6} {:>5} {:>8} {:>12} {:>10} {:>7} {:>6} {:>8} {:>9} {:>9} {:>10}",
-        "kind",
-        "actors",
-        "envs",
-        "learner",
-        "env steps/s",
-        "updates/s",
-        "ratio",
-        "lag",
-        "act p50",
-        "cpu lrn",
-        "cpu act",
-        "to thr. s"
+        "kind", "actors", "envs", "learner", "env steps/s", "updates/s", "ratio", "lag", "act p50", "cpu lrn", "cpu act", "to thr. s"
     );
     for p in &points {
         println!(
@@ -191,12 +163,7 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
             p.seconds_to_threshold.map_or("-".into(), |v| format!("{v:.0}"))
         );
     }
-    println!(
-        "wrote {}, {}, {}",
-        json.display(),
-        csv_path.display(),
-        args.out.join("scale.png").display()
-    );
+    println!("wrote {}, {}, {}", json.display(), csv_path.display(), args.out.join("scale.png").display());
     Ok(())
 }
 
@@ -208,9 +175,7 @@ fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<S
     // Episode length from one a = 0 episode.
     let mut probe = env.fresh();
     let n = probe.spec().action_dim();
-    let length = lcrl_sim::evaluate::run_episode(probe.as_mut(), 0, &mut |_| vec![0.0; n], false)?
-        .steps
-        .max(1);
+    let length = lcrl_sim::evaluate::run_episode(probe.as_mut(), 0, &mut |_| vec![0.0; n], false)?.steps.max(1);
     let warm = preset.train.ddpg.warmup_steps.div_ceil(length) + 1;
     let mut config = preset.train.clone();
     config.run.episodes = warm + 20;
@@ -222,8 +187,7 @@ fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<S
         env: preset.job.env.clone(),
         algo: preset.job.algo,
         connection: preset.job.connection,
-        graph: (preset.job.connection == lcrl_learner::Connection::Local)
-            .then(|| graph.to_path_buf()),
+        graph: (preset.job.connection == lcrl_learner::Connection::Local).then(|| graph.to_path_buf()),
         config,
         settings_source: args.config.display().to_string(),
         run_dir: dir,
@@ -252,18 +216,10 @@ fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<S
         updates_per_s: match preset.job.algo {
             // Actor updates, as the distributed rows count them: one per
             // policy_delay critic updates.
-            lcrl_learner::Algo::Ddpg => {
-                rate * ddpg.gradient_steps as f64
-                    / ddpg.update_every as f64
-                    / ddpg.policy_delay as f64
-            }
+            lcrl_learner::Algo::Ddpg => rate * ddpg.gradient_steps as f64 / ddpg.update_every as f64 / ddpg.policy_delay as f64,
             lcrl_learner::Algo::Ppo => rate / preset.train.ppo.rollout_steps as f64,
         },
-        replay_ratio: if preset.job.algo == lcrl_learner::Algo::Ddpg {
-            ddpg.samples_per_insert()
-        } else {
-            0.0
-        },
+        replay_ratio: if preset.job.algo == lcrl_learner::Algo::Ddpg { ddpg.samples_per_insert() } else { 0.0 },
         policy_lag_mean: 0.0,
         policy_lag_max: 0,
         act_p50_ms: None,
@@ -277,32 +233,16 @@ fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<S
 
 /// CPU seconds (user + system) a process has used so far.
 fn cpu_seconds(pid: u32) -> f64 {
-    let Ok(stat) = fs::read_to_string(format!("/proc/{pid}/stat")) else {
-        return 0.0;
-    };
+    let Ok(stat) = fs::read_to_string(format!("/proc/{pid}/stat")) else { return 0.0 };
     // Fields after the command name, which is in parentheses.
-    let Some(rest) = stat.rsplit(')').next() else {
-        return 0.0;
-    };
+    let Some(rest) = stat.rsplit(')').next() else { return 0.0 };
     let fields: Vec<&str> = rest.split_whitespace().collect();
-    let ticks = |k: usize| {
-        fields
-            .get(k)
-            .and_then(|v| v.parse::<f64>().ok())
-            .unwrap_or(0.0)
-    };
+    let ticks = |k: usize| fields.get(k).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
     // utime and stime are fields 14 and 15 of stat (11 and 12 after the name).
     (ticks(11) + ticks(12)) / 100.0
 }
 
-async fn measure(
-    preset: &Preset,
-    args: &ScaleArgs,
-    graph: &Path,
-    actors: usize,
-    envs: usize,
-    transport: &str,
-) -> anyhow::Result<ScalePoint> {
+async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize, envs: usize, transport: &str) -> anyhow::Result<ScalePoint> {
     let mut preset = preset.clone();
     preset.job.envs_per_actor = envs;
     preset.job.actors = actors;
@@ -315,45 +255,20 @@ async fn measure(
     preset.write_train_config(&train)?;
     let run_id = format!("scale-{}-a{actors}-e{envs}", std::process::id());
     let mut cmd = Command::new(sibling("lcrl-learner")?);
-    cmd.args(preset.learner_args_with_graph_file(
-        "127.0.0.1:0",
-        &run_id,
-        &train,
-        &dir.join("learner"),
-        graph,
-    ));
+    cmd.args(preset.learner_args_with_graph_file("127.0.0.1:0", &run_id, &train, &dir.join("learner"), graph));
     let (mut learner, address) = Managed::spawn("learner", cmd, &logs, true)?;
-    let url = format!(
-        "http://{}",
-        address.context("the learner did not start; see its log")?
-    );
-    wait_healthy(
-        &url,
-        "lcrl.v1.Learner",
-        "the learner",
-        Duration::from_secs(120),
-        &Default::default(),
-    )
-    .await?;
+    let url = format!("http://{}", address.context("the learner did not start; see its log")?);
+    wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120), &Default::default()).await?;
     let started = Instant::now();
     let mut workers = Vec::new();
     for k in 0..actors {
         let mut cmd = Command::new(sibling("lcrl-actor")?);
-        cmd.args(preset.actor_args(
-            &url,
-            &run_id,
-            transport,
-            Some(&format!("actor-{k}")),
-            k as u64,
-        ));
+        cmd.args(preset.actor_args(&url, &run_id, transport, Some(&format!("actor-{k}")), k as u64));
         workers.push(Managed::spawn(&format!("actor-{k}"), cmd, &logs, false)?.0);
     }
     let mut client = LearnerClient::connect(url.clone()).await?;
     let mut policy = PolicyClient::connect(url.clone()).await?;
-    let status = |s: Result<tonic::Response<LearnerStatus>, tonic::Status>| {
-        s.map(|r| r.into_inner())
-            .map_err(|e| anyhow::anyhow!("lost the learner: {e}"))
-    };
+    let status = |s: Result<tonic::Response<LearnerStatus>, tonic::Status>| s.map(|r| r.into_inner()).map_err(|e| anyhow::anyhow!("lost the learner: {e}"));
     tokio::time::sleep(Duration::from_secs_f64(args.warmup)).await;
     let first = status(client.get_status(GetStatusRequest {}).await)?;
     let cpu = |pids: &[u32]| pids.iter().map(|&p| cpu_seconds(p)).sum::<f64>();
@@ -364,23 +279,14 @@ async fn measure(
     let mut latencies = Vec::new();
     while window.elapsed().as_secs_f64() < args.seconds {
         let t = Instant::now();
-        if policy
-            .act(ActRequest {
-                state: vec![0.0; m],
-            })
-            .await
-            .is_ok()
-        {
+        if policy.act(ActRequest { state: vec![0.0; m] }).await.is_ok() {
             latencies.push(t.elapsed().as_secs_f64() * 1e3);
         }
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     let seconds = window.elapsed().as_secs_f64();
     let last = status(client.get_status(GetStatusRequest {}).await)?;
-    let (learner_cpu, actors_cpu) = (
-        (cpu(&[learner.pid()]) - learner_cpu0) / seconds,
-        (cpu(&actor_pids) - actors_cpu0) / seconds,
-    );
+    let (learner_cpu, actors_cpu) = ((cpu(&[learner.pid()]) - learner_cpu0) / seconds, (cpu(&actor_pids) - actors_cpu0) / seconds);
     let mut seconds_to_threshold = None;
     if let Some(threshold) = args.to_threshold {
         loop {
@@ -412,11 +318,7 @@ async fn measure(
         seconds,
         env_steps_per_s: last.env_steps.saturating_sub(first.env_steps) as f64 / seconds,
         updates_per_s: last.updates.saturating_sub(first.updates) as f64 / seconds,
-        replay_ratio: if inserted > 0 {
-            last.sampled.saturating_sub(first.sampled) as f64 / inserted as f64
-        } else {
-            0.0
-        },
+        replay_ratio: if inserted > 0 { last.sampled.saturating_sub(first.sampled) as f64 / inserted as f64 } else { 0.0 },
         policy_lag_mean: last.policy_lag_mean,
         policy_lag_max: last.policy_lag_max,
         act_p50_ms: latencies.get(latencies.len() / 2).copied(),
@@ -435,95 +337,44 @@ fn plot(points: &[ScalePoint], path: &Path, env: &str) -> anyhow::Result<()> {
     lcrl_graph_builder::plot::register_fonts();
     let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("cannot draw {}: {e}", path.display());
     let distributed: Vec<&ScalePoint> = points.iter().filter(|p| p.kind == "distributed").collect();
-    let baseline = points
-        .iter()
-        .find(|p| p.kind != "distributed")
-        .map_or(0.0, |p| p.env_steps_per_s);
+    let baseline = points.iter().find(|p| p.kind != "distributed").map_or(0.0, |p| p.env_steps_per_s);
     let max_x = distributed.iter().map(|p| p.processes).max().unwrap_or(2) as f64 + 0.5;
-    let first = distributed
-        .first()
-        .map_or((2.0, 1.0), |p| (p.processes as f64, p.env_steps_per_s));
+    let first = distributed.first().map_or((2.0, 1.0), |p| (p.processes as f64, p.env_steps_per_s));
     let ideal = |x: f64| first.1 * (x - 1.0) / (first.0 - 1.0).max(1.0);
-    let max_y = distributed
-        .iter()
-        .map(|p| p.env_steps_per_s)
-        .chain([baseline, ideal(max_x)])
-        .fold(1.0, f64::max)
-        * 1.1;
+    let max_y = distributed.iter().map(|p| p.env_steps_per_s).chain([baseline, ideal(max_x)]).fold(1.0, f64::max) * 1.1;
     let root = BitMapBackend::new(path, (800, 500)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(&e))?;
     let mut chart = ChartBuilder::on(&root)
-        .caption(
-            format!("{env}: env steps/s against processes (learner + actors)"),
-            ("sans-serif", 18),
-        )
+        .caption(format!("{env}: env steps/s against processes (learner + actors)"), ("sans-serif", 18))
         .margin(12)
         .x_label_area_size(40)
         .y_label_area_size(70)
         .build_cartesian_2d(0.5..max_x, 0.0..max_y)
         .map_err(|e| err(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc("processes")
-        .y_desc("env steps/s")
-        .label_style(("sans-serif", 13))
-        .draw()
-        .map_err(|e| err(&e))?;
+    chart.configure_mesh().x_desc("processes").y_desc("env steps/s").label_style(("sans-serif", 13)).draw().map_err(|e| err(&e))?;
     let blue = RGBColor(31, 119, 180);
-    for envs in distributed
-        .iter()
-        .map(|p| p.envs_per_actor)
-        .collect::<std::collections::BTreeSet<_>>()
-    {
-        let series: Vec<(f64, f64)> = distributed
-            .iter()
-            .filter(|p| p.envs_per_actor == envs)
-            .map(|p| (p.processes as f64, p.env_steps_per_s))
-            .collect();
-        let color = if envs == 1 {
-            blue
-        } else {
-            RGBColor(214, 39, 40)
-        };
+    for envs in distributed.iter().map(|p| p.envs_per_actor).collect::<std::collections::BTreeSet<_>>() {
+        let series: Vec<(f64, f64)> = distributed.iter().filter(|p| p.envs_per_actor == envs).map(|p| (p.processes as f64, p.env_steps_per_s)).collect();
+        let color = if envs == 1 { blue } else { RGBColor(214, 39, 40) };
         chart
             .draw_series(LineSeries::new(series.clone(), color.stroke_width(2)))
             .map_err(|e| err(&e))?
             .label(format!("distributed, {envs} env(s)/actor"))
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
-            });
-        chart
-            .draw_series(series.iter().map(|&p| Circle::new(p, 4, color.filled())))
-            .map_err(|e| err(&e))?;
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2)));
+        chart.draw_series(series.iter().map(|&p| Circle::new(p, 4, color.filled()))).map_err(|e| err(&e))?;
     }
     chart
-        .draw_series(DashedLineSeries::new(
-            vec![(0.5, baseline), (max_x, baseline)],
-            8,
-            5,
-            BLACK.stroke_width(2),
-        ))
+        .draw_series(DashedLineSeries::new(vec![(0.5, baseline), (max_x, baseline)], 8, 5, BLACK.stroke_width(2)))
         .map_err(|e| err(&e))?
         .label(format!("lcrl train loop, 1 process ({baseline:.0})"))
         .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], BLACK.stroke_width(2)));
     let grey = RGBColor(140, 140, 140);
     chart
-        .draw_series(DashedLineSeries::new(
-            vec![(1.0, 0.0), (max_x, ideal(max_x))],
-            4,
-            4,
-            grey.stroke_width(1),
-        ))
+        .draw_series(DashedLineSeries::new(vec![(1.0, 0.0), (max_x, ideal(max_x))], 4, 4, grey.stroke_width(1)))
         .map_err(|e| err(&e))?
         .label("ideal linear (from the first point)")
         .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], grey.stroke_width(1)));
-    chart
-        .configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font(("sans-serif", 13))
-        .draw()
-        .map_err(|e| err(&e))?;
+    chart.configure_series_labels().background_style(WHITE.mix(0.85)).border_style(BLACK).label_font(("sans-serif", 13)).draw().map_err(|e| err(&e))?;
     root.present().map_err(|e| err(&e))?;
     Ok(())
 }

@@ -31,13 +31,7 @@ pub struct SimArgs {
     /// Run this constant action instead of a = 0: n comma-separated
     /// revision factors (peg: dx,dy,dz,dalpha,dbeta,dgamma within
     /// [−1,2]³×[−1,4]³), e.g. the `action` of a best_constant.json.
-    #[arg(
-        long,
-        value_delimiter = ',',
-        allow_hyphen_values = true,
-        conflicts_with = "checkpoint",
-        value_name = "A1,…,An"
-    )]
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, conflicts_with = "checkpoint", value_name = "A1,…,An")]
     pub action: Option<Vec<f64>>,
     /// Episodes to run; seeds are seed, seed+1, …
     #[arg(long, default_value_t = 10)]
@@ -59,11 +53,7 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
     if args.episodes == 0 {
         bail!("--episodes must be at least 1");
     }
-    let policy = args
-        .checkpoint
-        .as_deref()
-        .map(lcrl_learner::policy::Policy::load)
-        .transpose()?;
+    let policy = args.checkpoint.as_deref().map(lcrl_learner::policy::Policy::load).transpose()?;
     let env_name = match (&args.env, &policy) {
         (Some(name), _) => name.clone(),
         (None, Some(policy)) => policy.architecture.shape.env.clone(),
@@ -77,9 +67,7 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
     let n = env.spec().action_dim();
     let constant = match &args.action {
         Some(action) => {
-            env.spec()
-                .check_action(action)
-                .with_context(|| format!("--action for {env_name}"))?;
+            env.spec().check_action(action).with_context(|| format!("--action for {env_name}"))?;
             let clipped = env.spec().clip_action(action);
             if clipped != *action {
                 bail!(
@@ -97,41 +85,22 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
     let scales = env.fresh();
     let (label, mut act): (String, Box<dyn FnMut(&[f64]) -> Vec<f64>>) = match &policy {
         Some(policy) => (
-            format!(
-                "{:?}/{:?} policy (episode {})",
-                policy.architecture.shape.algo,
-                policy.architecture.shape.connection,
-                policy.episode.unwrap_or(0)
-            )
-            .to_lowercase(),
+            format!("{:?}/{:?} policy (episode {})", policy.architecture.shape.algo, policy.architecture.shape.connection, policy.episode.unwrap_or(0)).to_lowercase(),
             Box::new(move |s: &[f64]| policy.act(scales.as_ref(), s)),
         ),
         None => {
-            let label = if args.action.is_some() {
-                format!("constant a = {constant:?}")
-            } else {
-                "constant".to_string()
-            };
+            let label = if args.action.is_some() { format!("constant a = {constant:?}") } else { "constant".to_string() };
             (label, Box::new(move |_: &[f64]| constant.clone()))
         }
     };
     let bar = ProgressBar::new(args.episodes as u64);
-    if let Ok(style) =
-        ProgressStyle::with_template("episodes [{bar:30}] {pos}/{len} {msg} ({elapsed})")
-    {
+    if let Ok(style) = ProgressStyle::with_template("episodes [{bar:30}] {pos}/{len} {msg} ({elapsed})") {
         bar.set_style(style.progress_chars("=> "));
     }
-    let result = evaluate(
-        env.as_mut(),
-        &label,
-        args.episodes,
-        args.seed,
-        &mut act,
-        &mut |r| {
-            bar.set_message(format!("return {:.2}", r.episode_return));
-            bar.inc(1);
-        },
-    );
+    let result = evaluate(env.as_mut(), &label, args.episodes, args.seed, &mut act, &mut |r| {
+        bar.set_message(format!("return {:.2}", r.episode_return));
+        bar.inc(1);
+    });
     bar.finish_and_clear();
     let (summary, records) = result?;
     write_outputs(env.as_ref(), &summary, &records[0], &args.out)?;
@@ -141,30 +110,21 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
 
 /// Creates the directory and proves it writable before any episode runs.
 pub fn prepare_out_dir(dir: &Path) -> anyhow::Result<()> {
-    fs::create_dir_all(dir)
-        .with_context(|| format!("cannot create output directory {}", dir.display()))?;
-    tempfile::tempfile_in(dir)
-        .with_context(|| format!("output directory {} is not writable", dir.display()))?;
+    fs::create_dir_all(dir).with_context(|| format!("cannot create output directory {}", dir.display()))?;
+    tempfile::tempfile_in(dir).with_context(|| format!("output directory {} is not writable", dir.display()))?;
     Ok(())
 }
 
-pub fn write_outputs(
-    env: &dyn Env,
-    summary: &Summary,
-    first: &EpisodeRecord,
-    dir: &Path,
-) -> anyhow::Result<()> {
+pub fn write_outputs(env: &dyn Env, summary: &Summary, first: &EpisodeRecord, dir: &Path) -> anyhow::Result<()> {
     let path = dir.join("summary.json");
-    fs::write(&path, serde_json::to_string_pretty(summary)? + "\n")
-        .with_context(|| format!("writing {}", path.display()))?;
+    fs::write(&path, serde_json::to_string_pretty(summary)? + "\n").with_context(|| format!("writing {}", path.display()))?;
     write_trace_csv(env, first, &dir.join("trace.csv"))?;
     plot_trace(env, summary, first, &dir.join("trace.png"))
 }
 
 fn write_trace_csv(env: &dyn Env, record: &EpisodeRecord, path: &Path) -> anyhow::Result<()> {
     let spec = env.spec();
-    let mut out =
-        csv::Writer::from_path(path).with_context(|| format!("writing {}", path.display()))?;
+    let mut out = csv::Writer::from_path(path).with_context(|| format!("writing {}", path.display()))?;
     let mut header = vec!["step".to_string(), "time_s".to_string()];
     header.extend(spec.state_names.iter().cloned());
     header.extend(spec.action_names.iter().map(|a| format!("action_{a}")));
@@ -181,88 +141,42 @@ fn write_trace_csv(env: &dyn Env, record: &EpisodeRecord, path: &Path) -> anyhow
         fields.push(row.reward.to_string());
         out.write_record(&fields)?;
     }
-    out.flush()
-        .with_context(|| format!("writing {}", path.display()))
+    out.flush().with_context(|| format!("writing {}", path.display()))
 }
 
 /// Force and moment over the insertion (depth, force, moment panels), as a
 /// robotics paper shows them; other environments get their states over time.
-fn plot_trace(
-    env: &dyn Env,
-    summary: &Summary,
-    record: &EpisodeRecord,
-    path: &Path,
-) -> anyhow::Result<()> {
+fn plot_trace(env: &dyn Env, summary: &Summary, record: &EpisodeRecord, path: &Path) -> anyhow::Result<()> {
     let names = &env.spec().state_names;
     let column = |name: &str| names.iter().position(|n| n == name);
     let series = |j: usize| -> Vec<f64> {
-        std::iter::once(record.initial_state[j])
-            .chain(record.trace.iter().map(|r| r.state[j]))
-            .collect()
+        std::iter::once(record.initial_state[j]).chain(record.trace.iter().map(|r| r.state[j])).collect()
     };
-    let time: Vec<f64> = std::iter::once(0.0)
-        .chain(record.trace.iter().map(|r| r.time_s))
-        .collect();
+    let time: Vec<f64> = std::iter::once(0.0).chain(record.trace.iter().map(|r| r.time_s)).collect();
     let named = |labels: &[&str]| -> Option<Vec<(String, Vec<f64>)>> {
-        labels
-            .iter()
-            .map(|l| column(l).map(|j| (l.to_string(), series(j))))
-            .collect()
+        labels.iter().map(|l| column(l).map(|j| (l.to_string(), series(j)))).collect()
     };
-    let title = format!(
-        "{} — {} controller, episode seed {}",
-        summary.env, summary.controller, record.seed
-    );
-    let panels = match (
-        named(&["z"]),
-        named(&["Fx", "Fy", "Fz"]),
-        named(&["Mx", "My", "Mz"]),
-    ) {
+    let title = format!("{} — {} controller, episode seed {}", summary.env, summary.controller, record.seed);
+    let panels = match (named(&["z"]), named(&["Fx", "Fy", "Fz"]), named(&["Mx", "My", "Mz"])) {
         (Some(z), Some(f), Some(m)) => vec![
             Panel::lines("remaining depth z [mm]", z),
             Panel::lines("contact force [N]", f),
             Panel::lines("contact moment [N·m]", m),
         ],
-        _ => vec![Panel::lines(
-            "state",
-            names
-                .iter()
-                .enumerate()
-                .map(|(j, n)| (n.clone(), series(j)))
-                .collect(),
-        )],
+        _ => vec![Panel::lines("state", names.iter().enumerate().map(|(j, n)| (n.clone(), series(j))).collect())],
     };
     line_panels(path, &title, &time, "time [s]", &panels)
 }
 
 fn print_summary(s: &Summary, dir: &Path) {
     let opt = |v: Option<f64>, unit: &str| v.map_or("n/a".to_string(), |v| format!("{v:.3}{unit}"));
-    println!(
-        "{} episodes of {} with the {} controller:",
-        s.episodes, s.env, s.controller
-    );
-    println!(
-        "  success rate          {}",
-        s.success_rate
-            .map_or("n/a".into(), |r| format!("{:.0}%", r * 100.0))
-    );
-    println!(
-        "  mean steps to insert  {}",
-        opt(s.mean_steps_to_insert, "")
-    );
+    println!("{} episodes of {} with the {} controller:", s.episodes, s.env, s.controller);
+    println!("  success rate          {}", s.success_rate.map_or("n/a".into(), |r| format!("{:.0}%", r * 100.0)));
+    println!("  mean steps to insert  {}", opt(s.mean_steps_to_insert, ""));
     println!("  mean peak force       {}", opt(s.mean_peak_force_n, " N"));
-    println!(
-        "  mean peak moment      {}",
-        opt(s.mean_peak_moment_nm, " N·m")
-    );
-    println!(
-        "  max penetration       {}",
-        opt(s.max_penetration_mm, " mm")
-    );
-    println!(
-        "  mean return           {:.3} (min {:.3}, max {:.3})",
-        s.mean_return, s.min_return, s.max_return
-    );
+    println!("  mean peak moment      {}", opt(s.mean_peak_moment_nm, " N·m"));
+    println!("  max penetration       {}", opt(s.max_penetration_mm, " mm"));
+    println!("  mean return           {:.3} (min {:.3}, max {:.3})", s.mean_return, s.min_return, s.max_return);
     print_terms(&s.terms);
     println!("  control steps/s       {:.0}", s.control_steps_per_sec);
     println!("wrote {}/summary.json, trace.csv, trace.png", dir.display());
@@ -270,15 +184,7 @@ fn print_summary(s: &Summary, dir: &Path) {
 
 /// The return split into its terms, where the task has them.
 pub fn print_terms(t: &lcrl_sim::ReturnColumns) {
-    if let (Some(d), Some(f), Some(m), Some(b), Some(x)) = (
-        t.return_depth,
-        t.return_force,
-        t.return_moment,
-        t.return_bonus,
-        t.return_failure,
-    ) {
-        println!(
-            "    = depth {d:.3} + force {f:.3} + moment {m:.3} + bonus {b:.3} + failure {x:.3}"
-        );
+    if let (Some(d), Some(f), Some(m), Some(b), Some(x)) = (t.return_depth, t.return_force, t.return_moment, t.return_bonus, t.return_failure) {
+        println!("    = depth {d:.3} + force {f:.3} + moment {m:.3} + bonus {b:.3} + failure {x:.3}");
     }
 }

@@ -58,13 +58,7 @@ pub struct TrainArgs {
 
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     let (mut config, source) = match &args.config {
-        Some(path) => (
-            TrainConfig::load_for_env(path, &args.env)?,
-            format!(
-                "{} (missing keys: the environment's settings)",
-                path.display()
-            ),
-        ),
+        Some(path) => (TrainConfig::load_for_env(path, &args.env)?, format!("{} (missing keys: the environment's settings)", path.display())),
         None => {
             let (config, source) = TrainConfig::for_env(&args.env);
             (config, source.to_string())
@@ -93,11 +87,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         anyhow::bail!("--graph only applies to --connection local");
     }
     eprintln!("training settings: {source}");
-    if let Some(checkpoint) = args
-        .resume
-        .then(|| lcrl_learner::checkpoint::latest_checkpoint(&args.run_dir))
-        .flatten()
-    {
+    if let Some(checkpoint) = args.resume.then(|| lcrl_learner::checkpoint::latest_checkpoint(&args.run_dir)).flatten() {
         eprintln!("resuming from checkpoint {}", checkpoint.display());
     }
     let request = TrainRequest {
@@ -112,9 +102,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         stop_after: None,
     };
     let bar = ProgressBar::new(config.run.episodes as u64);
-    if let Ok(style) =
-        ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})")
-    {
+    if let Ok(style) = ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})") {
         bar.set_style(style.progress_chars("=> "));
     }
     let outcome = train(&request, &mut |p| {
@@ -129,56 +117,31 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     let outcome = outcome?;
     plot_rewards(&outcome.rows, &outcome.summary, args)?;
     let s = &outcome.summary;
-    let global_equivalent =
-        lcrl_learner::nets::global_actor_params(&config.network, args.env_state_dims(s)?);
-    println!(
-        "{:?} / {:?} on {} — {} episodes, {} env steps, {} updates",
-        s.algo, s.connection, s.env, s.episodes, s.env_steps, s.updates
-    );
-    println!(
-        "  actor parameters      {} (a global actor of the configured size: {})",
-        s.actor_params, global_equivalent
-    );
-    println!(
-        "  final return          {:.3} (mean of the last 10 episodes)",
-        s.final_return
-    );
-    println!(
-        "  eval return           {:.3} (deterministic policy, {} episodes)",
-        s.eval_return,
-        config.run.eval_episodes.max(1)
-    );
+    let global_equivalent = lcrl_learner::nets::global_actor_params(&config.network, args.env_state_dims(s)?);
+    println!("{:?} / {:?} on {} — {} episodes, {} env steps, {} updates", s.algo, s.connection, s.env, s.episodes, s.env_steps, s.updates);
+    println!("  actor parameters      {} (a global actor of the configured size: {})", s.actor_params, global_equivalent);
+    println!("  final return          {:.3} (mean of the last 10 episodes)", s.final_return);
+    println!("  eval return           {:.3} (deterministic policy, {} episodes)", s.eval_return, config.run.eval_episodes.max(1));
     if let Some(zero) = s.zero_action_return {
         println!("  a = 0 return          {zero:.3} (the neutral constant action, same episodes)");
     }
     if let (Some(rate), Some(force)) = (s.eval_success_rate, s.eval_peak_force_n) {
-        println!(
-            "  eval success          {:.0}%, mean peak force {force:.2} N",
-            100.0 * rate
-        );
+        println!("  eval success          {:.0}%, mean peak force {force:.2} N", 100.0 * rate);
     }
     crate::cmd::sim::print_terms(&s.eval_terms);
     if let Some(lqr) = s.lqr_return {
         println!("  LQR return            {lqr:.3} (the optimum)");
     }
     if let (Some(masked), Connection::Local) = (s.masked_lqr_return, s.connection) {
-        println!(
-            "  masked LQR return     {masked:.3} (the best controller that sees only G's states)"
-        );
+        println!("  masked LQR return     {masked:.3} (the best controller that sees only G's states)");
     }
-    println!(
-        "  time: graph {:.2} s, optimization {:.2} s, total {:.2} s",
-        s.graph_seconds, s.optimization_seconds, s.total_seconds
-    );
+    println!("  time: graph {:.2} s, optimization {:.2} s, total {:.2} s", s.graph_seconds, s.optimization_seconds, s.total_seconds);
     println!("wrote {}", args.run_dir.display());
     Ok(())
 }
 
 impl TrainArgs {
-    fn env_state_dims(
-        &self,
-        _s: &lcrl_learner::run_files::TrainSummary,
-    ) -> anyhow::Result<(usize, usize)> {
+    fn env_state_dims(&self, _s: &lcrl_learner::run_files::TrainSummary) -> anyhow::Result<(usize, usize)> {
         let env = lcrl_sim::make_env(&self.env)?;
         Ok((env.spec().state_dim(), env.spec().action_dim()))
     }
@@ -186,11 +149,7 @@ impl TrainArgs {
 
 /// Returns per episode with a 10-episode moving average, and the run's
 /// references as horizontal lines.
-fn plot_rewards(
-    rows: &[EpisodeRow],
-    summary: &lcrl_learner::run_files::TrainSummary,
-    args: &TrainArgs,
-) -> anyhow::Result<()> {
+fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::run_files::TrainSummary, args: &TrainArgs) -> anyhow::Result<()> {
     let env = &summary.env;
     let x: Vec<f64> = rows.iter().map(|r| r.episode as f64).collect();
     let returns: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();
@@ -200,19 +159,12 @@ fn plot_rewards(
             window.iter().sum::<f64>() / window.len() as f64
         })
         .collect();
-    let title = format!(
-        "{env} — {:?} with {:?} connection",
-        args.algo, args.connection
-    );
+    let title = format!("{env} — {:?} with {:?} connection", args.algo, args.connection);
     let panel = Panel::rewards(
         "episode return",
-        vec![
-            ("return".into(), returns),
-            ("moving average (10)".into(), average),
-        ],
+        vec![("return".into(), returns), ("moving average (10)".into(), average)],
         crate::cmd::compare::references(summary),
     );
     let path = args.run_dir.join("reward_curve.png");
-    line_panels(&path, &title, &x, "episode", &[panel])
-        .with_context(|| format!("drawing {}", path.display()))
+    line_panels(&path, &title, &x, "episode", &[panel]).with_context(|| format!("drawing {}", path.display()))
 }

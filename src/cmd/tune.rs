@@ -75,23 +75,13 @@ pub fn run(args: &TuneArgs) -> anyhow::Result<()> {
     let opts = TuneOptions {
         episodes: args.episodes,
         seed: args.seed,
-        evaluations: args.evaluations.unwrap_or(if constant {
-            TuneOptions::default().evaluations
-        } else {
-            1500
-        }),
-        sigma: args.sigma.unwrap_or(if constant {
-            TuneOptions::default().sigma
-        } else {
-            0.1
-        }),
+        evaluations: args.evaluations.unwrap_or(if constant { TuneOptions::default().evaluations } else { 1500 }),
+        sigma: args.sigma.unwrap_or(if constant { TuneOptions::default().sigma } else { 0.1 }),
         eval_episodes: args.eval_episodes,
         eval_seed: args.eval_seed,
     };
     let bar = ProgressBar::new(opts.evaluations as u64);
-    if let Ok(style) = ProgressStyle::with_template(
-        "candidates [{bar:30}] {pos}/{len} {msg} ({elapsed}, eta {eta})",
-    ) {
+    if let Ok(style) = ProgressStyle::with_template("candidates [{bar:30}] {pos}/{len} {msg} ({elapsed}, eta {eta})") {
         bar.set_style(style.progress_chars("=> "));
     }
     let family = match args.policy {
@@ -103,8 +93,7 @@ pub fn run(args: &TuneArgs) -> anyhow::Result<()> {
         let n = env.spec().action_dim();
         let start = match &args.start {
             Some(path) => lcrl_learner::action::read_best_constant(path)?,
-            None => lcrl_sim::peg::measured_best_constant(&env.spec().name)
-                .map_or(vec![0.0; n], |a| a.to_vec()),
+            None => lcrl_sim::peg::measured_best_constant(&env.spec().name).map_or(vec![0.0; n], |a| a.to_vec()),
         };
         let report = tune_policy(env.as_ref(), family, &start, &opts, &|best| {
             bar.set_message(format!("best mean return {best:.3}"));
@@ -113,34 +102,14 @@ pub fn run(args: &TuneArgs) -> anyhow::Result<()> {
         bar.finish_and_clear();
         let mut report = report?;
         // On a linear system the optimum is known: LQR on the same starts.
-        report.lqr_return = env.as_lti().and_then(|lti| {
-            lcrl_learner::lqr::lqr_return(lti, report.eval_episodes, report.eval_seed)
-        });
+        report.lqr_return = env.as_lti().and_then(|lti| lcrl_learner::lqr::lqr_return(lti, report.eval_episodes, report.eval_seed));
         let path = args.out.join("best_policy.json");
         lcrl::output::write_atomic(&path, &(serde_json::to_string_pretty(&report)? + "\n"))?;
-        println!(
-            "best {:?} policy of {} ({} candidates, {:.1} s):",
-            family, report.env, report.evaluations, report.elapsed_s
-        );
-        println!(
-            "on {} evaluation episodes from seed {}:",
-            report.eval_episodes, report.eval_seed
-        );
-        println!(
-            "  {:<22} {:>12} {:>9} {:>12}",
-            "controller", "mean return", "success", "peak force"
-        );
-        for (label, r) in [
-            ("a = 0", &report.zero_action),
-            ("start constant", &report.start_constant),
-            ("feedback policy", &report.best),
-        ] {
-            println!(
-                "  {label:<22} {:>12.3} {:>9} {:>12}",
-                r.eval.mean_return,
-                pct(r.eval.success_rate),
-                force(r.eval.mean_peak_force_n)
-            );
+        println!("best {:?} policy of {} ({} candidates, {:.1} s):", family, report.env, report.evaluations, report.elapsed_s);
+        println!("on {} evaluation episodes from seed {}:", report.eval_episodes, report.eval_seed);
+        println!("  {:<22} {:>12} {:>9} {:>12}", "controller", "mean return", "success", "peak force");
+        for (label, r) in [("a = 0", &report.zero_action), ("start constant", &report.start_constant), ("feedback policy", &report.best)] {
+            println!("  {label:<22} {:>12.3} {:>9} {:>12}", r.eval.mean_return, pct(r.eval.success_rate), force(r.eval.mean_peak_force_n));
         }
         if let Some(lqr) = report.lqr_return {
             println!("  {:<22} {lqr:>12.3}", "LQR (the optimum)");
@@ -159,43 +128,17 @@ pub fn run(args: &TuneArgs) -> anyhow::Result<()> {
     // Atomic: `lcrl experiment` takes an existing file as a finished tune.
     lcrl::output::write_atomic(&path, &(serde_json::to_string_pretty(&report)? + "\n"))?;
 
-    println!(
-        "best constant action of {} ({} candidates, {:.1} s):",
-        report.env, report.evaluations, report.elapsed_s
-    );
+    println!("best constant action of {} ({} candidates, {:.1} s):", report.env, report.evaluations, report.elapsed_s);
     for (name, a) in report.action_names.iter().zip(&report.action) {
         println!("  {name:<8} {a:>8.4}");
     }
-    println!(
-        "on {} evaluation episodes from seed {}:",
-        report.eval_episodes, report.eval_seed
-    );
-    println!(
-        "  {:<16} {:>12} {:>9} {:>12}",
-        "controller", "mean return", "success", "peak force"
-    );
-    for (label, r) in [
-        ("a = 0", &report.zero_action),
-        ("best constant", &report.best),
-    ] {
-        println!(
-            "  {label:<16} {:>12.3} {:>9} {:>12}",
-            r.eval.mean_return,
-            pct(r.eval.success_rate),
-            force(r.eval.mean_peak_force_n)
-        );
+    println!("on {} evaluation episodes from seed {}:", report.eval_episodes, report.eval_seed);
+    println!("  {:<16} {:>12} {:>9} {:>12}", "controller", "mean return", "success", "peak force");
+    for (label, r) in [("a = 0", &report.zero_action), ("best constant", &report.best)] {
+        println!("  {label:<16} {:>12.3} {:>9} {:>12}", r.eval.mean_return, pct(r.eval.success_rate), force(r.eval.mean_peak_force_n));
     }
     print_terms(&report.terms);
-    println!(
-        "  run it: lcrl sim --env {} --action {}",
-        args.env,
-        report
-            .action
-            .iter()
-            .map(|a| format!("{a:.4}"))
-            .collect::<Vec<_>>()
-            .join(",")
-    );
+    println!("  run it: lcrl sim --env {} --action {}", args.env, report.action.iter().map(|a| format!("{a:.4}")).collect::<Vec<_>>().join(","));
     println!("wrote {}", path.display());
     Ok(())
 }

@@ -66,10 +66,7 @@ pub struct GraphSettings {
 
 impl Default for GraphSettings {
     fn default() -> Self {
-        GraphSettings {
-            samples: 256,
-            seed: 0,
-        }
+        GraphSettings { samples: 256, seed: 0 }
     }
 }
 
@@ -89,12 +86,7 @@ pub struct BestConstantSettings {
 impl Default for BestConstantSettings {
     fn default() -> Self {
         let tune = lcrl_sim::tune::TuneOptions::default();
-        BestConstantSettings {
-            enabled: true,
-            evaluations: tune.evaluations,
-            episodes: tune.episodes,
-            eval_episodes: tune.eval_episodes,
-        }
+        BestConstantSettings { enabled: true, evaluations: tune.evaluations, episodes: tune.episodes, eval_episodes: tune.eval_episodes }
     }
 }
 
@@ -112,20 +104,14 @@ pub enum ConnectionSpec {
 
 impl ConnectionSpec {
     pub fn parse(text: &str) -> anyhow::Result<Self> {
-        let unknown = || {
-            format!("unknown connection \"{text}\"; use local (T = {DEFAULT_THRESHOLD}), local@T such as local@0.25, global or full-subnets")
-        };
+        let unknown = || format!("unknown connection \"{text}\"; use local (T = {DEFAULT_THRESHOLD}), local@T such as local@0.25, global or full-subnets");
         match text {
-            "local" => Ok(ConnectionSpec::Local {
-                threshold: DEFAULT_THRESHOLD,
-            }),
+            "local" => Ok(ConnectionSpec::Local { threshold: DEFAULT_THRESHOLD }),
             "global" => Ok(ConnectionSpec::Global),
             "full-subnets" => Ok(ConnectionSpec::FullSubnets),
             _ => {
                 let t = text.strip_prefix("local@").with_context(unknown)?;
-                let threshold: f64 = t
-                    .parse()
-                    .map_err(|_| anyhow::anyhow!("{}: \"{t}\" is not a number", unknown()))?;
+                let threshold: f64 = t.parse().map_err(|_| anyhow::anyhow!("{}: \"{t}\" is not a number", unknown()))?;
                 if !(threshold.is_finite() && threshold >= 0.0) {
                     bail!("connection \"{text}\": the threshold T must be a finite number ≥ 0");
                 }
@@ -159,6 +145,7 @@ impl ConnectionSpec {
     }
 }
 
+
 /// A checked experiment: the file plus what follows from it.
 #[derive(Debug, Clone)]
 pub struct Experiment {
@@ -170,8 +157,7 @@ pub struct Experiment {
 impl Experiment {
     /// Reads and checks an experiment file.
     pub fn load(path: &Path) -> anyhow::Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read experiment file {}", path.display()))?;
+        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read experiment file {}", path.display()))?;
         Self::parse(&text).with_context(|| format!("experiment file {}", path.display()))
     }
 
@@ -182,23 +168,11 @@ impl Experiment {
 
     /// Every check that can run before a single process starts.
     pub fn check(file: ExperimentFile) -> anyhow::Result<Self> {
-        if file.name.is_empty()
-            || !file
-                .name
-                .chars()
-                .all(|c| c.is_ascii_alphanumeric() || c == '-')
-            || file.name.len() > 40
-        {
-            bail!(
-                "`name` \"{}\" must be 1–40 letters, digits or '-' (it names Kubernetes objects)",
-                file.name
-            );
+        if file.name.is_empty() || !file.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-') || file.name.len() > 40 {
+            bail!("`name` \"{}\" must be 1–40 letters, digits or '-' (it names Kubernetes objects)", file.name);
         }
-        if file.environments.is_empty() || file.algorithms.is_empty() || file.connections.is_empty()
-        {
-            bail!(
-                "`environments`, `algorithms` and `connections` must each list at least one entry"
-            );
+        if file.environments.is_empty() || file.algorithms.is_empty() || file.connections.is_empty() {
+            bail!("`environments`, `algorithms` and `connections` must each list at least one entry");
         }
         let seeds = match &file.seeds {
             Seeds::Count(n) => (0..*n).collect(),
@@ -207,26 +181,12 @@ impl Experiment {
         if seeds.is_empty() {
             bail!("`seeds` is zero: give a count (seeds = 5 runs seeds 0–4) or a list (seeds = [0, 7, 9])");
         }
-        if seeds
-            .iter()
-            .collect::<std::collections::BTreeSet<_>>()
-            .len()
-            != seeds.len()
-        {
+        if seeds.iter().collect::<std::collections::BTreeSet<_>>().len() != seeds.len() {
             bail!("`seeds` lists a seed twice: {seeds:?}");
         }
-        let connections = file
-            .connections
-            .iter()
-            .map(|c| ConnectionSpec::parse(c))
-            .collect::<anyhow::Result<Vec<_>>>()?;
+        let connections = file.connections.iter().map(|c| ConnectionSpec::parse(c)).collect::<anyhow::Result<Vec<_>>>()?;
         let labels: Vec<String> = connections.iter().map(ConnectionSpec::label).collect();
-        if labels
-            .iter()
-            .collect::<std::collections::BTreeSet<_>>()
-            .len()
-            != labels.len()
-        {
+        if labels.iter().collect::<std::collections::BTreeSet<_>>().len() != labels.len() {
             bail!("`connections` lists a connection twice: {labels:?}");
         }
         if file.eval_episodes == 0 {
@@ -242,20 +202,14 @@ impl Experiment {
         }
         for key in file.episodes.keys() {
             if !algos.contains(&key.as_str()) {
-                bail!(
-                    "`episodes.{key}`: {key} is not one of `algorithms` ({})",
-                    algos.join(", ")
-                );
+                bail!("`episodes.{key}`: {key} is not one of `algorithms` ({})", algos.join(", "));
             }
         }
         let mut slugs = BTreeMap::new();
         for env in &file.environments {
             lcrl_sim::make_env(env).with_context(|| format!("environment \"{env}\""))?;
             if let Some(other) = slugs.insert(env_slug(env), env) {
-                bail!(
-                    "environments \"{other}\" and \"{env}\" would share the folder {}",
-                    env_slug(env)
-                );
+                bail!("environments \"{other}\" and \"{env}\" would share the folder {}", env_slug(env));
             }
         }
         for (env, per_algo) in &file.reward_threshold {
@@ -279,22 +233,13 @@ impl Experiment {
             bail!("`best_constant`: evaluations, episodes and eval_episodes must each be at least 1 (or set enabled = false)");
         }
         if let Some(run) = file.train.get("run").and_then(|r| r.as_table()) {
-            for (key, instead) in [
-                ("episodes", "`episodes`"),
-                ("seed", "`seeds`"),
-                ("eval_episodes", "`eval_episodes`"),
-                ("threads", "one thread per run"),
-            ] {
+            for (key, instead) in [("episodes", "`episodes`"), ("seed", "`seeds`"), ("eval_episodes", "`eval_episodes`"), ("threads", "one thread per run")] {
                 if run.contains_key(key) {
                     bail!("`train.run.{key}` is set by the experiment ({instead}); remove it");
                 }
             }
         }
-        let experiment = Experiment {
-            file,
-            connections,
-            seeds,
-        };
+        let experiment = Experiment { file, connections, seeds };
         for env in &experiment.file.environments {
             experiment.train_config(env)?;
         }
@@ -305,40 +250,25 @@ impl Experiment {
     /// defaults with `[train]` laid over them, and the experiment's
     /// evaluation episodes.
     pub fn train_config(&self, env: &str) -> anyhow::Result<TrainConfig> {
-        let mut config = TrainConfig::for_env_with(env, &self.file.train)
-            .map_err(|e| anyhow::anyhow!("`train`: {e}"))?;
+        let mut config = TrainConfig::for_env_with(env, &self.file.train).map_err(|e| anyhow::anyhow!("`train`: {e}"))?;
         config.run.eval_episodes = self.file.eval_episodes;
         config.run.threads = 1;
-        config
-            .validate()
-            .map_err(|e| anyhow::anyhow!("`train`: {e}"))?;
+        config.validate().map_err(|e| anyhow::anyhow!("`train`: {e}"))?;
         Ok(config)
     }
 
     pub fn episodes(&self, algo: Algo) -> usize {
-        self.file
-            .episodes
-            .get(algo_name(algo))
-            .copied()
-            .unwrap_or(1)
+        self.file.episodes.get(algo_name(algo)).copied().unwrap_or(1)
     }
 
     pub fn reward_threshold(&self, env: &str, algo: Algo) -> Option<f64> {
-        self.file
-            .reward_threshold
-            .get(env)?
-            .get(algo_name(algo))
-            .copied()
+        self.file.reward_threshold.get(env)?.get(algo_name(algo)).copied()
     }
 
     /// The distinct thresholds of the local connections, in file order.
     pub fn thresholds(&self) -> Vec<f64> {
         let mut out: Vec<f64> = Vec::new();
-        for t in self
-            .connections
-            .iter()
-            .filter_map(ConnectionSpec::threshold)
-        {
+        for t in self.connections.iter().filter_map(ConnectionSpec::threshold) {
             if !out.contains(&t) {
                 out.push(t);
             }
@@ -353,19 +283,9 @@ pub fn env_slug(env: &str) -> String {
     // A served environment is named by its address, not a file stem.
     let stem = match lcrl_sim::remote::address(env) {
         Some(address) => format!("grpc-{address}"),
-        None => Path::new(env)
-            .file_stem()
-            .map_or(env.to_string(), |s| s.to_string_lossy().into_owned()),
+        None => Path::new(env).file_stem().map_or(env.to_string(), |s| s.to_string_lossy().into_owned()),
     };
-    stem.chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect()
+    stem.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect()
 }
 
 #[cfg(test)]
@@ -386,13 +306,7 @@ mod tests {
         let text = format!("{MINIMAL}[train.ppo]\nactor_lr = 0.005\n");
         let e = Experiment::parse(&text).unwrap();
         assert_eq!(e.seeds, vec![0, 1, 2]);
-        assert_eq!(
-            e.connections
-                .iter()
-                .map(ConnectionSpec::label)
-                .collect::<Vec<_>>(),
-            ["local@0.1", "local@0.25", "global"]
-        );
+        assert_eq!(e.connections.iter().map(ConnectionSpec::label).collect::<Vec<_>>(), ["local@0.1", "local@0.25", "global"]);
         assert_eq!(e.thresholds(), vec![0.1, 0.25]);
         let cfg = e.train_config("lti-paper").unwrap();
         assert_eq!(cfg.ppo.actor_lr, 0.005);
@@ -404,27 +318,16 @@ mod tests {
 
     #[test]
     fn bad_files_are_refused_by_name() {
-        let err = |text: &str| {
-            Experiment::parse(text)
-                .err()
-                .map(|e| format!("{e:#}"))
-                .unwrap_or_else(|| panic!("accepted {text}"))
-        };
-        assert!(err(&MINIMAL.replace("\"global\"", "\"globl\""))
-            .contains("unknown connection \"globl\""));
+        let err = |text: &str| Experiment::parse(text).err().map(|e| format!("{e:#}")).unwrap_or_else(|| panic!("accepted {text}"));
+        assert!(err(&MINIMAL.replace("\"global\"", "\"globl\"")).contains("unknown connection \"globl\""));
         assert!(err(&MINIMAL.replace("seeds = 3", "seeds = 0")).contains("`seeds` is zero"));
         assert!(err(&MINIMAL.replace("seeds = 3", "seeds = []")).contains("`seeds` is zero"));
         assert!(err(&format!("{MINIMAL}colour = 1\n")).contains("colour"));
         assert!(err(&format!("{MINIMAL}[train.ppo]\nactor_rate = 1\n")).contains("actor_rate"));
         assert!(err(&format!("{MINIMAL}[train.run]\nseed = 4\n")).contains("train.run.seed"));
-        assert!(
-            err(&MINIMAL.replace("{ ppo = 10 }", "{ ddpg = 10 }")).contains("no budget for ppo")
-        );
+        assert!(err(&MINIMAL.replace("{ ppo = 10 }", "{ ddpg = 10 }")).contains("no budget for ppo"));
         assert!(err(&MINIMAL.replace("lti-paper", "peg-group9")).contains("peg-group9"));
-        assert!(err(&format!(
-            "{MINIMAL}[reward_threshold.peg-group1]\nppo = -3.0\n"
-        ))
-        .contains("reward_threshold.peg-group1"));
+        assert!(err(&format!("{MINIMAL}[reward_threshold.peg-group1]\nppo = -3.0\n")).contains("reward_threshold.peg-group1"));
         assert!(err(&MINIMAL.replace("local@0.25", "local@x")).contains("\"x\" is not a number"));
     }
 }

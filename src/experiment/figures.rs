@@ -20,10 +20,7 @@ use crate::plots::{line_panels, Panel};
 fn groups(study: &Study) -> Vec<Vec<&CellRuns>> {
     let mut out: Vec<Vec<&CellRuns>> = Vec::new();
     for c in &study.cells {
-        match out
-            .iter_mut()
-            .find(|g| g[0].cell.env == c.cell.env && g[0].cell.algo == c.cell.algo)
-        {
+        match out.iter_mut().find(|g| g[0].cell.env == c.cell.env && g[0].cell.algo == c.cell.algo) {
             Some(group) => group.push(c),
             None => out.push(vec![c]),
         }
@@ -49,54 +46,29 @@ pub fn curves(study: &Study, path: &Path) -> anyhow::Result<()> {
         let mut series = Vec::new();
         let mut bands = Vec::new();
         for cell in &group {
-            let smoothed: Vec<Vec<f64>> = cell
-                .runs
-                .iter()
-                .map(|r| moving_average(&r.returns))
-                .collect();
+            let smoothed: Vec<Vec<f64>> = cell.runs.iter().map(|r| moving_average(&r.returns)).collect();
             if smoothed.is_empty() {
                 continue;
             }
             let at = |k: usize| smoothed.iter().filter_map(move |s| s.get(k).copied());
-            let mean: Vec<f64> = (0..episodes)
-                .map(|k| at(k).sum::<f64>() / at(k).count().max(1) as f64)
-                .collect();
-            let low: Vec<f64> = (0..episodes)
-                .map(|k| at(k).fold(f64::INFINITY, f64::min))
-                .collect();
-            let high: Vec<f64> = (0..episodes)
-                .map(|k| at(k).fold(f64::NEG_INFINITY, f64::max))
-                .collect();
+            let mean: Vec<f64> = (0..episodes).map(|k| at(k).sum::<f64>() / at(k).count().max(1) as f64).collect();
+            let low: Vec<f64> = (0..episodes).map(|k| at(k).fold(f64::INFINITY, f64::min)).collect();
+            let high: Vec<f64> = (0..episodes).map(|k| at(k).fold(f64::NEG_INFINITY, f64::max)).collect();
             bands.push((series.len(), low, high));
-            series.push((
-                format!(
-                    "{} ({} seeds)",
-                    cell.cell.connection.label(),
-                    cell.runs.len()
-                ),
-                mean,
-            ));
+            series.push((format!("{} ({} seeds)", cell.cell.connection.label(), cell.runs.len()), mean));
         }
         let mut references = Vec::new();
         if let Some(b) = study.best_constant.get(env) {
             references.push(("best constant".to_string(), b.mean_return));
             references.push(("a = 0".to_string(), b.zero_action_return));
         }
-        let mut panel = Panel::rewards(
-            format!("{env}, {}: return (avg 10)", algo_name(algo).to_uppercase()),
-            series,
-            references,
-        );
+        let mut panel = Panel::rewards(format!("{env}, {}: return (avg 10)", algo_name(algo).to_uppercase()), series, references);
         panel.bands = bands;
         panel.x = Some((1..=episodes).map(|k| k as f64).collect());
         panels.push(panel);
     }
-    let title = format!(
-        "experiment {}: mean over seeds, band min–max",
-        study.experiment.file.name
-    );
-    line_panels(path, &title, &[0.0, 1.0], "episode", &panels)
-        .with_context(|| format!("drawing {}", path.display()))
+    let title = format!("experiment {}: mean over seeds, band min–max", study.experiment.file.name);
+    line_panels(path, &title, &[0.0, 1.0], "episode", &panels).with_context(|| format!("drawing {}", path.display()))
 }
 
 /// The publication's testing start: 0.2 mm along x, y and z, 0.5° about
@@ -110,10 +82,7 @@ fn testing_env(env: &str) -> anyhow::Result<(Box<dyn Env>, String)> {
             e.position_offset_mm = [0.2, 0.2];
             e.angle_offset_deg = [0.5; 3];
             e.start_height_mm += 0.2;
-            Ok((
-                Box::new(PegEnv::new(env, cfg)?),
-                "initial error 0.2 mm ×3, 0.5° ×3".into(),
-            ))
+            Ok((Box::new(PegEnv::new(env, cfg)?), "initial error 0.2 mm ×3, 0.5° ×3".into()))
         }
         None => Ok((lcrl_sim::make_env(env)?, "episode seed 0".into())),
     }
@@ -127,22 +96,14 @@ struct Trace {
 
 fn rollout(env: &mut dyn Env, act: &mut dyn FnMut(&[f64]) -> Vec<f64>) -> anyhow::Result<Trace> {
     let names = env.spec().state_names.clone();
-    let find = |labels: [&str; 3]| {
-        labels
-            .iter()
-            .map(|l| names.iter().position(|n| n == l))
-            .collect::<Option<Vec<usize>>>()
-    };
+    let find = |labels: [&str; 3]| labels.iter().map(|l| names.iter().position(|n| n == l)).collect::<Option<Vec<usize>>>();
     let groups: Vec<Vec<usize>> = match (find(["Fx", "Fy", "Fz"]), find(["Mx", "My", "Mz"])) {
         (Some(f), Some(m)) => vec![f, m],
         _ => vec![(0..names.len()).collect()],
     };
     let norm = |s: &[f64], idx: &[usize]| idx.iter().map(|&j| s[j] * s[j]).sum::<f64>().sqrt();
     let mut state = env.reset(0)?;
-    let mut trace = Trace {
-        time: vec![0.0],
-        panels: groups.iter().map(|g| vec![norm(&state, g)]).collect(),
-    };
+    let mut trace = Trace { time: vec![0.0], panels: groups.iter().map(|g| vec![norm(&state, g)]).collect() };
     for k in 1.. {
         let step = env.step(&act(&state))?;
         state = step.state;
@@ -165,61 +126,28 @@ pub fn traces(study: &Study, path: &Path) -> anyhow::Result<()> {
         let (mut env, note) = testing_env(env_name)?;
         start_note = note;
         let n = env.spec().action_dim();
-        let mut runs: Vec<(String, Trace)> = vec![(
-            "a = 0".into(),
-            rollout(env.as_mut(), &mut |_| vec![0.0; n])?,
-        )];
+        let mut runs: Vec<(String, Trace)> = vec![("a = 0".into(), rollout(env.as_mut(), &mut |_| vec![0.0; n])?)];
         if let Some(b) = study.best_constant.get(env_name) {
             let action = b.action.clone();
-            runs.push((
-                "best constant".into(),
-                rollout(env.as_mut(), &mut |_| action.clone())?,
-            ));
+            runs.push(("best constant".into(), rollout(env.as_mut(), &mut |_| action.clone())?));
         }
         for cell in &group {
-            let Some(run) = cell.median_run() else {
-                continue;
-            };
+            let Some(run) = cell.median_run() else { continue };
             let policy = Policy::load(&run.dir)?;
             let scales = env.fresh();
-            let label = format!(
-                "{} (seed {}, median)",
-                cell.cell.connection.label(),
-                run.seed
-            );
-            runs.push((
-                label,
-                rollout(env.as_mut(), &mut |s| policy.act(scales.as_ref(), s))?,
-            ));
+            let label = format!("{} (seed {}, median)", cell.cell.connection.label(), run.seed);
+            runs.push((label, rollout(env.as_mut(), &mut |s| policy.act(scales.as_ref(), s))?));
         }
         let longest = runs.iter().map(|(_, t)| t.time.len()).max().unwrap_or(0);
-        let x = runs
-            .iter()
-            .find(|(_, t)| t.time.len() == longest)
-            .map(|(_, t)| t.time.clone())
-            .unwrap_or_default();
-        let labels = if runs[0].1.panels.len() == 2 {
-            vec!["‖F‖ [N]", "‖M‖ [N·m]"]
-        } else {
-            vec!["‖s‖"]
-        };
+        let x = runs.iter().find(|(_, t)| t.time.len() == longest).map(|(_, t)| t.time.clone()).unwrap_or_default();
+        let labels = if runs[0].1.panels.len() == 2 { vec!["‖F‖ [N]", "‖M‖ [N·m]"] } else { vec!["‖s‖"] };
         for (k, label) in labels.iter().enumerate() {
-            let series = runs
-                .iter()
-                .map(|(name, t)| (name.clone(), t.panels[k].clone()))
-                .collect();
-            let mut panel = Panel::lines(
-                format!("{env_name}, {}: {label}", algo_name(algo).to_uppercase()),
-                series,
-            );
+            let series = runs.iter().map(|(name, t)| (name.clone(), t.panels[k].clone())).collect();
+            let mut panel = Panel::lines(format!("{env_name}, {}: {label}", algo_name(algo).to_uppercase()), series);
             panel.x = Some(x.clone());
             panels.push(panel);
         }
     }
-    let title = format!(
-        "experiment {}: one episode from {start_note}",
-        study.experiment.file.name
-    );
-    line_panels(path, &title, &[0.0, 1.0], "time [s]", &panels)
-        .with_context(|| format!("drawing {}", path.display()))
+    let title = format!("experiment {}: one episode from {start_note}", study.experiment.file.name);
+    line_panels(path, &title, &[0.0, 1.0], "time [s]", &panels).with_context(|| format!("drawing {}", path.display()))
 }

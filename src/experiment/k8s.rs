@@ -32,33 +32,16 @@ pub fn out_in_pod(e: &Experiment) -> String {
 
 /// Writes kustomization.yaml, job.yaml, report-job.yaml and a copy of the
 /// experiment file into `dir`.
-pub fn write(
-    e: &Experiment,
-    file: &Path,
-    tasks: &[Task],
-    dir: &Path,
-    opts: &K8sOptions,
-) -> anyhow::Result<()> {
-    if let Some(env) = e
-        .file
-        .environments
-        .iter()
-        .find(|env| !lcrl_sim::known_env_names().contains(&env.as_str()))
-    {
+pub fn write(e: &Experiment, file: &Path, tasks: &[Task], dir: &Path, opts: &K8sOptions) -> anyhow::Result<()> {
+    if let Some(env) = e.file.environments.iter().find(|env| !lcrl_sim::known_env_names().contains(&env.as_str())) {
         bail!("environment \"{env}\" is a file, which the lcrl image does not hold; on a cluster use registered environments ({})", lcrl_sim::known_env_names().join(", "));
     }
     if !opts.image.contains(':') {
-        bail!(
-            "--image {} needs a tag, e.g. lcrl:local (the tag deploy/build-image.sh builds)",
-            opts.image
-        );
+        bail!("--image {} needs a tag, e.g. lcrl:local (the tag deploy/build-image.sh builds)", opts.image);
     }
     let name = format!("lcrl-experiment-{}", e.file.name);
     std::fs::create_dir_all(dir)?;
-    write_atomic(
-        &dir.join("experiment.toml"),
-        &std::fs::read_to_string(file)?,
-    )?;
+    write_atomic(&dir.join("experiment.toml"), &std::fs::read_to_string(file)?)?;
     write_atomic(
         &dir.join("kustomization.yaml"),
         &format!(
@@ -90,12 +73,7 @@ pub fn write(
             image = opts.image
         )
     };
-    let quoted = |args: &[&str]| {
-        args.iter()
-            .map(|a| format!("\"{a}\""))
-            .collect::<Vec<_>>()
-            .join(", ")
-    };
+    let quoted = |args: &[&str]| args.iter().map(|a| format!("\"{a}\"")).collect::<Vec<_>>().join(", ");
     let job = format!(
         "# One completion index per task of experiment \"{exp}\" ({n} tasks); a pod\n\
          # runs `lcrl experiment task` with its index from $JOB_COMPLETION_INDEX.\n\

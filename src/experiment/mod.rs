@@ -104,44 +104,26 @@ pub fn run(command: &ExperimentCommand) -> anyhow::Result<()> {
 
 fn run_study(args: &RunArgs) -> anyhow::Result<()> {
     let e = Experiment::load(&args.file)?;
-    let jobs = args
-        .jobs
-        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let jobs = args.jobs.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     if jobs == 0 {
         bail!("--jobs must be at least 1");
     }
     let tasks = plan::tasks(&e);
     if args.dry_run {
         for (i, task) in tasks.iter().enumerate() {
-            println!(
-                "{i:>4} {:<48} lcrl {}",
-                task.id(),
-                task.args(&e, &args.out).join(" ")
-            );
+            println!("{i:>4} {:<48} lcrl {}", task.id(), task.args(&e, &args.out).join(" "));
         }
         return Ok(());
     }
     plan::prepare_out(&e, &args.file, &args.out, false)?;
     // One study per directory at a time; the lock goes with the process.
     let lock_path = args.out.join(".lock");
-    let lock = std::fs::File::create(&lock_path)
-        .with_context(|| format!("creating {}", lock_path.display()))?;
+    let lock = std::fs::File::create(&lock_path).with_context(|| format!("creating {}", lock_path.display()))?;
     if lock.try_lock().is_err() {
-        bail!(
-            "another `lcrl experiment run` is working in {}; wait for it or stop it first",
-            args.out.display()
-        );
+        bail!("another `lcrl experiment run` is working in {}; wait for it or stop it first", args.out.display());
     }
-    let runs = tasks
-        .iter()
-        .filter(|t| matches!(t, Task::Train { .. }))
-        .count();
-    println!(
-        "experiment {}: {} tasks ({runs} training runs) in {}, {jobs} at a time",
-        e.file.name,
-        tasks.len(),
-        args.out.display()
-    );
+    let runs = tasks.iter().filter(|t| matches!(t, Task::Train { .. })).count();
+    println!("experiment {}: {} tasks ({runs} training runs) in {}, {jobs} at a time", e.file.name, tasks.len(), args.out.display());
     let outcome = runner::run_tasks(&e, &tasks, &args.out, jobs)?;
     println!(
         "{} tasks finished now, {} before, {} failed, {} not started (their graph failed); wall time {:.1} s",
@@ -153,11 +135,7 @@ fn run_study(args: &RunArgs) -> anyhow::Result<()> {
     );
     write_report(&e, &args.out)?;
     if !outcome.failed.is_empty() {
-        let list: Vec<String> = outcome
-            .failed
-            .iter()
-            .map(|(id, log)| format!("  {id}: {}", log.display()))
-            .collect();
+        let list: Vec<String> = outcome.failed.iter().map(|(id, log)| format!("  {id}: {}", log.display())).collect();
         bail!(
             "{} task(s) failed (logs below); the report covers the finished runs. Fix the cause and run the same command again to retry only those:\n{}",
             outcome.failed.len(),
@@ -174,10 +152,7 @@ fn write_report(e: &Experiment, out: &Path) -> anyhow::Result<()> {
     figures::curves(&study, &out.join("curves.png"))?;
     figures::traces(&study, &out.join("traces.png"))?;
     print!("{}", report::markdown(&report));
-    println!(
-        "wrote {}/report.json, report.md, curves.png, traces.png",
-        out.display()
-    );
+    println!("wrote {}/report.json, report.md, curves.png, traces.png", out.display());
     Ok(())
 }
 
@@ -187,22 +162,12 @@ fn write_k8s(args: &K8sArgs) -> anyhow::Result<()> {
         bail!("--parallelism must be at least 1");
     }
     let tasks = plan::tasks(&e);
-    let opts = k8s::K8sOptions {
-        parallelism: args.parallelism,
-        image: args.image.clone(),
-        storage: args.storage.clone(),
-    };
+    let opts = k8s::K8sOptions { parallelism: args.parallelism, image: args.image.clone(), storage: args.storage.clone() };
     k8s::write(&e, &args.file, &tasks, &args.out, &opts)?;
     println!("wrote {}: an Indexed Job of {} tasks, {} pods at a time, results in {} on claim lcrl-experiments", args.out.display(), tasks.len(), args.parallelism, k8s::out_in_pod(&e));
     println!("  kubectl apply -k {}", args.out.display());
-    println!(
-        "  kubectl wait --for=condition=complete --timeout=48h job/lcrl-experiment-{}",
-        e.file.name
-    );
-    println!(
-        "  kubectl apply -f {}",
-        args.out.join("report-job.yaml").display()
-    );
+    println!("  kubectl wait --for=condition=complete --timeout=48h job/lcrl-experiment-{}", e.file.name);
+    println!("  kubectl apply -f {}", args.out.join("report-job.yaml").display());
     Ok(())
 }
 
@@ -213,25 +178,14 @@ fn run_task(args: &TaskArgs) -> anyhow::Result<()> {
     let index = match args.index {
         Some(i) => i,
         None => std::env::var("JOB_COMPLETION_INDEX")
-            .context(
-                "give --index, or set JOB_COMPLETION_INDEX (Kubernetes does in an Indexed Job)",
-            )?
+            .context("give --index, or set JOB_COMPLETION_INDEX (Kubernetes does in an Indexed Job)")?
             .parse()
             .context("JOB_COMPLETION_INDEX is not a number")?,
     };
     let Some(task) = tasks.get(index) else {
-        bail!(
-            "task index {index} is out of range: experiment {} has {} tasks (0–{})",
-            e.file.name,
-            tasks.len(),
-            tasks.len() - 1
-        );
+        bail!("task index {index} is out of range: experiment {} has {} tasks (0–{})", e.file.name, tasks.len(), tasks.len() - 1);
     };
-    let steps: Vec<Task> = task
-        .dependency()
-        .into_iter()
-        .chain([task.clone()])
-        .collect();
+    let steps: Vec<Task> = task.dependency().into_iter().chain([task.clone()]).collect();
     if args.dry_run {
         for t in &steps {
             println!("lcrl {}", t.args(&e, &args.out).join(" "));
@@ -243,14 +197,11 @@ fn run_task(args: &TaskArgs) -> anyhow::Result<()> {
     for t in steps.iter().filter(|t| !t.is_done(&args.out)) {
         println!("task {index}: {}", t.id());
         let dir = t.output_dir(&args.out);
-        std::fs::create_dir_all(&dir)
-            .with_context(|| format!("cannot create {}", dir.display()))?;
+        std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
         let mut command = Command::new(&exe);
         command.args(t.args(&e, &args.out)).stdin(Stdio::null());
         crate::supervise::die_with_parent(&mut command);
-        let status = command
-            .status()
-            .with_context(|| format!("starting {}", t.id()))?;
+        let status = command.status().with_context(|| format!("starting {}", t.id()))?;
         if !status.success() {
             bail!("{} failed ({status})", t.id());
         }

@@ -31,12 +31,7 @@ pub struct Cell {
 
 impl Cell {
     pub fn label(&self) -> String {
-        format!(
-            "{}/{}/{}",
-            self.env,
-            algo_name(self.algo),
-            self.connection.label()
-        )
+        format!("{}/{}/{}", self.env, algo_name(self.algo), self.connection.label())
     }
 }
 
@@ -57,10 +52,7 @@ pub fn tasks(e: &Experiment) -> Vec<Task> {
     let mut tasks = Vec::new();
     for env in &e.file.environments {
         for threshold in e.thresholds() {
-            tasks.push(Task::Graph {
-                env: env.clone(),
-                threshold,
-            });
+            tasks.push(Task::Graph { env: env.clone(), threshold });
         }
     }
     for &seed in &e.seeds {
@@ -69,12 +61,7 @@ pub fn tasks(e: &Experiment) -> Vec<Task> {
         }
     }
     if e.file.best_constant.enabled {
-        tasks.extend(
-            e.file
-                .environments
-                .iter()
-                .map(|env| Task::Tune { env: env.clone() }),
-        );
+        tasks.extend(e.file.environments.iter().map(|env| Task::Tune { env: env.clone() }));
     }
     tasks
 }
@@ -85,11 +72,7 @@ pub fn cells(e: &Experiment) -> Vec<Cell> {
     for env in &e.file.environments {
         for &algo in &e.file.algorithms {
             for &connection in &e.connections {
-                cells.push(Cell {
-                    env: env.clone(),
-                    algo,
-                    connection,
-                });
+                cells.push(Cell { env: env.clone(), algo, connection });
             }
         }
     }
@@ -101,24 +84,15 @@ pub fn config_path(out: &Path, env: &str) -> PathBuf {
 }
 
 pub fn best_constant_path(out: &Path, env: &str) -> PathBuf {
-    out.join("best_constant")
-        .join(env_slug(env))
-        .join("best_constant.json")
+    out.join("best_constant").join(env_slug(env)).join("best_constant.json")
 }
 
 pub fn graph_path(out: &Path, env: &str, threshold: f64) -> PathBuf {
-    out.join("graphs")
-        .join(env_slug(env))
-        .join(format!("T{threshold}"))
-        .join("graph.json")
+    out.join("graphs").join(env_slug(env)).join(format!("T{threshold}")).join("graph.json")
 }
 
 pub fn run_dir(out: &Path, cell: &Cell, seed: u64) -> PathBuf {
-    out.join("runs")
-        .join(env_slug(&cell.env))
-        .join(algo_name(cell.algo))
-        .join(cell.connection.label())
-        .join(format!("seed{seed}"))
+    out.join("runs").join(env_slug(&cell.env)).join(algo_name(cell.algo)).join(cell.connection.label()).join(format!("seed{seed}"))
 }
 
 /// A finished run's summary, if it has one that parses.
@@ -134,12 +108,7 @@ impl Task {
             Task::Tune { env } => format!("tune-{}", env_slug(env)),
             Task::Graph { env, threshold } => format!("graph-{}-T{threshold}", env_slug(env)),
             Task::Train { cell, seed } => {
-                format!(
-                    "train-{}-{}-{}-seed{seed}",
-                    env_slug(&cell.env),
-                    algo_name(cell.algo),
-                    cell.connection.label()
-                )
+                format!("train-{}-{}-{}-seed{seed}", env_slug(&cell.env), algo_name(cell.algo), cell.connection.label())
             }
         }
     }
@@ -147,10 +116,7 @@ impl Task {
     /// The task this one needs finished first.
     pub fn dependency(&self) -> Option<Task> {
         match self {
-            Task::Train { cell, .. } => cell.connection.threshold().map(|threshold| Task::Graph {
-                env: cell.env.clone(),
-                threshold,
-            }),
+            Task::Train { cell, .. } => cell.connection.threshold().map(|threshold| Task::Graph { env: cell.env.clone(), threshold }),
             _ => None,
         }
     }
@@ -171,9 +137,7 @@ impl Task {
             Task::Graph { env, threshold } => graph_path(out, env, *threshold),
             Task::Train { cell, seed } => run_dir(out, cell, *seed).join("summary.json"),
         };
-        file.parent()
-            .map(Path::to_path_buf)
-            .unwrap_or_else(|| out.to_path_buf())
+        file.parent().map(Path::to_path_buf).unwrap_or_else(|| out.to_path_buf())
     }
 
     /// The `lcrl` arguments that do it. Every output is written atomically
@@ -185,64 +149,27 @@ impl Task {
         match self {
             Task::Tune { env } => {
                 let b = &e.file.best_constant;
-                let dir = best_constant_path(out, env)
-                    .parent()
-                    .map(Path::to_path_buf)
-                    .unwrap_or_default();
+                let dir = best_constant_path(out, env).parent().map(Path::to_path_buf).unwrap_or_default();
                 vec![
-                    "tune".into(),
-                    "--env".into(),
-                    env.clone(),
-                    "--out".into(),
-                    s(&dir),
-                    "--evaluations".into(),
-                    b.evaluations.to_string(),
-                    "--episodes".into(),
-                    b.episodes.to_string(),
-                    "--eval-episodes".into(),
-                    b.eval_episodes.to_string(),
+                    "tune".into(), "--env".into(), env.clone(), "--out".into(), s(&dir),
+                    "--evaluations".into(), b.evaluations.to_string(), "--episodes".into(), b.episodes.to_string(),
+                    "--eval-episodes".into(), b.eval_episodes.to_string(),
                 ]
             }
             Task::Graph { env, threshold } => {
                 let path = graph_path(out, env, *threshold);
                 vec![
-                    "graph".into(),
-                    "--env".into(),
-                    env.clone(),
-                    "--samples".into(),
-                    e.file.graph.samples.to_string(),
-                    "--threshold".into(),
-                    threshold.to_string(),
-                    "--seed".into(),
-                    e.file.graph.seed.to_string(),
-                    "--threads".into(),
-                    "1".into(),
-                    "--out".into(),
-                    s(&path),
-                    "--plot".into(),
-                    s(&path.with_extension("png")),
+                    "graph".into(), "--env".into(), env.clone(), "--samples".into(), e.file.graph.samples.to_string(),
+                    "--threshold".into(), threshold.to_string(), "--seed".into(), e.file.graph.seed.to_string(),
+                    "--threads".into(), "1".into(), "--out".into(), s(&path), "--plot".into(), s(&path.with_extension("png")),
                 ]
             }
             Task::Train { cell, seed } => {
                 let mut args = vec![
-                    "train".into(),
-                    "--env".into(),
-                    cell.env.clone(),
-                    "--algo".into(),
-                    algo_name(cell.algo).into(),
-                    "--connection".into(),
-                    crate::preset::connection_name(cell.connection.connection()).into(),
-                    "--episodes".into(),
-                    e.episodes(cell.algo).to_string(),
-                    "--seed".into(),
-                    seed.to_string(),
-                    "--threads".into(),
-                    "1".into(),
-                    "--config".into(),
-                    s(&config_path(out, &cell.env)),
-                    "--run-dir".into(),
-                    s(&run_dir(out, cell, *seed)),
-                    "--resume".into(),
+                    "train".into(), "--env".into(), cell.env.clone(), "--algo".into(), algo_name(cell.algo).into(),
+                    "--connection".into(), crate::preset::connection_name(cell.connection.connection()).into(), "--episodes".into(), e.episodes(cell.algo).to_string(),
+                    "--seed".into(), seed.to_string(), "--threads".into(), "1".into(), "--config".into(), s(&config_path(out, &cell.env)),
+                    "--run-dir".into(), s(&run_dir(out, cell, *seed)), "--resume".into(),
                 ];
                 if let Some(threshold) = cell.connection.threshold() {
                     args.extend(["--graph".into(), s(&graph_path(out, &cell.env, threshold))]);
@@ -253,21 +180,19 @@ impl Task {
     }
 }
 
+
 /// Claims `out` for this experiment, or refuses if it holds another one,
 /// and writes the files every task reads (experiment copy, configs).
 /// Comments and layout of the file may change; its content may not.
 /// `shared`: many pods prepare the same folder at once (Kubernetes), so a
 /// folder with files but no experiment.json yet is not refused.
 pub fn prepare_out(e: &Experiment, file: &Path, out: &Path, shared: bool) -> anyhow::Result<()> {
-    std::fs::create_dir_all(out)
-        .with_context(|| format!("cannot create output directory {}", out.display()))?;
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create output directory {}", out.display()))?;
     let parsed = serde_json::to_string_pretty(&e.file)? + "\n";
     let recorded = out.join("experiment.json");
     match std::fs::read_to_string(&recorded) {
         Ok(existing) if existing != parsed => {
-            let other: Option<String> = serde_json::from_str::<serde_json::Value>(&existing)
-                .ok()
-                .and_then(|v| v["name"].as_str().map(String::from));
+            let other: Option<String> = serde_json::from_str::<serde_json::Value>(&existing).ok().and_then(|v| v["name"].as_str().map(String::from));
             bail!(
                 "{} belongs to a different experiment ({}); {} describes another study. Nothing was changed: \
                  run it with another --out, or restore the file that made this directory to continue it",
@@ -279,26 +204,17 @@ pub fn prepare_out(e: &Experiment, file: &Path, out: &Path, shared: bool) -> any
         Ok(_) => {}
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             if !shared && std::fs::read_dir(out)?.next().is_some() {
-                bail!(
-                    "{} is not empty and holds no experiment; choose an empty or new --out",
-                    out.display()
-                );
+                bail!("{} is not empty and holds no experiment; choose an empty or new --out", out.display());
             }
         }
         Err(e) => return Err(e).with_context(|| format!("reading {}", recorded.display())),
     }
     write_atomic(&recorded, &parsed)?;
-    write_atomic(
-        &out.join("experiment.toml"),
-        &std::fs::read_to_string(file)?,
-    )?;
+    write_atomic(&out.join("experiment.toml"), &std::fs::read_to_string(file)?)?;
     for env in &e.file.environments {
         let config = e.train_config(env)?;
         let header = format!("# Training settings of every run on {env} in experiment \"{}\" (written by lcrl experiment).\n", e.file.name);
-        write_atomic(
-            &config_path(out, env),
-            &(header + &toml::to_string_pretty(&config)?),
-        )?;
+        write_atomic(&config_path(out, env), &(header + &toml::to_string_pretty(&config)?))?;
     }
     Ok(())
 }
@@ -306,14 +222,8 @@ pub fn prepare_out(e: &Experiment, file: &Path, out: &Path, shared: bool) -> any
 /// The experiment a directory was made for (experiment.json).
 pub fn recorded_experiment(out: &Path) -> anyhow::Result<Experiment> {
     let path = out.join("experiment.json");
-    let text = std::fs::read_to_string(&path).with_context(|| {
-        format!(
-            "{} holds no experiment (no experiment.json); give the --out of `lcrl experiment run`",
-            out.display()
-        )
-    })?;
-    let file =
-        serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
+    let text = std::fs::read_to_string(&path).with_context(|| format!("{} holds no experiment (no experiment.json); give the --out of `lcrl experiment run`", out.display()))?;
+    let file = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
     Experiment::check(file).with_context(|| format!("{}", path.display()))
 }
 
@@ -340,15 +250,8 @@ mod tests {
         );
         let out = Path::new("/study");
         let local = tasks[1].args(&e, out).join(" ");
-        assert!(
-            local.contains("--graph /study/graphs/lti-paper/T0.1/graph.json")
-                && local.contains("--resume"),
-            "{local}"
-        );
-        assert!(
-            local.contains("--episodes 7 --seed 3 --threads 1"),
-            "{local}"
-        );
+        assert!(local.contains("--graph /study/graphs/lti-paper/T0.1/graph.json") && local.contains("--resume"), "{local}");
+        assert!(local.contains("--episodes 7 --seed 3 --threads 1"), "{local}");
         assert_eq!(tasks[1].dependency(), Some(tasks[0].clone()));
         assert!(!tasks[2].args(&e, out).contains(&"--graph".to_string()));
         assert_eq!(tasks[2].dependency(), None);

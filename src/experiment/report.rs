@@ -12,10 +12,7 @@ use serde::Serialize;
 
 use super::config::{algo_name, Experiment};
 use super::plan::{best_constant_path, cells, finished_run, graph_path, run_dir, Cell};
-use super::stats::{
-    censored_estimate, episodes_to_threshold, mean_ci, welch, Estimate, ThresholdEstimate,
-    AVERAGE_WINDOW,
-};
+use super::stats::{censored_estimate, episodes_to_threshold, mean_ci, welch, Estimate, ThresholdEstimate, AVERAGE_WINDOW};
 use crate::output::write_atomic;
 
 /// A finished training run.
@@ -68,13 +65,7 @@ pub struct Study {
 
 /// Reads every finished run, graph and best constant under `out`.
 pub fn gather(e: &Experiment, out: &Path) -> anyhow::Result<Study> {
-    let mut study = Study {
-        experiment: e.clone(),
-        cells: Vec::new(),
-        best_constant: BTreeMap::new(),
-        best_policy: BTreeMap::new(),
-        missing: Vec::new(),
-    };
+    let mut study = Study { experiment: e.clone(), cells: Vec::new(), best_constant: BTreeMap::new(), best_policy: BTreeMap::new(), missing: Vec::new() };
     for cell in cells(e) {
         let graph_seconds = match cell.connection.threshold() {
             Some(t) => graph_seconds(&graph_path(out, &cell.env, t))?,
@@ -86,50 +77,26 @@ pub fn gather(e: &Experiment, out: &Path) -> anyhow::Result<Study> {
             match finished_run(&dir) {
                 Some(summary) => {
                     let returns = read_returns(&dir.join("metrics.csv"))?;
-                    runs.push(Run {
-                        seed,
-                        dir,
-                        summary,
-                        returns,
-                    });
+                    runs.push(Run { seed, dir, summary, returns });
                 }
                 None => study.missing.push(format!("{} seed {seed}", cell.label())),
             }
         }
-        study.cells.push(CellRuns {
-            cell,
-            runs,
-            graph_seconds,
-        });
+        study.cells.push(CellRuns { cell, runs, graph_seconds });
     }
     for env in &e.file.environments {
-        let policy_path = out
-            .join("best_policy")
-            .join(super::config::env_slug(env))
-            .join("best_policy.json");
-        for (path, map) in [
-            (best_constant_path(out, env), &mut study.best_constant),
-            (policy_path, &mut study.best_policy),
-        ] {
+        let policy_path = out.join("best_policy").join(super::config::env_slug(env)).join("best_policy.json");
+        for (path, map) in [(best_constant_path(out, env), &mut study.best_constant), (policy_path, &mut study.best_policy)] {
             if let Ok(text) = std::fs::read_to_string(&path) {
-                let v: serde_json::Value = serde_json::from_str(&text)
-                    .with_context(|| format!("reading {}", path.display()))?;
-                let action = v["action"]
-                    .as_array()
-                    .map(|a| a.iter().filter_map(|x| x.as_f64()).collect())
-                    .unwrap_or_default();
-                map.insert(
-                    env.clone(),
-                    BestConstant {
-                        action,
-                        mean_return: v["mean_return"].as_f64().unwrap_or(f64::NAN),
-                        success_rate: v["success_rate"].as_f64(),
-                        zero_action_return: v["zero_action"]["eval"]["mean_return"]
-                            .as_f64()
-                            .unwrap_or(f64::NAN),
-                        eval_episodes: v["eval_episodes"].as_u64().unwrap_or(0) as usize,
-                    },
-                );
+                let v: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
+                let action = v["action"].as_array().map(|a| a.iter().filter_map(|x| x.as_f64()).collect()).unwrap_or_default();
+                map.insert(env.clone(), BestConstant {
+                    action,
+                    mean_return: v["mean_return"].as_f64().unwrap_or(f64::NAN),
+                    success_rate: v["success_rate"].as_f64(),
+                    zero_action_return: v["zero_action"]["eval"]["mean_return"].as_f64().unwrap_or(f64::NAN),
+                    eval_episodes: v["eval_episodes"].as_u64().unwrap_or(0) as usize,
+                });
             }
         }
     }
@@ -137,23 +104,16 @@ pub fn gather(e: &Experiment, out: &Path) -> anyhow::Result<Study> {
 }
 
 fn graph_seconds(path: &Path) -> anyhow::Result<f64> {
-    let Ok(text) = std::fs::read_to_string(path) else {
-        return Ok(0.0);
-    };
-    let v: serde_json::Value =
-        serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
+    let Ok(text) = std::fs::read_to_string(path) else { return Ok(0.0) };
+    let v: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
     Ok(v["elapsed_s"].as_f64().unwrap_or(0.0))
 }
 
 fn read_returns(path: &Path) -> anyhow::Result<Vec<f64>> {
-    let mut reader =
-        csv::Reader::from_path(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut reader = csv::Reader::from_path(path).with_context(|| format!("reading {}", path.display()))?;
     reader
         .deserialize::<EpisodeRow>()
-        .map(|row| {
-            row.map(|r| r.episode_return)
-                .with_context(|| format!("reading {}", path.display()))
-        })
+        .map(|row| row.map(|r| r.episode_return).with_context(|| format!("reading {}", path.display())))
         .collect()
 }
 
@@ -240,19 +200,10 @@ impl Study {
         for c in &self.cells {
             let threshold = e.reward_threshold(&c.cell.env, c.cell.algo);
             let budget = e.episodes(c.cell.algo);
-            let reached: Vec<Option<usize>> = c
-                .runs
-                .iter()
-                .map(|r| {
-                    threshold.and_then(|t| episodes_to_threshold(&r.returns, t, AVERAGE_WINDOW))
-                })
-                .collect();
+            let reached: Vec<Option<usize>> =
+                c.runs.iter().map(|r| threshold.and_then(|t| episodes_to_threshold(&r.returns, t, AVERAGE_WINDOW))).collect();
             let of = |f: &dyn Fn(&Run) -> f64| mean_ci(&c.runs.iter().map(f).collect::<Vec<_>>());
-            let success: Vec<f64> = c
-                .runs
-                .iter()
-                .filter_map(|r| r.summary.eval_success_rate)
-                .collect();
+            let success: Vec<f64> = c.runs.iter().filter_map(|r| r.summary.eval_success_rate).collect();
             cells.push(CellReport {
                 env: c.cell.env.clone(),
                 algo: algo_name(c.cell.algo).into(),
@@ -261,10 +212,8 @@ impl Study {
                 seeds: c.runs.iter().map(|r| r.seed).collect(),
                 final_return: of(&|r| r.summary.final_return),
                 eval_return: of(&|r| r.summary.eval_return),
-                eval_success_rate: (!success.is_empty())
-                    .then(|| success.iter().sum::<f64>() / success.len() as f64),
-                episodes_to_threshold: threshold
-                    .and_then(|t| censored_estimate(&reached, t, budget)),
+                eval_success_rate: (!success.is_empty()).then(|| success.iter().sum::<f64>() / success.len() as f64),
+                episodes_to_threshold: threshold.and_then(|t| censored_estimate(&reached, t, budget)),
                 graph_seconds: c.graph_seconds,
                 optimization_seconds: of(&|r| r.summary.optimization_seconds),
                 total_seconds: of(&|r| c.graph_seconds + r.summary.total_seconds),
@@ -272,12 +221,7 @@ impl Study {
                     .runs
                     .iter()
                     .zip(&reached)
-                    .map(|(r, k)| SeedFigures {
-                        seed: r.seed,
-                        final_return: r.summary.final_return,
-                        eval_return: r.summary.eval_return,
-                        episodes_to_threshold: *k,
-                    })
+                    .map(|(r, k)| SeedFigures { seed: r.seed, final_return: r.summary.final_return, eval_return: r.summary.eval_return, episodes_to_threshold: *k })
                     .collect(),
             });
         }
@@ -296,25 +240,11 @@ impl Study {
     /// and against full-subnets, on final and evaluation return.
     fn comparisons(&self) -> Vec<Comparison> {
         let mut out = Vec::new();
-        for a in self
-            .cells
-            .iter()
-            .filter(|c| c.cell.connection.threshold().is_some())
-        {
-            for b in self.cells.iter().filter(|b| {
-                b.cell.env == a.cell.env
-                    && b.cell.algo == a.cell.algo
-                    && b.cell.connection.threshold().is_none()
-            }) {
-                let metrics: [(&'static str, fn(&Run) -> f64); 2] = [
-                    ("final_return", |r| r.summary.final_return),
-                    ("eval_return", |r| r.summary.eval_return),
-                ];
+        for a in self.cells.iter().filter(|c| c.cell.connection.threshold().is_some()) {
+            for b in self.cells.iter().filter(|b| b.cell.env == a.cell.env && b.cell.algo == a.cell.algo && b.cell.connection.threshold().is_none()) {
+                let metrics: [(&'static str, fn(&Run) -> f64); 2] = [("final_return", |r| r.summary.final_return), ("eval_return", |r| r.summary.eval_return)];
                 for (metric, f) in metrics {
-                    let (xa, xb): (Vec<f64>, Vec<f64>) = (
-                        a.runs.iter().map(f).collect(),
-                        b.runs.iter().map(f).collect(),
-                    );
+                    let (xa, xb): (Vec<f64>, Vec<f64>) = (a.runs.iter().map(f).collect(), b.runs.iter().map(f).collect());
                     if let Some(w) = welch(&xa, &xb) {
                         out.push(Comparison {
                             env: a.cell.env.clone(),
@@ -344,11 +274,7 @@ pub fn num(x: f64) -> String {
 
 fn estimate(e: &Option<Estimate>) -> String {
     match e {
-        Some(Estimate {
-            mean,
-            ci95: Some([lo, hi]),
-            ..
-        }) => format!("{} [{}, {}]", num(*mean), num(*lo), num(*hi)),
+        Some(Estimate { mean, ci95: Some([lo, hi]), .. }) => format!("{} [{}, {}]", num(*mean), num(*lo), num(*hi)),
         Some(Estimate { mean, .. }) => num(*mean),
         None => "—".into(),
     }
@@ -359,23 +285,10 @@ pub fn markdown(report: &Report) -> String {
     let mut md = String::new();
     let _ = writeln!(md, "# Experiment `{}`\n", report.experiment);
     let m = &report.methods;
-    let _ = writeln!(
-        md,
-        "Intervals: {}. Test: {} ({}).\n",
-        m.confidence_interval, m.test, m.why_this_test
-    );
-    let _ = writeln!(
-        md,
-        "Final return: {}. Episodes to threshold: {}. Times: {}.\n",
-        m.final_return, m.episodes_to_threshold, m.times
-    );
+    let _ = writeln!(md, "Intervals: {}. Test: {} ({}).\n", m.confidence_interval, m.test, m.why_this_test);
+    let _ = writeln!(md, "Final return: {}. Episodes to threshold: {}. Times: {}.\n", m.final_return, m.episodes_to_threshold, m.times);
     if !report.missing_runs.is_empty() {
-        let _ = writeln!(
-            md,
-            "**Not finished ({}):** {}\n",
-            report.missing_runs.len(),
-            report.missing_runs.join(", ")
-        );
+        let _ = writeln!(md, "**Not finished ({}):** {}\n", report.missing_runs.len(), report.missing_runs.join(", "));
     }
     let mut groups: Vec<(&str, &str)> = Vec::new();
     for c in &report.cells {
@@ -384,39 +297,17 @@ pub fn markdown(report: &Report) -> String {
         }
     }
     for (env, algo) in groups {
-        let rows: Vec<&CellReport> = report
-            .cells
-            .iter()
-            .filter(|c| c.env == env && c.algo == algo)
-            .collect();
-        let threshold = rows
-            .iter()
-            .find_map(|c| c.episodes_to_threshold.as_ref().map(|t| t.threshold));
-        let _ = writeln!(
-            md,
-            "## {env}, {} ({} episodes)\n",
-            algo.to_uppercase(),
-            rows[0].episodes
-        );
-        let to = threshold.map_or("episodes to threshold".to_string(), |t| {
-            format!("episodes to {}", num(t))
-        });
+        let rows: Vec<&CellReport> = report.cells.iter().filter(|c| c.env == env && c.algo == algo).collect();
+        let threshold = rows.iter().find_map(|c| c.episodes_to_threshold.as_ref().map(|t| t.threshold));
+        let _ = writeln!(md, "## {env}, {} ({} episodes)\n", algo.to_uppercase(), rows[0].episodes);
+        let to = threshold.map_or("episodes to threshold".to_string(), |t| format!("episodes to {}", num(t)));
         let _ = writeln!(md, "| connection | seeds | final return | eval return | success | {to} | graph s | optimization s | total s |");
         let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|");
         for c in &rows {
-            let success = c
-                .eval_success_rate
-                .map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
+            let success = c.eval_success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
             let reach = c.episodes_to_threshold.as_ref().map_or("—".into(), |t| {
-                let ci = t.ci95.map_or(String::new(), |[lo, hi]| {
-                    format!(" [{}, {}]", num(lo), num(hi))
-                });
-                format!(
-                    "{}{ci} ({} of {} censored)",
-                    num(t.mean),
-                    t.censored,
-                    t.reached + t.censored
-                )
+                let ci = t.ci95.map_or(String::new(), |[lo, hi]| format!(" [{}, {}]", num(lo), num(hi)));
+                format!("{}{ci} ({} of {} censored)", num(t.mean), t.censored, t.reached + t.censored)
             });
             let _ = writeln!(
                 md,
@@ -431,82 +322,28 @@ pub fn markdown(report: &Report) -> String {
             );
         }
         if let Some(b) = report.best_constant.get(env) {
-            let success = b
-                .success_rate
-                .map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
-            let _ = writeln!(
-                md,
-                "| best constant | — | — | {} | {success} | — | — | — | — |",
-                num(b.mean_return)
-            );
-            let _ = writeln!(
-                md,
-                "| a = 0 | — | — | {} | — | — | — | — | — |",
-                num(b.zero_action_return)
-            );
+            let success = b.success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
+            let _ = writeln!(md, "| best constant | — | — | {} | {success} | — | — | — | — |", num(b.mean_return));
+            let _ = writeln!(md, "| a = 0 | — | — | {} | — | — | — | — | — |", num(b.zero_action_return));
         }
         if let Some(p) = report.best_policy.get(env) {
-            let success = p
-                .success_rate
-                .map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
-            let _ = writeln!(
-                md,
-                "| best feedback policy (headroom) | — | — | {} | {success} | — | — | — | — |",
-                num(p.mean_return)
-            );
+            let success = p.success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
+            let _ = writeln!(md, "| best feedback policy (headroom) | — | — | {} | {success} | — | — | — | — |", num(p.mean_return));
         }
         let _ = writeln!(md);
         for c in &rows {
-            let seeds: Vec<String> = c
-                .per_seed
-                .iter()
-                .map(|s| {
-                    format!(
-                        "{}: {} / {}",
-                        s.seed,
-                        num(s.final_return),
-                        num(s.eval_return)
-                    )
-                })
-                .collect();
-            let _ = writeln!(
-                md,
-                "- {} per seed (final / eval): {}",
-                c.connection,
-                seeds.join("; ")
-            );
+            let seeds: Vec<String> = c.per_seed.iter().map(|s| format!("{}: {} / {}", s.seed, num(s.final_return), num(s.eval_return))).collect();
+            let _ = writeln!(md, "- {} per seed (final / eval): {}", c.connection, seeds.join("; "));
         }
         if let Some(b) = report.best_constant.get(env) {
-            let _ = writeln!(
-                md,
-                "- best constant on {} evaluation episodes, action {:?}",
-                b.eval_episodes,
-                b.action.iter().map(|a| num(*a)).collect::<Vec<_>>()
-            );
+            let _ = writeln!(md, "- best constant on {} evaluation episodes, action {:?}", b.eval_episodes, b.action.iter().map(|a| num(*a)).collect::<Vec<_>>());
         }
-        let comparisons: Vec<&Comparison> = report
-            .comparisons
-            .iter()
-            .filter(|c| c.env == env && c.algo == algo)
-            .collect();
+        let comparisons: Vec<&Comparison> = report.comparisons.iter().filter(|c| c.env == env && c.algo == algo).collect();
         if !comparisons.is_empty() {
-            let _ = writeln!(
-                md,
-                "\n| comparison | metric | difference | 95% CI | p (Welch) |"
-            );
+            let _ = writeln!(md, "\n| comparison | metric | difference | 95% CI | p (Welch) |");
             let _ = writeln!(md, "|---|---|---|---|---|");
             for c in comparisons {
-                let _ = writeln!(
-                    md,
-                    "| {} − {} | {} | {} | [{}, {}] | {:.4} |",
-                    c.a,
-                    c.b,
-                    c.metric,
-                    num(c.difference),
-                    num(c.ci95[0]),
-                    num(c.ci95[1]),
-                    c.p_value
-                );
+                let _ = writeln!(md, "| {} − {} | {} | {} | [{}, {}] | {:.4} |", c.a, c.b, c.metric, num(c.difference), num(c.ci95[0]), num(c.ci95[1]), c.p_value);
             }
         }
         let _ = writeln!(md);
@@ -516,9 +353,6 @@ pub fn markdown(report: &Report) -> String {
 
 /// Writes report.json and report.md into `out`.
 pub fn write(report: &Report, out: &Path) -> anyhow::Result<()> {
-    write_atomic(
-        &out.join("report.json"),
-        &(serde_json::to_string_pretty(report)? + "\n"),
-    )?;
+    write_atomic(&out.join("report.json"), &(serde_json::to_string_pretty(report)? + "\n"))?;
     write_atomic(&out.join("report.md"), &markdown(report))
 }

@@ -41,53 +41,22 @@ pub struct Outcome {
 const UNITS: u64 = 1000;
 
 /// Runs every unfinished task, `jobs` at a time.
-pub fn run_tasks(
-    e: &Experiment,
-    tasks: &[Task],
-    out: &Path,
-    jobs: usize,
-) -> anyhow::Result<Outcome> {
+pub fn run_tasks(e: &Experiment, tasks: &[Task], out: &Path, jobs: usize) -> anyhow::Result<Outcome> {
     let started = Instant::now();
-    let exe =
-        std::env::current_exe().context("cannot find the lcrl executable to start runs with")?;
+    let exe = std::env::current_exe().context("cannot find the lcrl executable to start runs with")?;
     let logs = out.join("logs");
     std::fs::create_dir_all(&logs).with_context(|| format!("cannot create {}", logs.display()))?;
-    let mut state: Vec<State> = tasks
-        .iter()
-        .map(|t| {
-            if t.is_done(out) {
-                State::Done
-            } else {
-                State::Waiting
-            }
-        })
-        .collect();
-    let mut outcome = Outcome {
-        skipped: state.iter().filter(|s| **s == State::Done).count(),
-        ..Outcome::default()
-    };
-    let index_of: BTreeMap<String, usize> =
-        tasks.iter().enumerate().map(|(i, t)| (t.id(), i)).collect();
-    let dependency: Vec<Option<usize>> = tasks
-        .iter()
-        .map(|t| t.dependency().and_then(|d| index_of.get(&d.id()).copied()))
-        .collect();
+    let mut state: Vec<State> = tasks.iter().map(|t| if t.is_done(out) { State::Done } else { State::Waiting }).collect();
+    let mut outcome = Outcome { skipped: state.iter().filter(|s| **s == State::Done).count(), ..Outcome::default() };
+    let index_of: BTreeMap<String, usize> = tasks.iter().enumerate().map(|(i, t)| (t.id(), i)).collect();
+    let dependency: Vec<Option<usize>> = tasks.iter().map(|t| t.dependency().and_then(|d| index_of.get(&d.id()).copied())).collect();
 
     let bar = ProgressBar::new(tasks.len() as u64 * UNITS);
-    if let Ok(style) =
-        ProgressStyle::with_template("study [{bar:30}] {percent:>3}% {msg} ({elapsed}, eta {eta})")
-    {
+    if let Ok(style) = ProgressStyle::with_template("study [{bar:30}] {percent:>3}% {msg} ({elapsed}, eta {eta})") {
         bar.set_style(style.progress_chars("=> "));
     }
     if outcome.skipped > 0 {
-        say(
-            &bar,
-            format!(
-                "{} of {} tasks finished before; continuing the rest",
-                outcome.skipped,
-                tasks.len()
-            ),
-        );
+        say(&bar, format!("{} of {} tasks finished before; continuing the rest", outcome.skipped, tasks.len()));
     }
     let (finished_tx, finished_rx) = mpsc::channel::<(usize, std::io::Result<ExitStatus>)>();
     let mut running: BTreeMap<usize, Instant> = BTreeMap::new();
@@ -111,10 +80,8 @@ pub fn run_tasks(
             }
             let log = logs.join(format!("{}.log", tasks[i].id()));
             let dir = tasks[i].output_dir(out);
-            std::fs::create_dir_all(&dir)
-                .with_context(|| format!("cannot create {}", dir.display()))?;
-            let child = spawn(&exe, &tasks[i].args(e, out), &log)
-                .with_context(|| format!("starting {}", tasks[i].id()))?;
+            std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
+            let child = spawn(&exe, &tasks[i].args(e, out), &log).with_context(|| format!("starting {}", tasks[i].id()))?;
             state[i] = State::Running;
             running.insert(i, Instant::now());
             let tx = finished_tx.clone();
@@ -123,12 +90,7 @@ pub fn run_tasks(
                 let _ = tx.send((i, child.wait()));
             });
         }
-        bar.set_message(format!(
-            "{} done, {} running, {} left",
-            count(&state, State::Done),
-            running.len(),
-            count(&state, State::Waiting)
-        ));
+        bar.set_message(format!("{} done, {} running, {} left", count(&state, State::Done), running.len(), count(&state, State::Waiting)));
         if running.is_empty() {
             break;
         }
@@ -136,9 +98,7 @@ pub fn run_tasks(
         // runs' episodes.
         match finished_rx.recv_timeout(Duration::from_secs(1)) {
             Ok((i, status)) => {
-                let seconds = running
-                    .remove(&i)
-                    .map_or(0.0, |t| t.elapsed().as_secs_f64());
+                let seconds = running.remove(&i).map_or(0.0, |t| t.elapsed().as_secs_f64());
                 let log = logs.join(format!("{}.log", tasks[i].id()));
                 match status {
                     Ok(status) if status.success() && tasks[i].is_done(out) => {
@@ -149,21 +109,11 @@ pub fn run_tasks(
                     result => {
                         state[i] = State::Failed;
                         let why = match result {
-                            Ok(status) if status.success() => {
-                                "exited without its result".to_string()
-                            }
+                            Ok(status) if status.success() => "exited without its result".to_string(),
                             Ok(status) => status.to_string(),
                             Err(e) => e.to_string(),
                         };
-                        say(
-                            &bar,
-                            format!(
-                                "FAILED {} ({why}); its log: {}\n{}",
-                                tasks[i].id(),
-                                log.display(),
-                                tail(&log, 5)
-                            ),
-                        );
+                        say(&bar, format!("FAILED {} ({why}); its log: {}\n{}", tasks[i].id(), log.display(), tail(&log, 5)));
                         outcome.failed.push((tasks[i].id(), log));
                     }
                 }
@@ -171,14 +121,9 @@ pub fn run_tasks(
             Err(mpsc::RecvTimeoutError::Timeout) => {}
             Err(mpsc::RecvTimeoutError::Disconnected) => break,
         }
-        let settled = count(&state, State::Done)
-            + count(&state, State::Failed)
-            + count(&state, State::Blocked);
+        let settled = count(&state, State::Done) + count(&state, State::Failed) + count(&state, State::Blocked);
         let done_units = settled as u64 * UNITS;
-        let partial: u64 = running
-            .keys()
-            .map(|&i| running_fraction(e, &tasks[i], out))
-            .sum();
+        let partial: u64 = running.keys().map(|&i| running_fraction(e, &tasks[i], out)).sum();
         bar.set_position(done_units + partial);
     }
     bar.finish_and_clear();
@@ -192,11 +137,8 @@ fn count(state: &[State], which: State) -> usize {
 
 /// A running training run's finished share, in progress units.
 fn running_fraction(e: &Experiment, task: &Task, out: &Path) -> u64 {
-    let Task::Train { cell, seed } = task else {
-        return 0;
-    };
-    let rows = std::fs::read_to_string(run_dir(out, cell, *seed).join("metrics.csv"))
-        .map_or(0, |t| t.lines().count().saturating_sub(1));
+    let Task::Train { cell, seed } = task else { return 0 };
+    let rows = std::fs::read_to_string(run_dir(out, cell, *seed).join("metrics.csv")).map_or(0, |t| t.lines().count().saturating_sub(1));
     (rows as u64 * UNITS / e.episodes(cell.algo).max(1) as u64).min(UNITS - 1)
 }
 
@@ -204,17 +146,9 @@ fn running_fraction(e: &Experiment, task: &Task, out: &Path) -> u64 {
 /// with this process (Linux: PR_SET_PDEATHSIG), so a killed study leaves no
 /// run behind that a resumed one would race with.
 pub fn spawn(exe: &Path, args: &[String], log: &Path) -> anyhow::Result<Child> {
-    let file = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(log)
-        .with_context(|| format!("opening {}", log.display()))?;
+    let file = std::fs::OpenOptions::new().create(true).append(true).open(log).with_context(|| format!("opening {}", log.display()))?;
     let mut command = Command::new(exe);
-    command
-        .args(args)
-        .stdin(Stdio::null())
-        .stdout(file.try_clone()?)
-        .stderr(file);
+    command.args(args).stdin(Stdio::null()).stdout(file.try_clone()?).stderr(file);
     crate::supervise::die_with_parent(&mut command);
     Ok(command.spawn()?)
 }
@@ -223,11 +157,7 @@ pub fn spawn(exe: &Path, args: &[String], log: &Path) -> anyhow::Result<Child> {
 fn tail(path: &Path, n: usize) -> String {
     let text = std::fs::read_to_string(path).unwrap_or_default();
     let lines: Vec<&str> = text.lines().filter(|l| !l.trim().is_empty()).collect();
-    lines[lines.len().saturating_sub(n)..]
-        .iter()
-        .map(|l| format!("    {l}"))
-        .collect::<Vec<_>>()
-        .join("\n")
+    lines[lines.len().saturating_sub(n)..].iter().map(|l| format!("    {l}")).collect::<Vec<_>>().join("\n")
 }
 
 /// A line above the progress bar (printed even when the bar is hidden,

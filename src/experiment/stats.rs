@@ -76,26 +76,13 @@ pub fn welch(a: &[f64], b: &[f64]) -> Option<Welch> {
         // Both groups constant: identical means are no evidence of a
         // difference, different ones are certain.
         let p_value = if difference == 0.0 { 1.0 } else { 0.0 };
-        return Some(Welch {
-            difference,
-            ci95: [difference, difference],
-            p_value,
-            t: 0.0,
-            df: f64::INFINITY,
-        });
+        return Some(Welch { difference, ci95: [difference, difference], p_value, t: 0.0, df: f64::INFINITY });
     }
-    let df = (va + vb).powi(2)
-        / (va.powi(2) / (a.len() as f64 - 1.0) + vb.powi(2) / (b.len() as f64 - 1.0));
+    let df = (va + vb).powi(2) / (va.powi(2) / (a.len() as f64 - 1.0) + vb.powi(2) / (b.len() as f64 - 1.0));
     let t = difference / se;
     let p_value = StudentsT::new(0.0, 1.0, df).map_or(f64::NAN, |dist| 2.0 * dist.cdf(-t.abs()));
     let half = t_975(df) * se;
-    Some(Welch {
-        difference,
-        ci95: [difference - half, difference + half],
-        p_value,
-        t,
-        df,
-    })
+    Some(Welch { difference, ci95: [difference - half, difference + half], p_value, t, df })
 }
 
 /// Episodes until the average return reaches a threshold, over seeds.
@@ -126,25 +113,11 @@ pub fn episodes_to_threshold(returns: &[f64], threshold: f64, window: usize) -> 
 }
 
 /// Summarizes per-run episodes to threshold (None: never reached).
-pub fn censored_estimate(
-    runs: &[Option<usize>],
-    threshold: f64,
-    budget: usize,
-) -> Option<ThresholdEstimate> {
-    let values: Vec<f64> = runs
-        .iter()
-        .map(|r| r.map_or(budget, |k| k.min(budget)) as f64)
-        .collect();
+pub fn censored_estimate(runs: &[Option<usize>], threshold: f64, budget: usize) -> Option<ThresholdEstimate> {
+    let values: Vec<f64> = runs.iter().map(|r| r.map_or(budget, |k| k.min(budget)) as f64).collect();
     let estimate = mean_ci(&values)?;
     let reached = runs.iter().filter(|r| r.is_some()).count();
-    Some(ThresholdEstimate {
-        threshold,
-        mean: estimate.mean,
-        ci95: estimate.ci95,
-        reached,
-        censored: runs.len() - reached,
-        budget,
-    })
+    Some(ThresholdEstimate { threshold, mean: estimate.mean, ci95: estimate.ci95, reached, censored: runs.len() - reached, budget })
 }
 
 #[cfg(test)]
@@ -160,16 +133,10 @@ mod tests {
         let e = mean_ci(&[1.0, 2.0, 3.0, 4.0, 5.0]).unwrap();
         assert_eq!(e.mean, 3.0);
         let [lo, hi] = e.ci95.unwrap();
-        assert!(
-            (lo - 1.0367568385224).abs() < 1e-9 && (hi - 4.9632431614776).abs() < 1e-9,
-            "{lo} {hi}"
-        );
+        assert!((lo - 1.0367568385224).abs() < 1e-9 && (hi - 4.9632431614776).abs() < 1e-9, "{lo} {hi}");
         let e = mean_ci(&[-3.2, -4.1, -2.7, -5.0]).unwrap();
         let [lo, hi] = e.ci95.unwrap();
-        assert!(
-            (lo - (-5.3649151232026)).abs() < 1e-9 && (hi - (-2.1350848767974)).abs() < 1e-9,
-            "{lo} {hi}"
-        );
+        assert!((lo - (-5.3649151232026)).abs() < 1e-9 && (hi - (-2.1350848767974)).abs() < 1e-9, "{lo} {hi}");
         assert_eq!(mean_ci(&[7.0]).unwrap().ci95, None);
         assert_eq!(mean_ci(&[]), None);
     }
@@ -186,23 +153,11 @@ mod tests {
         assert!((w.difference - 4.97).abs() < 1e-9);
         assert!((w.t - 43.20378167047).abs() < 1e-8, "t {}", w.t);
         assert!((w.df - 8.544345657595).abs() < 1e-8, "df {}", w.df);
-        assert!(
-            (w.p_value / 2.6398628318093e-11 - 1.0).abs() < 1e-6,
-            "p {}",
-            w.p_value
-        );
-        assert!(
-            (w.ci95[0] - 4.707639095670).abs() < 1e-8 && (w.ci95[1] - 5.232360904330).abs() < 1e-8,
-            "{:?}",
-            w.ci95
-        );
+        assert!((w.p_value / 2.6398628318093e-11 - 1.0).abs() < 1e-6, "p {}", w.p_value);
+        assert!((w.ci95[0] - 4.707639095670).abs() < 1e-8 && (w.ci95[1] - 5.232360904330).abs() < 1e-8, "{:?}", w.ci95);
         // Unequal spreads: the Welch df is well below na + nb − 2.
         let w = welch(&[0.0, 10.0, -10.0, 5.0], &[1.0, 1.1, 0.9, 1.0]).unwrap();
-        assert!(
-            (w.p_value - 0.95699074541906).abs() < 1e-9,
-            "p {}",
-            w.p_value
-        );
+        assert!((w.p_value - 0.95699074541906).abs() < 1e-9, "p {}", w.p_value);
         assert!(w.df < 3.1, "df {}", w.df);
         assert_eq!(welch(&[1.0], &[1.0, 2.0]), None);
     }
@@ -223,9 +178,6 @@ mod tests {
         assert_eq!((e.reached, e.censored, e.budget), (2, 1, 200));
         assert_eq!(e.mean, 100.0, "the censored run counts as the budget");
         let [lo, hi] = e.ci95.unwrap();
-        assert!(
-            (lo - (-116.562104947161)).abs() < 1e-8 && (hi - 316.562104947161).abs() < 1e-8,
-            "{lo} {hi}"
-        );
+        assert!((lo - (-116.562104947161)).abs() < 1e-8 && (hi - 316.562104947161).abs() < 1e-8, "{lo} {hi}");
     }
 }

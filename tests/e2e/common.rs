@@ -12,16 +12,9 @@ pub fn lcrl() -> Command {
 /// package's binaries for its tests, so the test command builds the whole
 /// workspace first (`cargo build --workspace --bins`).
 pub fn workspace_bin(name: &str) -> Command {
-    let dir = PathBuf::from(env!("CARGO_BIN_EXE_lcrl"))
-        .parent()
-        .expect("target dir")
-        .to_path_buf();
+    let dir = PathBuf::from(env!("CARGO_BIN_EXE_lcrl")).parent().expect("target dir").to_path_buf();
     let path = dir.join(name);
-    assert!(
-        path.is_file(),
-        "{} is missing: run `cargo build --workspace --bins` before the tests",
-        path.display()
-    );
+    assert!(path.is_file(), "{} is missing: run `cargo build --workspace --bins` before the tests", path.display());
     Command::new(path)
 }
 
@@ -36,35 +29,18 @@ pub fn stderr(out: &Output) -> String {
 /// Asserts a failed run: non-zero exit, one clear `error:` line, no panic.
 pub fn assert_clean_failure(out: &Output, needle: &str) {
     let err = stderr(out);
-    assert!(
-        !out.status.success(),
-        "expected failure, got success; stderr: {err}"
-    );
-    assert!(
-        !err.contains("panicked"),
-        "panicked instead of a clear error: {err}"
-    );
+    assert!(!out.status.success(), "expected failure, got success; stderr: {err}");
+    assert!(!err.contains("panicked"), "panicked instead of a clear error: {err}");
     let lines: Vec<&str> = err.lines().filter(|l| l.contains("error")).collect();
-    assert_eq!(
-        lines.len(),
-        1,
-        "expected exactly one error line, got: {err}"
-    );
-    assert!(
-        lines[0].contains(needle),
-        "error line {:?} should mention {needle:?}",
-        lines[0]
-    );
+    assert_eq!(lines.len(), 1, "expected exactly one error line, got: {err}");
+    assert!(lines[0].contains(needle), "error line {:?} should mention {needle:?}", lines[0]);
 }
 
 /// Every YAML document of a manifest file.
 pub fn load_docs(path: &Path) -> Vec<serde_yaml::Value> {
     let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     serde_yaml::Deserializer::from_str(&text)
-        .map(|doc| {
-            <serde_yaml::Value as serde::Deserialize>::deserialize(doc)
-                .unwrap_or_else(|e| panic!("{} is not YAML: {e}", path.display()))
-        })
+        .map(|doc| <serde_yaml::Value as serde::Deserialize>::deserialize(doc).unwrap_or_else(|e| panic!("{} is not YAML: {e}", path.display())))
         .collect()
 }
 
@@ -73,13 +49,9 @@ pub fn str_of<'a>(v: &'a serde_yaml::Value, path: &[&str]) -> &'a str {
     for key in path {
         at = &at[*key];
     }
-    at.as_str()
-        .unwrap_or_else(|| panic!("{path:?} is not a string in {v:?}"))
+    at.as_str().unwrap_or_else(|| panic!("{path:?} is not a string in {v:?}"))
 }
 
 pub fn seq<'a>(v: &'a serde_yaml::Value, key: &str) -> Vec<&'a serde_yaml::Value> {
-    v[key]
-        .as_sequence()
-        .map(|s| s.iter().collect())
-        .unwrap_or_default()
+    v[key].as_sequence().map(|s| s.iter().collect()).unwrap_or_default()
 }

@@ -18,17 +18,9 @@ fn repo() -> PathBuf {
 /// the command line it would run.
 fn dry_run(args: &[String], run_dir: &Path, tls: &Path) -> String {
     let configs = repo().join("configs");
-    let args: Vec<String> = args
-        .iter()
-        .map(|a| local_path(a, run_dir, tls).replace("/configs", &configs.display().to_string()))
-        .collect();
+    let args: Vec<String> = args.iter().map(|a| local_path(a, run_dir, tls).replace("/configs", &configs.display().to_string())).collect();
     let out = lcrl().args(&args).arg("--dry-run").output().unwrap();
-    assert!(
-        out.status.success(),
-        "`lcrl {}` fails: {}",
-        args.join(" "),
-        stderr(&out)
-    );
+    assert!(out.status.success(), "`lcrl {}` fails: {}", args.join(" "), stderr(&out));
     stdout(&out)
 }
 
@@ -36,9 +28,7 @@ fn dry_run(args: &[String], run_dir: &Path, tls: &Path) -> String {
 fn local_path(arg: &str, run_dir: &Path, tls: &Path) -> String {
     let arg = arg.replace("/runs", &run_dir.display().to_string());
     match arg.strip_prefix("/tls") {
-        Some(rest) if rest.is_empty() || rest.starts_with('/') => {
-            format!("{}{rest}", tls.display())
-        }
+        Some(rest) if rest.is_empty() || rest.starts_with('/') => format!("{}{rest}", tls.display()),
         _ => arg,
     }
 }
@@ -46,11 +36,7 @@ fn local_path(arg: &str, run_dir: &Path, tls: &Path) -> String {
 /// A folder as `lcrl certs` writes it: what the Secret lcrl-tls holds.
 fn certs() -> tempfile::TempDir {
     let dir = tempfile::tempdir().unwrap();
-    let out = lcrl()
-        .args(["certs", "--out"])
-        .arg(dir.path())
-        .output()
-        .unwrap();
+    let out = lcrl().args(["certs", "--out"]).arg(dir.path()).output().unwrap();
     assert!(out.status.success(), "{}", stderr(&out));
     dir
 }
@@ -59,20 +45,12 @@ fn certs() -> tempfile::TempDir {
 /// files that `lcrl certs` writes; returns the port.
 fn check_health_command(words: &[&str], tls: &Path, what: &str) -> u16 {
     assert_eq!(&words[..2], ["/bin/lcrl", "health"], "{what}: {words:?}");
-    let port = words[2]
-        .strip_prefix("https://127.0.0.1:")
-        .unwrap_or_else(|| panic!("{what}: probes {} without TLS", words[2]));
+    let port = words[2].strip_prefix("https://127.0.0.1:").unwrap_or_else(|| panic!("{what}: probes {} without TLS", words[2]));
     for file in words.iter().filter_map(|w| w.strip_prefix("/tls/")) {
-        assert!(
-            tls.join(file).is_file(),
-            "{what}: /tls/{file} is not a file `lcrl certs` writes"
-        );
+        assert!(tls.join(file).is_file(), "{what}: /tls/{file} is not a file `lcrl certs` writes");
     }
     for flag in ["--tls-ca", "--tls-client-cert", "--tls-client-key"] {
-        assert!(
-            words.contains(&flag),
-            "{what}: health probe without {flag} (servers ask for client certificates)"
-        );
+        assert!(words.contains(&flag), "{what}: health probe without {flag} (servers ask for client certificates)");
     }
     port.parse().unwrap()
 }
@@ -87,32 +65,17 @@ fn kubernetes_manifests_reference_each_other_consistently() {
     // Generated ConfigMaps: name -> keys; the presets mirror configs/.
     let mut config_maps: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
     for generator in seq(kustomization, "configMapGenerator") {
-        let keys = config_maps
-            .entry(str_of(generator, &["name"]).to_string())
-            .or_default();
+        let keys = config_maps.entry(str_of(generator, &["name"]).to_string()).or_default();
         for file in seq(generator, "files") {
             let path = k8s.join(file.as_str().unwrap());
             let name = path.file_name().unwrap().to_string_lossy().into_owned();
             let original = repo().join("configs").join(&name);
             let same = std::fs::read(&path).ok() == std::fs::read(&original).ok();
-            assert!(
-                same,
-                "{} differs from {} (copy configs/ into deploy/k8s/presets/)",
-                path.display(),
-                original.display()
-            );
+            assert!(same, "{} differs from {} (copy configs/ into deploy/k8s/presets/)", path.display(), original.display());
             keys.insert(name);
         }
         for literal in seq(generator, "literals") {
-            keys.insert(
-                literal
-                    .as_str()
-                    .unwrap()
-                    .split_once('=')
-                    .unwrap()
-                    .0
-                    .to_string(),
-            );
+            keys.insert(literal.as_str().unwrap().split_once('=').unwrap().0.to_string());
         }
     }
     let presets = &config_maps["lcrl-presets"];
@@ -124,51 +87,23 @@ fn kubernetes_manifests_reference_each_other_consistently() {
         let name = path.file_name().unwrap().to_string_lossy().into_owned();
         let text = std::fs::read_to_string(&path).unwrap();
         if text.contains("[job]") && !text.contains("[env_server]") {
-            assert!(
-                presets.contains(&name),
-                "configs/{name} is not in the lcrl-presets ConfigMap"
-            );
+            assert!(presets.contains(&name), "configs/{name} is not in the lcrl-presets ConfigMap");
         }
     }
-    let literals: BTreeMap<&str, &str> =
-        seq(&seq(kustomization, "configMapGenerator")[1], "literals")
-            .iter()
-            .filter_map(|l| l.as_str()?.split_once('='))
-            .collect();
-    assert!(
-        presets.contains(literals["preset"]),
-        "lcrl-run's preset {} is not a preset",
-        literals["preset"]
-    );
+    let literals: BTreeMap<&str, &str> = seq(&seq(kustomization, "configMapGenerator")[1], "literals").iter().filter_map(|l| l.as_str()?.split_once('=')).collect();
+    assert!(presets.contains(literals["preset"]), "lcrl-run's preset {} is not a preset", literals["preset"]);
 
     // The image the manifests name is the one build-image.sh builds.
     let image = &seq(kustomization, "images")[0];
     let image_name = str_of(image, &["name"]);
-    let built = format!(
-        "{}:{}",
-        str_of(image, &["newName"]),
-        str_of(image, &["newTag"])
-    );
+    let built = format!("{}:{}", str_of(image, &["newName"]), str_of(image, &["newTag"]));
     let build_script = std::fs::read_to_string(repo().join("deploy/build-image.sh")).unwrap();
-    assert!(
-        build_script.contains(&format!("tag=\"${{1:-{built}}}\"")),
-        "build-image.sh does not build {built}"
-    );
+    assert!(build_script.contains(&format!("tag=\"${{1:-{built}}}\"")), "build-image.sh does not build {built}");
 
-    let docs: Vec<Value> = seq(kustomization, "resources")
-        .iter()
-        .flat_map(|r| load_docs(&k8s.join(r.as_str().unwrap())))
-        .collect();
-    let of_kind = |kind: &'static str| {
-        docs.iter()
-            .filter(move |d| d["kind"].as_str() == Some(kind))
-    };
-    let claims: BTreeSet<&str> = of_kind("PersistentVolumeClaim")
-        .map(|d| str_of(d, &["metadata", "name"]))
-        .collect();
-    let services: BTreeMap<&str, &Value> = of_kind("Service")
-        .map(|d| (str_of(d, &["metadata", "name"]), d))
-        .collect();
+    let docs: Vec<Value> = seq(kustomization, "resources").iter().flat_map(|r| load_docs(&k8s.join(r.as_str().unwrap()))).collect();
+    let of_kind = |kind: &'static str| docs.iter().filter(move |d| d["kind"].as_str() == Some(kind));
+    let claims: BTreeSet<&str> = of_kind("PersistentVolumeClaim").map(|d| str_of(d, &["metadata", "name"])).collect();
+    let services: BTreeMap<&str, &Value> = of_kind("Service").map(|d| (str_of(d, &["metadata", "name"]), d)).collect();
     let deployments: Vec<&Value> = of_kind("Deployment").collect();
     assert_eq!(deployments.len(), 3, "graph builder, learner, actors");
     let run_dir = tempfile::tempdir().unwrap();
@@ -177,288 +112,135 @@ fn kubernetes_manifests_reference_each_other_consistently() {
     for deployment in &deployments {
         let name = str_of(deployment, &["metadata", "name"]);
         let labels = &deployment["spec"]["template"]["metadata"]["labels"];
-        for (key, value) in deployment["spec"]["selector"]["matchLabels"]
-            .as_mapping()
-            .unwrap()
-        {
-            assert_eq!(
-                &labels[key.as_str().unwrap()],
-                value,
-                "{name}: selector does not match its pods"
-            );
+        for (key, value) in deployment["spec"]["selector"]["matchLabels"].as_mapping().unwrap() {
+            assert_eq!(&labels[key.as_str().unwrap()], value, "{name}: selector does not match its pods");
         }
         let pod = &deployment["spec"]["template"]["spec"];
-        let volumes: BTreeMap<&str, &Value> = seq(pod, "volumes")
-            .into_iter()
-            .map(|v| (str_of(v, &["name"]), v))
-            .collect();
+        let volumes: BTreeMap<&str, &Value> = seq(pod, "volumes").into_iter().map(|v| (str_of(v, &["name"]), v)).collect();
         for volume in volumes.values() {
             if let Some(cm) = volume["configMap"]["name"].as_str() {
-                assert!(
-                    config_maps.contains_key(cm),
-                    "{name}: ConfigMap {cm} is not generated"
-                );
+                assert!(config_maps.contains_key(cm), "{name}: ConfigMap {cm} is not generated");
             }
             if let Some(claim) = volume["persistentVolumeClaim"]["claimName"].as_str() {
-                assert!(
-                    claims.contains(claim),
-                    "{name}: claim {claim} does not exist"
-                );
+                assert!(claims.contains(claim), "{name}: claim {claim} does not exist");
             }
             if let Some(secret) = volume["secret"]["secretName"].as_str() {
-                assert_eq!(
-                    secret, "lcrl-tls",
-                    "{name}: the TLS secret README tells users to create"
-                );
+                assert_eq!(secret, "lcrl-tls", "{name}: the TLS secret README tells users to create");
             }
         }
-        assert!(
-            volumes
-                .values()
-                .any(|v| v["secret"]["secretName"].as_str() == Some("lcrl-tls")),
-            "{name}: no TLS secret"
-        );
+        assert!(volumes.values().any(|v| v["secret"]["secretName"].as_str() == Some("lcrl-tls")), "{name}: no TLS secret");
         for container in seq(pod, "containers") {
             assert_eq!(str_of(container, &["image"]), image_name, "{name}: image");
-            let ports: BTreeMap<&str, i64> = seq(container, "ports")
-                .iter()
-                .map(|p| (str_of(p, &["name"]), p["containerPort"].as_i64().unwrap()))
-                .collect();
+            let ports: BTreeMap<&str, i64> = seq(container, "ports").iter().map(|p| (str_of(p, &["name"]), p["containerPort"].as_i64().unwrap())).collect();
             let mut env = BTreeMap::new();
             for var in seq(container, "env") {
                 let r = &var["valueFrom"]["configMapKeyRef"];
                 let (cm, key) = (str_of(r, &["name"]), str_of(r, &["key"]));
-                assert!(
-                    config_maps.get(cm).is_some_and(|keys| keys.contains(key)),
-                    "{name}: {cm}/{key} does not exist"
-                );
+                assert!(config_maps.get(cm).is_some_and(|keys| keys.contains(key)), "{name}: {cm}/{key} does not exist");
                 let value = if cm == "lcrl-run" { literals[key] } else { key };
                 env.insert(format!("$({})", str_of(var, &["name"])), value.to_string());
             }
             for mount in seq(container, "volumeMounts") {
-                let volume = volumes
-                    .get(str_of(mount, &["name"]))
-                    .unwrap_or_else(|| panic!("{name}: mounts an undeclared volume"));
+                let volume = volumes.get(str_of(mount, &["name"])).unwrap_or_else(|| panic!("{name}: mounts an undeclared volume"));
                 if volume["secret"].is_mapping() {
-                    assert_eq!(
-                        (str_of(mount, &["mountPath"]), mount["readOnly"].as_bool()),
-                        ("/tls", Some(true)),
-                        "{name}: the secret is mounted read-only at /tls"
-                    );
+                    assert_eq!((str_of(mount, &["mountPath"]), mount["readOnly"].as_bool()), ("/tls", Some(true)), "{name}: the secret is mounted read-only at /tls");
                 }
             }
             for probe in ["readinessProbe", "livenessProbe"] {
                 let p = &container[probe];
                 if let Some(port) = p["grpc"]["port"].as_i64() {
-                    assert!(
-                        ports.values().any(|&c| c == port),
-                        "{name}: {probe} on port {port}, not a container port"
-                    );
+                    assert!(ports.values().any(|&c| c == port), "{name}: {probe} on port {port}, not a container port");
                     if let Some(service) = p["grpc"]["service"].as_str() {
-                        assert!(
-                            ["lcrl.v1.Graph", "lcrl.v1.Learner", "lcrl.v1.Policy"]
-                                .contains(&service),
-                            "{name}: {probe} asks for {service}"
-                        );
+                        assert!(["lcrl.v1.Graph", "lcrl.v1.Learner", "lcrl.v1.Policy"].contains(&service), "{name}: {probe} asks for {service}");
                     }
                 } else if let Some(port) = p["httpGet"]["port"].as_str() {
                     assert!(ports.contains_key(port), "{name}: {probe} on port {port}");
                 } else if let Some(command) = p["exec"]["command"].as_sequence() {
                     let words: Vec<&str> = command.iter().filter_map(Value::as_str).collect();
                     let port = check_health_command(&words, tls.path(), &format!("{name} {probe}"));
-                    assert!(
-                        ports.values().any(|&c| c == i64::from(port)),
-                        "{name}: {probe} on port {port}, not a container port"
-                    );
+                    assert!(ports.values().any(|&c| c == i64::from(port)), "{name}: {probe} on port {port}, not a container port");
                 }
             }
             // Arguments: placeholders defined, URLs naming a Service port, and
             // the whole command line accepted by the real CLI.
             let args: Vec<String> = seq(container, "args")
                 .iter()
-                .map(|a| {
-                    env.iter()
-                        .fold(a.as_str().unwrap().to_string(), |s, (var, value)| {
-                            s.replace(var, value)
-                        })
-                })
+                .map(|a| env.iter().fold(a.as_str().unwrap().to_string(), |s, (var, value)| s.replace(var, value)))
                 .collect();
             for arg in &args {
-                assert!(
-                    !arg.contains("$("),
-                    "{name}: {arg} uses an undefined variable"
-                );
-                assert!(
-                    !arg.starts_with("http://"),
-                    "{name}: {arg} is plain text between pods"
-                );
+                assert!(!arg.contains("$("), "{name}: {arg} uses an undefined variable");
+                assert!(!arg.starts_with("http://"), "{name}: {arg} is plain text between pods");
                 if let Some(rest) = arg.strip_prefix("https://") {
                     let (host, port) = rest.split_once(':').unwrap();
-                    let service = services
-                        .get(host)
-                        .unwrap_or_else(|| panic!("{name}: no Service {host}"));
-                    assert!(
-                        seq(&service["spec"], "ports").iter().any(|p| p["port"]
-                            .as_str()
-                            .map(str::to_string)
-                            .or(p["port"].as_i64().map(|n| n.to_string()))
-                            .as_deref()
-                            == Some(port)),
-                        "{name}: Service {host} has no port {port}"
-                    );
+                    let service = services.get(host).unwrap_or_else(|| panic!("{name}: no Service {host}"));
+                    assert!(seq(&service["spec"], "ports").iter().any(|p| p["port"].as_str().map(str::to_string).or(p["port"].as_i64().map(|n| n.to_string())).as_deref() == Some(port)), "{name}: Service {host} has no port {port}");
                 }
             }
             for file in args.iter().filter_map(|a| a.strip_prefix("/tls/")) {
-                assert!(
-                    tls.path().join(file).is_file(),
-                    "{name}: /tls/{file} is not a file `lcrl certs` writes"
-                );
+                assert!(tls.path().join(file).is_file(), "{name}: /tls/{file} is not a file `lcrl certs` writes");
             }
             let command = dry_run(&args, run_dir.path(), tls.path());
-            assert!(
-                command.contains("--token-file") && command.contains("--tls-"),
-                "{name}: runs without TLS or token: {command}"
-            );
+            assert!(command.contains("--token-file") && command.contains("--tls-"), "{name}: runs without TLS or token: {command}");
             roles.insert(command.split_whitespace().next().unwrap().to_string());
         }
     }
-    assert_eq!(
-        roles,
-        ["lcrl-actor", "lcrl-graph-builder", "lcrl-learner"]
-            .map(String::from)
-            .into_iter()
-            .collect()
-    );
+    assert_eq!(roles, ["lcrl-actor", "lcrl-graph-builder", "lcrl-learner"].map(String::from).into_iter().collect());
 
     for (name, service) in &services {
         let selector = service["spec"]["selector"].as_mapping().unwrap();
         let targets: Vec<&&Value> = deployments
             .iter()
-            .filter(|d| {
-                selector.iter().all(|(k, v)| {
-                    &d["spec"]["template"]["metadata"]["labels"][k.as_str().unwrap()] == v
-                })
-            })
+            .filter(|d| selector.iter().all(|(k, v)| &d["spec"]["template"]["metadata"]["labels"][k.as_str().unwrap()] == v))
             .collect();
-        assert_eq!(
-            targets.len(),
-            1,
-            "Service {name} selects {} Deployments",
-            targets.len()
-        );
-        let container_ports: BTreeSet<String> =
-            seq(&targets[0]["spec"]["template"]["spec"], "containers")
-                .iter()
-                .flat_map(|c| seq(c, "ports"))
-                .map(|p| str_of(p, &["name"]).to_string())
-                .collect();
+        assert_eq!(targets.len(), 1, "Service {name} selects {} Deployments", targets.len());
+        let container_ports: BTreeSet<String> = seq(&targets[0]["spec"]["template"]["spec"], "containers")
+            .iter()
+            .flat_map(|c| seq(c, "ports"))
+            .map(|p| str_of(p, &["name"]).to_string())
+            .collect();
         for port in seq(&service["spec"], "ports") {
-            assert!(
-                container_ports.contains(str_of(port, &["targetPort"])),
-                "Service {name}: targetPort {:?} is no container port",
-                port["targetPort"]
-            );
+            assert!(container_ports.contains(str_of(port, &["targetPort"])), "Service {name}: targetPort {:?} is no container port", port["targetPort"]);
         }
     }
 
     // Network policies: each guards one Deployment's pods, admits only the
     // peers the design names, on ports those pods declare.
-    let labels_of = |d: &Value| {
-        d["spec"]["template"]["metadata"]["labels"]["app.kubernetes.io/name"]
-            .as_str()
-            .unwrap()
-            .to_string()
-    };
+    let labels_of = |d: &Value| d["spec"]["template"]["metadata"]["labels"]["app.kubernetes.io/name"].as_str().unwrap().to_string();
     let selects = |selector: &Value| -> Vec<String> {
         let wanted = selector["matchLabels"].as_mapping().unwrap();
-        deployments
-            .iter()
-            .filter(|d| {
-                wanted.iter().all(|(k, v)| {
-                    &d["spec"]["template"]["metadata"]["labels"][k.as_str().unwrap()] == v
-                })
-            })
-            .map(|d| labels_of(d))
-            .collect()
+        deployments.iter().filter(|d| wanted.iter().all(|(k, v)| &d["spec"]["template"]["metadata"]["labels"][k.as_str().unwrap()] == v)).map(|d| labels_of(d)).collect()
     };
     let mut admitted: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
     for policy in of_kind("NetworkPolicy") {
         let name = str_of(policy, &["metadata", "name"]);
         let guarded = selects(&policy["spec"]["podSelector"]);
         assert_eq!(guarded.len(), 1, "NetworkPolicy {name} selects {guarded:?}");
-        let target = deployments
-            .iter()
-            .find(|d| labels_of(d) == guarded[0])
-            .unwrap();
-        let ports: BTreeSet<String> = seq(&target["spec"]["template"]["spec"], "containers")
-            .iter()
-            .flat_map(|c| seq(c, "ports"))
-            .map(|p| str_of(p, &["name"]).to_string())
-            .collect();
+        let target = deployments.iter().find(|d| labels_of(d) == guarded[0]).unwrap();
+        let ports: BTreeSet<String> = seq(&target["spec"]["template"]["spec"], "containers").iter().flat_map(|c| seq(c, "ports")).map(|p| str_of(p, &["name"]).to_string()).collect();
         for rule in seq(&policy["spec"], "ingress") {
-            let rule_ports: Vec<&str> = seq(rule, "ports")
-                .iter()
-                .map(|p| str_of(p, &["port"]))
-                .collect();
+            let rule_ports: Vec<&str> = seq(rule, "ports").iter().map(|p| str_of(p, &["port"])).collect();
             for port in &rule_ports {
-                assert!(
-                    ports.contains(*port),
-                    "NetworkPolicy {name}: port {port} is not a port of {}",
-                    guarded[0]
-                );
+                assert!(ports.contains(*port), "NetworkPolicy {name}: port {port} is not a port of {}", guarded[0]);
             }
             for peer in seq(rule, "from") {
                 let source = if peer["podSelector"].is_mapping() {
                     let from = selects(&peer["podSelector"]);
-                    assert_eq!(
-                        from.len(),
-                        1,
-                        "NetworkPolicy {name}: a podSelector matching {from:?}"
-                    );
+                    assert_eq!(from.len(), 1, "NetworkPolicy {name}: a podSelector matching {from:?}");
                     from[0].clone()
                 } else {
-                    format!(
-                        "namespace {}",
-                        str_of(
-                            peer,
-                            &[
-                                "namespaceSelector",
-                                "matchLabels",
-                                "kubernetes.io/metadata.name"
-                            ]
-                        )
-                    )
+                    format!("namespace {}", str_of(peer, &["namespaceSelector", "matchLabels", "kubernetes.io/metadata.name"]))
                 };
                 for port in &rule_ports {
-                    admitted
-                        .entry(format!("{}:{port}", guarded[0]))
-                        .or_default()
-                        .insert(source.clone());
+                    admitted.entry(format!("{}:{port}", guarded[0])).or_default().insert(source.clone());
                 }
             }
         }
     }
-    let expect = |s: &[&str]| {
-        s.iter()
-            .map(|x| x.to_string())
-            .collect::<BTreeSet<String>>()
-    };
-    assert_eq!(
-        admitted["lcrl-learner:grpc"],
-        expect(&["lcrl-actor"]),
-        "only actors reach the learner's gRPC port"
-    );
-    assert_eq!(
-        admitted["lcrl-graph-builder:grpc"],
-        expect(&["lcrl-learner"]),
-        "only the learner reaches the graph builder"
-    );
+    let expect = |s: &[&str]| s.iter().map(|x| x.to_string()).collect::<BTreeSet<String>>();
+    assert_eq!(admitted["lcrl-learner:grpc"], expect(&["lcrl-actor"]), "only actors reach the learner's gRPC port");
+    assert_eq!(admitted["lcrl-graph-builder:grpc"], expect(&["lcrl-learner"]), "only the learner reaches the graph builder");
     for metrics in ["lcrl-learner:metrics", "lcrl-actor:metrics"] {
-        assert_eq!(
-            admitted[metrics],
-            expect(&["namespace monitoring"]),
-            "{metrics}"
-        );
+        assert_eq!(admitted[metrics], expect(&["namespace monitoring"]), "{metrics}");
     }
 }
 
@@ -472,15 +254,9 @@ fn compose_commands_are_accepted_by_the_cli() {
     let secure_file = load_docs(&repo().join("deploy/compose.secure.yaml")).remove(0);
     let mut secure = plain.clone();
     let mut overlay = secure_file.clone();
-    overlay
-        .apply_merge()
-        .expect("compose.secure.yaml merge keys");
+    overlay.apply_merge().expect("compose.secure.yaml merge keys");
     for (name, service) in overlay["services"].as_mapping().unwrap() {
-        let target = secure["services"][name.as_str().unwrap()]
-            .as_mapping_mut()
-            .unwrap_or_else(|| {
-                panic!("compose.secure.yaml names a service {name:?} compose.yaml lacks")
-            });
+        let target = secure["services"][name.as_str().unwrap()].as_mapping_mut().unwrap_or_else(|| panic!("compose.secure.yaml names a service {name:?} compose.yaml lacks"));
         for (key, value) in service.as_mapping().unwrap() {
             target.insert(key.clone(), value.clone());
         }
@@ -490,57 +266,28 @@ fn compose_commands_are_accepted_by_the_cli() {
 
 fn check_compose(compose: &Value, tls: &Path, secure: bool) {
     let mut compose = compose.clone();
-    compose
-        .apply_merge()
-        .expect("compose merge keys (<<: *lcrl)");
+    compose.apply_merge().expect("compose merge keys (<<: *lcrl)");
     let services = compose["services"].as_mapping().unwrap();
     let run_dir = tempfile::tempdir().unwrap();
-    let substitute = |s: &str| {
-        s.replace("${LCRL_PRESET:-lti-paper.toml}", "lti-paper.toml")
-            .replace("${LCRL_RUN_ID:-compose}", "compose")
-            .replace("${LCRL_EPISODES:-0}", "0")
-    };
+    let substitute = |s: &str| s.replace("${LCRL_PRESET:-lti-paper.toml}", "lti-paper.toml").replace("${LCRL_RUN_ID:-compose}", "compose").replace("${LCRL_EPISODES:-0}", "0");
     let mut binaries = BTreeSet::new();
     for (name, service) in services {
         let name = name.as_str().unwrap();
-        let command: Vec<String> = seq(service, "command")
-            .iter()
-            .map(|a| substitute(a.as_str().unwrap()))
-            .collect();
+        let command: Vec<String> = seq(service, "command").iter().map(|a| substitute(a.as_str().unwrap())).collect();
         let launched = dry_run(&command, run_dir.path(), tls);
         binaries.insert(launched.split_whitespace().next().unwrap().to_string());
         assert_eq!(launched.contains("--tls-"), secure, "{name}: `{launched}`");
         if secure {
-            let mounts: Vec<&str> = seq(service, "volumes")
-                .iter()
-                .filter_map(|v| v.as_str())
-                .collect();
-            assert!(
-                mounts.iter().any(|m| m.ends_with(":/tls:ro")),
-                "{name}: /tls is not mounted read-only: {mounts:?}"
-            );
-            assert_eq!(
-                service["environment"]["LCRL_TOKEN_FILE"].as_str(),
-                Some("/tls/token"),
-                "{name}: token"
-            );
+            let mounts: Vec<&str> = seq(service, "volumes").iter().filter_map(|v| v.as_str()).collect();
+            assert!(mounts.iter().any(|m| m.ends_with(":/tls:ro")), "{name}: /tls is not mounted read-only: {mounts:?}");
+            assert_eq!(service["environment"]["LCRL_TOKEN_FILE"].as_str(), Some("/tls/token"), "{name}: token");
         }
-        assert!(
-            service["image"].as_str().unwrap().contains("lcrl:local"),
-            "{name}: image"
-        );
+        assert!(service["image"].as_str().unwrap().contains("lcrl:local"), "{name}: image");
         if let Some(test) = service["healthcheck"]["test"].as_sequence() {
             let words: Vec<&str> = test.iter().filter_map(Value::as_str).collect();
             assert_eq!(words[0], "CMD", "{name}: health check");
-            let port = if secure {
-                check_health_command(&words[1..], tls, name).to_string()
-            } else {
-                words[3].rsplit(':').next().unwrap().to_string()
-            };
-            assert!(
-                launched.contains(&format!("--listen 0.0.0.0:{port}")),
-                "{name}: health check on port {port}, but it runs `{launched}`"
-            );
+            let port = if secure { check_health_command(&words[1..], tls, name).to_string() } else { words[3].rsplit(':').next().unwrap().to_string() };
+            assert!(launched.contains(&format!("--listen 0.0.0.0:{port}")), "{name}: health check on port {port}, but it runs `{launched}`");
         }
     }
     assert_eq!(binaries.len(), 3, "{binaries:?}");
@@ -550,29 +297,16 @@ fn check_compose(compose: &Value, tls: &Path, secure: bool) {
 /// itself skips, with a message, when no Docker engine is reachable.
 #[test]
 fn compose_stack_trains_and_survives_a_killed_actor() {
-    let out = std::process::Command::new("bash")
-        .arg(repo().join("deploy/compose-e2e.sh"))
-        .output()
-        .unwrap();
+    let out = std::process::Command::new("bash").arg(repo().join("deploy/compose-e2e.sh")).output().unwrap();
     let (out_text, err_text) = (stdout(&out), stderr(&out));
     println!("{out_text}");
-    assert!(
-        out.status.success(),
-        "compose-e2e failed:\n{out_text}\n{err_text}"
-    );
-    assert!(
-        out_text.contains("compose-e2e: PASSED") || out_text.contains("compose-e2e: SKIPPED"),
-        "{out_text}"
-    );
+    assert!(out.status.success(), "compose-e2e failed:\n{out_text}\n{err_text}");
+    assert!(out_text.contains("compose-e2e: PASSED") || out_text.contains("compose-e2e: SKIPPED"), "{out_text}");
 }
 
 #[test]
 fn launch_refuses_presets_that_serve_python() {
     let preset = repo().join("configs/halfcheetah-ddpg-local.toml");
-    let out = lcrl()
-        .args(["launch", "learner", "--dry-run", "--config"])
-        .arg(&preset)
-        .output()
-        .unwrap();
+    let out = lcrl().args(["launch", "learner", "--dry-run", "--config"]).arg(&preset).output().unwrap();
     super::common::assert_clean_failure(&out, "serve it yourself");
 }

@@ -8,14 +8,11 @@ use std::time::{Duration, Instant};
 
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::policy_client::PolicyClient;
-use lcrl_proto::v1::{
-    ActBatchRequest, ActRequest, GetStatusRequest, LearnerStatus, Transition, TransitionBatch,
-};
+use lcrl_proto::v1::{ActBatchRequest, ActRequest, GetStatusRequest, LearnerStatus, Transition, TransitionBatch};
 
 use super::common::workspace_bin;
 
-const SMALL: &str =
-    "[network]\nglobal_hidden = [32, 32]\nsubnet_hidden = [16, 16]\ncritic_hidden = [32, 32]\n\
+const SMALL: &str = "[network]\nglobal_hidden = [32, 32]\nsubnet_hidden = [16, 16]\ncritic_hidden = [32, 32]\n\
 [ddpg]\nwarmup_steps = 100\nbatch_size = 32\n[run]\ngraph_samples = 16\n";
 
 /// A child process killed (SIGKILL) when dropped.
@@ -30,19 +27,13 @@ impl Drop for Proc {
 
 impl Proc {
     pub(super) fn signal(&self, signal: &str) {
-        let _ = Command::new("kill")
-            .args([format!("-{signal}"), self.0.id().to_string()])
-            .status();
+        let _ = Command::new("kill").args([format!("-{signal}"), self.0.id().to_string()]).status();
     }
 }
 
 /// A free loopback port (bound, then released for the learner to take).
 pub(super) fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
 }
 
 fn learner(run_dir: &Path, run_id: &str, port: u16) -> (Proc, String) {
@@ -54,34 +45,11 @@ fn learner_with(run_dir: &Path, run_id: &str, port: u16, algo: &str) -> (Proc, S
 }
 
 /// A small-network learner on lti-paper (global connection) with `extra` flags.
-pub(super) fn learner_with_args(
-    run_dir: &Path,
-    run_id: &str,
-    port: u16,
-    algo: &str,
-    extra: &[&str],
-) -> (Proc, String) {
+pub(super) fn learner_with_args(run_dir: &Path, run_id: &str, port: u16, algo: &str, extra: &[&str]) -> (Proc, String) {
     let config = run_dir.with_extension("toml");
-    std::fs::write(
-        &config,
-        format!("{SMALL}[ppo]\nrollout_steps = 500\nminibatch_size = 100\n"),
-    )
-    .unwrap();
+    std::fs::write(&config, format!("{SMALL}[ppo]\nrollout_steps = 500\nminibatch_size = 100\n")).unwrap();
     let mut child = workspace_bin("lcrl-learner")
-        .args([
-            "--env",
-            "lti-paper",
-            "--algo",
-            algo,
-            "--connection",
-            "global",
-            "--publish-every",
-            "20",
-            "--checkpoint-secs",
-            "0.5",
-            "--run-id",
-            run_id,
-        ])
+        .args(["--env", "lti-paper", "--algo", algo, "--connection", "global", "--publish-every", "20", "--checkpoint-secs", "0.5", "--run-id", run_id])
         .arg("--config")
         .arg(&config)
         .arg("--run-dir")
@@ -93,9 +61,7 @@ pub(super) fn learner_with_args(
         .spawn()
         .unwrap();
     let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
     assert!(line.starts_with("listening on"), "learner said {line:?}");
     (Proc(child), format!("http://127.0.0.1:{port}"))
 }
@@ -112,18 +78,7 @@ fn actor_over(url: &str, run_id: &str, transport: &str) -> Proc {
 pub(super) fn actor_with_args(url: &str, run_id: &str, extra: &[&str]) -> Proc {
     Proc(
         workspace_bin("lcrl-actor")
-            .args([
-                "--learner",
-                url,
-                "--run-id",
-                run_id,
-                "--envs",
-                "2",
-                "--batch",
-                "25",
-                "--connect-deadline",
-                "30",
-            ])
+            .args(["--learner", url, "--run-id", run_id, "--envs", "2", "--batch", "25", "--connect-deadline", "30"])
             .args(extra)
             .stdout(Stdio::null())
             .stderr(Stdio::null())
@@ -134,21 +89,11 @@ pub(super) fn actor_with_args(url: &str, run_id: &str, extra: &[&str]) -> Proc {
 
 pub(super) async fn status(url: &str) -> Option<LearnerStatus> {
     let mut client = LearnerClient::connect(url.to_string()).await.ok()?;
-    Some(
-        client
-            .get_status(GetStatusRequest {})
-            .await
-            .ok()?
-            .into_inner(),
-    )
+    Some(client.get_status(GetStatusRequest {}).await.ok()?.into_inner())
 }
 
 /// Polls the learner's status until `ready` holds (or fails after 60 s).
-pub(super) async fn wait_for(
-    url: &str,
-    what: &str,
-    ready: impl Fn(&LearnerStatus) -> bool,
-) -> LearnerStatus {
+pub(super) async fn wait_for(url: &str, what: &str, ready: impl Fn(&LearnerStatus) -> bool) -> LearnerStatus {
     let deadline = Instant::now() + Duration::from_secs(60);
     loop {
         if let Some(s) = status(url).await {
@@ -156,11 +101,7 @@ pub(super) async fn wait_for(
                 return s;
             }
         }
-        assert!(
-            Instant::now() < deadline,
-            "timed out waiting for {what}; last status {:?}",
-            status(url).await
-        );
+        assert!(Instant::now() < deadline, "timed out waiting for {what}; last status {:?}", status(url).await);
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
@@ -172,35 +113,16 @@ pub(super) fn batch(run_id: &str, sequence: u64, state_len: usize, value: f32) -
         sequence,
         episode_id: 0,
         policy_version: 0,
-        transitions: vec![
-            Transition {
-                state: vec![value; state_len],
-                action: vec![0.1; 3],
-                reward: -1.0,
-                next_state: vec![0.0; state_len],
-                terminated: false,
-                truncated: false,
-                policy_version: 0
-            };
-            4
-        ],
+        transitions: vec![Transition { state: vec![value; state_len], action: vec![0.1; 3], reward: -1.0, next_state: vec![0.0; state_len], terminated: false, truncated: false, policy_version: 0 }; 4],
         episodes: vec![],
     }
 }
 
 /// Sends one batch on a fresh stream; returns the first ack or the error.
-pub(super) async fn send(
-    url: &str,
-    batch: TransitionBatch,
-) -> Result<lcrl_proto::v1::BatchAck, tonic::Status> {
+pub(super) async fn send(url: &str, batch: TransitionBatch) -> Result<lcrl_proto::v1::BatchAck, tonic::Status> {
     let mut client = LearnerClient::connect(url.to_string()).await.unwrap();
-    let mut acks = client
-        .stream_transitions(tokio_stream::iter(vec![batch]))
-        .await?
-        .into_inner();
-    acks.message()
-        .await?
-        .ok_or_else(|| tonic::Status::unknown("no ack"))
+    let mut acks = client.stream_transitions(tokio_stream::iter(vec![batch])).await?.into_inner();
+    acks.message().await?.ok_or_else(|| tonic::Status::unknown("no ack"))
 }
 
 #[tokio::test]
@@ -208,62 +130,29 @@ async fn actors_train_the_learner_which_serves_the_policy() {
     let dir = tempfile::tempdir().unwrap();
     let (learner_proc, url) = learner(&dir.path().join("run"), "r1", free_port());
     let _actor = actor(&url, "r1");
-    let s = wait_for(&url, "updates and a published policy", |s| {
-        s.updates > 50 && s.policy_version >= 1 && s.connected_actors == 1
-    })
-    .await;
-    assert!(
-        s.env_steps >= s.updates,
-        "DDPG keeps at most one update per step"
-    );
+    let s = wait_for(&url, "updates and a published policy", |s| s.updates > 50 && s.policy_version >= 1 && s.connected_actors == 1).await;
+    assert!(s.env_steps >= s.updates, "DDPG keeps at most one update per step");
 
     let mut policy = PolicyClient::connect(url.clone()).await.unwrap();
     // Training goes on meanwhile: compare the two calls when they were
     // answered by the same policy version (a new one may land between).
     let mut compared = false;
     for _ in 0..50 {
-        let act = policy
-            .act(ActRequest {
-                state: vec![0.5, -0.2, 0.1],
-            })
-            .await
-            .unwrap()
-            .into_inner();
+        let act = policy.act(ActRequest { state: vec![0.5, -0.2, 0.1] }).await.unwrap().into_inner();
         assert_eq!(act.action.len(), 3);
         assert!(act.action.iter().all(|a| (-1.0..=1.0).contains(a)) && act.policy_version >= 1);
-        let many = policy
-            .act_batch(ActBatchRequest {
-                count: 2,
-                states: vec![0.5, -0.2, 0.1, 0.0, 0.0, 0.0],
-            })
-            .await
-            .unwrap()
-            .into_inner();
+        let many = policy.act_batch(ActBatchRequest { count: 2, states: vec![0.5, -0.2, 0.1, 0.0, 0.0, 0.0] }).await.unwrap().into_inner();
         assert_eq!(many.actions.len(), 6);
         if many.policy_version == act.policy_version {
-            assert_eq!(
-                &many.actions[..3],
-                &act.action[..],
-                "same state, same version, same deterministic action"
-            );
+            assert_eq!(&many.actions[..3], &act.action[..], "same state, same version, same deterministic action");
             compared = true;
             break;
         }
     }
     assert!(compared, "never two answers from the same policy version");
-    let wrong = policy
-        .act(ActRequest {
-            state: vec![0.5, -0.2],
-        })
-        .await
-        .unwrap_err();
+    let wrong = policy.act(ActRequest { state: vec![0.5, -0.2] }).await.unwrap_err();
     assert_eq!(wrong.code(), tonic::Code::InvalidArgument);
-    let nan = policy
-        .act(ActRequest {
-            state: vec![0.5, f32::NAN, 0.1],
-        })
-        .await
-        .unwrap_err();
+    let nan = policy.act(ActRequest { state: vec![0.5, f32::NAN, 0.1] }).await.unwrap_err();
     assert_eq!(nan.code(), tonic::Code::InvalidArgument);
 
     // SIGTERM: the learner checkpoints and exits cleanly.
@@ -272,51 +161,26 @@ async fn actors_train_the_learner_which_serves_the_policy() {
     let mut learner_proc = learner_proc;
     let code = learner_proc.0.wait().unwrap();
     assert!(code.success(), "learner exit {code:?}");
-    let newest = lcrl_learner::checkpoint::latest_checkpoint(&dir.path().join("run"))
-        .expect("a checkpoint on SIGTERM");
-    assert!(
-        lcrl_learner::checkpoint::read_meta(&newest)
-            .unwrap()
-            .episode
-            >= episodes as usize
-    );
+    let newest = lcrl_learner::checkpoint::latest_checkpoint(&dir.path().join("run")).expect("a checkpoint on SIGTERM");
+    assert!(lcrl_learner::checkpoint::read_meta(&newest).unwrap().episode >= episodes as usize);
 }
 
 #[tokio::test]
 async fn bad_batches_are_rejected_counted_and_never_stored() {
     let dir = tempfile::tempdir().unwrap();
     let (_learner, url) = learner(&dir.path().join("run"), "r2", free_port());
-    for (bad, reason) in [
-        (batch("r2", 1, 4, 0.0), "dimensions"),
-        (batch("r2", 1, 3, f32::INFINITY), "non_finite"),
-        (batch("other-run", 1, 3, 0.0), "unknown_run"),
-    ] {
+    for (bad, reason) in [(batch("r2", 1, 4, 0.0), "dimensions"), (batch("r2", 1, 3, f32::INFINITY), "non_finite"), (batch("other-run", 1, 3, 0.0), "unknown_run")] {
         let err = send(&url, bad).await.unwrap_err();
-        assert_eq!(
-            err.code(),
-            tonic::Code::InvalidArgument,
-            "{reason}: {err:?}"
-        );
+        assert_eq!(err.code(), tonic::Code::InvalidArgument, "{reason}: {err:?}");
         let s = status(&url).await.unwrap();
-        assert_eq!(
-            s.rejected.get(reason),
-            Some(&4),
-            "{reason}: {:?}",
-            s.rejected
-        );
+        assert_eq!(s.rejected.get(reason), Some(&4), "{reason}: {:?}", s.rejected);
     }
     let s = status(&url).await.unwrap();
     assert_eq!((s.env_steps, s.replay_size), (0, 0));
 
     // A replayed batch (same actor, same sequence) is stored once.
-    assert_eq!(
-        send(&url, batch("r2", 7, 3, 0.2)).await.unwrap().outcome,
-        "stored"
-    );
-    assert_eq!(
-        send(&url, batch("r2", 7, 3, 0.2)).await.unwrap().outcome,
-        "duplicate"
-    );
+    assert_eq!(send(&url, batch("r2", 7, 3, 0.2)).await.unwrap().outcome, "stored");
+    assert_eq!(send(&url, batch("r2", 7, 3, 0.2)).await.unwrap().outcome, "duplicate");
     let s = wait_for(&url, "the stored batch", |s| s.env_steps == 4).await;
     assert_eq!(s.rejected.get("duplicate"), Some(&4));
 }
@@ -332,16 +196,9 @@ async fn a_killed_actor_can_rejoin() {
     drop(first);
     let after_kill = wait_for(&url, "the stream to close", |s| s.connected_actors == 0).await;
     let _second = actor_with_args(&url, "r3", &["--actor-id", "worker-1"]);
-    let s = wait_for(&url, "the new actor's transitions", |s| {
-        s.env_steps > after_kill.env_steps + 200 && s.connected_actors == 1
-    })
-    .await;
+    let s = wait_for(&url, "the new actor's transitions", |s| s.env_steps > after_kill.env_steps + 200 && s.connected_actors == 1).await;
     assert!(s.updates >= after_kill.updates);
-    assert_eq!(
-        s.rejected.get("duplicate"),
-        None,
-        "the restarted actor's batches are new, not replays"
-    );
+    assert_eq!(s.rejected.get("duplicate"), None, "the restarted actor's batches are new, not replays");
 }
 
 #[tokio::test]
@@ -351,15 +208,11 @@ async fn a_killed_learner_resumes_and_actors_reconnect() {
     let port = free_port();
     let (first, url) = learner(&run, "r4", port);
     let _actor = actor(&url, "r4");
-    wait_for(&url, "training", |s| {
-        s.episodes >= 15 && s.policy_version >= 1
-    })
-    .await;
+    wait_for(&url, "training", |s| s.episodes >= 15 && s.policy_version >= 1).await;
     // Wait for a checkpoint on disk that holds that progress.
     let deadline = Instant::now() + Duration::from_secs(30);
     let saved = loop {
-        let meta = lcrl_learner::checkpoint::latest_checkpoint(&run)
-            .and_then(|dir| lcrl_learner::checkpoint::read_meta(&dir).ok());
+        let meta = lcrl_learner::checkpoint::latest_checkpoint(&run).and_then(|dir| lcrl_learner::checkpoint::read_meta(&dir).ok());
         match meta {
             Some(meta) if meta.episode >= 15 && meta.policy_version >= 1 => break meta,
             _ => {
@@ -372,29 +225,17 @@ async fn a_killed_learner_resumes_and_actors_reconnect() {
     drop(first);
     let (_second, url) = learner(&run, "r4", port);
     let resumed = status(&url).await.unwrap();
-    assert!(
-        resumed.episodes as usize >= saved.episode
-            && resumed.policy_version >= saved.policy_version,
-        "{resumed:?} vs {saved:?}"
-    );
+    assert!(resumed.episodes as usize >= saved.episode && resumed.policy_version >= saved.policy_version, "{resumed:?} vs {saved:?}");
     assert!(resumed.env_steps > 0, "the replay buffer came back");
     // The actor finds the new learner by itself.
-    wait_for(&url, "the actor to reconnect", |s| {
-        s.connected_actors == 1 && s.env_steps > resumed.env_steps + 100
-    })
-    .await;
+    wait_for(&url, "the actor to reconnect", |s| s.connected_actors == 1 && s.env_steps > resumed.env_steps + 100).await;
 }
 
 #[test]
 fn an_unreachable_learner_stops_the_actor_after_its_deadline() {
     let started = Instant::now();
     let out = workspace_bin("lcrl-actor")
-        .args([
-            "--learner",
-            &format!("http://127.0.0.1:{}", free_port()),
-            "--connect-deadline",
-            "2",
-        ])
+        .args(["--learner", &format!("http://127.0.0.1:{}", free_port()), "--connect-deadline", "2"])
         .output()
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
@@ -413,10 +254,7 @@ async fn runs_with_different_ids_do_not_mix() {
     let _stray = actor(&url_b, "run-a");
     let _proper = actor(&url_a, "run-a");
     wait_for(&url_a, "run-a's transitions", |s| s.env_steps > 200).await;
-    let b = wait_for(&url_b, "run-b's refusals", |s| {
-        s.rejected.get("unknown_run").copied().unwrap_or(0) > 0
-    })
-    .await;
+    let b = wait_for(&url_b, "run-b's refusals", |s| s.rejected.get("unknown_run").copied().unwrap_or(0) > 0).await;
     assert_eq!(b.env_steps, 0, "nothing of run-a reached run-b");
 }
 
@@ -429,34 +267,14 @@ fn python_client_queries_the_policy() {
     let (_learner, _url) = learner(&dir.path().join("run"), "py", port);
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let python = root.join(".venv/bin/python");
-    assert!(
-        python.is_file(),
-        "run scripts/setup.sh first (it installs grpcio and generates the stubs)"
-    );
+    assert!(python.is_file(), "run scripts/setup.sh first (it installs grpcio and generates the stubs)");
     let script = root.join("clients/python/lcrl_client.py");
-    let run = |state: &[&str]| {
-        Command::new(&python)
-            .arg(&script)
-            .args(["--target", &format!("127.0.0.1:{port}"), "--state"])
-            .args(state)
-            .output()
-            .unwrap()
-    };
+    let run = |state: &[&str]| Command::new(&python).arg(&script).args(["--target", &format!("127.0.0.1:{port}"), "--state"]).args(state).output().unwrap();
     let out = run(&["0.1", "0.2", "0.3"]);
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{text}{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
     assert!(text.contains("health lcrl.v1.Policy: SERVING"), "{text}");
-    let action: Vec<f64> = text
-        .lines()
-        .find_map(|l| l.strip_prefix("action "))
-        .unwrap()
-        .split_whitespace()
-        .map(|v| v.parse().unwrap())
-        .collect();
+    let action: Vec<f64> = text.lines().find_map(|l| l.strip_prefix("action ")).unwrap().split_whitespace().map(|v| v.parse().unwrap()).collect();
     assert_eq!(action.len(), 3);
     assert!(action.iter().all(|a| (-1.0..=1.0).contains(a)));
     let wrong = run(&["0.1", "0.2"]);
@@ -470,38 +288,21 @@ fn python_client_queries_the_policy() {
 #[tokio::test]
 async fn shared_memory_actors_feed_their_own_run_only() {
     let dir = tempfile::tempdir().unwrap();
-    let (id_a, id_b) = (
-        format!("shm-a-{}", std::process::id()),
-        format!("shm-b-{}", std::process::id()),
-    );
+    let (id_a, id_b) = (format!("shm-a-{}", std::process::id()), format!("shm-b-{}", std::process::id()));
     let (_a, url_a) = learner(&dir.path().join("a"), &id_a, free_port());
     let (_b, url_b) = learner(&dir.path().join("b"), &id_b, free_port());
     let first = actor_over(&url_a, &id_a, "shm");
-    let s = wait_for(&url_a, "shared-memory transitions", |s| {
-        s.env_steps > 500 && s.updates > 0
-    })
-    .await;
+    let s = wait_for(&url_a, "shared-memory transitions", |s| s.env_steps > 500 && s.updates > 0).await;
     assert_eq!(s.rejected.values().sum::<u64>(), 0);
     let services = lcrl_learner::service::shm::services_of(&id_a);
-    assert!(
-        services.contains(&format!("lcrl/{id_a}/transitions"))
-            && services.contains(&format!("lcrl/{id_a}/policy")),
-        "{services:?}"
-    );
+    assert!(services.contains(&format!("lcrl/{id_a}/transitions")) && services.contains(&format!("lcrl/{id_a}/policy")), "{services:?}");
     first.signal("KILL");
     drop(first);
     let after = status(&url_a).await.unwrap().env_steps;
     let _second = actor_over(&url_a, &id_a, "shm");
-    wait_for(&url_a, "the restarted actor's transitions", |s| {
-        s.env_steps > after + 500
-    })
-    .await;
+    wait_for(&url_a, "the restarted actor's transitions", |s| s.env_steps > after + 500).await;
     let b = status(&url_b).await.unwrap();
-    assert_eq!(
-        (b.env_steps, b.episodes),
-        (0, 0),
-        "run B saw run A's transitions"
-    );
+    assert_eq!((b.env_steps, b.episodes), (0, 0), "run B saw run A's transitions");
 }
 
 /// PPO keeps only batches at most one version old, so the learner can get
@@ -513,10 +314,7 @@ async fn shared_memory_actor_follows_new_policies() {
     let run_id = format!("shm-ppo-{}", std::process::id());
     let (_learner, url) = learner_with(&dir.path().join("run"), &run_id, free_port(), "ppo");
     let _actor = actor_over(&url, &run_id, "shm");
-    let s = wait_for(&url, "several PPO policy versions", |s| {
-        s.policy_version >= 4
-    })
-    .await;
+    let s = wait_for(&url, "several PPO policy versions", |s| s.policy_version >= 4).await;
     // Four PPO updates, each on a full rollout of 500 stored steps.
     assert!(s.env_steps >= 4 * 500, "{s:?}");
 }

@@ -30,10 +30,7 @@ fn finished_runs(out: &Path) -> BTreeMap<PathBuf, (Vec<u8>, SystemTime)> {
                 stack.push(path);
             } else if path.file_name().is_some_and(|n| n == "summary.json") {
                 let bytes = std::fs::read(&path).unwrap();
-                found.insert(
-                    path.clone(),
-                    (bytes, entry.metadata().unwrap().modified().unwrap()),
-                );
+                found.insert(path.clone(), (bytes, entry.metadata().unwrap().modified().unwrap()));
             }
         }
     }
@@ -45,17 +42,9 @@ fn checkpointed_unfinished(out: &Path) -> Vec<PathBuf> {
     let root = out.join("runs/lti-paper/ppo");
     let mut found = Vec::new();
     for connection in std::fs::read_dir(root).into_iter().flatten().flatten() {
-        for run in std::fs::read_dir(connection.path())
-            .into_iter()
-            .flatten()
-            .flatten()
-        {
+        for run in std::fs::read_dir(connection.path()).into_iter().flatten().flatten() {
             let dir = run.path();
-            let checkpoints = std::fs::read_dir(dir.join("checkpoints"))
-                .into_iter()
-                .flatten()
-                .flatten()
-                .any(|c| c.path().join("checkpoint.json").is_file());
+            let checkpoints = std::fs::read_dir(dir.join("checkpoints")).into_iter().flatten().flatten().any(|c| c.path().join("checkpoint.json").is_file());
             if checkpoints && !dir.join("summary.json").exists() {
                 found.push(dir);
             }
@@ -105,184 +94,83 @@ fn smoke_study_survives_sigkill_resumes_and_reports_consistently() {
         if !runs.is_empty() && !midway.is_empty() {
             break (runs, midway);
         }
-        assert!(
-            first.try_wait().unwrap().is_none(),
-            "the study exited before finishing a run"
-        );
+        assert!(first.try_wait().unwrap().is_none(), "the study exited before finishing a run");
         assert!(Instant::now() < deadline, "no run finished within 300 s");
         std::thread::sleep(Duration::from_millis(20));
     };
     first.kill().unwrap(); // SIGKILL
     first.wait().unwrap();
-    assert!(
-        before.len() < 4,
-        "all runs finished before the kill; the test needs an interrupted study"
-    );
-    assert!(checkpointed_unfinished(&out)
-        .iter()
-        .all(|d| interrupted.contains(d)));
+    assert!(before.len() < 4, "all runs finished before the kill; the test needs an interrupted study");
+    assert!(checkpointed_unfinished(&out).iter().all(|d| interrupted.contains(d)));
     // Its child runs die with it (nothing left to race with the resumed study).
     let deadline = Instant::now() + Duration::from_secs(20);
     while !processes_mentioning(&out_str).is_empty() {
-        assert!(
-            Instant::now() < deadline,
-            "processes outlived the killed study: {:?}",
-            processes_mentioning(&out_str)
-        );
+        assert!(Instant::now() < deadline, "processes outlived the killed study: {:?}", processes_mentioning(&out_str));
         std::thread::sleep(Duration::from_millis(20));
     }
 
     // The same command resumes: finished runs untouched, the rest completed.
-    let second = lcrl()
-        .args(["experiment", "run"])
-        .arg(smoke())
-        .args(["--out", &out_str, "--jobs", "2"])
-        .output()
-        .unwrap();
-    assert!(
-        second.status.success(),
-        "resumed study failed: {}\n{}",
-        stdout(&second),
-        stderr(&second)
-    );
+    let second = lcrl().args(["experiment", "run"]).arg(smoke()).args(["--out", &out_str, "--jobs", "2"]).output().unwrap();
+    assert!(second.status.success(), "resumed study failed: {}\n{}", stdout(&second), stderr(&second));
     let text = stdout(&second);
     assert!(text.contains("finished before"), "{text}");
     let after = finished_runs(&out);
     assert_eq!(after.len(), 4, "2 connections × 2 seeds");
     for (path, (bytes, modified)) in &before {
-        assert_eq!(
-            &after[path],
-            &(bytes.clone(), *modified),
-            "{} was run again",
-            path.display()
-        );
+        assert_eq!(&after[path], &(bytes.clone(), *modified), "{} was run again", path.display());
     }
     // The interrupted run continued from its checkpoint.
     for dir in &interrupted {
-        let id = dir
-            .strip_prefix(out.join("runs"))
-            .unwrap()
-            .iter()
-            .map(|p| p.to_string_lossy().into_owned())
-            .collect::<Vec<_>>()
-            .join("-");
-        let log =
-            std::fs::read_to_string(out.join("logs").join(format!("train-{id}.log"))).unwrap();
-        assert!(
-            log.contains("resuming from checkpoint"),
-            "{id} started afresh:\n{log}"
-        );
+        let id = dir.strip_prefix(out.join("runs")).unwrap().iter().map(|p| p.to_string_lossy().into_owned()).collect::<Vec<_>>().join("-");
+        let log = std::fs::read_to_string(out.join("logs").join(format!("train-{id}.log"))).unwrap();
+        assert!(log.contains("resuming from checkpoint"), "{id} started afresh:\n{log}");
     }
     for summary in after.keys() {
         let rows = std::fs::read_to_string(summary.with_file_name("metrics.csv")).unwrap();
-        let episodes: Vec<usize> = rows
-            .lines()
-            .skip(1)
-            .map(|l| l.split(',').next().unwrap().parse().unwrap())
-            .collect();
-        assert_eq!(
-            episodes,
-            (1..=150).collect::<Vec<_>>(),
-            "{}: every episode exactly once",
-            summary.display()
-        );
+        let episodes: Vec<usize> = rows.lines().skip(1).map(|l| l.split(',').next().unwrap().parse().unwrap()).collect();
+        assert_eq!(episodes, (1..=150).collect::<Vec<_>>(), "{}: every episode exactly once", summary.display());
     }
 
     // report.json parses and report.md shows its numbers.
-    let report: Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let report: Value = serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     let md = std::fs::read_to_string(out.join("report.md")).unwrap();
     let cells = report["cells"].as_array().unwrap();
     assert_eq!(cells.len(), 2);
     for cell in cells {
         assert_eq!(cell["seeds"], serde_json::json!([0, 1]));
         let connection = cell["connection"].as_str().unwrap();
-        let row = md
-            .lines()
-            .find(|l| l.starts_with(&format!("| {connection} |")))
-            .unwrap_or_else(|| panic!("no row for {connection} in\n{md}"));
-        for key in [
-            "final_return",
-            "eval_return",
-            "optimization_seconds",
-            "total_seconds",
-        ] {
+        let row = md.lines().find(|l| l.starts_with(&format!("| {connection} |"))).unwrap_or_else(|| panic!("no row for {connection} in\n{md}"));
+        for key in ["final_return", "eval_return", "optimization_seconds", "total_seconds"] {
             let e = &cell[key];
-            let shown = format!(
-                "{} [{}, {}]",
-                num(&e["mean"]),
-                num(&e["ci95"][0]),
-                num(&e["ci95"][1])
-            );
+            let shown = format!("{} [{}, {}]", num(&e["mean"]), num(&e["ci95"][0]), num(&e["ci95"][1]));
             assert!(row.contains(&shown), "{key} {shown} not in {row}");
-            let (lo, hi) = (
-                e["ci95"][0].as_f64().unwrap(),
-                e["ci95"][1].as_f64().unwrap(),
-            );
+            let (lo, hi) = (e["ci95"][0].as_f64().unwrap(), e["ci95"][1].as_f64().unwrap());
             assert!(lo <= e["mean"].as_f64().unwrap() && e["mean"].as_f64().unwrap() <= hi);
         }
         let reach = &cell["episodes_to_threshold"];
-        let (reached, censored) = (
-            reach["reached"].as_u64().unwrap(),
-            reach["censored"].as_u64().unwrap(),
-        );
+        let (reached, censored) = (reach["reached"].as_u64().unwrap(), reach["censored"].as_u64().unwrap());
         assert_eq!(reached + censored, 2);
-        assert!(
-            row.contains(&format!("{} [", num(&reach["mean"])))
-                && row.contains(&format!("({censored} of 2 censored)")),
-            "{row}"
-        );
-        assert!(
-            row.contains(&format!("| {} |", num(&cell["graph_seconds"]))),
-            "{row}"
-        );
+        assert!(row.contains(&format!("{} [", num(&reach["mean"]))) && row.contains(&format!("({censored} of 2 censored)")), "{row}");
+        assert!(row.contains(&format!("| {} |", num(&cell["graph_seconds"]))), "{row}");
         let local = connection.starts_with("local");
-        assert_eq!(
-            cell["graph_seconds"].as_f64().unwrap() > 0.0,
-            local,
-            "graph time belongs to local cells only"
-        );
+        assert_eq!(cell["graph_seconds"].as_f64().unwrap() > 0.0, local, "graph time belongs to local cells only");
     }
     let comparisons = report["comparisons"].as_array().unwrap();
-    assert_eq!(
-        comparisons.len(),
-        2,
-        "local − global on final and eval return"
-    );
+    assert_eq!(comparisons.len(), 2, "local − global on final and eval return");
     for c in comparisons {
         let p = c["p_value"].as_f64().unwrap();
         assert!((0.0..=1.0).contains(&p));
-        let row = format!(
-            "| {} − {} | {} | {} | [{}, {}] | {p:.4} |",
-            c["a"].as_str().unwrap(),
-            c["b"].as_str().unwrap(),
-            c["metric"].as_str().unwrap(),
-            num(&c["difference"]),
-            num(&c["ci95"][0]),
-            num(&c["ci95"][1])
-        );
+        let row = format!("| {} − {} | {} | {} | [{}, {}] | {p:.4} |", c["a"].as_str().unwrap(), c["b"].as_str().unwrap(), c["metric"].as_str().unwrap(), num(&c["difference"]), num(&c["ci95"][0]), num(&c["ci95"][1]));
         assert!(md.contains(&row), "{row} not in\n{md}");
     }
     let bar = &report["best_constant"]["lti-paper"];
-    assert!(
-        md.contains(&format!(
-            "| best constant | — | — | {} |",
-            num(&bar["mean_return"])
-        )),
-        "{md}"
-    );
+    assert!(md.contains(&format!("| best constant | — | — | {} |", num(&bar["mean_return"]))), "{md}");
     for png in ["curves.png", "traces.png"] {
         let bytes = std::fs::read(out.join(png)).unwrap();
-        assert!(
-            bytes.starts_with(b"\x89PNG") && bytes.len() > 10_000,
-            "{png}"
-        );
+        assert!(bytes.starts_with(b"\x89PNG") && bytes.len() > 10_000, "{png}");
     }
     // The report is a function of the runs: written again, it is the same.
-    let again = lcrl()
-        .args(["experiment", "report", &out_str])
-        .output()
-        .unwrap();
+    let again = lcrl().args(["experiment", "report", &out_str]).output().unwrap();
     assert!(again.status.success(), "{}", stderr(&again));
     assert_eq!(std::fs::read_to_string(out.join("report.md")).unwrap(), md);
 }
@@ -298,27 +186,13 @@ fn bad_experiments_are_refused_and_finished_runs_kept() {
         std::fs::write(&path, text).unwrap();
         path
     };
-    let run = |file: &Path, out: &Path| {
-        lcrl()
-            .args(["experiment", "run"])
-            .arg(file)
-            .arg("--out")
-            .arg(out)
-            .output()
-            .unwrap()
-    };
+    let run = |file: &Path, out: &Path| lcrl().args(["experiment", "run"]).arg(file).arg("--out").arg(out).output().unwrap();
 
     let unknown = write("unknown.toml", &TINY.replace("\"global\"", "\"glob\""));
-    assert_clean_failure(
-        &run(&unknown, &tmp.path().join("a")),
-        "unknown connection \"glob\"",
-    );
+    assert_clean_failure(&run(&unknown, &tmp.path().join("a")), "unknown connection \"glob\"");
     let zero = write("zero.toml", &TINY.replace("seeds = 1", "seeds = 0"));
     assert_clean_failure(&run(&zero, &tmp.path().join("b")), "`seeds` is zero");
-    assert!(
-        !tmp.path().join("a").exists() && !tmp.path().join("b").exists(),
-        "nothing is written for a bad file"
-    );
+    assert!(!tmp.path().join("a").exists() && !tmp.path().join("b").exists(), "nothing is written for a bad file");
 
     let tiny = write("tiny.toml", TINY);
     let out = tmp.path().join("tiny");
@@ -329,30 +203,16 @@ fn bad_experiments_are_refused_and_finished_runs_kept() {
 
     // Another experiment file into the same folder: refused, nothing lost.
     let other = write("other.toml", &TINY.replace("seeds = 1", "seeds = 2"));
-    assert_clean_failure(
-        &run(&other, &out),
-        "belongs to a different experiment (\"tiny\"",
-    );
+    assert_clean_failure(&run(&other, &out), "belongs to a different experiment (\"tiny\"");
     assert_eq!(finished_runs(&out), finished);
     // The same file again (comments may change): everything is finished.
     let commented = write("tiny-commented.toml", &format!("# the same study\n{TINY}"));
     let again = run(&commented, &out);
-    assert!(
-        again.status.success() && stdout(&again).contains("1 of 1 tasks finished before"),
-        "{}",
-        stdout(&again)
-    );
+    assert!(again.status.success() && stdout(&again).contains("1 of 1 tasks finished before"), "{}", stdout(&again));
     assert_eq!(finished_runs(&out), finished);
     // A folder that holds something else is not taken over.
     assert_clean_failure(&run(&tiny, tmp.path()), "holds no experiment");
-    assert_clean_failure(
-        &lcrl()
-            .args(["experiment", "report"])
-            .arg(tmp.path())
-            .output()
-            .unwrap(),
-        "holds no experiment",
-    );
+    assert_clean_failure(&lcrl().args(["experiment", "report"]).arg(tmp.path()).output().unwrap(), "holds no experiment");
 }
 
 #[test]
@@ -360,41 +220,19 @@ fn kubernetes_job_covers_every_task_and_its_commands_are_accepted() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("k8s");
     let paper = repo().join("experiments/paper.toml");
-    let out = lcrl()
-        .args(["experiment", "k8s"])
-        .arg(&paper)
-        .arg("--out")
-        .arg(&dir)
-        .output()
-        .unwrap();
+    let out = lcrl().args(["experiment", "k8s"]).arg(&paper).arg("--out").arg(&dir).output().unwrap();
     assert!(out.status.success(), "{}", stderr(&out));
 
-    let plan = lcrl()
-        .args(["experiment", "run"])
-        .arg(&paper)
-        .args(["--out", "unused", "--dry-run"])
-        .output()
-        .unwrap();
+    let plan = lcrl().args(["experiment", "run"]).arg(&paper).args(["--out", "unused", "--dry-run"]).output().unwrap();
     let tasks = stdout(&plan).lines().count();
-    assert_eq!(
-        tasks,
-        2 * 2 * 2 * 5 + 2 + 2,
-        "40 runs, 2 graphs, 2 best constants"
-    );
+    assert_eq!(tasks, 2 * 2 * 2 * 5 + 2 + 2, "40 runs, 2 graphs, 2 best constants");
 
     let kustomization = &load_docs(&dir.join("kustomization.yaml"))[0];
     let generator = &seq(kustomization, "configMapGenerator")[0];
     let config_map = str_of(generator, &["name"]);
-    let keys: Vec<&str> = seq(generator, "files")
-        .iter()
-        .map(|f| f.as_str().unwrap())
-        .collect();
+    let keys: Vec<&str> = seq(generator, "files").iter().map(|f| f.as_str().unwrap()).collect();
     for key in &keys {
-        assert_eq!(
-            std::fs::read(dir.join(key)).unwrap(),
-            std::fs::read(&paper).unwrap(),
-            "{key} is the experiment file"
-        );
+        assert_eq!(std::fs::read(dir.join(key)).unwrap(), std::fs::read(&paper).unwrap(), "{key} is the experiment file");
     }
     let build_script = std::fs::read_to_string(repo().join("deploy/build-image.sh")).unwrap();
     let mut docs: Vec<serde_yaml::Value> = Vec::new();
@@ -402,113 +240,51 @@ fn kubernetes_job_covers_every_task_and_its_commands_are_accepted() {
         docs.extend(load_docs(&dir.join(resource.as_str().unwrap())));
     }
     let report_docs = load_docs(&dir.join("report-job.yaml"));
-    let claims: Vec<&str> = docs
-        .iter()
-        .filter(|d| d["kind"].as_str() == Some("PersistentVolumeClaim"))
-        .map(|d| str_of(d, &["metadata", "name"]))
-        .collect();
-    let jobs: Vec<&serde_yaml::Value> = docs
-        .iter()
-        .chain(&report_docs)
-        .filter(|d| d["kind"].as_str() == Some("Job"))
-        .collect();
+    let claims: Vec<&str> = docs.iter().filter(|d| d["kind"].as_str() == Some("PersistentVolumeClaim")).map(|d| str_of(d, &["metadata", "name"])).collect();
+    let jobs: Vec<&serde_yaml::Value> = docs.iter().chain(&report_docs).filter(|d| d["kind"].as_str() == Some("Job")).collect();
     assert_eq!(jobs.len(), 2, "the Indexed Job and the report Job");
     let data = tmp.path().join("data");
     for job in jobs {
         let name = str_of(job, &["metadata", "name"]);
         let pod = &job["spec"]["template"]["spec"];
-        let volumes: BTreeMap<&str, &serde_yaml::Value> = seq(pod, "volumes")
-            .into_iter()
-            .map(|v| (str_of(v, &["name"]), v))
-            .collect();
+        let volumes: BTreeMap<&str, &serde_yaml::Value> = seq(pod, "volumes").into_iter().map(|v| (str_of(v, &["name"]), v)).collect();
         for volume in volumes.values() {
             if let Some(cm) = volume["configMap"]["name"].as_str() {
                 assert_eq!(cm, config_map, "{name}: ConfigMap");
             }
             if let Some(claim) = volume["persistentVolumeClaim"]["claimName"].as_str() {
-                assert!(
-                    claims.contains(&claim),
-                    "{name}: claim {claim} is not declared"
-                );
+                assert!(claims.contains(&claim), "{name}: claim {claim} is not declared");
             }
         }
         let container = seq(pod, "containers")[0];
         let image = str_of(container, &["image"]);
-        assert!(
-            build_script.contains(&format!("tag=\"${{1:-{image}}}\"")),
-            "{name}: image {image} is not the one build-image.sh builds"
-        );
+        assert!(build_script.contains(&format!("tag=\"${{1:-{image}}}\"")), "{name}: image {image} is not the one build-image.sh builds");
         // Mount paths, to map the pod's paths onto this machine's.
         let mut mounts: BTreeMap<String, PathBuf> = BTreeMap::new();
         for mount in seq(container, "volumeMounts") {
-            let volume = volumes
-                .get(str_of(mount, &["name"]))
-                .unwrap_or_else(|| panic!("{name}: mounts an undeclared volume"));
-            let local = if volume["configMap"].is_mapping() {
-                dir.clone()
-            } else {
-                data.clone()
-            };
+            let volume = volumes.get(str_of(mount, &["name"])).unwrap_or_else(|| panic!("{name}: mounts an undeclared volume"));
+            let local = if volume["configMap"].is_mapping() { dir.clone() } else { data.clone() };
             mounts.insert(str_of(mount, &["mountPath"]).to_string(), local);
         }
         let args: Vec<String> = seq(container, "args")
             .iter()
             .map(|a| {
                 let a = a.as_str().unwrap();
-                mounts
-                    .iter()
-                    .find_map(|(path, local)| {
-                        a.strip_prefix(path.as_str())
-                            .map(|rest| format!("{}{rest}", local.display()))
-                    })
-                    .unwrap_or(a.to_string())
+                mounts.iter().find_map(|(path, local)| a.strip_prefix(path.as_str()).map(|rest| format!("{}{rest}", local.display()))).unwrap_or(a.to_string())
             })
             .collect();
         if job["spec"]["completionMode"].as_str() == Some("Indexed") {
-            assert_eq!(
-                job["spec"]["completions"].as_u64(),
-                Some(tasks as u64),
-                "{name}: one index per task"
-            );
+            assert_eq!(job["spec"]["completions"].as_u64(), Some(tasks as u64), "{name}: one index per task");
             let file = PathBuf::from(&args[2]);
-            assert!(
-                keys.contains(&file.file_name().unwrap().to_str().unwrap()),
-                "{name}: reads {} which the ConfigMap lacks",
-                file.display()
-            );
+            assert!(keys.contains(&file.file_name().unwrap().to_str().unwrap()), "{name}: reads {} which the ConfigMap lacks", file.display());
             // Kubernetes gives each pod its index in JOB_COMPLETION_INDEX.
-            let last = lcrl()
-                .args(&args)
-                .arg("--dry-run")
-                .env("JOB_COMPLETION_INDEX", (tasks - 1).to_string())
-                .output()
-                .unwrap();
+            let last = lcrl().args(&args).arg("--dry-run").env("JOB_COMPLETION_INDEX", (tasks - 1).to_string()).output().unwrap();
             assert!(last.status.success(), "{}", stderr(&last));
-            assert!(
-                stdout(&last).starts_with("lcrl tune --env peg-group2"),
-                "{}",
-                stdout(&last)
-            );
-            let local_run = lcrl()
-                .args(&args)
-                .args(["--dry-run", "--index", "2"])
-                .output()
-                .unwrap();
+            assert!(stdout(&last).starts_with("lcrl tune --env peg-group2"), "{}", stdout(&last));
+            let local_run = lcrl().args(&args).args(["--dry-run", "--index", "2"]).output().unwrap();
             let commands = stdout(&local_run);
-            assert!(
-                commands
-                    .lines()
-                    .next()
-                    .unwrap()
-                    .starts_with("lcrl graph --env peg-group1")
-                    && commands.contains("lcrl train --env peg-group1"),
-                "a local run builds its graph first if needed: {commands}"
-            );
-            let beyond = lcrl()
-                .args(&args)
-                .args(["--dry-run", "--index", &tasks.to_string()])
-                .output()
-                .unwrap();
+            assert!(commands.lines().next().unwrap().starts_with("lcrl graph --env peg-group1") && commands.contains("lcrl train --env peg-group1"), "a local run builds its graph first if needed: {commands}");
+            let beyond = lcrl().args(&args).args(["--dry-run", "--index", &tasks.to_string()]).output().unwrap();
             assert_clean_failure(&beyond, "out of range");
         } else {
             assert_eq!(&args[..2], ["experiment", "report"]);

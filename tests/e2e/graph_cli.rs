@@ -9,25 +9,12 @@ use super::common::{assert_clean_failure, lcrl, stdout};
 fn graph_json(dir: &tempfile::TempDir, name: &str, extra: &[&str]) -> Value {
     let path = dir.path().join(name);
     let out = lcrl()
-        .args([
-            "graph",
-            "--env",
-            "lti-paper",
-            "--samples",
-            "64",
-            "--seed",
-            "4",
-            "--out",
-        ])
+        .args(["graph", "--env", "lti-paper", "--samples", "64", "--seed", "4", "--out"])
         .arg(&path)
         .args(extra)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     serde_json::from_str(&fs::read_to_string(&path).unwrap()).unwrap()
 }
 
@@ -42,50 +29,23 @@ fn prints_table_and_writes_json_and_heatmap() {
         .arg(&png)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let table = stdout(&out);
-    assert!(
-        table.contains("a2") && table.contains("s3") && table.contains("a1 [1, 0, 0]"),
-        "{table}"
-    );
-    assert!(
-        table.contains("a2 [1, 1, 0]") && table.contains("a3 [0, 0, 1]"),
-        "{table}"
-    );
+    assert!(table.contains("a2") && table.contains("s3") && table.contains("a1 [1, 0, 0]"), "{table}");
+    assert!(table.contains("a2 [1, 1, 0]") && table.contains("a3 [0, 0, 1]"), "{table}");
 
     let v: Value = serde_json::from_str(&fs::read_to_string(&json).unwrap()).unwrap();
-    for key in [
-        "env",
-        "state_names",
-        "action_names",
-        "samples",
-        "threshold",
-        "seed",
-        "phi",
-        "phi_normalized",
-        "g",
-        "stability",
-        "elapsed_s",
-    ] {
+    for key in ["env", "state_names", "action_names", "samples", "threshold", "seed", "phi", "phi_normalized", "g", "stability", "elapsed_s"] {
         assert!(v.get(key).is_some(), "graph.json lacks {key}");
     }
     assert_eq!(v["g"], serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]]));
     assert_eq!(v["threshold"], serde_json::json!(0.1));
     assert_eq!(v["samples"], serde_json::json!(32));
-    let column_sum: f64 = (0..3)
-        .map(|i| v["phi_normalized"][i][1].as_f64().unwrap())
-        .sum();
+    let column_sum: f64 = (0..3).map(|i| v["phi_normalized"][i][1].as_f64().unwrap()).sum();
     assert!((column_sum - 1.0).abs() < 1e-12);
 
     let bytes = fs::read(&png).unwrap();
-    assert!(
-        bytes.starts_with(b"\x89PNG") && bytes.len() > 2000,
-        "not a real PNG"
-    );
+    assert!(bytes.starts_with(b"\x89PNG") && bytes.len() > 2000, "not a real PNG");
     // No temporary files left next to the outputs.
     assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 2);
 }
@@ -113,63 +73,26 @@ fn lti_file_is_loaded() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("chain.toml");
     // s1' = s2, s2' = a1: a1 reaches s1 one step later; a2 moves nothing.
-    fs::write(
-        &file,
-        "kind = \"lti\"\ne = [[0.0, 1.0], [0.0, 0.0]]\nf = [[0.0, 0.0], [1.0, 0.0]]\n",
-    )
-    .unwrap();
-    let out = lcrl()
-        .args(["graph", "--samples", "16", "--exact", "--env"])
-        .arg(&file)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    fs::write(&file, "kind = \"lti\"\ne = [[0.0, 1.0], [0.0, 0.0]]\nf = [[0.0, 0.0], [1.0, 0.0]]\n").unwrap();
+    let out = lcrl().args(["graph", "--samples", "16", "--exact", "--env"]).arg(&file).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let table = stdout(&out);
-    assert!(
-        table.contains("a1 [1, 1]") && table.contains("a2 [0, 0]"),
-        "{table}"
-    );
+    assert!(table.contains("a1 [1, 1]") && table.contains("a2 [0, 0]"), "{table}");
 }
 
 #[test]
 fn bad_input_fails_with_one_clear_line() {
     let dir = tempfile::tempdir().unwrap();
     let run = |args: &[&str]| lcrl().arg("graph").args(args).output().unwrap();
-    assert_clean_failure(
-        &run(&["--env", "no-such-env"]),
-        "unknown environment 'no-such-env'",
-    );
-    assert_clean_failure(
-        &run(&["--env", "lti-paper", "--samples", "0"]),
-        "at least 1",
-    );
-    assert_clean_failure(
-        &run(&["--env", "lti-paper", "--threshold", "0"]),
-        "--threshold",
-    );
-    assert_clean_failure(
-        &run(&["--env", "lti-paper", "--threshold", "-0.5"]),
-        "--threshold",
-    );
-    assert_clean_failure(
-        &run(&["--env", "lti-paper", "--threshold", "NaN"]),
-        "--threshold",
-    );
-    assert_clean_failure(
-        &run(&["--env", "lti-paper", "--out", "/nonexistent-dir/g.json"]),
-        "/nonexistent-dir/g.json",
-    );
+    assert_clean_failure(&run(&["--env", "no-such-env"]), "unknown environment 'no-such-env'");
+    assert_clean_failure(&run(&["--env", "lti-paper", "--samples", "0"]), "at least 1");
+    assert_clean_failure(&run(&["--env", "lti-paper", "--threshold", "0"]), "--threshold");
+    assert_clean_failure(&run(&["--env", "lti-paper", "--threshold", "-0.5"]), "--threshold");
+    assert_clean_failure(&run(&["--env", "lti-paper", "--threshold", "NaN"]), "--threshold");
+    assert_clean_failure(&run(&["--env", "lti-paper", "--out", "/nonexistent-dir/g.json"]), "/nonexistent-dir/g.json");
 
     let bad = dir.path().join("bad.toml");
-    fs::write(
-        &bad,
-        "kind = \"lti\"\ne = [[1.0, 0.0], [0.0]]\nf = [[1.0], [1.0]]\n",
-    )
-    .unwrap();
+    fs::write(&bad, "kind = \"lti\"\ne = [[1.0, 0.0], [0.0]]\nf = [[1.0], [1.0]]\n").unwrap();
     assert_clean_failure(&run(&["--env", bad.to_str().unwrap()]), "`e`");
     fs::write(&bad, "kind = \"lti\"\ne = [[1.0]\n").unwrap();
     assert_clean_failure(&run(&["--env", bad.to_str().unwrap()]), "bad.toml");
@@ -180,11 +103,7 @@ fn failed_run_keeps_an_existing_output_file() {
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("g.json");
     fs::write(&json, "previous result").unwrap();
-    let out = lcrl()
-        .args(["graph", "--env", "no-such-env", "--out"])
-        .arg(&json)
-        .output()
-        .unwrap();
+    let out = lcrl().args(["graph", "--env", "no-such-env", "--out"]).arg(&json).output().unwrap();
     assert!(!out.status.success());
     assert_eq!(fs::read_to_string(&json).unwrap(), "previous result");
 }
@@ -194,26 +113,13 @@ fn threshold_sweep_lists_each_g_its_edges_flips_and_margins() {
     let dir = tempfile::tempdir().unwrap();
     let (json, png) = (dir.path().join("g.json"), dir.path().join("g.png"));
     let out = lcrl()
-        .args([
-            "graph",
-            "--env",
-            "lti-paper",
-            "--samples",
-            "32",
-            "--thresholds",
-            "0.1,0.6,2.0",
-            "--out",
-        ])
+        .args(["graph", "--env", "lti-paper", "--samples", "32", "--thresholds", "0.1,0.6,2.0", "--out"])
         .arg(&json)
         .arg("--plot")
         .arg(&png)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let text = stdout(&out);
     let v: Value = serde_json::from_str(&fs::read_to_string(&json).unwrap()).unwrap();
     // The first T is the graph's own.
@@ -223,19 +129,9 @@ fn threshold_sweep_lists_each_g_its_edges_flips_and_margins() {
     assert_eq!(sweep.len(), 3);
     for entry in sweep {
         let g = entry["g"].as_array().unwrap();
-        let ones = g
-            .iter()
-            .flat_map(|r| r.as_array().unwrap())
-            .filter(|x| x.as_u64() == Some(1))
-            .count();
+        let ones = g.iter().flat_map(|r| r.as_array().unwrap()).filter(|x| x.as_u64() == Some(1)).count();
         assert_eq!(entry["edges"].as_u64().unwrap() as usize, ones);
-        assert!(
-            text.contains(&format!(
-                "T = {}: {ones} of 9 edges",
-                entry["threshold"].as_f64().unwrap()
-            )),
-            "{text}"
-        );
+        assert!(text.contains(&format!("T = {}: {ones} of 9 edges", entry["threshold"].as_f64().unwrap())), "{text}");
     }
     assert_eq!(sweep[0]["g"], v["g"]);
     // Edges only disappear as T grows, and each kept edge's margin is ≥ 1
@@ -245,16 +141,8 @@ fn threshold_sweep_lists_each_g_its_edges_flips_and_margins() {
     for entry in sweep {
         for i in 0..3 {
             for j in 0..3 {
-                let (g, margin) = (
-                    entry["g"][i][j].as_u64().unwrap(),
-                    entry["margin"][i][j].as_f64().unwrap(),
-                );
-                assert_eq!(
-                    g == 1,
-                    margin >= 1.0,
-                    "T {}: ({i},{j}) margin {margin}",
-                    entry["threshold"]
-                );
+                let (g, margin) = (entry["g"][i][j].as_u64().unwrap(), entry["margin"][i][j].as_f64().unwrap());
+                assert_eq!(g == 1, margin >= 1.0, "T {}: ({i},{j}) margin {margin}", entry["threshold"]);
             }
         }
     }
@@ -273,9 +161,6 @@ fn trajectory_start_on_a_linear_system_keeps_lemma1_and_bad_sweeps_fail() {
     assert_eq!(v["start"], serde_json::json!("trajectory"));
     // Lemma 1 does not depend on s_0: the graph is the same.
     assert_eq!(v["g"], serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]]));
-    let out = lcrl()
-        .args(["graph", "--env", "lti-paper", "--thresholds", "0.1,-1"])
-        .output()
-        .unwrap();
+    let out = lcrl().args(["graph", "--env", "lti-paper", "--thresholds", "0.1,-1"]).output().unwrap();
     assert_clean_failure(&out, "--threshold must be a finite number above 0");
 }

@@ -27,43 +27,22 @@ impl Drop for Server {
 
 fn start(samples: &str) -> Server {
     let mut child = workspace_bin("lcrl-graph-builder")
-        .args([
-            "--env",
-            "lti-paper",
-            "--samples",
-            samples,
-            "--listen",
-            "127.0.0.1:0",
-        ])
+        .args(["--env", "lti-paper", "--samples", samples, "--listen", "127.0.0.1:0"])
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
     // The server prints its address once the port is bound.
     let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let addr = line
-        .trim()
-        .strip_prefix("listening on ")
-        .unwrap_or_else(|| panic!("unexpected first line {line:?}"));
-    Server {
-        url: format!("http://{addr}"),
-        child,
-    }
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let addr = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("unexpected first line {line:?}"));
+    Server { url: format!("http://{addr}"), child }
 }
 
 async fn health(url: &str, service: &str) -> ServingStatus {
-    let channel = tonic::transport::Channel::from_shared(url.to_string())
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
+    let channel = tonic::transport::Channel::from_shared(url.to_string()).unwrap().connect().await.unwrap();
     let mut client = HealthClient::new(channel);
-    let request = HealthCheckRequest {
-        service: service.into(),
-    };
+    let request = HealthCheckRequest { service: service.into() };
     let status = client.check(request).await.unwrap().into_inner().status;
     ServingStatus::try_from(status).unwrap()
 }
@@ -73,34 +52,19 @@ async fn serves_the_graph_and_health_once_built() {
     let server = start("64");
     let deadline = Instant::now() + Duration::from_secs(60);
     while health(&server.url, "lcrl.v1.Graph").await != ServingStatus::Serving {
-        assert!(
-            Instant::now() < deadline,
-            "graph builder never became healthy"
-        );
+        assert!(Instant::now() < deadline, "graph builder never became healthy");
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     assert_eq!(health(&server.url, "").await, ServingStatus::Serving);
     let mut client = GraphClient::connect(server.url.clone()).await.unwrap();
-    let graph = client
-        .get_graph(GetGraphRequest {})
-        .await
-        .unwrap()
-        .into_inner();
+    let graph = client.get_graph(GetGraphRequest {}).await.unwrap().into_inner();
     assert_eq!((graph.actions, graph.states), (3, 3));
     assert_eq!(graph.g, vec![1, 0, 0, 1, 1, 0, 0, 0, 1]);
     assert_eq!(graph.state_names, vec!["s1", "s2", "s3"]);
     assert_eq!(graph.samples, 64);
     // WatchGraph delivers the built graph at once.
-    let mut watch = client
-        .watch_graph(lcrl_proto::v1::WatchGraphRequest {})
-        .await
-        .unwrap()
-        .into_inner();
-    let first = tokio::time::timeout(Duration::from_secs(10), watch.message())
-        .await
-        .unwrap()
-        .unwrap()
-        .unwrap();
+    let mut watch = client.watch_graph(lcrl_proto::v1::WatchGraphRequest {}).await.unwrap().into_inner();
+    let first = tokio::time::timeout(Duration::from_secs(10), watch.message()).await.unwrap().unwrap().unwrap();
     assert_eq!(first.g, graph.g);
 }
 
@@ -112,17 +76,11 @@ async fn unavailable_and_not_serving_while_building() {
     let mut client = GraphClient::connect(server.url.clone()).await.unwrap();
     let status = client.get_graph(GetGraphRequest {}).await.unwrap_err();
     assert_eq!(status.code(), tonic::Code::Unavailable, "{status:?}");
-    assert_eq!(
-        health(&server.url, "lcrl.v1.Graph").await,
-        ServingStatus::NotServing
-    );
+    assert_eq!(health(&server.url, "lcrl.v1.Graph").await, ServingStatus::NotServing);
 }
 
 #[test]
 fn bad_arguments_exit_before_serving() {
-    let out = workspace_bin("lcrl-graph-builder")
-        .args(["--env", "nope", "--listen", "127.0.0.1:0"])
-        .output()
-        .unwrap();
+    let out = workspace_bin("lcrl-graph-builder").args(["--env", "nope", "--listen", "127.0.0.1:0"]).output().unwrap();
     super::common::assert_clean_failure(&out, "unknown environment 'nope'");
 }

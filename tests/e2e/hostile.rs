@@ -54,30 +54,17 @@ impl Decoder for RawCodec {
 
 fn rss_kib(pid: u32) -> u64 {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.split_whitespace().next()?.parse().ok())
-        .unwrap()
+    status.lines().find_map(|l| l.strip_prefix("VmRSS:")).and_then(|v| v.split_whitespace().next()?.parse().ok()).unwrap()
 }
 
 async fn status(url: &str, security: &ClientSecurity) -> LearnerStatus {
     let mut client = LearnerClient::new(security.connect(url).await.unwrap());
-    client
-        .get_status(GetStatusRequest {})
-        .await
-        .unwrap()
-        .into_inner()
+    client.get_status(GetStatusRequest {}).await.unwrap().into_inner()
 }
 
 /// Sends `batches` on one stream; the first refusal's status code.
-async fn send_all(
-    url: &str,
-    security: &ClientSecurity,
-    batches: Vec<TransitionBatch>,
-) -> Option<tonic::Code> {
-    let mut client =
-        LearnerClient::new(security.connect(url).await.ok()?).max_encoding_message_size(64 << 20);
+async fn send_all(url: &str, security: &ClientSecurity, batches: Vec<TransitionBatch>) -> Option<tonic::Code> {
+    let mut client = LearnerClient::new(security.connect(url).await.ok()?).max_encoding_message_size(64 << 20);
     match client.stream_transitions(tokio_stream::iter(batches)).await {
         Err(status) => Some(status.code()),
         Ok(response) => {
@@ -97,27 +84,11 @@ async fn send_garbage(url: &str, security: &ClientSecurity) -> Option<tonic::Cod
     let channel = security.connect(url).await.ok()?;
     let mut grpc = tonic::client::Grpc::new(channel);
     grpc.ready().await.ok()?;
-    let garbage = vec![
-        vec![0xff_u8; 64],
-        b"\x0a\xff\xff\xff\xff\xff\xff\xff\xff\xff\xff".to_vec(),
-    ];
-    let path =
-        tonic::codegen::http::uri::PathAndQuery::from_static("/lcrl.v1.Learner/StreamTransitions");
-    match grpc
-        .streaming(
-            tonic::Request::new(tokio_stream::iter(garbage)),
-            path,
-            RawCodec,
-        )
-        .await
-    {
+    let garbage = vec![vec![0xff_u8; 64], b"\x0a\xff\xff\xff\xff\xff\xff\xff\xff\xff\xff".to_vec()];
+    let path = tonic::codegen::http::uri::PathAndQuery::from_static("/lcrl.v1.Learner/StreamTransitions");
+    match grpc.streaming(tonic::Request::new(tokio_stream::iter(garbage)), path, RawCodec).await {
         Err(status) => Some(status.code()),
-        Ok(response) => response
-            .into_inner()
-            .message()
-            .await
-            .err()
-            .map(|s| s.code()),
+        Ok(response) => response.into_inner().message().await.err().map(|s| s.code()),
     }
 }
 
@@ -132,26 +103,12 @@ async fn hostile_streams_are_refused_and_counted_while_actors_train() {
     let token_flag = token.display().to_string();
     let metrics_port = free_port();
     let metrics_flag = format!("127.0.0.1:{metrics_port}");
-    let (learner, url) = learner_with_args(
-        &dir.path().join("run"),
-        "load",
-        port,
-        "ddpg",
-        &[
-            "--token-file",
-            &token_flag,
-            "--metrics-listen",
-            &metrics_flag,
-        ],
-    );
+    let (learner, url) = learner_with_args(&dir.path().join("run"), "load", port, "ddpg", &["--token-file", &token_flag, "--metrics-listen", &metrics_flag]);
     let good = ClientSecurity::new(None, None, Some(&token)).unwrap();
     let _actor = actor_with_args(&url, "load", &["--token-file", &token_flag]);
     let deadline = std::time::Instant::now() + Duration::from_secs(60);
     while status(&url, &good).await.env_steps < 300 {
-        assert!(
-            std::time::Instant::now() < deadline,
-            "the actor never trained"
-        );
+        assert!(std::time::Instant::now() < deadline, "the actor never trained");
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
     let rss_before = rss_kib(learner.0.id());
@@ -164,18 +121,12 @@ async fn hostile_streams_are_refused_and_counted_while_actors_train() {
     let wrong_token = ClientSecurity::new(None, None, Some(&wrong)).unwrap();
     let attack_started = std::time::Instant::now();
     let mut waves = 0u64;
-    let mut outcomes: std::collections::BTreeMap<&str, Vec<Option<tonic::Code>>> =
-        Default::default();
+    let mut outcomes: std::collections::BTreeMap<&str, Vec<Option<tonic::Code>>> = Default::default();
     let mut progressed = false;
-    while waves == 0
-        || attack_started.elapsed() < Duration::from_secs(4)
-        || (!progressed && attack_started.elapsed() < Duration::from_secs(60))
-    {
+    while waves == 0 || attack_started.elapsed() < Duration::from_secs(4) || (!progressed && attack_started.elapsed() < Duration::from_secs(60)) {
         waves += 1;
         let mut tasks = tokio::task::JoinSet::new();
-        let mut spawn = |what: &'static str,
-                         security: &ClientSecurity,
-                         batches: Option<Vec<TransitionBatch>>| {
+        let mut spawn = |what: &'static str, security: &ClientSecurity, batches: Option<Vec<TransitionBatch>>| {
             let (url, security) = (url.clone(), security.clone());
             tasks.spawn(async move {
                 let code = match batches {
@@ -186,43 +137,18 @@ async fn hostile_streams_are_refused_and_counted_while_actors_train() {
             });
         };
         for k in 0..30u64 {
-            spawn(
-                "unknown_run",
-                &good,
-                Some(vec![batch("someone-else", k, 3, 0.5); 3]),
-            );
+            spawn("unknown_run", &good, Some(vec![batch("someone-else", k, 3, 0.5); 3]));
         }
         for k in 0..10u64 {
-            spawn(
-                "non_finite",
-                &good,
-                Some(vec![batch("load", 1_000_000 + k, 3, f32::NAN)]),
-            );
-            spawn(
-                "dimensions",
-                &good,
-                Some(vec![batch("load", 2_000_000 + k, 7, 0.5)]),
-            );
+            spawn("non_finite", &good, Some(vec![batch("load", 1_000_000 + k, 3, f32::NAN)]));
+            spawn("dimensions", &good, Some(vec![batch("load", 2_000_000 + k, 7, 0.5)]));
         }
         for _ in 0..4 {
             // 17 MB: over the learner's 16 MB message limit.
-            let huge = TransitionBatch {
-                transitions: vec![
-                    Transition {
-                        state: vec![0.5; 1 << 20],
-                        ..Default::default()
-                    };
-                    4
-                ],
-                ..batch("load", 3_000_000, 3, 0.5)
-            };
+            let huge = TransitionBatch { transitions: vec![Transition { state: vec![0.5; 1 << 20], ..Default::default() }; 4], ..batch("load", 3_000_000, 3, 0.5) };
             spawn("oversize", &good, Some(vec![huge]));
             spawn("undecodable", &good, None);
-            spawn(
-                "wrong_token",
-                &wrong_token,
-                Some(vec![batch("load", 4_000_000, 3, 0.5)]),
-            );
+            spawn("wrong_token", &wrong_token, Some(vec![batch("load", 4_000_000, 3, 0.5)]));
         }
         drop(spawn);
         while let Some(done) = tasks.join_next().await {
@@ -241,53 +167,27 @@ async fn hostile_streams_are_refused_and_counted_while_actors_train() {
         ("wrong_token", tonic::Code::Unauthenticated),
     ];
     for (what, code) in expected {
-        assert!(
-            outcomes[what].iter().all(|c| *c == Some(code)),
-            "{what}: {:?}",
-            outcomes[what]
-        );
+        assert!(outcomes[what].iter().all(|c| *c == Some(code)), "{what}: {:?}", outcomes[what]);
     }
     let after = status(&url, &good).await;
-    for (reason, at_least) in [
-        ("unknown_run", 30 * 4),
-        ("non_finite", 10 * 4),
-        ("dimensions", 10 * 4),
-        ("oversize", 4),
-        ("undecodable", 4),
-    ] {
-        assert!(
-            after.rejected.get(reason).copied().unwrap_or(0) >= at_least * waves,
-            "{reason} after {waves} waves: {:?}",
-            after.rejected
-        );
+    for (reason, at_least) in [("unknown_run", 30 * 4), ("non_finite", 10 * 4), ("dimensions", 10 * 4), ("oversize", 4), ("undecodable", 4)] {
+        assert!(after.rejected.get(reason).copied().unwrap_or(0) >= at_least * waves, "{reason} after {waves} waves: {:?}", after.rejected);
     }
-    assert!(
-        after.unauthenticated["wrong_token"] >= 4 * waves,
-        "{:?}",
-        after.unauthenticated
-    );
+    assert!(after.unauthenticated["wrong_token"] >= 4 * waves, "{:?}", after.unauthenticated);
     // The same counts in /metrics.
     let text = scrape(metrics_port);
-    let value = |series: &str| {
-        sample(&text, series).unwrap_or_else(|| panic!("{series} missing from\n{text}"))
-    };
+    let value = |series: &str| sample(&text, series).unwrap_or_else(|| panic!("{series} missing from\n{text}"));
     assert!(value("lcrl_learner_unauthenticated_total{reason=\"wrong_token\"}") >= 4.0);
     assert!(value("lcrl_learner_transitions_rejected_total{reason=\"oversize\"}") >= 4.0);
     // The actor trained through the attack, and goes on after it.
     assert!(after.env_steps > steps_before, "the actor's steps went {steps_before} → {} during {attack_seconds:.1} s of attack ({waves} waves)", after.env_steps);
     let deadline = std::time::Instant::now() + Duration::from_secs(30);
     while status(&url, &good).await.env_steps < after.env_steps + 200 {
-        assert!(
-            std::time::Instant::now() < deadline,
-            "the actor stopped training after the attack"
-        );
+        assert!(std::time::Instant::now() < deadline, "the actor stopped training after the attack");
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
     let grown_mib = rss_kib(learner.0.id()).saturating_sub(rss_before) / 1024;
-    assert!(
-        grown_mib < 256,
-        "the learner grew by {grown_mib} MiB under the attack"
-    );
+    assert!(grown_mib < 256, "the learner grew by {grown_mib} MiB under the attack");
 }
 
 /// A graph builder that serves a malformed graph: G one entry short of the
@@ -298,24 +198,12 @@ struct ShortGraph;
 impl lcrl_proto::v1::graph_server::Graph for ShortGraph {
     type WatchGraphStream = tokio_stream::Empty<Result<lcrl_proto::v1::ConnectionGraph, Status>>;
 
-    async fn get_graph(
-        &self,
-        _: tonic::Request<lcrl_proto::v1::GetGraphRequest>,
-    ) -> Result<tonic::Response<lcrl_proto::v1::ConnectionGraph>, Status> {
-        let graph = lcrl_proto::v1::ConnectionGraph {
-            env: "lti-paper".into(),
-            actions: 3,
-            states: 3,
-            g: vec![1, 0, 0, 1, 1, 0, 0, 0],
-            ..Default::default()
-        };
+    async fn get_graph(&self, _: tonic::Request<lcrl_proto::v1::GetGraphRequest>) -> Result<tonic::Response<lcrl_proto::v1::ConnectionGraph>, Status> {
+        let graph = lcrl_proto::v1::ConnectionGraph { env: "lti-paper".into(), actions: 3, states: 3, g: vec![1, 0, 0, 1, 1, 0, 0, 0], ..Default::default() };
         Ok(tonic::Response::new(graph))
     }
 
-    async fn watch_graph(
-        &self,
-        _: tonic::Request<lcrl_proto::v1::WatchGraphRequest>,
-    ) -> Result<tonic::Response<Self::WatchGraphStream>, Status> {
+    async fn watch_graph(&self, _: tonic::Request<lcrl_proto::v1::WatchGraphRequest>) -> Result<tonic::Response<Self::WatchGraphStream>, Status> {
         Ok(tonic::Response::new(tokio_stream::empty()))
     }
 }
@@ -335,30 +223,11 @@ async fn a_malformed_graph_from_a_graph_builder_is_refused() {
     let work = tempfile::tempdir().unwrap();
     let run_dir = work.path().join("learner");
     let mut learner = super::common::workspace_bin("lcrl-learner");
-    learner.args([
-        "--env",
-        "lti-paper",
-        "--algo",
-        "ddpg",
-        "--connection",
-        "local",
-        "--listen",
-        "127.0.0.1:0",
-        "--graph-timeout",
-        "20",
-        "--graph-builder",
-        &url,
-    ]);
+    learner.args(["--env", "lti-paper", "--algo", "ddpg", "--connection", "local", "--listen", "127.0.0.1:0", "--graph-timeout", "20", "--graph-builder", &url]);
     learner.arg("--run-dir").arg(&run_dir);
     // Waited for off the runtime's thread, which serves the graph meanwhile.
-    let out = tokio::task::spawn_blocking(move || learner.output())
-        .await
-        .unwrap()
-        .unwrap();
+    let out = tokio::task::spawn_blocking(move || learner.output()).await.unwrap().unwrap();
     server.abort();
     super::common::assert_clean_failure(&out, "G has 8 entries but a 3×3 graph needs 9");
-    assert!(
-        !run_dir.join("checkpoints").exists(),
-        "no training started on the malformed graph"
-    );
+    assert!(!run_dir.join("checkpoints").exists(), "no training started on the malformed graph");
 }

@@ -24,89 +24,27 @@ fn run_on_the_linear_preset_finishes_with_every_artifact_and_no_leftovers() {
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
     let preset = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/lti-paper.toml");
-    let out = lcrl()
-        .args(["run", "--episodes", "300", "--config"])
-        .arg(&preset)
-        .arg("--run-dir")
-        .arg(&run)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = lcrl().args(["run", "--episodes", "300", "--config"]).arg(&preset).arg("--run-dir").arg(&run).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(stdout(&out).contains("results in"), "{}", stdout(&out));
-    let graph: serde_json::Value =
-        serde_json::from_str(&fs::read_to_string(run.join("graph.json")).unwrap()).unwrap();
-    assert_eq!(
-        graph["g"],
-        serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]])
-    );
+    let graph: serde_json::Value = serde_json::from_str(&fs::read_to_string(run.join("graph.json")).unwrap()).unwrap();
+    assert_eq!(graph["g"], serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]]));
     let metrics = fs::read_to_string(run.join("learner/metrics.csv")).unwrap();
-    assert!(
-        metrics.lines().count() > 300,
-        "{} rows",
-        metrics.lines().count()
-    );
+    assert!(metrics.lines().count() > 300, "{} rows", metrics.lines().count());
     // The same columns as `lcrl train`'s metrics.csv (learner/src/run_files.rs).
-    assert_eq!(
-        metrics.lines().next().unwrap(),
-        lcrl_learner::run_files::METRICS_COLUMNS.join(",")
-    );
-    assert!(metrics
-        .lines()
-        .nth(1)
-        .unwrap()
-        .split(',')
-        .nth(1)
-        .unwrap()
-        .parse::<f64>()
-        .is_ok());
-    assert_eq!(
-        super::train_cli::tensorboard_returns(&run.join("learner")).len(),
-        metrics.lines().count() - 1,
-        "TensorBoard has every episode"
-    );
-    let checkpoint = lcrl_learner::checkpoint::latest_checkpoint(&run.join("learner"))
-        .expect("a final checkpoint");
-    assert!(
-        lcrl_learner::checkpoint::read_meta(&checkpoint)
-            .unwrap()
-            .episode
-            >= 300
-    );
-    for file in [
-        "config.toml",
-        "train.toml",
-        "graph.png",
-        "reward_curve.png",
-        "logs/learner.log",
-        "logs/actor-0.log",
-        "logs/graph-builder.log",
-    ] {
+    assert_eq!(metrics.lines().next().unwrap(), lcrl_learner::run_files::METRICS_COLUMNS.join(","));
+    assert!(metrics.lines().nth(1).unwrap().split(',').nth(1).unwrap().parse::<f64>().is_ok());
+    assert_eq!(super::train_cli::tensorboard_returns(&run.join("learner")).len(), metrics.lines().count() - 1, "TensorBoard has every episode");
+    let checkpoint = lcrl_learner::checkpoint::latest_checkpoint(&run.join("learner")).expect("a final checkpoint");
+    assert!(lcrl_learner::checkpoint::read_meta(&checkpoint).unwrap().episode >= 300);
+    for file in ["config.toml", "train.toml", "graph.png", "reward_curve.png", "logs/learner.log", "logs/actor-0.log", "logs/graph-builder.log"] {
         assert!(run.join(file).is_file(), "{file} missing");
     }
-    assert!(fs::read(run.join("reward_curve.png"))
-        .unwrap()
-        .starts_with(b"\x89PNG"));
-    assert_eq!(
-        processes_mentioning(run.to_str().unwrap()),
-        Vec::<String>::new(),
-        "processes left behind"
-    );
+    assert!(fs::read(run.join("reward_curve.png")).unwrap().starts_with(b"\x89PNG"));
+    assert_eq!(processes_mentioning(run.to_str().unwrap()), Vec::<String>::new(), "processes left behind");
     // The run used shared memory (the default transport); none of it is left.
-    let run_id = stdout(&out)
-        .split("run ")
-        .nth(1)
-        .and_then(|rest| rest.split(':').next())
-        .expect("the run id in the summary")
-        .to_string();
-    assert_eq!(
-        lcrl_learner::service::shm::services_of(&run_id),
-        Vec::<String>::new(),
-        "shared-memory services left behind"
-    );
+    let run_id = stdout(&out).split("run ").nth(1).and_then(|rest| rest.split(':').next()).expect("the run id in the summary").to_string();
+    assert_eq!(lcrl_learner::service::shm::services_of(&run_id), Vec::<String>::new(), "shared-memory services left behind");
 }
 
 #[test]
@@ -114,54 +52,17 @@ fn bad_presets_fail_cleanly() {
     let dir = tempfile::tempdir().unwrap();
     let preset = dir.path().join("p.toml");
     fs::write(&preset, "[ppo]\nclip = 0.2\n").unwrap();
-    assert_clean_failure(
-        &lcrl()
-            .args(["run", "--config"])
-            .arg(&preset)
-            .output()
-            .unwrap(),
-        "[job]",
-    );
-    fs::write(
-        &preset,
-        "[job]\nenv = \"nope\"\nalgo = \"ppo\"\nconnection = \"local\"\nepisodes = 10\n",
-    )
-    .unwrap();
-    assert_clean_failure(
-        &lcrl()
-            .args(["run", "--config"])
-            .arg(&preset)
-            .output()
-            .unwrap(),
-        "unknown environment 'nope'",
-    );
+    assert_clean_failure(&lcrl().args(["run", "--config"]).arg(&preset).output().unwrap(), "[job]");
+    fs::write(&preset, "[job]\nenv = \"nope\"\nalgo = \"ppo\"\nconnection = \"local\"\nepisodes = 10\n").unwrap();
+    assert_clean_failure(&lcrl().args(["run", "--config"]).arg(&preset).output().unwrap(), "unknown environment 'nope'");
     // A headroom reference that is missing, or made for another task, is
     // refused before anything starts (not after training).
     let job = "[job]\nenv = \"lti-paper\"\nalgo = \"ppo\"\nconnection = \"local\"\nepisodes = 10\n";
     fs::write(&preset, format!("{job}headroom = \"missing.json\"\n")).unwrap();
-    assert_clean_failure(
-        &lcrl()
-            .args(["run", "--config"])
-            .arg(&preset)
-            .output()
-            .unwrap(),
-        "job.headroom",
-    );
-    let peg_reference =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("references/peg-group1/best_policy.json");
-    fs::write(
-        &preset,
-        format!("{job}headroom = {:?}\n", peg_reference.to_str().unwrap()),
-    )
-    .unwrap();
-    assert_clean_failure(
-        &lcrl()
-            .args(["run", "--config"])
-            .arg(&preset)
-            .output()
-            .unwrap(),
-        "has 6 actions and 12 states; lti-paper has 3 and 3",
-    );
+    assert_clean_failure(&lcrl().args(["run", "--config"]).arg(&preset).output().unwrap(), "job.headroom");
+    let peg_reference = Path::new(env!("CARGO_MANIFEST_DIR")).join("references/peg-group1/best_policy.json");
+    fs::write(&preset, format!("{job}headroom = {:?}\n", peg_reference.to_str().unwrap())).unwrap();
+    assert_clean_failure(&lcrl().args(["run", "--config"]).arg(&preset).output().unwrap(), "has 6 actions and 12 states; lti-paper has 3 and 3");
 }
 
 #[test]
@@ -174,23 +75,11 @@ fn every_shipped_preset_is_valid() {
         if !text.contains("[job]") {
             continue; // a training-only config (lcrl train --config)
         }
-        let out = lcrl()
-            .args(["run", "--check", "--config"])
-            .arg(&path)
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}: {}",
-            path.display(),
-            String::from_utf8_lossy(&out.stderr)
-        );
+        let out = lcrl().args(["run", "--check", "--config"]).arg(&path).output().unwrap();
+        assert!(out.status.success(), "{}: {}", path.display(), String::from_utf8_lossy(&out.stderr));
         checked += 1;
     }
-    assert!(
-        checked >= 9,
-        "expected the 8 peg presets and the linear one, found {checked}"
-    );
+    assert!(checked >= 9, "expected the 8 peg presets and the linear one, found {checked}");
 }
 
 /// `lcrl run --tls-dir --token-file`: every process of the run speaks
@@ -199,24 +88,11 @@ fn every_shipped_preset_is_valid() {
 fn run_over_mutual_tls_with_a_token_finishes() {
     let dir = tempfile::tempdir().unwrap();
     let certs = dir.path().join("certs");
-    assert!(lcrl()
-        .args(["certs", "--out"])
-        .arg(&certs)
-        .output()
-        .unwrap()
-        .status
-        .success());
+    assert!(lcrl().args(["certs", "--out"]).arg(&certs).output().unwrap().status.success());
     let run = dir.path().join("run");
     let preset = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/lti-paper.toml");
     let out = lcrl()
-        .args([
-            "run",
-            "--episodes",
-            "100",
-            "--transport",
-            "grpc",
-            "--config",
-        ])
+        .args(["run", "--episodes", "100", "--transport", "grpc", "--config"])
         .arg(&preset)
         .arg("--run-dir")
         .arg(&run)
@@ -226,29 +102,16 @@ fn run_over_mutual_tls_with_a_token_finishes() {
         .arg(certs.join("token"))
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(stdout(&out).contains("results in"), "{}", stdout(&out));
     for server in ["learner", "graph-builder"] {
         let log = fs::read_to_string(run.join(format!("logs/{server}.log"))).unwrap();
-        assert!(
-            log.contains("TLS + token"),
-            "{server} did not serve TLS with a token:\n{log}"
-        );
+        assert!(log.contains("TLS + token"), "{server} did not serve TLS with a token:\n{log}");
     }
     let actor_log = fs::read_to_string(run.join("logs/actor-0.log")).unwrap();
     assert!(!actor_log.contains("refused"), "{actor_log}");
     assert_clean_failure(
-        &lcrl()
-            .args(["run", "--config"])
-            .arg(&preset)
-            .arg("--tls-dir")
-            .arg(dir.path().join("nowhere"))
-            .output()
-            .unwrap(),
+        &lcrl().args(["run", "--config"]).arg(&preset).arg("--tls-dir").arg(dir.path().join("nowhere")).output().unwrap(),
         "lcrl certs",
     );
 }

@@ -26,19 +26,10 @@ fn s(p: PathBuf) -> String {
 
 async fn get_status(url: &str, security: &ClientSecurity) -> Result<LearnerStatus, String> {
     let channel = security.connect(url).await.map_err(|e| e.to_string())?;
-    LearnerClient::new(channel)
-        .get_status(GetStatusRequest {})
-        .await
-        .map(|r| r.into_inner())
-        .map_err(|e| format!("{:?}: {}", e.code(), e.message()))
+    LearnerClient::new(channel).get_status(GetStatusRequest {}).await.map(|r| r.into_inner()).map_err(|e| format!("{:?}: {}", e.code(), e.message()))
 }
 
-async fn wait_for(
-    url: &str,
-    security: &ClientSecurity,
-    what: &str,
-    ready: impl Fn(&LearnerStatus) -> bool,
-) -> LearnerStatus {
+async fn wait_for(url: &str, security: &ClientSecurity, what: &str, ready: impl Fn(&LearnerStatus) -> bool) -> LearnerStatus {
     let deadline = Instant::now() + Duration::from_secs(60);
     loop {
         let status = get_status(url, security).await;
@@ -47,10 +38,7 @@ async fn wait_for(
                 return s.clone();
             }
         }
-        assert!(
-            Instant::now() < deadline,
-            "timed out waiting for {what}; last status {status:?}"
-        );
+        assert!(Instant::now() < deadline, "timed out waiting for {what}; last status {status:?}");
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
@@ -62,14 +50,8 @@ async fn mutual_tls_and_a_token_guard_the_learner() {
     let other = certs(&dir.path().join("other"));
     let port = free_port();
     let server_flags = [
-        "--tls-cert".to_string(),
-        s(c.join("server.pem")),
-        "--tls-key".into(),
-        s(c.join("server.key")),
-        "--tls-client-ca".into(),
-        s(c.join("ca.pem")),
-        "--token-file".into(),
-        s(c.join("token")),
+        "--tls-cert".to_string(), s(c.join("server.pem")), "--tls-key".into(), s(c.join("server.key")),
+        "--tls-client-ca".into(), s(c.join("ca.pem")), "--token-file".into(), s(c.join("token")),
     ];
     let flags: Vec<&str> = server_flags.iter().map(String::as_str).collect();
     let (_learner, _) = learner_with_args(&dir.path().join("run"), "tls", port, "ppo", &flags);
@@ -80,140 +62,56 @@ async fn mutual_tls_and_a_token_guard_the_learner() {
 
     // An actor with mutual TLS and the token trains the learner.
     let client_flags = [
-        "--tls-ca".to_string(),
-        s(c.join("ca.pem")),
-        "--tls-client-cert".into(),
-        s(identity.0.clone()),
-        "--tls-client-key".into(),
-        s(identity.1.clone()),
-        "--token-file".into(),
-        s(c.join("token")),
+        "--tls-ca".to_string(), s(c.join("ca.pem")), "--tls-client-cert".into(), s(identity.0.clone()),
+        "--tls-client-key".into(), s(identity.1.clone()), "--token-file".into(), s(c.join("token")),
     ];
-    let _actor = actor_with_args(
-        &url,
-        "tls",
-        &client_flags.iter().map(String::as_str).collect::<Vec<_>>(),
-    );
-    let first = wait_for(&url, &good, "training over TLS", |s| {
-        s.env_steps > 500 && s.updates > 0
-    })
-    .await;
-    wait_for(&url, &good, "training going on", |s| {
-        s.env_steps > first.env_steps + 500
-    })
-    .await;
+    let _actor = actor_with_args(&url, "tls", &client_flags.iter().map(String::as_str).collect::<Vec<_>>());
+    let first = wait_for(&url, &good, "training over TLS", |s| s.env_steps > 500 && s.updates > 0).await;
+    wait_for(&url, &good, "training going on", |s| s.env_steps > first.env_steps + 500).await;
 
     // Refused: a wrong token, no token, a client certificate of another CA,
     // plain text to the TLS port.
     let wrong_token = dir.path().join("wrong");
     std::fs::write(&wrong_token, "not-the-token-0123456789abcdef").unwrap();
     let wrong = ClientSecurity::new(Some(&c.join("ca.pem")), id, Some(&wrong_token)).unwrap();
-    assert!(get_status(&url, &wrong)
-        .await
-        .unwrap_err()
-        .starts_with("Unauthenticated"));
+    assert!(get_status(&url, &wrong).await.unwrap_err().starts_with("Unauthenticated"));
     let tokenless = ClientSecurity::new(Some(&c.join("ca.pem")), id, None).unwrap();
-    assert!(get_status(&url, &tokenless)
-        .await
-        .unwrap_err()
-        .starts_with("Unauthenticated"));
+    assert!(get_status(&url, &tokenless).await.unwrap_err().starts_with("Unauthenticated"));
     let (oc, ok) = (other.join("client.pem"), other.join("client.key"));
-    let foreign = ClientSecurity::new(
-        Some(&c.join("ca.pem")),
-        Some((&oc, &ok)),
-        Some(&c.join("token")),
-    )
-    .unwrap();
+    let foreign = ClientSecurity::new(Some(&c.join("ca.pem")), Some((&oc, &ok)), Some(&c.join("token"))).unwrap();
     let err = get_status(&url, &foreign).await.unwrap_err();
-    assert!(
-        !err.starts_with("Unauthenticated"),
-        "a foreign certificate never reaches the token check: {err}"
-    );
+    assert!(!err.starts_with("Unauthenticated"), "a foreign certificate never reaches the token check: {err}");
     let plain = ClientSecurity::default();
-    assert!(
-        get_status(&format!("http://127.0.0.1:{port}"), &plain)
-            .await
-            .is_err(),
-        "plain text to a TLS port"
-    );
+    assert!(get_status(&format!("http://127.0.0.1:{port}"), &plain).await.is_err(), "plain text to a TLS port");
     let status = get_status(&url, &good).await.unwrap();
     let refused = &status.unauthenticated;
-    assert!(
-        refused["wrong_token"] >= 1 && refused["missing_token"] >= 1,
-        "{refused:?}"
-    );
+    assert!(refused["wrong_token"] >= 1 && refused["missing_token"] >= 1, "{refused:?}");
     // A foreign client certificate and plain text fail the handshake; both counted.
     assert!(refused["tls_handshake"] >= 2, "{refused:?}");
 
     // Health checks need no token (probes know none).
     let channel = tokenless.connect(&url).await.unwrap();
-    let health = HealthClient::new(channel)
-        .check(HealthCheckRequest {
-            service: "lcrl.v1.Learner".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let health = HealthClient::new(channel).check(HealthCheckRequest { service: "lcrl.v1.Learner".into() }).await.unwrap().into_inner();
     assert_eq!(health.status, 1, "SERVING");
 
     // lcrl status over TLS with the token; the token never shows.
-    let token = std::fs::read_to_string(c.join("token"))
-        .unwrap()
-        .trim()
-        .to_string();
-    let out = lcrl()
-        .args(["status", &url])
-        .args(&client_flags)
-        .output()
-        .unwrap();
+    let token = std::fs::read_to_string(c.join("token")).unwrap().trim().to_string();
+    let out = lcrl().args(["status", &url]).args(&client_flags).output().unwrap();
     assert!(out.status.success(), "{}", stderr(&out));
     assert!(stdout(&out).contains("\"unauthenticated\"") && !stdout(&out).contains(&token));
-    let refused = lcrl()
-        .args([
-            "status",
-            &url,
-            "--tls-ca",
-            &s(c.join("ca.pem")),
-            "--tls-client-cert",
-            &s(identity.0.clone()),
-            "--tls-client-key",
-            &s(identity.1.clone()),
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        !refused.status.success() && stderr(&refused).contains("Bearer"),
-        "{}",
-        stderr(&refused)
-    );
+    let refused = lcrl().args(["status", &url, "--tls-ca", &s(c.join("ca.pem")), "--tls-client-cert", &s(identity.0.clone()), "--tls-client-key", &s(identity.1.clone())]).output().unwrap();
+    assert!(!refused.status.success() && stderr(&refused).contains("Bearer"), "{}", stderr(&refused));
 
     // The Python client with mutual TLS and the token.
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let python = root.join(".venv/bin/python");
     let script = root.join("clients/python/lcrl_client.py");
     let run = |extra: &[&str]| {
-        Command::new(&python)
-            .arg(&script)
-            .args([
-                "--target",
-                &format!("127.0.0.1:{port}"),
-                "--state",
-                "0.1",
-                "0.2",
-                "0.3",
-            ])
-            .args(&client_flags[..6])
-            .args(extra)
-            .output()
-            .unwrap()
+        Command::new(&python).arg(&script).args(["--target", &format!("127.0.0.1:{port}"), "--state", "0.1", "0.2", "0.3"]).args(&client_flags[..6]).args(extra).output().unwrap()
     };
     let out = run(&["--token-file", &s(c.join("token"))]);
     assert!(out.status.success(), "{}{}", stdout(&out), stderr(&out));
-    assert!(
-        stdout(&out).lines().any(|l| l.starts_with("action ")),
-        "{}",
-        stdout(&out)
-    );
+    assert!(stdout(&out).lines().any(|l| l.starts_with("action ")), "{}", stdout(&out));
     let out = run(&[]);
     assert_eq!(out.status.code(), Some(2));
     assert!(stderr(&out).contains("UNAUTHENTICATED"), "{}", stderr(&out));
@@ -226,22 +124,8 @@ async fn the_learner_fetches_its_graph_over_tls_with_the_token() {
     let graph_port = free_port();
     let mut builder = workspace_bin("lcrl-graph-builder");
     builder
-        .args([
-            "--env",
-            "lti-paper",
-            "--samples",
-            "16",
-            "--listen",
-            &format!("127.0.0.1:{graph_port}"),
-        ])
-        .args([
-            "--tls-cert",
-            &s(c.join("server.pem")),
-            "--tls-key",
-            &s(c.join("server.key")),
-            "--tls-client-ca",
-            &s(c.join("ca.pem")),
-        ])
+        .args(["--env", "lti-paper", "--samples", "16", "--listen", &format!("127.0.0.1:{graph_port}")])
+        .args(["--tls-cert", &s(c.join("server.pem")), "--tls-key", &s(c.join("server.key")), "--tls-client-ca", &s(c.join("ca.pem"))])
         .args(["--token-file", &s(c.join("token"))])
         .stdout(Stdio::null())
         .stderr(Stdio::null());
@@ -249,45 +133,18 @@ async fn the_learner_fetches_its_graph_over_tls_with_the_token() {
     let port = free_port();
     let mut learner = workspace_bin("lcrl-learner");
     learner
-        .args([
-            "--env",
-            "lti-paper",
-            "--algo",
-            "ppo",
-            "--connection",
-            "local",
-            "--run-id",
-            "g",
-        ])
+        .args(["--env", "lti-paper", "--algo", "ppo", "--connection", "local", "--run-id", "g"])
         .arg("--run-dir")
         .arg(dir.path().join("run"))
-        .args([
-            "--listen",
-            &format!("127.0.0.1:{port}"),
-            "--graph-builder",
-            &format!("https://127.0.0.1:{graph_port}"),
-        ])
-        .args([
-            "--graph-builder-tls-ca",
-            &s(c.join("ca.pem")),
-            "--tls-cert",
-            &s(c.join("server.pem")),
-            "--tls-key",
-            &s(c.join("server.key")),
-        ])
+        .args(["--listen", &format!("127.0.0.1:{port}"), "--graph-builder", &format!("https://127.0.0.1:{graph_port}")])
+        .args(["--graph-builder-tls-ca", &s(c.join("ca.pem")), "--tls-cert", &s(c.join("server.pem")), "--tls-key", &s(c.join("server.key"))])
         .args(["--token-file", &s(c.join("token"))])
         .stdout(Stdio::null())
         .stderr(Stdio::null());
     let _learner = Proc(learner.spawn().unwrap());
     let url = format!("https://127.0.0.1:{port}");
     let good = ClientSecurity::new(Some(&c.join("ca.pem")), None, Some(&c.join("token"))).unwrap();
-    let status = wait_for(
-        &url,
-        &good,
-        "the learner, serving once it has the graph",
-        |_| true,
-    )
-    .await;
+    let status = wait_for(&url, &good, "the learner, serving once it has the graph", |_| true).await;
     assert_eq!(status.connection, "local");
 }
 
@@ -301,42 +158,18 @@ fn grpcio_reflection_v1alpha_client_calls_act() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let out = Command::new(root.join(".venv/bin/python"))
         .arg(root.join("clients/python/reflect_act.py"))
-        .args([
-            "--target",
-            &format!("127.0.0.1:{port}"),
-            "--state",
-            "0.1",
-            "0.2",
-            "0.3",
-        ])
+        .args(["--target", &format!("127.0.0.1:{port}"), "--state", "0.1", "0.2", "0.3"])
         .output()
         .unwrap();
     let text = stdout(&out);
     assert!(out.status.success(), "{text}{}", stderr(&out));
-    let services = text
-        .lines()
-        .find_map(|l| l.strip_prefix("services "))
-        .unwrap();
+    let services = text.lines().find_map(|l| l.strip_prefix("services ")).unwrap();
     // Each reflection version lists itself beside the services (v1, which
     // grpcurl speaks, is checked in reflection_v1_lists_services_behind_the_token).
-    for service in [
-        "lcrl.v1.Policy",
-        "lcrl.v1.Learner",
-        "grpc.health.v1.Health",
-        "grpc.reflection.v1alpha.ServerReflection",
-    ] {
-        assert!(
-            services.split(' ').any(|s| s == service),
-            "{service} not listed: {services}"
-        );
+    for service in ["lcrl.v1.Policy", "lcrl.v1.Learner", "grpc.health.v1.Health", "grpc.reflection.v1alpha.ServerReflection"] {
+        assert!(services.split(' ').any(|s| s == service), "{service} not listed: {services}");
     }
-    let action: Vec<f64> = text
-        .lines()
-        .find_map(|l| l.strip_prefix("action "))
-        .unwrap()
-        .split_whitespace()
-        .map(|v| v.parse().unwrap())
-        .collect();
+    let action: Vec<f64> = text.lines().find_map(|l| l.strip_prefix("action ")).unwrap().split_whitespace().map(|v| v.parse().unwrap()).collect();
     assert_eq!(action.len(), 3);
 }
 
@@ -346,17 +179,7 @@ fn grpcio_reflection_v1alpha_client_calls_act() {
 fn exposed_plain_text_warns_and_tokens_stay_secret() {
     use std::io::{BufRead, BufReader};
     let mut builder = workspace_bin("lcrl-graph-builder");
-    builder
-        .args([
-            "--env",
-            "lti-paper",
-            "--samples",
-            "8",
-            "--listen",
-            "0.0.0.0:0",
-        ])
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped());
+    builder.args(["--env", "lti-paper", "--samples", "8", "--listen", "0.0.0.0:0"]).stdout(Stdio::null()).stderr(Stdio::piped());
     let mut child = Proc(builder.spawn().unwrap());
     let stderr_lines = BufReader::new(child.0.stderr.take().unwrap()).lines();
     // The warning comes before the graph is built; stop reading there.
@@ -371,25 +194,10 @@ fn exposed_plain_text_warns_and_tokens_stay_secret() {
     let token = dir.path().join("token");
     std::fs::write(&token, "very-secret-token-0123456789").unwrap();
     let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/lti-paper.toml");
-    let out = lcrl()
-        .args(["launch", "actor", "--config"])
-        .arg(&config)
-        .arg("--token-file")
-        .arg(&token)
-        .arg("--dry-run")
-        .output()
-        .unwrap();
+    let out = lcrl().args(["launch", "actor", "--config"]).arg(&config).arg("--token-file").arg(&token).arg("--dry-run").output().unwrap();
     assert!(out.status.success(), "{}", stderr(&out));
-    assert!(
-        stdout(&out).contains("--token-file") && !stdout(&out).contains("very-secret"),
-        "{}",
-        stdout(&out)
-    );
-    let wrong = lcrl()
-        .args(["status", "http://127.0.0.1:1", "--token-file"])
-        .arg(&token)
-        .output()
-        .unwrap();
+    assert!(stdout(&out).contains("--token-file") && !stdout(&out).contains("very-secret"), "{}", stdout(&out));
+    let wrong = lcrl().args(["status", "http://127.0.0.1:1", "--token-file"]).arg(&token).output().unwrap();
     assert!(!stderr(&wrong).contains("very-secret"));
 }
 
@@ -405,47 +213,23 @@ async fn reflection_v1_lists_services_behind_the_token() {
     let token = dir.path().join("token");
     std::fs::write(&token, "reflection-token-0123456789").unwrap();
     let port = free_port();
-    let (_learner, url) = learner_with_args(
-        &dir.path().join("run"),
-        "r1",
-        port,
-        "ppo",
-        &["--token-file", &s(token.clone())],
-    );
+    let (_learner, url) = learner_with_args(&dir.path().join("run"), "r1", port, "ppo", &["--token-file", &s(token.clone())]);
     let list = |security: ClientSecurity| {
         let url = url.clone();
         async move {
             let mut client = ServerReflectionClient::new(security.connect(&url).await.unwrap());
-            let request = ServerReflectionRequest {
-                host: String::new(),
-                message_request: Some(MessageRequest::ListServices(String::new())),
-            };
-            let mut replies = client
-                .server_reflection_info(tokio_stream::iter(vec![request]))
-                .await?
-                .into_inner();
+            let request = ServerReflectionRequest { host: String::new(), message_request: Some(MessageRequest::ListServices(String::new())) };
+            let mut replies = client.server_reflection_info(tokio_stream::iter(vec![request])).await?.into_inner();
             let reply = replies.message().await?.and_then(|r| r.message_response);
             Ok::<_, tonic::Status>(match reply {
-                Some(MessageResponse::ListServicesResponse(list)) => {
-                    list.service.into_iter().map(|s| s.name).collect::<Vec<_>>()
-                }
+                Some(MessageResponse::ListServicesResponse(list)) => list.service.into_iter().map(|s| s.name).collect::<Vec<_>>(),
                 other => panic!("unexpected reply {other:?}"),
             })
         }
     };
-    let services = list(ClientSecurity::new(None, None, Some(&token)).unwrap())
-        .await
-        .unwrap();
-    for service in [
-        "lcrl.v1.Policy",
-        "lcrl.v1.Learner",
-        "grpc.health.v1.Health",
-        "grpc.reflection.v1.ServerReflection",
-    ] {
-        assert!(
-            services.iter().any(|s| s == service),
-            "{service} not in {services:?}"
-        );
+    let services = list(ClientSecurity::new(None, None, Some(&token)).unwrap()).await.unwrap();
+    for service in ["lcrl.v1.Policy", "lcrl.v1.Learner", "grpc.health.v1.Health", "grpc.reflection.v1.ServerReflection"] {
+        assert!(services.iter().any(|s| s == service), "{service} not in {services:?}");
     }
     let refused = list(ClientSecurity::default()).await.unwrap_err();
     assert_eq!(refused.code(), tonic::Code::Unauthenticated);

@@ -75,9 +75,7 @@ fn python() -> PathBuf {
 
 /// A module name of its own per test, so leftover processes can be found.
 fn unique_module(tag: &str) -> String {
-    let nanos = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.subsec_nanos());
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.subsec_nanos());
     format!("served_{tag}_{}_{nanos}", std::process::id())
 }
 
@@ -99,40 +97,24 @@ impl Served {
     fn start(args: &[&str], pythonpath: Option<&Path>) -> Served {
         let log = tempfile::NamedTempFile::new().unwrap();
         let mut cmd = Command::new(python());
-        cmd.args(["-m", "lcrl_env", "serve", "--listen", "127.0.0.1:0"])
-            .args(args)
-            .stdout(Stdio::piped())
-            .stderr(log.reopen().unwrap());
+        cmd.args(["-m", "lcrl_env", "serve", "--listen", "127.0.0.1:0"]).args(args).stdout(Stdio::piped()).stderr(log.reopen().unwrap());
         if let Some(dir) = pythonpath {
             cmd.env("PYTHONPATH", dir);
         }
-        let mut child = cmd
-            .spawn()
-            .expect("run .venv/bin/python (scripts/setup.sh makes it)");
+        let mut child = cmd.spawn().expect("run .venv/bin/python (scripts/setup.sh makes it)");
         let mut line = String::new();
-        BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut line)
-            .unwrap();
+        BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
         let Some(address) = line.trim().strip_prefix("listening on ") else {
             let _ = child.wait();
-            panic!(
-                "the server did not start: {}",
-                std::fs::read_to_string(log.path()).unwrap_or_default()
-            );
+            panic!("the server did not start: {}", std::fs::read_to_string(log.path()).unwrap_or_default());
         };
-        Served {
-            url: format!("grpc://{address}"),
-            child,
-            _log: log,
-        }
+        Served { url: format!("grpc://{address}"), child, _log: log }
     }
 }
 
 impl Drop for Served {
     fn drop(&mut self) {
-        let _ = Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
-            .status();
+        let _ = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status();
         let _ = self.child.wait();
     }
 }
@@ -140,13 +122,7 @@ impl Drop for Served {
 /// Actions on a 1/8 grid inside [-1, 1] (exact in f32, the action dtype of
 /// Gymnasium's built-in environments).
 fn grid_actions(steps: usize, n: usize, salt: usize) -> Vec<Vec<f64>> {
-    (0..steps)
-        .map(|k| {
-            (0..n)
-                .map(|i| ((k * 7 + i * 3 + salt) % 17) as f64 / 8.0 - 1.0)
-                .collect()
-        })
-        .collect()
+    (0..steps).map(|k| (0..n).map(|i| ((k * 7 + i * 3 + salt) % 17) as f64 / 8.0 - 1.0).collect()).collect()
 }
 
 fn bits(v: &[f64]) -> Vec<u64> {
@@ -154,9 +130,7 @@ fn bits(v: &[f64]) -> Vec<u64> {
 }
 
 fn same_step(a: &Step, b: &Step) -> bool {
-    bits(&a.state) == bits(&b.state)
-        && a.reward.to_bits() == b.reward.to_bits()
-        && (a.terminated, a.truncated) == (b.terminated, b.truncated)
+    bits(&a.state) == bits(&b.state) && a.reward.to_bits() == b.reward.to_bits() && (a.terminated, a.truncated) == (b.terminated, b.truncated)
 }
 
 #[test]
@@ -168,10 +142,7 @@ fn served_gymnasium_trajectories_are_those_of_python_bit_for_bit() {
         let served = Served::start(&["--env", env_id], None);
         let mut env = make_env(&served.url).unwrap();
         let n = env.spec().action_dim();
-        let actions: Vec<Vec<f64>> = grid_actions(steps, n, 0)
-            .into_iter()
-            .map(|a| a.iter().map(|x| x * scale).collect())
-            .collect();
+        let actions: Vec<Vec<f64>> = grid_actions(steps, n, 0).into_iter().map(|a| a.iter().map(|x| x * scale).collect()).collect();
         let mut remote = vec![bits(&env.reset(7).unwrap())];
         let mut rewards = Vec::new();
         let mut ends = Vec::new();
@@ -181,36 +152,17 @@ fn served_gymnasium_trajectories_are_those_of_python_bit_for_bit() {
             rewards.push(step.reward.to_bits());
             ends.push(serde_json::json!([step.terminated, step.truncated]));
         }
-        let mut replay = Command::new(python())
-            .arg(dir.path().join(format!("{module}.py")))
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
+        let mut replay = Command::new(python()).arg(dir.path().join(format!("{module}.py"))).stdin(Stdio::piped()).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
         let request = serde_json::json!({"env": env_id, "seed": 7, "actions": actions});
-        std::io::Write::write_all(
-            &mut replay.stdin.take().unwrap(),
-            request.to_string().as_bytes(),
-        )
-        .unwrap();
+        std::io::Write::write_all(&mut replay.stdin.take().unwrap(), request.to_string().as_bytes()).unwrap();
         let out = replay.wait_with_output().unwrap();
         assert!(out.status.success(), "{}", stderr(&out));
         let python: serde_json::Value = serde_json::from_str(&stdout(&out)).unwrap();
-        let python_states: Vec<Vec<u64>> =
-            serde_json::from_value(python["states"].clone()).unwrap();
+        let python_states: Vec<Vec<u64>> = serde_json::from_value(python["states"].clone()).unwrap();
         assert_eq!(remote.len(), steps + 1);
         assert_eq!(remote, python_states, "{env_id}: states differ");
-        assert_eq!(
-            serde_json::to_value(&rewards).unwrap(),
-            python["rewards"],
-            "{env_id}: rewards differ"
-        );
-        assert_eq!(
-            serde_json::Value::Array(ends),
-            python["ends"],
-            "{env_id}: end flags differ"
-        );
+        assert_eq!(serde_json::to_value(&rewards).unwrap(), python["rewards"], "{env_id}: rewards differ");
+        assert_eq!(serde_json::Value::Array(ends), python["ends"], "{env_id}: end flags differ");
     }
 }
 
@@ -228,15 +180,8 @@ fn forks_are_exact_and_independent_and_batched_steps_equal_single_ones() {
         let mut fork_of_fork = fork.snapshot().unwrap();
         assert_eq!(bits(fork.state()), bits(env.state()));
         for (k, a) in grid_actions(150, n, 2).iter().enumerate() {
-            let (s, f, ff) = (
-                env.step(a).unwrap(),
-                fork.step(a).unwrap(),
-                fork_of_fork.step(a).unwrap(),
-            );
-            assert!(
-                same_step(&s, &f) && same_step(&s, &ff),
-                "{env_id}: forks diverged at step {k}"
-            );
+            let (s, f, ff) = (env.step(a).unwrap(), fork.step(a).unwrap(), fork_of_fork.step(a).unwrap());
+            assert!(same_step(&s, &f) && same_step(&s, &ff), "{env_id}: forks diverged at step {k}");
             if s.truncated {
                 break;
             }
@@ -246,31 +191,19 @@ fn forks_are_exact_and_independent_and_batched_steps_equal_single_ones() {
         let mut other = env.snapshot().unwrap();
         other.step(&vec![0.5; n]).unwrap();
         let a = vec![-0.25; n];
-        assert!(
-            same_step(&env.step(&a).unwrap(), &twin.step(&a).unwrap()),
-            "{env_id}: a fork's steps reached the original"
-        );
+        assert!(same_step(&env.step(&a).unwrap(), &twin.step(&a).unwrap()), "{env_id}: a fork's steps reached the original");
 
         // K sessions stepped in one call give what K single steps give.
         let mut batch: Vec<Box<dyn Env>> = (0..4).map(|_| make_env(&served.url).unwrap()).collect();
-        let mut single: Vec<Box<dyn Env>> =
-            (0..4).map(|_| make_env(&served.url).unwrap()).collect();
+        let mut single: Vec<Box<dyn Env>> = (0..4).map(|_| make_env(&served.url).unwrap()).collect();
         for (k, (b, s)) in batch.iter_mut().zip(single.iter_mut()).enumerate() {
-            assert_eq!(
-                bits(&b.reset(100 + k as u64).unwrap()),
-                bits(&s.reset(100 + k as u64).unwrap())
-            );
+            assert_eq!(bits(&b.reset(100 + k as u64).unwrap()), bits(&s.reset(100 + k as u64).unwrap()));
         }
         for t in 0..20 {
-            let actions: Vec<Vec<f64>> = (0..4)
-                .map(|k| grid_actions(1, n, t * 5 + k).remove(0))
-                .collect();
+            let actions: Vec<Vec<f64>> = (0..4).map(|k| grid_actions(1, n, t * 5 + k).remove(0)).collect();
             let batched = lcrl_sim::step_all(&mut batch, &actions).unwrap();
             for (k, s) in single.iter_mut().enumerate() {
-                assert!(
-                    same_step(&batched[k], &s.step(&actions[k]).unwrap()),
-                    "{env_id}: batched step {t} of env {k} differs"
-                );
+                assert!(same_step(&batched[k], &s.step(&actions[k]).unwrap()), "{env_id}: batched step {t} of env {k} differs");
             }
         }
     }
@@ -281,27 +214,11 @@ fn graph_of_a_served_linear_system_is_the_lemma1_graph() {
     let dir = tempfile::tempdir().unwrap();
     let module = unique_module("graph");
     write_envs(dir.path(), &module);
-    let served = Served::start(
-        &["--entry-point", &format!("{module}:Linear")],
-        Some(dir.path()),
-    );
+    let served = Served::start(&["--entry-point", &format!("{module}:Linear")], Some(dir.path()));
     let json = dir.path().join("g.json");
-    let out = lcrl()
-        .args([
-            "graph",
-            "--exact",
-            "--samples",
-            "16",
-            "--env",
-            &served.url,
-            "--out",
-        ])
-        .arg(&json)
-        .output()
-        .unwrap();
+    let out = lcrl().args(["graph", "--exact", "--samples", "16", "--env", &served.url, "--out"]).arg(&json).output().unwrap();
     assert!(out.status.success(), "{}", stderr(&out));
-    let g: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let g: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert_eq!(g["g"], serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]]));
     assert_eq!(g["state_names"], serde_json::json!(["s1", "s2", "s3"]));
     assert_eq!(g["action_names"], serde_json::json!(["a1", "a2", "a3"]));
@@ -309,12 +226,7 @@ fn graph_of_a_served_linear_system_is_the_lemma1_graph() {
 
 /// Returns of the episodes in a learner's metrics.csv.
 fn returns(metrics: &Path) -> Vec<f64> {
-    std::fs::read_to_string(metrics)
-        .unwrap()
-        .lines()
-        .skip(1)
-        .filter_map(|l| l.split(',').nth(1)?.parse().ok())
-        .collect()
+    std::fs::read_to_string(metrics).unwrap().lines().skip(1).filter_map(|l| l.split(',').nth(1)?.parse().ok()).collect()
 }
 
 #[test]
@@ -323,10 +235,7 @@ fn lcrl_run_serves_a_gymnasium_environment_trains_and_leaves_no_python_behind() 
     let module = unique_module("run");
     write_envs(dir.path(), &module);
     let preset = dir.path().join("served.toml");
-    let lti = std::fs::read_to_string(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/lti-paper.toml"),
-    )
-    .unwrap();
+    let lti = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/lti-paper.toml")).unwrap();
     // The main job's PPO settings, on the same system served from Python.
     let training = &lti[lti.find("[network]").unwrap()..];
     let text = format!(
@@ -336,95 +245,37 @@ fn lcrl_run_serves_a_gymnasium_environment_trains_and_leaves_no_python_behind() 
     );
     std::fs::write(&preset, text).unwrap();
     let run = dir.path().join("run");
-    let out = lcrl()
-        .args(["run", "--config"])
-        .arg(&preset)
-        .arg("--run-dir")
-        .arg(&run)
-        .output()
-        .unwrap();
+    let out = lcrl().args(["run", "--config"]).arg(&preset).arg("--run-dir").arg(&run).output().unwrap();
     assert!(out.status.success(), "{}\n{}", stdout(&out), stderr(&out));
-    assert!(
-        stderr(&out).contains("environment server at grpc://127.0.0.1:"),
-        "{}",
-        stderr(&out)
-    );
-    let graph: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(run.join("graph.json")).unwrap()).unwrap();
-    assert_eq!(
-        graph["g"],
-        serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]])
-    );
+    assert!(stderr(&out).contains("environment server at grpc://127.0.0.1:"), "{}", stderr(&out));
+    let graph: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("graph.json")).unwrap()).unwrap();
+    assert_eq!(graph["g"], serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]]));
     let r = returns(&run.join("learner/metrics.csv"));
     assert!(r.len() >= 300, "{} episodes", r.len());
     let mean = |s: &[f64]| s.iter().sum::<f64>() / s.len() as f64;
     let (first, last) = (mean(&r[..50]), mean(&r[r.len() - 50..]));
-    assert!(
-        last > first + 0.5 * first.abs(),
-        "the return did not improve: first 50 episodes {first:.2}, last 50 {last:.2}"
-    );
-    let summary: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(run.join("summary.json")).unwrap()).unwrap();
-    assert!(
-        summary["eval_return"].as_f64().unwrap() > first,
-        "{summary}"
-    );
+    assert!(last > first + 0.5 * first.abs(), "the return did not improve: first 50 episodes {first:.2}, last 50 {last:.2}");
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("summary.json")).unwrap()).unwrap();
+    assert!(summary["eval_return"].as_f64().unwrap() > first, "{summary}");
     assert!(run.join("logs/env-server.log").is_file());
-    assert_eq!(
-        super::run_cli::processes_mentioning(&module),
-        Vec::<String>::new(),
-        "Python processes left behind"
-    );
+    assert_eq!(super::run_cli::processes_mentioning(&module), Vec::<String>::new(), "Python processes left behind");
 }
 
 #[test]
 fn errors_are_clear_unreachable_unknown_discrete_and_unforkable() {
     // No server there.
-    let out = lcrl()
-        .args(["graph", "--env", "grpc://127.0.0.1:1"])
-        .output()
-        .unwrap();
+    let out = lcrl().args(["graph", "--env", "grpc://127.0.0.1:1"]).output().unwrap();
     assert_clean_failure(&out, "cannot connect");
-    let out = lcrl()
-        .args([
-            "train",
-            "--algo",
-            "ppo",
-            "--connection",
-            "global",
-            "--episodes",
-            "2",
-            "--env",
-            "grpc://127.0.0.1:1",
-        ])
-        .output()
-        .unwrap();
+    let out = lcrl().args(["train", "--algo", "ppo", "--connection", "global", "--episodes", "2", "--env", "grpc://127.0.0.1:1"]).output().unwrap();
     assert_clean_failure(&out, "python -m lcrl_env serve");
-    let out = lcrl()
-        .args(["graph", "--env", "grpc://no-port"])
-        .output()
-        .unwrap();
+    let out = lcrl().args(["graph", "--env", "grpc://no-port"]).output().unwrap();
     assert_clean_failure(&out, "grpc://HOST:PORT");
 
     // The server refuses what it cannot serve, with exit status 2.
-    for (args, needle) in [
-        (
-            vec!["--env", "NoSuchEnv-v0"],
-            "unknown Gymnasium environment 'NoSuchEnv-v0'",
-        ),
-        (vec!["--env", "CartPole-v1"], "action space is Discrete"),
-    ] {
-        let out = Command::new(python())
-            .args(["-m", "lcrl_env", "serve", "--listen", "127.0.0.1:0"])
-            .args(&args)
-            .output()
-            .unwrap();
+    for (args, needle) in [(vec!["--env", "NoSuchEnv-v0"], "unknown Gymnasium environment 'NoSuchEnv-v0'"), (vec!["--env", "CartPole-v1"], "action space is Discrete")] {
+        let out = Command::new(python()).args(["-m", "lcrl_env", "serve", "--listen", "127.0.0.1:0"]).args(&args).output().unwrap();
         assert_eq!(out.status.code(), Some(2), "{}", stderr(&out));
-        assert!(
-            stdout(&out).is_empty(),
-            "it must not claim to listen: {}",
-            stdout(&out)
-        );
+        assert!(stdout(&out).is_empty(), "it must not claim to listen: {}", stdout(&out));
         assert_clean_failure(&out, needle);
     }
 
@@ -432,138 +283,43 @@ fn errors_are_clear_unreachable_unknown_discrete_and_unforkable() {
     let dir = tempfile::tempdir().unwrap();
     let module = unique_module("errors");
     write_envs(dir.path(), &module);
-    let served = Served::start(
-        &["--entry-point", &format!("{module}:Unforkable")],
-        Some(dir.path()),
-    );
-    let out = lcrl()
-        .args(["graph", "--env", &served.url])
-        .output()
-        .unwrap();
+    let served = Served::start(&["--entry-point", &format!("{module}:Unforkable")], Some(dir.path()));
+    let out = lcrl().args(["graph", "--env", &served.url]).output().unwrap();
     assert_clean_failure(&out, "cannot fork");
-    assert!(
-        stderr(&out).contains("cannot pickle"),
-        "the reason is missing: {}",
-        stderr(&out)
-    );
+    assert!(stderr(&out).contains("cannot pickle"), "the reason is missing: {}", stderr(&out));
     // It still trains: only CS3 needs forks.
-    let out = lcrl()
-        .args([
-            "train",
-            "--connection",
-            "global",
-            "--algo",
-            "ppo",
-            "--episodes",
-            "2",
-            "--env",
-            &served.url,
-            "--run-dir",
-        ])
-        .arg(dir.path().join("t"))
-        .output()
-        .unwrap();
+    let out = lcrl().args(["train", "--connection", "global", "--algo", "ppo", "--episodes", "2", "--env", &served.url, "--run-dir"]).arg(dir.path().join("t")).output().unwrap();
     assert!(out.status.success(), "{}", stderr(&out));
 
     // A preset whose server cannot start: the log's reason, non-zero exit.
     let preset = dir.path().join("bad.toml");
     std::fs::write(&preset, "[job]\nenv = \"grpc://127.0.0.1:0\"\nalgo = \"ppo\"\nconnection = \"global\"\nepisodes = 5\n[env_server]\nentry_point = \"no_such_module:Env\"\n").unwrap();
-    let out = lcrl()
-        .args(["run", "--config"])
-        .arg(&preset)
-        .arg("--run-dir")
-        .arg(dir.path().join("r"))
-        .output()
-        .unwrap();
+    let out = lcrl().args(["run", "--config"]).arg(&preset).arg("--run-dir").arg(dir.path().join("r")).output().unwrap();
     assert_clean_failure(&out, "cannot import 'no_such_module'");
     std::fs::write(&preset, "[job]\nenv = \"lti-paper\"\nalgo = \"ppo\"\nconnection = \"global\"\nepisodes = 5\n[env_server]\ngym = \"Pendulum-v1\"\n").unwrap();
-    assert_clean_failure(
-        &lcrl()
-            .args(["run", "--check", "--config"])
-            .arg(&preset)
-            .output()
-            .unwrap(),
-        "grpc://HOST:PORT",
-    );
+    assert_clean_failure(&lcrl().args(["run", "--check", "--config"]).arg(&preset).output().unwrap(), "grpc://HOST:PORT");
 }
 
 #[tokio::test]
 async fn the_service_refuses_bad_calls_with_the_right_codes() {
     use lcrl_proto::v1::environment_client::EnvironmentClient;
-    use lcrl_proto::v1::{
-        ForkRequest, OpenRequest, ResetRequest, SessionReset, SessionStep, StepRequest,
-    };
+    use lcrl_proto::v1::{ForkRequest, OpenRequest, ResetRequest, SessionReset, SessionStep, StepRequest};
     let served = Served::start(&["--env", "Pendulum-v1", "--max-sessions", "3"], None);
-    let mut client = EnvironmentClient::connect(served.url.replace("grpc://", "http://"))
-        .await
-        .unwrap();
-    let sessions = client
-        .open(OpenRequest { count: 2 })
-        .await
-        .unwrap()
-        .into_inner()
-        .sessions;
-    let step = |session: u64, action: Vec<f64>| StepRequest {
-        steps: vec![SessionStep { session, action }],
-    };
-    let code = |r: Result<tonic::Response<_>, tonic::Status>| {
-        r.map(|_: tonic::Response<lcrl_proto::v1::StepResponse>| ())
-            .unwrap_err()
-            .code()
-    };
-    assert_eq!(
-        code(client.step(step(sessions[0], vec![0.1])).await),
-        tonic::Code::FailedPrecondition,
-        "step before reset"
-    );
-    client
-        .reset(ResetRequest {
-            resets: vec![SessionReset {
-                session: sessions[0],
-                seed: 1,
-            }],
-        })
-        .await
-        .unwrap();
-    assert_eq!(
-        code(client.step(step(sessions[0], vec![f64::NAN])).await),
-        tonic::Code::InvalidArgument,
-        "NaN action"
-    );
-    assert_eq!(
-        code(client.step(step(sessions[0], vec![0.1, 0.2])).await),
-        tonic::Code::InvalidArgument,
-        "wrong length"
-    );
-    assert_eq!(
-        code(client.step(step(999, vec![0.1])).await),
-        tonic::Code::NotFound,
-        "unknown session"
-    );
-    assert_eq!(
-        code(client.step(StepRequest { steps: vec![] }).await),
-        tonic::Code::InvalidArgument,
-        "empty request"
-    );
-    client
-        .fork(ForkRequest {
-            session: sessions[0],
-        })
-        .await
-        .unwrap();
-    let full = client
-        .fork(ForkRequest {
-            session: sessions[0],
-        })
-        .await
-        .unwrap_err();
+    let mut client = EnvironmentClient::connect(served.url.replace("grpc://", "http://")).await.unwrap();
+    let sessions = client.open(OpenRequest { count: 2 }).await.unwrap().into_inner().sessions;
+    let step = |session: u64, action: Vec<f64>| StepRequest { steps: vec![SessionStep { session, action }] };
+    let code = |r: Result<tonic::Response<_>, tonic::Status>| r.map(|_: tonic::Response<lcrl_proto::v1::StepResponse>| ()).unwrap_err().code();
+    assert_eq!(code(client.step(step(sessions[0], vec![0.1])).await), tonic::Code::FailedPrecondition, "step before reset");
+    client.reset(ResetRequest { resets: vec![SessionReset { session: sessions[0], seed: 1 }] }).await.unwrap();
+    assert_eq!(code(client.step(step(sessions[0], vec![f64::NAN])).await), tonic::Code::InvalidArgument, "NaN action");
+    assert_eq!(code(client.step(step(sessions[0], vec![0.1, 0.2])).await), tonic::Code::InvalidArgument, "wrong length");
+    assert_eq!(code(client.step(step(999, vec![0.1])).await), tonic::Code::NotFound, "unknown session");
+    assert_eq!(code(client.step(StepRequest { steps: vec![] }).await), tonic::Code::InvalidArgument, "empty request");
+    client.fork(ForkRequest { session: sessions[0] }).await.unwrap();
+    let full = client.fork(ForkRequest { session: sessions[0] }).await.unwrap_err();
     assert_eq!(full.code(), tonic::Code::ResourceExhausted, "{full:?}");
     // An out-of-bounds action is clipped, as Gymnasium's own bounds say.
-    let clipped = client
-        .step(step(sessions[0], vec![1e9]))
-        .await
-        .unwrap()
-        .into_inner();
+    let clipped = client.step(step(sessions[0], vec![1e9])).await.unwrap().into_inner();
     assert_eq!(clipped.results.len(), 1);
 }
 
@@ -572,12 +328,7 @@ async fn the_service_refuses_bad_calls_with_the_right_codes() {
 fn sim_against(url: &str, vars: &[(&str, &Path)]) -> std::process::Output {
     let mut cmd = lcrl();
     cmd.args(["sim", "--env", url, "--episodes", "1", "--seed", "0"]);
-    for name in [
-        "LCRL_TOKEN_FILE",
-        lcrl_sim::remote::TLS_CA_ENV,
-        lcrl_sim::remote::TLS_CLIENT_CERT_ENV,
-        lcrl_sim::remote::TLS_CLIENT_KEY_ENV,
-    ] {
+    for name in ["LCRL_TOKEN_FILE", lcrl_sim::remote::TLS_CA_ENV, lcrl_sim::remote::TLS_CLIENT_CERT_ENV, lcrl_sim::remote::TLS_CLIENT_KEY_ENV] {
         cmd.env_remove(name);
     }
     for (name, value) in vars {
@@ -595,34 +346,15 @@ fn the_environment_service_takes_tls_and_a_token() {
     let dir = tempfile::tempdir().unwrap();
     let token = dir.path().join("token");
     std::fs::write(&token, "s3cret-env-token\n").unwrap();
-    let served = Served::start(
-        &[
-            "--env",
-            "Pendulum-v1",
-            "--token-file",
-            token.to_str().unwrap(),
-        ],
-        None,
-    );
+    let served = Served::start(&["--env", "Pendulum-v1", "--token-file", token.to_str().unwrap()], None);
     assert_clean_failure(&sim_against(&served.url, &[]), "refused this client");
     let out = sim_against(&served.url, &[("LCRL_TOKEN_FILE", &token)]);
     assert!(out.status.success(), "with the token: {}", stderr(&out));
     let health_url = served.url.replace("grpc://", "http://");
-    let out = lcrl()
-        .args(["health", &health_url])
-        .env_remove("LCRL_TOKEN_FILE")
-        .output()
-        .unwrap();
-    assert!(
-        stdout(&out).contains("SERVING"),
-        "health needs no token: {}",
-        stderr(&out)
-    );
+    let out = lcrl().args(["health", &health_url]).env_remove("LCRL_TOKEN_FILE").output().unwrap();
+    assert!(stdout(&out).contains("SERVING"), "health needs no token: {}", stderr(&out));
     let log = std::fs::read_to_string(served._log.path()).unwrap();
-    assert!(
-        log.contains("1 refusal(s) so far"),
-        "refusals are counted: {log}"
-    );
+    assert!(log.contains("1 refusal(s) so far"), "refusals are counted: {log}");
     // Server reflection lists the service (behind the token).
     let list = "import grpc, sys\n\
         from grpc_reflection.v1alpha import reflection_pb2 as pb, reflection_pb2_grpc as rpc\n\
@@ -630,78 +362,23 @@ fn the_environment_service_takes_tls_and_a_token() {
         auth = [('authorization', 'Bearer ' + open(sys.argv[2]).read().strip())]\n\
         reply = next(stub.ServerReflectionInfo(iter([pb.ServerReflectionRequest(list_services='')]), metadata=auth))\n\
         print(' '.join(s.name for s in reply.list_services_response.service))\n";
-    let out = Command::new(python())
-        .args(["-c", list, served.url.trim_start_matches("grpc://")])
-        .arg(&token)
-        .output()
-        .unwrap();
-    assert!(
-        stdout(&out).contains("lcrl.v1.Environment"),
-        "reflection: {}{}",
-        stdout(&out),
-        stderr(&out)
-    );
+    let out = Command::new(python()).args(["-c", list, served.url.trim_start_matches("grpc://")]).arg(&token).output().unwrap();
+    assert!(stdout(&out).contains("lcrl.v1.Environment"), "reflection: {}{}", stdout(&out), stderr(&out));
 
     let certs = dir.path().join("certs");
-    let out = lcrl()
-        .args(["certs", "--out"])
-        .arg(&certs)
-        .output()
-        .unwrap();
+    let out = lcrl().args(["certs", "--out"]).arg(&certs).output().unwrap();
     assert!(out.status.success(), "{}", stderr(&out));
     let file = |name: &str| certs.join(name).to_str().unwrap().to_string();
     let (cert, key, ca) = (file("server.pem"), file("server.key"), file("ca.pem"));
-    let tls = Served::start(
-        &[
-            "--env",
-            "Pendulum-v1",
-            "--token-file",
-            token.to_str().unwrap(),
-            "--tls-cert",
-            &cert,
-            "--tls-key",
-            &key,
-            "--tls-client-ca",
-            &ca,
-        ],
-        None,
-    );
+    let tls = Served::start(&["--env", "Pendulum-v1", "--token-file", token.to_str().unwrap(), "--tls-cert", &cert, "--tls-key", &key, "--tls-client-ca", &ca], None);
     let url = tls.url.replace("grpc://", "grpcs://");
-    let (ca_path, client_cert, client_key) = (
-        certs.join("ca.pem"),
-        certs.join("client.pem"),
-        certs.join("client.key"),
-    );
-    let trusted = [
-        ("LCRL_TOKEN_FILE", token.as_path()),
-        (lcrl_sim::remote::TLS_CA_ENV, ca_path.as_path()),
-    ];
-    let out = sim_against(
-        &url,
-        &[
-            trusted[0],
-            trusted[1],
-            (lcrl_sim::remote::TLS_CLIENT_CERT_ENV, &client_cert),
-            (lcrl_sim::remote::TLS_CLIENT_KEY_ENV, &client_key),
-        ],
-    );
-    assert!(
-        out.status.success(),
-        "mutual TLS with the token: {}",
-        stderr(&out)
-    );
-    assert!(
-        !sim_against(&url, &trusted).status.success(),
-        "no client certificate: refused by mutual TLS"
-    );
-    assert_clean_failure(
-        &sim_against(&url, &[trusted[0]]),
-        lcrl_sim::remote::TLS_CA_ENV,
-    );
-    assert!(
-        !sim_against(&tls.url, &trusted).status.success(),
-        "plain text to a TLS server fails"
-    );
+    let (ca_path, client_cert, client_key) = (certs.join("ca.pem"), certs.join("client.pem"), certs.join("client.key"));
+    let trusted = [("LCRL_TOKEN_FILE", token.as_path()), (lcrl_sim::remote::TLS_CA_ENV, ca_path.as_path())];
+    let out = sim_against(&url, &[trusted[0], trusted[1], (lcrl_sim::remote::TLS_CLIENT_CERT_ENV, &client_cert), (lcrl_sim::remote::TLS_CLIENT_KEY_ENV, &client_key)]);
+    assert!(out.status.success(), "mutual TLS with the token: {}", stderr(&out));
+    assert!(!sim_against(&url, &trusted).status.success(), "no client certificate: refused by mutual TLS");
+    assert_clean_failure(&sim_against(&url, &[trusted[0]]), lcrl_sim::remote::TLS_CA_ENV);
+    assert!(!sim_against(&tls.url, &trusted).status.success(), "plain text to a TLS server fails");
 }
 
 /// `lcrl run --tls-dir --token-file` secures the environment server it
@@ -713,11 +390,7 @@ fn lcrl_run_secures_the_environment_server_it_starts() {
     let module = unique_module("secured");
     write_envs(dir.path(), &module);
     let certs = dir.path().join("certs");
-    let out = lcrl()
-        .args(["certs", "--out"])
-        .arg(&certs)
-        .output()
-        .unwrap();
+    let out = lcrl().args(["certs", "--out"]).arg(&certs).output().unwrap();
     assert!(out.status.success(), "{}", stderr(&out));
     let token = dir.path().join("token");
     std::fs::write(&token, "a-run-token-of-24-chars\n").unwrap();
@@ -741,17 +414,9 @@ fn lcrl_run_secures_the_environment_server_it_starts() {
         .output()
         .unwrap();
     assert!(out.status.success(), "{}\n{}", stdout(&out), stderr(&out));
-    assert!(
-        stderr(&out).contains("environment server at grpcs://127.0.0.1:"),
-        "{}",
-        stderr(&out)
-    );
+    assert!(stderr(&out).contains("environment server at grpcs://127.0.0.1:"), "{}", stderr(&out));
     let log = std::fs::read_to_string(run.join("logs/env-server.log")).unwrap();
     assert!(log.contains("(TLS + token)"), "{log}");
     assert!(run.join("summary.json").is_file());
-    assert_eq!(
-        super::run_cli::processes_mentioning(&module),
-        Vec::<String>::new(),
-        "Python processes left behind"
-    );
+    assert_eq!(super::run_cli::processes_mentioning(&module), Vec::<String>::new(), "Python processes left behind");
 }

@@ -9,44 +9,13 @@ use super::common::{assert_clean_failure, lcrl, stdout};
 #[test]
 fn constant_controller_writes_summary_trace_and_plot() {
     let dir = tempfile::tempdir().unwrap();
-    let out = lcrl()
-        .args([
-            "sim",
-            "--env",
-            "peg-group1",
-            "--episodes",
-            "3",
-            "--seed",
-            "7",
-            "--out",
-        ])
-        .arg(dir.path())
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = lcrl().args(["sim", "--env", "peg-group1", "--episodes", "3", "--seed", "7", "--out"]).arg(dir.path()).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(stdout(&out).contains("success rate"));
 
-    let summary: Value =
-        serde_json::from_str(&fs::read_to_string(dir.path().join("summary.json")).unwrap())
-            .unwrap();
-    for key in [
-        "episodes",
-        "success_rate",
-        "mean_steps_to_insert",
-        "mean_peak_force_n",
-        "mean_peak_moment_nm",
-        "max_penetration_mm",
-        "mean_return",
-        "control_steps_per_sec",
-    ] {
-        assert!(
-            summary.get(key).is_some_and(|v| !v.is_null()),
-            "summary.json lacks {key}: {summary}"
-        );
+    let summary: Value = serde_json::from_str(&fs::read_to_string(dir.path().join("summary.json")).unwrap()).unwrap();
+    for key in ["episodes", "success_rate", "mean_steps_to_insert", "mean_peak_force_n", "mean_peak_moment_nm", "max_penetration_mm", "mean_return", "control_steps_per_sec"] {
+        assert!(summary.get(key).is_some_and(|v| !v.is_null()), "summary.json lacks {key}: {summary}");
     }
     assert_eq!(summary["episodes"], 3);
     assert!(summary["max_penetration_mm"].as_f64().unwrap() < 0.01);
@@ -69,19 +38,9 @@ fn constant_controller_writes_summary_trace_and_plot() {
 #[test]
 fn linear_environment_works_too() {
     let dir = tempfile::tempdir().unwrap();
-    let out = lcrl()
-        .args(["sim", "--env", "lti-paper", "--episodes", "2", "--out"])
-        .arg(dir.path())
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let summary: Value =
-        serde_json::from_str(&fs::read_to_string(dir.path().join("summary.json")).unwrap())
-            .unwrap();
+    let out = lcrl().args(["sim", "--env", "lti-paper", "--episodes", "2", "--out"]).arg(dir.path()).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let summary: Value = serde_json::from_str(&fs::read_to_string(dir.path().join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["success_rate"], Value::Null);
     assert!(dir.path().join("trace.png").is_file());
 }
@@ -90,18 +49,9 @@ fn linear_environment_works_too() {
 fn bad_input_fails_cleanly() {
     let dir = tempfile::tempdir().unwrap();
     let run = |args: &[&str]| lcrl().arg("sim").args(args).output().unwrap();
-    assert_clean_failure(
-        &run(&["--env", "peg-group7"]),
-        "unknown environment 'peg-group7'",
-    );
-    assert_clean_failure(
-        &run(&["--env", "peg-group1", "--episodes", "0"]),
-        "--episodes",
-    );
-    assert_clean_failure(
-        &run(&["--env", "peg-group1", "--out", "/proc/lcrl-cannot-write"]),
-        "/proc/lcrl-cannot-write",
-    );
+    assert_clean_failure(&run(&["--env", "peg-group7"]), "unknown environment 'peg-group7'");
+    assert_clean_failure(&run(&["--env", "peg-group1", "--episodes", "0"]), "--episodes");
+    assert_clean_failure(&run(&["--env", "peg-group1", "--out", "/proc/lcrl-cannot-write"]), "/proc/lcrl-cannot-write");
     let bad = dir.path().join("bad.toml");
     fs::write(&bad, "kind = \"peg\"\n[contact]\nfriction = -1.0\n").unwrap();
     assert_clean_failure(&run(&["--env", bad.to_str().unwrap()]), "contact.friction");
@@ -110,11 +60,7 @@ fn bad_input_fails_cleanly() {
 }
 
 fn csv_rows(path: &std::path::Path) -> Vec<Vec<String>> {
-    fs::read_to_string(path)
-        .unwrap()
-        .lines()
-        .map(|l| l.split(',').map(str::to_string).collect())
-        .collect()
+    fs::read_to_string(path).unwrap().lines().map(|l| l.split(',').map(str::to_string).collect()).collect()
 }
 
 /// `--action` runs any constant action; summary.json splits the return into
@@ -123,72 +69,21 @@ fn csv_rows(path: &std::path::Path) -> Vec<Vec<String>> {
 fn constant_action_runs_and_its_return_terms_add_up() {
     let dir = tempfile::tempdir().unwrap();
     let out = lcrl()
-        .args([
-            "sim",
-            "--env",
-            "peg-group1",
-            "--episodes",
-            "3",
-            "--action",
-            "2,2,0,-0.5,0,1",
-            "--out",
-        ])
+        .args(["sim", "--env", "peg-group1", "--episodes", "3", "--action", "2,2,0,-0.5,0,1", "--out"])
         .arg(dir.path())
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let s: Value =
-        serde_json::from_str(&fs::read_to_string(dir.path().join("summary.json")).unwrap())
-            .unwrap();
-    assert!(
-        s["controller"]
-            .as_str()
-            .unwrap()
-            .contains("[2.0, 2.0, 0.0, -0.5, 0.0, 1.0]"),
-        "{s}"
-    );
-    let terms: f64 = [
-        "return_depth",
-        "return_force",
-        "return_moment",
-        "return_bonus",
-        "return_failure",
-    ]
-    .iter()
-    .map(|k| s[*k].as_f64().unwrap())
-    .sum();
-    assert!(
-        (terms - s["mean_return"].as_f64().unwrap()).abs() < 1e-9,
-        "{s}"
-    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let s: Value = serde_json::from_str(&fs::read_to_string(dir.path().join("summary.json")).unwrap()).unwrap();
+    assert!(s["controller"].as_str().unwrap().contains("[2.0, 2.0, 0.0, -0.5, 0.0, 1.0]"), "{s}");
+    let terms: f64 = ["return_depth", "return_force", "return_moment", "return_bonus", "return_failure"].iter().map(|k| s[*k].as_f64().unwrap()).sum();
+    assert!((terms - s["mean_return"].as_f64().unwrap()).abs() < 1e-9, "{s}");
     // Depth in metres: about 1 per 50-step episode of 30 mm, not 80.
     assert!(s["return_depth"].as_f64().unwrap() > -2.0, "{s}");
     let trace = fs::read_to_string(dir.path().join("trace.csv")).unwrap();
-    assert!(
-        trace.lines().nth(2).unwrap().contains(",2,2,0,-0.5,0,1,"),
-        "the trace records the action"
-    );
+    assert!(trace.lines().nth(2).unwrap().contains(",2,2,0,-0.5,0,1,"), "the trace records the action");
 
-    let run = |action: &str| {
-        lcrl()
-            .args([
-                "sim",
-                "--env",
-                "peg-group1",
-                "--episodes",
-                "1",
-                "--action",
-                action,
-                "--out",
-            ])
-            .arg(dir.path())
-            .output()
-            .unwrap()
-    };
+    let run = |action: &str| lcrl().args(["sim", "--env", "peg-group1", "--episodes", "1", "--action", action, "--out"]).arg(dir.path()).output().unwrap();
     assert_clean_failure(&run("1,2,3,4,5"), "5 components");
     assert_clean_failure(&run("3,0,0,0,0,0"), "outside the action box");
     assert_clean_failure(&run("0,0,nan,0,0,0"), "finite");
@@ -201,85 +96,29 @@ fn constant_action_runs_and_its_return_terms_add_up() {
 fn tune_writes_the_bar_that_sim_reproduces() {
     let dir = tempfile::tempdir().unwrap();
     let out = lcrl()
-        .args([
-            "tune",
-            "--env",
-            "lti-paper",
-            "--episodes",
-            "4",
-            "--evaluations",
-            "24",
-            "--eval-episodes",
-            "5",
-            "--eval-seed",
-            "3",
-            "--out",
-        ])
+        .args(["tune", "--env", "lti-paper", "--episodes", "4", "--evaluations", "24", "--eval-episodes", "5", "--eval-seed", "3", "--out"])
         .arg(dir.path())
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let bar: Value =
-        serde_json::from_str(&fs::read_to_string(dir.path().join("best_constant.json")).unwrap())
-            .unwrap();
-    for key in [
-        "action",
-        "mean_return",
-        "success_rate",
-        "mean_peak_force_n",
-        "return_depth",
-        "zero_action",
-        "evaluations",
-        "method",
-    ] {
-        assert!(
-            bar.get(key).is_some(),
-            "best_constant.json lacks {key}: {bar}"
-        );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let bar: Value = serde_json::from_str(&fs::read_to_string(dir.path().join("best_constant.json")).unwrap()).unwrap();
+    for key in ["action", "mean_return", "success_rate", "mean_peak_force_n", "return_depth", "zero_action", "evaluations", "method"] {
+        assert!(bar.get(key).is_some(), "best_constant.json lacks {key}: {bar}");
     }
-    assert!(
-        bar["best"]["tuning_return"].as_f64().unwrap()
-            >= bar["zero_action"]["tuning_return"].as_f64().unwrap()
-    );
-    let action: Vec<String> = bar["action"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|a| format!("{}", a.as_f64().unwrap()))
-        .collect();
+    assert!(bar["best"]["tuning_return"].as_f64().unwrap() >= bar["zero_action"]["tuning_return"].as_f64().unwrap());
+    let action: Vec<String> = bar["action"].as_array().unwrap().iter().map(|a| format!("{}", a.as_f64().unwrap())).collect();
     let sim = dir.path().join("sim");
     let out = lcrl()
-        .args([
-            "sim",
-            "--env",
-            "lti-paper",
-            "--episodes",
-            "5",
-            "--seed",
-            "3",
-        ])
+        .args(["sim", "--env", "lti-paper", "--episodes", "5", "--seed", "3"])
         .arg(format!("--action={}", action.join(",")))
         .arg("--out")
         .arg(&sim)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let s: Value =
-        serde_json::from_str(&fs::read_to_string(sim.join("summary.json")).unwrap()).unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let s: Value = serde_json::from_str(&fs::read_to_string(sim.join("summary.json")).unwrap()).unwrap();
     assert_eq!(s["mean_return"], bar["mean_return"]);
 
-    let out = lcrl()
-        .args(["tune", "--env", "lti-paper", "--evaluations", "1", "--out"])
-        .arg(dir.path())
-        .output()
-        .unwrap();
+    let out = lcrl().args(["tune", "--env", "lti-paper", "--evaluations", "1", "--out"]).arg(dir.path()).output().unwrap();
     assert_clean_failure(&out, "--evaluations");
 }

@@ -22,23 +22,9 @@ fn train(dir: &Path, config: &Path, extra: &[&str]) -> std::process::Output {
     train_connected("local", dir, config, extra)
 }
 
-fn train_connected(
-    connection: &str,
-    dir: &Path,
-    config: &Path,
-    extra: &[&str],
-) -> std::process::Output {
+fn train_connected(connection: &str, dir: &Path, config: &Path, extra: &[&str]) -> std::process::Output {
     lcrl()
-        .args([
-            "train",
-            "--env",
-            "lti-paper",
-            "--algo",
-            "ddpg",
-            "--connection",
-            connection,
-            "--config",
-        ])
+        .args(["train", "--env", "lti-paper", "--algo", "ddpg", "--connection", connection, "--config"])
         .arg(config)
         .arg("--run-dir")
         .arg(dir)
@@ -56,20 +42,10 @@ pub(super) fn tensorboard_returns(run: &Path) -> Vec<(i64, f32)> {
     let mut returns = Vec::new();
     for entry in fs::read_dir(run).unwrap() {
         let path = entry.unwrap().path();
-        if path
-            .file_name()
-            .unwrap()
-            .to_string_lossy()
-            .starts_with("events.out.tfevents.")
-        {
+        if path.file_name().unwrap().to_string_lossy().starts_with("events.out.tfevents.") {
             for event in lcrl_learner::tensorboard::read_events(&path).unwrap() {
                 let values = event.summary.map(|s| s.value).unwrap_or_default();
-                returns.extend(
-                    values
-                        .iter()
-                        .filter(|v| v.tag == "episode/return")
-                        .filter_map(|v| Some((event.step, v.simple_value?))),
-                );
+                returns.extend(values.iter().filter(|v| v.tag == "episode/return").filter_map(|v| Some((event.step, v.simple_value?))));
             }
         }
     }
@@ -79,11 +55,7 @@ pub(super) fn tensorboard_returns(run: &Path) -> Vec<(i64, f32)> {
 
 /// metrics.csv without the wall-clock columns.
 fn timeless_metrics(path: &Path) -> Vec<String> {
-    fs::read_to_string(path)
-        .unwrap()
-        .lines()
-        .map(|l| l.split(',').take(6).collect::<Vec<_>>().join(","))
-        .collect()
+    fs::read_to_string(path).unwrap().lines().map(|l| l.split(',').take(6).collect::<Vec<_>>().join(",")).collect()
 }
 
 #[test]
@@ -92,124 +64,42 @@ fn train_writes_the_run_directory_resumes_and_evaluates() {
     let config = tiny_config(work.path());
     let run = work.path().join("run");
     let out = train(&run, &config, &[]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert!(
-        stdout(&out).contains("actor parameters"),
-        "{}",
-        stdout(&out)
-    );
-    for file in [
-        "config.toml",
-        "graph.json",
-        "metrics.csv",
-        "summary.json",
-        "reward_curve.png",
-    ] {
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout(&out).contains("actor parameters"), "{}", stdout(&out));
+    for file in ["config.toml", "graph.json", "metrics.csv", "summary.json", "reward_curve.png"] {
         assert!(run.join(file).is_file(), "{file} missing");
     }
     let summary = json(&run.join("summary.json"));
-    for key in [
-        "final_return",
-        "episodes",
-        "graph_seconds",
-        "optimization_seconds",
-        "total_seconds",
-        "lqr_return",
-    ] {
-        assert!(
-            summary.get(key).is_some_and(|v| !v.is_null()),
-            "summary.json lacks {key}"
-        );
+    for key in ["final_return", "episodes", "graph_seconds", "optimization_seconds", "total_seconds", "lqr_return"] {
+        assert!(summary.get(key).is_some_and(|v| !v.is_null()), "summary.json lacks {key}");
     }
     assert_eq!(summary["episodes"], 3);
-    assert_eq!(
-        fs::read_to_string(run.join("metrics.csv"))
-            .unwrap()
-            .lines()
-            .count(),
-        4
-    );
+    assert_eq!(fs::read_to_string(run.join("metrics.csv")).unwrap().lines().count(), 4);
     let returns = tensorboard_returns(&run);
     assert_eq!(returns.len(), 3, "one TensorBoard return per episode");
-    let csv_first: f64 = fs::read_to_string(run.join("metrics.csv"))
-        .unwrap()
-        .lines()
-        .nth(1)
-        .unwrap()
-        .split(',')
-        .nth(1)
-        .unwrap()
-        .parse()
-        .unwrap();
-    assert_eq!(
-        returns[0],
-        (1, csv_first as f32),
-        "TensorBoard and metrics.csv agree"
-    );
+    let csv_first: f64 = fs::read_to_string(run.join("metrics.csv")).unwrap().lines().nth(1).unwrap().split(',').nth(1).unwrap().parse().unwrap();
+    assert_eq!(returns[0], (1, csv_first as f32), "TensorBoard and metrics.csv agree");
     let checkpoint = run.join("checkpoints/ep000003");
-    for file in [
-        "actor.safetensors",
-        "critic.safetensors",
-        "actor_target.safetensors",
-        "actor_optimizer.safetensors",
-        "replay.safetensors",
-        "checkpoint.json",
-    ] {
+    for file in ["actor.safetensors", "critic.safetensors", "actor_target.safetensors", "actor_optimizer.safetensors", "replay.safetensors", "checkpoint.json"] {
         assert!(checkpoint.join(file).is_file(), "checkpoint lacks {file}");
     }
 
     // Running again into the same directory needs --resume.
     assert_clean_failure(&train(&run, &config, &[]), "--resume");
     let out = train(&run, &config, &["--resume", "--episodes", "5"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert_eq!(json(&run.join("summary.json"))["episodes"], 5);
-    assert_eq!(
-        fs::read_to_string(run.join("metrics.csv"))
-            .unwrap()
-            .lines()
-            .count(),
-        6
-    );
+    assert_eq!(fs::read_to_string(run.join("metrics.csv")).unwrap().lines().count(), 6);
 
     // The trained policy, evaluated with the same outputs as the constant controller.
     let sim = work.path().join("sim");
-    let out = lcrl()
-        .args(["sim", "--episodes", "2", "--checkpoint"])
-        .arg(&run)
-        .arg("--out")
-        .arg(&sim)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = lcrl().args(["sim", "--episodes", "2", "--checkpoint"]).arg(&run).arg("--out").arg(&sim).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let summary = json(&sim.join("summary.json"));
-    assert!(
-        summary["controller"]
-            .as_str()
-            .unwrap()
-            .contains("ddpg/local"),
-        "{summary}"
-    );
+    assert!(summary["controller"].as_str().unwrap().contains("ddpg/local"), "{summary}");
     assert!(sim.join("trace.csv").is_file() && sim.join("trace.png").is_file());
     // A checkpoint does not fit another environment.
-    let out = lcrl()
-        .args(["sim", "--env", "peg-group1", "--checkpoint"])
-        .arg(&run)
-        .arg("--out")
-        .arg(&sim)
-        .output()
-        .unwrap();
+    let out = lcrl().args(["sim", "--env", "peg-group1", "--checkpoint"]).arg(&run).arg("--out").arg(&sim).output().unwrap();
     assert_clean_failure(&out, "peg-group1");
 }
 
@@ -220,16 +110,9 @@ fn same_seed_one_thread_gives_identical_metrics() {
     let (a, b) = (work.path().join("a"), work.path().join("b"));
     for dir in [&a, &b] {
         let out = train(dir, &config, &["--seed", "3", "--threads", "1"]);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     }
-    assert_eq!(
-        timeless_metrics(&a.join("metrics.csv")),
-        timeless_metrics(&b.join("metrics.csv"))
-    );
+    assert_eq!(timeless_metrics(&a.join("metrics.csv")), timeless_metrics(&b.join("metrics.csv")));
 }
 
 /// `lcrl compare`: Table II's time split for each run, the reward curves in
@@ -240,44 +123,20 @@ fn compare_tabulates_runs_and_refuses_bad_paths() {
     let work = tempfile::tempdir().unwrap();
     let config = tiny_config(work.path());
     let (local, global) = (work.path().join("local"), work.path().join("global"));
-    for out in [
-        train(&local, &config, &[]),
-        train_connected("global", &global, &config, &[]),
-    ] {
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+    for out in [train(&local, &config, &[]), train_connected("global", &global, &config, &[])] {
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     }
 
     let plot = work.path().join("curves.png");
-    let out = lcrl()
-        .arg("compare")
-        .arg(&local)
-        .arg(&global)
-        .arg("--out")
-        .arg(&plot)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = lcrl().arg("compare").arg(&local).arg(&global).arg("--out").arg(&plot).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let table = stdout(&out);
     // Each run's row carries its own summary.json figures (Table II columns).
     for (label, dir) in [("ddpg/local", &local), ("ddpg/global", &global)] {
         let summary = json(&dir.join("summary.json"));
-        let row = table
-            .lines()
-            .find(|l| l.starts_with(label))
-            .unwrap_or_else(|| panic!("no {label} row in {table}"));
+        let row = table.lines().find(|l| l.starts_with(label)).unwrap_or_else(|| panic!("no {label} row in {table}"));
         let cells: Vec<&str> = row.rsplit(')').next().unwrap().split_whitespace().collect();
-        let expected: Vec<String> = ["graph_seconds", "optimization_seconds", "total_seconds"]
-            .iter()
-            .map(|k| format!("{:.2}", summary[*k].as_f64().unwrap()))
-            .collect();
+        let expected: Vec<String> = ["graph_seconds", "optimization_seconds", "total_seconds"].iter().map(|k| format!("{:.2}", summary[*k].as_f64().unwrap())).collect();
         assert_eq!(cells[0], "3", "{row}");
         assert_eq!(&cells[1..4], &expected[..], "{row}");
     }
@@ -285,95 +144,25 @@ fn compare_tabulates_runs_and_refuses_bad_paths() {
 
     // The bar of `lcrl tune` beside the runs: a row and a line.
     let bar = work.path().join("tune");
-    let out = lcrl()
-        .args([
-            "tune",
-            "--env",
-            "lti-paper",
-            "--episodes",
-            "2",
-            "--evaluations",
-            "8",
-            "--eval-episodes",
-            "2",
-            "--out",
-        ])
-        .arg(&bar)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = lcrl().args(["tune", "--env", "lti-paper", "--episodes", "2", "--evaluations", "8", "--eval-episodes", "2", "--out"]).arg(&bar).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let bar = bar.join("best_constant.json");
-    let out = lcrl()
-        .arg("compare")
-        .arg(&local)
-        .arg(&global)
-        .arg("--best-constant")
-        .arg(&bar)
-        .arg("--out")
-        .arg(&plot)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = lcrl().arg("compare").arg(&local).arg(&global).arg("--best-constant").arg(&bar).arg("--out").arg(&plot).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let mean = json(&bar)["mean_return"].as_f64().unwrap();
-    assert!(
-        stdout(&out)
-            .lines()
-            .any(|l| l.starts_with("best constant") && l.contains(&format!("{mean:.3}"))),
-        "{}",
-        stdout(&out)
-    );
+    assert!(stdout(&out).lines().any(|l| l.starts_with("best constant") && l.contains(&format!("{mean:.3}"))), "{}", stdout(&out));
     let mut other = json(&bar);
     other["env"] = Value::from("peg-group1");
     let other_path = work.path().join("other.json");
     fs::write(&other_path, other.to_string()).unwrap();
-    let out = lcrl()
-        .arg("compare")
-        .arg(&local)
-        .arg("--best-constant")
-        .arg(&other_path)
-        .arg("--out")
-        .arg(&plot)
-        .output()
-        .unwrap();
+    let out = lcrl().arg("compare").arg(&local).arg("--best-constant").arg(&other_path).arg("--out").arg(&plot).output().unwrap();
     assert_clean_failure(&out, "best constant is for peg-group1");
 
-    let out = lcrl()
-        .arg("compare")
-        .arg(&local)
-        .arg("--out")
-        .arg(work.path().join("curves"))
-        .output()
-        .unwrap();
+    let out = lcrl().arg("compare").arg(&local).arg("--out").arg(work.path().join("curves")).output().unwrap();
     assert_clean_failure(&out, ".png");
-    let out = lcrl()
-        .arg("compare")
-        .arg(&local)
-        .arg(work.path())
-        .arg("--out")
-        .arg(&plot)
-        .output()
-        .unwrap();
+    let out = lcrl().arg("compare").arg(&local).arg(work.path()).arg("--out").arg(&plot).output().unwrap();
     assert_clean_failure(&out, "not a finished run");
-    let out = lcrl()
-        .args([
-            "graph",
-            "--env",
-            "lti-paper",
-            "--samples",
-            "8",
-            "--plot",
-            "g.svg",
-        ])
-        .output()
-        .unwrap();
+    let out = lcrl().args(["graph", "--env", "lti-paper", "--samples", "8", "--plot", "g.svg"]).output().unwrap();
     assert_clean_failure(&out, ".png");
 }
 
@@ -385,39 +174,15 @@ fn bad_input_fails_cleanly() {
     fs::write(&bad, "[ddpg]\nactor_lr = -0.001\n").unwrap();
     assert_clean_failure(&train(&work.path().join("r1"), &bad, &[]), "ddpg.actor_lr");
 
-    let out = lcrl()
-        .args([
-            "train",
-            "--env",
-            "lti-paper",
-            "--algo",
-            "sac",
-            "--connection",
-            "local",
-        ])
-        .output()
-        .unwrap();
+    let out = lcrl().args(["train", "--env", "lti-paper", "--algo", "sac", "--connection", "local"]).output().unwrap();
     assert_clean_failure(&out, "sac");
 
     // A graph of lti-paper (3×3) used for peg-group1 (6 actions × 12 states).
     let graph = work.path().join("graph.json");
-    let out = lcrl()
-        .args(["graph", "--env", "lti-paper", "--samples", "8", "--out"])
-        .arg(&graph)
-        .output()
-        .unwrap();
+    let out = lcrl().args(["graph", "--env", "lti-paper", "--samples", "8", "--out"]).arg(&graph).output().unwrap();
     assert!(out.status.success());
     let out = lcrl()
-        .args([
-            "train",
-            "--env",
-            "peg-group1",
-            "--algo",
-            "ddpg",
-            "--connection",
-            "local",
-            "--config",
-        ])
+        .args(["train", "--env", "peg-group1", "--algo", "ddpg", "--connection", "local", "--config"])
         .arg(&config)
         .arg("--graph")
         .arg(&graph)
@@ -428,16 +193,7 @@ fn bad_input_fails_cleanly() {
     assert_clean_failure(&out, "3×3");
 
     let out = lcrl()
-        .args([
-            "train",
-            "--env",
-            "lti-paper",
-            "--algo",
-            "ppo",
-            "--connection",
-            "global",
-            "--graph",
-        ])
+        .args(["train", "--env", "lti-paper", "--algo", "ppo", "--connection", "global", "--graph"])
         .arg(&graph)
         .output()
         .unwrap();
@@ -452,62 +208,20 @@ fn peg_run_splits_returns_into_reward_terms() {
     let config = tiny_config(work.path());
     let run = work.path().join("peg");
     let out = lcrl()
-        .args([
-            "train",
-            "--env",
-            "peg-group1",
-            "--algo",
-            "ddpg",
-            "--connection",
-            "global",
-            "--episodes",
-            "2",
-            "--config",
-        ])
+        .args(["train", "--env", "peg-group1", "--algo", "ddpg", "--connection", "global", "--episodes", "2", "--config"])
         .arg(&config)
         .arg("--run-dir")
         .arg(&run)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let s = json(&run.join("summary.json"));
-    let terms: f64 = [
-        "return_depth",
-        "return_force",
-        "return_moment",
-        "return_bonus",
-        "return_failure",
-    ]
-    .iter()
-    .map(|k| s[*k].as_f64().unwrap())
-    .sum();
-    assert!(
-        (terms - s["eval_return"].as_f64().unwrap()).abs() < 1e-9,
-        "{s}"
-    );
-    assert!(
-        s["zero_action_return"].as_f64().is_some() && s["eval_success_rate"].as_f64().is_some(),
-        "{s}"
-    );
+    let terms: f64 = ["return_depth", "return_force", "return_moment", "return_bonus", "return_failure"].iter().map(|k| s[*k].as_f64().unwrap()).sum();
+    assert!((terms - s["eval_return"].as_f64().unwrap()).abs() < 1e-9, "{s}");
+    assert!(s["zero_action_return"].as_f64().is_some() && s["eval_success_rate"].as_f64().is_some(), "{s}");
     let mut rows = csv::Reader::from_path(run.join("metrics.csv")).unwrap();
     let header: Vec<String> = rows.headers().unwrap().iter().map(str::to_string).collect();
-    assert!(
-        header.ends_with(
-            &[
-                "return_depth",
-                "return_force",
-                "return_moment",
-                "return_bonus",
-                "return_failure"
-            ]
-            .map(String::from)
-        ),
-        "{header:?}"
-    );
+    assert!(header.ends_with(&["return_depth", "return_force", "return_moment", "return_bonus", "return_failure"].map(String::from)), "{header:?}");
     for row in rows.records() {
         let row = row.unwrap();
         let total: f64 = row[1].parse().unwrap();
@@ -523,35 +237,14 @@ fn lti_paper_without_config_gets_its_working_settings() {
     let work = tempfile::tempdir().unwrap();
     let run = work.path().join("r");
     let out = lcrl()
-        .args([
-            "train",
-            "--env",
-            "lti-paper",
-            "--algo",
-            "ddpg",
-            "--connection",
-            "global",
-            "--episodes",
-            "2",
-            "--run-dir",
-        ])
+        .args(["train", "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--episodes", "2", "--run-dir"])
         .arg(&run)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let config = fs::read_to_string(run.join("config.toml")).unwrap();
-    assert!(
-        config.contains("# settings from: configs/lti-fast.toml"),
-        "{config}"
-    );
-    assert!(
-        config.contains("activation = \"elu\"") && config.contains("buffer_capacity = 20000"),
-        "{config}"
-    );
+    assert!(config.contains("# settings from: configs/lti-fast.toml"), "{config}");
+    assert!(config.contains("activation = \"elu\"") && config.contains("buffer_capacity = 20000"), "{config}");
 }
 
 /// A base controller that cannot be used stops `lcrl train` before any
@@ -563,16 +256,7 @@ fn train_refuses_a_bad_base_action() {
     let config = tiny_config(work.path());
     let base_train = |file: &Path| {
         lcrl()
-            .args([
-                "train",
-                "--env",
-                "peg-group1",
-                "--algo",
-                "ddpg",
-                "--connection",
-                "global",
-                "--config",
-            ])
+            .args(["train", "--env", "peg-group1", "--algo", "ddpg", "--connection", "global", "--config"])
             .arg(&config)
             .arg("--run-dir")
             .arg(work.path().join("run"))
@@ -585,26 +269,15 @@ fn train_refuses_a_bad_base_action() {
     assert_clean_failure(&base_train(&missing), "missing.json");
     let cases = [
         ("not-tune.json", "{\"best\": 1}", "not a best_constant.json"),
-        (
-            "outside.json",
-            "{\"action\": [2.0, 2.0, 0.0, 9.0, 0.0, 0.0]}",
-            "controller.base[3] = 9 lies outside the action box",
-        ),
-        (
-            "short.json",
-            "{\"action\": [0.0, 0.0]}",
-            "controller.base has 2 components",
-        ),
+        ("outside.json", "{\"action\": [2.0, 2.0, 0.0, 9.0, 0.0, 0.0]}", "controller.base[3] = 9 lies outside the action box"),
+        ("short.json", "{\"action\": [0.0, 0.0]}", "controller.base has 2 components"),
     ];
     for (name, text, needle) in cases {
         let file = work.path().join(name);
         fs::write(&file, text).unwrap();
         assert_clean_failure(&base_train(&file), needle);
     }
-    assert!(
-        !work.path().join("run").join("checkpoints").exists(),
-        "nothing was trained"
-    );
+    assert!(!work.path().join("run").join("checkpoints").exists(), "nothing was trained");
 }
 
 /// The throughput settings keep the replay ratio they promise: a round of
@@ -618,37 +291,19 @@ fn throughput_settings_keep_their_replay_ratio() {
     // every 4th step; 4 updates on every 4th step.
     for (batch, every, steps) in [(16u64, 1u64, 1u64), (64, 4, 1), (16, 4, 4)] {
         let config = work.path().join(format!("b{batch}-e{every}-g{steps}.toml"));
-        let text = TINY.replace(
-            "batch_size = 16",
-            &format!("batch_size = {batch}\nupdate_every = {every}\ngradient_steps = {steps}"),
-        );
+        let text = TINY.replace("batch_size = 16", &format!("batch_size = {batch}\nupdate_every = {every}\ngradient_steps = {steps}"));
         fs::write(&config, text).unwrap();
         let dir = work.path().join(format!("run-{batch}-{every}-{steps}"));
         let out = train_connected("global", &dir, &config, &[]);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
         let summary = json(&dir.join("summary.json"));
         let env_steps = summary["env_steps"].as_u64().unwrap();
         let min_size = batch.max(20);
-        let rounds = (1..=env_steps)
-            .filter(|k| k % every == 0 && *k >= min_size)
-            .count() as u64;
-        assert_eq!(
-            summary["samples_drawn"].as_u64().unwrap(),
-            rounds * steps * batch,
-            "batch {batch}, every {every}, steps {steps}"
-        );
+        let rounds = (1..=env_steps).filter(|k| k % every == 0 && *k >= min_size).count() as u64;
+        assert_eq!(summary["samples_drawn"].as_u64().unwrap(), rounds * steps * batch, "batch {batch}, every {every}, steps {steps}");
         // Samples per insert after warm-up: batch · steps / every = 16 or 64.
-        let ratio =
-            summary["samples_drawn"].as_u64().unwrap() as f64 / (env_steps - min_size + 1) as f64;
+        let ratio = summary["samples_drawn"].as_u64().unwrap() as f64 / (env_steps - min_size + 1) as f64;
         let promised = (batch * steps) as f64 / every as f64;
-        assert!(
-            (ratio - promised).abs()
-                <= promised * every as f64 / (env_steps - min_size + 1) as f64 + 1e-9,
-            "ratio {ratio} vs {promised}"
-        );
+        assert!((ratio - promised).abs() <= promised * every as f64 / (env_steps - min_size + 1) as f64 + 1e-9, "ratio {ratio} vs {promised}");
     }
 }

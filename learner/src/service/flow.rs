@@ -14,10 +14,7 @@ pub struct LagWindow {
 
 impl Default for LagWindow {
     fn default() -> Self {
-        LagWindow {
-            lags: VecDeque::new(),
-            capacity: 1000,
-        }
+        LagWindow { lags: VecDeque::new(), capacity: 1000 }
     }
 }
 
@@ -36,11 +33,7 @@ impl LagWindow {
         }
         let min = self.lags.iter().copied().min().unwrap_or(0);
         let max = self.lags.iter().copied().max().unwrap_or(0);
-        (
-            min,
-            self.lags.iter().sum::<u64>() as f64 / self.lags.len() as f64,
-            max,
-        )
+        (min, self.lags.iter().sum::<u64>() as f64 / self.lags.len() as f64, max)
     }
 }
 
@@ -66,11 +59,7 @@ pub struct FlowStats {
 
 impl FlowStats {
     pub fn achieved_ratio(&self) -> f64 {
-        if self.inserted == 0 {
-            0.0
-        } else {
-            self.sampled as f64 / self.inserted as f64
-        }
+        if self.inserted == 0 { 0.0 } else { self.sampled as f64 / self.inserted as f64 }
     }
 }
 

@@ -42,12 +42,7 @@ impl Accepted {
         if self.episodes.len() <= episodes {
             return 0;
         }
-        let mut ends = self
-            .transitions
-            .iter()
-            .enumerate()
-            .filter(|(_, t)| t.terminated || t.truncated)
-            .map(|(i, _)| i + 1);
+        let mut ends = self.transitions.iter().enumerate().filter(|(_, t)| t.terminated || t.truncated).map(|(i, _)| i + 1);
         let cut = match episodes {
             0 => 0,
             k => ends.nth(k - 1).unwrap_or(self.transitions.len()),
@@ -68,10 +63,7 @@ pub enum Verdict {
     /// PPO: produced by a policy older than the staleness bound; discarded.
     Stale,
     /// Malformed: rejected with INVALID_ARGUMENT. `reason` is the status key.
-    Reject {
-        reason: &'static str,
-        message: String,
-    },
+    Reject { reason: &'static str, message: String },
 }
 
 /// The ingestion state of a run.
@@ -93,15 +85,7 @@ pub struct Ingest {
 impl Ingest {
     pub fn new(run_id: &str, env: Box<dyn Env>, max_staleness: Option<u64>) -> Self {
         let actions = ActionMap::plain(env.spec());
-        Ingest {
-            run_id: run_id.to_string(),
-            env,
-            actions,
-            last_sequence: HashMap::new(),
-            max_staleness,
-            rejected: BTreeMap::new(),
-            accepted: 0,
-        }
+        Ingest { run_id: run_id.to_string(), env, actions, last_sequence: HashMap::new(), max_staleness, rejected: BTreeMap::new(), accepted: 0 }
     }
 
     /// The run's action map (its base controller): actions arrive in the
@@ -138,10 +122,7 @@ impl Ingest {
             self.count("unknown_run", count);
             return Verdict::Reject {
                 reason: "unknown_run",
-                message: format!(
-                    "run id '{}' is not this learner's run ('{}')",
-                    batch.run_id, self.run_id
-                ),
+                message: format!("run id '{}' is not this learner's run ('{}')", batch.run_id, self.run_id),
             };
         }
         let (m, n) = (self.env.spec().state_dim(), self.env.spec().action_dim());
@@ -158,48 +139,25 @@ impl Ingest {
                     ),
                 };
             }
-            let all = t
-                .state
-                .iter()
-                .chain(&t.next_state)
-                .chain(&t.action)
-                .chain(std::iter::once(&t.reward));
+            let all = t.state.iter().chain(&t.next_state).chain(&t.action).chain(std::iter::once(&t.reward));
             if all.clone().any(|v| !v.is_finite()) {
                 self.count("non_finite", count);
-                return Verdict::Reject {
-                    reason: "non_finite",
-                    message: format!("transition {k} holds a non-finite number"),
-                };
+                return Verdict::Reject { reason: "non_finite", message: format!("transition {k} holds a non-finite number") };
             }
         }
-        if self
-            .last_sequence
-            .get(&batch.actor_id)
-            .is_some_and(|&last| batch.sequence <= last)
-        {
+        if self.last_sequence.get(&batch.actor_id).is_some_and(|&last| batch.sequence <= last) {
             self.count("duplicate", count);
             return Verdict::Duplicate;
         }
-        self.last_sequence
-            .insert(batch.actor_id.clone(), batch.sequence);
-        if self
-            .max_staleness
-            .is_some_and(|bound| policy_version.saturating_sub(batch.policy_version) > bound)
-        {
+        self.last_sequence.insert(batch.actor_id.clone(), batch.sequence);
+        if self.max_staleness.is_some_and(|bound| policy_version.saturating_sub(batch.policy_version) > bound) {
             self.count("stale", count);
             return Verdict::Stale;
         }
-        let to_action = |a: &[f32]| -> Vec<f32> {
-            self.actions
-                .to_normalized(&a.iter().map(|&v| f64::from(v)).collect::<Vec<_>>())
-        };
+        let to_action = |a: &[f32]| -> Vec<f32> { self.actions.to_normalized(&a.iter().map(|&v| f64::from(v)).collect::<Vec<_>>()) };
         let to_obs = |s: &[f32]| -> Vec<f32> {
             let raw: Vec<f64> = s.iter().map(|&v| f64::from(v)).collect();
-            self.env
-                .normalize_state(&raw)
-                .iter()
-                .map(|&v| v as f32)
-                .collect()
+            self.env.normalize_state(&raw).iter().map(|&v| v as f32).collect()
         };
         let transitions = batch
             .transitions
@@ -211,19 +169,11 @@ impl Ingest {
                 next_obs: to_obs(&t.next_state),
                 terminated: t.terminated,
                 truncated: t.truncated,
-                policy_version: if t.policy_version > 0 {
-                    t.policy_version
-                } else {
-                    batch.policy_version
-                },
+                policy_version: if t.policy_version > 0 { t.policy_version } else { batch.policy_version },
             })
             .collect::<Vec<_>>();
         self.accepted += transitions.len() as u64;
-        Verdict::Accept(Accepted {
-            transitions,
-            episodes: batch.episodes.clone(),
-            policy_version: batch.policy_version,
-        })
+        Verdict::Accept(Accepted { transitions, episodes: batch.episodes.clone(), policy_version: batch.policy_version })
     }
 }
 
@@ -239,15 +189,7 @@ mod tests {
             sequence,
             episode_id: 1,
             policy_version: 3,
-            transitions: vec![Transition {
-                state: state.clone(),
-                action: vec![0.5, -1.0, 1.0],
-                reward: -1.0,
-                next_state: state,
-                terminated: false,
-                truncated: false,
-                policy_version: 0,
-            }],
+            transitions: vec![Transition { state: state.clone(), action: vec![0.5, -1.0, 1.0], reward: -1.0, next_state: state, terminated: false, truncated: false, policy_version: 0 }],
             episodes: vec![],
         }
     }
@@ -258,26 +200,10 @@ mod tests {
 
     #[test]
     fn a_batch_is_cut_after_the_last_episode_the_budget_allows() {
-        let t = |end: bool| AgentTransition {
-            obs: vec![],
-            action: vec![],
-            reward: 0.0,
-            next_obs: vec![],
-            terminated: end,
-            truncated: false,
-            policy_version: 0,
-        };
-        let e = || EpisodeSummary {
-            episode_return: -1.0,
-            length: 2,
-            success: None,
-        };
+        let t = |end: bool| AgentTransition { obs: vec![], action: vec![], reward: 0.0, next_obs: vec![], terminated: end, truncated: false, policy_version: 0 };
+        let e = || EpisodeSummary { episode_return: -1.0, length: 2, success: None };
         // Two episode ends (after transitions 2 and 4) and a started third.
-        let batch = || Accepted {
-            transitions: vec![t(false), t(true), t(false), t(true), t(false)],
-            episodes: vec![e(), e()],
-            policy_version: 1,
-        };
+        let batch = || Accepted { transitions: vec![t(false), t(true), t(false), t(true), t(false)], episodes: vec![e(), e()], policy_version: 1 };
         let mut one = batch();
         assert_eq!(one.keep_episodes(1), 3);
         assert_eq!((one.transitions.len(), one.episodes.len()), (2, 1));
@@ -307,59 +233,23 @@ mod tests {
         let mut ingest = ingest(None);
         let mut wrong_run = batch("a1", 1, vec![0.0; 3]);
         wrong_run.run_id = "run-b".into();
-        assert!(matches!(
-            ingest.check(&wrong_run, 3),
-            Verdict::Reject {
-                reason: "unknown_run",
-                ..
-            }
-        ));
-        assert!(matches!(
-            ingest.check(&batch("a1", 2, vec![0.0; 4]), 3),
-            Verdict::Reject {
-                reason: "dimensions",
-                ..
-            }
-        ));
-        assert!(matches!(
-            ingest.check(&batch("a1", 3, vec![0.0, f32::NAN, 0.0]), 3),
-            Verdict::Reject {
-                reason: "non_finite",
-                ..
-            }
-        ));
+        assert!(matches!(ingest.check(&wrong_run, 3), Verdict::Reject { reason: "unknown_run", .. }));
+        assert!(matches!(ingest.check(&batch("a1", 2, vec![0.0; 4]), 3), Verdict::Reject { reason: "dimensions", .. }));
+        assert!(matches!(ingest.check(&batch("a1", 3, vec![0.0, f32::NAN, 0.0]), 3), Verdict::Reject { reason: "non_finite", .. }));
         assert_eq!(ingest.rejected.values().sum::<u64>(), 3);
         // A rejected batch does not consume its sequence number.
-        assert!(matches!(
-            ingest.check(&batch("a1", 1, vec![0.0; 3]), 3),
-            Verdict::Accept(_)
-        ));
+        assert!(matches!(ingest.check(&batch("a1", 1, vec![0.0; 3]), 3), Verdict::Accept(_)));
     }
 
     #[test]
     fn duplicates_and_stale_batches_are_not_stored() {
         let mut ingest = ingest(Some(1));
-        assert!(matches!(
-            ingest.check(&batch("a1", 5, vec![0.0; 3]), 3),
-            Verdict::Accept(_)
-        ));
-        assert_eq!(
-            ingest.check(&batch("a1", 5, vec![0.0; 3]), 3),
-            Verdict::Duplicate
-        );
-        assert_eq!(
-            ingest.check(&batch("a1", 4, vec![0.0; 3]), 3),
-            Verdict::Duplicate
-        );
-        assert!(matches!(
-            ingest.check(&batch("a2", 5, vec![0.0; 3]), 3),
-            Verdict::Accept(_)
-        ));
+        assert!(matches!(ingest.check(&batch("a1", 5, vec![0.0; 3]), 3), Verdict::Accept(_)));
+        assert_eq!(ingest.check(&batch("a1", 5, vec![0.0; 3]), 3), Verdict::Duplicate);
+        assert_eq!(ingest.check(&batch("a1", 4, vec![0.0; 3]), 3), Verdict::Duplicate);
+        assert!(matches!(ingest.check(&batch("a2", 5, vec![0.0; 3]), 3), Verdict::Accept(_)));
         // Version 3 batches are two versions old at version 5: beyond the bound.
-        assert_eq!(
-            ingest.check(&batch("a1", 6, vec![0.0; 3]), 5),
-            Verdict::Stale
-        );
+        assert_eq!(ingest.check(&batch("a1", 6, vec![0.0; 3]), 5), Verdict::Stale);
         assert_eq!(ingest.rejected.get("duplicate"), Some(&2));
         assert_eq!(ingest.rejected.get("stale"), Some(&1));
     }

@@ -30,17 +30,9 @@ pub fn act_latency_histogram() -> Histogram {
 
 /// The learner's registry: everything in `GetStatus`, the training queue's
 /// depth and the `Policy.Act` latency.
-pub fn learner_registry(
-    shared: Arc<Shared>,
-    queue: mpsc::Sender<Command>,
-    act_latency: Histogram,
-) -> Registry {
+pub fn learner_registry(shared: Arc<Shared>, queue: mpsc::Sender<Command>, act_latency: Histogram) -> Registry {
     let mut registry = Registry::with_prefix("lcrl_learner");
-    registry.register(
-        "act_latency_seconds",
-        "Policy.Act and ActBatch handling time (server side)",
-        act_latency,
-    );
+    registry.register("act_latency_seconds", "Policy.Act and ActBatch handling time (server side)", act_latency);
     registry.register_collector(Box::new(LearnerCollector { shared, queue }));
     registry
 }
@@ -53,28 +45,16 @@ pub struct LearnerCollector {
 
 impl std::fmt::Debug for LearnerCollector {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("LearnerCollector")
-            .field("run_id", &self.shared.run_id)
-            .finish_non_exhaustive()
+        f.debug_struct("LearnerCollector").field("run_id", &self.shared.run_id).finish_non_exhaustive()
     }
 }
 
-fn counter(
-    encoder: &mut DescriptorEncoder,
-    name: &str,
-    help: &str,
-    value: u64,
-) -> Result<(), std::fmt::Error> {
+fn counter(encoder: &mut DescriptorEncoder, name: &str, help: &str, value: u64) -> Result<(), std::fmt::Error> {
     let metric = ConstCounter::new(value);
     metric.encode(encoder.encode_descriptor(name, help, None, metric.metric_type())?)
 }
 
-fn gauge(
-    encoder: &mut DescriptorEncoder,
-    name: &str,
-    help: &str,
-    value: i64,
-) -> Result<(), std::fmt::Error> {
+fn gauge(encoder: &mut DescriptorEncoder, name: &str, help: &str, value: i64) -> Result<(), std::fmt::Error> {
     let metric = ConstGauge::new(value);
     metric.encode(encoder.encode_descriptor(name, help, None, metric.metric_type())?)
 }
@@ -82,122 +62,34 @@ fn gauge(
 impl Collector for LearnerCollector {
     fn encode(&self, mut encoder: DescriptorEncoder) -> Result<(), std::fmt::Error> {
         let s = &self.shared;
-        counter(
-            &mut encoder,
-            "env_steps",
-            "Environment steps stored (replay buffer or rollout)",
-            s.env_steps.load(Ordering::Relaxed),
-        )?;
-        counter(
-            &mut encoder,
-            "episodes",
-            "Episodes reported by actors",
-            s.episodes.load(Ordering::Relaxed),
-        )?;
-        counter(
-            &mut encoder,
-            "updates",
-            "Gradient updates",
-            s.updates.load(Ordering::Relaxed),
-        )?;
+        counter(&mut encoder, "env_steps", "Environment steps stored (replay buffer or rollout)", s.env_steps.load(Ordering::Relaxed))?;
+        counter(&mut encoder, "episodes", "Episodes reported by actors", s.episodes.load(Ordering::Relaxed))?;
+        counter(&mut encoder, "updates", "Gradient updates", s.updates.load(Ordering::Relaxed))?;
         let flow = s.flow();
         let (lag_min, lag_mean, lag_max) = flow.lag.stats();
-        counter(
-            &mut encoder,
-            "replay_sampled",
-            "Transitions sampled by updates (DDPG minibatches)",
-            flow.sampled,
-        )?;
-        counter(
-            &mut encoder,
-            "replay_inserted",
-            "Transitions inserted into the replay buffer or rollout",
-            flow.inserted,
-        )?;
-        gauge(
-            &mut encoder,
-            "policy_lag_min",
-            "Smallest policy lag of the last 1000 stored transitions (versions)",
-            lag_min as i64,
-        )?;
-        gauge(
-            &mut encoder,
-            "policy_lag_mean_milli",
-            "Mean policy lag of the last 1000 stored transitions, in thousandths of a version",
-            (lag_mean * 1000.0) as i64,
-        )?;
-        gauge(
-            &mut encoder,
-            "policy_lag_max",
-            "Largest policy lag of the last 1000 stored transitions (versions)",
-            lag_max as i64,
-        )?;
-        gauge(
-            &mut encoder,
-            "actors_waited_milliseconds",
-            "Time the rate limiter held actors back (the learner was behind)",
-            (flow.actors_waited_s * 1000.0) as i64,
-        )?;
-        gauge(
-            &mut encoder,
-            "learner_waited_milliseconds",
-            "Time the learner waited for data (actors were behind)",
-            (flow.learner_waited_s * 1000.0) as i64,
-        )?;
-        gauge(
-            &mut encoder,
-            "replay_size",
-            "Transitions held (DDPG replay buffer, PPO rollout)",
-            s.replay_size.load(Ordering::Relaxed) as i64,
-        )?;
-        gauge(
-            &mut encoder,
-            "policy_version",
-            "Newest published policy version",
-            s.policy_version() as i64,
-        )?;
-        gauge(
-            &mut encoder,
-            "connected_actors",
-            "Actors with an open gRPC transition stream",
-            i64::from(s.connected_actors.load(Ordering::Relaxed)),
-        )?;
+        counter(&mut encoder, "replay_sampled", "Transitions sampled by updates (DDPG minibatches)", flow.sampled)?;
+        counter(&mut encoder, "replay_inserted", "Transitions inserted into the replay buffer or rollout", flow.inserted)?;
+        gauge(&mut encoder, "policy_lag_min", "Smallest policy lag of the last 1000 stored transitions (versions)", lag_min as i64)?;
+        gauge(&mut encoder, "policy_lag_mean_milli", "Mean policy lag of the last 1000 stored transitions, in thousandths of a version", (lag_mean * 1000.0) as i64)?;
+        gauge(&mut encoder, "policy_lag_max", "Largest policy lag of the last 1000 stored transitions (versions)", lag_max as i64)?;
+        gauge(&mut encoder, "actors_waited_milliseconds", "Time the rate limiter held actors back (the learner was behind)", (flow.actors_waited_s * 1000.0) as i64)?;
+        gauge(&mut encoder, "learner_waited_milliseconds", "Time the learner waited for data (actors were behind)", (flow.learner_waited_s * 1000.0) as i64)?;
+        gauge(&mut encoder, "replay_size", "Transitions held (DDPG replay buffer, PPO rollout)", s.replay_size.load(Ordering::Relaxed) as i64)?;
+        gauge(&mut encoder, "policy_version", "Newest published policy version", s.policy_version() as i64)?;
+        gauge(&mut encoder, "connected_actors", "Actors with an open gRPC transition stream", i64::from(s.connected_actors.load(Ordering::Relaxed)))?;
         let queued = self.queue.max_capacity() - self.queue.capacity();
-        gauge(
-            &mut encoder,
-            "training_queue_depth",
-            "Accepted batches waiting for the training thread",
-            queued as i64,
-        )?;
+        gauge(&mut encoder, "training_queue_depth", "Accepted batches waiting for the training thread", queued as i64)?;
         let (accepted, rejected) = s.ingest_counts();
-        counter(
-            &mut encoder,
-            "transitions_accepted",
-            "Transitions accepted by ingestion",
-            accepted,
-        )?;
+        counter(&mut encoder, "transitions_accepted", "Transitions accepted by ingestion", accepted)?;
         let family = ConstCounter::new(0u64);
-        let mut by_reason = encoder.encode_descriptor(
-            "transitions_rejected",
-            "Transitions rejected or dropped, by reason",
-            None,
-            family.metric_type(),
-        )?;
+        let mut by_reason = encoder.encode_descriptor("transitions_rejected", "Transitions rejected or dropped, by reason", None, family.metric_type())?;
         for (reason, count) in rejected {
-            ConstCounter::new(count)
-                .encode(by_reason.encode_family(&vec![("reason".to_string(), reason)])?)?;
+            ConstCounter::new(count).encode(by_reason.encode_family(&vec![("reason".to_string(), reason)])?)?;
         }
         drop(by_reason);
-        let mut refused = encoder.encode_descriptor(
-            "unauthenticated",
-            "Calls refused with UNAUTHENTICATED, by reason",
-            None,
-            family.metric_type(),
-        )?;
+        let mut refused = encoder.encode_descriptor("unauthenticated", "Calls refused with UNAUTHENTICATED, by reason", None, family.metric_type())?;
         for (reason, count) in s.auth_refusals.counts() {
-            ConstCounter::new(count).encode(
-                refused.encode_family(&vec![("reason".to_string(), reason.to_string())])?,
-            )?;
+            ConstCounter::new(count).encode(refused.encode_family(&vec![("reason".to_string(), reason.to_string())])?)?;
         }
         Ok(())
     }
@@ -222,29 +114,18 @@ pub async fn serve(
             let registry = registry.clone();
             async move {
                 match render(&registry) {
-                    Ok(text) => (
-                        [(
-                            axum::http::header::CONTENT_TYPE,
-                            "application/openmetrics-text; version=1.0.0; charset=utf-8",
-                        )],
-                        text,
-                    )
-                        .into_response(),
+                    Ok(text) => ([(axum::http::header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")], text).into_response(),
                     Err(_) => axum::http::StatusCode::INTERNAL_SERVER_ERROR.into_response(),
                 }
             }
         }),
     );
-    axum::serve(listener, app)
-        .with_graceful_shutdown(stop)
-        .await
+    axum::serve(listener, app).with_graceful_shutdown(stop).await
 }
 
 /// Binds the metrics address (a clear error when taken) and returns the
 /// listener with the address actually bound (port 0 picks a free one).
-pub async fn bind(
-    addr: SocketAddr,
-) -> Result<(tokio::net::TcpListener, SocketAddr), std::io::Error> {
+pub async fn bind(addr: SocketAddr) -> Result<(tokio::net::TcpListener, SocketAddr), std::io::Error> {
     let listener = tokio::net::TcpListener::bind(addr).await?;
     let local = listener.local_addr()?;
     Ok((listener, local))

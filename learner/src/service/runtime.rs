@@ -12,12 +12,12 @@ use lcrl_proto::v1::PolicySnapshot;
 use tokio::sync::{mpsc, watch};
 
 use crate::agent::{Agent, Transition};
-use crate::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::config::{Algo, Connection};
 use crate::rate_limiter::RateLimiter;
 use crate::service::flow::FlowStats;
 use crate::service::ingest::{Accepted, Ingest};
 use crate::snapshot::{encode_weights, Architecture};
+use crate::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::LearnerError;
 
 /// What the handlers send to the training thread.
@@ -59,9 +59,7 @@ pub struct Shared {
 /// it rather than failing every later call; the panic itself is reported
 /// where it happened.
 fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    mutex
-        .lock()
-        .unwrap_or_else(|poisoned| poisoned.into_inner())
+    mutex.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
 }
 
 impl Shared {
@@ -105,11 +103,7 @@ impl Shared {
 
     pub fn recent_return(&self) -> f64 {
         let returns: Vec<f64> = lock(&self.recent_returns).iter().copied().collect();
-        if returns.is_empty() {
-            0.0
-        } else {
-            returns.iter().sum::<f64>() / returns.len() as f64
-        }
+        if returns.is_empty() { 0.0 } else { returns.iter().sum::<f64>() / returns.len() as f64 }
     }
 }
 
@@ -144,21 +138,10 @@ pub struct Schedule {
 const BATCHES_PER_TURN: usize = 8;
 
 /// Encodes the agent's actor as the next policy version.
-pub fn snapshot(
-    agent: &dyn Agent,
-    architecture: &Architecture,
-    version: u64,
-) -> Result<PolicySnapshot, LearnerError> {
+pub fn snapshot(agent: &dyn Agent, architecture: &Architecture, version: u64) -> Result<PolicySnapshot, LearnerError> {
     let weights = encode_weights(&agent.actor_variables())?;
-    let architecture =
-        serde_json::to_string(architecture).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    Ok(PolicySnapshot {
-        version,
-        weights,
-        architecture,
-        explore_uniform: false,
-        exploration_noise: 0.0,
-    })
+    let architecture = serde_json::to_string(architecture).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    Ok(PolicySnapshot { version, weights, architecture, explore_uniform: false, exploration_noise: 0.0 })
 }
 
 /// The learner's own summary at the end of its budget (run_dir/summary.json).
@@ -240,12 +223,7 @@ fn waited(shared: &Shared, seconds: f64, actors: bool) {
 /// refuses is held, so the command queue fills and the actors' sends block:
 /// backpressure, not dropped data); follow the budget's schedules; train
 /// once if the limiter lets the learner sample; publish; checkpoint.
-pub fn run_training(
-    mut agent: Box<dyn Agent>,
-    mut commands: mpsc::Receiver<Command>,
-    shared: Arc<Shared>,
-    mut schedule: Schedule,
-) -> Result<(), LearnerError> {
+pub fn run_training(mut agent: Box<dyn Agent>, mut commands: mpsc::Receiver<Command>, shared: Arc<Shared>, mut schedule: Schedule) -> Result<(), LearnerError> {
     let mut last_published = agent.counters().updates;
     let mut published_exploration = exploration_of(agent.as_ref(), &shared);
     // The starting version (no actor has it yet: the servers start after
@@ -263,15 +241,11 @@ pub fn run_training(
     let mut held: Option<Accepted> = None;
     let mut turn = std::time::Instant::now();
     let budget = schedule.budget_episodes;
-    let budget_reached =
-        |shared: &Shared| budget.is_some_and(|b| shared.episodes.load(Ordering::Relaxed) >= b);
+    let budget_reached = |shared: &Shared| budget.is_some_and(|b| shared.episodes.load(Ordering::Relaxed) >= b);
     {
         let mut flow = shared.flow_mut();
         flow.budget_episodes = schedule.budget_episodes.unwrap_or(0);
-        flow.replay_ratio_target = schedule
-            .limiter
-            .as_ref()
-            .map_or(0.0, |l| l.samples_per_insert);
+        flow.replay_ratio_target = schedule.limiter.as_ref().map_or(0.0, |l| l.samples_per_insert);
         if let Some(l) = &schedule.limiter {
             (flow.inserted, flow.sampled) = (l.inserts, l.samples);
         }
@@ -308,14 +282,12 @@ pub fn run_training(
             // Nothing past the budget's last episode is stored.
             let past_budget = match budget {
                 _ if finished => std::mem::take(&mut batch.transitions).len(),
-                Some(b) => batch.keep_episodes(
-                    b.saturating_sub(shared.episodes.load(Ordering::Relaxed)) as usize,
-                ),
+                Some(b) => batch.keep_episodes(b.saturating_sub(shared.episodes.load(Ordering::Relaxed)) as usize),
                 None => 0,
             };
             if past_budget > 0 {
                 {
-                    let mut ingest = shared.ingest();
+        let mut ingest = shared.ingest();
                     *ingest.rejected.entry("over_budget".into()).or_insert(0) += past_budget as u64;
                 }
             }
@@ -338,7 +310,7 @@ pub fn run_training(
                 limiter.insert(stored);
             }
             {
-                let mut flow = shared.flow_mut();
+        let mut flow = shared.flow_mut();
                 flow.inserted += stored;
             }
             if budget_reached(&shared) {
@@ -347,23 +319,16 @@ pub fn run_training(
                 // The updates the last inserts earned (Algorithm 2 gives
                 // every step its update, to the end of the run).
                 let batch_size = agent.samples_per_update() as u64;
-                while schedule.limiter.as_ref().is_some_and(|l| {
-                    schedule.train && batch_size > 0 && l.owed() >= batch_size as f64
-                }) {
+                while schedule.limiter.as_ref().is_some_and(|l| schedule.train && batch_size > 0 && l.owed() >= batch_size as f64) {
                     if train_and_count(agent.as_mut(), &mut schedule, &shared) == 0 {
                         break;
                     }
                 }
-                shared
-                    .updates
-                    .store(agent.counters().updates, Ordering::Relaxed);
+                shared.updates.store(agent.counters().updates, Ordering::Relaxed);
                 checkpoint(agent.as_ref(), &shared, &schedule)?;
                 write_summary(agent.as_ref(), &shared)?;
                 set_finished(&shared, true);
-                tracing::info!(
-                    episodes = shared.episodes.load(Ordering::Relaxed),
-                    "episode budget reached: training ends"
-                );
+                tracing::info!(episodes = shared.episodes.load(Ordering::Relaxed), "episode budget reached: training ends");
                 break;
             }
         }
@@ -384,27 +349,19 @@ pub fn run_training(
             (None, Algo::Ddpg) => before.updates < before.env_steps,
         };
         let may_train = schedule.train && !finished && limited;
-        let drawn = if may_train {
-            train_and_count(agent.as_mut(), &mut schedule, &shared)
-        } else {
-            0
-        };
+        let drawn = if may_train { train_and_count(agent.as_mut(), &mut schedule, &shared) } else { 0 };
         let after = agent.counters();
         let warm = agent.stored() >= agent.min_size_to_sample();
         if schedule.train && !finished && !limited && warm && shared.algo == Algo::Ddpg {
             waited(&shared, turn_seconds, false);
         }
         shared.updates.store(after.updates, Ordering::Relaxed);
-        shared
-            .replay_size
-            .store(agent.stored() as u64, Ordering::Relaxed);
+        shared.replay_size.store(agent.stored() as u64, Ordering::Relaxed);
         // PPO updates draw nothing from a replay buffer: count its updates.
         let trained = drawn > 0 || after.updates > before.updates;
         let exploration = exploration_of(agent.as_ref(), &shared);
         let exploration_changed = match (exploration, published_exploration) {
-            (Some((uniform, noise)), Some((was_uniform, was_noise))) => {
-                uniform != was_uniform || (noise - was_noise).abs() >= 0.005
-            }
+            (Some((uniform, noise)), Some((was_uniform, was_noise))) => uniform != was_uniform || (noise - was_noise).abs() >= 0.005,
             _ => false,
         };
         let publish_now = exploration_changed
@@ -429,15 +386,10 @@ pub fn run_training(
         } else if held.is_none() && !received && !trained {
             // Nothing to do until the next batch arrives (or the next
             // checkpoint is due).
-            let wait = schedule
-                .checkpoint_interval
-                .saturating_sub(last_checkpoint.elapsed())
-                .max(std::time::Duration::from_millis(10));
+            let wait = schedule.checkpoint_interval.saturating_sub(last_checkpoint.elapsed()).max(std::time::Duration::from_millis(10));
             match recv_timeout(&mut commands, wait) {
                 Some(Some(Command::Batch(batch))) => held = Some(batch),
-                Some(Some(Command::Stop)) | Some(None) => {
-                    return checkpoint(agent.as_ref(), &shared, &schedule)
-                }
+                Some(Some(Command::Stop)) | Some(None) => return checkpoint(agent.as_ref(), &shared, &schedule),
                 None => {}
             }
         }
@@ -456,7 +408,7 @@ fn train_and_count(agent: &mut dyn Agent, schedule: &mut Schedule, shared: &Shar
             limiter.sample(drawn);
         }
         {
-            let mut flow = shared.flow_mut();
+        let mut flow = shared.flow_mut();
             flow.sampled += drawn;
         }
     }
@@ -477,11 +429,7 @@ fn exploration_of(agent: &dyn Agent, shared: &Shared) -> Option<(bool, f64)> {
 
 /// Publishes the agent's actor as the next policy version, with how actors
 /// should explore with it.
-fn publish(
-    agent: &dyn Agent,
-    shared: &Shared,
-    exploration: Option<(bool, f64)>,
-) -> Result<(), LearnerError> {
+fn publish(agent: &dyn Agent, shared: &Shared, exploration: Option<(bool, f64)>) -> Result<(), LearnerError> {
     let version = shared.policy_version() + 1;
     let mut next = snapshot(agent, &shared.architecture, version)?;
     if let Some((uniform, noise)) = exploration {
@@ -489,31 +437,20 @@ fn publish(
         next.exploration_noise = noise;
     }
     shared.policy.send_replace(Arc::new(next));
-    tracing::debug!(
-        version,
-        updates = agent.counters().updates,
-        "policy published"
-    );
+    tracing::debug!(version, updates = agent.counters().updates, "policy published");
     Ok(())
 }
 
 /// Blocks for the next command up to `timeout`: Some(command or None for
 /// closed), or None when the time ran out.
-fn recv_timeout(
-    commands: &mut mpsc::Receiver<Command>,
-    timeout: std::time::Duration,
-) -> Option<Option<Command>> {
+fn recv_timeout(commands: &mut mpsc::Receiver<Command>, timeout: std::time::Duration) -> Option<Option<Command>> {
     let deadline = std::time::Instant::now() + timeout;
     loop {
         match commands.try_recv() {
             Ok(command) => return Some(Some(command)),
             Err(mpsc::error::TryRecvError::Disconnected) => return Some(None),
-            Err(mpsc::error::TryRecvError::Empty) if std::time::Instant::now() >= deadline => {
-                return None
-            }
-            Err(mpsc::error::TryRecvError::Empty) => {
-                std::thread::sleep(std::time::Duration::from_micros(250))
-            }
+            Err(mpsc::error::TryRecvError::Empty) if std::time::Instant::now() >= deadline => return None,
+            Err(mpsc::error::TryRecvError::Empty) => std::thread::sleep(std::time::Duration::from_micros(250)),
         }
     }
 }
@@ -532,18 +469,11 @@ impl EpisodeLog {
         let tensorboard = crate::tensorboard::EventWriter::create(run_dir)
             .map_err(|e| tracing::warn!("no TensorBoard events in {}: {e}", run_dir.display()))
             .ok();
-        let csv = crate::run_files::MetricsLog::append(&run_dir.join("metrics.csv"))
-            .map_err(|e| tracing::warn!("no metrics.csv: {e}"))
-            .ok();
+        let csv = crate::run_files::MetricsLog::append(&run_dir.join("metrics.csv")).map_err(|e| tracing::warn!("no metrics.csv: {e}")).ok();
         EpisodeLog { csv, tensorboard }
     }
 
-    fn append(
-        &mut self,
-        first: u64,
-        episodes: &[lcrl_proto::v1::EpisodeSummary],
-        shared: &Shared,
-    ) -> std::io::Result<()> {
+    fn append(&mut self, first: u64, episodes: &[lcrl_proto::v1::EpisodeSummary], shared: &Shared) -> std::io::Result<()> {
         if let Some(csv) = &mut self.csv {
             for (k, e) in episodes.iter().enumerate() {
                 // The actors report return, length and success; the rest
@@ -560,34 +490,17 @@ impl EpisodeLog {
         }
         if let Some(tb) = &mut self.tensorboard {
             for (k, e) in episodes.iter().enumerate() {
-                tb.scalars(
-                    (first + k as u64 + 1) as i64,
-                    &[
-                        ("episode/return", e.episode_return),
-                        ("episode/length", f64::from(e.length)),
-                    ],
-                )?;
+                tb.scalars((first + k as u64 + 1) as i64, &[("episode/return", e.episode_return), ("episode/length", f64::from(e.length))])?;
             }
             let step = (first + episodes.len() as u64) as i64;
             // Read under the lock: no copy of the lag window per batch.
             let (ratio, (lag_min, lag_mean, lag_max), actors_waited, learner_waited) = {
                 let f = shared.flow_mut();
-                (
-                    f.achieved_ratio(),
-                    f.lag.stats(),
-                    f.actors_waited_s,
-                    f.learner_waited_s,
-                )
+                (f.achieved_ratio(), f.lag.stats(), f.actors_waited_s, f.learner_waited_s)
             };
             let learner = [
-                (
-                    "learner/env_steps",
-                    shared.env_steps.load(Ordering::Relaxed) as f64,
-                ),
-                (
-                    "learner/updates",
-                    shared.updates.load(Ordering::Relaxed) as f64,
-                ),
+                ("learner/env_steps", shared.env_steps.load(Ordering::Relaxed) as f64),
+                ("learner/updates", shared.updates.load(Ordering::Relaxed) as f64),
                 ("learner/policy_version", shared.policy_version() as f64),
                 ("learner/replay_ratio", ratio),
                 ("learner/policy_lag_min", lag_min as f64),
@@ -604,23 +517,15 @@ impl EpisodeLog {
 }
 
 /// Stores an accepted batch; returns the transitions stored (0 if stale).
-fn store(
-    agent: &mut dyn Agent,
-    shared: &Shared,
-    schedule: &Schedule,
-    log: &mut EpisodeLog,
-    batch: Accepted,
-) -> u64 {
+fn store(agent: &mut dyn Agent, shared: &Shared, schedule: &Schedule, log: &mut EpisodeLog, batch: Accepted) -> u64 {
     let newest = shared.policy_version();
-    let stale = schedule
-        .max_staleness
-        .is_some_and(|bound| newest.saturating_sub(batch.policy_version) > bound);
+    let stale = schedule.max_staleness.is_some_and(|bound| newest.saturating_sub(batch.policy_version) > bound);
     if stale {
         // Nothing of a stale batch counts: its episodes are not data the
         // learner learned from, so they do not use up the budget either
         // (the budget means what it means in `lcrl train`).
         {
-            let mut ingest = shared.ingest();
+        let mut ingest = shared.ingest();
             *ingest.rejected.entry("stale".into()).or_insert(0) += batch.transitions.len() as u64;
         }
         return 0;
@@ -641,18 +546,11 @@ fn store(
             flow.lag.push(newest.saturating_sub(t.policy_version));
         }
     }
-    shared
-        .env_steps
-        .store(agent.counters().env_steps, Ordering::Relaxed);
-    let first = shared
-        .episodes
-        .fetch_add(batch.episodes.len() as u64, Ordering::Relaxed);
+    shared.env_steps.store(agent.counters().env_steps, Ordering::Relaxed);
+    let first = shared.episodes.fetch_add(batch.episodes.len() as u64, Ordering::Relaxed);
     if !batch.episodes.is_empty() {
         if let Err(e) = log.append(first, &batch.episodes, shared) {
-            tracing::warn!(
-                "cannot record episodes in {}: {e}",
-                shared.run_dir.display()
-            );
+            tracing::warn!("cannot record episodes in {}: {e}", shared.run_dir.display());
         }
     }
     {

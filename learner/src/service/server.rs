@@ -7,8 +7,8 @@ use std::sync::{Arc, Mutex};
 use lcrl_proto::v1::learner_server::Learner;
 use lcrl_proto::v1::policy_server::Policy as PolicyApi;
 use lcrl_proto::v1::{
-    ActBatchRequest, ActBatchResponse, ActRequest, ActResponse, BatchAck, GetPolicyRequest,
-    GetStatusRequest, LearnerStatus, PolicySnapshot, TransitionBatch, WatchPolicyRequest,
+    ActBatchRequest, ActBatchResponse, ActRequest, ActResponse, BatchAck, GetPolicyRequest, GetStatusRequest, LearnerStatus,
+    PolicySnapshot, TransitionBatch, WatchPolicyRequest,
 };
 use lcrl_sim::Env;
 use tokio::sync::mpsc;
@@ -42,10 +42,7 @@ impl Learner for LearnerService {
     type StreamTransitionsStream = BoxStream<BatchAck>;
     type WatchPolicyStream = BoxStream<PolicySnapshot>;
 
-    async fn stream_transitions(
-        &self,
-        request: Request<Streaming<TransitionBatch>>,
-    ) -> Result<Response<Self::StreamTransitionsStream>, Status> {
+    async fn stream_transitions(&self, request: Request<Streaming<TransitionBatch>>) -> Result<Response<Self::StreamTransitionsStream>, Status> {
         let mut inbound = request.into_inner();
         let (acks, out) = mpsc::channel(16);
         let shared = self.shared.clone();
@@ -70,12 +67,8 @@ impl Learner for LearnerService {
                         // A message over the size limit, or bytes that are no
                         // TransitionBatch: refused and counted; the stream ends.
                         let reason = match status.code() {
-                            tonic::Code::OutOfRange | tonic::Code::ResourceExhausted => {
-                                Some("oversize")
-                            }
-                            tonic::Code::Internal if status.message().contains("decode") => {
-                                Some("undecodable")
-                            }
+                            tonic::Code::OutOfRange | tonic::Code::ResourceExhausted => Some("oversize"),
+                            tonic::Code::Internal if status.message().contains("decode") => Some("undecodable"),
                             _ => None,
                         };
                         match reason {
@@ -97,9 +90,7 @@ impl Learner for LearnerService {
                     Verdict::Accept(accepted) => {
                         let stored = accepted.transitions.len() as u32;
                         if commands.send(Command::Batch(accepted)).await.is_err() {
-                            let _ = acks
-                                .send(Err(Status::unavailable("the learner is shutting down")))
-                                .await;
+                            let _ = acks.send(Err(Status::unavailable("the learner is shutting down"))).await;
                             break;
                         }
                         (stored, "stored")
@@ -112,12 +103,7 @@ impl Learner for LearnerService {
                         break;
                     }
                 };
-                let ack = BatchAck {
-                    sequence: batch.sequence,
-                    stored,
-                    outcome: outcome.into(),
-                    policy_version: shared.policy_version(),
-                };
+                let ack = BatchAck { sequence: batch.sequence, stored, outcome: outcome.into(), policy_version: shared.policy_version() };
                 if acks.send(Ok(ack)).await.is_err() {
                     break;
                 }
@@ -126,22 +112,14 @@ impl Learner for LearnerService {
         Ok(Response::new(Box::pin(ReceiverStream::new(out))))
     }
 
-    async fn get_policy(
-        &self,
-        _request: Request<GetPolicyRequest>,
-    ) -> Result<Response<PolicySnapshot>, Status> {
+    async fn get_policy(&self, _request: Request<GetPolicyRequest>) -> Result<Response<PolicySnapshot>, Status> {
         Ok(Response::new((**self.shared.policy.borrow()).clone()))
     }
 
-    async fn watch_policy(
-        &self,
-        request: Request<WatchPolicyRequest>,
-    ) -> Result<Response<Self::WatchPolicyStream>, Status> {
+    async fn watch_policy(&self, request: Request<WatchPolicyRequest>) -> Result<Response<Self::WatchPolicyStream>, Status> {
         let after = request.into_inner().after_version;
-        let mut versions =
-            WatchStream::new(self.shared.policy.subscribe()).filter(move |snapshot| {
-                snapshot.version > after || (after == 0 && snapshot.version == 0)
-            });
+        let mut versions = WatchStream::new(self.shared.policy.subscribe())
+            .filter(move |snapshot| snapshot.version > after || (after == 0 && snapshot.version == 0));
         // Forwarded by a task that ends at shutdown, so the stream ends too.
         let (out, stream) = mpsc::channel(2);
         let stopping = self.shared.stopping();
@@ -160,10 +138,7 @@ impl Learner for LearnerService {
         Ok(Response::new(Box::pin(ReceiverStream::new(stream))))
     }
 
-    async fn get_status(
-        &self,
-        _request: Request<GetStatusRequest>,
-    ) -> Result<Response<LearnerStatus>, Status> {
+    async fn get_status(&self, _request: Request<GetStatusRequest>) -> Result<Response<LearnerStatus>, Status> {
         let s = &self.shared;
         let rejected = s.ingest_counts().1.into_iter().collect();
         let flow = s.flow();
@@ -190,12 +165,7 @@ impl Learner for LearnerService {
             learner_waited_s: flow.learner_waited_s,
             budget_episodes: flow.budget_episodes,
             finished: flow.finished,
-            unauthenticated: s
-                .auth_refusals
-                .counts()
-                .into_iter()
-                .map(|(reason, n)| (reason.to_string(), n))
-                .collect(),
+            unauthenticated: s.auth_refusals.counts().into_iter().map(|(reason, n)| (reason.to_string(), n)).collect(),
         }))
     }
 }
@@ -213,36 +183,22 @@ impl PolicyService {
     /// Runs `f` with the newest policy (rebuilding it if outdated).
     fn with_policy<T>(&self, f: impl FnOnce(&Policy, &dyn Env) -> T) -> Result<(T, u64), Status> {
         let snapshot = self.shared.policy.borrow().clone();
-        let mut serving = self
-            .serving
-            .lock()
-            .map_err(|_| Status::internal("policy state poisoned"))?;
-        let stale = serving
-            .as_ref()
-            .is_none_or(|p| p.version != snapshot.version);
+        let mut serving = self.serving.lock().map_err(|_| Status::internal("policy state poisoned"))?;
+        let stale = serving.as_ref().is_none_or(|p| p.version != snapshot.version);
         if stale {
-            let policy =
-                Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)
-                    .map_err(|e| Status::internal(e.to_string()))?;
+            let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)
+                .map_err(|e| Status::internal(e.to_string()))?;
             *serving = Some(policy);
         }
-        let policy = serving
-            .as_ref()
-            .ok_or_else(|| Status::internal("no policy"))?;
-        let env = self
-            .env
-            .lock()
-            .map_err(|_| Status::internal("environment state poisoned"))?;
+        let policy = serving.as_ref().ok_or_else(|| Status::internal("no policy"))?;
+        let env = self.env.lock().map_err(|_| Status::internal("environment state poisoned"))?;
         Ok((f(policy, env.as_ref()), snapshot.version))
     }
 
     fn check_states(&self, states: &[f32], count: usize) -> Result<usize, Status> {
         let m = self.shared.architecture.shape.state_dim;
         if count == 0 || states.len() != count * m {
-            return Err(Status::invalid_argument(format!(
-                "expected {count} state(s) of {m} numbers, got {} numbers",
-                states.len()
-            )));
+            return Err(Status::invalid_argument(format!("expected {count} state(s) of {m} numbers, got {} numbers", states.len())));
         }
         if states.iter().any(|v| !v.is_finite()) {
             return Err(Status::invalid_argument("states must be finite"));
@@ -261,35 +217,21 @@ impl PolicyApi for PolicyService {
         let raw: Vec<f64> = state.iter().map(|&v| f64::from(v)).collect();
         let (action, version) = self.with_policy(|policy, env| policy.act(env, &raw))?;
         self.act_latency.observe(started.elapsed().as_secs_f64());
-        Ok(Response::new(ActResponse {
-            action: action.iter().map(|&a| a as f32).collect(),
-            policy_version: version,
-        }))
+        Ok(Response::new(ActResponse { action: action.iter().map(|&a| a as f32).collect(), policy_version: version }))
     }
 
     #[tracing::instrument(skip_all, name = "ActBatch")]
-    async fn act_batch(
-        &self,
-        request: Request<ActBatchRequest>,
-    ) -> Result<Response<ActBatchResponse>, Status> {
+    async fn act_batch(&self, request: Request<ActBatchRequest>) -> Result<Response<ActBatchResponse>, Status> {
         let started = std::time::Instant::now();
         let request = request.into_inner();
         let m = self.check_states(&request.states, request.count as usize)?;
         let (actions, version) = self.with_policy(|policy, env| {
-            request
-                .states
-                .chunks(m)
-                .flat_map(|row| {
-                    let raw: Vec<f64> = row.iter().map(|&v| f64::from(v)).collect();
-                    policy.act(env, &raw)
-                })
-                .map(|a| a as f32)
-                .collect::<Vec<f32>>()
+            request.states.chunks(m).flat_map(|row| {
+                let raw: Vec<f64> = row.iter().map(|&v| f64::from(v)).collect();
+                policy.act(env, &raw)
+            }).map(|a| a as f32).collect::<Vec<f32>>()
         })?;
         self.act_latency.observe(started.elapsed().as_secs_f64());
-        Ok(Response::new(ActBatchResponse {
-            actions,
-            policy_version: version,
-        }))
+        Ok(Response::new(ActBatchResponse { actions, policy_version: version }))
     }
 }

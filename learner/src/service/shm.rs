@@ -58,23 +58,14 @@ impl TransitionSample {
     /// Packs a batch; fails when it exceeds the sample's limits.
     pub fn from_batch(batch: &TransitionBatch) -> Result<Self, String> {
         let first = batch.transitions.first();
-        let (m, n) = (
-            first.map_or(0, |t| t.state.len()),
-            first.map_or(0, |t| t.action.len()),
-        );
-        if batch.transitions.len() > MAX_TRANSITIONS
-            || batch.episodes.len() > MAX_EPISODES
-            || m > MAX_STATE
-            || n > MAX_ACTION
-        {
+        let (m, n) = (first.map_or(0, |t| t.state.len()), first.map_or(0, |t| t.action.len()));
+        if batch.transitions.len() > MAX_TRANSITIONS || batch.episodes.len() > MAX_EPISODES || m > MAX_STATE || n > MAX_ACTION {
             return Err(format!(
                 "a shared-memory batch holds at most {MAX_TRANSITIONS} transitions of states ≤ {MAX_STATE} and actions ≤ {MAX_ACTION}, and {MAX_EPISODES} episodes"
             ));
         }
         if batch.actor_id.len() > ID_BYTES {
-            return Err(format!(
-                "actor ids over shared memory are at most {ID_BYTES} bytes"
-            ));
+            return Err(format!("actor ids over shared memory are at most {ID_BYTES} bytes"));
         }
         let mut s = TransitionSample {
             actor_id: [0; ID_BYTES],
@@ -118,16 +109,9 @@ impl TransitionSample {
     /// Unpacks into the batch the ingestion checks take (counts clamped to
     /// the sample's limits, whatever a peer wrote).
     pub fn to_batch(&self, run_id: &str) -> TransitionBatch {
-        let (m, n) = (
-            (self.state_dim as usize).min(MAX_STATE),
-            (self.action_dim as usize).min(MAX_ACTION),
-        );
+        let (m, n) = ((self.state_dim as usize).min(MAX_STATE), (self.action_dim as usize).min(MAX_ACTION));
         let count = (self.count as usize).min(MAX_TRANSITIONS);
-        let id_len = self
-            .actor_id
-            .iter()
-            .position(|&b| b == 0)
-            .unwrap_or(ID_BYTES);
+        let id_len = self.actor_id.iter().position(|&b| b == 0).unwrap_or(ID_BYTES);
         TransitionBatch {
             run_id: run_id.to_string(),
             actor_id: String::from_utf8_lossy(&self.actor_id[..id_len]).into_owned(),
@@ -189,28 +173,20 @@ pub fn services_of(run_id: &str) -> Vec<String> {
     remove_dead_nodes();
     let prefix = format!("lcrl/{run_id}/");
     let mut names = Vec::new();
-    let _ =
-        <ipc::Service as iceoryx2::service::Service>::list(Config::global_config(), |service| {
-            let name = service.static_details.name().to_string();
-            if name.starts_with(&prefix) {
-                names.push(name);
-            }
-            CallbackProgression::Continue
-        });
+    let _ = <ipc::Service as iceoryx2::service::Service>::list(Config::global_config(), |service| {
+        let name = service.static_details.name().to_string();
+        if name.starts_with(&prefix) {
+            names.push(name);
+        }
+        CallbackProgression::Continue
+    });
     names
 }
 
-type Service = iceoryx2::service::port_factory::publish_subscribe::PortFactory<
-    ipc::Service,
-    TransitionSample,
-    (),
->;
+type Service = iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, TransitionSample, ()>;
 
 fn open_service(node: &Node<ipc::Service>, run_id: &str) -> Result<Service, String> {
-    let name: ServiceName = service_name(run_id)
-        .as_str()
-        .try_into()
-        .map_err(|e| format!("service name: {e:?}"))?;
+    let name: ServiceName = service_name(run_id).as_str().try_into().map_err(|e| format!("service name: {e:?}"))?;
     node.service_builder(&name)
         .publish_subscribe::<TransitionSample>()
         .enable_safe_overflow(false)
@@ -219,12 +195,7 @@ fn open_service(node: &Node<ipc::Service>, run_id: &str) -> Result<Service, Stri
         .subscriber_max_buffer_size(4)
         .max_publishers(64)
         .open_or_create()
-        .map_err(|e| {
-            format!(
-                "cannot open the shared-memory service {}: {e:?}",
-                service_name(run_id)
-            )
-        })
+        .map_err(|e| format!("cannot open the shared-memory service {}: {e:?}", service_name(run_id)))
 }
 
 /// An actor's end: publishes batches, blocking while the learner is behind.
@@ -237,32 +208,20 @@ pub struct ShmPublisher {
 impl ShmPublisher {
     pub fn open(run_id: &str) -> Result<Self, String> {
         remove_dead_nodes();
-        let node = NodeBuilder::new()
-            .create::<ipc::Service>()
-            .map_err(|e| format!("iceoryx2 node: {e:?}"))?;
+        let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
         let service = open_service(&node, run_id)?;
         let publisher = service
             .publisher_builder()
             .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
             .create()
             .map_err(|e| format!("iceoryx2 publisher: {e:?}"))?;
-        Ok(ShmPublisher {
-            publisher,
-            _service: service,
-            _node: node,
-        })
+        Ok(ShmPublisher { publisher, _service: service, _node: node })
     }
 
     pub fn send(&self, batch: &TransitionBatch) -> Result<(), String> {
         let sample = TransitionSample::from_batch(batch)?;
-        let slot = self
-            .publisher
-            .loan_uninit()
-            .map_err(|e| format!("loan: {e:?}"))?;
-        slot.write_payload(sample)
-            .send()
-            .map(|_| ())
-            .map_err(|e| format!("send: {e:?}"))
+        let slot = self.publisher.loan_uninit().map_err(|e| format!("loan: {e:?}"))?;
+        slot.write_payload(sample).send().map(|_| ()).map_err(|e| format!("send: {e:?}"))
     }
 }
 
@@ -271,19 +230,11 @@ impl ShmPublisher {
 pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>) -> Result<(), String> {
     let cleaned = remove_dead_nodes();
     if cleaned > 0 {
-        tracing::info!(
-            cleaned,
-            "removed shared-memory resources of crashed processes"
-        );
+        tracing::info!(cleaned, "removed shared-memory resources of crashed processes");
     }
-    let node = NodeBuilder::new()
-        .create::<ipc::Service>()
-        .map_err(|e| format!("iceoryx2 node: {e:?}"))?;
+    let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
     let service = open_service(&node, &shared.run_id)?;
-    let subscriber = service
-        .subscriber_builder()
-        .create()
-        .map_err(|e| format!("iceoryx2 subscriber: {e:?}"))?;
+    let subscriber = service.subscriber_builder().create().map_err(|e| format!("iceoryx2 subscriber: {e:?}"))?;
     tracing::info!(service = %service_name(&shared.run_id), "shared-memory transport ready");
     let stop = shared.shutdown.subscribe();
     // Poll fast while data flows, back off to 2 ms when idle, so an idle
@@ -312,9 +263,7 @@ pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>) -> R
                     break;
                 }
             }
-            Verdict::Reject { reason, message } => {
-                tracing::warn!(reason, %message, "shared-memory batch rejected")
-            }
+            Verdict::Reject { reason, message } => tracing::warn!(reason, %message, "shared-memory batch rejected"),
             Verdict::Duplicate | Verdict::Stale => {}
         }
     }
@@ -341,15 +290,11 @@ pub struct PolicySample {
     pub weights: [u8; MAX_POLICY_BYTES],
 }
 
-type PolicyService =
-    iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, PolicySample, ()>;
+type PolicyService = iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, PolicySample, ()>;
 
 fn open_policy_service(node: &Node<ipc::Service>, run_id: &str) -> Result<PolicyService, String> {
     let name = format!("lcrl/{run_id}/policy");
-    let service_name: ServiceName = name
-        .as_str()
-        .try_into()
-        .map_err(|e| format!("service name: {e:?}"))?;
+    let service_name: ServiceName = name.as_str().try_into().map_err(|e| format!("service name: {e:?}"))?;
     // Only the newest version matters: overwrite, and keep one for late joiners.
     node.service_builder(&service_name)
         .publish_subscribe::<PolicySample>()
@@ -365,14 +310,9 @@ fn open_policy_service(node: &Node<ipc::Service>, run_id: &str) -> Result<Policy
 /// version of `shared.policy` until shutdown.
 pub fn run_policy_publisher(shared: Arc<Shared>) -> Result<(), String> {
     quiet_iceoryx2();
-    let node = NodeBuilder::new()
-        .create::<ipc::Service>()
-        .map_err(|e| format!("iceoryx2 node: {e:?}"))?;
+    let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
     let service = open_policy_service(&node, &shared.run_id)?;
-    let publisher = service
-        .publisher_builder()
-        .create()
-        .map_err(|e| format!("iceoryx2 publisher: {e:?}"))?;
+    let publisher = service.publisher_builder().create().map_err(|e| format!("iceoryx2 publisher: {e:?}"))?;
     let mut versions = shared.policy.subscribe();
     let stop = shared.shutdown.subscribe();
     tracing::info!(service = %format!("lcrl/{}/policy", shared.run_id), "shared-memory policy broadcast ready");
@@ -389,14 +329,10 @@ pub fn run_policy_publisher(shared: Arc<Shared>) -> Result<(), String> {
         }
         first = false;
         let snapshot = versions.borrow_and_update().clone();
-        if snapshot.weights.len() > MAX_POLICY_BYTES
-            || snapshot.architecture.len() > MAX_ARCHITECTURE_BYTES
-        {
+        if snapshot.weights.len() > MAX_POLICY_BYTES || snapshot.architecture.len() > MAX_ARCHITECTURE_BYTES {
             return Err(format!("policy of {} bytes exceeds the shared-memory sample ({MAX_POLICY_BYTES}); use gRPC actors", snapshot.weights.len()));
         }
-        let mut slot = publisher
-            .loan_uninit()
-            .map_err(|e| format!("loan: {e:?}"))?;
+        let mut slot = publisher.loan_uninit().map_err(|e| format!("loan: {e:?}"))?;
         // Zero the whole sample in place (2 MiB never lives on a stack),
         // then fill it: every byte is initialized before assume_init.
         let payload = slot.payload_mut().as_mut_ptr();
@@ -408,16 +344,11 @@ pub fn run_policy_publisher(shared: Arc<Shared>) -> Result<(), String> {
             (*payload).weights_len = snapshot.weights.len() as u32;
             (*payload).architecture_len = snapshot.architecture.len() as u32;
             (&mut (*payload).weights)[..snapshot.weights.len()].copy_from_slice(&snapshot.weights);
-            (&mut (*payload).architecture)[..snapshot.architecture.len()]
-                .copy_from_slice(snapshot.architecture.as_bytes());
+            (&mut (*payload).architecture)[..snapshot.architecture.len()].copy_from_slice(snapshot.architecture.as_bytes());
             slot.assume_init()
         };
         sample.send().map_err(|e| format!("send: {e:?}"))?;
-        tracing::debug!(
-            version = snapshot.version,
-            bytes = snapshot.weights.len(),
-            "policy broadcast on shared memory"
-        );
+        tracing::debug!(version = snapshot.version, bytes = snapshot.weights.len(), "policy broadcast on shared memory");
     }
     Ok(())
 }
@@ -432,38 +363,22 @@ pub struct PolicySubscriber {
 impl PolicySubscriber {
     pub fn open(run_id: &str) -> Result<Self, String> {
         quiet_iceoryx2();
-        let node = NodeBuilder::new()
-            .create::<ipc::Service>()
-            .map_err(|e| format!("iceoryx2 node: {e:?}"))?;
+        let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
         let service = open_policy_service(&node, run_id)?;
-        let subscriber = service
-            .subscriber_builder()
-            .create()
-            .map_err(|e| format!("iceoryx2 subscriber: {e:?}"))?;
-        Ok(PolicySubscriber {
-            subscriber,
-            _service: service,
-            _node: node,
-        })
+        let subscriber = service.subscriber_builder().create().map_err(|e| format!("iceoryx2 subscriber: {e:?}"))?;
+        Ok(PolicySubscriber { subscriber, _service: service, _node: node })
     }
 
     /// The newest version received since the last call, as the snapshot
     /// the gRPC path carries.
     pub fn newest(&self) -> Result<Option<lcrl_proto::v1::PolicySnapshot>, String> {
         let mut newest = None;
-        while let Some(sample) = self
-            .subscriber
-            .receive()
-            .map_err(|e| format!("receive: {e:?}"))?
-        {
+        while let Some(sample) = self.subscriber.receive().map_err(|e| format!("receive: {e:?}"))? {
             let p = sample.payload();
             newest = Some(lcrl_proto::v1::PolicySnapshot {
                 version: p.version,
                 weights: p.weights[..(p.weights_len as usize).min(MAX_POLICY_BYTES)].to_vec(),
-                architecture: String::from_utf8_lossy(
-                    &p.architecture[..(p.architecture_len as usize).min(MAX_ARCHITECTURE_BYTES)],
-                )
-                .into_owned(),
+                architecture: String::from_utf8_lossy(&p.architecture[..(p.architecture_len as usize).min(MAX_ARCHITECTURE_BYTES)]).into_owned(),
                 explore_uniform: p.explore_uniform != 0,
                 exploration_noise: p.exploration_noise,
             });
@@ -478,15 +393,7 @@ mod tests {
 
     #[test]
     fn sample_round_trips_a_batch() {
-        let t = |v: f32| Transition {
-            state: vec![v; 12],
-            action: vec![-v; 6],
-            reward: v,
-            next_state: vec![v + 1.0; 12],
-            terminated: v > 2.0,
-            truncated: v < 1.0,
-            policy_version: v as u64,
-        };
+        let t = |v: f32| Transition { state: vec![v; 12], action: vec![-v; 6], reward: v, next_state: vec![v + 1.0; 12], terminated: v > 2.0, truncated: v < 1.0, policy_version: v as u64 };
         let batch = TransitionBatch {
             run_id: "r".into(),
             actor_id: "actor-7".into(),
@@ -494,27 +401,10 @@ mod tests {
             episode_id: 3,
             policy_version: 2,
             transitions: vec![t(0.5), t(1.5), t(2.5)],
-            episodes: vec![
-                EpisodeSummary {
-                    episode_return: -4.5,
-                    length: 50,
-                    success: Some(true),
-                },
-                EpisodeSummary {
-                    episode_return: -1.0,
-                    length: 3,
-                    success: None,
-                },
-            ],
+            episodes: vec![EpisodeSummary { episode_return: -4.5, length: 50, success: Some(true) }, EpisodeSummary { episode_return: -1.0, length: 3, success: None }],
         };
-        assert_eq!(
-            TransitionSample::from_batch(&batch).unwrap().to_batch("r"),
-            batch
-        );
-        let too_long = TransitionBatch {
-            transitions: vec![t(0.1); MAX_TRANSITIONS + 1],
-            ..batch
-        };
+        assert_eq!(TransitionSample::from_batch(&batch).unwrap().to_batch("r"), batch);
+        let too_long = TransitionBatch { transitions: vec![t(0.1); MAX_TRANSITIONS + 1], ..batch };
         assert!(TransitionSample::from_batch(&too_long).is_err());
     }
 }

@@ -50,11 +50,7 @@ pub struct Observation {
 
 impl Default for Observation {
     fn default() -> Self {
-        Observation {
-            scale: [
-                0.05, 0.05, 30.0, 0.3, 0.3, 0.3, 1.0, 1.0, 2.0, 0.015, 0.015, 0.01,
-            ],
-        }
+        Observation { scale: [0.05, 0.05, 30.0, 0.3, 0.3, 0.3, 1.0, 1.0, 2.0, 0.015, 0.015, 0.01] }
     }
 }
 
@@ -243,17 +239,8 @@ impl PegConfig {
                 target_steps: 50,
                 control_period_s: 0.02,
             },
-            reward: Reward {
-                h_z: 1.0,
-                h_f: 0.1,
-                h_m: 1.0,
-                r_s: 2.0,
-            },
-            limits: Limits {
-                force_limit_n: 50.0,
-                moment_limit_nm: 1.5,
-                success_tolerance_mm: 0.1,
-            },
+            reward: Reward { h_z: 1.0, h_f: 0.1, h_m: 1.0, r_s: 2.0 },
+            limits: Limits { force_limit_n: 50.0, moment_limit_nm: 1.5, success_tolerance_mm: 0.1 },
             episode: Episode {
                 start_height_mm: 1.0,
                 position_error_mm: 0.2,
@@ -262,10 +249,7 @@ impl PegConfig {
                 position_offset_mm: [0.0; 2],
                 angle_offset_deg: [0.0; 3],
             },
-            physics: Physics {
-                substeps: 8,
-                solver_iterations: 2,
-            },
+            physics: Physics { substeps: 8, solver_iterations: 2 },
             observation: Observation::default(),
             randomize: None,
         }
@@ -301,22 +285,12 @@ impl PegConfig {
     pub fn randomized(mut self) -> Self {
         self.episode.position_error_mm *= 2.0;
         self.episode.angle_error_deg *= 2.0;
-        self.randomize = Some(Randomize {
-            friction: [0.1, 0.6],
-            clearance_mm: [0.03, 0.2],
-            peg_chamfer_mm: [0.45, 0.8],
-        });
+        self.randomize = Some(Randomize { friction: [0.1, 0.6], clearance_mm: [0.03, 0.2], peg_chamfer_mm: [0.45, 0.8] });
         self
     }
 
     /// The registered preset names, in the order help texts list them.
-    pub const NAMES: [&'static str; 5] = [
-        "peg-group1",
-        "peg-group2",
-        "peg-experiment",
-        "peg-group1-rand",
-        "peg-group2-rand",
-    ];
+    pub const NAMES: [&'static str; 5] = ["peg-group1", "peg-group2", "peg-experiment", "peg-group1-rand", "peg-group2-rand"];
 
     /// The preset of a registered name.
     pub fn preset(name: &str) -> Option<Self> {
@@ -333,15 +307,11 @@ impl PegConfig {
     /// Applies a TOML table of overrides (same sections and keys as the
     /// struct) on top of this config, then validates the result.
     pub fn with_overrides(&self, overrides: &toml::Table, source: &str) -> Result<Self, EnvError> {
-        let mut merged = toml::Table::try_from(self)
-            .map_err(|e| EnvError::invalid("(preset)", e.to_string()))?;
+        let mut merged = toml::Table::try_from(self).map_err(|e| EnvError::invalid("(preset)", e.to_string()))?;
         merge(&mut merged, overrides);
         let cfg: PegConfig = merged
             .try_into()
-            .map_err(|e: toml::de::Error| EnvError::Parse {
-                path: source.to_string(),
-                message: e.to_string(),
-            })?;
+            .map_err(|e: toml::de::Error| EnvError::Parse { path: source.to_string(), message: e.to_string() })?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -350,9 +320,7 @@ impl PegConfig {
     /// start height plus its error plus L. The depth term of the reward is
     /// clamped to [0, this], which bounds every dense step cost.
     pub fn max_depth_mm(&self) -> f64 {
-        self.episode.start_height_mm
-            + self.episode.position_error_mm
-            + self.geometry.target_depth_mm
+        self.episode.start_height_mm + self.episode.position_error_mm + self.geometry.target_depth_mm
     }
 
     /// The remaining depth z (mm) as the reward counts it: metres, clamped
@@ -365,9 +333,7 @@ impl PegConfig {
     /// c_max = h_z·z_max + h_F·F_limit + h_M·M_limit (SI units).
     pub fn max_step_cost(&self) -> f64 {
         let r = &self.reward;
-        r.h_z * self.clamped_depth_m(self.max_depth_mm())
-            + r.h_f * self.limits.force_limit_n
-            + r.h_m * self.limits.moment_limit_nm
+        r.h_z * self.clamped_depth_m(self.max_depth_mm()) + r.h_f * self.limits.force_limit_n + r.h_m * self.limits.moment_limit_nm
     }
 
     /// The failure charge C = max_steps · c_max. A successful episode has at
@@ -392,44 +358,23 @@ impl PegConfig {
         if g.peg_side_mm >= g.hole_side_mm {
             return Err(EnvError::invalid(
                 "geometry.peg_side_mm",
-                format!(
-                    "{} mm must be smaller than hole_side_mm ({} mm) to leave a clearance",
-                    g.peg_side_mm, g.hole_side_mm
-                ),
+                format!("{} mm must be smaller than hole_side_mm ({} mm) to leave a clearance", g.peg_side_mm, g.hole_side_mm),
             ));
         }
         if 2.0 * g.peg_chamfer_mm >= g.peg_side_mm || g.peg_chamfer_mm >= g.peg_length_mm {
-            return Err(EnvError::invalid(
-                "geometry.peg_chamfer_mm",
-                "must be less than half the peg side and the peg length",
-            ));
+            return Err(EnvError::invalid("geometry.peg_chamfer_mm", "must be less than half the peg side and the peg length"));
         }
         if g.hole_chamfer_mm >= g.wall_mm.min(g.hole_depth_mm) {
-            return Err(EnvError::invalid(
-                "geometry.hole_chamfer_mm",
-                "must be less than the wall thickness and the hole depth",
-            ));
+            return Err(EnvError::invalid("geometry.hole_chamfer_mm", "must be less than the wall thickness and the hole depth"));
         }
         if g.target_depth_mm > g.hole_depth_mm || g.target_depth_mm > g.peg_length_mm {
-            return Err(EnvError::invalid(
-                "geometry.target_depth_mm",
-                "cannot exceed the hole depth or the peg length",
-            ));
+            return Err(EnvError::invalid("geometry.target_depth_mm", "cannot exceed the hole depth or the peg length"));
         }
         non_negative("contact.friction", self.contact.friction)?;
         let c = &self.coupling;
-        positive(
-            "coupling.lateral_stiffness_n_per_mm",
-            c.lateral_stiffness_n_per_mm,
-        )?;
-        positive(
-            "coupling.axial_stiffness_n_per_mm",
-            c.axial_stiffness_n_per_mm,
-        )?;
-        positive(
-            "coupling.rotational_stiffness_nmm_per_rad",
-            c.rotational_stiffness_nmm_per_rad,
-        )?;
+        positive("coupling.lateral_stiffness_n_per_mm", c.lateral_stiffness_n_per_mm)?;
+        positive("coupling.axial_stiffness_n_per_mm", c.axial_stiffness_n_per_mm)?;
+        positive("coupling.rotational_stiffness_nmm_per_rad", c.rotational_stiffness_nmm_per_rad)?;
         non_negative("coupling.damping_ratio", c.damping_ratio)?;
         positive("coupling.moving_mass_kg", c.moving_mass_kg)?;
         positive("coupling.moving_inertia_kg_mm2", c.moving_inertia_kg_mm2)?;
@@ -450,10 +395,7 @@ impl PegConfig {
             }
         }
         if k.target_steps == 0 {
-            return Err(EnvError::invalid(
-                "controller.target_steps",
-                "must be at least 1",
-            ));
+            return Err(EnvError::invalid("controller.target_steps", "must be at least 1"));
         }
         positive("controller.control_period_s", k.control_period_s)?;
         let r = &self.reward;
@@ -463,10 +405,7 @@ impl PegConfig {
         finite("reward.r_s", r.r_s)?;
         positive("limits.force_limit_n", self.limits.force_limit_n)?;
         positive("limits.moment_limit_nm", self.limits.moment_limit_nm)?;
-        positive(
-            "limits.success_tolerance_mm",
-            self.limits.success_tolerance_mm,
-        )?;
+        positive("limits.success_tolerance_mm", self.limits.success_tolerance_mm)?;
         let e = &self.episode;
         non_negative("episode.start_height_mm", e.start_height_mm)?;
         non_negative("episode.position_error_mm", e.position_error_mm)?;
@@ -484,45 +423,24 @@ impl PegConfig {
             return Err(EnvError::invalid("physics.substeps", "must be at least 1"));
         }
         if self.physics.solver_iterations == 0 {
-            return Err(EnvError::invalid(
-                "physics.solver_iterations",
-                "must be at least 1",
-            ));
+            return Err(EnvError::invalid("physics.solver_iterations", "must be at least 1"));
         }
         for (i, &s) in self.observation.scale.iter().enumerate() {
             positive(&format!("observation.scale[{i}]"), s)?;
         }
         if let Some(r) = &self.randomize {
-            for (field, [lo, hi]) in [
-                ("randomize.friction", r.friction),
-                ("randomize.clearance_mm", r.clearance_mm),
-                ("randomize.peg_chamfer_mm", r.peg_chamfer_mm),
-            ] {
+            for (field, [lo, hi]) in [("randomize.friction", r.friction), ("randomize.clearance_mm", r.clearance_mm), ("randomize.peg_chamfer_mm", r.peg_chamfer_mm)] {
                 if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
-                    return Err(EnvError::invalid(
-                        field,
-                        format!("must be [low, high] with low ≤ high, got [{lo}, {hi}]"),
-                    ));
+                    return Err(EnvError::invalid(field, format!("must be [low, high] with low ≤ high, got [{lo}, {hi}]")));
                 }
             }
             if r.clearance_mm[0] <= 0.0 {
-                return Err(EnvError::invalid(
-                    "randomize.clearance_mm",
-                    "the clearance must stay above 0",
-                ));
+                return Err(EnvError::invalid("randomize.clearance_mm", "the clearance must stay above 0"));
             }
             // Every draw must be a valid task: the range's corners are.
             for pick in [0, 1] {
                 let corner = r.apply(self, &mut |range| range[pick]);
-                corner.validate().map_err(|e| {
-                    EnvError::invalid(
-                        "randomize",
-                        format!(
-                            "a part at the range's {} end is invalid: {e}",
-                            ["low", "high"][pick]
-                        ),
-                    )
-                })?;
+                corner.validate().map_err(|e| EnvError::invalid("randomize", format!("a part at the range's {} end is invalid: {e}", ["low", "high"][pick])))?;
             }
         }
         Ok(())
@@ -541,33 +459,15 @@ fn merge(base: &mut toml::Table, overrides: &toml::Table) {
 }
 
 fn finite(field: &str, v: f64) -> Result<(), EnvError> {
-    if v.is_finite() {
-        Ok(())
-    } else {
-        Err(EnvError::invalid(field, format!("must be finite, got {v}")))
-    }
+    if v.is_finite() { Ok(()) } else { Err(EnvError::invalid(field, format!("must be finite, got {v}"))) }
 }
 
 fn positive(field: &str, v: f64) -> Result<(), EnvError> {
-    if v.is_finite() && v > 0.0 {
-        Ok(())
-    } else {
-        Err(EnvError::invalid(
-            field,
-            format!("must be a finite number > 0, got {v}"),
-        ))
-    }
+    if v.is_finite() && v > 0.0 { Ok(()) } else { Err(EnvError::invalid(field, format!("must be a finite number > 0, got {v}"))) }
 }
 
 fn non_negative(field: &str, v: f64) -> Result<(), EnvError> {
-    if v.is_finite() && v >= 0.0 {
-        Ok(())
-    } else {
-        Err(EnvError::invalid(
-            field,
-            format!("must be a finite number ≥ 0, got {v}"),
-        ))
-    }
+    if v.is_finite() && v >= 0.0 { Ok(()) } else { Err(EnvError::invalid(field, format!("must be a finite number ≥ 0, got {v}"))) }
 }
 
 #[cfg(test)]
@@ -580,14 +480,7 @@ mod tests {
             PegConfig::preset(name).unwrap().validate().unwrap();
         }
         let g2 = PegConfig::group2();
-        assert_eq!(
-            (
-                g2.geometry.peg_side_mm,
-                g2.geometry.hole_side_mm,
-                g2.geometry.target_depth_mm
-            ),
-            (7.95, 8.0, 20.0)
-        );
+        assert_eq!((g2.geometry.peg_side_mm, g2.geometry.hole_side_mm, g2.geometry.target_depth_mm), (7.95, 8.0, 20.0));
         let ex = PegConfig::experiment();
         assert_eq!(ex.controller.target_steps, 250);
         assert_eq!(ex.controller.compliance[2], 1e-5);
@@ -596,27 +489,19 @@ mod tests {
     #[test]
     fn overrides_merge_and_bad_values_name_the_field() {
         let base = PegConfig::group1();
-        let table: toml::Table =
-            toml::from_str("[contact]\nfriction = 0.5\n[physics]\nsubsteps = 8\n").unwrap();
+        let table: toml::Table = toml::from_str("[contact]\nfriction = 0.5\n[physics]\nsubsteps = 8\n").unwrap();
         let cfg = base.with_overrides(&table, "x.toml").unwrap();
         assert_eq!((cfg.contact.friction, cfg.physics.substeps), (0.5, 8));
         assert_eq!(cfg.geometry, base.geometry);
 
-        let field = |text: &str| match base.with_overrides(&toml::from_str(text).unwrap(), "x.toml")
-        {
+        let field = |text: &str| match base.with_overrides(&toml::from_str(text).unwrap(), "x.toml") {
             Err(EnvError::Invalid { field, .. }) => field,
             Err(EnvError::Parse { message, .. }) => format!("parse: {message}"),
             other => panic!("expected an error, got {other:?}"),
         };
-        assert_eq!(
-            field("[geometry]\npeg_side_mm = 10.5\n"),
-            "geometry.peg_side_mm"
-        );
+        assert_eq!(field("[geometry]\npeg_side_mm = 10.5\n"), "geometry.peg_side_mm");
         assert_eq!(field("[contact]\nfriction = -0.1\n"), "contact.friction");
-        assert_eq!(
-            field("[coupling]\nmoving_mass_kg = nan\n"),
-            "coupling.moving_mass_kg"
-        );
+        assert_eq!(field("[coupling]\nmoving_mass_kg = nan\n"), "coupling.moving_mass_kg");
         assert!(field("[geometry]\npeg_sid_mm = 1.0\n").contains("peg_sid_mm"));
         assert!(field("[controller]\ncompliance = [1.0, 2.0]\n").contains("compliance"));
     }

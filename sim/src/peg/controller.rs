@@ -19,13 +19,7 @@ use super::config::Controller;
 /// `planned_left_mm` is how far the plan still has to go (the commanded
 /// depth short of L): the plan stops at the target depth instead of pushing
 /// the peg past it into the hole floor.
-pub fn pose_change(
-    cfg: &Controller,
-    target_depth_mm: f64,
-    planned_left_mm: f64,
-    action: &[f64; 6],
-    wrench: &[f64; 6],
-) -> [f64; 6] {
+pub fn pose_change(cfg: &Controller, target_depth_mm: f64, planned_left_mm: f64, action: &[f64; 6], wrench: &[f64; 6]) -> [f64; 6] {
     let mut change = [0.0; 6];
     for i in 0..6 {
         let stiffness_inverse = (1.0 + action[i]) * cfg.compliance[i];
@@ -56,9 +50,6 @@ mod tests {
         assert!((revised[0] - 0.1).abs() < 1e-15);
         assert_eq!(revised[1], 0.0);
         // The plan stops at the target depth.
-        assert_eq!(
-            pose_change(&cfg, 30.0, 0.25, &[0.0; 6], &[0.0; 6])[2],
-            -0.25
-        );
+        assert_eq!(pose_change(&cfg, 30.0, 0.25, &[0.0; 6], &[0.0; 6])[2], -0.25);
     }
 }

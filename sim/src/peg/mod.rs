@@ -46,9 +46,7 @@ pub fn measured_best_constant(name: &str) -> Option<[f64; 6]> {
     }
 }
 
-const STATE_NAMES: [&str; 12] = [
-    "x", "y", "z", "alpha", "beta", "gamma", "Fx", "Fy", "Fz", "Mx", "My", "Mz",
-];
+const STATE_NAMES: [&str; 12] = ["x", "y", "z", "alpha", "beta", "gamma", "Fx", "Fy", "Fz", "Mx", "My", "Mz"];
 const ACTION_NAMES: [&str; 6] = ["dx", "dy", "dz", "dalpha", "dbeta", "dgamma"];
 
 /// Why an episode ended early.
@@ -158,20 +156,7 @@ impl PegEnv {
         let t = tip.translation;
         let remaining = t.z + self.cfg.geometry.target_depth_mm;
         let w = self.wrench;
-        vec![
-            t.x,
-            t.y,
-            remaining,
-            a,
-            b,
-            c,
-            w[0],
-            w[1],
-            w[2],
-            w[3] * 1e-3,
-            w[4] * 1e-3,
-            w[5] * 1e-3,
-        ]
+        vec![t.x, t.y, remaining, a, b, c, w[0], w[1], w[2], w[3] * 1e-3, w[4] * 1e-3, w[5] * 1e-3]
     }
 
     /// The tip's current pose (position mm, angles degrees), for tests and traces.
@@ -201,37 +186,17 @@ impl Env for PegEnv {
     fn reset(&mut self, seed: u64) -> Result<Vec<f64>, EnvError> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let e = &self.cfg.episode;
-        let mut draw = |r: f64| {
-            if r > 0.0 {
-                rng.random_range(-r..=r)
-            } else {
-                0.0
-            }
-        };
+        let mut draw = |r: f64| if r > 0.0 { rng.random_range(-r..=r) } else { 0.0 };
         let [ox, oy] = e.position_offset_mm;
         let [oa, ob, oc] = e.angle_offset_deg;
-        let position = [
-            ox + draw(e.position_error_mm),
-            oy + draw(e.position_error_mm),
-            e.start_height_mm + draw(e.position_error_mm),
-        ];
-        let angles = [
-            oa + draw(e.angle_error_deg),
-            ob + draw(e.angle_error_deg),
-            oc + draw(e.angle_error_deg),
-        ];
+        let position = [ox + draw(e.position_error_mm), oy + draw(e.position_error_mm), e.start_height_mm + draw(e.position_error_mm)];
+        let angles = [oa + draw(e.angle_error_deg), ob + draw(e.angle_error_deg), oc + draw(e.angle_error_deg)];
         // The parts come from a stream of their own, so the pose draws (and
         // every unrandomized preset's episodes) do not depend on them.
         self.episode_cfg = match &self.cfg.randomize {
             Some(ranges) => {
                 let mut parts = ChaCha8Rng::seed_from_u64(seed ^ PARTS_STREAM);
-                ranges.apply(&self.cfg, &mut |[lo, hi]| {
-                    if hi > lo {
-                        parts.random_range(lo..=hi)
-                    } else {
-                        lo
-                    }
-                })
+                ranges.apply(&self.cfg, &mut |[lo, hi]| if hi > lo { parts.random_range(lo..=hi) } else { lo })
             }
             None => self.cfg.clone(),
         };
@@ -252,15 +217,10 @@ impl Env for PegEnv {
         let a: [f64; 6] = std::array::from_fn(|i| clipped[i]);
         let depth = self.cfg.geometry.target_depth_mm;
         let planned_left = self.command.translation.z + depth;
-        let change =
-            controller::pose_change(&self.cfg.controller, depth, planned_left, &a, &self.wrench);
+        let change = controller::pose_change(&self.cfg.controller, depth, planned_left, &a, &self.wrench);
         let [da, db, dc] = [change[3], change[4], change[5]].map(f64::to_radians);
-        let rotation = Rotation::from_euler(rapier3d_f64::glamx::EulerRot::XYZ, da, db, dc)
-            * self.command.rotation;
-        let next = Pose::from_parts(
-            self.command.translation + Vector::new(change[0], change[1], change[2]),
-            rotation,
-        );
+        let rotation = Rotation::from_euler(rapier3d_f64::glamx::EulerRot::XYZ, da, db, dc) * self.command.rotation;
+        let next = Pose::from_parts(self.command.translation + Vector::new(change[0], change[1], change[2]), rotation);
 
         let reading = self.world.advance(&self.command, &next);
         self.command = next;
@@ -296,19 +256,11 @@ impl Env for PegEnv {
             depth: -r.h_z * self.cfg.clamped_depth_m(remaining),
             force: -r.h_f * force,
             moment: -r.h_m * moment,
-            bonus: if self.outcome == Outcome::Inserted {
-                r.r_s
-            } else {
-                0.0
-            },
+            bonus: if self.outcome == Outcome::Inserted { r.r_s } else { 0.0 },
             // Failure must never pay (docs/peg.md, "the failure rule"): the
             // charge is the most any episode can lose to the dense terms, so
             // a failed episode scores below every successful one.
-            failure: if matches!(self.outcome, Outcome::ForceLimit | Outcome::MomentLimit) {
-                -self.cfg.failure_charge()
-            } else {
-                0.0
-            },
+            failure: if matches!(self.outcome, Outcome::ForceLimit | Outcome::MomentLimit) { -self.cfg.failure_charge() } else { 0.0 },
         };
         self.terms = self.terms.add(&terms);
         let reward = terms.total();
@@ -331,11 +283,7 @@ impl Env for PegEnv {
     /// Divides each component by its typical size (`observation.scale`,
     /// measured on real episodes), so inputs are of order 1.
     fn normalize_state(&self, state: &[f64]) -> Vec<f64> {
-        state
-            .iter()
-            .zip(self.cfg.observation.scale)
-            .map(|(v, s)| v / s)
-            .collect()
+        state.iter().zip(self.cfg.observation.scale).map(|(v, s)| v / s).collect()
     }
 
     fn control_period_s(&self) -> f64 {

@@ -22,9 +22,7 @@ fn run(env: &mut PegEnv, action: [f64; 6]) -> Vec<Step> {
 
 /// Steps in which the peg touches the hole (any wrench component non-zero).
 fn in_contact(steps: &[Step]) -> impl Iterator<Item = &Step> {
-    steps
-        .iter()
-        .filter(|s| s.state[6..12].iter().any(|&v| v != 0.0))
+    steps.iter().filter(|s| s.state[6..12].iter().any(|&v| v != 0.0))
 }
 
 #[test]
@@ -57,11 +55,7 @@ fn perfect_alignment_inserts_with_small_force() {
         assert!(peak < 15.0, "peak force {peak} N");
         // Before seating nothing touches: forces stay at 0.
         for (t, s) in steps[..steps.len() - 1].iter().enumerate() {
-            assert!(
-                s.state[6..9].iter().all(|f| f.abs() < 1e-6),
-                "step {t}: {:?}",
-                s.state
-            );
+            assert!(s.state[6..9].iter().all(|f| f.abs() < 1e-6), "step {t}: {:?}", s.state);
         }
         assert!(steps.len() <= 55, "took {} steps", steps.len());
     }
@@ -80,16 +74,9 @@ fn lateral_offset_gives_restoring_force() {
             env.reset_to(position, [0.0; 3]);
             let steps = run(&mut env, [0.0; 6]);
             let first = in_contact(&steps).next().expect("the chamfer must engage");
-            assert!(
-                first.state[force] * sign < -0.1,
-                "axis {axis} sign {sign}: F = {:?}",
-                &first.state[6..9]
-            );
+            assert!(first.state[force] * sign < -0.1, "axis {axis} sign {sign}: F = {:?}", &first.state[6..9]);
             assert!(first.state[8] > 0.0, "the edge must push the peg up");
-            assert!(
-                first.state[axis].abs() < 0.2,
-                "the peg must move toward the axis"
-            );
+            assert!(first.state[axis].abs() < 0.2, "the peg must move toward the axis");
             assert_eq!(env.outcome(), Outcome::Inserted);
         }
     }
@@ -109,17 +96,10 @@ fn tilt_gives_restoring_moment() {
             let steps = run(&mut env, [0.0; 6]);
             let contact: Vec<&Step> = in_contact(&steps).collect();
             assert!(contact.len() > 10, "the tilted peg must touch the walls");
-            let mean: f64 =
-                contact.iter().map(|s| s.state[moment]).sum::<f64>() / contact.len() as f64;
-            assert!(
-                mean * sign < 0.0,
-                "angle {angle} sign {sign}: mean moment {mean}"
-            );
+            let mean: f64 = contact.iter().map(|s| s.state[moment]).sum::<f64>() / contact.len() as f64;
+            assert!(mean * sign < 0.0, "angle {angle} sign {sign}: mean moment {mean}");
             let final_tilt = steps.last().unwrap().state[angle];
-            assert!(
-                final_tilt.abs() < 0.35,
-                "tilt must shrink from 0.5°, ended at {final_tilt}"
-            );
+            assert!(final_tilt.abs() < 0.35, "tilt must shrink from 0.5°, ended at {final_tilt}");
             assert_eq!(env.outcome(), Outcome::Inserted);
         }
     }
@@ -157,40 +137,23 @@ fn jamming_ends_on_the_force_limit() {
     let steps = run(&mut env, [-1.0; 6]);
     let last = steps.last().unwrap();
     assert!(last.terminated);
-    assert!(
-        matches!(env.outcome(), Outcome::ForceLimit | Outcome::MomentLimit),
-        "{:?}",
-        env.outcome()
-    );
-    assert!(
-        last.state[2] > 5.0,
-        "jammed near the entrance, not inserted: z = {}",
-        last.state[2]
-    );
+    assert!(matches!(env.outcome(), Outcome::ForceLimit | Outcome::MomentLimit), "{:?}", env.outcome());
+    assert!(last.state[2] > 5.0, "jammed near the entrance, not inserted: z = {}", last.state[2]);
     assert!(env.episode_metrics().peak_force_n.unwrap() > 20.0);
-    assert_eq!(
-        env.step(&[0.0; 6]).unwrap_err().to_string(),
-        EnvError::EpisodeOver.to_string()
-    );
+    assert_eq!(env.step(&[0.0; 6]).unwrap_err().to_string(), EnvError::EpisodeOver.to_string());
 }
 
 #[test]
 fn snapshot_restore_continues_bit_identically() {
     let mut env = env(PegConfig::group1());
     env.reset(3).unwrap();
-    let actions = |k: usize| -> [f64; 6] {
-        std::array::from_fn(|i| ((k * 7 + i * 3) % 5) as f64 * 0.5 - 1.0)
-    };
+    let actions = |k: usize| -> [f64; 6] { std::array::from_fn(|i| ((k * 7 + i * 3) % 5) as f64 * 0.5 - 1.0) };
     for k in 0..8 {
         env.step(&actions(k)).unwrap();
     }
     let mut copy = env.snapshot().unwrap();
     for k in 8..30 {
-        assert_eq!(
-            env.step(&actions(k)).unwrap(),
-            copy.step(&actions(k)).unwrap(),
-            "step {k}"
-        );
+        assert_eq!(env.step(&actions(k)).unwrap(), copy.step(&actions(k)).unwrap(), "step {k}");
     }
 }
 
@@ -204,13 +167,7 @@ fn same_seed_same_episode_and_bad_actions_change_nothing() {
     b.step(&[0.5; 6]).unwrap();
     let err = a.step(&[0.0, 0.0, f64::NAN, 0.0, 0.0, 0.0]).unwrap_err();
     assert!(matches!(err, EnvError::NonFiniteAction { index: 2, .. }));
-    assert!(matches!(
-        a.step(&[0.0; 5]).unwrap_err(),
-        EnvError::ActionDim {
-            expected: 6,
-            got: 5
-        }
-    ));
+    assert!(matches!(a.step(&[0.0; 5]).unwrap_err(), EnvError::ActionDim { expected: 6, got: 5 }));
     assert_eq!(a.state(), b.state());
     // Out-of-range actions are clipped: 10 behaves as ub = 2 on x.
     let big = a.step(&[10.0, 0.0, 0.0, 0.0, 0.0, 0.0]).unwrap();
@@ -227,19 +184,12 @@ fn reward_follows_eqs_16_and_17_in_si_units() {
     assert!((step.reward + step.state[2] * 1e-3).abs() < 1e-15);
     let steps = run(&mut env, [0.0; 6]);
     let last = steps.last().unwrap();
-    assert!(
-        last.terminated && env.outcome() == Outcome::Inserted,
-        "the a = 0 controller inserts from a centred start"
-    );
+    assert!(last.terminated && env.outcome() == Outcome::Inserted, "the a = 0 controller inserts from a centred start");
     let s = &last.state;
     let force = (s[6] * s[6] + s[7] * s[7] + s[8] * s[8]).sqrt();
     let moment = (s[9] * s[9] + s[10] * s[10] + s[11] * s[11]).sqrt();
     let expected = -s[2].max(0.0) * 1e-3 - 0.1 * force - moment + 2.0;
-    assert!(
-        (last.reward - expected).abs() < 1e-12,
-        "{} vs {expected}",
-        last.reward
-    );
+    assert!((last.reward - expected).abs() < 1e-12, "{} vs {expected}", last.reward);
     // The terms add up to the return, and the bonus is r_s once.
     let terms = env.episode_metrics().return_terms.unwrap();
     let total: f64 = step.reward + steps.iter().map(|s| s.reward).sum::<f64>();
@@ -261,10 +211,7 @@ fn jamming_on_purpose_scores_below_every_success_from_the_same_start() {
         jam_env.reset(seed).unwrap();
         let jam_steps = run(&mut jam_env, [-1.0, -1.0, 2.0, 4.0, 4.0, 4.0]);
         let jam_return: f64 = jam_steps.iter().map(|s| s.reward).sum();
-        if !matches!(
-            jam_env.outcome(),
-            Outcome::ForceLimit | Outcome::MomentLimit
-        ) {
+        if !matches!(jam_env.outcome(), Outcome::ForceLimit | Outcome::MomentLimit) {
             continue;
         }
         jammed += 1;
@@ -273,27 +220,16 @@ fn jamming_on_purpose_scores_below_every_success_from_the_same_start() {
         assert_eq!(terms.bonus, 0.0);
         // Successful controllers from the same start: nominal and doubled
         // lateral compliance.
-        for action in [
-            [0.0; 6],
-            [2.0, 2.0, 0.0, 0.0, 0.0, 0.0],
-            [2.0, 2.0, 2.0, 4.0, 4.0, 4.0],
-            [-1.0; 6],
-        ] {
+        for action in [[0.0; 6], [2.0, 2.0, 0.0, 0.0, 0.0, 0.0], [2.0, 2.0, 2.0, 4.0, 4.0, 4.0], [-1.0; 6]] {
             let mut ok_env = env(PegConfig::group1());
             ok_env.reset(seed).unwrap();
             let ok_return: f64 = run(&mut ok_env, action).iter().map(|s| s.reward).sum();
             if ok_env.outcome() == Outcome::Inserted {
-                assert!(
-                    jam_return < ok_return,
-                    "seed {seed}: jam {jam_return} ≥ success {ok_return} with {action:?}"
-                );
+                assert!(jam_return < ok_return, "seed {seed}: jam {jam_return} ≥ success {ok_return} with {action:?}");
             }
         }
     }
-    assert!(
-        jammed >= 8,
-        "the jamming policy should fail from most starts, failed {jammed} of 12"
-    );
+    assert!(jammed >= 8, "the jamming policy should fail from most starts, failed {jammed} of 12");
 }
 
 /// The bound behind the failure rule: no step within the limits costs more
@@ -311,22 +247,14 @@ fn failure_charge_bounds_every_step_within_limits() {
             e.reset(seed).unwrap();
             let steps = run(&mut e, action);
             let failed = matches!(e.outcome(), Outcome::ForceLimit | Outcome::MomentLimit);
-            let within = if failed {
-                &steps[..steps.len() - 1]
-            } else {
-                &steps[..]
-            };
+            let within = if failed { &steps[..steps.len() - 1] } else { &steps[..] };
             for step in within {
-                assert!(
-                    step.reward >= -c_max,
-                    "{} < −c_max = {}",
-                    step.reward,
-                    -c_max
-                );
+                assert!(step.reward >= -c_max, "{} < −c_max = {}", step.reward, -c_max);
             }
         }
     }
 }
+
 
 /// A randomized preset draws its parts from the episode's seed: the same
 /// seed gives the same parts and start, other seeds other parts, every draw
@@ -336,10 +264,7 @@ fn failure_charge_bounds_every_step_within_limits() {
 fn randomized_presets_draw_parts_per_episode_within_their_ranges() {
     let cfg = PegConfig::preset("peg-group1-rand").unwrap();
     let ranges = cfg.randomize.clone().unwrap();
-    assert_eq!(
-        (cfg.episode.position_error_mm, cfg.episode.angle_error_deg),
-        (0.4, 1.0)
-    );
+    assert_eq!((cfg.episode.position_error_mm, cfg.episode.angle_error_deg), (0.4, 1.0));
     let mut env = env(cfg.clone());
     let mut twin = env.clone();
     let (mut frictions, mut clearances, mut chamfers) = (Vec::new(), Vec::new(), Vec::new());
@@ -347,46 +272,21 @@ fn randomized_presets_draw_parts_per_episode_within_their_ranges() {
         let s0 = env.reset(seed).unwrap();
         let parts = env.episode_config().clone();
         assert_eq!(twin.reset(seed).unwrap(), s0);
-        assert_eq!(
-            twin.episode_config(),
-            &parts,
-            "seed {seed}: the same seed must draw the same parts"
-        );
+        assert_eq!(twin.episode_config(), &parts, "seed {seed}: the same seed must draw the same parts");
         assert!(parts.randomize.is_none());
         let clearance = parts.geometry.hole_side_mm - parts.geometry.peg_side_mm;
         let inside = |v: f64, [lo, hi]: [f64; 2]| (lo..=hi).contains(&v);
-        assert!(
-            inside(parts.contact.friction, ranges.friction),
-            "{}",
-            parts.contact.friction
-        );
-        assert!(
-            inside(
-                clearance,
-                [
-                    ranges.clearance_mm[0] - 1e-12,
-                    ranges.clearance_mm[1] + 1e-12
-                ]
-            ),
-            "{clearance}"
-        );
+        assert!(inside(parts.contact.friction, ranges.friction), "{}", parts.contact.friction);
+        assert!(inside(clearance, [ranges.clearance_mm[0] - 1e-12, ranges.clearance_mm[1] + 1e-12]), "{clearance}");
         assert!(inside(parts.geometry.peg_chamfer_mm, ranges.peg_chamfer_mm));
-        assert_eq!(
-            parts.geometry.peg_side_mm, cfg.geometry.peg_side_mm,
-            "the peg keeps its size"
-        );
+        assert_eq!(parts.geometry.peg_side_mm, cfg.geometry.peg_side_mm, "the peg keeps its size");
         frictions.push(parts.contact.friction);
         clearances.push(clearance);
         chamfers.push(parts.geometry.peg_chamfer_mm);
     }
     // 200 uniform draws span at least 90% of each range.
-    for (values, [lo, hi]) in [
-        (frictions, ranges.friction),
-        (clearances, ranges.clearance_mm),
-        (chamfers, ranges.peg_chamfer_mm),
-    ] {
-        let spread = values.iter().cloned().fold(f64::MIN, f64::max)
-            - values.iter().cloned().fold(f64::MAX, f64::min);
+    for (values, [lo, hi]) in [(frictions, ranges.friction), (clearances, ranges.clearance_mm), (chamfers, ranges.peg_chamfer_mm)] {
+        let spread = values.iter().cloned().fold(f64::MIN, f64::max) - values.iter().cloned().fold(f64::MAX, f64::min);
         assert!(spread > 0.9 * (hi - lo), "spread {spread} of [{lo}, {hi}]");
     }
     // The published preset keeps its parts.
@@ -419,10 +319,7 @@ fn more_friction_costs_more_axial_force() {
         total / 8.0
     };
     let (low, high) = (mean_peak_fz(0.1), mean_peak_fz(0.6));
-    assert!(
-        high > low,
-        "peak |Fz| with μ = 0.6: {high:.2} N, with μ = 0.1: {low:.2} N"
-    );
+    assert!(high > low, "peak |Fz| with μ = 0.6: {high:.2} N, with μ = 0.1: {low:.2} N");
 }
 
 #[test]
@@ -433,22 +330,11 @@ fn bad_randomization_ranges_name_the_field() {
         other => panic!("expected an invalid field, got {other:?}"),
     };
     let ranges = "[randomize]\nfriction = [0.1, 0.6]\nclearance_mm = [0.03, 0.2]\n";
-    assert_eq!(
-        field(&format!("{ranges}peg_chamfer_mm = [0.8, 0.4]\n")),
-        "randomize.peg_chamfer_mm"
-    );
+    assert_eq!(field(&format!("{ranges}peg_chamfer_mm = [0.8, 0.4]\n")), "randomize.peg_chamfer_mm");
     assert_eq!(field("[randomize]\nfriction = [0.1, 0.6]\nclearance_mm = [0.0, 0.2]\npeg_chamfer_mm = [0.4, 0.8]\n"), "randomize.clearance_mm");
     // A chamfer at the range's top end wider than half the peg.
-    assert_eq!(
-        field(&format!("{ranges}peg_chamfer_mm = [0.4, 5.0]\n")),
-        "randomize"
-    );
-    let ok = base
-        .with_overrides(
-            &toml::from_str(&format!("{ranges}peg_chamfer_mm = [0.4, 0.8]\n")).unwrap(),
-            "x.toml",
-        )
-        .unwrap();
+    assert_eq!(field(&format!("{ranges}peg_chamfer_mm = [0.4, 5.0]\n")), "randomize");
+    let ok = base.with_overrides(&toml::from_str(&format!("{ranges}peg_chamfer_mm = [0.4, 0.8]\n")).unwrap(), "x.toml").unwrap();
     assert!(ok.randomize.is_some());
 }
 
@@ -461,9 +347,6 @@ fn recorded_best_constants_beat_a_zero() {
         let best = measured_best_constant(name).unwrap();
         let b = crate::tune::constant_return(&env, &best, 16, 0).unwrap();
         let zero = crate::tune::constant_return(&env, &[0.0; 6], 16, 0).unwrap();
-        assert!(
-            b > zero + 1.0,
-            "{name}: best constant {b:.2}, a = 0 {zero:.2}"
-        );
+        assert!(b > zero + 1.0, "{name}: best constant {b:.2}, a = 0 {zero:.2}");
     }
 }

@@ -113,7 +113,7 @@ impl PegWorld {
         params.dt = cfg.controller.control_period_s / cfg.physics.substeps as f64;
         params.num_solver_iterations = cfg.physics.solver_iterations;
         params.length_unit = 1.0; // see the module comment: mm, slop 5 µm
-                                  // Recycling would keep contacts up to 50 µm stale: the clearance.
+        // Recycling would keep contacts up to 50 µm stale: the clearance.
         params.contact_recycling = false;
         // Motions per step are far below any shape's size: no CCD needed.
         params.max_ccd_substeps = 0;
@@ -132,19 +132,16 @@ impl PegWorld {
         // Push penetration out at up to 50 mm/s rather than 3 mm/s: with the
         // default, penetration under lateral load reached 18 µm; now 2–3 µm.
         params.normalized_max_corrective_velocity = 50.0;
+        
+        
+        
 
         let mut bodies = RigidBodySet::new();
         let mut colliders = ColliderSet::new();
         let block = bodies.insert(RigidBodyBuilder::fixed());
         let hole_colliders = hole_shapes(cfg)
             .into_iter()
-            .map(|builder| {
-                colliders.insert_with_parent(
-                    builder.friction(cfg.contact.friction),
-                    block,
-                    &mut bodies,
-                )
-            })
+            .map(|builder| colliders.insert_with_parent(builder.friction(cfg.contact.friction), block, &mut bodies))
             .collect();
 
         let c = &cfg.coupling;
@@ -155,11 +152,7 @@ impl PegWorld {
             RigidBodyBuilder::dynamic()
                 .pose(tip_pose)
                 .can_sleep(false)
-                .additional_mass_properties(MassProperties::new(
-                    flange_local,
-                    mass,
-                    Vector::splat(inertia),
-                )),
+                .additional_mass_properties(MassProperties::new(flange_local, mass, Vector::splat(inertia))),
         );
         let peg_collider = colliders.insert_with_parent(
             peg_shape(cfg).density(0.0).friction(cfg.contact.friction),
@@ -173,11 +166,7 @@ impl PegWorld {
         let damping = |k: f64, m: f64| 2.0 * c.damping_ratio * (k * m).sqrt();
         let gains = CouplingGains {
             k_lin: Vector::new(k_lat, k_lat, k_ax),
-            c_lin: Vector::new(
-                damping(k_lat, mass),
-                damping(k_lat, mass),
-                damping(k_ax, mass),
-            ),
+            c_lin: Vector::new(damping(k_lat, mass), damping(k_lat, mass), damping(k_ax, mass)),
             k_rot,
             c_rot: damping(k_rot, inertia),
         };
@@ -219,8 +208,7 @@ impl PegWorld {
         let flange_from = from.transform_point(self.flange_local);
         let flange_to = to.transform_point(self.flange_local);
         let target_linvel = (flange_to - flange_from) / self.control_period;
-        let target_angvel =
-            (to.rotation * from.rotation.inverse()).to_scaled_axis() / self.control_period;
+        let target_angvel = (to.rotation * from.rotation.inverse()).to_scaled_axis() / self.control_period;
         let mut impulse = Vector::ZERO;
         let mut angular_impulse = Vector::ZERO;
         for k in 1..=self.substeps {
@@ -236,8 +224,7 @@ impl PegWorld {
                 let (v0, w0) = (body.linvel(), body.angvel());
                 // Backward-Euler spring-damper: the k·dt term is the damping an
                 // implicit step adds, which keeps stiff couplings stable.
-                let force = -g.k_lin * (com - target_flange)
-                    - (g.c_lin + g.k_lin * dt) * (v0 - target_linvel);
+                let force = -g.k_lin * (com - target_flange) - (g.c_lin + g.k_lin * dt) * (v0 - target_linvel);
                 let error = (*body.rotation() * target_rotation.inverse()).to_scaled_axis();
                 let torque = -g.k_rot * error - (g.c_rot + g.k_rot * dt) * (w0 - target_angvel);
                 body.reset_forces(false);
@@ -283,9 +270,7 @@ impl PegWorld {
 
     /// Whether any contact point between peg and hole is active.
     fn in_contact(&self) -> bool {
-        self.narrow_phase
-            .contact_pairs_with(self.peg_collider)
-            .any(|pair| pair.has_any_active_contact())
+        self.narrow_phase.contact_pairs_with(self.peg_collider).any(|pair| pair.has_any_active_contact())
     }
 
     /// The deepest penetration of the peg into the hole block, mm (0 when
@@ -296,15 +281,7 @@ impl PegWorld {
             .iter()
             .filter_map(|&h| {
                 let wall = &self.colliders[h];
-                query::contact(
-                    peg.position(),
-                    peg.shape(),
-                    wall.position(),
-                    wall.shape(),
-                    0.0,
-                )
-                .ok()
-                .flatten()
+                query::contact(peg.position(), peg.shape(), wall.position(), wall.shape(), 0.0).ok().flatten()
             })
             .map(|contact| (-contact.dist).max(0.0))
             .fold(0.0, f64::max)
@@ -317,11 +294,7 @@ fn peg_shape(cfg: &PegConfig) -> ColliderBuilder {
     let g = &cfg.geometry;
     let (h, len, c) = (g.peg_side_mm / 2.0, g.peg_length_mm, g.peg_chamfer_mm);
     if c == 0.0 {
-        return ColliderBuilder::cuboid(h, h, len / 2.0).translation(Vector::new(
-            0.0,
-            0.0,
-            len / 2.0,
-        ));
+        return ColliderBuilder::cuboid(h, h, len / 2.0).translation(Vector::new(0.0, 0.0, len / 2.0));
     }
     let mut points = Vec::with_capacity(12);
     for (sx, sy) in [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] {
@@ -337,12 +310,7 @@ fn peg_shape(cfg: &PegConfig) -> ColliderBuilder {
 /// convex hulls with their inner top edge cut by the hole chamfer.
 fn hole_shapes(cfg: &PegConfig) -> Vec<ColliderBuilder> {
     let g = &cfg.geometry;
-    let (h, w, d, c) = (
-        g.hole_side_mm / 2.0,
-        g.wall_mm,
-        g.hole_depth_mm,
-        g.hole_chamfer_mm,
-    );
+    let (h, w, d, c) = (g.hole_side_mm / 2.0, g.wall_mm, g.hole_depth_mm, g.hole_chamfer_mm);
     let outer = h + w;
     let mut shapes = Vec::with_capacity(5);
     // Walls on +x and −x span the full outer width; walls on ±y fill between.
@@ -350,40 +318,17 @@ fn hole_shapes(cfg: &PegConfig) -> Vec<ColliderBuilder> {
         shapes.push(wall(c, [h, outer], [-outer, outer], d, sign, false));
         shapes.push(wall(c, [h, outer], [-h, h], d, sign, true));
     }
-    shapes.push(
-        ColliderBuilder::cuboid(outer, outer, w / 2.0).translation(Vector::new(
-            0.0,
-            0.0,
-            -d - w / 2.0,
-        )),
-    );
+    shapes.push(ColliderBuilder::cuboid(outer, outer, w / 2.0).translation(Vector::new(0.0, 0.0, -d - w / 2.0)));
     shapes
 }
 
 /// One wall: `across` is its extent away from the hole axis (inner face at
 /// across[0]), `along` its extent along the hole side, on the side `sign`;
 /// `swap` puts it on the y axis instead of x.
-fn wall(
-    chamfer: f64,
-    across: [f64; 2],
-    along: [f64; 2],
-    depth: f64,
-    sign: f64,
-    swap: bool,
-) -> ColliderBuilder {
-    let place = |a: f64, b: f64, z: f64| {
-        if swap {
-            Vector::new(b, sign * a, z)
-        } else {
-            Vector::new(sign * a, b, z)
-        }
-    };
+fn wall(chamfer: f64, across: [f64; 2], along: [f64; 2], depth: f64, sign: f64, swap: bool) -> ColliderBuilder {
+    let place = |a: f64, b: f64, z: f64| if swap { Vector::new(b, sign * a, z) } else { Vector::new(sign * a, b, z) };
     if chamfer == 0.0 {
-        let centre = place(
-            (across[0] + across[1]) / 2.0,
-            (along[0] + along[1]) / 2.0,
-            -depth / 2.0,
-        );
+        let centre = place((across[0] + across[1]) / 2.0, (along[0] + along[1]) / 2.0, -depth / 2.0);
         let (ha, hb) = ((across[1] - across[0]) / 2.0, (along[1] - along[0]) / 2.0);
         let (hx, hy) = if swap { (hb, ha) } else { (ha, hb) };
         return ColliderBuilder::cuboid(hx, hy, depth / 2.0).translation(centre);
@@ -403,10 +348,7 @@ fn wall(
 /// A tip pose from a position (mm) and XYZ Euler angles (degrees).
 pub fn pose_from(position: [f64; 3], angles_deg: [f64; 3]) -> Pose {
     let [a, b, c] = angles_deg.map(f64::to_radians);
-    Pose::from_parts(
-        Vector::from_array(position),
-        Rotation::from_euler(rapier3d_f64::glamx::EulerRot::XYZ, a, b, c),
-    )
+    Pose::from_parts(Vector::from_array(position), Rotation::from_euler(rapier3d_f64::glamx::EulerRot::XYZ, a, b, c))
 }
 
 /// XYZ Euler angles of a rotation, degrees.

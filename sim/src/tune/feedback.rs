@@ -73,31 +73,12 @@ impl FeedbackPolicy {
     }
 
     /// Parameters: u₀ (n), then each phase's K row by row (n·m).
-    fn from_params(
-        family: Family,
-        theta: &[f64],
-        n: usize,
-        m: usize,
-        switch_depth_mm: Option<f64>,
-    ) -> Self {
+    fn from_params(family: Family, theta: &[f64], n: usize, m: usize, switch_depth_mm: Option<f64>) -> Self {
         let scale = GAIN_SCALE / (m as f64).sqrt();
         let gains = (0..Self::phases(family))
-            .map(|p| {
-                (0..n)
-                    .map(|i| {
-                        (0..m)
-                            .map(|j| scale * theta[n + p * n * m + i * m + j])
-                            .collect()
-                    })
-                    .collect()
-            })
+            .map(|p| (0..n).map(|i| (0..m).map(|j| scale * theta[n + p * n * m + i * m + j]).collect()).collect())
             .collect();
-        FeedbackPolicy {
-            family,
-            u0: theta[..n].to_vec(),
-            gains,
-            switch_depth_mm,
-        }
+        FeedbackPolicy { family, u0: theta[..n].to_vec(), gains, switch_depth_mm }
     }
 
     /// The action for a raw state.
@@ -109,33 +90,18 @@ impl FeedbackPolicy {
             _ => 0,
         };
         let k = &self.gains[phase.min(self.gains.len() - 1)];
-        let u: Vec<f64> = self
-            .u0
-            .iter()
-            .zip(k)
-            .map(|(u0, row)| u0 + row.iter().zip(&s).map(|(g, x)| g * x).sum::<f64>())
-            .collect();
+        let u: Vec<f64> = self.u0.iter().zip(k).map(|(u0, row)| u0 + row.iter().zip(&s).map(|(g, x)| g * x).sum::<f64>()).collect();
         action_of(env.spec(), &u)
     }
 }
 
 /// Mean return of a policy over `episodes` starts from `seed`.
-fn policy_return(
-    template: &dyn Env,
-    policy: &FeedbackPolicy,
-    episodes: usize,
-    seed: u64,
-) -> Result<f64, EnvError> {
+fn policy_return(template: &dyn Env, policy: &FeedbackPolicy, episodes: usize, seed: u64) -> Result<f64, EnvError> {
     let mut env = template.fresh();
     let probe = template.fresh();
     let mut total = 0.0;
     for k in 0..episodes {
-        let record = run_episode(
-            env.as_mut(),
-            seed.wrapping_add(k as u64),
-            &mut |s| policy.act(probe.as_ref(), s),
-            false,
-        )?;
+        let record = run_episode(env.as_mut(), seed.wrapping_add(k as u64), &mut |s| policy.act(probe.as_ref(), s), false)?;
         total += record.episode_return;
     }
     Ok(total / episodes as f64)
@@ -191,33 +157,18 @@ impl StoredPolicy {
     /// Reads a best_policy.json of `lcrl tune --policy`, checking the
     /// policy's shape against the file's own claims.
     pub fn read(path: &std::path::Path) -> Result<StoredPolicy, TuneError> {
-        let bad = |why: String| {
-            TuneError::Options(format!(
-                "{}: not a best_policy.json of `lcrl tune --policy`: {why}",
-                path.display()
-            ))
-        };
+        let bad = |why: String| TuneError::Options(format!("{}: not a best_policy.json of `lcrl tune --policy`: {why}", path.display()));
         let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
         let stored: StoredPolicy = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
         let p = &stored.policy;
         let n = p.u0.len();
         let phases = FeedbackPolicy::phases(p.family);
         let m = p.gains.first().and_then(|k| k.first()).map_or(0, Vec::len);
-        if p.gains.len() != phases
-            || p.gains
-                .iter()
-                .any(|k| k.len() != n || k.iter().any(|row| row.len() != m))
-            || m == 0
-        {
-            return Err(bad(format!(
-                "{:?} needs {phases} gain matrices of {n} rows of equal, non-zero length",
-                p.family
-            )));
+        if p.gains.len() != phases || p.gains.iter().any(|k| k.len() != n || k.iter().any(|row| row.len() != m)) || m == 0 {
+            return Err(bad(format!("{:?} needs {phases} gain matrices of {n} rows of equal, non-zero length", p.family)));
         }
         if (p.family == Family::DepthSwitched) != p.switch_depth_mm.is_some() {
-            return Err(bad(
-                "switch_depth_mm is set exactly for the depth-switched family".into(),
-            ));
+            return Err(bad("switch_depth_mm is set exactly for the depth-switched family".into()));
         }
         Ok(stored)
     }
@@ -241,13 +192,7 @@ impl StoredPolicy {
 }
 
 /// Searches `family` from the constant `start` (an action in the box).
-pub fn tune_policy(
-    template: &dyn Env,
-    family: Family,
-    start: &[f64],
-    opts: &TuneOptions,
-    on_candidate: &(dyn Fn(f64) + Sync),
-) -> Result<PolicyReport, TuneError> {
+pub fn tune_policy(template: &dyn Env, family: Family, start: &[f64], opts: &TuneOptions, on_candidate: &(dyn Fn(f64) + Sync)) -> Result<PolicyReport, TuneError> {
     opts.check()?;
     let started = Instant::now();
     let spec = template.spec().clone();
@@ -257,10 +202,7 @@ pub fn tune_policy(
         Family::Affine => None,
         Family::DepthSwitched => {
             let depth = template.depth_reference_mm().ok_or_else(|| {
-                TuneError::Options(format!(
-                    "--policy depth-switched needs an insertion depth; {} has none (use affine)",
-                    spec.name
-                ))
+                TuneError::Options(format!("--policy depth-switched needs an insertion depth; {} has none (use affine)", spec.name))
             })?;
             Some(depth - ENTRY_MM)
         }
@@ -271,14 +213,7 @@ pub fn tune_policy(
     let start_policy = FeedbackPolicy::from_params(family, &theta0, n, m, switch);
     let start_return = policy_return(template, &start_policy, opts.episodes, opts.seed)?;
 
-    let objective = |theta: &[f64]| {
-        policy_return(
-            template,
-            &FeedbackPolicy::from_params(family, theta, n, m, switch),
-            opts.episodes,
-            opts.seed,
-        )
-    };
+    let objective = |theta: &[f64]| policy_return(template, &FeedbackPolicy::from_params(family, theta, n, m, switch), opts.episodes, opts.seed);
     let (found, evaluations) = super::search(theta0, start_return, opts, &objective, on_candidate)?;
     let (policy, best_return) = match found {
         Some((theta, r)) => (FeedbackPolicy::from_params(family, &theta, n, m, switch), r),
@@ -288,33 +223,12 @@ pub fn tune_policy(
     let mut env = template.fresh();
     let probe = template.fresh();
     let label = format!("{family:?} policy");
-    let (eval, _) = evaluate(
-        env.as_mut(),
-        &label,
-        opts.eval_episodes,
-        opts.eval_seed,
-        &mut |s| policy.act(probe.as_ref(), s),
-        &mut |_| {},
-    )?;
+    let (eval, _) = evaluate(env.as_mut(), &label, opts.eval_episodes, opts.eval_seed, &mut |s| policy.act(probe.as_ref(), s), &mut |_| {})?;
     let action = action_of(&spec, &policy.u0);
-    let best = ConstantResult {
-        action: action.clone(),
-        tuning_return: best_return,
-        eval,
-    };
-    let start_constant = super::evaluate_constant(
-        template,
-        start,
-        constant_return(template, start, opts.episodes, opts.seed)?,
-        opts,
-    )?;
+    let best = ConstantResult { action: action.clone(), tuning_return: best_return, eval };
+    let start_constant = super::evaluate_constant(template, start, constant_return(template, start, opts.episodes, opts.seed)?, opts)?;
     let zero = vec![0.0; n];
-    let zero_action = super::evaluate_constant(
-        template,
-        &zero,
-        constant_return(template, &zero, opts.episodes, opts.seed)?,
-        opts,
-    )?;
+    let zero_action = super::evaluate_constant(template, &zero, constant_return(template, &zero, opts.episodes, opts.seed)?, opts)?;
     Ok(PolicyReport {
         env: spec.name.clone(),
         action_names: spec.action_names.clone(),
@@ -359,21 +273,11 @@ mod tests {
         cfg.initial_state_high = Some(vec![1.0]);
         cfg.episode_steps = 3;
         let env = LtiEnv::new("one", &cfg).unwrap();
-        let opts = TuneOptions {
-            episodes: 16,
-            evaluations: 300,
-            eval_episodes: 32,
-            ..TuneOptions::default()
-        };
+        let opts = TuneOptions { episodes: 16, evaluations: 300, eval_episodes: 32, ..TuneOptions::default() };
         let report = tune_policy(&env, Family::Affine, &[0.0], &opts, &|_| {}).unwrap();
         let gain = report.policy.gains[0][0][0];
         assert!(gain < -0.1, "the gain on s must be negative, got {gain}");
-        assert!(
-            report.mean_return > report.start_constant.eval.mean_return + 0.1,
-            "{} vs {}",
-            report.mean_return,
-            report.start_constant.eval.mean_return
-        );
+        assert!(report.mean_return > report.start_constant.eval.mean_return + 0.1, "{} vs {}", report.mean_return, report.start_constant.eval.mean_return);
         // An environment without a depth has no depth-switched family.
         assert!(tune_policy(&env, Family::DepthSwitched, &[0.0], &opts, &|_| {}).is_err());
     }
@@ -390,48 +294,20 @@ mod tests {
         for entry in std::fs::read_dir(&dir).unwrap() {
             let path = entry.unwrap().path().join("best_policy.json");
             let stored = StoredPolicy::read(&path).unwrap();
-            let raw: serde_json::Value =
-                serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+            let raw: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
             let template = crate::make_env(&stored.env).unwrap();
             stored.check_env(template.as_ref()).unwrap();
             let n = template.spec().action_dim();
             let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * b.abs().max(1.0);
-            let policy_return = super::policy_return(
-                template.as_ref(),
-                &stored.policy,
-                stored.eval_episodes,
-                stored.eval_seed,
-            )
-            .unwrap();
-            assert!(
-                close(policy_return, stored.mean_return),
-                "{}: {policy_return} vs stored {}",
-                path.display(),
-                stored.mean_return
-            );
-            let start: Vec<f64> =
-                serde_json::from_value(raw["start_constant"]["action"].clone()).unwrap();
+            let policy_return = super::policy_return(template.as_ref(), &stored.policy, stored.eval_episodes, stored.eval_seed).unwrap();
+            assert!(close(policy_return, stored.mean_return), "{}: {policy_return} vs stored {}", path.display(), stored.mean_return);
+            let start: Vec<f64> = serde_json::from_value(raw["start_constant"]["action"].clone()).unwrap();
             let bar = crate::peg::measured_best_constant(&stored.env).unwrap();
-            assert_eq!(
-                start,
-                bar.to_vec(),
-                "{}: the search did not start from the recorded best constant",
-                path.display()
-            );
+            assert_eq!(start, bar.to_vec(), "{}: the search did not start from the recorded best constant", path.display());
             for (key, action) in [("start_constant", start), ("zero_action", vec![0.0; n])] {
                 let recorded = raw[key]["eval"]["mean_return"].as_f64().unwrap();
-                let got = constant_return(
-                    template.as_ref(),
-                    &action,
-                    stored.eval_episodes,
-                    stored.eval_seed,
-                )
-                .unwrap();
-                assert!(
-                    close(got, recorded),
-                    "{}: {key} {got} vs stored {recorded}",
-                    path.display()
-                );
+                let got = constant_return(template.as_ref(), &action, stored.eval_episodes, stored.eval_seed).unwrap();
+                assert!(close(got, recorded), "{}: {key} {got} vs stored {recorded}", path.display());
             }
             checked += 1;
         }

@@ -42,34 +42,20 @@ pub struct TuneOptions {
 
 impl Default for TuneOptions {
     fn default() -> Self {
-        TuneOptions {
-            episodes: 32,
-            seed: 1_000_000,
-            evaluations: 300,
-            sigma: 0.3,
-            eval_episodes: 100,
-            eval_seed: 0,
-        }
+        TuneOptions { episodes: 32, seed: 1_000_000, evaluations: 300, sigma: 0.3, eval_episodes: 100, eval_seed: 0 }
     }
 }
 
 impl TuneOptions {
     fn check(&self) -> Result<(), TuneError> {
         if self.episodes == 0 || self.eval_episodes == 0 {
-            return Err(TuneError::Options(
-                "episodes and eval episodes must be at least 1".into(),
-            ));
+            return Err(TuneError::Options("episodes and eval episodes must be at least 1".into()));
         }
         if self.evaluations < 2 {
-            return Err(TuneError::Options(
-                "--evaluations must be at least 2".into(),
-            ));
+            return Err(TuneError::Options("--evaluations must be at least 2".into()));
         }
         if !(self.sigma.is_finite() && self.sigma > 0.0) {
-            return Err(TuneError::Options(format!(
-                "sigma must be a finite number > 0, got {}",
-                self.sigma
-            )));
+            return Err(TuneError::Options(format!("sigma must be a finite number > 0, got {}", self.sigma)));
         }
         Ok(())
     }
@@ -125,59 +111,27 @@ pub fn u_of(spec: &EnvSpec, action: &[f64]) -> Vec<f64> {
     action
         .iter()
         .zip(spec.action_low.iter().zip(&spec.action_high))
-        .map(|(a, (lo, hi))| {
-            if hi > lo {
-                2.0 * (a - lo) / (hi - lo) - 1.0
-            } else {
-                0.0
-            }
-        })
+        .map(|(a, (lo, hi))| if hi > lo { 2.0 * (a - lo) / (hi - lo) - 1.0 } else { 0.0 })
         .collect()
 }
 
 /// Mean return of a constant action over `episodes` starts from `seed`.
-pub fn constant_return(
-    template: &dyn Env,
-    action: &[f64],
-    episodes: usize,
-    seed: u64,
-) -> Result<f64, EnvError> {
+pub fn constant_return(template: &dyn Env, action: &[f64], episodes: usize, seed: u64) -> Result<f64, EnvError> {
     template.spec().check_action(action)?;
     let mut env = template.fresh();
     let mut total = 0.0;
     for k in 0..episodes {
-        let record = run_episode(
-            env.as_mut(),
-            seed.wrapping_add(k as u64),
-            &mut |_| action.to_vec(),
-            false,
-        )?;
+        let record = run_episode(env.as_mut(), seed.wrapping_add(k as u64), &mut |_| action.to_vec(), false)?;
         total += record.episode_return;
     }
     Ok(total / episodes as f64)
 }
 
-fn evaluate_constant(
-    template: &dyn Env,
-    action: &[f64],
-    tuning_return: f64,
-    opts: &TuneOptions,
-) -> Result<ConstantResult, EnvError> {
+fn evaluate_constant(template: &dyn Env, action: &[f64], tuning_return: f64, opts: &TuneOptions) -> Result<ConstantResult, EnvError> {
     let mut env = template.fresh();
     let label = format!("constant {action:?}");
-    let (eval, _) = evaluate(
-        env.as_mut(),
-        &label,
-        opts.eval_episodes,
-        opts.eval_seed,
-        &mut |_| action.to_vec(),
-        &mut |_| {},
-    )?;
-    Ok(ConstantResult {
-        action: action.to_vec(),
-        tuning_return,
-        eval,
-    })
+    let (eval, _) = evaluate(env.as_mut(), &label, opts.eval_episodes, opts.eval_seed, &mut |_| action.to_vec(), &mut |_| {})?;
+    Ok(ConstantResult { action: action.to_vec(), tuning_return, eval })
 }
 
 /// CMA-ES from `start` (whose mean return is `start_return`), maximizing
@@ -206,10 +160,7 @@ fn search(
                 -r
             }
             Err(e) => {
-                failure
-                    .lock()
-                    .unwrap_or_else(|p| p.into_inner())
-                    .get_or_insert(e);
+                failure.lock().unwrap_or_else(|p| p.into_inner()).get_or_insert(e);
                 f64::INFINITY
             }
         }
@@ -225,21 +176,14 @@ fn search(
     if let Some(e) = failure.into_inner().unwrap_or_else(|p| p.into_inner()) {
         return Err(TuneError::Env(e));
     }
-    let found = data
-        .overall_best
-        .filter(|ind| -ind.value > start_return)
-        .map(|ind| (ind.point.as_slice().to_vec(), -ind.value));
+    let found = data.overall_best.filter(|ind| -ind.value > start_return).map(|ind| (ind.point.as_slice().to_vec(), -ind.value));
     Ok((found, evaluations))
 }
 
 /// Runs the search (candidates in parallel on the current rayon pool);
 /// `on_candidate` is called after every candidate with the best mean
 /// return so far.
-pub fn tune(
-    template: &dyn Env,
-    opts: &TuneOptions,
-    on_candidate: &(dyn Fn(f64) + Sync),
-) -> Result<TuneReport, TuneError> {
+pub fn tune(template: &dyn Env, opts: &TuneOptions, on_candidate: &(dyn Fn(f64) + Sync)) -> Result<TuneReport, TuneError> {
     opts.check()?;
     let started = Instant::now();
     let spec = template.spec().clone();
@@ -247,13 +191,7 @@ pub fn tune(
     let zero = vec![0.0; n];
     let zero_return = constant_return(template, &zero, opts.episodes, opts.seed)?;
 
-    let (found, evaluations) = search(
-        u_of(&spec, &zero),
-        zero_return,
-        opts,
-        &|u| constant_return(template, &action_of(&spec, u), opts.episodes, opts.seed),
-        on_candidate,
-    )?;
+    let (found, evaluations) = search(u_of(&spec, &zero), zero_return, opts, &|u| constant_return(template, &action_of(&spec, u), opts.episodes, opts.seed), on_candidate)?;
     let (best_action, best_return) = match found {
         Some((u, r)) => (action_of(&spec, &u), r),
         None => (zero.clone(), zero_return),
@@ -303,14 +241,8 @@ mod tests {
         let spec = env.spec();
         let a = vec![0.0, 1.5, -1.0, 4.0, 0.25, -0.5];
         let back = action_of(spec, &u_of(spec, &a));
-        assert!(
-            a.iter().zip(&back).all(|(x, y)| (x - y).abs() < 1e-12),
-            "{back:?}"
-        );
-        assert_eq!(
-            action_of(spec, &[9.0, -9.0, 0.0, 0.0, 0.0, 0.0])[..2],
-            [2.0, -1.0]
-        );
+        assert!(a.iter().zip(&back).all(|(x, y)| (x - y).abs() < 1e-12), "{back:?}");
+        assert_eq!(action_of(spec, &[9.0, -9.0, 0.0, 0.0, 0.0, 0.0])[..2], [2.0, -1.0]);
     }
 
     /// A system whose best constant is known: s' = s + a on one state from
@@ -325,18 +257,9 @@ mod tests {
         cfg.episode_steps = 3;
         let env = LtiEnv::new("one", &cfg).unwrap();
         let optimum = -6.0 / 10.6;
-        let opts = TuneOptions {
-            episodes: 1,
-            evaluations: 200,
-            eval_episodes: 1,
-            ..TuneOptions::default()
-        };
+        let opts = TuneOptions { episodes: 1, evaluations: 200, eval_episodes: 1, ..TuneOptions::default() };
         let report = tune(&env, &opts, &|_| {}).unwrap();
-        assert!(
-            (report.action[0] - optimum).abs() < 0.02,
-            "{:?} vs {optimum}",
-            report.action
-        );
+        assert!((report.action[0] - optimum).abs() < 0.02, "{:?} vs {optimum}", report.action);
         assert!(report.mean_return > report.zero_action.eval.mean_return);
         assert_eq!(report.zero_action.action, vec![0.0]);
     }
