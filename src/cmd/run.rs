@@ -200,13 +200,13 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     let curve = run_dir.join("reward_curve.png");
     plot_curve(&run_dir.join("learner/metrics.csv"), &curve, &job.env, &summary)?;
     let reference = match (summary.lqr_return, summary.masked_lqr_return, job.connection) {
-        (_, Some(masked), Connection::Local) => format!("masked LQR (the best controller with G) {masked:.3}"),
-        (Some(lqr), _, _) => format!("LQR {lqr:.3}"),
+        (_, Some(masked), Connection::Local) => format!("reference: masked LQR (the best controller with G) {masked:.3}"),
+        (Some(lqr), _, _) => format!("reference: LQR {lqr:.3}"),
         _ => reference_table(job, &summary),
     };
     Ok(format!(
         "{}run {run_id}: {} episodes, {} env steps, {} updates ({}), policy lag mean {:.1}, policy v{}, recent average return {:.3}, {:.1} s\n\
-         eval return {:.3} over {} episodes of the final policy; reference: {reference}\n\
+         eval return {:.3} over {} episodes of the final policy; {reference}\n\
          results in {}: summary.json, config.toml, graph.json/graph.png, learner/metrics.csv (and TensorBoard events), learner/checkpoints/, reward_curve.png, logs/",
         if interrupted { "interrupted: " } else { "" },
         s.episodes,
@@ -235,7 +235,7 @@ fn reference_table(job: &lcrl::preset::Job, summary: &lcrl::run_summary::RunSumm
     let trained = format!("trained: {:?} {:?}", job.algo, job.connection).to_lowercase();
     let mut rows = vec![(trained, summary.eval_return, summary.eval_success_rate, summary.eval_peak_force_n)];
     rows.extend(summary.references.iter().map(|r| (r.controller.clone(), r.mean_return, r.success_rate, r.mean_peak_force_n)));
-    let mut table = format!("the reference controllers on the same {} starts:\n  {:<34} {:>10} {:>8} {:>11}", summary.eval_episodes, "controller", "return", "success", "peak force");
+    let mut table = format!("beside the reference controllers on the same {} starts:\n  {:<34} {:>10} {:>8} {:>11}", summary.eval_episodes, "controller", "return", "success", "peak force");
     for (name, ret, success, peak) in rows {
         table.push_str(&format!("\n  {name:<34} {ret:>10.3} {:>8} {:>11}", pct(success), force(peak)));
     }
