@@ -11,7 +11,7 @@ use lcrl_learner::service::runtime::{LearnerSummary, PolicyLag};
 use lcrl_learner::trainer::eval_seed;
 use lcrl_learner::{Algo, Connection};
 use lcrl_proto::v1::LearnerStatus;
-use lcrl_sim::evaluate::evaluate;
+use lcrl_sim::evaluate::{evaluate, Summary};
 use lcrl_sim::tune::feedback::StoredPolicy;
 use serde::Serialize;
 
@@ -40,7 +40,7 @@ pub struct RunSummary {
     /// Every reference controller on the policy's own evaluation starts:
     /// a = 0, the best constant (the bar) where one is recorded for the
     /// environment, and the preset's headroom reference (`job.headroom`).
-    pub references: Vec<Reference>,
+    pub references: Vec<Summary>,
     pub graph_seconds: f64,
     pub total_seconds: f64,
     pub env_steps: u64,
@@ -56,26 +56,6 @@ pub struct RunSummary {
     pub transport: String,
 }
 
-/// A reference controller's figures on the trained policy's evaluation starts.
-#[derive(Debug, Clone, Serialize)]
-pub struct Reference {
-    pub controller: String,
-    pub mean_return: f64,
-    pub success_rate: Option<f64>,
-    pub mean_peak_force_n: Option<f64>,
-}
-
-impl Reference {
-    fn of(summary: &lcrl_sim::evaluate::Summary) -> Reference {
-        Reference {
-            controller: summary.controller.clone(),
-            mean_return: summary.mean_return,
-            success_rate: summary.success_rate,
-            mean_peak_force_n: summary.mean_peak_force_n,
-        }
-    }
-}
-
 /// The labels of the references every run has, as `references` names them.
 pub const ZERO_ACTION: &str = "a = 0";
 pub const BEST_CONSTANT: &str = "best constant";
@@ -83,16 +63,16 @@ pub const BEST_CONSTANT: &str = "best constant";
 /// The reference controllers of `env` evaluated on `episodes` starts from
 /// `first`: a = 0, the recorded best constant (docs/peg.md, "The bar") and
 /// the headroom policy, when there are.
-fn references(env: &mut dyn lcrl_sim::Env, headroom: Option<&StoredPolicy>, episodes: usize, first: u64) -> anyhow::Result<Vec<Reference>> {
+fn references(env: &mut dyn lcrl_sim::Env, headroom: Option<&StoredPolicy>, episodes: usize, first: u64) -> anyhow::Result<Vec<Summary>> {
     let n = env.spec().action_dim();
-    let mut out = vec![Reference::of(&evaluate(env, ZERO_ACTION, episodes, first, &mut |_| vec![0.0; n], &mut |_| {})?.0)];
+    let mut out = vec![evaluate(env, ZERO_ACTION, episodes, first, &mut |_| vec![0.0; n], &mut |_| {})?.0];
     if let Some(best) = lcrl_sim::peg::measured_best_constant(&env.spec().name) {
-        out.push(Reference::of(&evaluate(env, BEST_CONSTANT, episodes, first, &mut |_| best.to_vec(), &mut |_| {})?.0));
+        out.push(evaluate(env, BEST_CONSTANT, episodes, first, &mut |_| best.to_vec(), &mut |_| {})?.0);
     }
     if let Some(stored) = headroom {
         let probe = env.fresh();
         let label = format!("headroom: {} feedback", stored.policy.family.name());
-        out.push(Reference::of(&evaluate(env, &label, episodes, first, &mut |s| stored.policy.act(probe.as_ref(), s), &mut |_| {})?.0));
+        out.push(evaluate(env, &label, episodes, first, &mut |s| stored.policy.act(probe.as_ref(), s), &mut |_| {})?.0);
     }
     Ok(out)
 }
