@@ -3,7 +3,9 @@
 # of the bar (`lcrl sim --episodes 100 --seed 0`, the ones `lcrl tune`
 # evaluates the best constant on), beside a = 0 and the best constant, and
 # prints one markdown table: per cell the mean over seeds, each seed, the
-# success rate and the number of runs below a = 0 (diverged).
+# success rate and the number of runs below a = 0 (diverged). A run whose
+# policy was chosen by validation (RUN/selected/) is evaluated twice: its
+# policy (the selected one) and, on a row of its own, its last checkpoint.
 # Usage: bash scripts/eval-study.sh STUDY_DIR
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -12,6 +14,10 @@ lcrl=${LCRL_BIN:-target/debug/lcrl}
 for summary in $(find "$study/runs" -name summary.json -path '*seed*' | sort); do
   dir=$(dirname "$summary")
   [ -f "$dir/eval100/summary.json" ] || $lcrl sim --checkpoint "$dir" --episodes 100 --seed 0 --out "$dir/eval100" > /dev/null 2>&1
+  if [ -d "$dir/selected" ] && [ ! -f "$dir/eval100-last/summary.json" ]; then
+    last=$(ls -d "$dir"/checkpoints/ep* | sort | tail -n 1)
+    $lcrl sim --checkpoint "$last" --episodes 100 --seed 0 --out "$dir/eval100-last" > /dev/null 2>&1
+  fi
 done
 for bc in $(find "$study/best_constant" -name best_constant.json 2>/dev/null); do
   env=$(basename "$(dirname "$bc")")
@@ -36,10 +42,11 @@ for env_dir in sorted(glob.glob(f"{study}/runs/*")):
             print(f"| {env} | — | {label} | {x['mean_return']:.2f} | {100*x['success_rate']:.0f}% | — |")
     for algo_dir in sorted(glob.glob(f"{env_dir}/*")):
         for conn_dir in sorted(glob.glob(f"{algo_dir}/*")):
-            xs = [load(p) for p in sorted(glob.glob(f"{conn_dir}/seed*/eval100/summary.json"))]
-            if not xs: continue
-            r = [x["mean_return"] for x in xs]
-            succ = st.mean(x["success_rate"] for x in xs)
-            below = sum(1 for v in r if zero is not None and v < zero)
-            print(f"| {env} | {os.path.basename(algo_dir)} | {os.path.basename(conn_dir)} | {st.mean(r):.2f} ({', '.join(f'{v:.2f}' for v in r)}) | {100*succ:.0f}% | {below} of {len(r)} |")
+            for folder, note in [("eval100", ""), ("eval100-last", " (last policy)")]:
+                xs = [load(p) for p in sorted(glob.glob(f"{conn_dir}/seed*/{folder}/summary.json"))]
+                if not xs: continue
+                r = [x["mean_return"] for x in xs]
+                succ = st.mean(x["success_rate"] for x in xs)
+                below = sum(1 for v in r if zero is not None and v < zero)
+                print(f"| {env} | {os.path.basename(algo_dir)} | {os.path.basename(conn_dir)}{note} | {st.mean(r):.2f} ({', '.join(f'{v:.2f}' for v in r)}) | {100*succ:.0f}% | {below} of {len(r)} |")
 PY

@@ -99,7 +99,9 @@ impl Rollout {
             settings.actor_id.hash(&mut hasher);
             hasher.finish()
         };
-        let mut episode_seed = settings.seed.wrapping_mul(1_000_003) ^ (salt << 20);
+        // Training episodes' own seed range (lcrl_sim::seeds), one run seed
+        // per actor name.
+        let mut episode_seed = lcrl_sim::seeds::training(settings.seed.wrapping_add(salt) % lcrl_sim::seeds::PER_RUN, 0);
         let states = envs
             .iter_mut()
             .map(|env| {

@@ -233,6 +233,13 @@ pub struct RunConfig {
     pub graph_samples: usize,
     /// Episodes of the deterministic policy evaluated at the end.
     pub eval_episodes: usize,
+    /// Choosing the run's policy on held-out starts (learner/src/selection.rs):
+    /// every `validate_every` episodes, and at the start and the end, the
+    /// deterministic policy runs this many validation starts, and the run's
+    /// policy (RUN/selected/) is the best one seen. 0: the run's policy is
+    /// its last.
+    pub validation_episodes: usize,
+    pub validate_every: usize,
 }
 
 impl Default for TrainConfig {
@@ -322,6 +329,8 @@ impl Default for RunConfig {
             save_replay: true,
             graph_samples: 64,
             eval_episodes: 10,
+            validation_episodes: 0,
+            validate_every: 20,
         }
     }
 }
@@ -423,6 +432,7 @@ impl TrainConfig {
             ("run.episodes", self.run.episodes),
             ("run.checkpoint_every", self.run.checkpoint_every),
             ("run.graph_samples", self.run.graph_samples),
+            ("run.validate_every", self.run.validate_every),
         ];
         for (field, v) in at_least_one {
             if v == 0 {

@@ -35,11 +35,15 @@ impl Policy {
         (vs, actor, architecture)
     }
 
-    /// Loads `dir` (a `checkpoints/epNNNNNN` folder, or a run directory,
-    /// meaning its newest checkpoint).
+    /// Loads `dir`: a `checkpoints/epNNNNNN` or `selected` folder, or a run
+    /// directory, meaning the run's policy: the one validation selected
+    /// (RUN/selected/) if the run has one, else its newest checkpoint.
     pub fn load(dir: &Path) -> Result<Self, LearnerError> {
+        let selected = crate::selection::selected_dir(dir);
         let dir = if dir.join("checkpoint.json").is_file() {
             dir.to_path_buf()
+        } else if selected.join("checkpoint.json").is_file() {
+            selected
         } else {
             latest_checkpoint(dir).ok_or_else(|| LearnerError::Checkpoint(format!("{} holds no checkpoint (checkpoint.json)", dir.display())))?
         };

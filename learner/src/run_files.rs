@@ -94,6 +94,14 @@ pub struct TrainSummary {
     /// The evaluation return split into its reward terms (peg tasks).
     #[serde(flatten)]
     pub eval_terms: lcrl_sim::ReturnColumns,
+    /// With validation on (run.validation_episodes > 0), `eval_return` is
+    /// the selected policy's, and this is the last policy's on the same
+    /// episodes.
+    #[serde(default)]
+    pub last_eval_return: Option<f64>,
+    /// Which policy validation chose, and every validation.
+    #[serde(default)]
+    pub selection: Option<crate::selection::SelectionRecord>,
     /// The neutral constant action a = 0 on the same evaluation episodes
     /// (on peg tasks the constant compliance controller): a reference line.
     #[serde(default)]
@@ -172,9 +180,15 @@ impl MetricsLog {
 /// renamed, because a summary.json marks a finished run (`lcrl experiment`
 /// skips it), so it must never be half a file.
 pub fn write_summary<T: Serialize>(run_dir: &Path, value: &T) -> Result<(), LearnerError> {
-    let path = run_dir.join("summary.json");
     let text = serde_json::to_string_pretty(value).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    let partial = run_dir.join(".summary.json.partial");
-    std::fs::write(&partial, text + "\n").map_err(io(&partial))?;
-    std::fs::rename(&partial, &path).map_err(io(&path))
+    write_atomically(&run_dir.join("summary.json"), (text + "\n").as_bytes())
+}
+
+/// Writes `bytes` to `path` whole or not at all: into `.NAME.partial`
+/// beside it, then renamed over it.
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let partial = path.with_file_name(format!(".{name}.partial"));
+    std::fs::write(&partial, bytes).map_err(io(&partial))?;
+    std::fs::rename(&partial, path).map_err(io(path))
 }

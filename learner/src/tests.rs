@@ -162,6 +162,54 @@ fn resumed_run_continues_exactly() {
     }
 }
 
+/// Validation every 2 episodes of 6 chooses the run's policy: the choice
+/// is the best of the validations (the first of equals), RUN/selected/
+/// holds exactly the policy that scored it (replayed on the validation
+/// starts, it gives the recorded return), `Policy::load` of the run is
+/// that policy, training is the same as without validation, and a run
+/// interrupted at a validation resumes its selection exactly.
+#[test]
+fn validation_selects_the_best_policy_and_survives_resume() {
+    let mut cfg = tiny();
+    cfg.run.episodes = 6;
+    cfg.run.validation_episodes = 3;
+    cfg.run.validate_every = 2;
+    let plain_dir = tempfile::tempdir().unwrap();
+    let plain = run(Algo::Ddpg, Connection::Local, tiny_with_episodes(6), plain_dir.path(), false);
+    assert!(plain.summary.selection.is_none() && plain.summary.last_eval_return.is_none());
+    let dir = tempfile::tempdir().unwrap();
+    let straight = run(Algo::Ddpg, Connection::Local, cfg.clone(), dir.path(), false);
+    assert_eq!(timeless(&plain.rows), timeless(&straight.rows), "validation changed training");
+    assert_eq!(straight.summary.last_eval_return, Some(plain.summary.eval_return), "the last policy is the plain run's");
+
+    let chosen = straight.summary.selection.clone().unwrap();
+    let episodes: Vec<usize> = chosen.history.iter().map(|v| v.episode).collect();
+    assert_eq!(episodes, [0, 2, 4, 6]);
+    let best = chosen.history.iter().fold(f64::NEG_INFINITY, |b, v| b.max(v.mean_return));
+    let first_best = chosen.history.iter().find(|v| v.mean_return == best).unwrap();
+    assert_eq!((chosen.episode, chosen.validation_return), (first_best.episode, best));
+
+    let policy = Policy::load(dir.path()).unwrap();
+    assert_eq!(policy.episode, Some(chosen.episode), "Policy::load(run) is not the selected policy");
+    let mut env = make_env("lti-paper").unwrap();
+    let probe = env.fresh();
+    let first = lcrl_sim::seeds::validation(cfg.run.seed, 0);
+    let (replayed, _) = lcrl_sim::evaluate::evaluate(env.as_mut(), "selected", 3, first, &mut |s| policy.act(probe.as_ref(), s), &mut |_| {}).unwrap();
+    assert_eq!(replayed.mean_return, chosen.validation_return);
+
+    let resumed_dir = tempfile::tempdir().unwrap();
+    run_until(Algo::Ddpg, Connection::Local, cfg.clone(), resumed_dir.path(), false, Some(2));
+    let resumed = run(Algo::Ddpg, Connection::Local, cfg, resumed_dir.path(), true);
+    assert_eq!(resumed.summary.selection, straight.summary.selection);
+    assert_eq!(resumed.summary.eval_return, straight.summary.eval_return);
+}
+
+fn tiny_with_episodes(episodes: usize) -> TrainConfig {
+    let mut cfg = tiny();
+    cfg.run.episodes = episodes;
+    cfg
+}
+
 #[test]
 fn same_seed_gives_identical_metrics() {
     let a = tempfile::tempdir().unwrap();

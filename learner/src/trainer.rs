@@ -25,6 +25,7 @@ use crate::config::{Algo, Connection, TrainConfig};
 use crate::ddpg::Ddpg;
 use crate::lqr::{lqr_return, masked_lqr_return};
 use crate::ppo::Ppo;
+use crate::selection::Selection;
 use crate::LearnerError;
 
 /// What to train, and where.
@@ -60,14 +61,15 @@ pub struct TrainOutcome {
     pub rows: Vec<EpisodeRow>,
 }
 
-/// The seed of training episode `episode`: distinct per episode, and
-/// disjoint from the evaluation seeds.
+/// The seed of training episode `episode` (lcrl_sim::seeds: disjoint from
+/// validation and from every evaluation).
 fn episode_seed(seed: u64, episode: usize) -> u64 {
-    seed.wrapping_mul(1_000_003).wrapping_add(episode as u64)
+    lcrl_sim::seeds::training(seed, episode)
 }
 
+/// The seed of start `k` of a run's own final evaluation.
 pub fn eval_seed(seed: u64, k: usize) -> u64 {
-    (seed ^ 0xE7A1_0000_0000).wrapping_mul(7_919).wrapping_add(k as u64)
+    lcrl_sim::seeds::run_evaluation(seed, k)
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
@@ -184,6 +186,11 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     let meta_for = |episode: usize, optimization: f64, elapsed: f64| CheckpointMeta { episode, optimization_seconds: optimization, elapsed_seconds: elapsed, ..start.clone() };
 
     let last_episode = req.stop_after.map_or(cfg.run.episodes, |stop| stop.min(cfg.run.episodes));
+    let mut selection = Selection::new(&cfg.run, &req.run_dir, checkpoint.is_some())?;
+    if let Some(selection) = selection.as_mut().filter(|s| s.due(rows.len(), last_episode)) {
+        let elapsed = prior_elapsed + started.elapsed().as_secs_f64();
+        selection.validate(env.as_ref(), agent.as_ref(), &actions, &req.run_dir, &meta_for(rows.len(), optimization, elapsed))?;
+    }
     for episode in rows.len()..last_episode {
         let episode_started = Instant::now();
         agent.set_progress(episode as f64 / cfg.run.episodes as f64);
@@ -247,14 +254,28 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
             let elapsed = prior_elapsed + started.elapsed().as_secs_f64();
             write_checkpoint(&req.run_dir, agent.as_ref(), &meta_for(done, optimization, elapsed))?;
         }
+        if let Some(selection) = selection.as_mut().filter(|s| s.due(done, last_episode)) {
+            let elapsed = prior_elapsed + started.elapsed().as_secs_f64();
+            selection.validate(env.as_ref(), agent.as_ref(), &actions, &req.run_dir, &meta_for(done, optimization, elapsed))?;
+        }
     }
     prior_opt = optimization;
 
-    // The deterministic policy, a = 0 and the LQR ceiling on the same episodes.
+    // The run's policy (the selected one, or the last), a = 0 and the LQR
+    // ceiling on the same episodes.
     let episodes = cfg.run.eval_episodes.max(1);
     let env_ref = env.fresh();
-    let mut policy = |s: &[f64]| actions.to_env(&agent.act(&observe(env_ref.as_ref(), s)));
-    let (eval, _) = evaluate(env.as_mut(), "policy", episodes, eval_seed(cfg.run.seed, 0), &mut policy, &mut |_| {})?;
+    let mut last_policy = |s: &[f64]| actions.to_env(&agent.act(&observe(env_ref.as_ref(), s)));
+    let (last, _) = evaluate(env.as_mut(), "last policy", episodes, eval_seed(cfg.run.seed, 0), &mut last_policy, &mut |_| {})?;
+    let chosen = selection.as_ref().and_then(Selection::record);
+    let eval = match &chosen {
+        Some(_) => {
+            let selected = crate::policy::Policy::load(&crate::selection::selected_dir(&req.run_dir))?;
+            let mut policy = |s: &[f64]| selected.act(env_ref.as_ref(), s);
+            evaluate(env.as_mut(), "selected policy", episodes, eval_seed(cfg.run.seed, 0), &mut policy, &mut |_| {})?.0
+        }
+        None => last.clone(),
+    };
     let (zero, _) = evaluate(env.as_mut(), "a = 0", episodes, eval_seed(cfg.run.seed, 0), &mut |_| vec![0.0; n], &mut |_| {})?;
     let lqr = env.as_lti().and_then(|lti| lqr_return(lti, episodes, eval_seed(cfg.run.seed, 0)));
     let masked_lqr = env.as_lti().and_then(|lti| masked_lqr_return(lti, &mask, episodes, eval_seed(cfg.run.seed, 0)));
@@ -272,6 +293,8 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         eval_success_rate: eval.success_rate,
         eval_peak_force_n: eval.mean_peak_force_n,
         eval_terms: eval.terms,
+        last_eval_return: chosen.as_ref().map(|_| last.mean_return),
+        selection: chosen,
         zero_action_return: Some(zero.mean_return),
         lqr_return: lqr,
         masked_lqr_return: masked_lqr,

@@ -10,6 +10,7 @@
 //! - [`registry`]: environments by name, TOML file or server URL.
 //! - [`remote`]: environments served by another process (`grpc://HOST:PORT`,
 //!   e.g. any Gymnasium environment behind `python -m lcrl_env serve`).
+//! - [`seeds`]: which episode starts training, validation and evaluation use (disjoint ranges).
 //! - [`tune`]: the best constant action (CMA-ES), the bar for learned agents.
 
 pub mod env;
@@ -18,6 +19,7 @@ pub mod lti;
 pub mod peg;
 pub mod registry;
 pub mod remote;
+pub mod seeds;
 pub mod tune;
 
 pub use env::{step_all, Env, EnvError, EnvSpec, EpisodeMetrics, ReturnColumns, ReturnTerms, Step};

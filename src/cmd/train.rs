@@ -121,7 +121,15 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     println!("{:?} / {:?} on {} — {} episodes, {} env steps, {} updates", s.algo, s.connection, s.env, s.episodes, s.env_steps, s.updates);
     println!("  actor parameters      {} (a global actor of the configured size: {})", s.actor_params, global_equivalent);
     println!("  final return          {:.3} (mean of the last 10 episodes)", s.final_return);
-    println!("  eval return           {:.3} (deterministic policy, {} episodes)", s.eval_return, config.run.eval_episodes.max(1));
+    match (&s.selection, s.last_eval_return) {
+        (Some(chosen), Some(last)) => {
+            let which = if chosen.episode == 0 { "the starting policy".to_string() } else { format!("episode {}'s policy", chosen.episode) };
+            println!("  eval return           {:.3} (the selected policy, {} episodes)", s.eval_return, config.run.eval_episodes.max(1));
+            println!("  selected              {which}: {:.3} on {} validation starts (best of {} validations)", chosen.validation_return, chosen.starts, chosen.history.len());
+            println!("  last policy           {last:.3} (same evaluation episodes)");
+        }
+        _ => println!("  eval return           {:.3} (deterministic policy, {} episodes)", s.eval_return, config.run.eval_episodes.max(1)),
+    }
     if let Some(zero) = s.zero_action_return {
         println!("  a = 0 return          {zero:.3} (the neutral constant action, same episodes)");
     }

@@ -42,7 +42,7 @@ pub struct TuneOptions {
 
 impl Default for TuneOptions {
     fn default() -> Self {
-        TuneOptions { episodes: 32, seed: 1_000_000, evaluations: 300, sigma: 0.3, eval_episodes: 100, eval_seed: 0 }
+        TuneOptions { episodes: 32, seed: crate::seeds::TUNING, evaluations: 300, sigma: 0.3, eval_episodes: 100, eval_seed: 0 }
     }
 }
 

@@ -1,0 +1,168 @@
+//! Choosing the run's policy on held-out starts.
+//!
+//! A run's last policy is one draw from the sequence of policies training
+//! went through, and on the peg tasks a DDPG draw now and then pushes too
+//! hard from a few starts and fails them (docs/peg.md, "Choosing the
+//! run's policy"). Model selection on held-out starts is the standard
+//! remedy: at the start, every `run.validate_every` episodes and at the end,
+//! the deterministic policy runs `run.validation_episodes` starts from the
+//! run's own validation range (`lcrl_sim::seeds::validation`, disjoint from
+//! training and from every evaluation), and the run's policy is the best one
+//! seen. The starting policy is a candidate too: with a base controller it
+//! is the base itself, so a run never hands over less than its base did on
+//! these starts. The evaluation that reports the run never sees them.
+//!
+//! `RUN/selected/` holds the choice (checkpoint.json and actor.safetensors,
+//! which `Policy::load` reads, and selection.json with every validation).
+//! It is replaced whole whenever a better policy is found, so an
+//! interrupted run resumes its selection. Training is untouched: the
+//! checkpoints under `RUN/checkpoints/` go on from the last policy, and the
+//! validation episodes run in an environment of their own.
+
+use std::path::{Path, PathBuf};
+
+use lcrl_sim::evaluate::evaluate;
+use lcrl_sim::Env;
+use serde::{Deserialize, Serialize};
+
+use crate::action::ActionMap;
+use crate::agent::{write_tensors, Agent};
+use crate::checkpoint::CheckpointMeta;
+use crate::config::RunConfig;
+use crate::LearnerError;
+
+/// The folder of a run's selected policy.
+pub fn selected_dir(run_dir: &Path) -> PathBuf {
+    run_dir.join("selected")
+}
+
+/// One validation of the policy after `episode` training episodes.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Validation {
+    pub episode: usize,
+    pub mean_return: f64,
+    pub success_rate: Option<f64>,
+}
+
+/// selection.json: which policy was chosen, on how many starts, and every
+/// validation that chose it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SelectionRecord {
+    /// The training episodes behind the chosen policy (0: the starting one).
+    pub episode: usize,
+    pub validation_return: f64,
+    pub validation_success_rate: Option<f64>,
+    /// Validation starts per validation.
+    pub starts: usize,
+    pub history: Vec<Validation>,
+}
+
+/// The running choice of a run's policy.
+pub struct Selection {
+    run_seed: u64,
+    starts: usize,
+    every: usize,
+    record: Option<SelectionRecord>,
+    history: Vec<Validation>,
+}
+
+impl Selection {
+    /// The selection `run` asks for (None when `validation_episodes` is 0).
+    /// Resuming picks up RUN/selected/; a fresh run discards any left there.
+    pub fn new(run: &RunConfig, run_dir: &Path, resume: bool) -> Result<Option<Selection>, LearnerError> {
+        let dir = selected_dir(run_dir);
+        if !resume && dir.exists() {
+            std::fs::remove_dir_all(&dir).map_err(|source| LearnerError::Io { path: dir.clone(), source })?;
+        }
+        if run.validation_episodes == 0 {
+            return Ok(None);
+        }
+        let record = if resume { read_record(&dir)? } else { None };
+        if let Some(r) = &record {
+            if r.starts != run.validation_episodes {
+                return Err(LearnerError::Mismatch(format!(
+                    "{} chose its policy on {} validation starts, but run.validation_episodes is {}; resume with the run's own setting",
+                    dir.display(),
+                    r.starts,
+                    run.validation_episodes
+                )));
+            }
+        }
+        let history = record.as_ref().map(|r| r.history.clone()).unwrap_or_default();
+        Ok(Some(Selection { run_seed: run.seed, starts: run.validation_episodes, every: run.validate_every.max(1), record, history }))
+    }
+
+    /// Whether the policy after `done` episodes is validated: at the start,
+    /// every `validate_every` episodes and at `last`, once each.
+    pub fn due(&self, done: usize, last: usize) -> bool {
+        let validated = self.history.last().is_some_and(|v| v.episode >= done);
+        !validated && (done % self.every == 0 || done == last)
+    }
+
+    /// Validates the agent's current policy; if it beats every earlier one
+    /// (strictly: a tie keeps the earlier), it becomes RUN/selected/.
+    pub fn validate(&mut self, env: &dyn Env, agent: &dyn Agent, actions: &ActionMap, run_dir: &Path, meta: &CheckpointMeta) -> Result<Validation, LearnerError> {
+        let _span = tracing::info_span!("validation", episode = meta.episode).entered();
+        let mut run_env = env.fresh();
+        let probe = env.fresh();
+        let mut policy = |s: &[f64]| actions.to_env(&agent.act(&crate::trainer::observe(probe.as_ref(), s)));
+        let first = lcrl_sim::seeds::validation(self.run_seed, 0);
+        let (summary, _) = evaluate(run_env.as_mut(), "validation", self.starts, first, &mut policy, &mut |_| {})?;
+        let validation = Validation { episode: meta.episode, mean_return: summary.mean_return, success_rate: summary.success_rate };
+        self.history.push(validation);
+        let better = self.record.as_ref().is_none_or(|best| validation.mean_return > best.validation_return);
+        if better {
+            self.record = Some(SelectionRecord {
+                episode: validation.episode,
+                validation_return: validation.mean_return,
+                validation_success_rate: validation.success_rate,
+                starts: self.starts,
+                history: Vec::new(),
+            });
+            write_selected(run_dir, agent, meta)?;
+        }
+        self.write_record(run_dir)?;
+        tracing::info!(episode = validation.episode, mean_return = validation.mean_return, selected = better, "validated");
+        Ok(validation)
+    }
+
+    /// The choice so far, with every validation.
+    pub fn record(&self) -> Option<SelectionRecord> {
+        self.record.clone().map(|r| SelectionRecord { history: self.history.clone(), ..r })
+    }
+
+    fn write_record(&self, run_dir: &Path) -> Result<(), LearnerError> {
+        let Some(record) = self.record() else { return Ok(()) };
+        let path = selected_dir(run_dir).join("selection.json");
+        let text = serde_json::to_string_pretty(&record).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+        crate::run_files::write_atomically(&path, text.as_bytes())
+    }
+}
+
+fn read_record(dir: &Path) -> Result<Option<SelectionRecord>, LearnerError> {
+    let path = dir.join("selection.json");
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(&path).map_err(|source| LearnerError::Io { path: path.clone(), source })?;
+    serde_json::from_str(&text).map(Some).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}; delete RUN/selected to start the selection over", path.display())))
+}
+
+/// Writes the agent's actor as RUN/selected/ (staged, then renamed).
+fn write_selected(run_dir: &Path, agent: &dyn Agent, meta: &CheckpointMeta) -> Result<(), LearnerError> {
+    let target = selected_dir(run_dir);
+    let staging = run_dir.join(".selected.partial");
+    let io = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| LearnerError::Io { path, source }
+    };
+    let _ = std::fs::remove_dir_all(&staging);
+    std::fs::create_dir_all(&staging).map_err(io(&staging))?;
+    write_tensors(&staging.join("actor.safetensors"), &agent.actor_variables())?;
+    let text = serde_json::to_string_pretty(meta).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    std::fs::write(staging.join("checkpoint.json"), text).map_err(io(&staging))?;
+    if target.exists() {
+        std::fs::remove_dir_all(&target).map_err(io(&target))?;
+    }
+    std::fs::rename(&staging, &target).map_err(io(&target))
+}
