@@ -16,7 +16,8 @@ use clap::Parser;
 use lcrl_proto::process::shutdown_signal;
 use lcrl_learner::config::{Algo, Connection, TrainConfig};
 use lcrl_learner::service::ingest::Ingest;
-use lcrl_learner::service::runtime::{run_training, snapshot, Schedule, Shared};
+use lcrl_learner::service::runtime::{run_training, snapshot, Schedule};
+use lcrl_learner::service::shared::Shared;
 use lcrl_learner::service::server::{LearnerService, PolicyService};
 use lcrl_learner::checkpoint::{latest_checkpoint, read_meta, CheckpointMeta};
 use lcrl_learner::trainer::make_agent;
@@ -379,7 +380,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     }
     let _ = tokio::task::spawn_blocking(move || (shm.join(), policy_broadcast.join())).await;
     tracing::info!("stopping: writing a checkpoint");
-    let _ = commands.send(lcrl_learner::service::runtime::Command::Stop).await;
+    let _ = commands.send(lcrl_learner::service::shared::Command::Stop).await;
     drop(commands);
     trainer.join().map_err(|_| anyhow::anyhow!("the training thread panicked"))??;
     Ok(())

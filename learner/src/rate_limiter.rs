@@ -41,6 +41,12 @@ pub struct RateLimiter {
     pub samples: u64,
 }
 
+impl Default for RateLimiter {
+    fn default() -> Self {
+        RateLimiter::unlimited()
+    }
+}
+
 impl RateLimiter {
     /// A limiter at the start of a run. `samples_per_insert` and
     /// `error_buffer` must be finite and positive, and the buffer must let
@@ -55,6 +61,17 @@ impl RateLimiter {
             return Err(format!("the error buffer must be a finite number > 0, got {error_buffer}"));
         }
         Ok(RateLimiter { samples_per_insert, min_size_to_sample, error_buffer, inserts: 0, samples: 0 })
+    }
+
+    /// A limiter that limits nothing and only counts (PPO, and DDPG with
+    /// `--replay-ratio unlimited`): every insert and sample may go ahead.
+    pub fn unlimited() -> Self {
+        RateLimiter { samples_per_insert: 0.0, min_size_to_sample: 0, error_buffer: 0.0, inserts: 0, samples: 0 }
+    }
+
+    /// False for [`RateLimiter::unlimited`].
+    pub fn is_limited(&self) -> bool {
+        self.samples_per_insert > 0.0
     }
 
     /// Checks that inserts of up to `largest_insert` and samples of up to
@@ -94,7 +111,7 @@ impl RateLimiter {
 
     /// Whether `count` transitions may be inserted now.
     pub fn can_insert(&self, count: u64) -> bool {
-        if self.inserts + count <= self.min_size_to_sample {
+        if !self.is_limited() || self.inserts + count <= self.min_size_to_sample {
             return true;
         }
         (self.inserts + count) as f64 * self.samples_per_insert - self.samples as f64 <= self.max_diff()
@@ -102,6 +119,9 @@ impl RateLimiter {
 
     /// Whether `count` transitions may be sampled now.
     pub fn can_sample(&self, count: u64) -> bool {
+        if !self.is_limited() {
+            return true;
+        }
         if self.inserts < self.min_size_to_sample {
             return false;
         }
@@ -112,6 +132,9 @@ impl RateLimiter {
     /// so a learner that was behind can take the updates its last inserts
     /// earned (as the single-process loop takes one per step to the end).
     pub fn owed(&self) -> f64 {
+        if !self.is_limited() {
+            return 0.0;
+        }
         (self.diff() - self.centre()).max(0.0)
     }
 
@@ -222,5 +245,16 @@ mod tests {
         l.sample(5);
         let back: RateLimiter = serde_json::from_str(&serde_json::to_string(&l).unwrap()).unwrap();
         assert_eq!(back, l);
+    }
+
+    #[test]
+    fn an_unlimited_limiter_admits_everything_and_counts() {
+        let mut l = RateLimiter::unlimited();
+        assert!(!l.is_limited() && limiter().is_limited());
+        assert!(l.can_insert(1_000_000) && l.can_sample(1_000_000));
+        l.insert(10);
+        l.sample(640);
+        assert_eq!((l.inserts, l.samples, l.owed()), (10, 640, 0.0));
+        assert_eq!(l.achieved_ratio(), 64.0);
     }
 }

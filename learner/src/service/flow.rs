@@ -5,6 +5,8 @@
 
 use std::collections::VecDeque;
 
+use crate::rate_limiter::RateLimiter;
+
 /// Policy lag of the most recently stored transitions.
 #[derive(Debug, Clone)]
 pub struct LagWindow {
@@ -40,12 +42,9 @@ impl LagWindow {
 /// Everything `GetStatus` reports about the flow of data.
 #[derive(Debug, Clone, Default)]
 pub struct FlowStats {
-    /// Transitions sampled by updates (DDPG: batch_size per update).
-    pub sampled: u64,
-    /// Transitions inserted into the replay buffer or rollout.
-    pub inserted: u64,
-    /// Target samples per insert; 0 when unlimited (or PPO).
-    pub replay_ratio_target: f64,
+    /// The replay-ratio limiter, the one count of transitions inserted and
+    /// sampled (unlimited for PPO and `--replay-ratio unlimited`).
+    pub limiter: RateLimiter,
     /// Seconds inserts were refused (the learner was behind: actors waited).
     pub actors_waited_s: f64,
     /// Seconds samples were refused (actors were behind: the learner waited).
@@ -58,8 +57,23 @@ pub struct FlowStats {
 }
 
 impl FlowStats {
+    /// Transitions inserted into the replay buffer or rollout.
+    pub fn inserted(&self) -> u64 {
+        self.limiter.inserts
+    }
+
+    /// Transitions sampled by updates (DDPG: batch_size per update).
+    pub fn sampled(&self) -> u64 {
+        self.limiter.samples
+    }
+
+    /// Target samples per insert; 0 when unlimited (or PPO).
+    pub fn replay_ratio_target(&self) -> f64 {
+        self.limiter.samples_per_insert
+    }
+
     pub fn achieved_ratio(&self) -> f64 {
-        if self.inserted == 0 { 0.0 } else { self.sampled as f64 / self.inserted as f64 }
+        self.limiter.achieved_ratio()
     }
 }
 

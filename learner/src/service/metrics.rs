@@ -20,7 +20,7 @@ use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
 use prometheus_client::registry::Registry;
 use tokio::sync::mpsc;
 
-use super::runtime::{Command, Shared};
+use super::shared::{Command, Shared};
 
 /// Buckets of the `Policy.Act` latency histogram, seconds: 20 µs to ~42 ms
 /// doubling, around the measured ~230 µs loopback median.
@@ -67,8 +67,8 @@ impl Collector for LearnerCollector {
         counter(&mut encoder, "updates", "Gradient updates", s.updates.load(Ordering::Relaxed))?;
         let flow = s.flow();
         let (lag_min, lag_mean, lag_max) = flow.lag.stats();
-        counter(&mut encoder, "replay_sampled", "Transitions sampled by updates (DDPG minibatches)", flow.sampled)?;
-        counter(&mut encoder, "replay_inserted", "Transitions inserted into the replay buffer or rollout", flow.inserted)?;
+        counter(&mut encoder, "replay_sampled", "Transitions sampled by updates (DDPG minibatches)", flow.sampled())?;
+        counter(&mut encoder, "replay_inserted", "Transitions inserted into the replay buffer or rollout", flow.inserted())?;
         gauge(&mut encoder, "policy_lag_min", "Smallest policy lag of the last 1000 stored transitions (versions)", lag_min as i64)?;
         gauge(&mut encoder, "policy_lag_mean_milli", "Mean policy lag of the last 1000 stored transitions, in thousandths of a version", (lag_mean * 1000.0) as i64)?;
         gauge(&mut encoder, "policy_lag_max", "Largest policy lag of the last 1000 stored transitions (versions)", lag_max as i64)?;

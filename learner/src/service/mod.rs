@@ -2,15 +2,19 @@
 //! thread learns from them, and new policy versions go back out.
 //!
 //! - [`ingest`]: checks, deduplicates and normalizes batches (plain Rust).
-//! - [`runtime`]: shared counters and the training thread.
+//! - [`shared`]: what the threads share (counters, the newest policy, ingestion, flow).
+//! - [`runtime`]: the training thread ([`runtime::TrainingLoop`]: admit, train, publish).
+//! - [`episodes`]: metrics.csv and TensorBoard records of actors' episodes.
 //! - [`flow`]: replay ratio, waits, policy lag and the budget, as reported.
 //! - [`server`]: the `lcrl.v1.Learner` and `lcrl.v1.Policy` gRPC handlers.
 //! - [`metrics`]: Prometheus `/metrics` for learner and actors.
 //! - [`shm`]: the same-host transport over iceoryx2 shared memory.
 
+pub mod episodes;
 pub mod flow;
 pub mod ingest;
 pub mod metrics;
 pub mod runtime;
 pub mod server;
+pub mod shared;
 pub mod shm;

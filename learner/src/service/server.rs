@@ -18,7 +18,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::policy::Policy;
 use crate::service::ingest::Verdict;
-use crate::service::runtime::{Command, Shared};
+use crate::service::shared::{Command, Shared};
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
 
@@ -158,9 +158,9 @@ impl Learner for LearnerService {
             policy_lag_min: lag.0,
             policy_lag_mean: lag.1,
             policy_lag_max: lag.2,
-            sampled: flow.sampled,
-            inserted: flow.inserted,
-            replay_ratio_target: flow.replay_ratio_target,
+            sampled: flow.sampled(),
+            inserted: flow.inserted(),
+            replay_ratio_target: flow.replay_ratio_target(),
             actors_waited_s: flow.actors_waited_s,
             learner_waited_s: flow.learner_waited_s,
             budget_episodes: flow.budget_episodes,

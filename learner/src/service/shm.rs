@@ -18,7 +18,7 @@ use lcrl_proto::v1::{EpisodeSummary, Transition, TransitionBatch};
 use tokio::sync::mpsc;
 
 use crate::service::ingest::Verdict;
-use crate::service::runtime::{Command, Shared};
+use crate::service::shared::{Command, Shared};
 
 /// Limits of one sample: state and action lengths, transitions per batch,
 /// episodes per batch, and bytes of the actor id.

@@ -1,0 +1,68 @@
+//! The distributed learner's record of finished episodes: metrics.csv (the
+//! same writer and columns as `lcrl train`) and TensorBoard scalars, with
+//! the learner's flow figures beside them.
+
+use std::sync::atomic::Ordering;
+
+use crate::service::shared::Shared;
+
+/// Where finished episodes are recorded: metrics.csv (episode, return,
+/// length, success; what `lcrl compare` and the reward curve read) and
+/// TensorBoard scalars beside it.
+pub struct EpisodeLog {
+    /// None when the file cannot be opened (warned once; training goes on).
+    csv: Option<crate::run_files::MetricsLog>,
+    tensorboard: Option<crate::tensorboard::EventWriter>,
+}
+
+impl EpisodeLog {
+    pub fn open(run_dir: &std::path::Path) -> EpisodeLog {
+        let tensorboard = crate::tensorboard::EventWriter::create(run_dir)
+            .map_err(|e| tracing::warn!("no TensorBoard events in {}: {e}", run_dir.display()))
+            .ok();
+        let csv = crate::run_files::MetricsLog::append(&run_dir.join("metrics.csv")).map_err(|e| tracing::warn!("no metrics.csv: {e}")).ok();
+        EpisodeLog { csv, tensorboard }
+    }
+
+    pub fn append(&mut self, first: u64, episodes: &[lcrl_proto::v1::EpisodeSummary], shared: &Shared) -> std::io::Result<()> {
+        if let Some(csv) = &mut self.csv {
+            for (k, e) in episodes.iter().enumerate() {
+                // The actors report return, length and success; the rest
+                // of the row is `lcrl train`'s own.
+                let row = crate::run_files::EpisodeRow {
+                    episode: (first + k as u64 + 1) as usize,
+                    episode_return: e.episode_return,
+                    length: e.length as usize,
+                    success: e.success,
+                    ..Default::default()
+                };
+                csv.push(&row).map_err(std::io::Error::other)?;
+            }
+        }
+        if let Some(tb) = &mut self.tensorboard {
+            for (k, e) in episodes.iter().enumerate() {
+                tb.scalars((first + k as u64 + 1) as i64, &[("episode/return", e.episode_return), ("episode/length", f64::from(e.length))])?;
+            }
+            let step = (first + episodes.len() as u64) as i64;
+            // Read under the lock: no copy of the lag window per batch.
+            let (ratio, (lag_min, lag_mean, lag_max), actors_waited, learner_waited) = {
+                let f = shared.flow_mut();
+                (f.achieved_ratio(), f.lag.stats(), f.actors_waited_s, f.learner_waited_s)
+            };
+            let learner = [
+                ("learner/env_steps", shared.env_steps.load(Ordering::Relaxed) as f64),
+                ("learner/updates", shared.updates.load(Ordering::Relaxed) as f64),
+                ("learner/policy_version", shared.policy_version() as f64),
+                ("learner/replay_ratio", ratio),
+                ("learner/policy_lag_min", lag_min as f64),
+                ("learner/policy_lag_mean", lag_mean),
+                ("learner/policy_lag_max", lag_max as f64),
+                ("learner/actors_waited_s", actors_waited),
+                ("learner/learner_waited_s", learner_waited),
+            ];
+            tb.scalars(step, &learner)?;
+            tb.flush()?;
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,127 @@
+//! What the learner's threads share: counters, the newest policy, ingestion
+//! and the flow statistics. gRPC handlers, shared-memory subscribers,
+//! `/metrics` and the training thread all go through the methods here; no
+//! caller locks a mutex of its own.
+
+use std::collections::VecDeque;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU32, AtomicU64};
+use std::sync::{Arc, Mutex};
+
+use lcrl_proto::v1::PolicySnapshot;
+use tokio::sync::watch;
+
+use crate::config::{Algo, Connection};
+use crate::service::flow::FlowStats;
+use crate::service::ingest::{Accepted, Ingest};
+use crate::snapshot::Architecture;
+
+/// What the handlers send to the training thread.
+pub enum Command {
+    Batch(Accepted),
+    /// Checkpoint and stop (SIGTERM / Ctrl-C).
+    Stop,
+}
+
+/// Counters and the newest policy, shared by handlers and the training thread.
+pub struct Shared {
+    pub run_id: String,
+    pub algo: Algo,
+    pub connection: Connection,
+    pub architecture: Architecture,
+    pub env_steps: AtomicU64,
+    pub updates: AtomicU64,
+    pub replay_size: AtomicU64,
+    pub episodes: AtomicU64,
+    pub connected_actors: AtomicU32,
+    pub recent_returns: Mutex<VecDeque<f64>>,
+    pub ingest: Mutex<Ingest>,
+    pub policy: watch::Sender<Arc<PolicySnapshot>>,
+    /// Set when the learner shuts down: long-lived streams end then, so the
+    /// server's graceful shutdown does not wait on them forever.
+    pub shutdown: watch::Sender<bool>,
+    /// Where metrics.csv goes.
+    pub run_dir: PathBuf,
+    /// Replay ratio, waits, policy lag and the budget.
+    pub flow: Mutex<FlowStats>,
+    /// Calls refused for a missing or wrong token (GetStatus, /metrics).
+    pub auth_refusals: Arc<lcrl_proto::security::AuthRefusals>,
+}
+
+/// Locks `mutex` whatever happened to its last holder. The policy for a
+/// poisoned lock (a thread panicked while holding it): the state behind
+/// these locks is counters, maps of sequence numbers and recent returns,
+/// each left whole between statements, so the learner keeps serving with
+/// it rather than failing every later call; the panic itself is reported
+/// where it happened.
+fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+impl Shared {
+    /// Ingestion's checks and counters (every transport goes through them).
+    pub fn ingest(&self) -> std::sync::MutexGuard<'_, Ingest> {
+        lock(&self.ingest)
+    }
+
+    /// Counts a stream or batch refused before ingestion could read it.
+    pub fn record_rejection(&self, reason: &str) {
+        self.ingest().refuse(reason);
+    }
+
+    /// Transitions accepted, and rejected by reason, so far.
+    pub fn ingest_counts(&self) -> (u64, std::collections::BTreeMap<String, u64>) {
+        let ingest = self.ingest();
+        (ingest.accepted, ingest.rejected.clone())
+    }
+
+    /// The flow statistics, for the training thread to update.
+    pub fn flow_mut(&self) -> std::sync::MutexGuard<'_, FlowStats> {
+        lock(&self.flow)
+    }
+
+    pub fn policy_version(&self) -> u64 {
+        self.policy.borrow().version
+    }
+
+    /// Resolves once shutdown has begun.
+    pub fn stopping(&self) -> impl std::future::Future<Output = ()> + Send + 'static {
+        let mut rx = self.shutdown.subscribe();
+        async move {
+            let _ = rx.wait_for(|stop| *stop).await;
+        }
+    }
+
+    /// A copy of the flow statistics.
+    pub fn flow(&self) -> FlowStats {
+        self.flow_mut().clone()
+    }
+
+    pub fn recent_return(&self) -> f64 {
+        let returns = lock(&self.recent_returns);
+        if returns.is_empty() { 0.0 } else { returns.iter().sum::<f64>() / returns.len() as f64 }
+    }
+
+    /// Records finished episodes' returns (the newest 10 are kept).
+    pub fn record_returns(&self, episodes: &[lcrl_proto::v1::EpisodeSummary]) {
+        let mut returns = lock(&self.recent_returns);
+        for episode in episodes {
+            returns.push_back(episode.episode_return);
+            while returns.len() > RECENT_RETURNS {
+                returns.pop_front();
+            }
+        }
+    }
+
+    /// Counts `count` transitions refused for `reason` after ingestion
+    /// accepted them (over the budget, stale when their turn came).
+    pub fn record_dropped(&self, reason: &str, count: u64) {
+        if count > 0 {
+            *self.ingest().rejected.entry(reason.into()).or_insert(0) += count;
+        }
+    }
+}
+
+/// Episodes behind `recent_return` (GetStatus, the learner's summary).
+const RECENT_RETURNS: usize = 10;
+
