@@ -13,6 +13,7 @@
 //! - [`lqr`]: the LQR ceiling for linear environments.
 //! - [`run_files`]: metrics.csv and summary.json (atomic), for both loops.
 //! - [`checkpoint`]: the checkpoint store (atomic writes, newest kept, resume).
+//! - [`run_start`]: how a run starts (the checkpoint to resume, the base controller, the mask), for both loops.
 //! - [`selection`]: the run's policy chosen on held-out validation starts.
 //! - [`trainer`]: the single-process loop: episodes, metrics.csv, summary.json, resume.
 //! - [`policy`]: a trained actor loaded from a checkpoint or a snapshot.
@@ -33,6 +34,7 @@ pub mod ppo;
 pub mod rate_limiter;
 pub mod replay;
 pub mod run_files;
+pub mod run_start;
 pub mod selection;
 pub mod service;
 pub mod snapshot;

@@ -19,7 +19,8 @@ use lcrl_learner::service::ingest::Ingest;
 use lcrl_learner::service::runtime::{run_training, snapshot, Schedule};
 use lcrl_learner::service::shared::Shared;
 use lcrl_learner::service::server::{LearnerService, PolicyService};
-use lcrl_learner::checkpoint::{latest_checkpoint, read_meta, CheckpointMeta};
+use lcrl_learner::checkpoint::CheckpointMeta;
+use lcrl_learner::run_start::{checkpoint_to_resume, fix_base_controller, resolve_mask};
 use lcrl_learner::trainer::make_agent;
 use lcrl_proto::security::{ClientSecurity, ServerSecurity, ServerSecurityArgs};
 use lcrl_proto::v1::graph_client::GraphClient;
@@ -161,12 +162,9 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let env = lcrl_sim::make_env(&args.env)?;
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
     std::fs::create_dir_all(&args.run_dir).with_context(|| format!("creating {}", args.run_dir.display()))?;
-    let resume = latest_checkpoint(&args.run_dir).map(|dir| read_meta(&dir).map(|meta| (dir, meta))).transpose()?;
+    let resume = checkpoint_to_resume(&args.run_dir, &args.env, args.algo, args.connection)?;
     let (config, mask, meta) = match &resume {
         Some((dir, meta)) => {
-            if meta.shape.env != args.env || meta.shape.algo != args.algo || meta.shape.connection != args.connection {
-                bail!("{} holds a run of {} with {:?}/{:?}; start with the same --env, --algo and --connection, or another --run-dir", dir.display(), meta.shape.env, meta.shape.algo, meta.shape.connection);
-            }
             tracing::info!(checkpoint = %dir.display(), episodes = meta.episode, "resuming");
             (meta.config.clone(), meta.shape.mask.clone(), meta.clone())
         }
@@ -175,26 +173,17 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 Some(path) => TrainConfig::load(path)?,
                 None => TrainConfig::for_env(&args.env).0,
             };
-            // The base controller as numbers, recorded in every checkpoint.
-            let base = lcrl_learner::action::resolve_base(&config.controller, env.spec())?;
-            config.controller.base = base.map_or(lcrl_learner::config::BaseController::None, lcrl_learner::config::BaseController::Action);
-            config.controller.best_constant_file = None;
+            fix_base_controller(&mut config, env.as_ref())?;
             let mask = match (args.connection, &args.graph, &args.graph_builder) {
-                (Connection::Local, Some(path), _) => {
-                    let report = lcrl_graph_builder::GraphReport::load(path)?;
-                    if (report.actions(), report.states()) != (n, m) {
-                        bail!("{} is {}×{} but {} needs {n}×{m}", path.display(), report.actions(), report.states(), args.env);
-                    }
-                    report.g
-                }
                 (Connection::Local, None, Some(url)) => fetch_graph(url, &graph_builder_security, Duration::from_secs(args.graph_timeout), n, m).await?,
-                (Connection::Local, None, None) => {
-                    let options = lcrl_graph_builder::GraphOptions::paper(config.run.graph_samples, config.run.seed, lcrl_graph_builder::DEFAULT_BOOTSTRAP);
-                    let report = lcrl_graph_builder::build_graph(env.as_ref(), &options, &|| {})?;
-                    report.write_json(&args.run_dir.join("graph.json"))?;
-                    report.g
+                (connection, graph, _) => {
+                    let (mask, report) = resolve_mask(connection, graph.as_deref(), env.as_ref(), &config)?;
+                    // A graph built here is kept beside the run's records.
+                    if let Some(report) = report.filter(|_| graph.is_none()) {
+                        report.write_json(&args.run_dir.join("graph.json"))?;
+                    }
+                    mask
                 }
-                _ => vec![vec![1; m]; n],
             };
             let meta = CheckpointMeta::start(&args.env, args.algo, args.connection, m, n, mask.clone(), config.clone());
             (config, mask, meta)

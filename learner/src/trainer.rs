@@ -13,14 +13,14 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use lcrl_graph_builder::{build_graph, GraphOptions, GraphReport};
 use lcrl_sim::evaluate::evaluate;
 use lcrl_sim::{make_env, Env};
 
 use crate::agent::Agent;
 use crate::run_files::{EpisodeRow, TrainSummary};
 use crate::run_files::{read_rows, write_summary, MetricsLog};
-use crate::checkpoint::{latest_checkpoint, read_meta, write_checkpoint, CheckpointMeta};
+use crate::checkpoint::{write_checkpoint, CheckpointMeta};
+use crate::run_start::{checkpoint_to_resume, fix_base_controller, resolve_mask};
 use crate::config::{Algo, Connection, TrainConfig};
 use crate::ddpg::Ddpg;
 use crate::lqr::{lqr_return, masked_lqr_return};
@@ -90,31 +90,6 @@ pub fn make_agent(algo: Algo, connection: Connection, cfg: &TrainConfig, mask: &
     })
 }
 
-/// The mask of the actor: G for local (loaded or built), ones otherwise.
-fn resolve_mask(req: &TrainRequest, env: &dyn Env) -> Result<(Vec<Vec<u8>>, f64, Option<GraphReport>), LearnerError> {
-    let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
-    if req.connection != Connection::Local {
-        return Ok((vec![vec![1; m]; n], 0.0, None));
-    }
-    let report = match &req.graph {
-        Some(path) => GraphReport::load(path)?,
-        None => {
-            let options = GraphOptions::paper(req.config.run.graph_samples, req.config.run.seed, lcrl_graph_builder::DEFAULT_BOOTSTRAP);
-            build_graph(env, &options, &|| {})?
-        }
-    };
-    if report.actions() != n || report.states() != m {
-        return Err(LearnerError::Mismatch(format!(
-            "the graph is {}×{} (actions × states) but environment {} has {n} actions and {m} states; build the graph for this environment",
-            report.actions(),
-            report.states(),
-            env.spec().name
-        )));
-    }
-    let seconds = if req.graph.is_some() { 0.0 } else { report.elapsed_s };
-    Ok((report.g.clone(), seconds, Some(report)))
-}
-
 /// Trains for `config.run.episodes` episodes (in total, counting resumed
 /// ones), writing the run directory as it goes.
 pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Result<TrainOutcome, LearnerError> {
@@ -122,35 +97,27 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     let mut env = make_env(&req.env)?;
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
     std::fs::create_dir_all(&req.run_dir).map_err(io(&req.run_dir))?;
-    let existing = latest_checkpoint(&req.run_dir);
-    if existing.is_some() && !req.resume {
+    if !req.resume && crate::checkpoint::latest_checkpoint(&req.run_dir).is_some() {
         return Err(LearnerError::Mismatch(format!(
             "{} already holds a run; pass --resume to continue it or choose another --run-dir",
             req.run_dir.display()
         )));
     }
+    let existing = if req.resume { checkpoint_to_resume(&req.run_dir, &req.env, req.algo, req.connection)? } else { None };
 
     let mut cfg = req.config.clone();
-    let (mask, graph_seconds, mut prior_opt, prior_elapsed, mut rows, checkpoint) = match (req.resume, existing) {
-        (true, Some(dir)) => {
-            let meta = read_meta(&dir)?;
-            if meta.shape.env != req.env || meta.shape.algo != req.algo || meta.shape.connection != req.connection {
-                return Err(LearnerError::Mismatch(format!(
-                    "{} was trained on {} with {:?}/{:?}; resume it with the same --env, --algo and --connection",
-                    dir.display(),
-                    meta.shape.env,
-                    meta.shape.algo,
-                    meta.shape.connection
-                )));
-            }
+    let (mask, graph_seconds, mut prior_opt, prior_elapsed, mut rows, checkpoint) = match existing {
+        Some((dir, meta)) => {
             let episodes = cfg.run.episodes;
             cfg = meta.config.clone();
             cfg.run.episodes = episodes.max(meta.episode);
             let rows = read_rows(&req.run_dir.join("metrics.csv"), meta.episode)?;
             (meta.shape.mask.clone(), meta.graph_seconds, meta.optimization_seconds, meta.elapsed_seconds, rows, Some(dir))
         }
-        _ => {
-            let (mask, seconds, report) = resolve_mask(req, env.as_ref())?;
+        None => {
+            let (mask, report) = resolve_mask(req.connection, req.graph.as_deref(), env.as_ref(), &req.config)?;
+            // Time spent building G here (none when it was given).
+            let seconds = report.as_ref().filter(|_| req.graph.is_none()).map_or(0.0, |r| r.elapsed_s);
             if let Some(report) = report {
                 report.write_json(&req.run_dir.join("graph.json"))?;
             }
@@ -160,9 +127,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     cfg.validate()?;
     // The base controller as numbers, so config.toml and every checkpoint
     // record exactly what the agent acted around.
-    let base = crate::action::resolve_base(&cfg.controller, env.spec())?;
-    cfg.controller.base = base.clone().map_or(crate::config::BaseController::None, crate::config::BaseController::Action);
-    cfg.controller.best_constant_file = None;
+    let base = fix_base_controller(&mut cfg, env.as_ref())?;
     let actions = crate::action::ActionMap::new(env.spec(), base.as_deref())?;
     // lcrl train steps the environment and updates in turn: every core.
     crate::device::apply_threads(cfg.run.threads, 0);
