@@ -19,7 +19,7 @@ pub fn checkpoint_to_resume(run_dir: &Path, env: &str, algo: Algo, connection: C
     let meta = read_meta(&dir)?;
     if meta.shape.env != env || meta.shape.algo != algo || meta.shape.connection != connection {
         return Err(LearnerError::Mismatch(format!(
-            "{} holds a run of {} with {:?}/{:?}; continue it with the same environment, algorithm and connection, or choose another run directory",
+            "{} holds a run of {} with {:?}/{:?}; continue it with the same --env, --algo and --connection, or choose another --run-dir",
             dir.display(),
             meta.shape.env,
             meta.shape.algo,
