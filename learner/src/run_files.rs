@@ -27,19 +27,12 @@ pub struct EpisodeRow {
     /// (`lcrl train`; empty where actors ran the episode elsewhere).
     pub wall_s: Option<f64>,
     pub optimization_s: Option<f64>,
-    /// The return split into its reward terms (peg tasks; docs/peg.md).
-    /// Spelled out rather than a flattened `ReturnColumns`: the csv crate
-    /// cannot write flattened structs.
-    #[serde(default)]
-    pub return_depth: Option<f64>,
-    #[serde(default)]
-    pub return_force: Option<f64>,
-    #[serde(default)]
-    pub return_moment: Option<f64>,
-    #[serde(default)]
-    pub return_bonus: Option<f64>,
-    #[serde(default)]
-    pub return_failure: Option<f64>,
+    /// The return split into its reward terms (peg tasks; docs/peg.md):
+    /// the last five columns. Read by name; written after the row's own
+    /// fields ([`MetricsLog::push`]), since the csv crate writes no
+    /// flattened struct.
+    #[serde(flatten, skip_serializing)]
+    pub terms: lcrl_sim::ReturnColumns,
 }
 
 /// The columns of metrics.csv, in EpisodeRow's order.
@@ -62,15 +55,7 @@ pub const METRICS_COLUMNS: [&str; 13] = [
 impl EpisodeRow {
     /// Fills the return-term columns from the episode's metrics.
     pub fn with_terms(self, terms: Option<lcrl_sim::ReturnTerms>) -> Self {
-        let c = lcrl_sim::ReturnColumns::from(terms);
-        EpisodeRow {
-            return_depth: c.return_depth,
-            return_force: c.return_force,
-            return_moment: c.return_moment,
-            return_bonus: c.return_bonus,
-            return_failure: c.return_failure,
-            ..self
-        }
+        EpisodeRow { terms: terms.into(), ..self }
     }
 }
 
@@ -171,7 +156,7 @@ impl MetricsLog {
     }
 
     pub fn push(&mut self, row: &EpisodeRow) -> Result<(), LearnerError> {
-        self.writer.serialize(row).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", self.path.display())))?;
+        self.writer.serialize((row, &row.terms)).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", self.path.display())))?;
         self.writer.flush().map_err(io(&self.path))
     }
 }
@@ -191,4 +176,30 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
     let partial = path.with_file_name(format!(".{name}.partial"));
     std::fs::write(&partial, bytes).map_err(io(&partial))?;
     std::fs::rename(&partial, path).map_err(io(path))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Rows with return terms (peg) and without (linear systems: blank
+    /// columns) come back from metrics.csv as they went in, under the
+    /// header METRICS_COLUMNS names, 13 fields a row.
+    #[test]
+    fn metrics_rows_round_trip_with_and_without_terms() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("metrics.csv");
+        let terms = lcrl_sim::ReturnTerms { depth: -0.78, force: -4.11, moment: -0.48, bonus: 2.0, failure: 0.0 };
+        let peg = EpisodeRow { episode: 1, episode_return: terms.total(), length: 52, success: Some(true), peak_force_n: Some(12.97), wall_s: Some(0.1), ..Default::default() }.with_terms(Some(terms));
+        let lti = EpisodeRow { episode: 2, episode_return: -41.5, length: 50, optimization_s: Some(0.02), ..Default::default() };
+        assert_eq!(peg.terms.return_force, Some(-4.11));
+        let mut log = MetricsLog::create(&path, &[peg.clone()]).unwrap();
+        log.push(&lti).unwrap();
+        drop(log);
+        let text = std::fs::read_to_string(&path).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], METRICS_COLUMNS.join(","));
+        assert!(lines.iter().all(|l| l.split(',').count() == METRICS_COLUMNS.len()), "{text}");
+        assert_eq!(read_rows(&path, 10).unwrap(), vec![peg, lti]);
+    }
 }

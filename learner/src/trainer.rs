@@ -193,11 +193,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
             peak_moment_nm: metrics_now.peak_moment_nm,
             wall_s: Some(episode_started.elapsed().as_secs_f64()),
             optimization_s: Some(opt_seconds),
-            return_depth: None,
-            return_force: None,
-            return_moment: None,
-            return_bonus: None,
-            return_failure: None,
+            terms: Default::default(),
         }
         .with_terms(metrics_now.return_terms);
         metrics.push(&row)?;

@@ -162,20 +162,40 @@ pub struct ReturnTerms {
     pub failure: f64,
 }
 
-/// Return terms as the named columns of summary.json (`return_depth`, …),
-/// null where the task's reward has no terms.
+/// Return terms as the named columns of summary.json and metrics.csv
+/// (`return_depth`, …), null (JSON) or blank (CSV) where the task's reward
+/// has no terms.
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ReturnColumns {
-    #[serde(default)]
+    #[serde(default, deserialize_with = "number_or_blank")]
     pub return_depth: Option<f64>,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "number_or_blank")]
     pub return_force: Option<f64>,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "number_or_blank")]
     pub return_moment: Option<f64>,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "number_or_blank")]
     pub return_bonus: Option<f64>,
-    #[serde(default)]
+    #[serde(default, deserialize_with = "number_or_blank")]
     pub return_failure: Option<f64>,
+}
+
+/// A number, or none for null or a blank field. Flattened into a CSV row
+/// (metrics.csv), a column reaches serde as its text, before anyone says
+/// it is an `Option<f64>`; the blank of a task without terms is none there.
+fn number_or_blank<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<Option<f64>, D::Error> {
+    use serde::Deserialize;
+    #[derive(serde::Deserialize)]
+    #[serde(untagged)]
+    enum Field {
+        Number(f64),
+        Text(String),
+    }
+    match Option::<Field>::deserialize(deserializer)? {
+        None => Ok(None),
+        Some(Field::Number(x)) => Ok(Some(x)),
+        Some(Field::Text(text)) if text.trim().is_empty() => Ok(None),
+        Some(Field::Text(text)) => text.trim().parse().map(Some).map_err(|_| serde::de::Error::custom(format!("expected a number or nothing, got {text:?}"))),
+    }
 }
 
 impl From<Option<ReturnTerms>> for ReturnColumns {
