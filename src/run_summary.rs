@@ -8,7 +8,6 @@ use std::path::Path;
 use anyhow::Context;
 use lcrl_learner::policy::Policy;
 use lcrl_learner::service::runtime::{LearnerSummary, PolicyLag};
-use lcrl_learner::trainer::eval_seed;
 use lcrl_learner::{Algo, Connection};
 use lcrl_proto::v1::LearnerStatus;
 use lcrl_sim::evaluate::{evaluate, Summary};
@@ -88,7 +87,7 @@ pub fn evaluate_run(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wal
     let seed = preset.train.run.seed;
     let episodes = preset.train.run.eval_episodes.max(1);
     let scales = env.fresh();
-    let first = eval_seed(seed, 0);
+    let first = lcrl_sim::seeds::run_evaluation(seed, 0);
     let (eval, _) = evaluate(env.as_mut(), "policy", episodes, first, &mut |s: &[f64]| policy.act(scales.as_ref(), s), &mut |_| {})?;
     let headroom = preset.headroom()?;
     let references = references(env.as_mut(), headroom.as_ref(), episodes, first)?;

@@ -91,18 +91,27 @@ pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, LearnerError> {
 pub fn write_checkpoint(run_dir: &Path, agent: &dyn Agent, meta: &CheckpointMeta) -> Result<PathBuf, LearnerError> {
     let root = run_dir.join("checkpoints");
     std::fs::create_dir_all(&root).map_err(io(&root))?;
-    let name = format!("ep{:06}", meta.episode);
-    let staging = root.join(format!(".{name}.partial"));
-    let _ = std::fs::remove_dir_all(&staging);
-    std::fs::create_dir_all(&staging).map_err(io(&staging))?;
-    agent.save(&staging, meta.config.run.save_replay)?;
-    let text = serde_json::to_string_pretty(meta).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    std::fs::write(staging.join("checkpoint.json"), text).map_err(io(&staging))?;
-    let target = root.join(name);
-    let _ = std::fs::remove_dir_all(&target);
-    std::fs::rename(&staging, &target).map_err(io(&target))?;
+    let target = root.join(format!("ep{:06}", meta.episode));
+    write_folder(&target, meta, |staging| agent.save(staging, meta.config.run.save_replay))?;
     prune_checkpoints(&root, KEEP_CHECKPOINTS);
     Ok(target)
+}
+
+/// Writes the folder `target` whole or not at all: `fill` writes the
+/// tensors into a staging folder beside it, `meta` goes in as
+/// checkpoint.json, and the staging folder is renamed over `target`.
+pub fn write_folder(target: &Path, meta: &CheckpointMeta, fill: impl FnOnce(&Path) -> Result<(), LearnerError>) -> Result<(), LearnerError> {
+    let name = target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let staging = target.with_file_name(format!(".{name}.partial"));
+    let _ = std::fs::remove_dir_all(&staging);
+    std::fs::create_dir_all(&staging).map_err(io(&staging))?;
+    fill(&staging)?;
+    let text = serde_json::to_string_pretty(meta).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    std::fs::write(staging.join("checkpoint.json"), text).map_err(io(&staging))?;
+    if target.exists() {
+        std::fs::remove_dir_all(target).map_err(io(target))?;
+    }
+    std::fs::rename(&staging, target).map_err(io(target))
 }
 
 /// Checkpoints kept per run: each can hold a replay buffer of hundreds of

@@ -27,7 +27,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::action::ActionMap;
 use crate::agent::{write_tensors, Agent};
-use crate::checkpoint::CheckpointMeta;
+use crate::checkpoint::{write_folder, CheckpointMeta};
 use crate::config::RunConfig;
 use crate::LearnerError;
 
@@ -57,12 +57,12 @@ pub struct SelectionRecord {
     pub history: Vec<Validation>,
 }
 
-/// The running choice of a run's policy.
+/// The running choice of a run's policy: every validation so far; the
+/// choice is the first of the best among them.
 pub struct Selection {
     run_seed: u64,
     starts: usize,
     every: usize,
-    record: Option<SelectionRecord>,
     history: Vec<Validation>,
 }
 
@@ -88,8 +88,8 @@ impl Selection {
                 )));
             }
         }
-        let history = record.as_ref().map(|r| r.history.clone()).unwrap_or_default();
-        Ok(Some(Selection { run_seed: run.seed, starts: run.validation_episodes, every: run.validate_every.max(1), record, history }))
+        let history = record.map(|r| r.history).unwrap_or_default();
+        Ok(Some(Selection { run_seed: run.seed, starts: run.validation_episodes, every: run.validate_every.max(1), history }))
     }
 
     /// Whether the policy after `done` episodes is validated: at the start,
@@ -97,6 +97,14 @@ impl Selection {
     pub fn due(&self, done: usize, last: usize) -> bool {
         let validated = self.history.last().is_some_and(|v| v.episode >= done);
         !validated && (done % self.every == 0 || done == last)
+    }
+
+    /// The chosen validation: the best mean return, the earliest of equals.
+    fn best(&self) -> Option<&Validation> {
+        self.history.iter().fold(None, |best: Option<&Validation>, v| match best {
+            Some(b) if b.mean_return >= v.mean_return => Some(b),
+            _ => Some(v),
+        })
     }
 
     /// Validates the agent's current policy; if it beats every earlier one
@@ -109,17 +117,10 @@ impl Selection {
         let first = lcrl_sim::seeds::validation(self.run_seed, 0);
         let (summary, _) = evaluate(run_env.as_mut(), "validation", self.starts, first, &mut policy, &mut |_| {})?;
         let validation = Validation { episode: meta.episode, mean_return: summary.mean_return, success_rate: summary.success_rate };
+        let better = self.best().is_none_or(|best| validation.mean_return > best.mean_return);
         self.history.push(validation);
-        let better = self.record.as_ref().is_none_or(|best| validation.mean_return > best.validation_return);
         if better {
-            self.record = Some(SelectionRecord {
-                episode: validation.episode,
-                validation_return: validation.mean_return,
-                validation_success_rate: validation.success_rate,
-                starts: self.starts,
-                history: Vec::new(),
-            });
-            write_selected(run_dir, agent, meta)?;
+            write_folder(&selected_dir(run_dir), meta, |staging| write_tensors(&staging.join("actor.safetensors"), &agent.actor_variables()))?;
         }
         self.write_record(run_dir)?;
         tracing::info!(episode = validation.episode, mean_return = validation.mean_return, selected = better, "validated");
@@ -128,7 +129,13 @@ impl Selection {
 
     /// The choice so far, with every validation.
     pub fn record(&self) -> Option<SelectionRecord> {
-        self.record.clone().map(|r| SelectionRecord { history: self.history.clone(), ..r })
+        self.best().map(|best| SelectionRecord {
+            episode: best.episode,
+            validation_return: best.mean_return,
+            validation_success_rate: best.success_rate,
+            starts: self.starts,
+            history: self.history.clone(),
+        })
     }
 
     fn write_record(&self, run_dir: &Path) -> Result<(), LearnerError> {
@@ -146,23 +153,4 @@ fn read_record(dir: &Path) -> Result<Option<SelectionRecord>, LearnerError> {
     }
     let text = std::fs::read_to_string(&path).map_err(|source| LearnerError::Io { path: path.clone(), source })?;
     serde_json::from_str(&text).map(Some).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}; delete RUN/selected to start the selection over", path.display())))
-}
-
-/// Writes the agent's actor as RUN/selected/ (staged, then renamed).
-fn write_selected(run_dir: &Path, agent: &dyn Agent, meta: &CheckpointMeta) -> Result<(), LearnerError> {
-    let target = selected_dir(run_dir);
-    let staging = run_dir.join(".selected.partial");
-    let io = |path: &Path| {
-        let path = path.to_path_buf();
-        move |source| LearnerError::Io { path, source }
-    };
-    let _ = std::fs::remove_dir_all(&staging);
-    std::fs::create_dir_all(&staging).map_err(io(&staging))?;
-    write_tensors(&staging.join("actor.safetensors"), &agent.actor_variables())?;
-    let text = serde_json::to_string_pretty(meta).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    std::fs::write(staging.join("checkpoint.json"), text).map_err(io(&staging))?;
-    if target.exists() {
-        std::fs::remove_dir_all(&target).map_err(io(&target))?;
-    }
-    std::fs::rename(&staging, &target).map_err(io(&target))
 }

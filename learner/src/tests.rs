@@ -309,7 +309,7 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
             assert!((a - b).abs() < 0.05, "{algo:?}: {action:?} against the base {base:?}");
         }
         // And it scores as the base does on the same starts.
-        let constant = lcrl_sim::tune::constant_return(env.as_ref(), &base, 3, crate::trainer::eval_seed(0, 0)).unwrap();
+        let constant = lcrl_sim::tune::constant_return(env.as_ref(), &base, 3, lcrl_sim::seeds::run_evaluation(0, 0)).unwrap();
         assert!((outcome.summary.eval_return - constant).abs() < 0.05 * constant.abs(), "{algo:?}: {} vs {constant}", outcome.summary.eval_return);
     }
 }

@@ -61,17 +61,6 @@ pub struct TrainOutcome {
     pub rows: Vec<EpisodeRow>,
 }
 
-/// The seed of training episode `episode` (lcrl_sim::seeds: disjoint from
-/// validation and from every evaluation).
-fn episode_seed(seed: u64, episode: usize) -> u64 {
-    lcrl_sim::seeds::training(seed, episode)
-}
-
-/// The seed of start `k` of a run's own final evaluation.
-pub fn eval_seed(seed: u64, k: usize) -> u64 {
-    lcrl_sim::seeds::run_evaluation(seed, k)
-}
-
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
     move |source| LearnerError::Io { path: path.to_path_buf(), source }
 }
@@ -160,7 +149,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         let episode_started = Instant::now();
         agent.set_progress(episode as f64 / cfg.run.episodes as f64);
         let steps_before = agent.counters().env_steps;
-        let mut state = env.reset(episode_seed(cfg.run.seed, episode))?;
+        let mut state = env.reset(lcrl_sim::seeds::training(cfg.run.seed, episode))?;
         let (mut total, mut length, mut opt_seconds) = (0.0, 0, 0.0);
         loop {
             let obs = observe(env.as_ref(), &state);
@@ -225,21 +214,23 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     // The run's policy (the selected one, or the last), a = 0 and the LQR
     // ceiling on the same episodes.
     let episodes = cfg.run.eval_episodes.max(1);
+    let first_eval = lcrl_sim::seeds::run_evaluation(cfg.run.seed, 0);
     let env_ref = env.fresh();
     let mut last_policy = |s: &[f64]| actions.to_env(&agent.act(&observe(env_ref.as_ref(), s)));
-    let (last, _) = evaluate(env.as_mut(), "last policy", episodes, eval_seed(cfg.run.seed, 0), &mut last_policy, &mut |_| {})?;
+    let (last, _) = evaluate(env.as_mut(), "last policy", episodes, first_eval, &mut last_policy, &mut |_| {})?;
     let chosen = selection.as_ref().and_then(Selection::record);
     let eval = match &chosen {
-        Some(_) => {
+        // The last validation chose the agent as it is: that is `last`.
+        Some(c) if c.episode != rows.len() => {
             let selected = crate::policy::Policy::load(&crate::selection::selected_dir(&req.run_dir))?;
             let mut policy = |s: &[f64]| selected.act(env_ref.as_ref(), s);
-            evaluate(env.as_mut(), "selected policy", episodes, eval_seed(cfg.run.seed, 0), &mut policy, &mut |_| {})?.0
+            evaluate(env.as_mut(), "selected policy", episodes, first_eval, &mut policy, &mut |_| {})?.0
         }
-        None => last.clone(),
+        _ => last.clone(),
     };
-    let (zero, _) = evaluate(env.as_mut(), "a = 0", episodes, eval_seed(cfg.run.seed, 0), &mut |_| vec![0.0; n], &mut |_| {})?;
-    let lqr = env.as_lti().and_then(|lti| lqr_return(lti, episodes, eval_seed(cfg.run.seed, 0)));
-    let masked_lqr = env.as_lti().and_then(|lti| masked_lqr_return(lti, &mask, episodes, eval_seed(cfg.run.seed, 0)));
+    let (zero, _) = evaluate(env.as_mut(), "a = 0", episodes, first_eval, &mut |_| vec![0.0; n], &mut |_| {})?;
+    let lqr = env.as_lti().and_then(|lti| lqr_return(lti, episodes, first_eval));
+    let masked_lqr = env.as_lti().and_then(|lti| masked_lqr_return(lti, &mask, episodes, first_eval));
     let recent = &rows[rows.len().saturating_sub(10)..];
     let (actor_params, critic_params) = agent.param_counts();
     let counters = agent.counters();
