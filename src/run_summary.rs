@@ -87,7 +87,7 @@ pub fn evaluate_run(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wal
     let seed = preset.train.run.seed;
     let episodes = preset.train.run.eval_episodes.max(1);
     let scales = env.fresh();
-    let first = lcrl_sim::seeds::run_evaluation(seed, 0);
+    let first = preset.train.run.first_eval_seed();
     let (eval, _) = evaluate(env.as_mut(), "policy", episodes, first, &mut |s: &[f64]| policy.act(scales.as_ref(), s), &mut |_| {})?;
     let headroom = preset.headroom()?;
     let references = references(env.as_mut(), headroom.as_ref(), episodes, first)?;

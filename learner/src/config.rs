@@ -233,6 +233,14 @@ pub struct RunConfig {
     pub graph_samples: usize,
     /// Episodes of the deterministic policy evaluated at the end.
     pub eval_episodes: usize,
+    /// The first start of that evaluation. Unset (the default): the run's
+    /// own range (`lcrl_sim::seeds::run_evaluation`). A number S: starts S,
+    /// S+1, …, the ones `lcrl sim --seed S` and `lcrl tune`'s evaluation
+    /// use, so runs, a = 0 and the best constant are compared on the same
+    /// starts (`lcrl experiment` sets it). Training, validation and tuning
+    /// never use seeds below 2⁴⁰ other than tuning's 1 000 000 and up.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub eval_seed: Option<u64>,
     /// Choosing the run's policy on held-out starts (learner/src/selection.rs):
     /// every `validate_every` episodes, and at the start and the end, the
     /// deterministic policy runs this many validation starts, and the run's
@@ -318,6 +326,14 @@ impl Default for PpoConfig {
     }
 }
 
+impl RunConfig {
+    /// The final evaluation's first start: `eval_seed`, or the run's own
+    /// evaluation range.
+    pub fn first_eval_seed(&self) -> u64 {
+        self.eval_seed.unwrap_or_else(|| lcrl_sim::seeds::run_evaluation(self.seed, 0))
+    }
+}
+
 impl Default for RunConfig {
     fn default() -> Self {
         RunConfig {
@@ -329,6 +345,7 @@ impl Default for RunConfig {
             save_replay: true,
             graph_samples: 64,
             eval_episodes: 10,
+            eval_seed: None,
             validation_episodes: 0,
             validate_every: 20,
         }

@@ -71,6 +71,10 @@ pub struct TrainSummary {
     pub final_return: f64,
     /// Mean return of the deterministic policy over `eval_episodes` episodes.
     pub eval_return: f64,
+    /// The evaluation's first start (its episodes use this seed and the
+    /// following ones); absent in runs written before it was recorded.
+    #[serde(default)]
+    pub eval_seed: Option<u64>,
     /// The evaluation's success rate and mean peak force (peg tasks).
     #[serde(default)]
     pub eval_success_rate: Option<f64>,

@@ -204,6 +204,29 @@ fn validation_selects_the_best_policy_and_survives_resume() {
     assert_eq!(resumed.summary.eval_return, straight.summary.eval_return);
 }
 
+/// The final evaluation runs on the run's own starts by default, and on
+/// the given ones with `run.eval_seed` (a study's: the best constant's),
+/// and says which: a = 0 on those starts matches a direct evaluation.
+#[test]
+fn evaluation_starts_are_the_runs_own_or_the_given_ones() {
+    tch::set_num_threads(1);
+    let env = make_env("lti-paper").unwrap();
+    let zeros = vec![0.0; env.spec().action_names.len()];
+    let zero = |first: u64| lcrl_sim::tune::constant_return(env.as_ref(), &zeros, 2, first).unwrap();
+    let close = |a: Option<f64>, b: f64| a.is_some_and(|a| (a - b).abs() <= 1e-9 * b.abs().max(1.0));
+    let dir = tempfile::tempdir().unwrap();
+    let own = run(Algo::Ppo, Connection::Global, tiny(), &dir.path().join("own"), false).summary;
+    let first = lcrl_sim::seeds::run_evaluation(0, 0);
+    assert_eq!(own.eval_seed, Some(first));
+    assert!(close(own.zero_action_return, zero(first)), "{:?} against {}", own.zero_action_return, zero(first));
+    let mut cfg = tiny();
+    cfg.run.eval_seed = Some(0);
+    let given = run(Algo::Ppo, Connection::Global, cfg, &dir.path().join("given"), false).summary;
+    assert_eq!(given.eval_seed, Some(0));
+    assert!(close(given.zero_action_return, zero(0)), "{:?} against {}", given.zero_action_return, zero(0));
+    assert_ne!(zero(0), zero(first), "the two sets of starts must differ for this test to tell them apart");
+}
+
 fn tiny_with_episodes(episodes: usize) -> TrainConfig {
     let mut cfg = tiny();
     cfg.run.episodes = episodes;

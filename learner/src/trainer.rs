@@ -214,7 +214,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     // The run's policy (the selected one, or the last), a = 0 and the LQR
     // ceiling on the same episodes.
     let episodes = cfg.run.eval_episodes.max(1);
-    let first_eval = lcrl_sim::seeds::run_evaluation(cfg.run.seed, 0);
+    let first_eval = cfg.run.first_eval_seed();
     let env_ref = env.fresh();
     let mut last_policy = |s: &[f64]| actions.to_env(&agent.act(&observe(env_ref.as_ref(), s)));
     let (last, _) = evaluate(env.as_mut(), "last policy", episodes, first_eval, &mut last_policy, &mut |_| {})?;
@@ -242,6 +242,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         episodes: rows.len(),
         final_return: recent.iter().map(|r| r.episode_return).sum::<f64>() / recent.len().max(1) as f64,
         eval_return: eval.mean_return,
+        eval_seed: Some(first_eval),
         eval_success_rate: eval.success_rate,
         eval_peak_force_n: eval.mean_peak_force_n,
         eval_terms: eval.terms,

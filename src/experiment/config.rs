@@ -233,7 +233,13 @@ impl Experiment {
             bail!("`best_constant`: evaluations, episodes and eval_episodes must each be at least 1 (or set enabled = false)");
         }
         if let Some(run) = file.train.get("run").and_then(|r| r.as_table()) {
-            for (key, instead) in [("episodes", "`episodes`"), ("seed", "`seeds`"), ("eval_episodes", "`eval_episodes`"), ("threads", "one thread per run")] {
+            for (key, instead) in [
+                ("episodes", "`episodes`"),
+                ("seed", "`seeds`"),
+                ("eval_episodes", "`eval_episodes`"),
+                ("eval_seed", "the best constant's evaluation starts"),
+                ("threads", "one thread per run"),
+            ] {
                 if run.contains_key(key) {
                     bail!("`train.run.{key}` is set by the experiment ({instead}); remove it");
                 }
@@ -248,10 +254,13 @@ impl Experiment {
 
     /// The training settings of every run on `env`: the environment's
     /// defaults with `[train]` laid over them, and the experiment's
-    /// evaluation episodes.
+    /// evaluation: every run is evaluated on the starts the best constant
+    /// and a = 0 are (`lcrl tune`'s evaluation seeds), so the report
+    /// compares them start for start.
     pub fn train_config(&self, env: &str) -> anyhow::Result<TrainConfig> {
         let mut config = TrainConfig::for_env_with(env, &self.file.train).map_err(|e| anyhow::anyhow!("`train`: {e}"))?;
         config.run.eval_episodes = self.file.eval_episodes;
+        config.run.eval_seed = Some(lcrl_sim::tune::TuneOptions::default().eval_seed);
         config.run.threads = 1;
         config.validate().map_err(|e| anyhow::anyhow!("`train`: {e}"))?;
         Ok(config)
@@ -314,6 +323,8 @@ mod tests {
         let (defaults, _) = TrainConfig::for_env("lti-paper");
         assert_eq!(cfg.ppo.rollout_steps, defaults.ppo.rollout_steps);
         assert_eq!((cfg.run.eval_episodes, cfg.run.threads), (100, 1));
+        // Runs are evaluated on the best constant's starts.
+        assert_eq!(cfg.run.eval_seed, Some(lcrl_sim::tune::TuneOptions::default().eval_seed));
     }
 
     #[test]
@@ -325,6 +336,7 @@ mod tests {
         assert!(err(&format!("{MINIMAL}colour = 1\n")).contains("colour"));
         assert!(err(&format!("{MINIMAL}[train.ppo]\nactor_rate = 1\n")).contains("actor_rate"));
         assert!(err(&format!("{MINIMAL}[train.run]\nseed = 4\n")).contains("train.run.seed"));
+        assert!(err(&format!("{MINIMAL}[train.run]\neval_seed = 4\n")).contains("train.run.eval_seed"));
         assert!(err(&MINIMAL.replace("{ ppo = 10 }", "{ ddpg = 10 }")).contains("no budget for ppo"));
         assert!(err(&MINIMAL.replace("lti-paper", "peg-group9")).contains("peg-group9"));
         assert!(err(&format!("{MINIMAL}[reward_threshold.peg-group1]\nppo = -3.0\n")).contains("reward_threshold.peg-group1"));

@@ -62,6 +62,9 @@ pub fn curves(study: &Study, path: &Path) -> anyhow::Result<()> {
             references.push(("best constant".to_string(), b.mean_return));
             references.push(("a = 0".to_string(), b.zero_action_return));
         }
+        if let Some(p) = study.best_policy.get(env) {
+            references.push(("headroom (best feedback policy)".to_string(), p.mean_return));
+        }
         let mut panel = Panel::rewards(format!("{env}, {}: return (avg 10)", algo_name(algo).to_uppercase()), series, references);
         panel.bands = bands;
         panel.x = Some((1..=episodes).map(|k| k as f64).collect());

@@ -47,6 +47,14 @@ pub struct RunArgs {
     /// Runs at a time, each with one libtorch thread [default: the number of cores].
     #[arg(long)]
     pub jobs: Option<usize>,
+    /// Run only the cells whose label ENV/ALGO/CONNECTION matches this
+    /// pattern (`*` any text, `?` one character), with the graphs and best
+    /// constants they need; repeat for several patterns. For running a
+    /// study in parts, cheap cells first or on several machines sharing the
+    /// folder: e.g. --only 'peg-group*/ppo/*' --only '*/ddpg/global'. The
+    /// report always covers the whole study, listing what has not run.
+    #[arg(long, value_name = "PATTERN")]
+    pub only: Vec<String>,
     /// List the tasks and their commands; run nothing.
     #[arg(long)]
     pub dry_run: bool,
@@ -108,7 +116,7 @@ fn run_study(args: &RunArgs) -> anyhow::Result<()> {
     if jobs == 0 {
         bail!("--jobs must be at least 1");
     }
-    let tasks = plan::tasks(&e);
+    let tasks = plan::only(&e, plan::tasks(&e), &args.only)?;
     if args.dry_run {
         for (i, task) in tasks.iter().enumerate() {
             println!("{i:>4} {:<48} lcrl {}", task.id(), task.args(&e, &args.out).join(" "));

@@ -66,6 +66,40 @@ pub fn tasks(e: &Experiment) -> Vec<Task> {
     tasks
 }
 
+/// The tasks of the cells whose label matches one of `patterns` (glob
+/// syntax, e.g. `peg-group*/ppo/*`), with the graphs those runs need and
+/// the best constants of their environments; all tasks when there are no
+/// patterns. A pattern that matches no cell is an error (a typo would
+/// otherwise run nothing).
+pub fn only(e: &Experiment, tasks: Vec<Task>, patterns: &[String]) -> anyhow::Result<Vec<Task>> {
+    if patterns.is_empty() {
+        return Ok(tasks);
+    }
+    let labels: Vec<String> = cells(e).iter().map(Cell::label).collect();
+    let mut globs = Vec::new();
+    for text in patterns {
+        let pattern = glob::Pattern::new(text).with_context(|| format!("--only \"{text}\" is not a pattern"))?;
+        if !labels.iter().any(|l| pattern.matches(l)) {
+            bail!("--only \"{text}\" matches no cell of experiment {}; its cells are: {}", e.file.name, labels.join(", "));
+        }
+        globs.push(pattern);
+    }
+    let chosen = |task: &Task| matches!(task, Task::Train { cell, .. } if globs.iter().any(|g| g.matches(&cell.label())));
+    let needed: Vec<Task> = tasks.iter().filter(|t| chosen(t)).filter_map(Task::dependency).collect();
+    let envs: Vec<String> = tasks.iter().filter_map(|t| match t {
+        Task::Train { cell, .. } if chosen(t) => Some(cell.env.clone()),
+        _ => None,
+    }).collect();
+    Ok(tasks
+        .into_iter()
+        .filter(|t| match t {
+            Task::Train { .. } => chosen(t),
+            Task::Graph { .. } => needed.contains(t),
+            Task::Tune { env } => envs.contains(env),
+        })
+        .collect())
+}
+
 /// Every cell, environment by environment, algorithm by algorithm.
 pub fn cells(e: &Experiment) -> Vec<Cell> {
     let mut cells = Vec::new();
@@ -255,5 +289,35 @@ mod tests {
         assert_eq!(tasks[1].dependency(), Some(tasks[0].clone()));
         assert!(!tasks[2].args(&e, out).contains(&"--graph".to_string()));
         assert_eq!(tasks[2].dependency(), None);
+    }
+
+    #[test]
+    fn only_keeps_the_chosen_cells_with_their_graphs_and_constants() {
+        let text = "name = \"t\"\nenvironments = [\"lti-paper\", \"peg-group1\"]\nalgorithms = [\"ppo\", \"ddpg\"]\nconnections = [\"local\", \"global\"]\nseeds = 2\nepisodes = { ppo = 7, ddpg = 3 }\n";
+        let e = Experiment::parse(text).unwrap();
+        let ids = |patterns: &[&str]| -> Vec<String> {
+            let patterns: Vec<String> = patterns.iter().map(|p| p.to_string()).collect();
+            only(&e, tasks(&e), &patterns).unwrap().iter().map(Task::id).collect()
+        };
+        assert_eq!(ids(&[]).len(), tasks(&e).len());
+        assert_eq!(ids(&["peg-group1/ddpg/*"]), [
+            "graph-peg-group1-T0.1",
+            "train-peg-group1-ddpg-local@0.1-seed0",
+            "train-peg-group1-ddpg-global-seed0",
+            "train-peg-group1-ddpg-local@0.1-seed1",
+            "train-peg-group1-ddpg-global-seed1",
+            "tune-peg-group1",
+        ]);
+        // A global cell needs no graph; two patterns add up.
+        assert_eq!(ids(&["lti-paper/ppo/global", "peg-group1/ppo/global"]), [
+            "train-lti-paper-ppo-global-seed0",
+            "train-peg-group1-ppo-global-seed0",
+            "train-lti-paper-ppo-global-seed1",
+            "train-peg-group1-ppo-global-seed1",
+            "tune-lti-paper",
+            "tune-peg-group1",
+        ]);
+        let err = only(&e, tasks(&e), &["lti-paper/sac/*".to_string()]).unwrap_err().to_string();
+        assert!(err.contains("matches no cell") && err.contains("lti-paper/ppo/local@0.1"), "{err}");
     }
 }

@@ -50,6 +50,16 @@ pub struct BestConstant {
     pub success_rate: Option<f64>,
     pub zero_action_return: f64,
     pub eval_episodes: usize,
+    /// The first evaluation start (older files: absent).
+    pub eval_seed: Option<u64>,
+}
+
+impl BestConstant {
+    /// Whether a run was evaluated on exactly these starts, so their
+    /// returns compare start for start.
+    fn same_starts(&self, run: &TrainSummary, eval_episodes: usize) -> bool {
+        self.eval_seed.is_some() && run.eval_seed == self.eval_seed && eval_episodes == self.eval_episodes
+    }
 }
 
 /// Everything a report and its figures are drawn from.
@@ -96,6 +106,7 @@ pub fn gather(e: &Experiment, out: &Path) -> anyhow::Result<Study> {
                     success_rate: v["success_rate"].as_f64(),
                     zero_action_return: v["zero_action"]["eval"]["mean_return"].as_f64().unwrap_or(f64::NAN),
                     eval_episodes: v["eval_episodes"].as_u64().unwrap_or(0) as usize,
+                    eval_seed: v["eval_seed"].as_u64(),
                 });
             }
         }
@@ -138,6 +149,7 @@ pub struct Methods {
     pub final_return: &'static str,
     pub episodes_to_threshold: &'static str,
     pub times: &'static str,
+    pub bars: &'static str,
 }
 
 const METHODS: Methods = Methods {
@@ -151,6 +163,9 @@ const METHODS: Methods = Methods {
                             censored: they count as the budget, so with any censored run the mean is a lower bound",
     times: "graph_seconds: the cell's graph, built once and shared by its seeds (counted once, as Table II does); \
             optimization_seconds: network updates; total_seconds: graph + the run's wall time",
+    bars: "beat_best_constant: runs whose eval return is above the best constant's on the same evaluation starts \
+           (every run of a study is evaluated on the starts `lcrl tune` evaluates the best constant on); diverged: runs \
+           whose eval return is below a = 0's on the same starts",
 };
 
 #[derive(Debug, Serialize)]
@@ -163,6 +178,12 @@ pub struct CellReport {
     pub final_return: Option<Estimate>,
     pub eval_return: Option<Estimate>,
     pub eval_success_rate: Option<f64>,
+    /// Runs whose eval return is above the best constant's, on the same
+    /// starts; absent when there is no best constant or some run was
+    /// evaluated on other starts (then no count would be fair).
+    pub beat_best_constant: Option<usize>,
+    /// Runs whose eval return is below a = 0's on the same starts.
+    pub diverged: usize,
     pub episodes_to_threshold: Option<ThresholdEstimate>,
     pub graph_seconds: f64,
     pub optimization_seconds: Option<Estimate>,
@@ -175,6 +196,11 @@ pub struct SeedFigures {
     pub seed: u64,
     pub final_return: f64,
     pub eval_return: f64,
+    /// Above the best constant on the same starts (absent: no comparable
+    /// best constant).
+    pub beats_best_constant: Option<bool>,
+    /// Below a = 0 on the same starts.
+    pub diverged: bool,
     pub episodes_to_threshold: Option<usize>,
 }
 
@@ -204,6 +230,13 @@ impl Study {
                 c.runs.iter().map(|r| threshold.and_then(|t| episodes_to_threshold(&r.returns, t, AVERAGE_WINDOW))).collect();
             let of = |f: &dyn Fn(&Run) -> f64| mean_ci(&c.runs.iter().map(f).collect::<Vec<_>>());
             let success: Vec<f64> = c.runs.iter().filter_map(|r| r.summary.eval_success_rate).collect();
+            let bar = self.best_constant.get(&c.cell.env);
+            let beats: Vec<Option<bool>> = c
+                .runs
+                .iter()
+                .map(|r| bar.filter(|b| b.same_starts(&r.summary, e.file.eval_episodes)).map(|b| r.summary.eval_return > b.mean_return))
+                .collect();
+            let diverged: Vec<bool> = c.runs.iter().map(|r| diverged(r, bar, e.file.eval_episodes)).collect();
             cells.push(CellReport {
                 env: c.cell.env.clone(),
                 algo: algo_name(c.cell.algo).into(),
@@ -213,6 +246,8 @@ impl Study {
                 final_return: of(&|r| r.summary.final_return),
                 eval_return: of(&|r| r.summary.eval_return),
                 eval_success_rate: (!success.is_empty()).then(|| success.iter().sum::<f64>() / success.len() as f64),
+                beat_best_constant: beats.iter().map(|b| b.map(usize::from)).sum(),
+                diverged: diverged.iter().filter(|d| **d).count(),
                 episodes_to_threshold: threshold.and_then(|t| censored_estimate(&reached, t, budget)),
                 graph_seconds: c.graph_seconds,
                 optimization_seconds: of(&|r| r.summary.optimization_seconds),
@@ -221,7 +256,15 @@ impl Study {
                     .runs
                     .iter()
                     .zip(&reached)
-                    .map(|(r, k)| SeedFigures { seed: r.seed, final_return: r.summary.final_return, eval_return: r.summary.eval_return, episodes_to_threshold: *k })
+                    .zip(beats.iter().zip(&diverged))
+                    .map(|((r, k), (beats, diverged))| SeedFigures {
+                        seed: r.seed,
+                        final_return: r.summary.final_return,
+                        eval_return: r.summary.eval_return,
+                        beats_best_constant: *beats,
+                        diverged: *diverged,
+                        episodes_to_threshold: *k,
+                    })
                     .collect(),
             });
         }
@@ -267,6 +310,14 @@ impl Study {
     }
 }
 
+/// A run diverged when its eval return is below a = 0's on the same starts:
+/// the run's own a = 0 evaluation (summary.json), or else the best
+/// constant's file when the run was evaluated on its starts.
+fn diverged(run: &Run, bar: Option<&BestConstant>, eval_episodes: usize) -> bool {
+    let zero = run.summary.zero_action_return.or_else(|| bar.filter(|b| b.same_starts(&run.summary, eval_episodes)).map(|b| b.zero_action_return));
+    zero.is_some_and(|zero| run.summary.eval_return < zero)
+}
+
 /// Three decimals, as every number in report.md.
 pub fn num(x: f64) -> String {
     format!("{x:.3}")
@@ -287,6 +338,7 @@ pub fn markdown(report: &Report) -> String {
     let m = &report.methods;
     let _ = writeln!(md, "Intervals: {}. Test: {} ({}).\n", m.confidence_interval, m.test, m.why_this_test);
     let _ = writeln!(md, "Final return: {}. Episodes to threshold: {}. Times: {}.\n", m.final_return, m.episodes_to_threshold, m.times);
+    let _ = writeln!(md, "Bars: {}.\n", m.bars);
     if !report.missing_runs.is_empty() {
         let _ = writeln!(md, "**Not finished ({}):** {}\n", report.missing_runs.len(), report.missing_runs.join(", "));
     }
@@ -301,21 +353,23 @@ pub fn markdown(report: &Report) -> String {
         let threshold = rows.iter().find_map(|c| c.episodes_to_threshold.as_ref().map(|t| t.threshold));
         let _ = writeln!(md, "## {env}, {} ({} episodes)\n", algo.to_uppercase(), rows[0].episodes);
         let to = threshold.map_or("episodes to threshold".to_string(), |t| format!("episodes to {}", num(t)));
-        let _ = writeln!(md, "| connection | seeds | final return | eval return | success | {to} | graph s | optimization s | total s |");
-        let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|");
+        let _ = writeln!(md, "| connection | seeds | final return | eval return | success | beat best constant | diverged | {to} | graph s | optimization s | total s |");
+        let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|");
         for c in &rows {
             let success = c.eval_success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
             let reach = c.episodes_to_threshold.as_ref().map_or("—".into(), |t| {
                 let ci = t.ci95.map_or(String::new(), |[lo, hi]| format!(" [{}, {}]", num(lo), num(hi)));
                 format!("{}{ci} ({} of {} censored)", num(t.mean), t.censored, t.reached + t.censored)
             });
+            let n = c.seeds.len();
+            let beat = c.beat_best_constant.map_or("—".into(), |k| format!("{k} of {n}"));
             let _ = writeln!(
                 md,
-                "| {} | {} | {} | {} | {success} | {reach} | {} | {} | {} |",
+                "| {} | {n} | {} | {} | {success} | {beat} | {} of {n} | {reach} | {} | {} | {} |",
                 c.connection,
-                c.seeds.len(),
                 estimate(&c.final_return),
                 estimate(&c.eval_return),
+                c.diverged,
                 num(c.graph_seconds),
                 estimate(&c.optimization_seconds),
                 estimate(&c.total_seconds)
@@ -323,12 +377,12 @@ pub fn markdown(report: &Report) -> String {
         }
         if let Some(b) = report.best_constant.get(env) {
             let success = b.success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
-            let _ = writeln!(md, "| best constant | — | — | {} | {success} | — | — | — | — |", num(b.mean_return));
-            let _ = writeln!(md, "| a = 0 | — | — | {} | — | — | — | — | — |", num(b.zero_action_return));
+            let _ = writeln!(md, "| best constant | — | — | {} | {success} | — | — | — | — | — | — |", num(b.mean_return));
+            let _ = writeln!(md, "| a = 0 | — | — | {} | — | — | — | — | — | — | — |", num(b.zero_action_return));
         }
         if let Some(p) = report.best_policy.get(env) {
             let success = p.success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
-            let _ = writeln!(md, "| best feedback policy (headroom) | — | — | {} | {success} | — | — | — | — |", num(p.mean_return));
+            let _ = writeln!(md, "| best feedback policy (headroom) | — | — | {} | {success} | — | — | — | — | — | — |", num(p.mean_return));
         }
         let _ = writeln!(md);
         for c in &rows {
@@ -355,4 +409,67 @@ pub fn markdown(report: &Report) -> String {
 pub fn write(report: &Report, out: &Path) -> anyhow::Result<()> {
     write_atomic(&out.join("report.json"), &(serde_json::to_string_pretty(report)? + "\n"))?;
     write_atomic(&out.join("report.md"), &markdown(report))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    /// A finished run written by hand: summary.json and a two-row metrics.csv.
+    fn write_run(dir: &Path, connection: &str, seed: u64, eval_return: f64, eval_seed: Option<u64>, zero: Option<f64>) {
+        std::fs::create_dir_all(dir).unwrap();
+        let summary = json!({
+            "env": "lti-paper", "algo": "ppo", "connection": connection, "seed": seed, "episodes": 2,
+            "final_return": eval_return, "eval_return": eval_return, "eval_seed": eval_seed,
+            "zero_action_return": zero, "lqr_return": null, "masked_lqr_return": null,
+            "graph_seconds": 0.0, "optimization_seconds": 1.0, "total_seconds": 2.0, "env_steps": 20, "updates": 2,
+            "actor_params": 10, "critic_params": 10
+        });
+        std::fs::write(dir.join("summary.json"), summary.to_string()).unwrap();
+        let csv = "episode,return,length,success,peak_force_n,peak_moment_nm,wall_s,optimization_s\n1,-9,10,,,,,\n2,-8,10,,,,,\n";
+        std::fs::write(dir.join("metrics.csv"), csv).unwrap();
+    }
+
+    /// The bar counts of a hand-made study: a run beats the best constant
+    /// only when strictly above it on the same starts, diverges when below
+    /// a = 0 (its own, else the best constant file's on the same starts),
+    /// and a cell with a run evaluated elsewhere gets no beat count at all.
+    #[test]
+    fn bar_counts_follow_the_runs_on_the_same_starts() {
+        let text = "name = \"bars\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"global\"]\nseeds = 3\nepisodes = { ppo = 2 }\n";
+        let e = Experiment::parse(text).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path();
+        let bar = json!({ "action": [0.0], "mean_return": -5.0, "success_rate": null, "eval_episodes": 100, "eval_seed": 0,
+                          "zero_action": { "eval": { "mean_return": -8.0 } } });
+        let bar_path = best_constant_path(out, "lti-paper");
+        std::fs::create_dir_all(bar_path.parent().unwrap()).unwrap();
+        std::fs::write(&bar_path, bar.to_string()).unwrap();
+        let cell = |i: usize| cells(&e)[i].clone();
+        let (local, global) = (cell(0), cell(1));
+        write_run(&run_dir(out, &local, 0), "local", 0, -4.0, Some(0), Some(-8.0)); // beats
+        write_run(&run_dir(out, &local, 1), "local", 1, -9.0, Some(0), Some(-8.0)); // diverged
+        write_run(&run_dir(out, &local, 2), "local", 2, -5.0, Some(0), Some(-8.0)); // a tie: does not beat
+        write_run(&run_dir(out, &global, 0), "global", 0, -9.0, Some(0), None); // diverged by the file's a = 0
+        write_run(&run_dir(out, &global, 1), "global", 1, -6.0, Some(1 << 42), Some(-6.5)); // other starts
+        // global seed 2 never finished.
+
+        let report = gather(&e, out).unwrap().report();
+        let (l, g) = (&report.cells[0], &report.cells[1]);
+        assert_eq!((l.connection.as_str(), l.beat_best_constant, l.diverged), ("local@0.1", Some(1), 1));
+        let per_seed: Vec<(Option<bool>, bool)> = l.per_seed.iter().map(|s| (s.beats_best_constant, s.diverged)).collect();
+        assert_eq!(per_seed, [(Some(true), false), (Some(false), true), (Some(false), false)]);
+        assert_eq!((g.connection.as_str(), g.beat_best_constant, g.diverged), ("global", None, 1));
+        assert_eq!(g.per_seed.iter().map(|s| s.beats_best_constant).collect::<Vec<_>>(), [Some(false), None]);
+        assert_eq!(report.missing_runs, ["lti-paper/ppo/global seed 2"]);
+
+        let md = markdown(&report);
+        let row = |label: &str| md.lines().find(|l| l.starts_with(&format!("| {label} |"))).unwrap().to_string();
+        assert!(row("local@0.1").contains("| 1 of 3 | 1 of 3 |"), "{md}");
+        assert!(row("global").contains("| — | 1 of 2 |"), "{md}");
+        let json: serde_json::Value = serde_json::to_value(&report).unwrap();
+        assert_eq!(json["cells"][0]["beat_best_constant"], 1);
+        assert_eq!(json["cells"][1]["beat_best_constant"], serde_json::Value::Null);
+    }
 }
