@@ -6,6 +6,10 @@
 # success rate and the number of runs below a = 0 (diverged). A run whose
 # policy was chosen by validation (RUN/selected/) is evaluated twice: its
 # policy (the selected one) and, on a row of its own, its last checkpoint.
+# Studies run since runs are evaluated on the best constant's starts
+# (summary.json's eval_seed = 0) already have the selected policy's figure
+# in their report; this script still adds the last policies and serves
+# older studies.
 # Usage: bash scripts/eval-study.sh STUDY_DIR
 set -euo pipefail
 cd "$(dirname "$0")/.."
