@@ -84,18 +84,13 @@ pub fn only(e: &Experiment, tasks: Vec<Task>, patterns: &[String]) -> anyhow::Re
         }
         globs.push(pattern);
     }
-    let chosen = |task: &Task| matches!(task, Task::Train { cell, .. } if globs.iter().any(|g| g.matches(&cell.label())));
-    let needed: Vec<Task> = tasks.iter().filter(|t| chosen(t)).filter_map(Task::dependency).collect();
-    let envs: Vec<String> = tasks.iter().filter_map(|t| match t {
-        Task::Train { cell, .. } if chosen(t) => Some(cell.env.clone()),
-        _ => None,
-    }).collect();
+    let chosen: Vec<Cell> = cells(e).into_iter().filter(|c| globs.iter().any(|g| g.matches(&c.label()))).collect();
     Ok(tasks
         .into_iter()
         .filter(|t| match t {
-            Task::Train { .. } => chosen(t),
-            Task::Graph { .. } => needed.contains(t),
-            Task::Tune { env } => envs.contains(env),
+            Task::Train { cell, .. } => chosen.contains(cell),
+            Task::Graph { env, threshold } => chosen.iter().any(|c| &c.env == env && c.connection.threshold() == Some(*threshold)),
+            Task::Tune { env } => chosen.iter().any(|c| &c.env == env),
         })
         .collect())
 }
