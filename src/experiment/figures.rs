@@ -136,9 +136,17 @@ pub fn traces(study: &Study, path: &Path) -> anyhow::Result<()> {
         }
         for cell in &group {
             let Some(run) = cell.median_run() else { continue };
-            let policy = Policy::load(&run.dir)?;
-            let scales = env.fresh();
             let label = format!("{} (seed {}, median)", cell.cell.connection.label(), run.seed);
+            // An archived study (scripts/archive-study.sh) keeps summaries,
+            // not policies: its report is still written, without this trace.
+            let policy = match Policy::load(&run.dir) {
+                Ok(policy) => policy,
+                Err(err) => {
+                    eprintln!("traces.png: leaving out {env_name} {} {label}: {err}", algo_name(algo));
+                    continue;
+                }
+            };
+            let scales = env.fresh();
             runs.push((label, rollout(env.as_mut(), &mut |s| policy.act(scales.as_ref(), s))?));
         }
         let longest = runs.iter().map(|(_, t)| t.time.len()).max().unwrap_or(0);

@@ -173,6 +173,23 @@ fn smoke_study_survives_sigkill_resumes_and_reports_consistently() {
     let again = lcrl().args(["experiment", "report", &out_str]).output().unwrap();
     assert!(again.status.success(), "{}", stderr(&again));
     assert_eq!(std::fs::read_to_string(out.join("report.md")).unwrap(), md);
+
+    // Archived (scripts/archive-study.sh: results, no policies or logs), the
+    // study reports the same and resumes as finished: nothing runs again.
+    let archive = tmp.path().join("archive");
+    let archived = std::process::Command::new("bash").arg(repo().join("scripts/archive-study.sh")).arg(&out).arg(&archive).output().unwrap();
+    assert!(archived.status.success(), "{}", stderr(&archived));
+    assert!(stdout(&archived).contains("4 finished runs"), "{}", stdout(&archived));
+    assert!(!archive.join("logs").exists() && !archive.join("runs/lti-paper/ppo/global/seed0/checkpoints").exists());
+    let from_archive = lcrl().args(["experiment", "report"]).arg(&archive).output().unwrap();
+    assert!(from_archive.status.success(), "{}", stderr(&from_archive));
+    assert!(stderr(&from_archive).contains("traces.png: leaving out"), "{}", stderr(&from_archive));
+    assert_eq!(std::fs::read_to_string(archive.join("report.md")).unwrap(), md);
+    let resumed = lcrl().args(["experiment", "run"]).arg(smoke()).arg("--out").arg(&archive).output().unwrap();
+    assert!(resumed.status.success(), "{}", stderr(&resumed));
+    assert_eq!(finished_runs(&archive).len(), 4);
+    let logs = std::fs::read_dir(archive.join("logs")).map(|d| d.count()).unwrap_or(0);
+    assert_eq!(logs, 0, "a finished archive ran a task again");
 }
 
 /// A study of one short run, for the error paths.
