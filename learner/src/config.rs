@@ -186,6 +186,12 @@ pub struct DdpgConfig {
     /// last minibatches, which matters where the return is decided by a
     /// few steps of each episode.
     pub anneal_lr: bool,
+    /// Critic updates before the actor's first (0: from the start, as in
+    /// Algorithm 2). Under a base controller the actor starts as the base;
+    /// following an untrained critic's ∂Q/∂a, Adam's first few dozen steps
+    /// carry it to an arbitrary residual (docs/peg.md, "The critic's head
+    /// start"). The critic's target still follows it meanwhile.
+    pub critic_warmup_updates: usize,
 }
 
 /// PPO with a Gaussian policy whose mean comes from the actor.
@@ -300,6 +306,7 @@ impl Default for DdpgConfig {
             preactivation_anneal: false,
             twin_critics: false,
             anneal_lr: false,
+            critic_warmup_updates: 0,
             huber_delta: 0.0,
             update_every: 1,
             gradient_steps: 1,
@@ -356,6 +363,9 @@ impl Default for RunConfig {
 const LTI_FAST: &str = include_str!("../../configs/lti-fast.toml");
 /// configs/peg.toml, compiled in: the settings that work on the peg tasks.
 const PEG: &str = include_str!("../../configs/peg.toml");
+/// configs/peg-experiment.toml, compiled in: peg-experiment's DDPG
+/// settings, laid over configs/peg.toml.
+const PEG_EXPERIMENT: &str = include_str!("../../configs/peg-experiment.toml");
 
 impl TrainConfig {
     /// The training settings that work on a registered environment, used
@@ -364,18 +374,23 @@ impl TrainConfig {
     /// I's defaults diverge on both; docs/peg.md); every other environment
     /// gets Table I's defaults (configs/table1-ddpg.toml, table1-ppo.toml).
     pub fn for_env(env: &str) -> (TrainConfig, &'static str) {
-        let embedded = match env {
-            "lti-paper" => Some((LTI_FAST, "configs/lti-fast.toml (the settings for lti-paper)")),
-            name if lcrl_sim::peg::PegConfig::preset(name).is_some() => Some((PEG, "configs/peg.toml (the settings for the peg presets)")),
+        let embedded: Option<(&[&str], &str)> = match env {
+            "lti-paper" => Some((&[LTI_FAST], "configs/lti-fast.toml (the settings for lti-paper)")),
+            "peg-experiment" => Some((&[PEG, PEG_EXPERIMENT], "configs/peg.toml with configs/peg-experiment.toml (the settings for peg-experiment)")),
+            name if lcrl_sim::peg::PegConfig::preset(name).is_some() => Some((&[PEG], "configs/peg.toml (the settings for the peg presets)")),
             _ => None,
         };
-        match embedded {
-            // The embedded files are checked by a unit test; a parse failure
-            // here would be a build defect, and Table I's defaults stand in.
-            Some((text, source)) => match toml::from_str::<TrainConfig>(text) {
-                Ok(cfg) => (cfg, source),
-                Err(_) => (TrainConfig::default(), "Table I defaults"),
-            },
+        // The embedded files are checked by a unit test; a parse failure
+        // here would be a build defect, and Table I's defaults stand in.
+        let layered = |files: &[&str]| -> Option<TrainConfig> {
+            let mut merged = toml::Table::new();
+            for text in files {
+                overlay(&mut merged, &toml::from_str::<toml::Table>(text).ok()?);
+            }
+            toml::Value::Table(merged).try_into().ok()
+        };
+        match embedded.and_then(|(files, source)| Some((layered(files)?, source))) {
+            Some((cfg, source)) => (cfg, source),
             None => (TrainConfig::default(), "Table I defaults"),
         }
     }
@@ -508,9 +523,16 @@ mod tests {
         assert!(source.contains("configs/peg.toml"), "{source}");
         assert_eq!(peg, toml::from_str::<TrainConfig>(PEG).unwrap());
         peg.validate().unwrap();
-        for name in lcrl_sim::peg::PegConfig::NAMES {
+        for name in lcrl_sim::peg::PegConfig::NAMES.into_iter().filter(|&name| name != "peg-experiment") {
             assert_eq!(TrainConfig::for_env(name).0, peg, "{name}");
         }
+        // peg-experiment: peg.toml with its own DDPG keys over it, nothing else.
+        let (experiment, source) = TrainConfig::for_env("peg-experiment");
+        assert!(source.contains("configs/peg-experiment.toml"), "{source}");
+        experiment.validate().unwrap();
+        assert_eq!((experiment.ddpg.critic_warmup_updates, experiment.ddpg.preactivation_l2), (5000, 10.0));
+        let with_peg_ddpg = TrainConfig { ddpg: peg.ddpg.clone(), ..experiment.clone() };
+        assert_eq!(with_peg_ddpg, peg, "peg-experiment.toml changes only [ddpg]");
         assert_eq!(TrainConfig::for_env("grpc://127.0.0.1:1").0, TrainConfig::default());
     }
 

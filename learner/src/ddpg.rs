@@ -12,7 +12,8 @@
 //! `target_noise` (clipped noise on μ'(s') in y) and `twin_critics`
 //! (y uses min(Q₁', Q₂'), against the overestimation that drives the actor
 //! to saturated actions). `anneal_lr` lowers both learning rates to 0 over
-//! the run.
+//! the run. `critic_warmup_updates` holds the actor still while the critic
+//! learns from the first transitions.
 
 use std::path::Path;
 use std::time::Instant;
@@ -182,13 +183,16 @@ impl Ddpg {
             return;
         }
 
-        let raw = self.actor.forward_raw(&b.obs);
-        let q = self.critics[0].net.forward(&Tensor::cat(&[&b.obs, &raw.tanh()], 1));
-        let l2 = if self.cfg.preactivation_anneal { self.cfg.preactivation_l2 * (1.0 - self.progress) } else { self.cfg.preactivation_l2 };
-        let actor_loss = -q.mean(Kind::Float) + l2 * raw.square().mean(Kind::Float);
-        self.actor_opt.zero_grad();
-        actor_loss.backward();
-        self.actor_opt.step();
+        // The actor waits for the critic's head start (`critic_warmup_updates`).
+        if self.critic_updates > self.cfg.critic_warmup_updates as u64 {
+            let raw = self.actor.forward_raw(&b.obs);
+            let q = self.critics[0].net.forward(&Tensor::cat(&[&b.obs, &raw.tanh()], 1));
+            let l2 = if self.cfg.preactivation_anneal { self.cfg.preactivation_l2 * (1.0 - self.progress) } else { self.cfg.preactivation_l2 };
+            let actor_loss = -q.mean(Kind::Float) + l2 * raw.square().mean(Kind::Float);
+            self.actor_opt.zero_grad();
+            actor_loss.backward();
+            self.actor_opt.step();
+        }
 
         let tau = self.cfg.tau;
         tch::no_grad(|| {
@@ -328,6 +332,42 @@ impl Agent for Ddpg {
 mod tests {
     use super::*;
     use crate::config::TrainConfig;
+
+    /// `critic_warmup_updates`: the actor (the base controller, under one)
+    /// stays exactly as it started for that many updates while the critics
+    /// learn, and moves on the first update after.
+    #[test]
+    fn actor_waits_for_the_critics_head_start() {
+        tch::set_num_threads(1);
+        let mut cfg = TrainConfig::default();
+        cfg.network.global_hidden = vec![16];
+        cfg.network.critic_hidden = vec![16];
+        let ddpg = DdpgConfig { batch_size: 8, warmup_steps: 0, critic_warmup_updates: 6, policy_delay: 2, ..cfg.ddpg };
+        let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1, 1]], 2, 1, 5, Device::Cpu);
+        let mut rng = ChaCha8Rng::seed_from_u64(6);
+        for _ in 0..64 {
+            let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
+            let a: f32 = rng.random_range(-1.0..1.0);
+            agent.replay.push(&s, &[a], -(s[0] * s[0]) - a * a, &s, false);
+        }
+        let actor = |agent: &Ddpg| -> Vec<Vec<f32>> {
+            agent.actor_variables().iter().map(|(_, t)| Vec::<f32>::try_from(t.flatten(0, -1)).expect("f32 tensor")).collect()
+        };
+        let critic = |agent: &Ddpg| -> Vec<f32> {
+            crate::agent::sorted_variables(&agent.critics[0].vs).iter().flat_map(|(_, t)| Vec::<f32>::try_from(t.flatten(0, -1)).expect("f32 tensor")).collect()
+        };
+        let (actor0, critic0) = (actor(&agent), critic(&agent));
+        for _ in 0..6 {
+            agent.update();
+        }
+        assert_eq!(actor(&agent), actor0, "the actor moved during the critics' head start");
+        assert_ne!(critic(&agent), critic0, "the critic did not learn during the head start");
+        // Update 7 is odd: no actor step under policy_delay = 2; update 8 is one.
+        agent.update();
+        assert_eq!(actor(&agent), actor0);
+        agent.update();
+        assert_ne!(actor(&agent), actor0, "the actor did not move after the head start");
+    }
 
     /// The update rule, without the on-policy feedback loop: on exploratory
     /// data of s' = s + a with r = −(s² + 0.1a²), DDPG's actor must move to
