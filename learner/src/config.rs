@@ -371,7 +371,8 @@ impl TrainConfig {
     /// The training settings that work on a registered environment, used
     /// when no --config is given, and where they come from. lti-paper gets
     /// configs/lti-fast.toml and the peg presets configs/peg.toml (Table
-    /// I's defaults diverge on both; docs/peg.md); every other environment
+    /// I's defaults diverge on both; docs/peg.md), with
+    /// configs/peg-experiment.toml over it on peg-experiment; every other environment
     /// gets Table I's defaults (configs/table1-ddpg.toml, table1-ppo.toml).
     pub fn for_env(env: &str) -> (TrainConfig, &'static str) {
         let embedded: Option<(&[&str], &str)> = match env {

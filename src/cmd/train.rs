@@ -43,8 +43,9 @@ pub struct TrainArgs {
     #[arg(long, value_name = "best_constant.json")]
     pub base_action: Option<PathBuf>,
     /// Training configuration (TOML); keys it leaves out keep the
-    /// environment's settings (configs/peg.toml on peg presets,
-    /// configs/lti-fast.toml on lti-paper, Table I elsewhere).
+    /// environment's settings (configs/peg.toml on peg presets, with
+    /// configs/peg-experiment.toml over it on peg-experiment;
+    /// configs/lti-fast.toml on lti-paper; Table I elsewhere).
     #[arg(long, value_name = "train.toml")]
     pub config: Option<PathBuf>,
     /// Run directory: config, graph, metrics.csv, summary.json, reward
