@@ -366,18 +366,24 @@ const PEG: &str = include_str!("../../configs/peg.toml");
 /// configs/peg-experiment.toml, compiled in: peg-experiment's DDPG
 /// settings, laid over configs/peg.toml.
 const PEG_EXPERIMENT: &str = include_str!("../../configs/peg-experiment.toml");
+/// configs/peg-rand.toml, compiled in: the randomized presets' DDPG
+/// settings, laid over configs/peg.toml.
+const PEG_RAND: &str = include_str!("../../configs/peg-rand.toml");
 
 impl TrainConfig {
     /// The training settings that work on a registered environment, used
     /// when no --config is given, and where they come from. lti-paper gets
     /// configs/lti-fast.toml and the peg presets configs/peg.toml (Table
     /// I's defaults diverge on both; docs/peg.md), with
-    /// configs/peg-experiment.toml over it on peg-experiment; every other environment
+    /// configs/peg-experiment.toml over it on peg-experiment and
+    /// configs/peg-rand.toml on the randomized presets; every other environment
     /// gets Table I's defaults (configs/table1-ddpg.toml, table1-ppo.toml).
     pub fn for_env(env: &str) -> (TrainConfig, &'static str) {
+        let randomized = |name: &str| lcrl_sim::peg::PegConfig::preset(name).is_some_and(|p| p.randomize.is_some());
         let embedded: Option<(&[&str], &str)> = match env {
             "lti-paper" => Some((&[LTI_FAST], "configs/lti-fast.toml (the settings for lti-paper)")),
             "peg-experiment" => Some((&[PEG, PEG_EXPERIMENT], "configs/peg.toml with configs/peg-experiment.toml (the settings for peg-experiment)")),
+            name if randomized(name) => Some((&[PEG, PEG_RAND], "configs/peg.toml with configs/peg-rand.toml (the settings for the randomized peg presets)")),
             name if lcrl_sim::peg::PegConfig::preset(name).is_some() => Some((&[PEG], "configs/peg.toml (the settings for the peg presets)")),
             _ => None,
         };
@@ -524,8 +530,17 @@ mod tests {
         assert!(source.contains("configs/peg.toml"), "{source}");
         assert_eq!(peg, toml::from_str::<TrainConfig>(PEG).unwrap());
         peg.validate().unwrap();
-        for name in lcrl_sim::peg::PegConfig::NAMES.into_iter().filter(|&name| name != "peg-experiment") {
+        for name in ["peg-group1", "peg-group2"] {
             assert_eq!(TrainConfig::for_env(name).0, peg, "{name}");
+        }
+        // The randomized presets: peg.toml with the residual penalty, nothing else.
+        for name in ["peg-group1-rand", "peg-group2-rand"] {
+            let (rand, source) = TrainConfig::for_env(name);
+            assert!(source.contains("configs/peg-rand.toml"), "{source}");
+            rand.validate().unwrap();
+            assert_eq!((rand.ddpg.critic_warmup_updates, rand.ddpg.preactivation_l2), (0, 10.0), "{name}");
+            let ddpg = DdpgConfig { preactivation_l2: peg.ddpg.preactivation_l2, ..rand.ddpg.clone() };
+            assert_eq!(TrainConfig { ddpg, ..rand }, peg, "peg-rand.toml changes only [ddpg] preactivation_l2 ({name})");
         }
         // peg-experiment: peg.toml with its own DDPG keys over it, nothing else.
         let (experiment, source) = TrainConfig::for_env("peg-experiment");

@@ -44,7 +44,8 @@ pub struct TrainArgs {
     pub base_action: Option<PathBuf>,
     /// Training configuration (TOML); keys it leaves out keep the
     /// environment's settings (configs/peg.toml on peg presets, with
-    /// configs/peg-experiment.toml over it on peg-experiment;
+    /// configs/peg-experiment.toml over it on peg-experiment and
+    /// configs/peg-rand.toml on the -rand presets;
     /// configs/lti-fast.toml on lti-paper; Table I elsewhere).
     #[arg(long, value_name = "train.toml")]
     pub config: Option<PathBuf>,
