@@ -11,9 +11,10 @@
 # Usage: bash scripts/per-draw-constants.sh ENV BEST_CONSTANT_JSON OUT [N] [EVALUATIONS]
 set -euo pipefail
 cd "$(dirname "$0")/.."
-env=${1:?usage: bash scripts/per-draw-constants.sh ENV BEST_CONSTANT_JSON OUT [N] [EVALUATIONS]}
-bc=${2:?usage: bash scripts/per-draw-constants.sh ENV BEST_CONSTANT_JSON OUT [N] [EVALUATIONS]}
-out=${3:?usage: bash scripts/per-draw-constants.sh ENV BEST_CONSTANT_JSON OUT [N] [EVALUATIONS]}
+usage="usage: bash scripts/per-draw-constants.sh ENV BEST_CONSTANT_JSON OUT [N] [EVALUATIONS]"
+env=${1:?$usage}
+bc=${2:?$usage}
+out=${3:?$usage}
 n=${4:-100}
 evaluations=${5:-300}
 lcrl=${LCRL_BIN:-target/debug/lcrl}
@@ -38,12 +39,13 @@ given = [load(f"{out}/start/{k}/summary.json")["mean_return"] for k in range(n)]
 print("| start | given constant | per-start constant | success | peak force | action |")
 print("|---|---|---|---|---|---|")
 best = list(given)
+inserted = 0
 for k in failed:
     o = load(f"{out}/oracle/{k}/best_constant.json")
     best[k] = max(given[k], o["mean_return"])
+    inserted += o["success_rate"] >= 1
     action = ", ".join(f"{a:.2f}" for a in o["action"])
     print(f"| {k} | {given[k]:.2f} | {o['mean_return']:.2f} | {100 * o['success_rate']:.0f}% | {o['mean_peak_force_n']:.1f} N | [{action}] |")
-inserted = sum(1 for k in failed if load(f"{out}/oracle/{k}/best_constant.json")["success_rate"] >= 1)
 print()
 print(f"the given constant fails {len(failed)} of {n} starts; a per-start constant inserts {inserted} of them")
 print(f"mean return: given constant {sum(given) / n:.2f}; with the per-start constant on its failed starts {sum(best) / n:.2f}")

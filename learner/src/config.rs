@@ -379,13 +379,13 @@ impl TrainConfig {
     /// configs/peg-rand.toml on the randomized presets; every other environment
     /// gets Table I's defaults (configs/table1-ddpg.toml, table1-ppo.toml).
     pub fn for_env(env: &str) -> (TrainConfig, &'static str) {
-        let randomized = |name: &str| lcrl_sim::peg::PegConfig::preset(name).is_some_and(|p| p.randomize.is_some());
-        let embedded: Option<(&[&str], &str)> = match env {
-            "lti-paper" => Some((&[LTI_FAST], "configs/lti-fast.toml (the settings for lti-paper)")),
-            "peg-experiment" => Some((&[PEG, PEG_EXPERIMENT], "configs/peg.toml with configs/peg-experiment.toml (the settings for peg-experiment)")),
-            name if randomized(name) => Some((&[PEG, PEG_RAND], "configs/peg.toml with configs/peg-rand.toml (the settings for the randomized peg presets)")),
-            name if lcrl_sim::peg::PegConfig::preset(name).is_some() => Some((&[PEG], "configs/peg.toml (the settings for the peg presets)")),
-            _ => None,
+        let peg = lcrl_sim::peg::PegConfig::preset(env);
+        let embedded: Option<(&[&str], &str)> = match (env, peg) {
+            ("lti-paper", _) => Some((&[LTI_FAST], "configs/lti-fast.toml (the settings for lti-paper)")),
+            ("peg-experiment", _) => Some((&[PEG, PEG_EXPERIMENT], "configs/peg.toml with configs/peg-experiment.toml (the settings for peg-experiment)")),
+            (_, Some(peg)) if peg.randomize.is_some() => Some((&[PEG, PEG_RAND], "configs/peg.toml with configs/peg-rand.toml (the settings for the randomized peg presets)")),
+            (_, Some(_)) => Some((&[PEG], "configs/peg.toml (the settings for the peg presets)")),
+            (_, None) => None,
         };
         // The embedded files are checked by a unit test; a parse failure
         // here would be a build defect, and Table I's defaults stand in.
