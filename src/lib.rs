@@ -1,6 +1,7 @@
 //! The `lcrl` command line's own library: what several commands share,
 //! and what tests call without starting a process.
 //!
+//! - [`connection`]: what a connection names (local@T, graph:PATH, random@K, …).
 //! - [`preset`]: a preset (configs/*.toml) and its command lines for the
 //!   graph builder, the learner and the actors.
 //! - [`supervise`]: child processes that stop when dropped, health waits.
@@ -9,6 +10,7 @@
 //! - [`experiment`]: `lcrl experiment`, a study of many runs.
 //! - [`output`]: writing result files.
 
+pub mod connection;
 pub mod experiment;
 pub mod output;
 pub mod plots;

@@ -93,6 +93,10 @@ fn main() -> ExitCode {
 }
 
 fn run_graph(args: &GraphArgs) -> anyhow::Result<()> {
+    if let Some(pair) = &args.explain {
+        print!("{}", args.run_explain(pair)?.text());
+        return Ok(());
+    }
     let report = args.run()?;
     print!("{}", report.table());
     print!("{}", report.sweep_table());

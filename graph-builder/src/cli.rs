@@ -52,6 +52,18 @@ pub struct GraphArgs {
     /// Write the graph as JSON here (read back by `lcrl train --graph`).
     #[arg(long, value_name = "FILE.json")]
     pub out: Option<PathBuf>,
+    /// Where phi(ACTION, STATE) comes from: the same paired rollouts split
+    /// by the phase of their start (free motion, first contact, sliding,
+    /// inserted on peg tasks), each phase's share of phi, the effect step
+    /// by step, and the states the action moves first (its physical path).
+    /// Names or 1-based indices, e.g. `--explain dx,alpha`.
+    #[arg(long, value_name = "ACTION,STATE", conflicts_with_all = ["random", "thresholds", "exact"])]
+    pub explain: Option<String>,
+    /// Draw K edges at random instead of measuring G (uniform among the
+    /// graphs with an edge for every action; --seed picks the draw): the
+    /// control graph of `random@K` connections. No CS3 runs.
+    #[arg(long, value_name = "K", conflicts_with_all = ["thresholds", "exact", "threshold"])]
+    pub random: Option<usize>,
     /// Draw the normalized-CS3 heatmap with G marked here (PNG).
     #[arg(long, value_name = "FILE.png", value_parser = crate::plot::png_path)]
     pub plot: Option<PathBuf>,
@@ -86,6 +98,14 @@ impl GraphArgs {
         let env = lcrl_sim::make_env(&self.env)?;
         let json_out = self.out.as_deref().map(|p| PendingFile::new(p, ".json")).transpose()?;
         let plot_out = self.plot.as_deref().map(|p| PendingFile::new(p, ".png")).transpose()?;
+        if let Some(edges) = self.random {
+            let report = crate::given::random(env.spec(), edges, self.seed)?;
+            if let Some(file) = json_out {
+                report.write_json(file.temp.path())?;
+                file.commit()?;
+            }
+            return Ok(report);
+        }
 
         let total = env.spec().action_dim() * self.samples;
         let bar = ProgressBar::new(total as u64).with_message("CS3 rollouts");
@@ -105,6 +125,24 @@ impl GraphArgs {
             file.commit()?;
         }
         Ok(report)
+    }
+}
+
+impl GraphArgs {
+    /// `--explain ACTION,STATE`: phi(ACTION, STATE) split by phase, from
+    /// the same samples (ST, seed, starts) the graph is built from.
+    pub fn run_explain(&self, pair: &str) -> Result<crate::explain::Explanation, GraphError> {
+        let options = self.options();
+        options.validate()?;
+        let env = lcrl_sim::make_env(&self.env)?;
+        let (i, j) = crate::explain::parse_pair(env.as_ref(), pair).map_err(GraphError::Explain)?;
+        let bar = ProgressBar::new(self.samples as u64).with_message("paired rollouts");
+        if let Ok(style) = ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} samples, {elapsed} (eta {eta})") {
+            bar.set_style(style.progress_chars("=> "));
+        }
+        let explanation = crate::explain::explain(env.as_ref(), &options.cs3, i, j, &|| bar.inc(1));
+        bar.finish_and_clear();
+        explanation
     }
 }
 

@@ -155,12 +155,35 @@ pub fn measure(env: &dyn Env, cfg: &Cs3Config, on_sample: &(dyn Fn() + Sync)) ->
 
 /// One sample of eq. 5 for action i: two branches from one s_0, m steps.
 fn paired_rollout(template: &dyn Env, start: Start, i: usize, seed: u64) -> Result<Vec<f64>, EnvError> {
+    let trace = paired_trace(template, start, i, seed)?;
+    let mut sums = vec![0.0; template.spec().state_dim()];
+    for step in &trace.effects {
+        for (acc, d) in sums.iter_mut().zip(step) {
+            *acc += d;
+        }
+    }
+    Ok(sums)
+}
+
+/// One CS3 sample step by step: its start state s_0 and, for every step t
+/// it ran, |s'_{t+1,j} − s_{t+1,j}| for every state j (eq. 5's bracket
+/// before the sum). `lcrl graph --explain` reads these.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PairedTrace {
+    pub start_state: Vec<f64>,
+    pub effects: Vec<Vec<f64>>,
+}
+
+/// Sample `seed` of action i as Algorithm 1 draws it (the same draws as
+/// [`measure`]'s sample with that seed), step by step.
+pub fn paired_trace(template: &dyn Env, start: Start, i: usize, seed: u64) -> Result<PairedTrace, EnvError> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let spec = template.spec();
     let (n, m) = (spec.action_dim(), spec.state_dim());
 
     // s_0 ~ S, and s'_0 = s_0: the primed branch is an exact snapshot.
     let mut plain = draw_start(template, start, &mut rng)?;
+    let start_state = plain.state().to_vec();
     let mut primed = plain.snapshot()?;
     if plain.is_stochastic() {
         // Process noise is part of the system, not of the action: the two
@@ -173,7 +196,7 @@ fn paired_rollout(template: &dyn Env, start: Start, i: usize, seed: u64) -> Resu
     let in_subspace: Vec<bool> = (0..n).map(|k| k != i && rng.random_bool(0.5)).collect();
     let draw = |rng: &mut ChaCha8Rng, k: usize| rng.random_range(spec.action_low[k]..=spec.action_high[k]);
 
-    let mut sums = vec![0.0; m];
+    let mut effects = Vec::with_capacity(m);
     let mut a1 = vec![0.0; n];
     for _t in 0..m {
         // a1_t ∈ L (components outside L stay at the neutral 0); a2_t ∈ A_i.
@@ -184,15 +207,13 @@ fn paired_rollout(template: &dyn Env, start: Start, i: usize, seed: u64) -> Resu
         a1_plus_a2[i] = draw(&mut rng, i);
         let s = plain.step(&a1)?;
         let s_primed = primed.step(&a1_plus_a2)?;
-        for (acc, (sp, sj)) in sums.iter_mut().zip(s_primed.state.iter().zip(&s.state)) {
-            *acc += (sp - sj).abs();
-        }
+        effects.push(s_primed.state.iter().zip(&s.state).map(|(sp, sj)| (sp - sj).abs()).collect());
         // After an episode ends its state means nothing more; stop the pair.
         if s.terminated || s.truncated || s_primed.terminated || s_primed.truncated {
             break;
         }
     }
-    Ok(sums)
+    Ok(PairedTrace { start_state, effects })
 }
 
 /// A copy of `template` in a start state s_0 drawn as `start` says.

@@ -1,6 +1,8 @@
 //! CS3 and the LCRL connection graph (docs/method.md §2–4).
 //!
 //! - [`cs3`]: Algorithm 1's paired rollouts, in parallel and deterministic.
+//! - [`given`]: graphs given, not measured (a file, or K random edges).
+//! - [`explain`]: one action's paired-rollout effect on one state, by phase.
 //! - [`graph`]: eq. 7 / eq. 6 thresholding and per-entry stability.
 //! - [`lemma1`]: the closed-form graph of a linear system.
 //! - [`report`]: `graph.json`, the printed table, the gRPC message.
@@ -10,6 +12,8 @@
 
 pub mod cli;
 pub mod cs3;
+pub mod explain;
+pub mod given;
 pub mod graph;
 pub mod lemma1;
 pub mod plot;
@@ -99,6 +103,7 @@ pub fn build_graph(env: &dyn Env, opts: &GraphOptions, on_sample: &(dyn Fn() + S
         margin,
         sweep: Vec::new(),
         elapsed_s: started.elapsed().as_secs_f64(),
+        origin: None,
     })
 }
 
@@ -119,6 +124,10 @@ pub enum GraphError {
     Output { path: PathBuf, message: String },
     #[error("graph file {path} is not a valid graph.json: {message}")]
     BadGraphFile { path: PathBuf, message: String },
+    #[error("random@{edges}: K must be between {actions} and {entries} (at least one edge for each of the {actions} actions, at most every entry)")]
+    RandomEdges { edges: usize, actions: usize, entries: usize },
+    #[error("{0}")]
+    Explain(String),
     #[error("cannot encode the graph as JSON: {0}")]
     Json(String),
     #[error("cannot draw {path}: {message}")]

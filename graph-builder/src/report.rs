@@ -52,6 +52,10 @@ pub struct GraphReport {
     pub sweep: Vec<SweepEntry>,
     /// Wall time of CS3 and thresholding, seconds.
     pub elapsed_s: f64,
+    /// Where G came from when it was given, not measured: "random@23,
+    /// draw seed 0" or "graph:PATH" (crate::given). Absent for CS3 graphs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub origin: Option<String>,
 }
 
 /// G at one threshold of a sweep.
@@ -162,6 +166,10 @@ impl GraphReport {
     /// `*` where G = 1; then borderline edges and unmoved states.
     pub fn table(&self) -> String {
         let mut out = String::new();
+        if let Some(origin) = &self.origin {
+            let _ = writeln!(out, "connection graph of {} given, not measured: {origin}", self.env);
+            return out + &self.g_rows();
+        }
         let _ = writeln!(
             out,
             "CS3 connection graph of {} — ST = {}, {}, starts: {}, seed {}, {:.3} s",
@@ -173,17 +181,13 @@ impl GraphReport {
             self.elapsed_s
         );
         let _ = writeln!(out, "phi(i, j) (eq. 5); * marks G_ij = 1 (action i sees state j)");
-        let label = self.action_names.iter().map(|s| s.len()).max().unwrap_or(0);
         out.push_str(&self.matrix(|i, j| format!("{}{}", format_phi(self.phi[i][j]), if self.g[i][j] == 1 { '*' } else { ' ' })));
         if !self.margin.is_empty() {
             let _ = writeln!(out, "\nmargin of each kept edge, phi / (T × column mean) (≥ 1 kept; the edge survives up to margin × T):");
             out.push_str(&self.matrix(|i, j| if self.g[i][j] == 1 { format!("{:.2}", self.margin[i][j]) } else { ".".to_string() }));
         }
-        let _ = writeln!(out, "\nG (action × state), {} of {} edges:", self.edges(), self.actions() * self.states());
-        for (i, name) in self.action_names.iter().enumerate() {
-            let row: Vec<String> = self.g[i].iter().map(u8::to_string).collect();
-            let _ = writeln!(out, "{name:<label$} [{}]", row.join(", "));
-        }
+        out.push('\n');
+        out.push_str(&self.g_rows());
         let borderline: Vec<String> = (0..self.actions())
             .flat_map(|i| (0..self.states()).map(move |j| (i, j)))
             .filter(|&(i, j)| self.stability[i][j] < 0.95)
@@ -201,6 +205,18 @@ impl GraphReport {
 }
 
 impl GraphReport {
+    /// G's rows under a heading with the edge count, columns in state order.
+    fn g_rows(&self) -> String {
+        let mut out = String::new();
+        let label = self.action_names.iter().map(|s| s.len()).max().unwrap_or(0);
+        let _ = writeln!(out, "G (action × state; columns {}), {} of {} edges:", self.state_names.join(" "), self.edges(), self.actions() * self.states());
+        for (i, name) in self.action_names.iter().enumerate() {
+            let row: Vec<String> = self.g[i].iter().map(u8::to_string).collect();
+            let _ = writeln!(out, "{name:<label$} [{}]", row.join(", "));
+        }
+        out
+    }
+
     /// An action × state table of `cell(i, j)` with labelled rows and columns.
     fn matrix(&self, cell: impl Fn(usize, usize) -> String) -> String {
         let mut out = String::new();

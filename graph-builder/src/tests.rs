@@ -200,3 +200,26 @@ fn a_malformed_graph_message_is_refused_with_what_is_wrong() {
     let empty = lcrl_proto::v1::ConnectionGraph { actions: 0, states: 3, g: vec![], ..Default::default() };
     assert!(mask_from_message(&empty, 0, 3).unwrap_err().contains("no rows"));
 }
+
+/// lti-blocks-N (docs/lcrl-value.md): the sparse family whose G is known.
+/// CS3 (eq. 6 and eq. 7 at T = 0.1) gives Lemma 1's exact G for every
+/// registered N up to 32, and that G is what the construction says: a_k
+/// sees x_k, y_k and its partner's x (3 edges per action).
+#[test]
+fn lti_blocks_graphs_equal_lemma1_up_to_32_actions() {
+    for n in LtiConfig::BLOCK_SIZES {
+        let env = make_env(&format!("lti-blocks-{n}")).unwrap();
+        let lti = env.as_lti().unwrap().system();
+        let exact = lemma1_graph(&lti.e, &lti.f);
+        for (k, row) in exact.iter().enumerate() {
+            let expected: Vec<u8> = (0..2 * n).map(|j| u8::from(j == 2 * k || j == 2 * k + 1 || j == 2 * (k ^ 1))).collect();
+            assert_eq!(row, &expected, "N = {n}: Lemma 1's row of a{}", k + 1);
+        }
+        for rule in [Rule::Exact { tolerance: EXACT_TOLERANCE }, Rule::Threshold(0.1)] {
+            let report = build_graph(env.as_ref(), &GraphOptions { bootstrap: 0, ..options(16, rule, 0, 1) }, &|| {}).unwrap();
+            assert_eq!(report.g, exact, "N = {n}, rule {rule:?}");
+            assert_eq!(report.edges(), 3 * n);
+        }
+    }
+    assert!(make_env("lti-blocks-5").is_err(), "odd N has no pairs");
+}

@@ -237,6 +237,9 @@ pub struct RunConfig {
     pub save_replay: bool,
     /// CS3 samples when the graph is built before training.
     pub graph_samples: usize,
+    /// T of eq. 7 when the graph is built before training (a `local@T`
+    /// connection sets it; the publication's 0.1 by default).
+    pub graph_threshold: f64,
     /// Episodes of the deterministic policy evaluated at the end.
     pub eval_episodes: usize,
     /// The first start of that evaluation. Unset (the default): the run's
@@ -351,6 +354,7 @@ impl Default for RunConfig {
             checkpoint_every: 50,
             save_replay: true,
             graph_samples: 64,
+            graph_threshold: lcrl_graph_builder::PAPER_THRESHOLD,
             eval_episodes: 10,
             eval_seed: None,
             validation_episodes: 0,
@@ -477,6 +481,9 @@ impl TrainConfig {
             if v == 0 {
                 return bad(field, "must be at least 1");
             }
+        }
+        if !(self.run.graph_threshold.is_finite() && self.run.graph_threshold > 0.0) {
+            return bad("run.graph_threshold", &format!("must be a finite number > 0 (the publication uses 0.1), got {}", self.run.graph_threshold));
         }
         for (field, sizes) in [("network.global_hidden", &self.network.global_hidden), ("network.subnet_hidden", &self.network.subnet_hidden), ("network.critic_hidden", &self.network.critic_hidden)] {
             if sizes.is_empty() || sizes.contains(&0) {

@@ -41,7 +41,8 @@ pub fn fix_base_controller(config: &mut TrainConfig, env: &dyn Env) -> Result<Op
 
 /// The actor's mask (n × m): ones for a global actor; for a local one, G
 /// from `graph` (a graph.json) or built here with CS3 (Algorithm 1, with
-/// the run's seed and `run.graph_samples`), returned with its report.
+/// the run's seed, `run.graph_samples` and eq. 7 at `run.graph_threshold`),
+/// returned with its report.
 pub fn resolve_mask(connection: Connection, graph: Option<&Path>, env: &dyn Env, config: &TrainConfig) -> Result<(Vec<Vec<u8>>, Option<GraphReport>), LearnerError> {
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
     if connection != Connection::Local {
@@ -50,7 +51,10 @@ pub fn resolve_mask(connection: Connection, graph: Option<&Path>, env: &dyn Env,
     let report = match graph {
         Some(path) => GraphReport::load(path)?,
         None => {
-            let options = GraphOptions::paper(config.run.graph_samples, config.run.seed, lcrl_graph_builder::DEFAULT_BOOTSTRAP);
+            let options = GraphOptions {
+                rule: lcrl_graph_builder::Rule::Threshold(config.run.graph_threshold),
+                ..GraphOptions::paper(config.run.graph_samples, config.run.seed, lcrl_graph_builder::DEFAULT_BOOTSTRAP)
+            };
             build_graph(env, &options, &|| {})?
         }
     };

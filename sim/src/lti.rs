@@ -86,6 +86,46 @@ impl LtiConfig {
         LtiConfig { e, f, ..Self::paper_example() }
     }
 
+    /// `lti-blocks-N` (docs/lcrl-value.md): N actions and 2N states, each
+    /// action driving its own two-state block, blocks weakly coupled in
+    /// pairs (k and k XOR 1). Block k holds x_k (state 2k) and y_k (2k+1):
+    ///
+    ///   y_k' = 0.9 y_k + 0.5 a_k
+    ///   x_k' = 0.9 x_k + 0.2 y_k + 0.1 x_{k XOR 1}
+    ///
+    /// so a_k moves y_k at once, x_k a step later and its partner's x one
+    /// step after that, and nothing else: Lemma 1's G has exactly 3 edges
+    /// per action (3N of 2N²), the rest of the state is irrelevant to it.
+    /// Stable (eigenvalues 0.9 and 0.9 ± 0.1), so no controller diverges.
+    /// N must be even and at least 2.
+    pub fn blocks(n: usize) -> Option<Self> {
+        if n < 2 || n % 2 == 1 {
+            return None;
+        }
+        let m = 2 * n;
+        let mut e = vec![vec![0.0; m]; m];
+        let mut f = vec![vec![0.0; n]; m];
+        for k in 0..n {
+            let (x, y, partner_x) = (2 * k, 2 * k + 1, 2 * (k ^ 1));
+            e[y][y] = 0.9;
+            f[y][k] = 0.5;
+            e[x][x] = 0.9;
+            e[x][y] = 0.2;
+            e[x][partner_x] = 0.1;
+        }
+        let state_names = Some((1..=n).flat_map(|k| [format!("x{k}"), format!("y{k}")]).collect());
+        let action_names = Some((1..=n).map(|k| format!("a{k}")).collect());
+        Some(LtiConfig { state_names, action_names, ..Self::from_matrices(e, f) })
+    }
+
+    /// The registered block sizes of `lti-blocks-N` (any even N works).
+    pub const BLOCK_SIZES: [usize; 4] = [4, 8, 16, 32];
+
+    /// N of a name `lti-blocks-N`.
+    pub fn blocks_size(name: &str) -> Option<usize> {
+        name.strip_prefix("lti-blocks-")?.parse().ok()
+    }
+
     /// A seeded random sparse system: each entry of E and F is non-zero with
     /// probability `density`, drawn from ±[0.2, 0.6] (a scale that keeps m
     /// steps of rollout well inside f64 range). F gets at least one entry

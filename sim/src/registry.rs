@@ -9,7 +9,10 @@ use crate::peg::{PegConfig, PegEnv};
 
 /// The registered environment names, for help texts and error messages.
 pub fn known_env_names() -> Vec<&'static str> {
-    std::iter::once("lti-paper").chain(crate::peg::PegConfig::NAMES).collect()
+    std::iter::once("lti-paper")
+        .chain(["lti-blocks-4", "lti-blocks-8", "lti-blocks-16", "lti-blocks-32"])
+        .chain(crate::peg::PegConfig::NAMES)
+        .collect()
 }
 
 /// Makes an environment from a registered name, a path to a `.toml` file,
@@ -20,6 +23,10 @@ pub fn make_env(name_or_path: &str) -> Result<Box<dyn Env>, EnvError> {
     }
     if let Some(cfg) = PegConfig::preset(name_or_path) {
         return Ok(Box::new(PegEnv::new(name_or_path, cfg)?));
+    }
+    if let Some(n) = LtiConfig::blocks_size(name_or_path) {
+        let cfg = LtiConfig::blocks(n).ok_or_else(|| EnvError::invalid("lti-blocks-N", format!("N = {n}: N must be even and at least 2 (registered: 4, 8, 16, 32)")))?;
+        return Ok(Box::new(LtiEnv::new(name_or_path, &cfg)?));
     }
     match name_or_path {
         "lti-paper" => Ok(Box::new(LtiEnv::new("lti-paper", &LtiConfig::paper_example())?)),

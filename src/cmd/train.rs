@@ -8,6 +8,7 @@ use lcrl_learner::run_files::EpisodeRow;
 use lcrl_learner::trainer::{train, TrainRequest};
 use lcrl_learner::{Algo, Connection, TrainConfig};
 
+use lcrl::connection::ConnectionSpec;
 use lcrl::plots::{line_panels, Panel};
 
 /// Train an actor with DDPG or PPO; the environment runs in this process.
@@ -19,13 +20,21 @@ pub struct TrainArgs {
     pub env: String,
     #[arg(long, value_enum)]
     pub algo: Algo,
-    /// local: LCRL (each action sees its connected states, eq. 8);
+    /// local: LCRL (each action sees its connected states, eq. 8), its
+    /// graph built with CS3 at T = 0.1; local@T: at another T; graph:PATH:
+    /// with a given graph.json (e.g. references/peg-eq21/graph.json);
+    /// random@K: with K edges drawn at random (--graph-seed picks the draw);
     /// global: the GCRL baseline; full-subnets: the ablation.
-    #[arg(long, value_enum)]
-    pub connection: Connection,
-    /// Use this graph.json instead of building the graph first (local only).
+    #[arg(long, value_name = "CONNECTION")]
+    pub connection: ConnectionSpec,
+    /// Use this graph.json instead of building the graph first (local
+    /// kinds only; the same as --connection graph:PATH).
     #[arg(long, value_name = "graph.json")]
     pub graph: Option<PathBuf>,
+    /// The draw of a random@K graph (the same draw for every --seed, so the
+    /// seeds of a study cell share one graph).
+    #[arg(long, default_value_t = 0)]
+    pub graph_seed: u64,
     /// Episodes in total (overrides run.episodes of the config).
     #[arg(long)]
     pub episodes: Option<usize>,
@@ -84,9 +93,29 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         config.controller.base = lcrl_learner::config::BaseController::BestConstant;
         config.controller.best_constant_file = Some(path.clone());
     }
+    if let Some(t) = args.connection.threshold() {
+        config.run.graph_threshold = t;
+    }
     config.validate()?;
-    if args.graph.is_some() && args.connection != Connection::Local {
-        anyhow::bail!("--graph only applies to --connection local");
+    if args.graph.is_some() && !matches!(args.connection, ConnectionSpec::Local { .. }) {
+        anyhow::bail!("--graph only applies to --connection local or local@T (graph:PATH names the file itself)");
+    }
+    // A given graph (graph:PATH, random@K) reaches the trainer as a file,
+    // checked against the environment first; the run records it as its
+    // graph.json, with `origin` saying where it came from.
+    let env_spec = lcrl_sim::make_env(&args.env)?.spec().clone();
+    let given = args.connection.given_graph(&env_spec, args.graph_seed)?;
+    let given_file = match &given {
+        Some(report) => {
+            let file = tempfile::NamedTempFile::new().context("a temporary file for the given graph")?;
+            report.write_json(file.path())?;
+            Some(file)
+        }
+        None => None,
+    };
+    let graph = given_file.as_ref().map(|f| f.path().to_path_buf()).or_else(|| args.graph.clone());
+    if let Some(report) = &given {
+        eprintln!("graph: {} ({} of {} edges)", report.origin.as_deref().unwrap_or("given"), report.edges(), report.actions() * report.states());
     }
     eprintln!("training settings: {source}");
     if let Some(checkpoint) = args.resume.then(|| lcrl_learner::checkpoint::latest_checkpoint(&args.run_dir)).flatten() {
@@ -95,8 +124,8 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     let request = TrainRequest {
         env: args.env.clone(),
         algo: args.algo,
-        connection: args.connection,
-        graph: args.graph.clone(),
+        connection: args.connection.connection(),
+        graph,
         config: config.clone(),
         settings_source: source,
         run_dir: args.run_dir.clone(),
@@ -169,7 +198,7 @@ fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::run_files::TrainSum
             window.iter().sum::<f64>() / window.len() as f64
         })
         .collect();
-    let title = format!("{env} — {:?} with {:?} connection", args.algo, args.connection);
+    let title = format!("{env} — {:?} with {} connection", args.algo, args.connection.label());
     let panel = Panel::rewards(
         "episode return",
         vec![("return".into(), returns), ("moving average (10)".into(), average)],

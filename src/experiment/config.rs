@@ -11,8 +11,7 @@ use serde::{Deserialize, Serialize};
 
 pub(crate) use crate::preset::algo_name;
 
-/// The publication's threshold T of eq. 7, used by a plain `local`.
-pub const DEFAULT_THRESHOLD: f64 = lcrl_graph_builder::PAPER_THRESHOLD;
+pub use crate::connection::ConnectionSpec;
 
 /// One experiment file, as written.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -24,7 +23,8 @@ pub struct ExperimentFile {
     /// Registered names (peg-group1, lti-paper, …) or .toml paths.
     pub environments: Vec<String>,
     pub algorithms: Vec<Algo>,
-    /// `local` (T = 0.1), `local@T`, `global`, `full-subnets`.
+    /// `local` (T = 0.1), `local@T`, `graph:PATH`, `random@K`, `global`,
+    /// `full-subnets` (crate::connection).
     pub connections: Vec<String>,
     /// A count n (seeds 0 … n−1) or an explicit list.
     pub seeds: Seeds,
@@ -93,58 +93,6 @@ impl Default for BestConstantSettings {
 fn default_eval_episodes() -> usize {
     100
 }
-
-/// One entry of `connections`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum ConnectionSpec {
-    Local { threshold: f64 },
-    Global,
-    FullSubnets,
-}
-
-impl ConnectionSpec {
-    pub fn parse(text: &str) -> anyhow::Result<Self> {
-        let unknown = || format!("unknown connection \"{text}\"; use local (T = {DEFAULT_THRESHOLD}), local@T such as local@0.25, global or full-subnets");
-        match text {
-            "local" => Ok(ConnectionSpec::Local { threshold: DEFAULT_THRESHOLD }),
-            "global" => Ok(ConnectionSpec::Global),
-            "full-subnets" => Ok(ConnectionSpec::FullSubnets),
-            _ => {
-                let t = text.strip_prefix("local@").with_context(unknown)?;
-                let threshold: f64 = t.parse().map_err(|_| anyhow::anyhow!("{}: \"{t}\" is not a number", unknown()))?;
-                if !(threshold.is_finite() && threshold >= 0.0) {
-                    bail!("connection \"{text}\": the threshold T must be a finite number ≥ 0");
-                }
-                Ok(ConnectionSpec::Local { threshold })
-            }
-        }
-    }
-
-    /// The name in tables, folders and plots: local@0.1, global, full-subnets.
-    pub fn label(&self) -> String {
-        match self {
-            ConnectionSpec::Local { threshold } => format!("local@{threshold}"),
-            ConnectionSpec::Global => "global".into(),
-            ConnectionSpec::FullSubnets => "full-subnets".into(),
-        }
-    }
-
-    pub fn connection(&self) -> lcrl_learner::Connection {
-        match self {
-            ConnectionSpec::Local { .. } => lcrl_learner::Connection::Local,
-            ConnectionSpec::Global => lcrl_learner::Connection::Global,
-            ConnectionSpec::FullSubnets => lcrl_learner::Connection::FullSubnets,
-        }
-    }
-
-    pub fn threshold(&self) -> Option<f64> {
-        match self {
-            ConnectionSpec::Local { threshold } => Some(*threshold),
-            _ => None,
-        }
-    }
-}
-
 
 /// A checked experiment: the file plus what follows from it.
 #[derive(Debug, Clone)]
@@ -245,6 +193,13 @@ impl Experiment {
                 }
             }
         }
+        // Given graphs must fit every environment before a run starts.
+        for env in &file.environments {
+            let made = lcrl_sim::make_env(env)?;
+            for connection in &connections {
+                connection.given_graph(made.spec(), file.graph.seed).with_context(|| format!("connection \"{}\" on {env}", connection.label()))?;
+            }
+        }
         let experiment = Experiment { file, connections, seeds };
         for env in &experiment.file.environments {
             experiment.train_config(env)?;
@@ -341,5 +296,21 @@ mod tests {
         assert!(err(&MINIMAL.replace("lti-paper", "peg-group9")).contains("peg-group9"));
         assert!(err(&format!("{MINIMAL}[reward_threshold.peg-group1]\nppo = -3.0\n")).contains("reward_threshold.peg-group1"));
         assert!(err(&MINIMAL.replace("local@0.25", "local@x")).contains("\"x\" is not a number"));
+        // Given graphs are checked against each environment at load.
+        assert!(err(&MINIMAL.replace("local@0.25", "random@2")).contains("between 3 and 9"));
+        assert!(err(&MINIMAL.replace("local@0.25", "graph:no/such.json")).contains("no/such.json"));
+    }
+
+    #[test]
+    fn given_graphs_are_cells_with_their_own_graph_task() {
+        let e = Experiment::parse(&MINIMAL.replace("local@0.25", "random@4")).unwrap();
+        let tasks = super::super::plan::tasks(&e);
+        let random = tasks.iter().find(|t| t.id().starts_with("graph-lti-paper-random@4")).expect("a draw task");
+        let args = random.args(&e, std::path::Path::new("out")).join(" ");
+        assert!(args.contains("--random 4") && args.contains("--seed 0"), "{args}");
+        let train = tasks.iter().find(|t| t.id().contains("-random@4-seed1")).unwrap();
+        assert_eq!(train.dependency().as_ref(), Some(random));
+        let args = train.args(&e, std::path::Path::new("out")).join(" ");
+        assert!(args.contains("--connection local") && args.contains("--graph out/graphs/lti-paper/random@4/graph.json"), "{args}");
     }
 }

@@ -41,6 +41,8 @@ pub enum Task {
     Tune { env: String },
     /// `lcrl graph` at one threshold.
     Graph { env: String, threshold: f64 },
+    /// `lcrl graph --random K`: the draw every seed of a random@K cell shares.
+    RandomGraph { env: String, edges: usize },
     /// `lcrl train` of one cell with one seed.
     Train { cell: Cell, seed: u64 },
 }
@@ -53,6 +55,11 @@ pub fn tasks(e: &Experiment) -> Vec<Task> {
     for env in &e.file.environments {
         for threshold in e.thresholds() {
             tasks.push(Task::Graph { env: env.clone(), threshold });
+        }
+        for connection in &e.connections {
+            if let ConnectionSpec::Random { edges } = connection {
+                tasks.push(Task::RandomGraph { env: env.clone(), edges: *edges });
+            }
         }
     }
     for &seed in &e.seeds {
@@ -90,6 +97,7 @@ pub fn only(e: &Experiment, tasks: Vec<Task>, patterns: &[String]) -> anyhow::Re
         .filter(|t| match t {
             Task::Train { cell, .. } => chosen.contains(cell),
             Task::Graph { env, threshold } => chosen.iter().any(|c| &c.env == env && c.connection.threshold() == Some(*threshold)),
+            Task::RandomGraph { env, edges } => chosen.iter().any(|c| &c.env == env && c.connection == ConnectionSpec::Random { edges: *edges }),
             Task::Tune { env } => chosen.iter().any(|c| &c.env == env),
         })
         .collect())
@@ -100,8 +108,8 @@ pub fn cells(e: &Experiment) -> Vec<Cell> {
     let mut cells = Vec::new();
     for env in &e.file.environments {
         for &algo in &e.file.algorithms {
-            for &connection in &e.connections {
-                cells.push(Cell { env: env.clone(), algo, connection });
+            for connection in &e.connections {
+                cells.push(Cell { env: env.clone(), algo, connection: connection.clone() });
             }
         }
     }
@@ -120,8 +128,22 @@ pub fn graph_path(out: &Path, env: &str, threshold: f64) -> PathBuf {
     out.join("graphs").join(env_slug(env)).join(format!("T{threshold}")).join("graph.json")
 }
 
+pub fn random_graph_path(out: &Path, env: &str, edges: usize) -> PathBuf {
+    out.join("graphs").join(env_slug(env)).join(format!("random@{edges}")).join("graph.json")
+}
+
+/// The graph file a cell's runs train with, if it has one.
+pub fn cell_graph(out: &Path, cell: &Cell) -> Option<PathBuf> {
+    match &cell.connection {
+        ConnectionSpec::Local { threshold } => Some(graph_path(out, &cell.env, *threshold)),
+        ConnectionSpec::Random { edges } => Some(random_graph_path(out, &cell.env, *edges)),
+        ConnectionSpec::Graph { path } => Some(path.clone()),
+        ConnectionSpec::Global | ConnectionSpec::FullSubnets => None,
+    }
+}
+
 pub fn run_dir(out: &Path, cell: &Cell, seed: u64) -> PathBuf {
-    out.join("runs").join(env_slug(&cell.env)).join(algo_name(cell.algo)).join(cell.connection.label()).join(format!("seed{seed}"))
+    out.join("runs").join(env_slug(&cell.env)).join(algo_name(cell.algo)).join(cell.connection.slug()).join(format!("seed{seed}"))
 }
 
 /// A finished run's summary, if it has one that parses.
@@ -136,8 +158,9 @@ impl Task {
         match self {
             Task::Tune { env } => format!("tune-{}", env_slug(env)),
             Task::Graph { env, threshold } => format!("graph-{}-T{threshold}", env_slug(env)),
+            Task::RandomGraph { env, edges } => format!("graph-{}-random@{edges}", env_slug(env)),
             Task::Train { cell, seed } => {
-                format!("train-{}-{}-{}-seed{seed}", env_slug(&cell.env), algo_name(cell.algo), cell.connection.label())
+                format!("train-{}-{}-{}-seed{seed}", env_slug(&cell.env), algo_name(cell.algo), cell.connection.slug())
             }
         }
     }
@@ -145,7 +168,11 @@ impl Task {
     /// The task this one needs finished first.
     pub fn dependency(&self) -> Option<Task> {
         match self {
-            Task::Train { cell, .. } => cell.connection.threshold().map(|threshold| Task::Graph { env: cell.env.clone(), threshold }),
+            Task::Train { cell, .. } => match &cell.connection {
+                ConnectionSpec::Local { threshold } => Some(Task::Graph { env: cell.env.clone(), threshold: *threshold }),
+                ConnectionSpec::Random { edges } => Some(Task::RandomGraph { env: cell.env.clone(), edges: *edges }),
+                _ => None,
+            },
             _ => None,
         }
     }
@@ -155,6 +182,7 @@ impl Task {
         match self {
             Task::Tune { env } => best_constant_path(out, env).is_file(),
             Task::Graph { env, threshold } => graph_path(out, env, *threshold).is_file(),
+            Task::RandomGraph { env, edges } => random_graph_path(out, env, *edges).is_file(),
             Task::Train { cell, seed } => finished_run(&run_dir(out, cell, *seed)).is_some(),
         }
     }
@@ -164,6 +192,7 @@ impl Task {
         let file = match self {
             Task::Tune { env } => best_constant_path(out, env),
             Task::Graph { env, threshold } => graph_path(out, env, *threshold),
+            Task::RandomGraph { env, edges } => random_graph_path(out, env, *edges),
             Task::Train { cell, seed } => run_dir(out, cell, *seed).join("summary.json"),
         };
         file.parent().map(Path::to_path_buf).unwrap_or_else(|| out.to_path_buf())
@@ -193,6 +222,10 @@ impl Task {
                     "--threads".into(), "1".into(), "--out".into(), s(&path), "--plot".into(), s(&path.with_extension("png")),
                 ]
             }
+            Task::RandomGraph { env, edges } => vec![
+                "graph".into(), "--env".into(), env.clone(), "--random".into(), edges.to_string(),
+                "--seed".into(), e.file.graph.seed.to_string(), "--out".into(), s(&random_graph_path(out, env, *edges)),
+            ],
             Task::Train { cell, seed } => {
                 let mut args = vec![
                     "train".into(), "--env".into(), cell.env.clone(), "--algo".into(), algo_name(cell.algo).into(),
@@ -200,8 +233,8 @@ impl Task {
                     "--seed".into(), seed.to_string(), "--threads".into(), "1".into(), "--config".into(), s(&config_path(out, &cell.env)),
                     "--run-dir".into(), s(&run_dir(out, cell, *seed)), "--resume".into(),
                 ];
-                if let Some(threshold) = cell.connection.threshold() {
-                    args.extend(["--graph".into(), s(&graph_path(out, &cell.env, threshold))]);
+                if let Some(graph) = cell_graph(out, cell) {
+                    args.extend(["--graph".into(), s(&graph)]);
                 }
                 args
             }

@@ -77,6 +77,7 @@ pub struct Study {
 pub fn gather(e: &Experiment, out: &Path) -> anyhow::Result<Study> {
     let mut study = Study { experiment: e.clone(), cells: Vec::new(), best_constant: BTreeMap::new(), best_policy: BTreeMap::new(), missing: Vec::new() };
     for cell in cells(e) {
+        // Measured graphs only: a given one cost no rollouts.
         let graph_seconds = match cell.connection.threshold() {
             Some(t) => graph_seconds(&graph_path(out, &cell.env, t))?,
             None => 0.0,
@@ -279,12 +280,20 @@ impl Study {
         }
     }
 
-    /// Per environment and algorithm: each local connection against global
-    /// and against full-subnets, on final and evaluation return.
+    /// Per environment and algorithm: each connection with a graph against
+    /// global and against full-subnets, and each given graph (graph:PATH)
+    /// against each random@K (does the structure matter, or only the
+    /// number of inputs?), on final and evaluation return.
     fn comparisons(&self) -> Vec<Comparison> {
+        use crate::connection::ConnectionSpec as C;
+        let pairs_with = |a: &C, b: &C| match (a, b) {
+            (a, C::Global | C::FullSubnets) => a.has_graph(),
+            (C::Graph { .. }, C::Random { .. }) => true,
+            _ => false,
+        };
         let mut out = Vec::new();
-        for a in self.cells.iter().filter(|c| c.cell.connection.threshold().is_some()) {
-            for b in self.cells.iter().filter(|b| b.cell.env == a.cell.env && b.cell.algo == a.cell.algo && b.cell.connection.threshold().is_none()) {
+        for a in &self.cells {
+            for b in self.cells.iter().filter(|b| b.cell.env == a.cell.env && b.cell.algo == a.cell.algo && pairs_with(&a.cell.connection, &b.cell.connection)) {
                 let metrics: [(&'static str, fn(&Run) -> f64); 2] = [("final_return", |r| r.summary.final_return), ("eval_return", |r| r.summary.eval_return)];
                 for (metric, f) in metrics {
                     let (xa, xb): (Vec<f64>, Vec<f64>) = (a.runs.iter().map(f).collect(), b.runs.iter().map(f).collect());
