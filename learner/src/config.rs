@@ -386,6 +386,7 @@ impl TrainConfig {
         let peg = lcrl_sim::peg::PegConfig::preset(env);
         let embedded: Option<(&[&str], &str)> = match (env, peg) {
             ("lti-paper", _) => Some((&[LTI_FAST], "configs/lti-fast.toml (the settings for lti-paper)")),
+            (name, _) if lcrl_sim::lti::LtiConfig::blocks_size(name).is_some() => Some((&[LTI_FAST], "configs/lti-fast.toml (the linear systems' settings, used for lti-blocks-N)")),
             ("peg-experiment", _) => Some((&[PEG, PEG_EXPERIMENT], "configs/peg.toml with configs/peg-experiment.toml (the settings for peg-experiment)")),
             (_, Some(peg)) if peg.randomize.is_some() => Some((&[PEG, PEG_RAND], "configs/peg.toml with configs/peg-rand.toml (the settings for the randomized peg presets)")),
             (_, Some(_)) => Some((&[PEG], "configs/peg.toml (the settings for the peg presets)")),

@@ -307,3 +307,36 @@ fn throughput_settings_keep_their_replay_ratio() {
         assert!((ratio - promised).abs() <= promised * every as f64 / (env_steps - min_size + 1) as f64 + 1e-9, "ratio {ratio} vs {promised}");
     }
 }
+
+/// Graphs given, not measured: `random@K` trains with K random edges,
+/// recorded in the run's graph.json with its draw, the same draw for any
+/// --seed and another for another --graph-seed; `graph:PATH` trains with
+/// that file; a bad file fails before any work, naming it.
+#[test]
+fn given_graphs_train_and_are_recorded_in_the_run() {
+    let work = tempfile::tempdir().unwrap();
+    let config = tiny_config(work.path());
+    let graph_of = |dir: &Path| json(&dir.join("graph.json"));
+    let (a, b, c) = (work.path().join("a"), work.path().join("b"), work.path().join("c"));
+    assert!(train_connected("random@4", &a, &config, &["--seed", "1"]).status.success());
+    assert!(train_connected("random@4", &b, &config, &["--seed", "2"]).status.success());
+    let drawn = graph_of(&a);
+    assert_eq!(drawn["origin"], "random@4, draw seed 0");
+    assert_eq!(drawn["g"].as_array().unwrap().iter().flat_map(|r| r.as_array().unwrap().clone()).filter(|v| v == 1).count(), 4);
+    assert_eq!(drawn["g"], graph_of(&b)["g"], "the seeds of a cell share one draw");
+    let checkpoint_mask = |dir: &Path| fs::read_to_string(dir.join("config.toml")).unwrap();
+    assert!(checkpoint_mask(&a).contains("Local"), "a random graph trains the locally connected actor");
+
+    let given = work.path().join("given.json");
+    fs::copy(a.join("graph.json"), &given).unwrap();
+    let out = train_connected(&format!("graph:{}", given.display()), &c, &config, &[]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(graph_of(&c)["g"], drawn["g"]);
+
+    fs::write(&given, "{\"g\": 3}").unwrap();
+    let bad = train_connected(&format!("graph:{}", given.display()), &work.path().join("d"), &config, &[]);
+    assert_clean_failure(&bad, "not a valid graph.json");
+    assert!(super::common::stderr(&bad).contains("given.json"));
+    let too_few = train_connected("random@2", &work.path().join("e"), &config, &[]);
+    assert_clean_failure(&too_few, "random@2: K must be between 3 and 9");
+}
