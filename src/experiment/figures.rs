@@ -162,3 +162,39 @@ pub fn traces(study: &Study, path: &Path) -> anyhow::Result<()> {
     let title = format!("experiment {}: one episode from {start_note}", study.experiment.file.name);
     line_panels(path, &title, &[0.0, 1.0], "time [s]", &panels).with_context(|| format!("drawing {}", path.display()))
 }
+
+/// advantage.png for a study of `lti-blocks-N` environments (and only
+/// then; returns false otherwise): LCRL's advantage against N, per
+/// algorithm, as (local − global) eval return over |masked LQR| (the gap's
+/// share of the optimum; above 0: LCRL better), with Welch's 95% interval
+/// as a band. The local cells are those with a measured graph.
+pub fn advantage(study: &Study, path: &Path) -> anyhow::Result<bool> {
+    let sizes: Option<Vec<usize>> = study.experiment.file.environments.iter().map(|e| lcrl_sim::lti::LtiConfig::blocks_size(e)).collect();
+    let Some(sizes) = sizes else { return Ok(false) };
+    let mut panels = Vec::new();
+    for &algo in &study.experiment.file.algorithms {
+        let (mut x, mut mean, mut low, mut high) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for (env, &n) in study.experiment.file.environments.iter().zip(&sizes) {
+            let cell = |local: bool| study.cells.iter().find(|c| &c.cell.env == env && c.cell.algo == algo && c.cell.connection.threshold().is_some() == local && (local || c.cell.connection == crate::connection::ConnectionSpec::Global));
+            let (Some(local), Some(global)) = (cell(true), cell(false)) else { continue };
+            let optimum = local.runs.iter().find_map(|r| r.summary.masked_lqr_return).unwrap_or(1.0).abs().max(1e-9);
+            let eval = |c: &CellRuns| c.runs.iter().map(|r| r.summary.eval_return / optimum).collect::<Vec<f64>>();
+            if let Some(w) = super::stats::welch(&eval(local), &eval(global)) {
+                x.push(n as f64);
+                mean.push(w.difference);
+                low.push(w.ci95[0]);
+                high.push(w.ci95[1]);
+            }
+        }
+        let label = format!("{}: (local − global) eval / |masked LQR|", algo_name(algo));
+        let mut panel = Panel::lines(label.clone(), vec![(label, mean)]);
+        panel.bands.push((0, low, high));
+        panel.references.push(("no difference".into(), 0.0));
+        panel.x = Some(x);
+        panels.push(panel);
+    }
+    let xs = sizes.iter().map(|&n| n as f64).collect::<Vec<f64>>();
+    line_panels(path, "LCRL's advantage against N (lti-blocks-N, 95% interval)", &xs, "N (actions; 2N states)", &panels)
+        .with_context(|| format!("drawing {}", path.display()))?;
+    Ok(true)
+}

@@ -159,8 +159,9 @@ fn write_report(e: &Experiment, out: &Path) -> anyhow::Result<()> {
     report::write(&report, out)?;
     figures::curves(&study, &out.join("curves.png"))?;
     figures::traces(&study, &out.join("traces.png"))?;
+    let advantage = figures::advantage(&study, &out.join("advantage.png"))?;
     print!("{}", report::markdown(&report));
-    println!("wrote {}/report.json, report.md, curves.png, traces.png", out.display());
+    println!("wrote {}/report.json, report.md, curves.png, traces.png{}", out.display(), if advantage { ", advantage.png" } else { "" });
     Ok(())
 }
 

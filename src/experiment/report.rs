@@ -481,4 +481,38 @@ mod tests {
         assert_eq!(json["cells"][0]["beat_best_constant"], 1);
         assert_eq!(json["cells"][1]["beat_best_constant"], serde_json::Value::Null);
     }
+
+    /// Which cells are compared: every cell with a graph against global
+    /// and full-subnets, and a given graph against a random one (does the
+    /// structure matter, or only the count?); never two measured graphs.
+    #[test]
+    fn comparisons_pair_graphs_with_global_and_given_with_random() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path();
+        let given = out.join("g.json");
+        let env = lcrl_sim::make_env("lti-paper").unwrap();
+        lcrl_graph_builder::given::random(env.spec(), 4, 1).unwrap().write_json(&given).unwrap();
+        let text = format!(
+            "name = \"c\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"graph:{}\", \"random@4\", \"global\"]\nseeds = 2\nepisodes = {{ ppo = 2 }}\n",
+            given.display()
+        );
+        let e = Experiment::parse(&text).unwrap();
+        for (k, cell) in cells(&e).iter().enumerate() {
+            for seed in 0..2 {
+                write_run(&run_dir(out, cell, seed), "local", seed, -4.0 - k as f64 - seed as f64 * 0.5, Some(0), None);
+            }
+        }
+        let report = gather(&e, out).unwrap().report();
+        let mut pairs: Vec<(String, String)> = report.comparisons.iter().filter(|c| c.metric == "eval_return").map(|c| (c.a.clone(), c.b.clone())).collect();
+        pairs.sort();
+        let graph = format!("graph:{}", given.display());
+        let mut expected = vec![
+            (graph.clone(), "global".to_string()),
+            (graph, "random@4".to_string()),
+            ("local@0.1".to_string(), "global".to_string()),
+            ("random@4".to_string(), "global".to_string()),
+        ];
+        expected.sort();
+        assert_eq!(pairs, expected);
+    }
 }
