@@ -33,6 +33,13 @@ pub struct Job {
     /// T of eq. 7 for the graph builder (default 0.1, the publication's).
     #[serde(default)]
     pub graph_threshold: Option<f64>,
+    /// A given graph instead of the graph builder's (connection local):
+    /// "graph:PATH" (a graph.json, relative to the preset's folder) or
+    /// "random@K" (K random edges, draw seed 0, as `lcrl train`'s default
+    /// --graph-seed). `lcrl run` writes it as the run's graph.json and
+    /// starts no graph builder.
+    #[serde(default)]
+    pub graph: Option<String>,
     /// The headroom reference `lcrl run` evaluates beside the trained
     /// policy: a best_policy.json of `lcrl tune --policy` (relative to the
     /// preset's folder; resolved on load, read by `Preset::headroom`).
@@ -134,6 +141,9 @@ impl Preset {
         if let Some(headroom) = &job.headroom {
             job.headroom = Some(path.parent().unwrap_or(Path::new(".")).join(headroom));
         }
+        if let Some(file) = job.graph.as_deref().and_then(|g| g.strip_prefix("graph:")) {
+            job.graph = Some(format!("graph:{}", path.parent().unwrap_or(Path::new(".")).join(file).display()));
+        }
         let env_server: Option<EnvServer> = match table.remove("env_server") {
             Some(value) => Some(value.try_into().with_context(|| format!("{}: [env_server]", path.display()))?),
             None => None,
@@ -159,12 +169,30 @@ impl Preset {
         }
         match &self.env_server {
             // Served by the run itself: there is nothing to reach yet.
+            Some(_) if job.graph.is_some() => bail!("job.graph needs the environment's names before the run starts; with [env_server] let the graph builder measure G"),
             Some(server) => server.check(&job.env)?,
             None => {
-                lcrl_sim::make_env(&job.env)?;
+                let env = lcrl_sim::make_env(&job.env)?;
+                // A given graph must fit before anything starts.
+                self.given_graph(env.spec())?;
             }
         }
         Ok(())
+    }
+
+    /// `job.graph` as a graph for the environment `spec` describes: the
+    /// file checked against it, or the draw. None when the graph builder
+    /// measures it (or the actor has no graph).
+    pub fn given_graph(&self, spec: &lcrl_sim::EnvSpec) -> anyhow::Result<Option<lcrl_graph_builder::GraphReport>> {
+        let Some(text) = &self.job.graph else { return Ok(None) };
+        let spec_of = crate::connection::ConnectionSpec::parse(text).context("job.graph")?;
+        if !matches!(spec_of, crate::connection::ConnectionSpec::Graph { .. } | crate::connection::ConnectionSpec::Random { .. }) {
+            bail!("job.graph = \"{text}\": give \"graph:PATH\" or \"random@K\" (a measured graph is the graph builder's: job.graph_threshold)");
+        }
+        if self.job.connection != Connection::Local {
+            bail!("job.graph applies to connection = \"local\" only");
+        }
+        spec_of.given_graph(spec, 0).context("job.graph")
     }
 
     /// The preset's headroom reference (`job.headroom`), read and checked

@@ -128,7 +128,17 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     let run_id = format!("{}-{}", std::process::id(), started.elapsed().as_nanos() % 1_000_000);
     let mut graph_builder = None;
     let mut graph_url = None;
-    if job.connection == Connection::Local {
+    // A given graph (job.graph) is written as the run's graph.json and
+    // handed to the learner as a file: no graph builder to start.
+    let given_graph = match &preset.env_server {
+        None => preset.given_graph(lcrl_sim::make_env(&job.env)?.spec())?,
+        Some(_) => None,
+    };
+    if let Some(report) = &given_graph {
+        report.write_json(&run_dir.join("graph.json"))?;
+        eprintln!("graph: {} ({} of {} edges), no graph builder", report.origin.as_deref().unwrap_or("given"), report.edges(), report.actions() * report.states());
+    }
+    if job.connection == Connection::Local && given_graph.is_none() {
         let mut cmd = Command::new(sibling("lcrl-graph-builder")?);
         cmd.args(preset.graph_builder_args("127.0.0.1:0", run_dir)).args(security.server_args(false)?);
         let (process, address) = Managed::spawn("graph-builder", cmd, logs, true)?;
@@ -139,7 +149,10 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
         graph_builder = Some(process);
     }
     let mut learner_cmd = Command::new(sibling("lcrl-learner")?);
-    learner_cmd.args(preset.learner_args("127.0.0.1:0", &run_id, train_path, &run_dir.join("learner"), graph_url.as_deref())?);
+    match &given_graph {
+        Some(_) => learner_cmd.args(preset.learner_args_with_graph_file("127.0.0.1:0", &run_id, train_path, &run_dir.join("learner"), &run_dir.join("graph.json"))),
+        None => learner_cmd.args(preset.learner_args("127.0.0.1:0", &run_id, train_path, &run_dir.join("learner"), graph_url.as_deref())?),
+    };
     learner_cmd.args(security.server_args(graph_url.is_some())?);
     let (mut learner, address) = Managed::spawn("learner", learner_cmd, logs, true)?;
     let url = security.url(&format!("http://{}", address.context("the learner did not start; see logs/learner.log")?));

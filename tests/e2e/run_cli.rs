@@ -115,3 +115,22 @@ fn run_over_mutual_tls_with_a_token_finishes() {
         "lcrl certs",
     );
 }
+
+/// `[job] graph = "random@K"`: the distributed run trains with a drawn
+/// graph, written as its graph.json, and starts no graph builder; a bad
+/// `graph:` file is refused before anything starts.
+#[test]
+fn run_with_a_given_graph_starts_no_graph_builder() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let preset = dir.path().join("p.toml");
+    let job = "[job]\nenv = \"lti-paper\"\nalgo = \"ppo\"\nconnection = \"local\"\nepisodes = 20\n";
+    fs::write(&preset, format!("{job}graph = \"random@4\"\n[run]\neval_episodes = 5\n")).unwrap();
+    let out = lcrl().args(["run", "--config"]).arg(&preset).arg("--run-dir").arg(&run).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let graph: serde_json::Value = serde_json::from_str(&fs::read_to_string(run.join("graph.json")).unwrap()).unwrap();
+    assert_eq!(graph["origin"], "random@4, draw seed 0");
+    assert!(!run.join("logs/graph-builder.log").exists(), "a graph builder was started");
+    fs::write(&preset, format!("{job}graph = \"graph:missing.json\"\n")).unwrap();
+    assert_clean_failure(&lcrl().args(["run", "--config"]).arg(&preset).output().unwrap(), "job.graph");
+}
