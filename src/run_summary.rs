@@ -92,7 +92,11 @@ pub fn evaluate_run(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wal
     let headroom = preset.headroom()?;
     let references = references(env.as_mut(), headroom.as_ref(), episodes, first)?;
     let lqr = env.as_lti().and_then(|lti| lcrl_learner::lqr::lqr_return(lti, episodes, first));
-    let masked = env.as_lti().and_then(|lti| lcrl_learner::lqr::masked_lqr_return(lti, &policy.architecture.shape.mask, episodes, first));
+    // Only a locally connected actor has a G-structured optimum to show.
+    let masked = env
+        .as_lti()
+        .filter(|_| policy.architecture.shape.connection == Connection::Local)
+        .and_then(|lti| lcrl_learner::lqr::masked_lqr_return(lti, &policy.architecture.shape.mask, episodes, first));
     let learner: Option<LearnerSummary> = std::fs::read_to_string(learner_dir.join("summary.json")).ok().and_then(|t| serde_json::from_str(&t).ok());
     let graph_seconds = std::fs::read_to_string(run_dir.join("graph.json"))
         .ok()

@@ -230,7 +230,10 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     };
     let (zero, _) = evaluate(env.as_mut(), "a = 0", episodes, first_eval, &mut |_| vec![0.0; n], &mut |_| {})?;
     let lqr = env.as_lti().and_then(|lti| lqr_return(lti, episodes, first_eval));
-    let masked_lqr = env.as_lti().and_then(|lti| masked_lqr_return(lti, &mask, episodes, first_eval));
+    // The best controller with G: a reference for locally connected actors
+    // only (with every state connected it is LQR again, and the search
+    // over every gain entry of a large system would take hours).
+    let masked_lqr = env.as_lti().filter(|_| req.connection == Connection::Local).and_then(|lti| masked_lqr_return(lti, &mask, episodes, first_eval));
     let recent = &rows[rows.len().saturating_sub(10)..];
     let (actor_params, critic_params) = agent.param_counts();
     let counters = agent.counters();
