@@ -84,6 +84,11 @@ impl GraphReport {
         self
     }
 
+    /// One line for a given graph: where it came from and its edge count.
+    pub fn origin_line(&self) -> String {
+        format!("graph: {} ({} of {} edges)", self.origin.as_deref().unwrap_or("given"), self.edges(), self.actions() * self.states())
+    }
+
     /// Edges kept in G.
     pub fn edges(&self) -> usize {
         self.g.iter().flatten().filter(|&&v| v == 1).count()

@@ -136,7 +136,7 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     };
     if let Some(report) = &given_graph {
         report.write_json(&run_dir.join("graph.json"))?;
-        eprintln!("graph: {} ({} of {} edges), no graph builder", report.origin.as_deref().unwrap_or("given"), report.edges(), report.actions() * report.states());
+        eprintln!("{}, no graph builder", report.origin_line());
     }
     if job.connection == Connection::Local && given_graph.is_none() {
         let mut cmd = Command::new(sibling("lcrl-graph-builder")?);

@@ -103,8 +103,10 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     // A given graph (graph:PATH, random@K) reaches the trainer as a file,
     // checked against the environment first; the run records it as its
     // graph.json, with `origin` saying where it came from.
-    let env_spec = lcrl_sim::make_env(&args.env)?.spec().clone();
-    let given = args.connection.given_graph(&env_spec, args.graph_seed)?;
+    let given = match &args.connection {
+        ConnectionSpec::Graph { .. } | ConnectionSpec::Random { .. } => args.connection.given_graph(lcrl_sim::make_env(&args.env)?.spec(), args.graph_seed)?,
+        _ => None,
+    };
     let given_file = match &given {
         Some(report) => {
             let file = tempfile::NamedTempFile::new().context("a temporary file for the given graph")?;
@@ -115,7 +117,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     };
     let graph = given_file.as_ref().map(|f| f.path().to_path_buf()).or_else(|| args.graph.clone());
     if let Some(report) = &given {
-        eprintln!("graph: {} ({} of {} edges)", report.origin.as_deref().unwrap_or("given"), report.edges(), report.actions() * report.states());
+        eprintln!("{}", report.origin_line());
     }
     eprintln!("training settings: {source}");
     if let Some(checkpoint) = args.resume.then(|| lcrl_learner::checkpoint::latest_checkpoint(&args.run_dir)).flatten() {
