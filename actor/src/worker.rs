@@ -4,11 +4,11 @@
 //! batches and the policies, and tests drive a [`Rollout`] directly.
 
 use lcrl_learner::action::ActionMap;
+use lcrl_learner::exploration;
 use lcrl_learner::policy::Policy;
 use lcrl_proto::v1::{EpisodeSummary, PolicySnapshot, Transition, TransitionBatch};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, Normal};
 
 use crate::metrics::ActorMetrics;
 
@@ -43,17 +43,33 @@ pub struct RolloutSettings {
     pub actor_id: String,
 }
 
-/// Exploration noise per action component: the policy's own std (PPO), or
-/// the learner's schedule (DDPG; `noise` when the learner sets none), in
+impl RolloutSettings {
+    /// Actors differ by name (container replicas all run as process 1),
+    /// and the same name and seed give the same episodes.
+    fn salt(&self) -> u64 {
+        use std::hash::{Hash, Hasher};
+        let mut hasher = std::collections::hash_map::DefaultHasher::new();
+        self.actor_id.hash(&mut hasher);
+        hasher.finish()
+    }
+
+    /// Episode seeds are this plus 1, 2, ... in the order environments
+    /// reset: training episodes' own seed range (lcrl_sim::seeds), one run
+    /// seed per actor name.
+    pub fn seed_before_first_episode(&self) -> u64 {
+        lcrl_sim::seeds::training(self.seed.wrapping_add(self.salt()) % lcrl_sim::seeds::PER_RUN, 0)
+    }
+}
+
+/// Exploration std per action component: the policy's own (PPO), or the
+/// learner's schedule (DDPG; `noise` when the learner sets none), in
 /// normalized action units.
-fn exploration_normals(policy: &Policy, exploration: Exploration, noise: f64) -> Vec<Normal<f64>> {
+fn exploration_std(policy: &Policy, exploration: Exploration, noise: f64) -> Vec<f64> {
     let noise = if exploration.noise > 0.0 { exploration.noise } else { noise };
     let std: Vec<f64> = policy.exploration_std().map_or_else(|| vec![noise; policy.architecture.shape.action_dim], |v| v.iter().map(|&x| f64::from(x)).collect());
-    // A non-finite or non-positive std (a diverged policy, a bad flag) acts
-    // greedily rather than failing; the argument below is then always valid.
-    std.iter()
-        .map(|&sd| Normal::new(0.0, if sd.is_finite() && sd > 0.0 { sd } else { 1e-9 }).expect("finite positive std"))
-        .collect()
+    // A non-finite or negative std (a diverged policy, a bad flag) acts
+    // greedily rather than failing.
+    std.into_iter().map(|sd| if sd.is_finite() && sd >= 0.0 { sd } else { 0.0 }).collect()
 }
 
 /// K environments mid-episode and the batch being assembled.
@@ -64,7 +80,7 @@ pub struct Rollout {
     /// change, and the K environments share one spec: one map for the run.
     action_map: ActionMap,
     explore: Exploration,
-    normals: Vec<Normal<f64>>,
+    std: Vec<f64>,
     /// PPO samples its own Gaussian; the learner's uniform warm-up is DDPG's.
     own_distribution: bool,
     rng: ChaCha8Rng,
@@ -91,17 +107,8 @@ impl Rollout {
         let mut envs: Vec<Box<dyn lcrl_sim::Env>> = (0..settings.envs).map(|_| lcrl_sim::make_env(name)).collect::<Result<_, _>>()?;
         policy.check_env(envs[0].as_ref())?;
         let action_map = policy.action_map(envs[0].as_ref())?;
-        // Actors differ by name (container replicas all run as process 1),
-        // and the same name and seed give the same episodes.
-        let salt = {
-            use std::hash::{Hash, Hasher};
-            let mut hasher = std::collections::hash_map::DefaultHasher::new();
-            settings.actor_id.hash(&mut hasher);
-            hasher.finish()
-        };
-        // Training episodes' own seed range (lcrl_sim::seeds), one run seed
-        // per actor name.
-        let mut episode_seed = lcrl_sim::seeds::training(settings.seed.wrapping_add(salt) % lcrl_sim::seeds::PER_RUN, 0);
+        let salt = settings.salt();
+        let mut episode_seed = settings.seed_before_first_episode();
         let states = envs
             .iter_mut()
             .map(|env| {
@@ -112,7 +119,7 @@ impl Rollout {
         let k = settings.envs;
         Ok(Rollout {
             rng: ChaCha8Rng::seed_from_u64(settings.seed ^ salt),
-            normals: exploration_normals(policy, explore, settings.noise),
+            std: exploration_std(policy, explore, settings.noise),
             own_distribution: policy.exploration_std().is_some(),
             explore,
             action_map,
@@ -136,7 +143,7 @@ impl Rollout {
     /// After a new policy version: its exploration (and, for PPO, its std).
     pub fn set_exploration(&mut self, policy: &Policy, explore: Exploration) {
         self.explore = explore;
-        self.normals = exploration_normals(policy, explore, self.settings.noise);
+        self.std = exploration_std(policy, explore, self.settings.noise);
     }
 
     /// Whether the episode budget is used up.
@@ -152,21 +159,31 @@ impl Rollout {
     /// `batch` transitions are collected (or the budget ends).
     pub fn step(&mut self, policy: &Policy, metrics: &ActorMetrics) -> anyhow::Result<Option<TransitionBatch>> {
         let mut actions = Vec::with_capacity(self.envs.len());
+        let mut sampled = Vec::with_capacity(self.envs.len());
         for (k, env) in self.envs.iter().enumerate() {
             let obs = lcrl_learner::trainer::observe(env.as_ref(), &self.states[k]);
-            let u: Vec<f32> = if self.explore.uniform && !self.own_distribution {
+            // u is sampled as `lcrl train`'s agents sample it (one function
+            // for both loops), and sent as sampled: the learner stores u.
+            let (u, log_prob) = if self.explore.uniform && !self.own_distribution {
                 // The learner is filling its replay buffer: uniformly random
                 // actions, as `lcrl train` warms up.
-                (0..policy.architecture.shape.action_dim).map(|_| rand::Rng::random_range(&mut self.rng, -1.0f32..=1.0)).collect()
+                (exploration::uniform(policy.architecture.shape.action_dim, &mut self.rng), None)
             } else {
-                let rng = &mut self.rng;
-                policy.act_normalized(&obs).iter().zip(&self.normals).map(|(&a, noise)| (f64::from(a) + noise.sample(rng)).clamp(-1.0, 1.0) as f32).collect()
+                let mean = policy.act_normalized(&obs);
+                // PPO samples its own Gaussian, unclipped, and sends log π(u|s)
+                // of this version; DDPG's noise is clipped to [−1, 1].
+                let u = exploration::gaussian(&mean, &self.std, !self.own_distribution, &mut self.rng);
+                // (None where a degenerate std makes it non-finite: the learner
+                // then evaluates it itself.)
+                let log_prob = self.own_distribution.then(|| exploration::gaussian_log_prob(&mean, &self.std, &u)).filter(|lp| lp.is_finite());
+                (u, log_prob)
             };
             actions.push(self.action_map.to_env(&u));
+            sampled.push((u, log_prob));
         }
         // All K environments at once: one call when a server serves them.
         let steps = lcrl_sim::step_all(&mut self.envs, &actions)?;
-        for (k, (step, action)) in steps.into_iter().zip(&actions).enumerate() {
+        for (k, ((step, action), (u, log_prob))) in steps.into_iter().zip(&actions).zip(sampled).enumerate() {
             self.returns[k] += step.reward;
             self.lengths[k] += 1;
             metrics.env_steps.inc();
@@ -178,6 +195,8 @@ impl Rollout {
                 terminated: step.terminated,
                 truncated: step.truncated,
                 policy_version: policy.version,
+                sampled_action: u,
+                log_prob,
             });
             if step.terminated || step.truncated {
                 let success = self.envs[k].episode_metrics().success;
@@ -279,6 +298,85 @@ mod tests {
             let again = run(algo, 5);
             let strip = |b: &[TransitionBatch]| b.iter().map(|b| (b.transitions.clone(), b.episodes.clone())).collect::<Vec<_>>();
             assert_eq!(strip(&batches), strip(&again), "{algo:?}: same seed, same batches");
+        }
+    }
+
+    /// One transition, one meaning (docs/architecture.md): an actor's
+    /// episode, through the learner's ingestion, is stored as `lcrl train`'s
+    /// loop stores the same steps, field by field. peg-group1 around its
+    /// best constant puts dx and dy on the box's upper edge, so every
+    /// sampled u > 0 there is clipped in the applied action: the test
+    /// checks that such steps occur and that u, not the applied action's
+    /// inverse, is what both loops store.
+    #[test]
+    fn an_actors_episode_is_stored_as_lcrl_train_stores_it() {
+        use lcrl_learner::service::ingest::{Ingest, Verdict};
+        use lcrl_learner::trainer::{observe, step_env};
+        let name = "peg-group1";
+        let base = lcrl_sim::peg::measured_best_constant(name).expect("measured").to_vec();
+        for algo in [Algo::Ddpg, Algo::Ppo] {
+            let mut env = lcrl_sim::make_env(name).unwrap();
+            let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
+            let cfg = TrainConfig::for_env(name).0;
+            let mask = vec![vec![1u8; m]; n];
+            let agent = lcrl_learner::trainer::make_agent(algo, Connection::Local, &cfg, &mask, m, n).unwrap();
+            let shape = lcrl_learner::snapshot::ActorShape { env: name.into(), algo, connection: Connection::Local, state_dim: m, action_dim: n, mask };
+            let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: Some(base.clone()) };
+            let snapshot = lcrl_learner::service::runtime::snapshot(agent.as_ref(), &architecture, 1).unwrap();
+            let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap();
+
+            // The actor: one environment, one episode, one batch.
+            let settings = RolloutSettings { envs: 1, batch: 100_000, noise: 0.3, seed: 5, episodes: Some(1), run_id: "r".into(), actor_id: "a".into() };
+            let first_seed = settings.seed_before_first_episode() + 1;
+            let mut rollout = Rollout::new(settings, &policy, Exploration { uniform: false, noise: 0.3 }).unwrap();
+            let metrics = ActorMetrics::default();
+            let mut batch = None;
+            while batch.is_none() {
+                batch = rollout.step(&policy, &metrics).unwrap();
+            }
+            let batch = batch.unwrap();
+            let map = policy.action_map(env.as_ref()).unwrap();
+            let mut ingest = Ingest::new("r", lcrl_sim::make_env(name).unwrap(), None).with_actions(map.clone());
+            let stored = match ingest.check(&batch, 1) {
+                Verdict::Accept(accepted) => accepted.transitions,
+                other => panic!("{other:?}"),
+            };
+
+            // `lcrl train`'s loop on the same episode with the same u.
+            let mut state = env.reset(first_seed).unwrap();
+            let mut clipped = 0;
+            assert_eq!(stored.len(), batch.transitions.len());
+            for (k, (sent, stored)) in batch.transitions.iter().zip(&stored).enumerate() {
+                let obs = observe(env.as_ref(), &state);
+                let u = &sent.sampled_action;
+                let (step, next_obs) = step_env(env.as_mut(), &map, u).unwrap();
+                // States cross the wire as f32: normalized, they agree to
+                // f32 rounding, not bit for bit.
+                let close = |a: &[f32], b: &[f32]| a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-5 * x.abs().max(1.0));
+                assert!(close(&stored.obs, &obs), "{algo:?} step {k}: obs {:?} vs {obs:?}", stored.obs);
+                assert!(close(&stored.next_obs, &next_obs), "{algo:?} step {k}: next_obs");
+                assert_eq!(&stored.action, u, "{algo:?} step {k}: the stored action is the sampled u");
+                assert_eq!(stored.reward, step.reward as f32, "{algo:?} step {k}: reward");
+                assert_eq!((stored.terminated, stored.truncated), (step.terminated, step.truncated), "{algo:?} step {k}: flags");
+                match algo {
+                    // PPO's behaviour log-probability of u under the policy that acted.
+                    Algo::Ppo => {
+                        let std: Vec<f64> = policy.exploration_std().unwrap().iter().map(|&s| f64::from(s)).collect();
+                        let expected = exploration::gaussian_log_prob(&policy.act_normalized(&obs), &std, u);
+                        let sent = stored.log_prob.expect("PPO actors send log π(u|s)");
+                        assert!((sent - expected).abs() <= 1e-4 * expected.abs().max(1.0), "{algo:?} step {k}: log-prob {sent} vs {expected}");
+                    }
+                    Algo::Ddpg => assert_eq!(stored.log_prob, None),
+                }
+                // The old path (the applied action, inverted) differs here.
+                let back = map.to_normalized(&map.to_env(u));
+                clipped += back.iter().zip(u).filter(|(b, u)| (*b - *u).abs() > 1e-6).count();
+                state = step.state;
+                if step.terminated || step.truncated {
+                    assert_eq!(k + 1, batch.transitions.len(), "the episode ends with the batch");
+                }
+            }
+            assert!(clipped > 0, "{algo:?}: no step had a u the box clipped, so the test would not see the difference");
         }
     }
 

@@ -22,6 +22,11 @@ pub struct Transition<'a> {
     pub next_obs: &'a [f32],
     pub terminated: bool,
     pub truncated: bool,
+    /// log π(u|s) under the policy that acted, when the step came from an
+    /// actor that sent it (PPO's behaviour log-probability). None: the agent
+    /// evaluates it with its current policy on storing, which in
+    /// `lcrl train`'s loop is the policy that acted.
+    pub log_prob: Option<f32>,
 }
 
 /// Counters carried across checkpoints.

@@ -18,7 +18,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
@@ -30,6 +30,7 @@ use crate::agent::{
     Counters, RngState, Transition,
 };
 use crate::config::{Connection, DdpgConfig, NetworkConfig};
+use crate::exploration;
 use crate::nets::{batch, ActorNet, Mlp};
 use crate::replay::ReplayBuffer;
 use crate::LearnerError;
@@ -208,13 +209,10 @@ impl Ddpg {
 impl Agent for Ddpg {
     fn explore(&mut self, obs: &[f32], episode: usize) -> Vec<f32> {
         if self.replay.len() < self.cfg.warmup_steps {
-            return (0..self.action_dim).map(|_| self.rng.random_range(-1.0..=1.0)).collect();
+            return exploration::uniform(self.action_dim, &mut self.rng);
         }
-        let std = self.noise_std(episode);
-        let mean = self.act(obs);
-        // Cannot fail: std is finite and ≥ 0 (validated config).
-        let noise = Normal::new(0.0, std).expect("validated noise");
-        mean.iter().map(|&a| (f64::from(a) + noise.sample(&mut self.rng)).clamp(-1.0, 1.0) as f32).collect()
+        let std = vec![self.noise_std(episode); self.action_dim];
+        exploration::gaussian(&self.act(obs), &std, true, &mut self.rng)
     }
 
     fn act(&self, obs: &[f32]) -> Vec<f32> {
@@ -332,6 +330,7 @@ impl Agent for Ddpg {
 mod tests {
     use super::*;
     use crate::config::TrainConfig;
+    use rand::Rng;
 
     /// `critic_warmup_updates`: the actor (the base controller, under one)
     /// stays exactly as it started for that many updates while the critics

@@ -29,6 +29,7 @@ fn transition() -> impl Strategy<Value = Transition> {
         terminated,
         truncated,
         policy_version,
+        ..Default::default()
     })
 }
 

@@ -10,6 +10,8 @@
 //! - [`adam`]: Adam with savable state. [`replay`]: the replay buffer.
 //! - [`rate_limiter`]: the replay-ratio limiter of the distributed learner (Reverb's semantics).
 //! - [`agent`]: the algorithm interface; [`ddpg`] and [`ppo`] implement it.
+//! - [`exploration`]: how a training action is sampled, for `lcrl train` and the actors alike.
+//! - [`tensorboard`]: TensorBoard event files of a run.
 //! - [`lqr`]: the LQR ceiling for linear environments.
 //! - [`run_files`]: metrics.csv and summary.json (atomic), for both loops.
 //! - [`checkpoint`]: the checkpoint store (atomic writes, newest kept, resume).
@@ -27,6 +29,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod ddpg;
 pub mod device;
+pub mod exploration;
 pub mod lqr;
 pub mod nets;
 pub mod policy;

@@ -18,7 +18,6 @@ use std::time::Instant;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 use tch::{nn, Device, Kind, Tensor};
 
@@ -28,6 +27,7 @@ use crate::agent::{
     Counters, RngState, Transition,
 };
 use crate::config::{Connection, NetworkConfig, PpoConfig};
+use crate::exploration;
 use crate::nets::{batch, ActorNet, Mlp};
 use crate::LearnerError;
 
@@ -167,15 +167,8 @@ impl Ppo {
 
 impl Agent for Ppo {
     fn explore(&mut self, obs: &[f32], _episode: usize) -> Vec<f32> {
-        let mean = self.act(obs);
         let std: Vec<f32> = Vec::try_from(self.log_std.exp().detach().to_device(Device::Cpu)).unwrap_or_default();
-        mean.iter()
-            .zip(&std)
-            .map(|(m, s)| {
-                let z: f64 = StandardNormal.sample(&mut self.rng);
-                m + s * z as f32
-            })
-            .collect()
+        exploration::gaussian(&self.act(obs), &std.iter().map(|&s| f64::from(s)).collect::<Vec<_>>(), false, &mut self.rng)
     }
 
     fn act(&self, obs: &[f32]) -> Vec<f32> {
@@ -185,17 +178,20 @@ impl Agent for Ppo {
         })
     }
 
-    /// log π_old(u|s) and V(s) are evaluated here with the current networks:
-    /// in one process that is the policy that just acted; for a distributed
-    /// actor, the learner keeps only transitions of recent enough versions.
+    /// V(s) is evaluated here with the current critic, in both loops.
+    /// log π_old(u|s) is the actor's own when it sent one (the version that
+    /// acted); otherwise it is evaluated here with the current policy, which
+    /// in one process is the policy that just acted.
     fn store(&mut self, t: Transition) {
         let next_value = if t.terminated { 0.0 } else { self.value(t.next_obs) };
-        let log_prob = tch::no_grad(|| {
-            let mean = self.actor.forward(&batch(t.obs, self.obs_dim, self.device));
-            let sample = batch(t.action, self.action_dim, self.device);
-            f32::try_from(self.log_prob(&mean, &sample).get(0).to_device(Device::Cpu))
-        })
-        .unwrap_or(0.0);
+        let log_prob = t.log_prob.unwrap_or_else(|| {
+            tch::no_grad(|| {
+                let mean = self.actor.forward(&batch(t.obs, self.obs_dim, self.device));
+                let sample = batch(t.action, self.action_dim, self.device);
+                f32::try_from(self.log_prob(&mean, &sample).get(0).to_device(Device::Cpu))
+            })
+            .unwrap_or(0.0)
+        });
         let value = self.value(t.obs);
         let r = &mut self.rollout;
         r.obs.extend_from_slice(t.obs);
@@ -260,5 +256,33 @@ impl Agent for Ppo {
 
     fn actor_variables(&self) -> Vec<(String, Tensor)> {
         crate::agent::sorted_variables(&self.actor_vs)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The log-probability an actor sends (plain Rust, exploration.rs) is
+    /// the one PPO computes on tensors for its ratio, and a stored
+    /// transition's own log-probability is the one the rollout keeps.
+    #[test]
+    fn actor_and_learner_log_probs_agree_and_a_sent_one_is_kept() {
+        let cfg = PpoConfig { log_std_init: -0.7, ..PpoConfig::default() };
+        let (m, n) = (4, 3);
+        let mask = vec![vec![1, 1, 0, 0], vec![0, 1, 1, 0], vec![0, 0, 1, 1]];
+        let mut ppo = Ppo::new(&cfg, &NetworkConfig::default(), Connection::Local, &mask, m, n, 3, Device::Cpu);
+        let obs = [0.3f32, -0.2, 0.9, 0.1];
+        let std: Vec<f64> = Vec::<f32>::try_from(ppo.log_std.exp()).unwrap().iter().map(|&s| f64::from(s)).collect();
+        for u in [[0.0f32, 0.0, 0.0], [1.7, -1.3, 0.2], [-3.0, 2.5, 0.9]] {
+            let tensor = tch::no_grad(|| f32::try_from(ppo.log_prob(&ppo.actor.forward(&batch(&obs, m, Device::Cpu)), &batch(&u, n, Device::Cpu)).get(0)).unwrap());
+            let plain = exploration::gaussian_log_prob(&ppo.act(&obs), &std, &u);
+            assert!((tensor - plain).abs() < 1e-4, "{u:?}: tensor {tensor}, plain {plain}");
+        }
+        let t = |log_prob| Transition { obs: &obs, action: &[0.5, 0.5, 0.5], reward: -1.0, next_obs: &obs, terminated: false, truncated: false, log_prob };
+        ppo.store(t(Some(-42.0)));
+        ppo.store(t(None));
+        assert_eq!(ppo.rollout.log_probs[0], -42.0, "the actor's behaviour log-probability is kept");
+        assert!((ppo.rollout.log_probs[1] - exploration::gaussian_log_prob(&ppo.act(&obs), &std, &[0.5, 0.5, 0.5])).abs() < 1e-4);
     }
 }

@@ -16,6 +16,7 @@ use std::time::Instant;
 use lcrl_sim::evaluate::evaluate;
 use lcrl_sim::{make_env, Env};
 
+use crate::action::ActionMap;
 use crate::agent::Agent;
 use crate::run_files::{EpisodeRow, TrainSummary};
 use crate::run_files::{read_rows, write_summary, MetricsLog};
@@ -68,6 +69,16 @@ fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
 /// A raw state as the agent's input: normalized, f32.
 pub fn observe(env: &dyn Env, state: &[f64]) -> Vec<f32> {
     env.normalize_state(state).iter().map(|&v| v as f32).collect()
+}
+
+/// One step of `lcrl train`'s loop from the agent's sampled u: the
+/// environment's action is made by the action map (the one place it is
+/// made; actors do the same), and the next state is normalized. The agent
+/// stores u itself, not the action the map made of it.
+pub fn step_env(env: &mut dyn Env, actions: &ActionMap, u: &[f32]) -> Result<(lcrl_sim::Step, Vec<f32>), LearnerError> {
+    let step = env.step(&actions.to_env(u))?;
+    let next_obs = observe(env, &step.state);
+    Ok((step, next_obs))
 }
 
 /// Builds the agent for the request on `run.device`.
@@ -154,8 +165,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         loop {
             let obs = observe(env.as_ref(), &state);
             let u = agent.explore(&obs, episode);
-            let step = env.step(&actions.to_env(&u))?;
-            let next_obs = observe(env.as_ref(), &step.state);
+            let (step, next_obs) = step_env(env.as_mut(), &actions, &u)?;
             opt_seconds += agent.observe(crate::agent::Transition {
                 obs: &obs,
                 action: &u,
@@ -163,6 +173,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
                 next_obs: &next_obs,
                 terminated: step.terminated,
                 truncated: step.truncated,
+                log_prob: None,
             });
             total += step.reward;
             length += 1;

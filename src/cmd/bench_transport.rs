@@ -94,7 +94,7 @@ pub fn run(seconds: f64) -> anyhow::Result<()> {
 /// Transitions per second acknowledged by a learner that only ingests.
 async fn ingest(dir: &std::path::Path, seconds: f64, link: &Link) -> anyhow::Result<()> {
     let (_learner, url) = learner(&dir.join("ingest"), "peg-group1", &["--no-train"], link)?;
-    let transition = Transition { state: vec![0.1; 12], action: vec![0.5; 6], reward: -1.0, next_state: vec![0.2; 12], terminated: false, truncated: false, policy_version: 0 };
+    let transition = Transition { state: vec![0.1; 12], action: vec![0.5; 6], reward: -1.0, next_state: vec![0.2; 12], terminated: false, truncated: false, policy_version: 0, ..Default::default() };
     let (streams, per_batch) = (4usize, 1000usize);
     let deadline = Instant::now() + Duration::from_secs_f64(seconds);
     let started = Instant::now();
@@ -148,7 +148,7 @@ async fn ingest_shm(dir: &std::path::Path, seconds: f64) -> anyhow::Result<()> {
     let (_learner, url) = learner(&dir.join("ingest-shm"), "peg-group1", &["--no-train", "--run-id", &run_id], &Link::plain())?;
     let mut client = LearnerClient::connect(url).await?;
     tokio::time::sleep(Duration::from_millis(500)).await;
-    let transition = Transition { state: vec![0.1; 12], action: vec![0.5; 6], reward: -1.0, next_state: vec![0.2; 12], terminated: false, truncated: false, policy_version: 0 };
+    let transition = Transition { state: vec![0.1; 12], action: vec![0.5; 6], reward: -1.0, next_state: vec![0.2; 12], terminated: false, truncated: false, policy_version: 0, ..Default::default() };
     let first = client.get_status(GetStatusRequest {}).await?.into_inner().env_steps;
     let started = Instant::now();
     let publishers: Vec<_> = (0..2)

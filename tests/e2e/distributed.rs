@@ -113,7 +113,7 @@ pub(super) fn batch(run_id: &str, sequence: u64, state_len: usize, value: f32) -
         sequence,
         episode_id: 0,
         policy_version: 0,
-        transitions: vec![Transition { state: vec![value; state_len], action: vec![0.1; 3], reward: -1.0, next_state: vec![0.0; state_len], terminated: false, truncated: false, policy_version: 0 }; 4],
+        transitions: vec![Transition { state: vec![value; state_len], action: vec![0.1; 3], reward: -1.0, next_state: vec![0.0; state_len], terminated: false, truncated: false, policy_version: 0, ..Default::default() }; 4],
         episodes: vec![],
     }
 }

@@ -9,11 +9,14 @@ use std::collections::{BTreeMap, HashMap};
 use lcrl_proto::v1::{EpisodeSummary, TransitionBatch};
 use lcrl_sim::Env;
 
-/// A transition in the agent's units (normalized state, action in [−1, 1]).
+/// A transition in the agent's units: normalized state, and the action u as
+/// the agent sampled it (what `lcrl train` stores for the same step).
 #[derive(Debug, Clone, PartialEq)]
 pub struct AgentTransition {
     pub obs: Vec<f32>,
     pub action: Vec<f32>,
+    /// The behaviour log π(u|s) the actor sent (PPO), if it sent one.
+    pub log_prob: Option<f32>,
     pub reward: f32,
     pub next_obs: Vec<f32>,
     pub terminated: bool,
@@ -127,19 +130,22 @@ impl Ingest {
         }
         let (m, n) = (self.env.spec().state_dim(), self.env.spec().action_dim());
         for (k, t) in batch.transitions.iter().enumerate() {
-            if t.state.len() != m || t.next_state.len() != m || t.action.len() != n {
+            let sampled_ok = t.sampled_action.is_empty() || t.sampled_action.len() == n;
+            if t.state.len() != m || t.next_state.len() != m || t.action.len() != n || !sampled_ok {
                 self.count("dimensions", count);
                 return Verdict::Reject {
                     reason: "dimensions",
                     message: format!(
-                        "transition {k}: state {}, next_state {}, action {}; this run needs states of {m} and actions of {n}",
+                        "transition {k}: state {}, next_state {}, action {}, sampled_action {}; this run needs states of {m} and actions \
+                         of {n} (sampled_action: {n} or none)",
                         t.state.len(),
                         t.next_state.len(),
-                        t.action.len()
+                        t.action.len(),
+                        t.sampled_action.len()
                     ),
                 };
             }
-            let all = t.state.iter().chain(&t.next_state).chain(&t.action).chain(std::iter::once(&t.reward));
+            let all = t.state.iter().chain(&t.next_state).chain(&t.action).chain(&t.sampled_action).chain(std::iter::once(&t.reward)).chain(&t.log_prob);
             if all.clone().any(|v| !v.is_finite()) {
                 self.count("non_finite", count);
                 return Verdict::Reject { reason: "non_finite", message: format!("transition {k} holds a non-finite number") };
@@ -155,16 +161,17 @@ impl Ingest {
             return Verdict::Stale;
         }
         let to_action = |a: &[f32]| -> Vec<f32> { self.actions.to_normalized(&a.iter().map(|&v| f64::from(v)).collect::<Vec<_>>()) };
-        let to_obs = |s: &[f32]| -> Vec<f32> {
-            let raw: Vec<f64> = s.iter().map(|&v| f64::from(v)).collect();
-            self.env.normalize_state(&raw).iter().map(|&v| v as f32).collect()
-        };
+        let to_obs = |s: &[f32]| crate::trainer::observe(self.env.as_ref(), &s.iter().map(|&v| f64::from(v)).collect::<Vec<_>>());
         let transitions = batch
             .transitions
             .iter()
             .map(|t| AgentTransition {
                 obs: to_obs(&t.state),
-                action: to_action(&t.action),
+                // The agent's own u when the actor sent it; otherwise the
+                // inverse of the action map (a client that knows only the
+                // applied action).
+                action: if t.sampled_action.is_empty() { to_action(&t.action) } else { t.sampled_action.clone() },
+                log_prob: t.log_prob,
                 reward: t.reward,
                 next_obs: to_obs(&t.next_state),
                 terminated: t.terminated,
@@ -189,7 +196,7 @@ mod tests {
             sequence,
             episode_id: 1,
             policy_version: 3,
-            transitions: vec![Transition { state: state.clone(), action: vec![0.5, -1.0, 1.0], reward: -1.0, next_state: state, terminated: false, truncated: false, policy_version: 0 }],
+            transitions: vec![Transition { state: state.clone(), action: vec![0.5, -1.0, 1.0], reward: -1.0, next_state: state, terminated: false, truncated: false, policy_version: 0, ..Default::default() }],
             episodes: vec![],
         }
     }
@@ -200,7 +207,7 @@ mod tests {
 
     #[test]
     fn a_batch_is_cut_after_the_last_episode_the_budget_allows() {
-        let t = |end: bool| AgentTransition { obs: vec![], action: vec![], reward: 0.0, next_obs: vec![], terminated: end, truncated: false, policy_version: 0 };
+        let t = |end: bool| AgentTransition { obs: vec![], action: vec![], log_prob: None, reward: 0.0, next_obs: vec![], terminated: end, truncated: false, policy_version: 0 };
         let e = || EpisodeSummary { episode_return: -1.0, length: 2, success: None };
         // Two episode ends (after transitions 2 and 4) and a started third.
         let batch = || Accepted { transitions: vec![t(false), t(true), t(false), t(true), t(false)], episodes: vec![e(), e()], policy_version: 1 };
@@ -226,6 +233,28 @@ mod tests {
             other => panic!("{other:?}"),
         }
         assert!(ingest.rejected.is_empty());
+    }
+
+    #[test]
+    fn the_sampled_action_is_stored_as_sent_and_the_applied_one_only_without_it() {
+        let mut ingest = ingest(None);
+        // u outside [−1, 1] (a PPO sample) whose applied action the box clipped.
+        let mut sent = batch("a1", 1, vec![0.1, 0.2, 0.3]);
+        sent.transitions[0].sampled_action = vec![1.7, -1.0, 0.25];
+        sent.transitions[0].log_prob = Some(-2.5);
+        match ingest.check(&sent, 3) {
+            Verdict::Accept(accepted) => {
+                assert_eq!(accepted.transitions[0].action, vec![1.7, -1.0, 0.25]);
+                assert_eq!(accepted.transitions[0].log_prob, Some(-2.5));
+            }
+            other => panic!("{other:?}"),
+        }
+        let mut short = batch("a1", 2, vec![0.0; 3]);
+        short.transitions[0].sampled_action = vec![0.5];
+        assert!(matches!(ingest.check(&short, 3), Verdict::Reject { reason: "dimensions", .. }));
+        let mut nan = batch("a1", 3, vec![0.0; 3]);
+        nan.transitions[0].log_prob = Some(f32::NAN);
+        assert!(matches!(ingest.check(&nan, 3), Verdict::Reject { reason: "non_finite", .. }));
     }
 
     #[test]

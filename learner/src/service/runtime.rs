@@ -271,6 +271,7 @@ impl TrainingLoop {
                 next_obs: &t.next_obs,
                 terminated: t.terminated,
                 truncated: t.truncated,
+                log_prob: t.log_prob,
             });
         }
         {

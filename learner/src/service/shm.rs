@@ -43,8 +43,13 @@ pub struct TransitionSample {
     pub states: [f32; MAX_TRANSITIONS * MAX_STATE],
     pub next_states: [f32; MAX_TRANSITIONS * MAX_STATE],
     pub actions: [f32; MAX_TRANSITIONS * MAX_ACTION],
+    /// The agent's sampled u per transition (valid where flag bit 2 is set).
+    pub sampled_actions: [f32; MAX_TRANSITIONS * MAX_ACTION],
+    /// The behaviour log π(u|s) (valid where flag bit 3 is set).
+    pub log_probs: [f32; MAX_TRANSITIONS],
     pub rewards: [f32; MAX_TRANSITIONS],
-    /// bit 0: terminated, bit 1: truncated.
+    /// bit 0: terminated, bit 1: truncated, bit 2: sampled action present,
+    /// bit 3: log-probability present.
     pub flags: [u8; MAX_TRANSITIONS],
     /// The policy version that chose each action.
     pub versions: [u64; MAX_TRANSITIONS],
@@ -79,6 +84,8 @@ impl TransitionSample {
             states: [0.0; MAX_TRANSITIONS * MAX_STATE],
             next_states: [0.0; MAX_TRANSITIONS * MAX_STATE],
             actions: [0.0; MAX_TRANSITIONS * MAX_ACTION],
+            sampled_actions: [0.0; MAX_TRANSITIONS * MAX_ACTION],
+            log_probs: [0.0; MAX_TRANSITIONS],
             rewards: [0.0; MAX_TRANSITIONS],
             flags: [0; MAX_TRANSITIONS],
             versions: [0; MAX_TRANSITIONS],
@@ -88,14 +95,19 @@ impl TransitionSample {
         };
         s.actor_id[..batch.actor_id.len()].copy_from_slice(batch.actor_id.as_bytes());
         for (k, t) in batch.transitions.iter().enumerate() {
-            if t.state.len() != m || t.next_state.len() != m || t.action.len() != n {
+            let sampled = !t.sampled_action.is_empty();
+            if t.state.len() != m || t.next_state.len() != m || t.action.len() != n || (sampled && t.sampled_action.len() != n) {
                 return Err("every transition of a batch must have the same dimensions".into());
             }
             s.states[k * m..(k + 1) * m].copy_from_slice(&t.state);
             s.next_states[k * m..(k + 1) * m].copy_from_slice(&t.next_state);
             s.actions[k * n..(k + 1) * n].copy_from_slice(&t.action);
+            if sampled {
+                s.sampled_actions[k * n..(k + 1) * n].copy_from_slice(&t.sampled_action);
+            }
+            s.log_probs[k] = t.log_prob.unwrap_or(0.0);
             s.rewards[k] = t.reward;
-            s.flags[k] = u8::from(t.terminated) | (u8::from(t.truncated) << 1);
+            s.flags[k] = u8::from(t.terminated) | (u8::from(t.truncated) << 1) | (u8::from(sampled) << 2) | (u8::from(t.log_prob.is_some()) << 3);
             s.versions[k] = t.policy_version;
         }
         for (k, e) in batch.episodes.iter().enumerate() {
@@ -122,6 +134,8 @@ impl TransitionSample {
                 .map(|k| Transition {
                     state: self.states[k * m..(k + 1) * m].to_vec(),
                     action: self.actions[k * n..(k + 1) * n].to_vec(),
+                    sampled_action: if self.flags[k] & 4 != 0 { self.sampled_actions[k * n..(k + 1) * n].to_vec() } else { Vec::new() },
+                    log_prob: (self.flags[k] & 8 != 0).then_some(self.log_probs[k]),
                     reward: self.rewards[k],
                     next_state: self.next_states[k * m..(k + 1) * m].to_vec(),
                     terminated: self.flags[k] & 1 != 0,
@@ -393,7 +407,18 @@ mod tests {
 
     #[test]
     fn sample_round_trips_a_batch() {
-        let t = |v: f32| Transition { state: vec![v; 12], action: vec![-v; 6], reward: v, next_state: vec![v + 1.0; 12], terminated: v > 2.0, truncated: v < 1.0, policy_version: v as u64 };
+        // With and without the sampled action and the log-probability.
+        let t = |v: f32| Transition {
+            state: vec![v; 12],
+            action: vec![-v; 6],
+            reward: v,
+            next_state: vec![v + 1.0; 12],
+            terminated: v > 2.0,
+            truncated: v < 1.0,
+            policy_version: v as u64,
+            sampled_action: if v > 1.0 { vec![1.5 * v; 6] } else { vec![] },
+            log_prob: (v > 2.0).then_some(-v),
+        };
         let batch = TransitionBatch {
             run_id: "r".into(),
             actor_id: "actor-7".into(),
