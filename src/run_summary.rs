@@ -26,8 +26,15 @@ pub struct RunSummary {
     pub episodes: u64,
     /// Mean return of the last 10 training episodes (with exploration).
     pub final_return: f64,
-    /// Mean return of the final deterministic policy over `eval_episodes`.
+    /// Mean return of the run's policy (deterministic) over `eval_episodes`:
+    /// the one validation selected on held-out starts (learner/selected/),
+    /// else the last.
     pub eval_return: f64,
+    /// The last policy's, on the same starts, when a selected one was
+    /// evaluated instead (as in `lcrl train`'s summary).
+    pub last_eval_return: Option<f64>,
+    /// Which policy validation chose, with every validation.
+    pub selection: Option<lcrl_learner::selection::SelectionRecord>,
     pub eval_episodes: usize,
     pub eval_success_rate: Option<f64>,
     pub eval_peak_force_n: Option<f64>,
@@ -76,8 +83,9 @@ fn references(env: &mut dyn lcrl_sim::Env, headroom: Option<&StoredPolicy>, epis
     Ok(out)
 }
 
-/// Evaluates the newest checkpoint of the run's learner and writes
-/// summary.json into `run_dir`.
+/// Evaluates the run's policy (the learner's selected one, else its newest
+/// checkpoint; the newest too when they differ) and writes summary.json
+/// into `run_dir`.
 pub fn evaluate_run(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wall_seconds: f64, actors: usize, transport: &str) -> anyhow::Result<RunSummary> {
     let job = &preset.job;
     let learner_dir = run_dir.join("learner");
@@ -89,6 +97,14 @@ pub fn evaluate_run(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wal
     let scales = env.fresh();
     let first = preset.train.run.first_eval_seed();
     let (eval, _) = evaluate(env.as_mut(), "policy", episodes, first, &mut |s: &[f64]| policy.act(scales.as_ref(), s), &mut |_| {})?;
+    let selection = lcrl_learner::selection::read_record(&lcrl_learner::selection::selected_dir(&learner_dir))?;
+    let last_eval_return = match (&selection, lcrl_learner::checkpoint::latest_checkpoint(&learner_dir)) {
+        (Some(_), Some(last_dir)) => {
+            let last = Policy::load(&last_dir).with_context(|| format!("loading the last policy from {}", last_dir.display()))?;
+            Some(evaluate(env.as_mut(), "last policy", episodes, first, &mut |s: &[f64]| last.act(scales.as_ref(), s), &mut |_| {})?.0.mean_return)
+        }
+        _ => None,
+    };
     let headroom = preset.headroom()?;
     let references = references(env.as_mut(), headroom.as_ref(), episodes, first)?;
     let lqr = env.as_lti().and_then(|lti| lcrl_learner::lqr::lqr_return(lti, episodes, first));
@@ -112,6 +128,8 @@ pub fn evaluate_run(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wal
         episodes: status.episodes,
         final_return: learner.as_ref().map_or(status.recent_return, |l| l.final_return),
         eval_return: eval.mean_return,
+        last_eval_return,
+        selection,
         eval_episodes: episodes,
         eval_success_rate: eval.success_rate,
         eval_peak_force_n: eval.mean_peak_force_n,
@@ -133,6 +151,6 @@ pub fn evaluate_run(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wal
         transport: transport.to_string(),
     };
     let path = run_dir.join("summary.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&summary)? + "\n").with_context(|| format!("writing {}", path.display()))?;
+    lcrl_learner::run_files::write_atomically(&path, (serde_json::to_string_pretty(&summary)? + "\n").as_bytes()).with_context(|| format!("writing {}", path.display()))?;
     Ok(summary)
 }

@@ -17,6 +17,7 @@ use lcrl_proto::process::shutdown_signal;
 use lcrl_learner::config::{Algo, Connection, TrainConfig};
 use lcrl_learner::service::ingest::Ingest;
 use lcrl_learner::service::runtime::{run_training, snapshot, Schedule};
+use lcrl_learner::service::validator::Validator;
 use lcrl_learner::service::shared::Shared;
 use lcrl_learner::service::server::{LearnerService, PolicyService};
 use lcrl_learner::checkpoint::CheckpointMeta;
@@ -225,6 +226,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 .with_sequences(meta.actor_sequences.clone()),
         ),
         policy,
+        served: Mutex::new(None),
         shutdown: watch::channel(false).0,
         run_dir: args.run_dir.clone(),
         flow: Mutex::new(Default::default()),
@@ -260,6 +262,12 @@ async fn run(args: Args) -> anyhow::Result<()> {
     if !(args.checkpoint_secs.is_finite() && args.checkpoint_secs > 0.0) {
         bail!("--checkpoint-secs must be a positive number of seconds");
     }
+    // The run's policy is chosen on held-out starts as `lcrl train` chooses
+    // it (run.validation_episodes, run.validate_every), on its own thread.
+    let validator = match lcrl_learner::selection::Selection::new(&config.run, &args.run_dir, resume.is_some())? {
+        Some(selection) => Some(Validator::start(selection, lcrl_sim::make_env(&args.env)?, &args.run_dir, config.run.validate_every)?),
+        None => None,
+    };
     let schedule = Schedule {
         publish_every: args.publish_every.max(1),
         checkpoint_interval: Duration::from_secs_f64(args.checkpoint_secs),
@@ -269,6 +277,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         max_staleness: staleness,
         budget_episodes: args.episodes,
         limiter,
+        validator,
     };
     let trainer_shared = shared.clone();
     // A failed training thread stops the server too: a learner that cannot

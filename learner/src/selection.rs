@@ -93,10 +93,17 @@ impl Selection {
     }
 
     /// Whether the policy after `done` episodes is validated: at the start,
-    /// every `validate_every` episodes and at `last`, once each.
+    /// every `validate_every` episodes and at `last`, once each. Episodes
+    /// may arrive several at a time (a distributed learner stores whole
+    /// batches): a multiple of `validate_every` passed since the last
+    /// validation counts as reached.
     pub fn due(&self, done: usize, last: usize) -> bool {
-        let validated = self.history.last().is_some_and(|v| v.episode >= done);
-        !validated && (done % self.every == 0 || done == last)
+        validation_due(self.history.last().map(|v| v.episode), done, last, self.every)
+    }
+
+    /// The most recent validation, if any.
+    pub fn last_validated(&self) -> Option<usize> {
+        self.history.last().map(|v| v.episode)
     }
 
     /// The chosen validation: the best mean return, the earliest of equals.
@@ -110,21 +117,39 @@ impl Selection {
     /// Validates the agent's current policy; if it beats every earlier one
     /// (strictly: a tie keeps the earlier), it becomes RUN/selected/.
     pub fn validate(&mut self, env: &dyn Env, agent: &dyn Agent, actions: &ActionMap, run_dir: &Path, meta: &CheckpointMeta) -> Result<Validation, LearnerError> {
+        let write_actor = |staging: &Path| write_tensors(&staging.join("actor.safetensors"), &agent.actor_variables());
+        self.validate_policy(env, &|obs| agent.act(obs), actions, run_dir, meta, &write_actor).map(|(validation, _)| validation)
+    }
+
+    /// Validates a deterministic policy `act` (normalized observation to
+    /// u) as the policy after `meta.episode` episodes; if it beats every
+    /// earlier one, RUN/selected/ is replaced by `meta` and what
+    /// `write_actor` writes into the staging folder (actor.safetensors).
+    /// Returns the validation and whether it was selected.
+    pub fn validate_policy(
+        &mut self,
+        env: &dyn Env,
+        act: &dyn Fn(&[f32]) -> Vec<f32>,
+        actions: &ActionMap,
+        run_dir: &Path,
+        meta: &CheckpointMeta,
+        write_actor: &dyn Fn(&Path) -> Result<(), LearnerError>,
+    ) -> Result<(Validation, bool), LearnerError> {
         let _span = tracing::info_span!("validation", episode = meta.episode).entered();
         let mut run_env = env.fresh();
         let probe = env.fresh();
-        let mut policy = |s: &[f64]| actions.to_env(&agent.act(&crate::trainer::observe(probe.as_ref(), s)));
+        let mut policy = |s: &[f64]| actions.to_env(&act(&crate::trainer::observe(probe.as_ref(), s)));
         let first = lcrl_sim::seeds::validation(self.run_seed, 0);
         let (summary, _) = evaluate(run_env.as_mut(), "validation", self.starts, first, &mut policy, &mut |_| {})?;
         let validation = Validation { episode: meta.episode, mean_return: summary.mean_return, success_rate: summary.success_rate };
         let better = self.best().is_none_or(|best| validation.mean_return > best.mean_return);
         self.history.push(validation);
         if better {
-            write_folder(&selected_dir(run_dir), meta, |staging| write_tensors(&staging.join("actor.safetensors"), &agent.actor_variables()))?;
+            write_folder(&selected_dir(run_dir), meta, write_actor)?;
         }
         self.write_record(run_dir)?;
         tracing::info!(episode = validation.episode, mean_return = validation.mean_return, selected = better, "validated");
-        Ok(validation)
+        Ok((validation, better))
     }
 
     /// The choice so far, with every validation.
@@ -146,7 +171,19 @@ impl Selection {
     }
 }
 
-fn read_record(dir: &Path) -> Result<Option<SelectionRecord>, LearnerError> {
+/// The validation schedule (see [`Selection::due`]): the first policy, then
+/// the first policy at or past each multiple of `every`, and the last.
+pub fn validation_due(last_validated: Option<usize>, done: usize, last: usize, every: usize) -> bool {
+    let every = every.max(1);
+    match last_validated {
+        None => true,
+        Some(v) if v >= done => false,
+        Some(v) => done / every > v / every || done >= last,
+    }
+}
+
+/// RUN/selected/selection.json, if the run has chosen a policy.
+pub fn read_record(dir: &Path) -> Result<Option<SelectionRecord>, LearnerError> {
     let path = dir.join("selection.json");
     if !path.is_file() {
         return Ok(None);

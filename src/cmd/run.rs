@@ -217,9 +217,18 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
         (Some(lqr), _, _) => format!("reference: LQR {lqr:.3}"),
         _ => reference_table(job, &summary),
     };
+    let which = match (&summary.selection, summary.last_eval_return) {
+        (Some(chosen), Some(last)) => format!(
+            "the policy validation selected (after {} episodes, best of {} validations on {} held-out starts; the last policy scores {last:.3})",
+            chosen.episode,
+            chosen.history.len(),
+            chosen.starts
+        ),
+        _ => "the final policy".to_string(),
+    };
     Ok(format!(
         "{}run {run_id}: {} episodes, {} env steps, {} updates ({}), policy lag mean {:.1}, policy v{}, recent average return {:.3}, {:.1} s\n\
-         eval return {:.3} over {} episodes of the final policy; {reference}\n\
+         eval return {:.3} over {} episodes of {which}; {reference}\n\
          results in {}: summary.json, config.toml, graph.json/graph.png, learner/metrics.csv (and TensorBoard events), learner/checkpoints/, reward_curve.png, logs/",
         if interrupted { "interrupted: " } else { "" },
         s.episodes,

@@ -46,8 +46,14 @@ fn learner_with(run_dir: &Path, run_id: &str, port: u16, algo: &str) -> (Proc, S
 
 /// A small-network learner on lti-paper (global connection) with `extra` flags.
 pub(super) fn learner_with_args(run_dir: &Path, run_id: &str, port: u16, algo: &str, extra: &[&str]) -> (Proc, String) {
+    learner_with_run_settings(run_dir, run_id, port, algo, "", extra)
+}
+
+/// As [`learner_with_args`], with `run` added to the config's `[run]` table.
+pub(super) fn learner_with_run_settings(run_dir: &Path, run_id: &str, port: u16, algo: &str, run: &str, extra: &[&str]) -> (Proc, String) {
     let config = run_dir.with_extension("toml");
-    std::fs::write(&config, format!("{SMALL}[ppo]\nrollout_steps = 500\nminibatch_size = 100\n")).unwrap();
+    let small = SMALL.replace("[run]\n", &format!("[run]\n{run}"));
+    std::fs::write(&config, format!("{small}[ppo]\nrollout_steps = 500\nminibatch_size = 100\n")).unwrap();
     let mut child = workspace_bin("lcrl-learner")
         .args(["--env", "lti-paper", "--algo", algo, "--connection", "global", "--publish-every", "20", "--checkpoint-secs", "0.5", "--run-id", run_id])
         .arg("--config")

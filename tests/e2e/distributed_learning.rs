@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 use serde_json::Value;
 
 use super::common::lcrl;
-use super::distributed::{actor_with_args, free_port, learner_with_args, status, wait_for};
+use super::distributed::{actor_with_args, free_port, learner_with_args, learner_with_run_settings, status, wait_for};
 
 /// A preset: `[job]` over configs/lti-fast.toml (the settings and budget of
 /// the learner tests).
@@ -225,4 +225,70 @@ async fn a_learner_holding_actors_back_stops_promptly() {
     assert!(actor.0.wait().unwrap().success());
     assert!(stopped.elapsed() < Duration::from_secs(8), "the actor took {:?}", stopped.elapsed());
     assert!(lcrl_learner::checkpoint::latest_checkpoint(&run).is_some(), "a final checkpoint");
+}
+
+/// The distributed learner chooses its policy on held-out starts as
+/// `lcrl train` does (issue: selection in the distributed learner): a
+/// learner killed mid-run resumes its selection from `selected/`, the
+/// policy it hands over is the best of its validations, `selected/`
+/// replays its recorded validation return exactly, and once training has
+/// ended `Policy.Act` serves the selected policy and `GetStatus` says so.
+#[tokio::test]
+async fn the_learner_selects_resumes_its_selection_and_serves_the_choice() {
+    use lcrl_learner::selection::{read_record, selected_dir};
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let port = free_port();
+    let settings = "validation_episodes = 10\nvalidate_every = 20\n";
+    let extra = ["--episodes", "400"];
+    let (first, url) = learner_with_run_settings(&run, "sel", port, "ppo", settings, &extra);
+    let _actor = actor_with_args(&url, "sel", &["--transport", "grpc"]);
+    // Kill it once a few validations are recorded, well before the budget.
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let before = loop {
+        if let Ok(Some(record)) = read_record(&selected_dir(&run)) {
+            if record.history.len() >= 3 {
+                break record;
+            }
+        }
+        assert!(Instant::now() < deadline, "no validations recorded");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    let at_kill = status(&url).await.unwrap();
+    assert!(!at_kill.finished && at_kill.served_reason.starts_with("newest"), "{at_kill:?}");
+    first.signal("KILL");
+    drop(first);
+
+    let (_second, url) = learner_with_run_settings(&run, "sel", port, "ppo", settings, &extra);
+    let end = wait_for(&url, "the end of the budget", |s| s.finished).await;
+    let record = read_record(&selected_dir(&run)).unwrap().expect("a selection");
+    assert_eq!(&record.history[..before.history.len()], &before.history[..], "the restarted learner resumed its selection");
+    assert!(record.history.len() > before.history.len() + 2, "validations went on: {record:?}");
+    assert!(record.history.last().unwrap().episode >= 400, "the last policy was validated: {record:?}");
+    // The handed-over policy is the first of the best.
+    let best = record.history.iter().fold(f64::NEG_INFINITY, |b, v| b.max(v.mean_return));
+    let first_best = record.history.iter().find(|v| v.mean_return == best).unwrap();
+    assert_eq!((record.episode, record.validation_return), (first_best.episode, best), "{record:?}");
+
+    // selected/ replays its validation return exactly, on the same starts.
+    let policy = lcrl_learner::policy::Policy::load(&selected_dir(&run)).unwrap();
+    assert_eq!(policy.episode, Some(record.episode));
+    let mut env = lcrl_sim::make_env("lti-paper").unwrap();
+    let probe = env.fresh();
+    let first_start = lcrl_sim::seeds::validation(0, 0);
+    let (replay, _) = lcrl_sim::evaluate::evaluate(env.as_mut(), "replay", record.starts, first_start, &mut |s| policy.act(probe.as_ref(), s), &mut |_| {}).unwrap();
+    assert_eq!(replay.mean_return, record.validation_return);
+
+    // GetStatus says what is served and why; Policy.Act serves it.
+    assert_eq!(end.served_version, policy.version, "{end:?}");
+    assert!(end.served_reason.starts_with("selected:"), "{end:?}");
+    let mut client = lcrl_proto::v1::policy_client::PolicyClient::connect(url.clone()).await.unwrap();
+    for state in [[0.5f32, -0.3, 0.8], [-1.0, 0.2, 0.0]] {
+        let reply = client.act(lcrl_proto::v1::ActRequest { state: state.to_vec() }).await.unwrap().into_inner();
+        let expected: Vec<f32> = policy.act(probe.as_ref(), &state.map(f64::from)).iter().map(|&a| a as f32).collect();
+        assert_eq!((reply.action, reply.policy_version), (expected, policy.version));
+    }
+    let summary: Value = serde_json::from_str(&fs::read_to_string(run.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["served_version"].as_u64(), Some(policy.version), "{summary}");
+    assert_eq!(summary["selection"]["episode"].as_u64(), Some(record.episode as u64), "{summary}");
 }

@@ -9,6 +9,7 @@
 //! - [`server`]: the `lcrl.v1.Learner` and `lcrl.v1.Policy` gRPC handlers.
 //! - [`metrics`]: Prometheus `/metrics` for learner and actors.
 //! - [`shm`]: the same-host transport over iceoryx2 shared memory.
+//! - [`validator`]: the run's policy chosen on held-out starts, on a thread of its own.
 
 pub mod episodes;
 pub mod flow;
@@ -18,3 +19,4 @@ pub mod runtime;
 pub mod server;
 pub mod shared;
 pub mod shm;
+pub mod validator;

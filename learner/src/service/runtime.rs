@@ -9,8 +9,13 @@
 //!    batch is held, the command queue fills and the actors' sends block:
 //!    backpressure, not dropped data), and ends the run at its budget;
 //! 2. **trains** once, if the limiter lets the learner sample;
-//! 3. **publishes** the policy when due, and checkpoints on its interval;
+//! 3. **publishes** the policy when due, hands a snapshot to the validation
+//!    thread when a validation is due (`service/validator.rs`), and
+//!    checkpoints on its interval;
 //! 4. **idles** until the next batch when there was nothing to do.
+//!
+//! At the end of the budget it waits for the last validation and serves
+//! the chosen policy (`Policy.Act`, `GetStatus.served_version`).
 
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
@@ -25,12 +30,14 @@ use crate::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::config::Algo;
 use crate::rate_limiter::RateLimiter;
 use crate::service::ingest::Accepted;
-use crate::service::shared::{Command, Shared};
+use crate::selection::SelectionRecord;
+use crate::service::shared::{Command, Served, Shared};
+use crate::service::validator::Validator;
 use crate::snapshot::{encode_weights, Architecture};
 use crate::LearnerError;
 
 /// How often the training thread publishes and checkpoints.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct Schedule {
     /// Publish a new policy version every this many updates (PPO: after
     /// every PPO update).
@@ -54,6 +61,9 @@ pub struct Schedule {
     /// resume). None: unlimited, at most one update per stored step. The
     /// loop hands it to the flow statistics, which then own the counts.
     pub limiter: Option<RateLimiter>,
+    /// The choice of the run's policy on held-out starts (None:
+    /// `run.validation_episodes` is 0, and the last policy is the run's).
+    pub validator: Option<Validator>,
 }
 
 /// Batches stored per loop turn before training gets its turn: with fast
@@ -85,6 +95,14 @@ pub struct LearnerSummary {
     /// Mean return of the last 10 episodes (with exploration).
     pub final_return: f64,
     pub policy_version: u64,
+    /// The policy served once training ended: the selected one, or the
+    /// newest without a selection.
+    #[serde(default)]
+    pub served_version: u64,
+    /// Which policy validation chose, with every validation (None without
+    /// validation).
+    #[serde(default)]
+    pub selection: Option<SelectionRecord>,
 }
 
 /// Policy lag over the window of recently stored transitions.
@@ -168,6 +186,9 @@ impl TrainingLoop {
     }
 
     pub fn run(mut self) -> Result<(), LearnerError> {
+        // The starting policy is a candidate, as in `lcrl train` (with a
+        // base controller it is the base itself).
+        self.validate_if_due()?;
         loop {
             // Shutdown does not wait for a Stop through the queue: while
             // the limiter holds a batch the queue is full, and senders (the
@@ -186,6 +207,7 @@ impl TrainingLoop {
             }
             let trained = self.train(turn_seconds);
             self.publish_if_due(trained)?;
+            self.validate_if_due()?;
             if self.last_checkpoint.elapsed() >= self.schedule.checkpoint_interval {
                 self.checkpoint()?;
             }
@@ -309,7 +331,28 @@ impl TrainingLoop {
         }
         self.shared.updates.store(self.agent.counters().updates, Ordering::Relaxed);
         self.checkpoint()?;
-        self.write_summary()?;
+        // The last policy is validated too, then the choice is final.
+        self.validate_if_due()?;
+        let chosen = match self.schedule.validator.as_mut() {
+            Some(validator) => Some(validator.finish()?),
+            None => None,
+        };
+        let served = match chosen.as_ref().and_then(|c| c.snapshot.clone().zip(c.record.clone())) {
+            Some((snapshot, record)) => Served {
+                reason: format!(
+                    "selected: the policy after {} episodes, best of {} validations (mean return {:.4} on {} held-out starts)",
+                    record.episode,
+                    record.history.len(),
+                    record.validation_return,
+                    record.starts
+                ),
+                snapshot,
+            },
+            None => Served { snapshot: self.shared.policy.borrow().clone(), reason: "newest: training ended without validation (run.validation_episodes = 0)".into() },
+        };
+        let served_version = served.snapshot.version;
+        self.shared.serve(served);
+        self.write_summary(served_version, chosen.and_then(|c| c.record))?;
         self.shared.flow_mut().finished = true;
         tracing::info!(episodes = self.episodes(), "episode budget reached: training ends");
         Ok(())
@@ -423,7 +466,27 @@ impl TrainingLoop {
         Ok(())
     }
 
-    fn write_summary(&self) -> Result<(), LearnerError> {
+    /// Hands the current actor to the validation thread when a validation
+    /// is due: at the start, every `run.validate_every` episodes and at the
+    /// end of the budget, as `lcrl train` validates.
+    fn validate_if_due(&mut self) -> Result<(), LearnerError> {
+        let done = self.episodes() as usize;
+        let last = self.schedule.budget_episodes.map_or(usize::MAX, |b| b as usize);
+        if !self.schedule.validator.as_ref().is_some_and(|v| v.due(done, last)) {
+            return Ok(());
+        }
+        let version = self.shared.policy_version();
+        let snapshot = Arc::new(snapshot(self.agent.as_ref(), &self.shared.architecture, version)?);
+        let mut meta = self.schedule.meta.clone();
+        meta.episode = done;
+        meta.policy_version = version;
+        if let Some(validator) = self.schedule.validator.as_mut() {
+            validator.submit(snapshot, meta);
+        }
+        Ok(())
+    }
+
+    fn write_summary(&self, served_version: u64, selection: Option<SelectionRecord>) -> Result<(), LearnerError> {
         let flow = self.shared.flow();
         let (min, mean, max) = flow.lag.stats();
         let counters = self.agent.counters();
@@ -440,6 +503,8 @@ impl TrainingLoop {
             learner_waited_s: flow.learner_waited_s,
             final_return: self.shared.recent_return(),
             policy_version: self.shared.policy_version(),
+            served_version,
+            selection,
         };
         crate::run_files::write_summary(&self.shared.run_dir, &summary)
     }

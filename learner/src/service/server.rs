@@ -143,6 +143,7 @@ impl Learner for LearnerService {
         let rejected = s.ingest_counts().1.into_iter().collect();
         let flow = s.flow();
         let lag = flow.lag.stats();
+        let served = s.served();
         Ok(Response::new(LearnerStatus {
             run_id: s.run_id.clone(),
             algo: format!("{:?}", s.algo).to_lowercase(),
@@ -166,11 +167,14 @@ impl Learner for LearnerService {
             budget_episodes: flow.budget_episodes,
             finished: flow.finished,
             unauthenticated: s.auth_refusals.counts().into_iter().map(|(reason, n)| (reason.to_string(), n)).collect(),
+            served_version: served.snapshot.version,
+            served_reason: served.reason,
         }))
     }
 }
 
-/// `lcrl.v1.Policy`: the newest policy, rebuilt when a new version appears.
+/// `lcrl.v1.Policy`: the served policy (the newest during training, the
+/// selected one after), rebuilt when another version is served.
 pub struct PolicyService {
     pub shared: Arc<Shared>,
     pub env: Mutex<Box<dyn Env>>,
@@ -180,9 +184,10 @@ pub struct PolicyService {
 }
 
 impl PolicyService {
-    /// Runs `f` with the newest policy (rebuilding it if outdated).
+    /// Runs `f` with the served policy (rebuilding it if another version is
+    /// served now): the newest during training, the selected one after.
     fn with_policy<T>(&self, f: impl FnOnce(&Policy, &dyn Env) -> T) -> Result<(T, u64), Status> {
-        let snapshot = self.shared.policy.borrow().clone();
+        let snapshot = self.shared.served().snapshot;
         let mut serving = self.serving.lock().map_err(|_| Status::internal("policy state poisoned"))?;
         let stale = serving.as_ref().is_none_or(|p| p.version != snapshot.version);
         if stale {

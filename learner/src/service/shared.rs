@@ -23,6 +23,13 @@ pub enum Command {
     Stop,
 }
 
+/// The policy `Policy.Act` serves once training has ended, and why.
+#[derive(Debug, Clone)]
+pub struct Served {
+    pub snapshot: Arc<PolicySnapshot>,
+    pub reason: String,
+}
+
 /// Counters and the newest policy, shared by handlers and the training thread.
 pub struct Shared {
     pub run_id: String,
@@ -37,6 +44,9 @@ pub struct Shared {
     pub recent_returns: Mutex<VecDeque<f64>>,
     pub ingest: Mutex<Ingest>,
     pub policy: watch::Sender<Arc<PolicySnapshot>>,
+    /// Set when training has ended: the policy served from then on (the
+    /// selected one). Actors keep following `policy`.
+    pub served: Mutex<Option<Served>>,
     /// Set when the learner shuts down: long-lived streams end then, so the
     /// server's graceful shutdown does not wait on them forever.
     pub shutdown: watch::Sender<bool>,
@@ -82,6 +92,21 @@ impl Shared {
 
     pub fn policy_version(&self) -> u64 {
         self.policy.borrow().version
+    }
+
+    /// The policy `Policy.Act` serves and why: the newest during training,
+    /// the one training ended with ([`Shared::serve`]) after.
+    pub fn served(&self) -> Served {
+        match lock(&self.served).as_ref() {
+            Some(served) => served.clone(),
+            None => Served { snapshot: self.policy.borrow().clone(), reason: "newest: training".into() },
+        }
+    }
+
+    /// Serves `served` from now on (the end of training).
+    pub fn serve(&self, served: Served) {
+        tracing::info!(version = served.snapshot.version, reason = %served.reason, "serving");
+        *lock(&self.served) = Some(served);
     }
 
     /// Resolves once shutdown has begun.

@@ -1,0 +1,243 @@
+//! The distributed learner's choice of its policy on held-out starts, as
+//! `lcrl train` chooses (`crate::selection`: the same starts, the same
+//! schedule, the same `RUN/selected/`), on a thread of its own so that
+//! validation episodes never hold up updates.
+//!
+//! The training thread hands over a snapshot of the actor whenever a
+//! validation is due ([`Validator::due`], the rule of
+//! [`crate::selection::validation_due`]); snapshots are copies, so
+//! validating one reads nothing the training thread writes and training is
+//! the same with or without it. At the end of the budget the training
+//! thread waits for the last validation ([`Validator::finish`]) and serves
+//! the chosen policy from then on.
+
+use std::path::{Path, PathBuf};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+
+use lcrl_proto::v1::PolicySnapshot;
+use lcrl_sim::Env;
+
+use crate::checkpoint::{read_meta, CheckpointMeta};
+use crate::policy::Policy;
+use crate::selection::{selected_dir, validation_due, Selection, SelectionRecord};
+use crate::LearnerError;
+
+/// The policy chosen so far: its record and its snapshot.
+#[derive(Debug, Clone, Default)]
+pub struct Chosen {
+    pub record: Option<SelectionRecord>,
+    pub snapshot: Option<Arc<PolicySnapshot>>,
+}
+
+struct Job {
+    snapshot: Arc<PolicySnapshot>,
+    meta: CheckpointMeta,
+}
+
+/// The validation thread and what it has chosen.
+pub struct Validator {
+    jobs: Option<mpsc::Sender<Job>>,
+    thread: Option<JoinHandle<Result<(), LearnerError>>>,
+    chosen: Arc<Mutex<Chosen>>,
+    every: usize,
+    /// The episode count of the last validation handed over.
+    last_submitted: Option<usize>,
+}
+
+impl std::fmt::Debug for Validator {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Validator").field("every", &self.every).field("last_submitted", &self.last_submitted).finish()
+    }
+}
+
+impl Validator {
+    /// Starts the thread for `selection` (see [`Selection::new`]; a resumed
+    /// run's choice is read back from `RUN/selected/`), validating in `env`.
+    pub fn start(selection: Selection, env: Box<dyn Env>, run_dir: &Path, every: usize) -> Result<Self, LearnerError> {
+        let chosen = Chosen { record: selection.record(), snapshot: read_selected(run_dir)?.map(Arc::new) };
+        let last_submitted = selection.last_validated();
+        let chosen = Arc::new(Mutex::new(chosen));
+        let (jobs, inbox) = mpsc::channel::<Job>();
+        let thread_chosen = chosen.clone();
+        let run_dir = run_dir.to_path_buf();
+        let thread = std::thread::Builder::new()
+            .name("validation".into())
+            .spawn(move || validate_jobs(selection, env, &run_dir, &inbox, &thread_chosen))
+            .map_err(|e| LearnerError::Config(format!("cannot start the validation thread: {e}")))?;
+        Ok(Validator { jobs: Some(jobs), thread: Some(thread), chosen, every, last_submitted })
+    }
+
+    /// Whether the policy after `done` of `last` episodes is to be validated.
+    pub fn due(&self, done: usize, last: usize) -> bool {
+        validation_due(self.last_submitted, done, last, self.every)
+    }
+
+    /// Hands a snapshot over for validation as the policy after
+    /// `meta.episode` episodes. Never blocks.
+    pub fn submit(&mut self, snapshot: Arc<PolicySnapshot>, meta: CheckpointMeta) {
+        self.last_submitted = Some(meta.episode);
+        if let Some(jobs) = &self.jobs {
+            // A closed channel means the thread failed: `finish` reports it.
+            let _ = jobs.send(Job { snapshot, meta });
+        }
+    }
+
+    /// The choice so far (validations still queued are not in it).
+    pub fn chosen(&self) -> Chosen {
+        self.chosen.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).clone()
+    }
+
+    /// Waits for every validation handed over, stops the thread and returns
+    /// the final choice, or the error that stopped the thread.
+    pub fn finish(&mut self) -> Result<Chosen, LearnerError> {
+        drop(self.jobs.take());
+        if let Some(thread) = self.thread.take() {
+            thread.join().map_err(|_| LearnerError::Config("the validation thread panicked".into()))??;
+        }
+        Ok(self.chosen())
+    }
+}
+
+fn validate_jobs(mut selection: Selection, env: Box<dyn Env>, run_dir: &Path, inbox: &mpsc::Receiver<Job>, chosen: &Mutex<Chosen>) -> Result<(), LearnerError> {
+    for job in inbox {
+        let policy = Policy::from_snapshot(&job.snapshot.architecture, &job.snapshot.weights, job.snapshot.version)?;
+        let actions = policy.action_map(env.as_ref())?;
+        let weights = &job.snapshot.weights;
+        let write_actor = |staging: &Path| {
+            let path = staging.join("actor.safetensors");
+            std::fs::write(&path, weights).map_err(|source| LearnerError::Io { path, source })
+        };
+        let (_, selected) = selection.validate_policy(env.as_ref(), &|obs| policy.act_normalized(obs), &actions, run_dir, &job.meta, &write_actor)?;
+        let mut chosen = chosen.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        chosen.record = selection.record();
+        if selected {
+            chosen.snapshot = Some(job.snapshot);
+        }
+    }
+    Ok(())
+}
+
+/// The snapshot of the policy in RUN/selected/, if there is one (a resumed
+/// run serves it if nothing better comes).
+fn read_selected(run_dir: &Path) -> Result<Option<PolicySnapshot>, LearnerError> {
+    let dir: PathBuf = selected_dir(run_dir);
+    if !dir.join("checkpoint.json").is_file() {
+        return Ok(None);
+    }
+    let meta = read_meta(&dir)?;
+    let path = dir.join("actor.safetensors");
+    let weights = std::fs::read(&path).map_err(|source| LearnerError::Io { path, source })?;
+    let architecture = serde_json::to_string(&meta.architecture()).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    Ok(Some(PolicySnapshot { version: meta.policy_version, weights, architecture, explore_uniform: false, exploration_noise: 0.0 }))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::VecDeque;
+    use std::sync::atomic::{AtomicU32, AtomicU64};
+    use std::time::Duration;
+
+    use lcrl_proto::v1::EpisodeSummary;
+    use rand::{Rng, SeedableRng};
+    use tokio::sync::{mpsc as queue, watch};
+
+    use super::*;
+    use crate::checkpoint::latest_checkpoint;
+    use crate::selection::read_record;
+    use crate::config::{Algo, Connection, TrainConfig};
+    use crate::service::ingest::{Accepted, AgentTransition, Ingest};
+    use crate::service::runtime::{run_training, snapshot, Schedule};
+    use crate::service::shared::{Command, Shared};
+
+    /// The same 60 batches (2 episodes of 10 steps each) through the
+    /// training thread, with or without validation every 2 episodes; the
+    /// final actor's weights and, with validation, the selection.
+    fn train(dir: &Path, validate: bool) -> (Vec<u8>, Option<SelectionRecord>, u64) {
+        tch::set_num_threads(1);
+        let mut cfg = TrainConfig::for_env("lti-paper").0;
+        cfg.network.global_hidden = vec![16];
+        cfg.network.critic_hidden = vec![16];
+        cfg.ddpg.warmup_steps = 40;
+        cfg.ddpg.batch_size = 16;
+        // Many updates a turn: the training thread runs one train_step per turn.
+        cfg.ddpg.gradient_steps = 25;
+        cfg.run.validation_episodes = if validate { 4 } else { 0 };
+        cfg.run.validate_every = 2;
+        let mask = vec![vec![1u8; 3]; 3];
+        let agent = crate::trainer::make_agent(Algo::Ddpg, Connection::Global, &cfg, &mask, 3, 3).unwrap();
+        let meta = CheckpointMeta::start("lti-paper", Algo::Ddpg, Connection::Global, 3, 3, mask, cfg.clone());
+        let architecture = meta.architecture();
+        let (policy, _) = watch::channel(Arc::new(snapshot(agent.as_ref(), &architecture, 0).unwrap()));
+        let shared = Arc::new(Shared {
+            run_id: "r".into(),
+            algo: Algo::Ddpg,
+            connection: Connection::Global,
+            architecture,
+            env_steps: AtomicU64::new(0),
+            updates: AtomicU64::new(0),
+            replay_size: AtomicU64::new(0),
+            episodes: AtomicU64::new(0),
+            connected_actors: AtomicU32::new(0),
+            recent_returns: Mutex::new(VecDeque::new()),
+            ingest: Mutex::new(Ingest::new("r", lcrl_sim::make_env("lti-paper").unwrap(), None)),
+            policy,
+            served: Mutex::new(None),
+            shutdown: watch::channel(false).0,
+            run_dir: dir.to_path_buf(),
+            flow: Mutex::new(Default::default()),
+            auth_refusals: Default::default(),
+        });
+        let selection = Selection::new(&cfg.run, dir, false).unwrap();
+        let validator = selection.map(|s| Validator::start(s, lcrl_sim::make_env("lti-paper").unwrap(), dir, cfg.run.validate_every).unwrap());
+        let (commands, inbox) = queue::channel(128);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        let mut row = |n: usize| (0..n).map(|_| rng.random_range(-1.0f32..1.0)).collect::<Vec<_>>();
+        for _ in 0..60 {
+            let transitions = (0..20)
+                .map(|k| AgentTransition { obs: row(3), action: row(3), log_prob: None, reward: -1.0, next_obs: row(3), terminated: false, truncated: k % 10 == 9, policy_version: 0 })
+                .collect();
+            let episodes = vec![EpisodeSummary { episode_return: -10.0, length: 10, success: None }; 2];
+            commands.try_send(Command::Batch(Accepted { transitions, episodes, policy_version: 0 })).unwrap();
+        }
+        commands.try_send(Command::Stop).unwrap();
+        let schedule = Schedule {
+            publish_every: 5,
+            checkpoint_interval: Duration::from_secs(3600),
+            run_dir: dir.to_path_buf(),
+            meta,
+            train: true,
+            max_staleness: None,
+            budget_episodes: Some(120),
+            limiter: None,
+            validator,
+        };
+        run_training(agent, inbox, shared.clone(), schedule).unwrap();
+        let last = latest_checkpoint(dir).unwrap();
+        let updates = shared.updates.load(std::sync::atomic::Ordering::Relaxed);
+        (std::fs::read(last.join("actor.safetensors")).unwrap(), read_record(&selected_dir(dir)).unwrap(), updates)
+    }
+
+    /// Validation reads snapshots on its own thread: the training thread
+    /// makes the same updates with and without it, and the validations
+    /// follow `lcrl train`'s schedule (the start, every 2 episodes, the end).
+    #[test]
+    fn validation_does_not_change_what_is_trained() {
+        let (with, without) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+        let (validated_weights, record, updates) = train(with.path(), true);
+        let (plain_weights, none, plain_updates) = train(without.path(), false);
+        assert!(updates >= 50, "training trained: {updates} updates");
+        assert_eq!(updates, plain_updates);
+        assert_eq!(validated_weights, plain_weights, "the same updates with and without validation");
+        assert!(none.is_none());
+        let record = record.expect("a selection");
+        let episodes: Vec<usize> = record.history.iter().map(|v| v.episode).collect();
+        // The starting policy, then one per turn of the training thread
+        // (it stores several batches a turn, each past a multiple of 2),
+        // and the last policy at the budget.
+        assert_eq!((episodes.first(), episodes.last()), (Some(&0), Some(&120)), "{episodes:?}");
+        assert!(episodes.len() >= 4 && episodes.windows(2).all(|w| w[0] < w[1]), "{episodes:?}");
+        assert!(selected_dir(with.path()).join("actor.safetensors").is_file());
+    }
+}
