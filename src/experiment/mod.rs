@@ -9,6 +9,7 @@ mod k8s;
 mod plan;
 mod report;
 mod runner;
+mod safety;
 pub mod stats;
 
 use std::path::{Path, PathBuf};

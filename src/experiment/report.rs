@@ -12,6 +12,7 @@ use serde::Serialize;
 
 use super::config::{algo_name, Experiment};
 use super::plan::{best_constant_path, cells, finished_run, graph_path, run_dir, Cell};
+use super::safety::{self, CellSafety, RunSafety};
 use super::stats::{censored_estimate, episodes_to_threshold, mean_ci, welch, Estimate, ThresholdEstimate, AVERAGE_WINDOW};
 use crate::output::write_atomic;
 
@@ -22,6 +23,8 @@ pub struct Run {
     pub summary: TrainSummary,
     /// Episode returns in order (metrics.csv).
     pub returns: Vec<f64>,
+    /// Training safety (metrics.csv).
+    pub safety: Option<RunSafety>,
 }
 
 /// A cell with its finished runs.
@@ -87,8 +90,9 @@ pub fn gather(e: &Experiment, out: &Path) -> anyhow::Result<Study> {
             let dir = run_dir(out, &cell, seed);
             match finished_run(&dir) {
                 Some(summary) => {
-                    let returns = read_returns(&dir.join("metrics.csv"))?;
-                    runs.push(Run { seed, dir, summary, returns });
+                    let rows = read_rows(&dir.join("metrics.csv"))?;
+                    let returns = rows.iter().map(|r| r.episode_return).collect();
+                    runs.push(Run { seed, dir, summary, returns, safety: safety::of_rows(&rows) });
                 }
                 None => study.missing.push(format!("{} seed {seed}", cell.label())),
             }
@@ -121,12 +125,9 @@ fn graph_seconds(path: &Path) -> anyhow::Result<f64> {
     Ok(v["elapsed_s"].as_f64().unwrap_or(0.0))
 }
 
-fn read_returns(path: &Path) -> anyhow::Result<Vec<f64>> {
+fn read_rows(path: &Path) -> anyhow::Result<Vec<EpisodeRow>> {
     let mut reader = csv::Reader::from_path(path).with_context(|| format!("reading {}", path.display()))?;
-    reader
-        .deserialize::<EpisodeRow>()
-        .map(|row| row.map(|r| r.episode_return).with_context(|| format!("reading {}", path.display())))
-        .collect()
+    reader.deserialize::<EpisodeRow>().map(|row| row.with_context(|| format!("reading {}", path.display()))).collect()
 }
 
 /// report.json.
@@ -151,6 +152,7 @@ pub struct Methods {
     pub episodes_to_threshold: &'static str,
     pub times: &'static str,
     pub bars: &'static str,
+    pub safety: &'static str,
 }
 
 const METHODS: Methods = Methods {
@@ -167,6 +169,11 @@ const METHODS: Methods = Methods {
     bars: "beat_best_constant: runs whose eval return is above the best constant's on the same evaluation starts \
            (every run of a study is evaluated on the starts `lcrl tune` evaluates the best constant on); diverged: runs \
            whose eval return is below a = 0's on the same starts",
+    safety: "over training episodes: failed_episodes did not reach the depth within the limits; worst_mean_return is \
+             the lowest 10-episode mean return (mean over seeds, and the lowest seed); peak_force_n the highest contact \
+             force of any training episode; base: the controller the runs act around (the best constant for residual \
+             runs, a = 0 from scratch) on the evaluation starts; below_base: seeds whose worst 10-episode mean fell \
+             below the base's return",
 };
 
 #[derive(Debug, Serialize)]
@@ -189,6 +196,8 @@ pub struct CellReport {
     pub graph_seconds: f64,
     pub optimization_seconds: Option<Estimate>,
     pub total_seconds: Option<Estimate>,
+    /// Training safety over the cell's seeds.
+    pub safety: Option<CellSafety>,
     pub per_seed: Vec<SeedFigures>,
 }
 
@@ -203,6 +212,7 @@ pub struct SeedFigures {
     /// Below a = 0 on the same starts.
     pub diverged: bool,
     pub episodes_to_threshold: Option<usize>,
+    pub safety: Option<RunSafety>,
 }
 
 #[derive(Debug, Serialize)]
@@ -253,6 +263,10 @@ impl Study {
                 graph_seconds: c.graph_seconds,
                 optimization_seconds: of(&|r| r.summary.optimization_seconds),
                 total_seconds: of(&|r| c.graph_seconds + r.summary.total_seconds),
+                safety: safety::of_cell(
+                    &c.runs.iter().filter_map(|r| r.safety).collect::<Vec<_>>(),
+                    c.runs.first().and_then(|r| safety::base_of_run(&r.dir, r.summary.zero_action_return, bar)),
+                ),
                 per_seed: c
                     .runs
                     .iter()
@@ -265,6 +279,7 @@ impl Study {
                         beats_best_constant: *beats,
                         diverged: *diverged,
                         episodes_to_threshold: *k,
+                        safety: r.safety,
                     })
                     .collect(),
             });
@@ -348,6 +363,7 @@ pub fn markdown(report: &Report) -> String {
     let _ = writeln!(md, "Intervals: {}. Test: {} ({}).\n", m.confidence_interval, m.test, m.why_this_test);
     let _ = writeln!(md, "Final return: {}. Episodes to threshold: {}. Times: {}.\n", m.final_return, m.episodes_to_threshold, m.times);
     let _ = writeln!(md, "Bars: {}.\n", m.bars);
+    let _ = writeln!(md, "Training safety: {}.\n", m.safety);
     if !report.missing_runs.is_empty() {
         let _ = writeln!(md, "**Not finished ({}):** {}\n", report.missing_runs.len(), report.missing_runs.join(", "));
     }
@@ -400,6 +416,25 @@ pub fn markdown(report: &Report) -> String {
         }
         if let Some(b) = report.best_constant.get(env) {
             let _ = writeln!(md, "- best constant on {} evaluation episodes, action {:?}", b.eval_episodes, b.action.iter().map(|a| num(*a)).collect::<Vec<_>>());
+        }
+        if rows.iter().any(|c| c.safety.is_some()) {
+            let _ = writeln!(md, "\n| training safety | failed training episodes | worst 10-episode mean (mean [95% CI]) | lowest seed | below the base | peak force, N | base (eval starts) |");
+            let _ = writeln!(md, "|---|---|---|---|---|---|---|");
+            for c in &rows {
+                let Some(s) = &c.safety else { continue };
+                let base = s.base.as_ref().map_or("—".into(), |b| format!("{} {}", b.controller, num(b.mean_return)));
+                let below = s.below_base.map_or("—".into(), |k| format!("{k} of {}", c.seeds.len()));
+                let peak = s.peak_force_n.map_or("—".into(), |f| format!("{f:.1}"));
+                let _ = writeln!(
+                    md,
+                    "| {} | {} of {} | {} | {} | {below} | {peak} | {base} |",
+                    c.connection,
+                    s.failed_episodes,
+                    s.episodes,
+                    estimate(&s.worst_mean_return),
+                    num(s.lowest_mean_return)
+                );
+            }
         }
         let comparisons: Vec<&Comparison> = report.comparisons.iter().filter(|c| c.env == env && c.algo == algo).collect();
         if !comparisons.is_empty() {
