@@ -4,16 +4,20 @@
 //! - [`connection`]: what a connection names (local@T, graph:PATH, random@K, …).
 //! - [`preset`]: a preset (configs/*.toml) and its command lines for the
 //!   graph builder, the learner and the actors.
+//! - [`run_security`]: TLS and the token as every process's flags.
+//! - [`binaries`]: the workspace binaries and the Python a command starts.
 //! - [`supervise`]: child processes that stop when dropped, health waits.
 //! - [`run_summary`]: a distributed run's summary and evaluation.
 //! - [`plots`]: the PNG figures.
 //! - [`experiment`]: `lcrl experiment`, a study of many runs.
 //! - [`output`]: writing result files.
 
+pub mod binaries;
 pub mod connection;
 pub mod experiment;
 pub mod output;
 pub mod plots;
 pub mod preset;
+pub mod run_security;
 pub mod run_summary;
 pub mod supervise;

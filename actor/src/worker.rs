@@ -161,7 +161,7 @@ impl Rollout {
         let mut actions = Vec::with_capacity(self.envs.len());
         let mut sampled = Vec::with_capacity(self.envs.len());
         for (k, env) in self.envs.iter().enumerate() {
-            let obs = lcrl_learner::trainer::observe(env.as_ref(), &self.states[k]);
+            let obs = lcrl_learner::agent::observe(env.as_ref(), &self.states[k]);
             // u is sampled as `lcrl train`'s agents sample it (one function
             // for both loops), and sent as sampled: the learner stores u.
             let (u, log_prob) = if self.explore.uniform && !self.own_distribution {
@@ -243,7 +243,7 @@ mod tests {
     fn policy(algo: Algo) -> Policy {
         let cfg = TrainConfig::for_env("lti-paper").0;
         let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
-        let agent = lcrl_learner::trainer::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
+        let agent = lcrl_learner::agent::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
         let shape = lcrl_learner::snapshot::ActorShape { env: "lti-paper".into(), algo, connection: Connection::Local, state_dim: 3, action_dim: 3, mask };
         let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: None };
         let snapshot = lcrl_learner::service::runtime::snapshot(agent.as_ref(), &architecture, 7).unwrap();
@@ -311,7 +311,8 @@ mod tests {
     #[test]
     fn an_actors_episode_is_stored_as_lcrl_train_stores_it() {
         use lcrl_learner::service::ingest::{Ingest, Verdict};
-        use lcrl_learner::trainer::{observe, step_env};
+        use lcrl_learner::agent::observe;
+        use lcrl_learner::trainer::step_env;
         let name = "peg-group1";
         let base = lcrl_sim::peg::measured_best_constant(name).expect("measured").to_vec();
         for algo in [Algo::Ddpg, Algo::Ppo] {
@@ -319,7 +320,7 @@ mod tests {
             let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
             let cfg = TrainConfig::for_env(name).0;
             let mask = vec![vec![1u8; m]; n];
-            let agent = lcrl_learner::trainer::make_agent(algo, Connection::Local, &cfg, &mask, m, n).unwrap();
+            let agent = lcrl_learner::agent::make_agent(algo, Connection::Local, &cfg, &mask, m, n).unwrap();
             let shape = lcrl_learner::snapshot::ActorShape { env: name.into(), algo, connection: Connection::Local, state_dim: m, action_dim: n, mask };
             let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: Some(base.clone()) };
             let snapshot = lcrl_learner::service::runtime::snapshot(agent.as_ref(), &architecture, 1).unwrap();

@@ -11,11 +11,8 @@ use serde::{Deserialize, Serialize};
 use crate::agent::Agent;
 use crate::config::{Algo, Connection, TrainConfig};
 use crate::snapshot::ActorShape;
-use crate::LearnerError;
+use crate::{io, LearnerError};
 
-fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
-    move |source| LearnerError::Io { path: path.to_path_buf(), source }
-}
 
 /// Written next to the tensors of every checkpoint.
 #[derive(Debug, Clone, Serialize, Deserialize)]

@@ -44,7 +44,7 @@ pub mod snapshot;
 pub mod tensorboard;
 pub mod trainer;
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 pub use config::{Algo, Connection, TrainConfig};
 
@@ -67,3 +67,8 @@ pub enum LearnerError {
 mod tests;
 #[cfg(test)]
 mod hostile_tests;
+
+/// `map_err` for an I/O error on `path`: the error names the file.
+pub(crate) fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
+    move |source| LearnerError::Io { path: path.to_path_buf(), source }
+}

@@ -109,7 +109,7 @@ impl Policy {
     /// The full action for a raw environment state, in the environment's
     /// bounds, base controller included.
     pub fn act(&self, env: &dyn Env, state: &[f64]) -> Vec<f64> {
-        let u = self.act_normalized(&crate::trainer::observe(env, state));
+        let u = self.act_normalized(&crate::agent::observe(env, state));
         match self.action_map(env) {
             Ok(map) => map.to_env(&u),
             // check_env and Architecture::validate refuse a base that does

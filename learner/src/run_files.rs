@@ -7,11 +7,8 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::config::{Algo, Connection};
-use crate::LearnerError;
+use crate::{io, LearnerError};
 
-fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
-    move |source| LearnerError::Io { path: path.to_path_buf(), source }
-}
 
 /// One row of metrics.csv.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -59,6 +56,27 @@ impl EpisodeRow {
     }
 }
 
+/// One validation of the policy after `episode` training episodes.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Validation {
+    pub episode: usize,
+    pub mean_return: f64,
+    pub success_rate: Option<f64>,
+}
+
+/// selection.json: which policy was chosen, on how many starts, and every
+/// validation that chose it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SelectionRecord {
+    /// The training episodes behind the chosen policy (0: the starting one).
+    pub episode: usize,
+    pub validation_return: f64,
+    pub validation_success_rate: Option<f64>,
+    /// Validation starts per validation.
+    pub starts: usize,
+    pub history: Vec<Validation>,
+}
+
 /// What summary.json holds.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrainSummary {
@@ -90,7 +108,7 @@ pub struct TrainSummary {
     pub last_eval_return: Option<f64>,
     /// Which policy validation chose, and every validation.
     #[serde(default)]
-    pub selection: Option<crate::selection::SelectionRecord>,
+    pub selection: Option<SelectionRecord>,
     /// The neutral constant action a = 0 on the same evaluation episodes
     /// (on peg tasks the constant compliance controller): a reference line.
     #[serde(default)]

@@ -23,38 +23,20 @@ use std::path::{Path, PathBuf};
 
 use lcrl_sim::evaluate::evaluate;
 use lcrl_sim::Env;
-use serde::{Deserialize, Serialize};
 
 use crate::action::ActionMap;
 use crate::agent::{write_tensors, Agent};
 use crate::checkpoint::{write_folder, CheckpointMeta};
+use crate::run_files::write_atomically;
 use crate::config::RunConfig;
 use crate::LearnerError;
+
+// The records are run files (summary.json embeds them); selection.rs fills them.
+pub use crate::run_files::{SelectionRecord, Validation};
 
 /// The folder of a run's selected policy.
 pub fn selected_dir(run_dir: &Path) -> PathBuf {
     run_dir.join("selected")
-}
-
-/// One validation of the policy after `episode` training episodes.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Validation {
-    pub episode: usize,
-    pub mean_return: f64,
-    pub success_rate: Option<f64>,
-}
-
-/// selection.json: which policy was chosen, on how many starts, and every
-/// validation that chose it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct SelectionRecord {
-    /// The training episodes behind the chosen policy (0: the starting one).
-    pub episode: usize,
-    pub validation_return: f64,
-    pub validation_success_rate: Option<f64>,
-    /// Validation starts per validation.
-    pub starts: usize,
-    pub history: Vec<Validation>,
 }
 
 /// The running choice of a run's policy: every validation so far; the
@@ -138,7 +120,7 @@ impl Selection {
         let _span = tracing::info_span!("validation", episode = meta.episode).entered();
         let mut run_env = env.fresh();
         let probe = env.fresh();
-        let mut policy = |s: &[f64]| actions.to_env(&act(&crate::trainer::observe(probe.as_ref(), s)));
+        let mut policy = |s: &[f64]| actions.to_env(&act(&crate::agent::observe(probe.as_ref(), s)));
         let first = lcrl_sim::seeds::validation(self.run_seed, 0);
         let (summary, _) = evaluate(run_env.as_mut(), "validation", self.starts, first, &mut policy, &mut |_| {})?;
         let validation = Validation { episode: meta.episode, mean_return: summary.mean_return, success_rate: summary.success_rate };
@@ -167,7 +149,7 @@ impl Selection {
         let Some(record) = self.record() else { return Ok(()) };
         let path = selected_dir(run_dir).join("selection.json");
         let text = serde_json::to_string_pretty(&record).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-        crate::run_files::write_atomically(&path, text.as_bytes())
+        write_atomically(&path, text.as_bytes())
     }
 }
 

@@ -10,24 +10,22 @@
 //! DIR/checkpoints/epNNNNNN/  weights, optimizer state, replay, counters
 //! ```
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use lcrl_sim::evaluate::evaluate;
 use lcrl_sim::{make_env, Env};
 
 use crate::action::ActionMap;
-use crate::agent::Agent;
+use crate::agent::{make_agent, observe};
 use crate::run_files::{EpisodeRow, TrainSummary};
 use crate::run_files::{read_rows, write_summary, MetricsLog};
 use crate::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::run_start::{checkpoint_to_resume, fix_base_controller, resolve_mask};
 use crate::config::{Algo, Connection, TrainConfig};
-use crate::ddpg::Ddpg;
 use crate::lqr::{lqr_return, masked_lqr_return};
-use crate::ppo::Ppo;
 use crate::selection::Selection;
-use crate::LearnerError;
+use crate::{io, LearnerError};
 
 /// What to train, and where.
 #[derive(Debug, Clone)]
@@ -62,14 +60,6 @@ pub struct TrainOutcome {
     pub rows: Vec<EpisodeRow>,
 }
 
-fn io(path: &Path) -> impl FnOnce(std::io::Error) -> LearnerError + '_ {
-    move |source| LearnerError::Io { path: path.to_path_buf(), source }
-}
-
-/// A raw state as the agent's input: normalized, f32.
-pub fn observe(env: &dyn Env, state: &[f64]) -> Vec<f32> {
-    env.normalize_state(state).iter().map(|&v| v as f32).collect()
-}
 
 /// One step of `lcrl train`'s loop from the agent's sampled u: the
 /// environment's action is made by the action map (the one place it is
@@ -79,15 +69,6 @@ pub fn step_env(env: &mut dyn Env, actions: &ActionMap, u: &[f32]) -> Result<(lc
     let step = env.step(&actions.to_env(u))?;
     let next_obs = observe(env, &step.state);
     Ok((step, next_obs))
-}
-
-/// Builds the agent for the request on `run.device`.
-pub fn make_agent(algo: Algo, connection: Connection, cfg: &TrainConfig, mask: &[Vec<u8>], m: usize, n: usize) -> Result<Box<dyn Agent>, LearnerError> {
-    let device = crate::device::resolve_device(&cfg.run.device)?;
-    Ok(match algo {
-        Algo::Ddpg => Box::new(Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
-        Algo::Ppo => Box::new(Ppo::new(&cfg.ppo, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
-    })
 }
 
 /// Trains for `config.run.episodes` episodes (in total, counting resumed

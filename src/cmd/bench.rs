@@ -134,7 +134,7 @@ fn time_updates(
     device: tch::Device,
 ) -> anyhow::Result<(f64, f64, usize)> {
     use lcrl_learner::agent::Transition;
-    use lcrl_learner::trainer::make_agent;
+    use lcrl_learner::agent::make_agent;
     use lcrl_learner::Algo;
     use rand::{Rng, SeedableRng};
 
@@ -180,7 +180,7 @@ fn torch_eager(python: Option<&str>, device: &str, threads: &[usize], updates: u
     let python = match python {
         Some("none") => return Ok(()),
         Some(path) => std::path::PathBuf::from(path),
-        None => match lcrl::preset::lcrl_python() {
+        None => match lcrl::binaries::lcrl_python() {
             Ok(path) => path,
             Err(_) => {
                 println!("PyTorch eager: skipped (no .venv Python; pass --python)");

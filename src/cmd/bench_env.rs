@@ -15,7 +15,7 @@ use rand::SeedableRng;
 use lcrl::supervise::Managed;
 
 pub fn run(gym: &str, instances: &[usize], steps: usize) -> anyhow::Result<()> {
-    let python = lcrl::preset::lcrl_python()?;
+    let python = lcrl::binaries::lcrl_python()?;
     let plain = Command::new(&python).args(["-m", "lcrl_env", "bench", "--env", gym, "--steps", &steps.to_string()]).stderr(Stdio::null()).output()?;
     if !plain.status.success() {
         bail!("python -m lcrl_env bench --env {gym} failed (exit {:?})", plain.status.code());

@@ -2,11 +2,11 @@
 //! real lcrl-learner and lcrl-actor processes on loopback.
 
 use std::io::{BufRead, BufReader};
-use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use anyhow::{bail, Context};
+use lcrl::binaries::sibling;
+use anyhow::Context;
 use lcrl_proto::security::ClientSecurity;
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::policy_client::PolicyClient;
@@ -19,14 +19,6 @@ impl Drop for Proc {
         let _ = self.0.kill();
         let _ = self.0.wait();
     }
-}
-
-fn sibling(name: &str) -> anyhow::Result<PathBuf> {
-    let path = std::env::current_exe()?.with_file_name(name);
-    if !path.is_file() {
-        bail!("{} is missing; build it with `cargo build --workspace --bins`", path.display());
-    }
-    Ok(path)
 }
 
 /// How the bench's clients reach a learner: plain text, or mutual TLS

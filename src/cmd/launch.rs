@@ -10,7 +10,9 @@ use std::process::Command;
 
 use anyhow::{bail, Context};
 
-use lcrl::preset::{sibling, Preset, RunSecurity};
+use lcrl::binaries::sibling;
+use lcrl::preset::Preset;
+use lcrl::run_security::RunSecurity;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Role {

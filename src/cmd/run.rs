@@ -12,7 +12,9 @@ use lcrl_learner::Connection;
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::GetStatusRequest;
 
-use lcrl::preset::{sibling, LearnerCompute, Preset, RunSecurity};
+use lcrl::binaries::sibling;
+use lcrl::preset::{LearnerCompute, Preset};
+use lcrl::run_security::RunSecurity;
 use lcrl::supervise::{die_with_parent, wait_healthy, Managed};
 
 /// Run graph builder, learner and actors on this machine until the episode

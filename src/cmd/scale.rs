@@ -18,7 +18,8 @@ use lcrl_proto::v1::{ActRequest, GetStatusRequest, LearnerStatus};
 use plotters::prelude::*;
 use serde::Serialize;
 
-use lcrl::preset::{sibling, Preset};
+use lcrl::binaries::sibling;
+use lcrl::preset::Preset;
 use crate::cmd::run::TransportArg;
 use lcrl::supervise::{wait_healthy, Managed};
 

@@ -161,7 +161,7 @@ impl Ingest {
             return Verdict::Stale;
         }
         let to_action = |a: &[f32]| -> Vec<f32> { self.actions.to_normalized(&a.iter().map(|&v| f64::from(v)).collect::<Vec<_>>()) };
-        let to_obs = |s: &[f32]| crate::trainer::observe(self.env.as_ref(), &s.iter().map(|&v| f64::from(v)).collect::<Vec<_>>());
+        let to_obs = |s: &[f32]| crate::agent::observe(self.env.as_ref(), &s.iter().map(|&v| f64::from(v)).collect::<Vec<_>>());
         let transitions = batch
             .transitions
             .iter()
