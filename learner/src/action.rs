@@ -12,7 +12,7 @@
 use lcrl_sim::EnvSpec;
 use serde::Deserialize;
 
-use crate::config::{BaseController, ControllerConfig};
+use crate::config::{BaseConfig, BaseController};
 use crate::LearnerError;
 
 /// The affine map from u to a, with its inverse.
@@ -77,13 +77,13 @@ impl ActionMap {
 fn check_base(spec: &EnvSpec, base: &[f64]) -> Result<(), LearnerError> {
     let n = spec.action_dim();
     if base.len() != n {
-        return Err(LearnerError::Config(format!("controller.base has {} components but {} has {n} actions", base.len(), spec.name)));
+        return Err(LearnerError::Config(format!("base.action has {} components but {} has {n} actions", base.len(), spec.name)));
     }
     for (i, &b) in base.iter().enumerate() {
         let (lo, hi) = (spec.action_low[i], spec.action_high[i]);
         if !(b.is_finite() && (lo..=hi).contains(&b)) {
             return Err(LearnerError::Config(format!(
-                "controller.base[{i}] = {b} lies outside the action box [{lo}, {hi}] of {} ({})",
+                "base.action[{i}] = {b} lies outside the action box [{lo}, {hi}] of {} ({})",
                 spec.name, spec.action_names[i]
             )));
         }
@@ -108,10 +108,10 @@ pub fn read_best_constant(path: &std::path::Path) -> Result<Vec<f64>, LearnerErr
 }
 
 /// The numeric base action of a controller setting on `spec`'s environment:
-/// None without a base; the best constant from `controller.best_constant_file`,
+/// None without a base; the best constant from `base.best_constant_file`,
 /// else the one measured for a registered peg preset (docs/peg.md).
-pub fn resolve_base(controller: &ControllerConfig, spec: &EnvSpec) -> Result<Option<Vec<f64>>, LearnerError> {
-    let base = match &controller.base {
+pub fn resolve_base(controller: &BaseConfig, spec: &EnvSpec) -> Result<Option<Vec<f64>>, LearnerError> {
+    let base = match &controller.action {
         BaseController::None => return Ok(None),
         BaseController::Zero => vec![0.0; spec.action_dim()],
         BaseController::Action(a) => a.clone(),
@@ -119,8 +119,8 @@ pub fn resolve_base(controller: &ControllerConfig, spec: &EnvSpec) -> Result<Opt
             Some(path) => read_best_constant(path)?,
             None => lcrl_sim::peg::measured_best_constant(&spec.name).map(|a| a.to_vec()).ok_or_else(|| {
                 LearnerError::Config(format!(
-                    "controller.base = \"best-constant\": no best constant is recorded for {}; run `lcrl tune --env {}` and set \
-                     controller.best_constant_file (or pass --base-action best_constant.json)",
+                    "base.action = \"best-constant\": no best constant is recorded for {}; run `lcrl tune --env {}` and set \
+                     base.best_constant_file (or pass --base-action best_constant.json)",
                     spec.name, spec.name
                 ))
             })?,
@@ -174,17 +174,17 @@ mod tests {
         let err = ActionMap::new(&spec, Some(&[0.0; 5])).unwrap_err().to_string();
         assert!(err.contains("5 components"), "{err}");
         let err = ActionMap::new(&spec, Some(&[0.0, 0.0, 0.0, 9.0, 0.0, 0.0])).unwrap_err().to_string();
-        assert!(err.contains("controller.base[3]") && err.contains("dalpha"), "{err}");
+        assert!(err.contains("base.action[3]") && err.contains("dalpha"), "{err}");
     }
 
     #[test]
     fn named_bases_resolve() {
         let spec = spec();
-        let mut c = ControllerConfig::default();
+        let mut c = BaseConfig::default();
         assert_eq!(resolve_base(&c, &spec).unwrap(), None);
-        c.base = BaseController::Zero;
+        c.action = BaseController::Zero;
         assert_eq!(resolve_base(&c, &spec).unwrap(), Some(vec![0.0; 6]));
-        c.base = BaseController::BestConstant;
+        c.action = BaseController::BestConstant;
         let measured = lcrl_sim::peg::measured_best_constant("peg-group1").unwrap().to_vec();
         assert_eq!(resolve_base(&c, &spec).unwrap(), Some(measured));
         // From a file, as `lcrl tune` writes it.

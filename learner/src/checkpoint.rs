@@ -62,7 +62,7 @@ impl CheckpointMeta {
         crate::snapshot::Architecture {
             shape: self.shape.clone(),
             network: self.config.network.clone(),
-            base: self.config.controller.base_action(self.shape.action_dim),
+            base: self.config.base.base_action(self.shape.action_dim),
         }
     }
 }

@@ -29,35 +29,102 @@ pub enum Connection {
 
 /// The whole training configuration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+#[serde(try_from = "TrainConfigFile")]
 pub struct TrainConfig {
     pub network: NetworkConfig,
     pub ddpg: DdpgConfig,
     pub ppo: PpoConfig,
     pub run: RunConfig,
-    pub controller: ControllerConfig,
+    pub base: BaseConfig,
+}
+
+/// TrainConfig as a file may spell it: `[base]`, or its name until this
+/// release, `[controller]` with `base = ...` (accepted with a deprecation
+/// warning: in a peg TOML `[controller]` is the compliance controller).
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct TrainConfigFile {
+    network: NetworkConfig,
+    ddpg: DdpgConfig,
+    ppo: PpoConfig,
+    run: RunConfig,
+    base: Option<BaseConfig>,
+    controller: Option<LegacyBaseConfig>,
+}
+
+impl Default for TrainConfigFile {
+    fn default() -> Self {
+        let d = TrainConfig::default();
+        TrainConfigFile { network: d.network, ddpg: d.ddpg, ppo: d.ppo, run: d.run, base: None, controller: None }
+    }
+}
+
+/// `[controller]` as it was: the base under `base`.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields, default)]
+#[derive(Default)]
+struct LegacyBaseConfig {
+    base: BaseController,
+    best_constant_file: Option<std::path::PathBuf>,
+}
+
+/// The deprecation warning for `[controller]`.
+pub const CONTROLLER_DEPRECATED: &str = "[controller] in a training config is deprecated: it is now [base], with `action` for `base` \
+     (e.g. [base] action = \"best-constant\"); [controller] is still read in this release";
+
+impl TryFrom<TrainConfigFile> for TrainConfig {
+    type Error = String;
+
+    fn try_from(file: TrainConfigFile) -> Result<Self, String> {
+        let base = match (file.base, file.controller) {
+            (Some(_), Some(_)) => return Err("both [base] and [controller] are set; keep [base] ([controller] is its deprecated name)".into()),
+            (Some(base), None) => base,
+            (None, Some(legacy)) => {
+                tracing::warn!("{CONTROLLER_DEPRECATED}");
+                BaseConfig { action: legacy.base, best_constant_file: legacy.best_constant_file }
+            }
+            (None, None) => BaseConfig::default(),
+        };
+        Ok(TrainConfig { network: file.network, ddpg: file.ddpg, ppo: file.ppo, run: file.run, base })
+    }
+}
+
+/// Renames a deprecated `[controller]` table of a config (as a TOML table)
+/// to `[base]`, warning once, so that overrides laid over defaults mean
+/// what they meant.
+pub fn migrate_legacy_tables(table: &mut toml::Table) {
+    if let Some(toml::Value::Table(mut legacy)) = table.remove("controller") {
+        tracing::warn!("{CONTROLLER_DEPRECATED}");
+        if let Some(action) = legacy.remove("base") {
+            legacy.insert("action".into(), action);
+        }
+        let base = table.entry("base").or_insert_with(|| toml::Value::Table(toml::Table::new()));
+        if let toml::Value::Table(base) = base {
+            base.extend(legacy);
+        }
+    }
 }
 
 /// The controller under the agent (residual RL, learner/src/action.rs):
-/// a = clip(base + u·(ub − lb)/2, lb, ub).
+/// a = clip(base + u·(ub − lb)/2, lb, ub). `[base]` in a training TOML.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct ControllerConfig {
+pub struct BaseConfig {
     /// "none" (the plain map onto the box, Table I), "a = 0" (on peg
     /// tasks the constant compliance controller), "best-constant", or an
     /// action [a1, …, an]. A run records the resolved numbers.
-    pub base: BaseController,
-    /// best_constant.json of `lcrl tune` for base = "best-constant"
+    pub action: BaseController,
+    /// best_constant.json of `lcrl tune` for action = "best-constant"
     /// (default: the constant measured for a registered peg preset).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub best_constant_file: Option<std::path::PathBuf>,
 }
 
-impl ControllerConfig {
+impl BaseConfig {
     /// The base action once resolved (learner/src/action.rs): numbers, or
     /// zeros for "a = 0"; None without a base.
     pub fn base_action(&self, action_dim: usize) -> Option<Vec<f64>> {
-        match &self.base {
+        match &self.action {
             BaseController::Action(a) => Some(a.clone()),
             BaseController::Zero => Some(vec![0.0; action_dim]),
             BaseController::None | BaseController::BestConstant => None,
@@ -95,14 +162,14 @@ impl<'de> Deserialize<'de> for BaseController {
             Action(Vec<f64>),
         }
         match Raw::deserialize(d).map_err(|_| {
-            serde::de::Error::custom("controller.base must be \"none\", \"a = 0\", \"best-constant\" or a list of numbers")
+            serde::de::Error::custom("base.action must be \"none\", \"a = 0\", \"best-constant\" or a list of numbers")
         })? {
             Raw::Name(name) => match name.as_str() {
                 "none" => Ok(BaseController::None),
                 "a = 0" | "zero" => Ok(BaseController::Zero),
                 "best-constant" => Ok(BaseController::BestConstant),
                 other => Err(serde::de::Error::custom(format!(
-                    "controller.base = {other:?}: use \"none\", \"a = 0\", \"best-constant\" or a list of numbers"
+                    "base.action = {other:?}: use \"none\", \"a = 0\", \"best-constant\" or a list of numbers"
                 ))),
             },
             Raw::Action(a) => Ok(BaseController::Action(a)),
@@ -266,7 +333,7 @@ impl Default for TrainConfig {
             ddpg: DdpgConfig::default(),
             ppo: PpoConfig::default(),
             run: RunConfig::default(),
-            controller: ControllerConfig::default(),
+            base: BaseConfig::default(),
         }
     }
 }
@@ -412,7 +479,9 @@ impl TrainConfig {
     pub fn for_env_with(env: &str, overrides: &toml::Table) -> Result<TrainConfig, LearnerError> {
         let (defaults, _) = Self::for_env(env);
         let mut merged = toml::Table::try_from(&defaults).map_err(|e| LearnerError::Config(e.to_string()))?;
-        overlay(&mut merged, overrides);
+        let mut overrides = overrides.clone();
+        migrate_legacy_tables(&mut overrides);
+        overlay(&mut merged, &overrides);
         let cfg: TrainConfig = toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| LearnerError::Config(e.to_string()))?;
         cfg.validate()?;
         Ok(cfg)
@@ -517,6 +586,29 @@ pub fn overlay(base: &mut toml::Table, over: &toml::Table) {
 mod tests {
     use super::*;
 
+    /// `[controller] base = …`, the deprecated name of `[base] action = …`,
+    /// still loads, to the same config, from a file, through overrides laid
+    /// over an environment's settings, and from a checkpoint's JSON; both
+    /// at once are refused.
+    #[test]
+    fn the_deprecated_controller_table_still_loads() {
+        let new: TrainConfig = toml::from_str("[base]\naction = \"a = 0\"\n").unwrap();
+        let old: TrainConfig = toml::from_str("[controller]\nbase = \"a = 0\"\n").unwrap();
+        assert_eq!(new, old);
+        assert_eq!(new.base.action, BaseController::Zero);
+        let overrides = |text: &str| TrainConfig::for_env_with("peg-group1", &toml::from_str(text).unwrap()).unwrap();
+        let (new, old) = (overrides("[base]\naction = \"a = 0\"\n"), overrides("[controller]\nbase = \"a = 0\"\n"));
+        assert_eq!(new, old);
+        assert_eq!(old.base.action, BaseController::Zero, "the override wins over peg.toml's best constant");
+        let json = serde_json::to_value(&new).unwrap();
+        let mut legacy = json.as_object().unwrap().clone();
+        let base = legacy.remove("base").unwrap();
+        legacy.insert("controller".into(), serde_json::json!({ "base": base["action"] }));
+        assert_eq!(serde_json::from_value::<TrainConfig>(serde_json::Value::Object(legacy)).unwrap(), new);
+        let both = toml::from_str::<TrainConfig>("[base]\naction = \"none\"\n[controller]\nbase = \"a = 0\"\n").unwrap_err().to_string();
+        assert!(both.contains("both [base] and [controller]"), "{both}");
+    }
+
     #[test]
     fn defaults_follow_table_1_and_validate() {
         let cfg = TrainConfig::default();
@@ -571,9 +663,9 @@ mod tests {
                 let cfg = TrainConfig::load_for_env(&path, env).unwrap();
                 let table1 = TrainConfig::default();
                 if name.contains("ddpg") {
-                    assert_eq!((&cfg.ddpg, &cfg.network, &cfg.controller), (&table1.ddpg, &table1.network, &table1.controller), "{name} over {env}");
+                    assert_eq!((&cfg.ddpg, &cfg.network, &cfg.base), (&table1.ddpg, &table1.network, &table1.base), "{name} over {env}");
                 } else {
-                    assert_eq!((&cfg.ppo, &cfg.network, &cfg.controller), (&table1.ppo, &table1.network, &table1.controller), "{name} over {env}");
+                    assert_eq!((&cfg.ppo, &cfg.network, &cfg.base), (&table1.ppo, &table1.network, &table1.base), "{name} over {env}");
                 }
             }
         }

@@ -33,9 +33,9 @@ pub fn checkpoint_to_resume(run_dir: &Path, env: &str, algo: Algo, connection: C
 /// ("best-constant" becomes the constant itself), so config.toml and every
 /// checkpoint record exactly what the agent acts around. Returns them.
 pub fn fix_base_controller(config: &mut TrainConfig, env: &dyn Env) -> Result<Option<Vec<f64>>, LearnerError> {
-    let base = crate::action::resolve_base(&config.controller, env.spec())?;
-    config.controller.base = base.clone().map_or(BaseController::None, BaseController::Action);
-    config.controller.best_constant_file = None;
+    let base = crate::action::resolve_base(&config.base, env.spec())?;
+    config.base.action = base.clone().map_or(BaseController::None, BaseController::Action);
+    config.base.best_constant_file = None;
     Ok(base)
 }
 

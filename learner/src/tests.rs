@@ -301,8 +301,8 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
     std::fs::write(&file, serde_json::json!({ "env": "peg-group1", "action": base }).to_string()).unwrap();
     for algo in [Algo::Ddpg, Algo::Ppo] {
         let (mut cfg, _) = TrainConfig::for_env("peg-group1");
-        cfg.controller.base = crate::config::BaseController::BestConstant;
-        cfg.controller.best_constant_file = Some(file.clone());
+        cfg.base.action = crate::config::BaseController::BestConstant;
+        cfg.base.best_constant_file = Some(file.clone());
         cfg.run.episodes = 1;
         cfg.run.eval_episodes = 3;
         cfg.ddpg.warmup_steps = 10_000;
@@ -321,8 +321,8 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
         };
         let outcome = train(&request, &mut |_| {}).unwrap();
         let recorded: TrainConfig = toml::from_str(&std::fs::read_to_string(run_dir.join("config.toml")).unwrap()).unwrap();
-        assert_eq!(recorded.controller.base, crate::config::BaseController::Action(base.to_vec()), "{algo:?}");
-        assert_eq!(recorded.controller.best_constant_file, None);
+        assert_eq!(recorded.base.action, crate::config::BaseController::Action(base.to_vec()), "{algo:?}");
+        assert_eq!(recorded.base.best_constant_file, None);
         let policy = Policy::load(&run_dir).unwrap();
         assert_eq!(policy.architecture.base.as_deref(), Some(&base[..]));
         let mut env = make_env("peg-group1").unwrap();

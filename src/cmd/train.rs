@@ -48,7 +48,7 @@ pub struct TrainArgs {
     #[arg(long, value_parser = ["cpu", "cuda"])]
     pub device: Option<String>,
     /// Act around this base controller (residual RL): a best_constant.json
-    /// of `lcrl tune`; sets controller.base = "best-constant" from that file.
+    /// of `lcrl tune`; sets base.action = "best-constant" from that file.
     #[arg(long, value_name = "best_constant.json")]
     pub base_action: Option<PathBuf>,
     /// Training configuration (TOML); keys it leaves out keep the
@@ -90,8 +90,8 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     if let Some(path) = &args.base_action {
         // Read now, so a bad file fails before any work.
         lcrl_learner::action::read_best_constant(path)?;
-        config.controller.base = lcrl_learner::config::BaseController::BestConstant;
-        config.controller.best_constant_file = Some(path.clone());
+        config.base.action = lcrl_learner::config::BaseController::BestConstant;
+        config.base.best_constant_file = Some(path.clone());
     }
     if let Some(t) = args.connection.threshold() {
         config.run.graph_threshold = t;

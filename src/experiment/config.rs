@@ -115,7 +115,10 @@ impl Experiment {
     }
 
     /// Every check that can run before a single process starts.
-    pub fn check(file: ExperimentFile) -> anyhow::Result<Self> {
+    pub fn check(mut file: ExperimentFile) -> anyhow::Result<Self> {
+        // `[train.controller]` is the deprecated name of `[train.base]`:
+        // studies recorded with it are the same studies.
+        lcrl_learner::config::migrate_legacy_tables(&mut file.train);
         if file.name.is_empty() || !file.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-') || file.name.len() > 40 {
             bail!("`name` \"{}\" must be 1–40 letters, digits or '-' (it names Kubernetes objects)", file.name);
         }

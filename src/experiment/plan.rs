@@ -252,8 +252,12 @@ pub fn prepare_out(e: &Experiment, file: &Path, out: &Path, shared: bool) -> any
     std::fs::create_dir_all(out).with_context(|| format!("cannot create output directory {}", out.display()))?;
     let parsed = serde_json::to_string_pretty(&e.file)? + "\n";
     let recorded = out.join("experiment.json");
+    // What the recorded file says once checked (deprecated names renamed).
+    let same = |existing: &str| {
+        serde_json::from_str(existing).ok().and_then(|file| Experiment::check(file).ok()).is_some_and(|old| old.file == e.file)
+    };
     match std::fs::read_to_string(&recorded) {
-        Ok(existing) if existing != parsed => {
+        Ok(existing) if existing != parsed && !same(&existing) => {
             let other: Option<String> = serde_json::from_str::<serde_json::Value>(&existing).ok().and_then(|v| v["name"].as_str().map(String::from));
             bail!(
                 "{} belongs to a different experiment ({}); {} describes another study. Nothing was changed: \

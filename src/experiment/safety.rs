@@ -59,7 +59,9 @@ pub struct BaseFigures {
 pub fn base_of_run(run_dir: &Path, zero_action_return: Option<f64>, bar: Option<&BestConstant>) -> Option<BaseFigures> {
     let text = std::fs::read_to_string(run_dir.join("config.toml")).ok()?;
     let table: toml::Table = text.parse().ok()?;
-    let base: Vec<f64> = table.get("controller")?.get("base")?.as_array()?.iter().map(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64))).collect::<Option<_>>()?;
+    // `[base] action`, or `[controller] base` in runs written before the rename.
+    let action = table.get("base").and_then(|b| b.get("action")).or_else(|| table.get("controller").and_then(|c| c.get("base")))?;
+    let base: Vec<f64> = action.as_array()?.iter().map(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64))).collect::<Option<_>>()?;
     if base.iter().all(|&b| b == 0.0) {
         let mean_return = zero_action_return.or(bar.map(|b| b.zero_action_return))?;
         return Some(BaseFigures { controller: "a = 0".into(), mean_return, success_rate: None });
@@ -142,7 +144,7 @@ mod tests {
         assert_eq!(safety, RunSafety { failed_episodes: 2, episodes: 30, worst_mean_return: -8.0, peak_force_n: Some(40.0) });
 
         let bar = BestConstant { action: vec![2.0, 2.0, 0.22], mean_return: -3.5, success_rate: Some(1.0), zero_action_return: -8.7, eval_episodes: 100, eval_seed: Some(1) };
-        std::fs::write(dir.path().join("config.toml"), "[controller]\nbase = [2.0, 2.0, 0.22]\n").unwrap();
+        std::fs::write(dir.path().join("config.toml"), "[base]\naction = [2.0, 2.0, 0.22]\n").unwrap();
         let base = base_of_run(dir.path(), Some(-8.1), Some(&bar)).unwrap();
         assert_eq!((base.controller.as_str(), base.mean_return), ("best constant", -3.5));
         std::fs::write(dir.path().join("config.toml"), "[controller]\nbase = [0.0, 0, 0.0]\n").unwrap();

@@ -269,8 +269,8 @@ fn train_refuses_a_bad_base_action() {
     assert_clean_failure(&base_train(&missing), "missing.json");
     let cases = [
         ("not-tune.json", "{\"best\": 1}", "not a best_constant.json"),
-        ("outside.json", "{\"action\": [2.0, 2.0, 0.0, 9.0, 0.0, 0.0]}", "controller.base[3] = 9 lies outside the action box"),
-        ("short.json", "{\"action\": [0.0, 0.0]}", "controller.base has 2 components"),
+        ("outside.json", "{\"action\": [2.0, 2.0, 0.0, 9.0, 0.0, 0.0]}", "base.action[3] = 9 lies outside the action box"),
+        ("short.json", "{\"action\": [0.0, 0.0]}", "base.action has 2 components"),
     ];
     for (name, text, needle) in cases {
         let file = work.path().join(name);
