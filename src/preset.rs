@@ -209,7 +209,7 @@ impl Preset {
     /// Writes the training sections alone (what `lcrl-learner --config`
     /// reads) to `path`.
     pub fn write_train_config(&self, path: &Path) -> anyhow::Result<()> {
-        std::fs::write(path, toml::to_string_pretty(&self.train)?).with_context(|| format!("writing {}", path.display()))
+        crate::output::write_atomic(path, &toml::to_string_pretty(&self.train)?)
     }
 
     /// `lcrl-graph-builder`'s arguments: CS3 samples and seed from [run];

@@ -191,12 +191,20 @@ pub fn write_summary<T: Serialize>(run_dir: &Path, value: &T) -> Result<(), Lear
     write_atomically(&run_dir.join("summary.json"), (text + "\n").as_bytes())
 }
 
-/// Writes `bytes` to `path` whole or not at all: into `.NAME.partial`
-/// beside it, then renamed over it.
+/// Writes `bytes` to `path` whole or not at all, the one atomic writer of
+/// every file a run or a command writes: into `.NAME.PID.partial` beside
+/// it (the folder is created if needed), flushed to disk (fsync), then
+/// renamed over it. A crash leaves the old file or the new one, never half
+/// of one.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
+    use std::io::Write as _;
+    let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).map_err(io(dir))?;
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let partial = path.with_file_name(format!(".{name}.partial"));
-    std::fs::write(&partial, bytes).map_err(io(&partial))?;
+    let partial = dir.join(format!(".{name}.{}.partial", std::process::id()));
+    let mut file = std::fs::File::create(&partial).map_err(io(&partial))?;
+    file.write_all(bytes).and_then(|()| file.sync_all()).map_err(io(&partial))?;
+    drop(file);
     std::fs::rename(&partial, path).map_err(io(path))
 }
 

@@ -118,7 +118,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         req.env, req.algo, req.connection, req.settings_source
     );
     let config_path = req.run_dir.join("config.toml");
-    std::fs::write(&config_path, header + &resolved).map_err(io(&config_path))?;
+    crate::run_files::write_atomically(&config_path, (header + &resolved).as_bytes())?;
 
     let mut agent = make_agent(req.algo, req.connection, &cfg, &mask, m, n)?;
     if let Some(dir) = &checkpoint {
