@@ -10,7 +10,7 @@ use lcrl_learner::policy::Policy;
 use lcrl_learner::service::runtime::{LearnerSummary, PolicyLag};
 use lcrl_learner::{Algo, Connection};
 use lcrl_proto::v1::LearnerStatus;
-use lcrl_sim::evaluate::{evaluate, Summary};
+use lcrl_sim::evaluate::{evaluate, evaluate_parallel, Summary};
 use lcrl_sim::tune::feedback::StoredPolicy;
 use serde::Serialize;
 
@@ -69,16 +69,18 @@ pub const BEST_CONSTANT: &str = "best constant";
 /// The reference controllers of `env` evaluated on `episodes` starts from
 /// `first`: a = 0, the recorded best constant (docs/peg.md, "The bar") and
 /// the headroom policy, when there are.
-fn references(env: &mut dyn lcrl_sim::Env, headroom: Option<&StoredPolicy>, episodes: usize, first: u64) -> anyhow::Result<Vec<Summary>> {
+/// Their episodes run on every core (`evaluate_parallel`: the same
+/// episodes as one thread).
+fn references(env: &dyn lcrl_sim::Env, headroom: Option<&StoredPolicy>, episodes: usize, first: u64) -> anyhow::Result<Vec<Summary>> {
     let n = env.spec().action_dim();
-    let mut out = vec![evaluate(env, ZERO_ACTION, episodes, first, &mut |_| vec![0.0; n], &mut |_| {})?.0];
+    let mut out = vec![evaluate_parallel(env, ZERO_ACTION, episodes, first, &|_| vec![0.0; n])?.0];
     if let Some(best) = lcrl_sim::peg::measured_best_constant(&env.spec().name) {
-        out.push(evaluate(env, BEST_CONSTANT, episodes, first, &mut |_| best.to_vec(), &mut |_| {})?.0);
+        out.push(evaluate_parallel(env, BEST_CONSTANT, episodes, first, &|_| best.to_vec())?.0);
     }
     if let Some(stored) = headroom {
         let probe = env.fresh();
         let label = format!("headroom: {} feedback", stored.policy.family.name());
-        out.push(evaluate(env, &label, episodes, first, &mut |s| stored.policy.act(probe.as_ref(), s), &mut |_| {})?.0);
+        out.push(evaluate_parallel(env, &label, episodes, first, &|s| stored.policy.act(probe.as_ref(), s))?.0);
     }
     Ok(out)
 }
@@ -106,7 +108,7 @@ pub fn evaluate_run(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wal
         _ => None,
     };
     let headroom = preset.headroom()?;
-    let references = references(env.as_mut(), headroom.as_ref(), episodes, first)?;
+    let references = references(env.as_ref(), headroom.as_ref(), episodes, first)?;
     let lqr = env.as_lti().and_then(|lti| lcrl_learner::lqr::lqr_return(lti, episodes, first));
     // Only a locally connected actor has a G-structured optimum to show.
     let masked = env

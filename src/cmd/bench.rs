@@ -230,6 +230,19 @@ fn bench_sim(episodes: usize) -> anyhow::Result<()> {
         let per_step = 1e6 / summary.control_steps_per_sec;
         println!("{substeps:>9} {:>16.0} {per_step:>14.1}", summary.control_steps_per_sec);
     }
+    // An evaluation's independent episodes on every core
+    // (evaluate_parallel), against one thread, same episodes.
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let env = PegEnv::new("peg-group1", PegConfig::group1())?;
+    let constant = |_: &[f64]| vec![0.0; 6];
+    let wall = |threads: usize| -> anyhow::Result<f64> {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
+        let started = Instant::now();
+        pool.install(|| lcrl_sim::evaluate::evaluate_parallel(&env, "constant", episodes, 0, &constant))?;
+        Ok(started.elapsed().as_secs_f64())
+    };
+    let (one, all) = (wall(1)?, wall(cores)?);
+    println!("evaluation of {episodes} episodes (default substeps): {:.2} s on 1 thread, {:.2} s on {cores}: {:.2}×", one, all, one / all);
     Ok(())
 }
 
