@@ -109,10 +109,9 @@ pub fn evaluate_run(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wal
     };
     let headroom = preset.headroom()?;
     let references = references(env.as_ref(), headroom.as_ref(), episodes, first)?;
-    let lqr = env.as_lti().and_then(|lti| lcrl_learner::lqr::lqr_return(lti, episodes, first));
+    let lqr = lcrl_sim::lti::LtiEnv::of(env.as_ref()).and_then(|lti| lcrl_learner::lqr::lqr_return(lti, episodes, first));
     // Only a locally connected actor has a G-structured optimum to show.
-    let masked = env
-        .as_lti()
+    let masked = lcrl_sim::lti::LtiEnv::of(env.as_ref())
         .filter(|_| policy.architecture.shape.connection == Connection::Local)
         .and_then(|lti| lcrl_learner::lqr::masked_lqr_return(lti, &policy.architecture.shape.mask, episodes, first));
     let learner: Option<LearnerSummary> = std::fs::read_to_string(learner_dir.join("summary.json")).ok().and_then(|t| serde_json::from_str(&t).ok());

@@ -209,7 +209,7 @@ fn a_malformed_graph_message_is_refused_with_what_is_wrong() {
 fn lti_blocks_graphs_equal_lemma1_up_to_32_actions() {
     for n in LtiConfig::BLOCK_SIZES {
         let env = make_env(&format!("lti-blocks-{n}")).unwrap();
-        let lti = env.as_lti().unwrap().system();
+        let lti = lcrl_sim::lti::LtiEnv::of(env.as_ref()).unwrap().system();
         let exact = lemma1_graph(&lti.e, &lti.f);
         for (k, row) in exact.iter().enumerate() {
             let expected: Vec<u8> = (0..2 * n).map(|j| u8::from(j == 2 * k || j == 2 * k + 1 || j == 2 * (k ^ 1))).collect();

@@ -221,11 +221,11 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         _ => last.clone(),
     };
     let (zero, _) = evaluate(env.as_mut(), "a = 0", episodes, first_eval, &mut |_| vec![0.0; n], &mut |_| {})?;
-    let lqr = env.as_lti().and_then(|lti| lqr_return(lti, episodes, first_eval));
+    let lqr = lcrl_sim::lti::LtiEnv::of(env.as_ref()).and_then(|lti| lqr_return(lti, episodes, first_eval));
     // The best controller with G: a reference for locally connected actors
     // only (with every state connected it is LQR again, and the search
     // over every gain entry of a large system would take hours).
-    let masked_lqr = env.as_lti().filter(|_| req.connection == Connection::Local).and_then(|lti| masked_lqr_return(lti, &mask, episodes, first_eval));
+    let masked_lqr = lcrl_sim::lti::LtiEnv::of(env.as_ref()).filter(|_| req.connection == Connection::Local).and_then(|lti| masked_lqr_return(lti, &mask, episodes, first_eval));
     let recent = &rows[rows.len().saturating_sub(10)..];
     let (actor_params, critic_params) = agent.param_counts();
     let counters = agent.counters();

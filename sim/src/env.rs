@@ -89,11 +89,11 @@ pub trait Env: Send + Sync {
     fn check_snapshot(&self) -> Result<(), EnvError> {
         Ok(())
     }
-    /// The served environment behind this one, for batched steps
-    /// ([`step_all`]).
-    fn as_remote_mut(&mut self) -> Option<&mut crate::remote::RemoteEnv> {
-        None
-    }
+    /// The environment as its own type, for callers that need one kind
+    /// (`LtiEnv::of` for the LQR reference, the served environments'
+    /// batched step): the contract names no implementation.
+    fn as_any(&self) -> &dyn std::any::Any;
+    fn as_any_mut(&mut self) -> &mut dyn std::any::Any;
     /// Re-seeds the environment's own randomness (process noise) without
     /// changing its physical state. Deterministic environments ignore it.
     fn reseed_noise(&mut self, _seed: u64) {}
@@ -105,11 +105,6 @@ pub trait Env: Send + Sync {
     /// unless the environment knows better.
     fn normalize_state(&self, state: &[f64]) -> Vec<f64> {
         state.to_vec()
-    }
-    /// The linear system behind this environment, if it is one (for the
-    /// LQR reference).
-    fn as_lti(&self) -> Option<&crate::lti::LtiEnv> {
-        None
     }
     /// Seconds of simulated time per step (for traces).
     fn control_period_s(&self) -> f64 {
@@ -243,24 +238,6 @@ impl ReturnTerms {
         let sum = all.iter().fold(ReturnTerms::default(), |acc, t| acc.add(t));
         Some(sum.scale(1.0 / all.len() as f64))
     }
-}
-
-/// Steps each environment by its action, in order. Environments served by
-/// one server ([`crate::remote`]) go in one call (the service's batched
-/// Step), which is what makes K environments per actor cheap.
-pub fn step_all(envs: &mut [Box<dyn Env>], actions: &[Vec<f64>]) -> Result<Vec<Step>, EnvError> {
-    if envs.len() != actions.len() {
-        return Err(EnvError::invalid("actions", format!("{} actions for {} environments", actions.len(), envs.len())));
-    }
-    if envs.len() > 1 {
-        let remotes: Option<Vec<&mut crate::remote::RemoteEnv>> = envs.iter_mut().map(|e| e.as_remote_mut()).collect();
-        if let Some(mut remotes) = remotes {
-            if remotes.iter().all(|r| r.same_server(remotes[0])) {
-                return crate::remote::RemoteEnv::step_batch(&mut remotes, actions);
-            }
-        }
-    }
-    envs.iter_mut().zip(actions).map(|(env, action)| env.step(action)).collect()
 }
 
 /// Everything that can go wrong when making or stepping an environment.

@@ -22,5 +22,6 @@ pub mod remote;
 pub mod seeds;
 pub mod tune;
 
-pub use env::{step_all, Env, EnvError, EnvSpec, EpisodeMetrics, ReturnColumns, ReturnTerms, Step};
+pub use env::{Env, EnvError, EnvSpec, EpisodeMetrics, ReturnColumns, ReturnTerms, Step};
+pub use remote::step_all;
 pub use registry::{known_env_names, make_env};

@@ -321,6 +321,13 @@ impl LtiEnv {
     }
 }
 
+impl LtiEnv {
+    /// The linear system behind `env`, if it is one (for the LQR reference).
+    pub fn of(env: &dyn Env) -> Option<&LtiEnv> {
+        env.as_any().downcast_ref::<LtiEnv>()
+    }
+}
+
 impl Env for LtiEnv {
     fn spec(&self) -> &EnvSpec {
         &self.spec
@@ -383,8 +390,12 @@ impl Env for LtiEnv {
         self.system.noise_std > 0.0
     }
 
-    fn as_lti(&self) -> Option<&LtiEnv> {
-        Some(self)
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+
+    fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
+        self
     }
 }
 

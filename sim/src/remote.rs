@@ -261,7 +261,33 @@ impl RemoteEnv {
     }
 }
 
+/// Steps each environment by its action, in order. Environments served by
+/// one server (this module) go in one call (the service's batched
+/// Step), which is what makes K environments per actor cheap.
+pub fn step_all(envs: &mut [Box<dyn Env>], actions: &[Vec<f64>]) -> Result<Vec<Step>, EnvError> {
+    if envs.len() != actions.len() {
+        return Err(EnvError::invalid("actions", format!("{} actions for {} environments", actions.len(), envs.len())));
+    }
+    if envs.len() > 1 {
+        let remotes: Option<Vec<&mut RemoteEnv>> = envs.iter_mut().map(|e| e.as_any_mut().downcast_mut::<RemoteEnv>()).collect();
+        if let Some(mut remotes) = remotes {
+            if remotes.iter().all(|r| r.same_server(remotes[0])) {
+                return RemoteEnv::step_batch(&mut remotes, actions);
+            }
+        }
+    }
+    envs.iter_mut().zip(actions).map(|(env, action)| env.step(action)).collect()
+}
+
 impl Env for RemoteEnv {
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+
+    fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
+        self
+    }
+
     fn spec(&self) -> &EnvSpec {
         &self.server.spec
     }
@@ -314,9 +340,6 @@ impl Env for RemoteEnv {
         if self.server.dt > 0.0 { self.server.dt } else { 1.0 }
     }
 
-    fn as_remote_mut(&mut self) -> Option<&mut RemoteEnv> {
-        Some(self)
-    }
 }
 
 impl Drop for RemoteEnv {

@@ -276,6 +276,14 @@ impl Env for PegEnv {
         Box::new(self.clone())
     }
 
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+
+    fn as_any_mut(&mut self) -> &mut dyn std::any::Any {
+        self
+    }
+
     fn snapshot(&self) -> Result<Box<dyn Env>, EnvError> {
         Ok(Box::new(self.clone()))
     }
