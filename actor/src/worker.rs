@@ -243,7 +243,7 @@ mod tests {
     fn policy(algo: Algo) -> Policy {
         let cfg = TrainConfig::for_env("lti-paper").0;
         let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
-        let agent = lcrl_learner::agent::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
+        let agent = lcrl_learner::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
         let shape = lcrl_learner::snapshot::ActorShape { env: "lti-paper".into(), algo, connection: Connection::Local, state_dim: 3, action_dim: 3, mask };
         let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: None };
         let snapshot = lcrl_learner::service::runtime::snapshot(agent.as_ref(), &architecture, 7).unwrap();
@@ -320,7 +320,7 @@ mod tests {
             let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
             let cfg = TrainConfig::for_env(name).0;
             let mask = vec![vec![1u8; m]; n];
-            let agent = lcrl_learner::agent::make_agent(algo, Connection::Local, &cfg, &mask, m, n).unwrap();
+            let agent = lcrl_learner::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, m, n).unwrap();
             let shape = lcrl_learner::snapshot::ActorShape { env: name.into(), algo, connection: Connection::Local, state_dim: m, action_dim: n, mask };
             let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: Some(base.clone()) };
             let snapshot = lcrl_learner::service::runtime::snapshot(agent.as_ref(), &architecture, 1).unwrap();

@@ -35,23 +35,6 @@ pub fn observe(env: &dyn lcrl_sim::Env, state: &[f64]) -> Vec<f32> {
     env.normalize_state(state).iter().map(|&v| v as f32).collect()
 }
 
-/// Builds the agent (DDPG or PPO with the given actor) on `run.device`.
-pub fn make_agent(
-    algo: crate::config::Algo,
-    connection: Connection,
-    cfg: &crate::config::TrainConfig,
-    mask: &[Vec<u8>],
-    m: usize,
-    n: usize,
-) -> Result<Box<dyn Agent>, LearnerError> {
-    use crate::config::Algo;
-    let device = crate::device::resolve_device(&cfg.run.device)?;
-    Ok(match algo {
-        Algo::Ddpg => Box::new(crate::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
-        Algo::Ppo => Box::new(crate::ppo::Ppo::new(&cfg.ppo, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
-    })
-}
-
 /// Counters carried across checkpoints.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Counters {

@@ -9,7 +9,7 @@
 //! - [`device`]: the libtorch device (CUDA loaded at run time) and intra-op threads.
 //! - [`adam`]: Adam with savable state. [`replay`]: the replay buffer.
 //! - [`rate_limiter`]: the replay-ratio limiter of the distributed learner (Reverb's semantics).
-//! - [`agent`]: the algorithm interface; [`ddpg`] and [`ppo`] implement it.
+//! - [`agent`]: the algorithm interface and the state normalization; [`ddpg`] and [`ppo`] implement it, [`algorithms`] builds one by name.
 //! - [`exploration`]: how a training action is sampled, for `lcrl train` and the actors alike.
 //! - [`tensorboard`]: TensorBoard event files of a run.
 //! - [`lqr`]: the LQR ceiling for linear environments.
@@ -25,6 +25,7 @@
 pub mod action;
 pub mod adam;
 pub mod agent;
+pub mod algorithms;
 pub mod checkpoint;
 pub mod config;
 pub mod ddpg;

@@ -22,7 +22,7 @@ use lcrl_learner::service::shared::Shared;
 use lcrl_learner::service::server::{LearnerService, PolicyService};
 use lcrl_learner::checkpoint::CheckpointMeta;
 use lcrl_learner::run_start::{checkpoint_to_resume, fix_base_controller, resolve_mask};
-use lcrl_learner::agent::make_agent;
+use lcrl_learner::algorithms::make_agent;
 use lcrl_proto::security::{ClientSecurity, ServerSecurity, ServerSecurityArgs};
 use lcrl_proto::v1::graph_client::GraphClient;
 use tonic::service::interceptor::InterceptedService;

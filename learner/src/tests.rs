@@ -9,7 +9,7 @@ use crate::config::{Algo, Connection, TrainConfig};
 use crate::policy::Policy;
 use crate::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::run_files::EpisodeRow;
-use crate::agent::make_agent;
+use crate::algorithms::make_agent;
 use crate::trainer::{train, TrainOutcome, TrainRequest};
 
 fn lti_fast() -> TrainConfig {
@@ -356,7 +356,7 @@ fn cuda_updates_equal_cpu_updates() {
             cfg.run.device = device.into();
             (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size) = (32, 32);
             (cfg.ppo.rollout_steps, cfg.ppo.minibatch_size, cfg.ppo.epochs) = (64, 16, 2);
-            let mut agent = crate::agent::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
+            let mut agent = crate::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
             for k in 0..160 {
                 let obs: Vec<f32> = (0..3).map(|j| ((k * 3 + j) as f32 * 0.37).sin()).collect();
                 let action = agent.explore(&obs, 0);

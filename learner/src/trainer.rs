@@ -17,7 +17,8 @@ use lcrl_sim::evaluate::evaluate;
 use lcrl_sim::{make_env, Env};
 
 use crate::action::ActionMap;
-use crate::agent::{make_agent, observe};
+use crate::agent::observe;
+use crate::algorithms::make_agent;
 use crate::run_files::{EpisodeRow, TrainSummary};
 use crate::run_files::{read_rows, write_summary, MetricsLog};
 use crate::checkpoint::{write_checkpoint, CheckpointMeta};

@@ -134,7 +134,7 @@ fn time_updates(
     device: tch::Device,
 ) -> anyhow::Result<(f64, f64, usize)> {
     use lcrl_learner::agent::Transition;
-    use lcrl_learner::agent::make_agent;
+    use lcrl_learner::algorithms::make_agent;
     use lcrl_learner::Algo;
     use rand::{Rng, SeedableRng};
 

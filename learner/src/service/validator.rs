@@ -166,7 +166,7 @@ mod tests {
         cfg.run.validation_episodes = if validate { 4 } else { 0 };
         cfg.run.validate_every = 2;
         let mask = vec![vec![1u8; 3]; 3];
-        let agent = crate::agent::make_agent(Algo::Ddpg, Connection::Global, &cfg, &mask, 3, 3).unwrap();
+        let agent = crate::algorithms::make_agent(Algo::Ddpg, Connection::Global, &cfg, &mask, 3, 3).unwrap();
         let meta = CheckpointMeta::start("lti-paper", Algo::Ddpg, Connection::Global, 3, 3, mask, cfg.clone());
         let architecture = meta.architecture();
         let (policy, _) = watch::channel(Arc::new(snapshot(agent.as_ref(), &architecture, 0).unwrap()));

@@ -1,0 +1,24 @@
+//! The algorithms behind the [`Agent`] interface, chosen by name: the one
+//! place that knows both DDPG and PPO, so that neither they nor agent.rs
+//! import each other in a circle.
+
+use crate::agent::Agent;
+use crate::config::Connection;
+use crate::LearnerError;
+
+/// Builds the agent (DDPG or PPO with the given actor) on `run.device`.
+pub fn make_agent(
+    algo: crate::config::Algo,
+    connection: Connection,
+    cfg: &crate::config::TrainConfig,
+    mask: &[Vec<u8>],
+    m: usize,
+    n: usize,
+) -> Result<Box<dyn Agent>, LearnerError> {
+    use crate::config::Algo;
+    let device = crate::device::resolve_device(&cfg.run.device)?;
+    Ok(match algo {
+        Algo::Ddpg => Box::new(crate::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
+        Algo::Ppo => Box::new(crate::ppo::Ppo::new(&cfg.ppo, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
+    })
+}
