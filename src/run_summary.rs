@@ -10,8 +10,7 @@ use lcrl_learner::policy::Policy;
 use lcrl_learner::service::runtime::{LearnerSummary, PolicyLag};
 use lcrl_learner::{Algo, Connection};
 use lcrl_proto::v1::LearnerStatus;
-use lcrl_sim::evaluate::{evaluate, evaluate_parallel, Summary};
-use lcrl_sim::tune::feedback::StoredPolicy;
+use lcrl_sim::evaluate::{evaluate, Summary};
 use serde::Serialize;
 
 use crate::preset::Preset;
@@ -63,27 +62,7 @@ pub struct RunSummary {
 }
 
 /// The labels of the references every run has, as `references` names them.
-pub const ZERO_ACTION: &str = "a = 0";
-pub const BEST_CONSTANT: &str = "best constant";
-
-/// The reference controllers of `env` evaluated on `episodes` starts from
-/// `first`: a = 0, the recorded best constant (docs/peg.md, "The bar") and
-/// the headroom policy, when there are.
-/// Their episodes run on every core (`evaluate_parallel`: the same
-/// episodes as one thread).
-fn references(env: &dyn lcrl_sim::Env, headroom: Option<&StoredPolicy>, episodes: usize, first: u64) -> anyhow::Result<Vec<Summary>> {
-    let n = env.spec().action_dim();
-    let mut out = vec![evaluate_parallel(env, ZERO_ACTION, episodes, first, &|_| vec![0.0; n])?.0];
-    if let Some(best) = lcrl_sim::peg::measured_best_constant(&env.spec().name) {
-        out.push(evaluate_parallel(env, BEST_CONSTANT, episodes, first, &|_| best.to_vec())?.0);
-    }
-    if let Some(stored) = headroom {
-        let probe = env.fresh();
-        let label = format!("headroom: {} feedback", stored.policy.family.name());
-        out.push(evaluate_parallel(env, &label, episodes, first, &|s| stored.policy.act(probe.as_ref(), s))?.0);
-    }
-    Ok(out)
-}
+pub use lcrl_sim::evaluate::{BEST_CONSTANT, ZERO_ACTION};
 
 /// Evaluates the run's policy (the learner's selected one, else its newest
 /// checkpoint; the newest too when they differ) and writes summary.json
@@ -108,7 +87,7 @@ pub fn evaluate_run(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wal
         _ => None,
     };
     let headroom = preset.headroom()?;
-    let references = references(env.as_ref(), headroom.as_ref(), episodes, first)?;
+    let references = lcrl_sim::evaluate::references(env.as_ref(), headroom.as_ref(), episodes, first)?;
     let lqr = lcrl_sim::lti::LtiEnv::of(env.as_ref()).and_then(|lti| lcrl_learner::lqr::lqr_return(lti, episodes, first));
     // Only a locally connected actor has a G-structured optimum to show.
     let masked = lcrl_sim::lti::LtiEnv::of(env.as_ref())

@@ -113,6 +113,11 @@ pub struct TrainSummary {
     /// (on peg tasks the constant compliance controller): a reference line.
     #[serde(default)]
     pub zero_action_return: Option<f64>,
+    /// Every reference controller on the same evaluation episodes (a = 0,
+    /// and the best constant where one is recorded for the environment):
+    /// the evaluator `lcrl run` uses too.
+    #[serde(default)]
+    pub references: Vec<lcrl_sim::evaluate::Summary>,
     /// The LQR controller's mean return on the same evaluation episodes
     /// (linear environments only).
     pub lqr_return: Option<f64>,

@@ -221,7 +221,8 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         }
         _ => last.clone(),
     };
-    let (zero, _) = evaluate(env.as_mut(), "a = 0", episodes, first_eval, &mut |_| vec![0.0; n], &mut |_| {})?;
+    let references = lcrl_sim::evaluate::references(env.as_ref(), None, episodes, first_eval)?;
+    let zero = references.iter().find(|r| r.controller == lcrl_sim::evaluate::ZERO_ACTION).map(|r| r.mean_return);
     let lqr = lcrl_sim::lti::LtiEnv::of(env.as_ref()).and_then(|lti| lqr_return(lti, episodes, first_eval));
     // The best controller with G: a reference for locally connected actors
     // only (with every state connected it is LQR again, and the search
@@ -244,7 +245,8 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         eval_terms: eval.terms,
         last_eval_return: chosen.as_ref().map(|_| last.mean_return),
         selection: chosen,
-        zero_action_return: Some(zero.mean_return),
+        zero_action_return: zero,
+        references,
         lqr_return: lqr,
         masked_lqr_return: masked_lqr,
         graph_seconds,

@@ -149,6 +149,29 @@ pub fn evaluate_parallel(
     Ok((summarize(env.spec().name.clone(), controller, seed, &records, elapsed), records))
 }
 
+/// The label of a = 0 among [`references`].
+pub const ZERO_ACTION: &str = "a = 0";
+/// The label of the recorded best constant among [`references`].
+pub const BEST_CONSTANT: &str = "best constant";
+
+/// The reference controllers of `env` on `episodes` starts from `first`,
+/// the one evaluator of references of `lcrl train` and `lcrl run`: a = 0,
+/// the recorded best constant (docs/peg.md, "The bar") where `env` has one,
+/// and a headroom policy when one is given. Episodes run on every core.
+pub fn references(env: &dyn Env, headroom: Option<&crate::tune::feedback::StoredPolicy>, episodes: usize, first: u64) -> Result<Vec<Summary>, EnvError> {
+    let n = env.spec().action_dim();
+    let mut out = vec![evaluate_parallel(env, ZERO_ACTION, episodes, first, &|_| vec![0.0; n])?.0];
+    if let Some(best) = crate::peg::measured_best_constant(&env.spec().name) {
+        out.push(evaluate_parallel(env, BEST_CONSTANT, episodes, first, &|_| best.to_vec())?.0);
+    }
+    if let Some(stored) = headroom {
+        let probe = env.fresh();
+        let label = format!("headroom: {} feedback", stored.policy.family.name());
+        out.push(evaluate_parallel(env, &label, episodes, first, &|s| stored.policy.act(probe.as_ref(), s))?.0);
+    }
+    Ok(out)
+}
+
 fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
     let (sum, count) = values.fold((0.0, 0usize), |(s, c), v| (s + v, c + 1));
     (count > 0).then(|| sum / count as f64)

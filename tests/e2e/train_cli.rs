@@ -219,6 +219,11 @@ fn peg_run_splits_returns_into_reward_terms() {
     let terms: f64 = ["return_depth", "return_force", "return_moment", "return_bonus", "return_failure"].iter().map(|k| s[*k].as_f64().unwrap()).sum();
     assert!((terms - s["eval_return"].as_f64().unwrap()).abs() < 1e-9, "{s}");
     assert!(s["zero_action_return"].as_f64().is_some() && s["eval_success_rate"].as_f64().is_some(), "{s}");
+    // The references of `lcrl run`'s evaluator, on the same starts: a = 0
+    // and the recorded best constant.
+    let names: Vec<&str> = s["references"].as_array().unwrap().iter().map(|r| r["controller"].as_str().unwrap()).collect();
+    assert_eq!(names, ["a = 0", "best constant"], "{s}");
+    assert_eq!(s["references"][0]["mean_return"], s["zero_action_return"]);
     let mut rows = csv::Reader::from_path(run.join("metrics.csv")).unwrap();
     let header: Vec<String> = rows.headers().unwrap().iter().map(str::to_string).collect();
     assert!(header.ends_with(&["return_depth", "return_force", "return_moment", "return_bonus", "return_failure"].map(String::from)), "{header:?}");
