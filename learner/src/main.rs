@@ -46,7 +46,9 @@ struct Args {
     algo: Algo,
     #[arg(long, value_enum)]
     connection: Connection,
-    /// Training configuration (TOML); defaults follow docs/method.md Table I.
+    /// Training configuration (TOML); keys it leaves out keep the
+    /// environment's settings, as `lcrl train --config` does (without a
+    /// file: the environment's settings, e.g. configs/peg.toml on peg tasks).
     #[arg(long)]
     config: Option<PathBuf>,
     /// Where the networks compute (overrides run.device; a resumed run may
@@ -171,7 +173,8 @@ async fn run(args: Args) -> anyhow::Result<()> {
         }
         None => {
             let mut config = match &args.config {
-                Some(path) => TrainConfig::load(path)?,
+                // One fallback rule with `lcrl train`: the environment's settings.
+                Some(path) => TrainConfig::load_for_env(path, &args.env)?,
                 None => TrainConfig::for_env(&args.env).0,
             };
             fix_base_controller(&mut config, env.as_ref())?;
