@@ -296,14 +296,15 @@ impl Study {
     }
 
     /// Per environment and algorithm: each connection with a graph against
-    /// global and against full-subnets, and each given graph (graph:PATH)
-    /// against each random@K (does the structure matter, or only the
-    /// number of inputs?), on final and evaluation return.
+    /// global and against full-subnets, and each given or measured graph
+    /// (graph:PATH, local@T) against each random@K (does the structure
+    /// matter, or only the number of inputs?), on final and evaluation
+    /// return.
     fn comparisons(&self) -> Vec<Comparison> {
         use crate::connection::ConnectionSpec as C;
         let pairs_with = |a: &C, b: &C| match (a, b) {
             (a, C::Global | C::FullSubnets) => a.has_graph(),
-            (C::Graph { .. }, C::Random { .. }) => true,
+            (C::Graph { .. } | C::Local { .. }, C::Random { .. }) => true,
             _ => false,
         };
         let mut out = Vec::new();
@@ -545,6 +546,7 @@ mod tests {
             (graph.clone(), "global".to_string()),
             (graph, "random@4".to_string()),
             ("local@0.1".to_string(), "global".to_string()),
+            ("local@0.1".to_string(), "random@4".to_string()),
             ("random@4".to_string(), "global".to_string()),
         ];
         expected.sort();
