@@ -4,10 +4,9 @@
 //! policy. Checkpoints periodically and on SIGTERM/Ctrl-C, and resumes from
 //! its newest checkpoint when started again on the same run directory.
 
-use std::collections::VecDeque;
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU32, AtomicU64};
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -28,7 +27,7 @@ use lcrl_proto::v1::graph_client::GraphClient;
 use tonic::service::interceptor::InterceptedService;
 use lcrl_proto::v1::learner_server::LearnerServer;
 use lcrl_proto::v1::policy_server::PolicyServer;
-use tokio::sync::{mpsc, watch};
+use tokio::sync::mpsc;
 
 /// Message size limit of every service: a policy snapshot is ~0.3 MB at the
 /// default sizes and a batch of 1000 peg transitions ~0.15 MB; 16 MB leaves
@@ -209,32 +208,19 @@ async fn run(args: Args) -> anyhow::Result<()> {
     }
     let architecture = meta.architecture();
     let actions = lcrl_learner::action::ActionMap::new(env.spec(), architecture.base.as_deref())?;
-    let (policy, _) = watch::channel(Arc::new(snapshot(agent.as_ref(), &architecture, meta.policy_version)?));
+    let first = snapshot(agent.as_ref(), &architecture, meta.policy_version)?;
     let staleness = (args.algo == Algo::Ppo).then_some(args.max_staleness);
+    let ingest = Ingest::new(&args.run_id, lcrl_sim::make_env(&args.env)?, staleness)
+        .with_actions(actions)
+        .with_sequences(meta.actor_sequences.clone());
+    let shared = Shared::new(&args.run_id, architecture, first, ingest, args.run_dir.clone(), security.refusals());
+    // A resumed run's counters.
     let counters = agent.counters();
-    let shared = Arc::new(Shared {
-        run_id: args.run_id.clone(),
-        algo: args.algo,
-        connection: args.connection,
-        architecture,
-        env_steps: AtomicU64::new(counters.env_steps),
-        updates: AtomicU64::new(counters.updates),
-        replay_size: AtomicU64::new(agent.stored() as u64),
-        episodes: AtomicU64::new(meta.episode as u64),
-        connected_actors: AtomicU32::new(0),
-        recent_returns: Mutex::new(VecDeque::new()),
-        ingest: Mutex::new(
-            Ingest::new(&args.run_id, lcrl_sim::make_env(&args.env)?, staleness)
-                .with_actions(actions)
-                .with_sequences(meta.actor_sequences.clone()),
-        ),
-        policy,
-        served: Mutex::new(None),
-        shutdown: watch::channel(false).0,
-        run_dir: args.run_dir.clone(),
-        flow: Mutex::new(Default::default()),
-        auth_refusals: security.refusals(),
-    });
+    shared.env_steps.store(counters.env_steps, Ordering::Relaxed);
+    shared.updates.store(counters.updates, Ordering::Relaxed);
+    shared.replay_size.store(agent.stored() as u64, Ordering::Relaxed);
+    shared.episodes.store(meta.episode as u64, Ordering::Relaxed);
+    let shared = Arc::new(shared);
     let limiter = match (args.algo, args.replay_ratio.as_deref()) {
         // A learner that never samples (--no-train: ingestion benchmarks)
         // must not wait for samples before it inserts.

@@ -80,7 +80,7 @@ impl Selection {
     /// batches): a multiple of `validate_every` passed since the last
     /// validation counts as reached.
     pub fn due(&self, done: usize, last: usize) -> bool {
-        validation_due(self.history.last().map(|v| v.episode), done, last, self.every)
+        validation_due(self.last_validated(), done, last, self.every)
     }
 
     /// The most recent validation, if any.

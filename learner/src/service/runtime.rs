@@ -333,10 +333,7 @@ impl TrainingLoop {
         self.checkpoint()?;
         // The last policy is validated too, then the choice is final.
         self.validate_if_due()?;
-        let chosen = match self.schedule.validator.as_mut() {
-            Some(validator) => Some(validator.finish()?),
-            None => None,
-        };
+        let chosen = self.schedule.validator.as_mut().map(Validator::finish).transpose()?;
         let served = match chosen.as_ref().and_then(|c| c.snapshot.clone().zip(c.record.clone())) {
             Some((snapshot, record)) => Served {
                 reason: format!(
@@ -472,17 +469,11 @@ impl TrainingLoop {
     fn validate_if_due(&mut self) -> Result<(), LearnerError> {
         let done = self.episodes() as usize;
         let last = self.schedule.budget_episodes.map_or(usize::MAX, |b| b as usize);
-        if !self.schedule.validator.as_ref().is_some_and(|v| v.due(done, last)) {
-            return Ok(());
-        }
+        let Some(validator) = self.schedule.validator.as_mut().filter(|v| v.due(done, last)) else { return Ok(()) };
         let version = self.shared.policy_version();
         let snapshot = Arc::new(snapshot(self.agent.as_ref(), &self.shared.architecture, version)?);
-        let mut meta = self.schedule.meta.clone();
-        meta.episode = done;
-        meta.policy_version = version;
-        if let Some(validator) = self.schedule.validator.as_mut() {
-            validator.submit(snapshot, meta);
-        }
+        let meta = CheckpointMeta { episode: done, policy_version: version, ..self.schedule.meta.clone() };
+        validator.submit(snapshot, meta);
         Ok(())
     }
 

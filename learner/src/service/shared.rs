@@ -69,6 +69,38 @@ fn lock<T>(mutex: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 }
 
 impl Shared {
+    /// A run's shared state with every counter at zero: `first` is the
+    /// policy served until the training thread publishes, and algo and
+    /// connection are the architecture's.
+    pub fn new(
+        run_id: &str,
+        architecture: Architecture,
+        first: PolicySnapshot,
+        ingest: Ingest,
+        run_dir: PathBuf,
+        auth_refusals: Arc<lcrl_proto::security::AuthRefusals>,
+    ) -> Self {
+        Shared {
+            run_id: run_id.to_string(),
+            algo: architecture.shape.algo,
+            connection: architecture.shape.connection,
+            architecture,
+            env_steps: AtomicU64::new(0),
+            updates: AtomicU64::new(0),
+            replay_size: AtomicU64::new(0),
+            episodes: AtomicU64::new(0),
+            connected_actors: AtomicU32::new(0),
+            recent_returns: Mutex::new(VecDeque::new()),
+            ingest: Mutex::new(ingest),
+            policy: watch::channel(Arc::new(first)).0,
+            served: Mutex::new(None),
+            shutdown: watch::channel(false).0,
+            run_dir,
+            flow: Mutex::new(Default::default()),
+            auth_refusals,
+        }
+    }
+
     /// Ingestion's checks and counters (every transport goes through them).
     pub fn ingest(&self) -> std::sync::MutexGuard<'_, Ingest> {
         lock(&self.ingest)

@@ -135,13 +135,11 @@ fn read_selected(run_dir: &Path) -> Result<Option<PolicySnapshot>, LearnerError>
 
 #[cfg(test)]
 mod tests {
-    use std::collections::VecDeque;
-    use std::sync::atomic::{AtomicU32, AtomicU64};
     use std::time::Duration;
 
     use lcrl_proto::v1::EpisodeSummary;
     use rand::{Rng, SeedableRng};
-    use tokio::sync::{mpsc as queue, watch};
+    use tokio::sync::mpsc as queue;
 
     use super::*;
     use crate::checkpoint::latest_checkpoint;
@@ -169,26 +167,9 @@ mod tests {
         let agent = crate::algorithms::make_agent(Algo::Ddpg, Connection::Global, &cfg, &mask, 3, 3).unwrap();
         let meta = CheckpointMeta::start("lti-paper", Algo::Ddpg, Connection::Global, 3, 3, mask, cfg.clone());
         let architecture = meta.architecture();
-        let (policy, _) = watch::channel(Arc::new(snapshot(agent.as_ref(), &architecture, 0).unwrap()));
-        let shared = Arc::new(Shared {
-            run_id: "r".into(),
-            algo: Algo::Ddpg,
-            connection: Connection::Global,
-            architecture,
-            env_steps: AtomicU64::new(0),
-            updates: AtomicU64::new(0),
-            replay_size: AtomicU64::new(0),
-            episodes: AtomicU64::new(0),
-            connected_actors: AtomicU32::new(0),
-            recent_returns: Mutex::new(VecDeque::new()),
-            ingest: Mutex::new(Ingest::new("r", lcrl_sim::make_env("lti-paper").unwrap(), None)),
-            policy,
-            served: Mutex::new(None),
-            shutdown: watch::channel(false).0,
-            run_dir: dir.to_path_buf(),
-            flow: Mutex::new(Default::default()),
-            auth_refusals: Default::default(),
-        });
+        let first = snapshot(agent.as_ref(), &architecture, 0).unwrap();
+        let ingest = Ingest::new("r", lcrl_sim::make_env("lti-paper").unwrap(), None);
+        let shared = Arc::new(Shared::new("r", architecture, first, ingest, dir.to_path_buf(), Default::default()));
         let selection = Selection::new(&cfg.run, dir, false).unwrap();
         let validator = selection.map(|s| Validator::start(s, lcrl_sim::make_env("lti-paper").unwrap(), dir, cfg.run.validate_every).unwrap());
         let (commands, inbox) = queue::channel(128);
