@@ -135,6 +135,13 @@ impl Preset {
     /// Reads and checks a preset, its environment included.
     pub fn load(path: &Path) -> anyhow::Result<Preset> {
         let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        Self::parse(text, path)
+    }
+
+    /// [`Preset::load`] on a file's text; `path` names it in errors, and
+    /// the files it names (headroom, graph) are read beside it. Fuzzed by
+    /// fuzz/fuzz_targets/toml_config.rs.
+    pub fn parse(text: String, path: &Path) -> anyhow::Result<Preset> {
         let mut table: toml::Table = toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
         let job_value = table.remove("job").with_context(|| format!("{} has no [job] section (env, algo, connection, episodes)", path.display()))?;
         let mut job: Job = job_value.try_into().with_context(|| format!("{}: [job]", path.display()))?;
@@ -228,6 +235,11 @@ impl Preset {
     /// `graph_builder`, a gRPC URL.
     pub fn learner_args(&self, listen: &str, run_id: &str, train_config: &Path, learner_dir: &Path, graph_builder: Option<&str>) -> anyhow::Result<Vec<OsString>> {
         let mut args = self.learner_base_args(listen, run_id, train_config, learner_dir);
+        // The learner evaluates its hand-over beside the preset's headroom
+        // reference, as summary.json shows it.
+        if let Some(headroom) = &self.job.headroom {
+            args.extend([OsString::from("--headroom"), headroom.into()]);
+        }
         match (self.job.connection, graph_builder) {
             (Connection::Local, Some(url)) => args.extend(os(&["--graph-builder", url])),
             (Connection::Local, None) => bail!("connection local needs the graph builder's URL (--graph-builder)"),

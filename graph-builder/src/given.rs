@@ -46,8 +46,24 @@ pub fn random(spec: &EnvSpec, edges: usize, seed: u64) -> Result<GraphReport, Gr
 /// another state order would feed every subnetwork the wrong inputs) and
 /// an edge for every action.
 pub fn load_for(path: &Path, spec: &EnvSpec) -> Result<GraphReport, GraphError> {
-    let mut report = GraphReport::load(path)?;
+    let text = std::fs::read_to_string(path).map_err(|source| GraphError::Io { path: path.into(), source })?;
+    parse_for(&text, path, spec)
+}
+
+/// [`load_for`] on a graph file's text; `path` names it in errors and in
+/// the origin (fuzzed by fuzz/fuzz_targets/graph_json.rs).
+pub fn parse_for(text: &str, path: &Path, spec: &EnvSpec) -> Result<GraphReport, GraphError> {
+    let mut report = GraphReport::from_json(text, path)?;
     let bad = |message: String| GraphError::BadGraphFile { path: path.into(), message };
+    let (n, m) = (spec.action_dim(), spec.state_dim());
+    if (report.actions(), report.states()) != (n, m) {
+        return Err(bad(format!(
+            "the graph is {}×{} (actions × states) but environment {} has {n} actions and {m} states; build the graph for this environment",
+            report.actions(),
+            report.states(),
+            spec.name
+        )));
+    }
     if report.state_names != spec.state_names || report.action_names != spec.action_names {
         return Err(bad(format!(
             "its actions {:?} and states {:?} are not those of environment {} (actions {:?}, states {:?}, in this order)",

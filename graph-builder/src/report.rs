@@ -137,7 +137,12 @@ impl GraphReport {
     /// names announce and that G holds only 0 and 1.
     pub fn load(path: &Path) -> Result<Self, GraphError> {
         let text = std::fs::read_to_string(path).map_err(|source| GraphError::Io { path: path.into(), source })?;
-        let report: GraphReport = serde_json::from_str(&text)
+        Self::from_json(&text, path)
+    }
+
+    /// [`GraphReport::load`] on a file's text; `path` names it in errors.
+    pub fn from_json(text: &str, path: &Path) -> Result<Self, GraphError> {
+        let report: GraphReport = serde_json::from_str(text)
             .map_err(|e| GraphError::BadGraphFile { path: path.into(), message: e.to_string() })?;
         let (n, m) = (report.actions(), report.states());
         let bad = |message: String| GraphError::BadGraphFile { path: path.into(), message };
@@ -152,10 +157,10 @@ impl GraphReport {
         Ok(report)
     }
 
-    /// Writes pretty JSON.
+    /// Writes pretty JSON, atomically (a learner may be reading it).
     pub fn write_json(&self, path: &Path) -> Result<(), GraphError> {
         let text = serde_json::to_string_pretty(self).map_err(|e| GraphError::Json(e.to_string()))?;
-        std::fs::write(path, text + "\n").map_err(|source| GraphError::Io { path: path.into(), source })
+        lcrl_proto::files::write_atomically(path, (text + "\n").as_bytes()).map_err(|source| GraphError::Io { path: path.into(), source })
     }
 
     /// The rule, in words, for headings.

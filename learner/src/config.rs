@@ -490,8 +490,14 @@ impl TrainConfig {
     /// Reads a TOML file whose missing keys keep `env`'s settings.
     pub fn load_for_env(path: &Path, env: &str) -> Result<Self, LearnerError> {
         let text = std::fs::read_to_string(path).map_err(|source| LearnerError::Io { path: path.into(), source })?;
-        let table: toml::Table = toml::from_str(&text).map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))?;
-        Self::for_env_with(env, &table).map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))
+        Self::parse_for_env(&text, env).map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))
+    }
+
+    /// [`TrainConfig::load_for_env`] on a file's text (fuzzed by
+    /// fuzz/fuzz_targets/toml_config.rs).
+    pub fn parse_for_env(text: &str, env: &str) -> Result<Self, LearnerError> {
+        let table: toml::Table = toml::from_str(text).map_err(|e| LearnerError::Config(e.to_string()))?;
+        Self::for_env_with(env, &table)
     }
 
     /// Reads a TOML file (missing keys keep their defaults).

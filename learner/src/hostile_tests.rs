@@ -182,3 +182,23 @@ fn valid_weights(poison: Option<f32>) -> Vec<u8> {
         .collect();
     crate::snapshot::encode_weights(&named).expect("encodes")
 }
+
+/// A checkpoint folder is a file anyone can edit: `checkpoint.json` is
+/// checked as a peer's snapshot is, before a network is built from it (it
+/// was not before, and a 2^40-wide state would have been allocated).
+#[test]
+fn checkpoints_are_checked_as_snapshots_are() {
+    let arch: crate::snapshot::Architecture = serde_json::from_value(architecture()).expect("valid architecture");
+    let shape = arch.shape.clone();
+    let mut config = crate::config::TrainConfig::default();
+    config.network = arch.network.clone();
+    let meta = crate::checkpoint::CheckpointMeta::start(&shape.env, shape.algo, shape.connection, shape.state_dim, shape.action_dim, shape.mask.clone(), config);
+    let good = Policy::from_checkpoint(&serde_json::to_string(&meta).expect("writes"), &valid_weights(None));
+    assert!(good.is_ok(), "{:?}", good.err());
+    let mut huge = serde_json::to_value(&meta).expect("writes");
+    huge["state_dim"] = (1u64 << 40).into();
+    let err = Policy::from_checkpoint(&huge.to_string(), &valid_weights(None)).err().map(|e| e.to_string()).unwrap_or_default();
+    assert!(err.contains("state_dim"), "{err}");
+    let nan = Policy::from_checkpoint(&serde_json::to_string(&meta).expect("writes"), &valid_weights(Some(f32::NAN)));
+    assert!(nan.err().map(|e| e.to_string()).unwrap_or_default().contains("non-finite"));
+}

@@ -13,7 +13,8 @@
 //! - [`exploration`]: how a training action is sampled, for `lcrl train` and the actors alike.
 //! - [`tensorboard`]: TensorBoard event files of a run.
 //! - [`lqr`]: the LQR ceiling for linear environments.
-//! - [`run_files`]: metrics.csv and summary.json (atomic), for both loops.
+//! - [`run_files`]: metrics.csv, the selection record and the one atomic writer, for both loops.
+//! - [`summary`]: summary.json of every loop, and the one evaluation of a handed-over policy.
 //! - [`checkpoint`]: the checkpoint store (atomic writes, newest kept, resume).
 //! - [`run_start`]: how a run starts (the checkpoint to resume, the base controller, the mask), for both loops.
 //! - [`selection`]: the run's policy chosen on held-out validation starts.
@@ -42,6 +43,7 @@ pub mod run_start;
 pub mod selection;
 pub mod service;
 pub mod snapshot;
+pub mod summary;
 pub mod tensorboard;
 pub mod trainer;
 

@@ -111,6 +111,11 @@ struct Args {
     /// transitions (Reverb's error buffer divided by SPI).
     #[arg(long, default_value_t = 256)]
     replay_slack: u64,
+    /// A headroom reference (`lcrl tune --headroom`'s JSON) to evaluate
+    /// beside the handed-over policy in summary.json; `lcrl run` passes a
+    /// preset's `job.headroom`.
+    #[arg(long, value_name = "FILE")]
+    headroom: Option<PathBuf>,
     /// Serve Prometheus metrics on http://ADDR/metrics (port 0: any free
     /// port, logged as "metrics on").
     #[arg(long, value_name = "ADDR")]
@@ -257,6 +262,17 @@ async fn run(args: Args) -> anyhow::Result<()> {
         Some(selection) => Some(Validator::start(selection, lcrl_sim::make_env(&args.env)?, &args.run_dir, config.run.validate_every)?),
         None => None,
     };
+    let headroom = match &args.headroom {
+        Some(path) => {
+            let stored = lcrl_sim::tune::feedback::StoredPolicy::read(path).with_context(|| format!("--headroom {}", path.display()))?;
+            // A served environment is checked by its own evaluation.
+            if !lcrl_sim::remote::is_served(&args.env) {
+                stored.check_env(lcrl_sim::make_env(&args.env)?.as_ref()).with_context(|| format!("--headroom {}", path.display()))?;
+            }
+            Some(stored)
+        }
+        None => None,
+    };
     let schedule = Schedule {
         publish_every: args.publish_every.max(1),
         checkpoint_interval: Duration::from_secs_f64(args.checkpoint_secs),
@@ -267,6 +283,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         budget_episodes: args.episodes,
         limiter,
         validator,
+        headroom,
     };
     let trainer_shared = shared.clone();
     // A failed training thread stops the server too: a learner that cannot

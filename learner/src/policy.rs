@@ -7,11 +7,11 @@ use lcrl_sim::Env;
 use tch::nn;
 
 use crate::action::ActionMap;
-use crate::agent::{build_actor, load_vs};
+use crate::agent::build_actor;
 use crate::nets::{batch, ActorNet};
 use crate::snapshot::{decode_weights, Architecture};
-use crate::checkpoint::{latest_checkpoint, read_meta};
-use crate::LearnerError;
+use crate::checkpoint::{latest_checkpoint, CheckpointMeta};
+use crate::{io, LearnerError};
 
 /// The deterministic policy of a checkpoint or snapshot.
 pub struct Policy {
@@ -47,10 +47,25 @@ impl Policy {
         } else {
             latest_checkpoint(dir).ok_or_else(|| LearnerError::Checkpoint(format!("{} holds no checkpoint (checkpoint.json)", dir.display())))?
         };
-        let meta = read_meta(&dir)?;
-        let (mut vs, actor, architecture) = Self::empty(meta.architecture());
-        load_vs(&mut vs, &dir.join("actor.safetensors"))?;
-        Ok(Policy { architecture, episode: Some(meta.episode), version: meta.policy_version, vs, actor, log_std: None })
+        let meta_path = dir.join("checkpoint.json");
+        let weights_path = dir.join("actor.safetensors");
+        let meta = std::fs::read_to_string(&meta_path).map_err(io(&meta_path))?;
+        let weights = std::fs::read(&weights_path).map_err(io(&weights_path))?;
+        Self::from_checkpoint(&meta, &weights).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", dir.display())))
+    }
+
+    /// The policy of a checkpoint's `checkpoint.json` text and
+    /// `actor.safetensors` bytes, checked as a peer's snapshot is (the
+    /// architecture before anything is built, then every weight's name,
+    /// shape and finiteness). Fuzzed by fuzz/fuzz_targets/checkpoint.rs.
+    pub fn from_checkpoint(meta_json: &str, weights: &[u8]) -> Result<Self, LearnerError> {
+        let meta: CheckpointMeta = serde_json::from_str(meta_json).map_err(|e| LearnerError::Checkpoint(format!("checkpoint.json: {e}")))?;
+        let architecture = meta.architecture();
+        architecture.validate()?;
+        let (vs, actor, architecture) = Self::empty(architecture);
+        let mut policy = Policy { architecture, episode: Some(meta.episode), version: meta.policy_version, vs, actor, log_std: None };
+        policy.update(weights, meta.policy_version)?;
+        Ok(policy)
     }
 
     /// Builds the policy of a published snapshot.

@@ -1,12 +1,12 @@
 //! The records of a run directory that people and tools read: one
-//! `metrics.csv` row per episode and `summary.json` at the end, the same
-//! files from `lcrl train` and from the distributed learner.
+//! `metrics.csv` row per episode, the selection record, and the atomic
+//! writer every run file goes through (summary.json: crate::summary). The
+//! same files from `lcrl train` and from the distributed learner.
 
 use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::{Algo, Connection};
 use crate::{io, LearnerError};
 
 
@@ -77,67 +77,6 @@ pub struct SelectionRecord {
     pub history: Vec<Validation>,
 }
 
-/// What summary.json holds.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TrainSummary {
-    pub env: String,
-    pub algo: Algo,
-    pub connection: Connection,
-    pub seed: u64,
-    pub episodes: usize,
-    /// Mean return of the last 10 training episodes (with exploration).
-    pub final_return: f64,
-    /// Mean return of the deterministic policy over `eval_episodes` episodes.
-    pub eval_return: f64,
-    /// The evaluation's first start (its episodes use this seed and the
-    /// following ones); absent in runs written before it was recorded.
-    #[serde(default)]
-    pub eval_seed: Option<u64>,
-    /// The evaluation's success rate and mean peak force (peg tasks).
-    #[serde(default)]
-    pub eval_success_rate: Option<f64>,
-    #[serde(default)]
-    pub eval_peak_force_n: Option<f64>,
-    /// The evaluation return split into its reward terms (peg tasks).
-    #[serde(flatten)]
-    pub eval_terms: lcrl_sim::ReturnColumns,
-    /// With validation on (run.validation_episodes > 0), `eval_return` is
-    /// the selected policy's, and this is the last policy's on the same
-    /// episodes.
-    #[serde(default)]
-    pub last_eval_return: Option<f64>,
-    /// Which policy validation chose, and every validation.
-    #[serde(default)]
-    pub selection: Option<SelectionRecord>,
-    /// The neutral constant action a = 0 on the same evaluation episodes
-    /// (on peg tasks the constant compliance controller): a reference line.
-    #[serde(default)]
-    pub zero_action_return: Option<f64>,
-    /// Every reference controller on the same evaluation episodes (a = 0,
-    /// and the best constant where one is recorded for the environment):
-    /// the evaluator `lcrl run` uses too.
-    #[serde(default)]
-    pub references: Vec<lcrl_sim::evaluate::Summary>,
-    /// The LQR controller's mean return on the same evaluation episodes
-    /// (linear environments only).
-    pub lqr_return: Option<f64>,
-    /// The best controller with the actor's connection pattern (a = −K s
-    /// with K zero where the mask is): the ceiling of a local actor, which
-    /// may be below `lqr_return` when G hides states the optimum uses.
-    pub masked_lqr_return: Option<f64>,
-    pub graph_seconds: f64,
-    pub optimization_seconds: f64,
-    pub total_seconds: f64,
-    pub env_steps: u64,
-    pub updates: u64,
-    /// Transitions drawn from the replay buffer (DDPG: batch_size per critic
-    /// update); against env_steps, the replay ratio the run kept.
-    #[serde(default)]
-    pub samples_drawn: u64,
-    pub actor_params: usize,
-    pub critic_params: usize,
-}
-
 /// The first `keep` rows of a metrics.csv (a resumed run's history).
 pub fn read_rows(path: &Path, keep: usize) -> Result<Vec<EpisodeRow>, LearnerError> {
     let mut reader = csv::Reader::from_path(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))?;
@@ -188,29 +127,10 @@ impl MetricsLog {
     }
 }
 
-/// Writes `value` as pretty JSON to `run_dir/summary.json`: whole, then
-/// renamed, because a summary.json marks a finished run (`lcrl experiment`
-/// skips it), so it must never be half a file.
-pub fn write_summary<T: Serialize>(run_dir: &Path, value: &T) -> Result<(), LearnerError> {
-    let text = serde_json::to_string_pretty(value).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    write_atomically(&run_dir.join("summary.json"), (text + "\n").as_bytes())
-}
-
-/// Writes `bytes` to `path` whole or not at all, the one atomic writer of
-/// every file a run or a command writes: into `.NAME.PID.partial` beside
-/// it (the folder is created if needed), flushed to disk (fsync), then
-/// renamed over it. A crash leaves the old file or the new one, never half
-/// of one.
+/// [`lcrl_proto::files::write_atomically`] (temp file, fsync, rename), the
+/// one atomic writer of every file a run or a command writes.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
-    use std::io::Write as _;
-    let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    std::fs::create_dir_all(dir).map_err(io(dir))?;
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let partial = dir.join(format!(".{name}.{}.partial", std::process::id()));
-    let mut file = std::fs::File::create(&partial).map_err(io(&partial))?;
-    file.write_all(bytes).and_then(|()| file.sync_all()).map_err(io(&partial))?;
-    drop(file);
-    std::fs::rename(&partial, path).map_err(io(path))
+    lcrl_proto::files::write_atomically(path, bytes).map_err(io(path))
 }
 
 #[cfg(test)]

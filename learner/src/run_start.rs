@@ -49,7 +49,9 @@ pub fn resolve_mask(connection: Connection, graph: Option<&Path>, env: &dyn Env,
         return Ok((vec![vec![1; m]; n], None));
     }
     let report = match graph {
-        Some(path) => GraphReport::load(path)?,
+        // The one loader of graph files (lcrl_graph_builder::given): shape,
+        // 0/1, this environment's names in its order, an edge per action.
+        Some(path) => lcrl_graph_builder::given::load_for(path, env.spec())?,
         None => {
             let options = GraphOptions {
                 rule: lcrl_graph_builder::Rule::Threshold(config.run.graph_threshold),
@@ -58,13 +60,5 @@ pub fn resolve_mask(connection: Connection, graph: Option<&Path>, env: &dyn Env,
             build_graph(env, &options, &|| {})?
         }
     };
-    if report.actions() != n || report.states() != m {
-        return Err(LearnerError::Mismatch(format!(
-            "the graph is {}×{} (actions × states) but environment {} has {n} actions and {m} states; build the graph for this environment",
-            report.actions(),
-            report.states(),
-            env.spec().name
-        )));
-    }
     Ok((report.g.clone(), Some(report)))
 }

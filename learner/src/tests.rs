@@ -67,8 +67,8 @@ fn ppo_global_reaches_lqr() {
     let mut cfg = lti_fast();
     cfg.run.episodes = 1000;
     let s = run(Algo::Ppo, Connection::Global, cfg, dir.path(), false).summary;
-    let lqr = s.lqr_return.unwrap();
-    assert!(within(s.eval_return, lqr, 0.10), "eval {} vs LQR {lqr}", s.eval_return);
+    let lqr = s.evaluation.lqr_return.unwrap();
+    assert!(within(s.evaluation.eval_return, lqr, 0.10), "eval {} vs LQR {lqr}", s.evaluation.eval_return);
 }
 
 /// The local actor cannot see s2 from a1 (G of eq. 10), and the LQR gain
@@ -80,9 +80,9 @@ fn ppo_local_reaches_the_g_structured_optimum() {
     let mut cfg = lti_fast();
     cfg.run.episodes = 1000;
     let s = run(Algo::Ppo, Connection::Local, cfg, dir.path(), false).summary;
-    let masked = s.masked_lqr_return.unwrap();
-    assert!(within(s.eval_return, masked, 0.10), "eval {} vs masked LQR {masked}", s.eval_return);
-    assert!(masked < s.lqr_return.unwrap());
+    let masked = s.evaluation.masked_lqr_return.unwrap();
+    assert!(within(s.evaluation.eval_return, masked, 0.10), "eval {} vs masked LQR {masked}", s.evaluation.eval_return);
+    assert!(masked < s.evaluation.lqr_return.unwrap());
 }
 
 /// DDPG, same budget as PPO: 1000 episodes (50k steps, ≈35 s each). Held
@@ -95,8 +95,8 @@ fn ddpg_global_reaches_lqr() {
     let mut cfg = lti_fast();
     cfg.run.episodes = 1000;
     let s = run(Algo::Ddpg, Connection::Global, cfg, dir.path(), false).summary;
-    let lqr = s.lqr_return.unwrap();
-    assert!(within(s.eval_return, lqr, 0.10), "eval {} vs LQR {lqr}", s.eval_return);
+    let lqr = s.evaluation.lqr_return.unwrap();
+    assert!(within(s.evaluation.eval_return, lqr, 0.10), "eval {} vs LQR {lqr}", s.evaluation.eval_return);
 }
 
 #[test]
@@ -105,8 +105,8 @@ fn ddpg_local_reaches_the_g_structured_optimum() {
     let mut cfg = lti_fast();
     cfg.run.episodes = 1000;
     let s = run(Algo::Ddpg, Connection::Local, cfg, dir.path(), false).summary;
-    let masked = s.masked_lqr_return.unwrap();
-    assert!(within(s.eval_return, masked, 0.10), "eval {} vs masked LQR {masked}", s.eval_return);
+    let masked = s.evaluation.masked_lqr_return.unwrap();
+    assert!(within(s.evaluation.eval_return, masked, 0.10), "eval {} vs masked LQR {masked}", s.evaluation.eval_return);
 }
 
 #[test]
@@ -159,7 +159,7 @@ fn resumed_run_continues_exactly() {
         let resumed = run(algo, Connection::Local, cfg, resumed_dir.path(), true);
         assert_eq!(timeless(&straight.rows), timeless(&resumed.rows), "{algo:?}");
         assert_eq!((straight.summary.env_steps, straight.summary.updates), (resumed.summary.env_steps, resumed.summary.updates));
-        assert_eq!(straight.summary.eval_return, resumed.summary.eval_return, "{algo:?}: final policies differ");
+        assert_eq!(straight.summary.evaluation.eval_return, resumed.summary.evaluation.eval_return, "{algo:?}: final policies differ");
     }
 }
 
@@ -177,11 +177,11 @@ fn validation_selects_the_best_policy_and_survives_resume() {
     cfg.run.validate_every = 2;
     let plain_dir = tempfile::tempdir().unwrap();
     let plain = run(Algo::Ddpg, Connection::Local, tiny_with_episodes(6), plain_dir.path(), false);
-    assert!(plain.summary.selection.is_none() && plain.summary.last_eval_return.is_none());
+    assert!(plain.summary.selection.is_none() && plain.summary.evaluation.last_eval_return.is_none());
     let dir = tempfile::tempdir().unwrap();
     let straight = run(Algo::Ddpg, Connection::Local, cfg.clone(), dir.path(), false);
     assert_eq!(timeless(&plain.rows), timeless(&straight.rows), "validation changed training");
-    assert_eq!(straight.summary.last_eval_return, Some(plain.summary.eval_return), "the last policy is the plain run's");
+    assert_eq!(straight.summary.evaluation.last_eval_return, Some(plain.summary.evaluation.eval_return), "the last policy is the plain run's");
 
     let chosen = straight.summary.selection.clone().unwrap();
     let episodes: Vec<usize> = chosen.history.iter().map(|v| v.episode).collect();
@@ -202,7 +202,7 @@ fn validation_selects_the_best_policy_and_survives_resume() {
     run_until(Algo::Ddpg, Connection::Local, cfg.clone(), resumed_dir.path(), false, Some(2));
     let resumed = run(Algo::Ddpg, Connection::Local, cfg, resumed_dir.path(), true);
     assert_eq!(resumed.summary.selection, straight.summary.selection);
-    assert_eq!(resumed.summary.eval_return, straight.summary.eval_return);
+    assert_eq!(resumed.summary.evaluation.eval_return, straight.summary.evaluation.eval_return);
 }
 
 /// The final evaluation runs on the run's own starts by default, and on
@@ -218,13 +218,13 @@ fn evaluation_starts_are_the_runs_own_or_the_given_ones() {
     let dir = tempfile::tempdir().unwrap();
     let own = run(Algo::Ppo, Connection::Global, tiny(), &dir.path().join("own"), false).summary;
     let first = lcrl_sim::seeds::run_evaluation(0, 0);
-    assert_eq!(own.eval_seed, Some(first));
-    assert!(close(own.zero_action_return, zero(first)), "{:?} against {}", own.zero_action_return, zero(first));
+    assert_eq!(own.evaluation.eval_seed, Some(first));
+    assert!(close(own.evaluation.zero_action_return, zero(first)), "{:?} against {}", own.evaluation.zero_action_return, zero(first));
     let mut cfg = tiny();
     cfg.run.eval_seed = Some(0);
     let given = run(Algo::Ppo, Connection::Global, cfg, &dir.path().join("given"), false).summary;
-    assert_eq!(given.eval_seed, Some(0));
-    assert!(close(given.zero_action_return, zero(0)), "{:?} against {}", given.zero_action_return, zero(0));
+    assert_eq!(given.evaluation.eval_seed, Some(0));
+    assert!(close(given.evaluation.zero_action_return, zero(0)), "{:?} against {}", given.evaluation.zero_action_return, zero(0));
     assert_ne!(zero(0), zero(first), "the two sets of starts must differ for this test to tell them apart");
 }
 
@@ -334,7 +334,7 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
         }
         // And it scores as the base does on the same starts.
         let constant = lcrl_sim::tune::constant_return(env.as_ref(), &base, 3, lcrl_sim::seeds::run_evaluation(0, 0)).unwrap();
-        assert!((outcome.summary.eval_return - constant).abs() < 0.05 * constant.abs(), "{algo:?}: {} vs {constant}", outcome.summary.eval_return);
+        assert!((outcome.summary.evaluation.eval_return - constant).abs() < 0.05 * constant.abs(), "{algo:?}: {} vs {constant}", outcome.summary.evaluation.eval_return);
     }
 }
 

@@ -13,18 +13,16 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use lcrl_sim::evaluate::evaluate;
 use lcrl_sim::{make_env, Env};
 
 use crate::action::ActionMap;
 use crate::agent::observe;
 use crate::algorithms::make_agent;
-use crate::run_files::{EpisodeRow, TrainSummary};
-use crate::run_files::{read_rows, write_summary, MetricsLog};
+use crate::run_files::{read_rows, EpisodeRow, MetricsLog};
+use crate::summary::{evaluate_hand_over, write_summary, Controller, EvaluationPlan, RunSummary};
 use crate::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::run_start::{checkpoint_to_resume, fix_base_controller, resolve_mask};
 use crate::config::{Algo, Connection, TrainConfig};
-use crate::lqr::{lqr_return, masked_lqr_return};
 use crate::selection::Selection;
 use crate::{io, LearnerError};
 
@@ -57,7 +55,7 @@ pub struct Progress<'a> {
 
 /// The result of a run: its summary and every metrics row.
 pub struct TrainOutcome {
-    pub summary: TrainSummary,
+    pub summary: RunSummary,
     pub rows: Vec<EpisodeRow>,
 }
 
@@ -204,51 +202,37 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     }
     prior_opt = optimization;
 
-    // The run's policy (the selected one, or the last), a = 0 and the LQR
-    // ceiling on the same episodes.
-    let episodes = cfg.run.eval_episodes.max(1);
-    let first_eval = cfg.run.first_eval_seed();
+    // The run's policy (the selected one, or the last) beside the
+    // references, on the same starts (crate::summary, as the learner does).
     let env_ref = env.fresh();
     let mut last_policy = |s: &[f64]| actions.to_env(&agent.act(&observe(env_ref.as_ref(), s)));
-    let (last, _) = evaluate(env.as_mut(), "last policy", episodes, first_eval, &mut last_policy, &mut |_| {})?;
     let chosen = selection.as_ref().and_then(Selection::record);
-    let eval = match &chosen {
-        // The last validation chose the agent as it is: that is `last`.
-        Some(c) if c.episode != rows.len() => {
-            let selected = crate::policy::Policy::load(&crate::selection::selected_dir(&req.run_dir))?;
-            let mut policy = |s: &[f64]| selected.act(env_ref.as_ref(), s);
-            evaluate(env.as_mut(), "selected policy", episodes, first_eval, &mut policy, &mut |_| {})?.0
-        }
-        _ => last.clone(),
+    // The last validation chose the agent as it is: that is the last policy.
+    let selected = match &chosen {
+        Some(c) if c.episode != rows.len() => Some(crate::policy::Policy::load(&crate::selection::selected_dir(&req.run_dir))?),
+        _ => None,
     };
-    let references = lcrl_sim::evaluate::references(env.as_ref(), None, episodes, first_eval)?;
-    let zero = references.iter().find(|r| r.controller == lcrl_sim::evaluate::ZERO_ACTION).map(|r| r.mean_return);
-    let lqr = lcrl_sim::lti::LtiEnv::of(env.as_ref()).and_then(|lti| lqr_return(lti, episodes, first_eval));
-    // The best controller with G: a reference for locally connected actors
-    // only (with every state connected it is LQR again, and the search
-    // over every gain entry of a large system would take hours).
-    let masked_lqr = lcrl_sim::lti::LtiEnv::of(env.as_ref()).filter(|_| req.connection == Connection::Local).and_then(|lti| masked_lqr_return(lti, &mask, episodes, first_eval));
+    let probe = env_ref.as_ref();
+    let mut selected_policy = selected.as_ref().map(|p| move |s: &[f64]| p.act(probe, s));
+    let plan = EvaluationPlan {
+        episodes: cfg.run.eval_episodes,
+        first_seed: cfg.run.first_eval_seed(),
+        local_mask: (req.connection == Connection::Local).then_some(mask.as_slice()),
+        headroom: None,
+    };
+    let evaluation = evaluate_hand_over(env.as_mut(), selected_policy.as_mut().map(|p| p as Controller), &mut last_policy, &plan)?;
     let recent = &rows[rows.len().saturating_sub(10)..];
     let (actor_params, critic_params) = agent.param_counts();
     let counters = agent.counters();
-    let summary = TrainSummary {
+    let summary = RunSummary {
         env: req.env.clone(),
         algo: req.algo,
         connection: req.connection,
         seed: cfg.run.seed,
         episodes: rows.len(),
         final_return: recent.iter().map(|r| r.episode_return).sum::<f64>() / recent.len().max(1) as f64,
-        eval_return: eval.mean_return,
-        eval_seed: Some(first_eval),
-        eval_success_rate: eval.success_rate,
-        eval_peak_force_n: eval.mean_peak_force_n,
-        eval_terms: eval.terms,
-        last_eval_return: chosen.as_ref().map(|_| last.mean_return),
+        evaluation,
         selection: chosen,
-        zero_action_return: zero,
-        references,
-        lqr_return: lqr,
-        masked_lqr_return: masked_lqr,
         graph_seconds,
         optimization_seconds: prior_opt,
         total_seconds: prior_elapsed + started.elapsed().as_secs_f64(),
@@ -257,6 +241,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         samples_drawn: agent.samples_drawn(),
         actor_params,
         critic_params,
+        service: None,
     };
     write_summary(&req.run_dir, &summary)?;
     Ok(TrainOutcome { summary, rows })

@@ -5,8 +5,10 @@
 //! every server and client of the contract authenticates (TLS, tokens), and
 //! [`incoming`]: the TLS-accepting connection stream servers are fed from,
 //! and [`process`]: the start-up, logging, shutdown and reflection every
-//! service process shares.
+//! service process shares, and [`files`]: the one atomic writer of the files
+//! those processes hand on.
 
+pub mod files;
 pub mod incoming;
 pub mod process;
 pub mod security;

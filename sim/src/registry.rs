@@ -38,11 +38,18 @@ pub fn make_env(name_or_path: &str) -> Result<Box<dyn Env>, EnvError> {
 fn load_file(path: &str) -> Result<Box<dyn Env>, EnvError> {
     let text = std::fs::read_to_string(path)
         .map_err(|source| EnvError::Read { path: path.to_string(), source })?;
+    env_from_toml(&text, path)
+}
+
+/// The environment an environment file's text describes (`kind = "lti"` or
+/// `"peg"`), named `path` in the environment and in errors. Everything a
+/// file controls passes here (fuzzed by fuzz/fuzz_targets/toml_config.rs).
+pub fn env_from_toml(text: &str, path: &str) -> Result<Box<dyn Env>, EnvError> {
     let parse_err = |e: toml::de::Error| EnvError::Parse { path: path.to_string(), message: e.to_string() };
-    let table: toml::Table = toml::from_str(&text).map_err(parse_err)?;
+    let table: toml::Table = toml::from_str(text).map_err(parse_err)?;
     match table.get("kind").and_then(|k| k.as_str()) {
         Some("lti") => {
-            let cfg: LtiConfig = toml::from_str(&text).map_err(parse_err)?;
+            let cfg: LtiConfig = toml::from_str(text).map_err(parse_err)?;
             Ok(Box::new(LtiEnv::new(path, &cfg)?))
         }
         Some("peg") => {

@@ -226,9 +226,7 @@ impl RemoteEnv {
     }
 
     fn checked_state(server: &Server, state: Vec<f64>) -> Result<Vec<f64>, EnvError> {
-        if state.len() != server.spec.state_dim() {
-            return Err(server.connection.error(format!("a state of {} components arrived; the spec has {}", state.len(), server.spec.state_dim())));
-        }
+        check_state(&server.spec, &state).map_err(|message| server.connection.error(message))?;
         Ok(state)
     }
 
@@ -243,22 +241,50 @@ impl RemoteEnv {
             steps.push(SessionStep { session: env.session.ok_or(EnvError::NotReset)?, action: server.spec.clip_action(action) });
         }
         let reply = server.connection.call("Step", |mut c| async move { c.step(StepRequest { steps }).await })?;
-        if reply.results.len() != envs.len() {
-            return Err(server.connection.error(format!("Step answered {} results for {} sessions", reply.results.len(), envs.len())));
+        let steps = read_step_reply(&server.spec, envs.len(), reply).map_err(|message| server.connection.error(message))?;
+        for (env, step) in envs.iter_mut().zip(&steps) {
+            env.state.clone_from(&step.state);
         }
-        envs.iter_mut()
-            .zip(reply.results)
-            .map(|(env, r)| {
-                env.state = Self::checked_state(&server, r.state)?;
-                Ok(Step { state: env.state.clone(), reward: r.reward, terminated: r.terminated, truncated: r.truncated })
-            })
-            .collect()
+        Ok(steps)
     }
 
     /// Whether `other` is a session of the same server (one batch).
     pub(crate) fn same_server(&self, other: &RemoteEnv) -> bool {
         Arc::ptr_eq(&self.server, &other.server)
     }
+}
+
+/// What a server's state must be: `spec`'s length, every component finite
+/// (a NaN from a peer would reach the replay buffer and every update).
+fn check_state(spec: &EnvSpec, state: &[f64]) -> Result<(), String> {
+    if state.len() != spec.state_dim() {
+        return Err(format!("a state of {} components arrived; the spec has {}", state.len(), spec.state_dim()));
+    }
+    if let Some(i) = state.iter().position(|v| !v.is_finite()) {
+        return Err(format!("state component {i} ({}) is {}; a state must be finite", spec.state_names[i], state[i]));
+    }
+    Ok(())
+}
+
+/// Reads a server's answer to a Step of `sessions` sessions: one result per
+/// session, each a finite state of the spec's length and a finite reward.
+/// Everything a peer sends passes here before training sees it (fuzzed by
+/// fuzz/fuzz_targets/step_reply.rs).
+pub fn read_step_reply(spec: &EnvSpec, sessions: usize, reply: lcrl_proto::v1::StepResponse) -> Result<Vec<Step>, String> {
+    if reply.results.len() != sessions {
+        return Err(format!("Step answered {} results for {sessions} sessions", reply.results.len()));
+    }
+    reply
+        .results
+        .into_iter()
+        .map(|r| {
+            check_state(spec, &r.state)?;
+            if !r.reward.is_finite() {
+                return Err(format!("a reward of {} arrived; rewards must be finite", r.reward));
+            }
+            Ok(Step { state: r.state, reward: r.reward, terminated: r.terminated, truncated: r.truncated })
+        })
+        .collect()
 }
 
 /// Steps each environment by its action, in order. Environments served by
@@ -351,6 +377,48 @@ impl Drop for RemoteEnv {
             runtime.spawn(async move {
                 let _ = client.close(CloseRequest { sessions: vec![session] }).await;
             });
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lcrl_proto::v1::{StepResponse, StepResult};
+
+    fn spec() -> EnvSpec {
+        EnvSpec {
+            name: "grpc://test".into(),
+            state_names: vec!["x".into(), "v".into()],
+            action_names: vec!["f".into()],
+            action_low: vec![-1.0],
+            action_high: vec![1.0],
+        }
+    }
+
+    fn result(state: Vec<f64>, reward: f64) -> StepResult {
+        StepResult { state, reward, terminated: true, truncated: false }
+    }
+
+    #[test]
+    fn a_step_reply_is_read_in_session_order() {
+        let reply = StepResponse { results: vec![result(vec![1.0, 2.0], -0.5), result(vec![3.0, 4.0], 0.25)] };
+        let steps = read_step_reply(&spec(), 2, reply).unwrap();
+        assert_eq!(steps.iter().map(|s| (s.state.clone(), s.reward)).collect::<Vec<_>>(), vec![(vec![1.0, 2.0], -0.5), (vec![3.0, 4.0], 0.25)]);
+        assert!(steps.iter().all(|s| s.terminated && !s.truncated));
+    }
+
+    #[test]
+    fn a_step_reply_a_peer_got_wrong_is_refused_with_the_reason() {
+        let cases = [
+            (StepResponse { results: vec![result(vec![1.0, 2.0], 0.0)] }, "1 results for 2 sessions"),
+            (StepResponse { results: vec![result(vec![1.0], 0.0), result(vec![1.0, 2.0], 0.0)] }, "1 components"),
+            (StepResponse { results: vec![result(vec![1.0, f64::NAN], 0.0), result(vec![1.0, 2.0], 0.0)] }, "component 1 (v) is NaN"),
+            (StepResponse { results: vec![result(vec![1.0, 2.0], f64::INFINITY), result(vec![1.0, 2.0], 0.0)] }, "a reward of inf"),
+        ];
+        for (reply, expected) in cases {
+            let message = read_step_reply(&spec(), 2, reply).unwrap_err();
+            assert!(message.contains(expected), "{message:?} should say {expected:?}");
         }
     }
 }

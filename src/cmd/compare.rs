@@ -5,7 +5,8 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use lcrl_learner::run_files::{EpisodeRow, TrainSummary};
+use lcrl_learner::run_files::EpisodeRow;
+use lcrl_learner::summary::RunSummary;
 use serde::Deserialize;
 
 use lcrl::plots::{line_panels, Panel};
@@ -54,9 +55,9 @@ struct ZeroAction {
 
 /// A run's reference lines: the LQR optimum and the best controller with
 /// the actor's connection pattern (linear systems), and a = 0.
-pub fn references(s: &TrainSummary) -> Vec<(String, f64)> {
-    let masked = if s.connection == lcrl_learner::Connection::Local { s.masked_lqr_return } else { None };
-    reference_lines(s.lqr_return, masked, s.zero_action_return)
+pub fn references(s: &RunSummary) -> Vec<(String, f64)> {
+    let masked = if s.connection == lcrl_learner::Connection::Local { s.evaluation.masked_lqr_return } else { None };
+    reference_lines(s.evaluation.lqr_return, masked, s.evaluation.zero_action_return)
 }
 
 /// Reference lines from their values, where a run has them.
@@ -87,7 +88,7 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
     for dir in &args.runs {
         let path = dir.join("summary.json");
         let text = std::fs::read_to_string(&path).with_context(|| format!("{} is not a finished run (no summary.json)", dir.display()))?;
-        let s: TrainSummary = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
+        let s: RunSummary = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
         for (reference, what) in [(&bar, "best constant"), (&headroom, "best policy")] {
             if let Some(r) = reference {
                 if r.env != s.env {
@@ -110,8 +111,8 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
             s.optimization_seconds,
             s.total_seconds,
             s.final_return,
-            s.eval_return,
-            s.eval_success_rate.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r)),
+            s.evaluation.eval_return,
+            s.evaluation.eval_success_rate.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r)),
         );
         for line in references(&s) {
             if !lines.iter().any(|(name, _): &(String, f64)| *name == line.0) {

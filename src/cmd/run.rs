@@ -77,7 +77,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let run_dir = args.run_dir.clone().unwrap_or_else(|| PathBuf::from("runs").join(name));
     let logs = run_dir.join("logs");
     fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
-    fs::write(run_dir.join("config.toml"), &preset.text)?;
+    lcrl::output::write_atomic(&run_dir.join("config.toml"), &preset.text)?;
     // A served environment lives until the run's end: the final evaluation
     // steps it too. Dropped last, it is stopped after everything else.
     let _env_server = match preset.env_server.clone() {
@@ -211,15 +211,17 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     }
     let s = final_status.unwrap_or_default();
     let wall = started.elapsed().as_secs_f64();
-    let summary = lcrl::run_summary::evaluate_run(preset, run_dir, &s, wall, job.actors, transport)?;
+    let summary = lcrl::run_summary::write_run_summary(preset, run_dir, &s, wall, job.actors, transport)?;
+    let evaluation = &summary.evaluation;
+    let service = summary.service.as_ref().context("the run's summary has no service figures")?;
     let curve = run_dir.join("reward_curve.png");
-    plot_curve(&run_dir.join("learner/metrics.csv"), &curve, &job.env, &summary)?;
-    let reference = match (summary.lqr_return, summary.masked_lqr_return, job.connection) {
+    plot_curve(&run_dir.join("learner/metrics.csv"), &curve, &job.env, evaluation)?;
+    let reference = match (evaluation.lqr_return, evaluation.masked_lqr_return, job.connection) {
         (_, Some(masked), Connection::Local) => format!("reference: masked LQR (the best controller with G) {masked:.3}"),
         (Some(lqr), _, _) => format!("reference: LQR {lqr:.3}"),
-        _ => reference_table(job, &summary),
+        _ => reference_table(job, evaluation),
     };
-    let which = match (&summary.selection, summary.last_eval_return) {
+    let which = match (&summary.selection, evaluation.last_eval_return) {
         (Some(chosen), Some(last)) => format!(
             "the policy validation selected (after {} episodes, best of {} validations on {} held-out starts; the last policy scores {last:.3})",
             chosen.episode,
@@ -236,41 +238,41 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
         s.episodes,
         s.env_steps,
         s.updates,
-        match (job.algo, summary.replay_ratio_target > 0.0) {
+        match (job.algo, service.replay_ratio_target > 0.0) {
             (lcrl_learner::Algo::Ppo, _) => "PPO, on-policy".to_string(),
-            (_, true) => format!("replay ratio {:.1} sampled per inserted, target {:.0}", summary.replay_ratio, summary.replay_ratio_target),
-            (_, false) => format!("replay ratio {:.1} sampled per inserted, unlimited", summary.replay_ratio),
+            (_, true) => format!("replay ratio {:.1} sampled per inserted, target {:.0}", service.replay_ratio, service.replay_ratio_target),
+            (_, false) => format!("replay ratio {:.1} sampled per inserted, unlimited", service.replay_ratio),
         },
-        summary.policy_lag.mean,
+        service.policy_lag.mean,
         s.policy_version,
         s.recent_return,
         wall,
-        summary.eval_return,
-        summary.eval_episodes,
+        evaluation.eval_return,
+        evaluation.eval_episodes.unwrap_or(preset.train.run.eval_episodes),
         run_dir.display()
     ))
 }
 
 /// The trained policy beside every reference controller, on the same
 /// evaluation starts (peg tasks: a = 0, the best constant, the headroom).
-fn reference_table(job: &lcrl::preset::Job, summary: &lcrl::run_summary::RunSummary) -> String {
+fn reference_table(job: &lcrl::preset::Job, evaluation: &lcrl_learner::summary::Evaluation) -> String {
     let pct = |r: Option<f64>| r.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
     let force = |f: Option<f64>| f.map_or("n/a".into(), |f| format!("{f:.1} N"));
     let trained = format!("trained: {:?} {:?}", job.algo, job.connection).to_lowercase();
-    let mut rows = vec![(trained, summary.eval_return, summary.eval_success_rate, summary.eval_peak_force_n)];
-    rows.extend(summary.references.iter().map(|r| (r.controller.clone(), r.mean_return, r.success_rate, r.mean_peak_force_n)));
-    let mut table = format!("beside the reference controllers on the same {} starts:\n  {:<34} {:>10} {:>8} {:>11}", summary.eval_episodes, "controller", "return", "success", "peak force");
+    let mut rows = vec![(trained, evaluation.eval_return, evaluation.eval_success_rate, evaluation.eval_peak_force_n)];
+    rows.extend(evaluation.references.iter().map(|r| (r.controller.clone(), r.mean_return, r.success_rate, r.mean_peak_force_n)));
+    let mut table = format!("beside the reference controllers on the same {} starts:\n  {:<34} {:>10} {:>8} {:>11}", evaluation.eval_episodes.unwrap_or(0), "controller", "return", "success", "peak force");
     for (name, ret, success, peak) in rows {
         table.push_str(&format!("\n  {name:<34} {ret:>10.3} {:>8} {:>11}", pct(success), force(peak)));
     }
-    if let Some(bar) = summary.references.iter().find(|r| r.controller == lcrl::run_summary::BEST_CONSTANT) {
-        let verdict = if summary.eval_return > bar.mean_return { "beats" } else { "does not beat" };
-        table.push_str(&format!("\n  the trained policy {verdict} the best constant by {:+.3}", summary.eval_return - bar.mean_return));
+    if let Some(bar) = evaluation.references.iter().find(|r| r.controller == lcrl::run_summary::BEST_CONSTANT) {
+        let verdict = if evaluation.eval_return > bar.mean_return { "beats" } else { "does not beat" };
+        table.push_str(&format!("\n  the trained policy {verdict} the best constant by {:+.3}", evaluation.eval_return - bar.mean_return));
     }
     table
 }
 
-fn plot_curve(metrics: &Path, out: &Path, env: &str, summary: &lcrl::run_summary::RunSummary) -> anyhow::Result<()> {
+fn plot_curve(metrics: &Path, out: &Path, env: &str, evaluation: &lcrl_learner::summary::Evaluation) -> anyhow::Result<()> {
     let Ok(mut reader) = csv::Reader::from_path(metrics) else { return Ok(()) };
     let returns: Vec<f64> = reader.records().filter_map(|r| r.ok()?.get(1)?.parse().ok()).collect();
     if returns.is_empty() {
@@ -283,8 +285,8 @@ fn plot_curve(metrics: &Path, out: &Path, env: &str, summary: &lcrl::run_summary
             w.iter().sum::<f64>() / w.len() as f64
         })
         .collect();
-    let mut references = crate::cmd::compare::reference_lines(summary.lqr_return, summary.masked_lqr_return, summary.zero_action_return);
-    references.extend(summary.references.iter().filter(|r| r.controller != lcrl::run_summary::ZERO_ACTION).map(|r| (r.controller.clone(), r.mean_return)));
+    let mut references = crate::cmd::compare::reference_lines(evaluation.lqr_return, evaluation.masked_lqr_return, evaluation.zero_action_return);
+    references.extend(evaluation.references.iter().filter(|r| r.controller != lcrl::run_summary::ZERO_ACTION).map(|r| (r.controller.clone(), r.mean_return)));
     let panel = lcrl::plots::Panel::rewards("episode return", vec![("return".into(), returns), ("moving average (20)".into(), average)], references);
     lcrl::plots::line_panels(out, &format!("{env} — distributed run"), &x, "episode (as reported by actors)", &[panel])
 }

@@ -135,7 +135,7 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
         }
     }
     let json = args.out.join("scale.json");
-    fs::write(&json, serde_json::to_string_pretty(&points)? + "\n").with_context(|| format!("writing {}", json.display()))?;
+    lcrl::output::write_atomic(&json, &(serde_json::to_string_pretty(&points)? + "\n"))?;
     let csv_path = args.out.join("scale.csv");
     let mut csv = csv::Writer::from_path(&csv_path).with_context(|| format!("writing {}", csv_path.display()))?;
     for p in &points {

@@ -117,7 +117,7 @@ pub fn prepare_out_dir(dir: &Path) -> anyhow::Result<()> {
 
 pub fn write_outputs(env: &dyn Env, summary: &Summary, first: &EpisodeRecord, dir: &Path) -> anyhow::Result<()> {
     let path = dir.join("summary.json");
-    fs::write(&path, serde_json::to_string_pretty(summary)? + "\n").with_context(|| format!("writing {}", path.display()))?;
+    lcrl::output::write_atomic(&path, &(serde_json::to_string_pretty(summary)? + "\n"))?;
     write_trace_csv(env, first, &dir.join("trace.csv"))?;
     plot_trace(env, summary, first, &dir.join("trace.png"))
 }

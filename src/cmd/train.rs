@@ -154,26 +154,26 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     println!("{:?} / {:?} on {} — {} episodes, {} env steps, {} updates", s.algo, s.connection, s.env, s.episodes, s.env_steps, s.updates);
     println!("  actor parameters      {} (a global actor of the configured size: {})", s.actor_params, global_equivalent);
     println!("  final return          {:.3} (mean of the last 10 episodes)", s.final_return);
-    match (&s.selection, s.last_eval_return) {
+    match (&s.selection, s.evaluation.last_eval_return) {
         (Some(chosen), Some(last)) => {
             let which = if chosen.episode == 0 { "the starting policy".to_string() } else { format!("episode {}'s policy", chosen.episode) };
-            println!("  eval return           {:.3} (the selected policy, {} episodes)", s.eval_return, config.run.eval_episodes.max(1));
+            println!("  eval return           {:.3} (the selected policy, {} episodes)", s.evaluation.eval_return, config.run.eval_episodes.max(1));
             println!("  selected              {which}: {:.3} on {} validation starts (best of {} validations)", chosen.validation_return, chosen.starts, chosen.history.len());
             println!("  last policy           {last:.3} (same evaluation episodes)");
         }
-        _ => println!("  eval return           {:.3} (deterministic policy, {} episodes)", s.eval_return, config.run.eval_episodes.max(1)),
+        _ => println!("  eval return           {:.3} (deterministic policy, {} episodes)", s.evaluation.eval_return, config.run.eval_episodes.max(1)),
     }
-    if let Some(zero) = s.zero_action_return {
+    if let Some(zero) = s.evaluation.zero_action_return {
         println!("  a = 0 return          {zero:.3} (the neutral constant action, same episodes)");
     }
-    if let (Some(rate), Some(force)) = (s.eval_success_rate, s.eval_peak_force_n) {
+    if let (Some(rate), Some(force)) = (s.evaluation.eval_success_rate, s.evaluation.eval_peak_force_n) {
         println!("  eval success          {:.0}%, mean peak force {force:.2} N", 100.0 * rate);
     }
-    crate::cmd::sim::print_terms(&s.eval_terms);
-    if let Some(lqr) = s.lqr_return {
+    crate::cmd::sim::print_terms(&s.evaluation.eval_terms);
+    if let Some(lqr) = s.evaluation.lqr_return {
         println!("  LQR return            {lqr:.3} (the optimum)");
     }
-    if let (Some(masked), Connection::Local) = (s.masked_lqr_return, s.connection) {
+    if let (Some(masked), Connection::Local) = (s.evaluation.masked_lqr_return, s.connection) {
         println!("  masked LQR return     {masked:.3} (the best controller that sees only G's states)");
     }
     println!("  time: graph {:.2} s, optimization {:.2} s, total {:.2} s", s.graph_seconds, s.optimization_seconds, s.total_seconds);
@@ -182,7 +182,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
 }
 
 impl TrainArgs {
-    fn env_state_dims(&self, _s: &lcrl_learner::run_files::TrainSummary) -> anyhow::Result<(usize, usize)> {
+    fn env_state_dims(&self, _s: &lcrl_learner::summary::RunSummary) -> anyhow::Result<(usize, usize)> {
         let env = lcrl_sim::make_env(&self.env)?;
         Ok((env.spec().state_dim(), env.spec().action_dim()))
     }
@@ -190,7 +190,7 @@ impl TrainArgs {
 
 /// Returns per episode with a 10-episode moving average, and the run's
 /// references as horizontal lines.
-fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::run_files::TrainSummary, args: &TrainArgs) -> anyhow::Result<()> {
+fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::summary::RunSummary, args: &TrainArgs) -> anyhow::Result<()> {
     let env = &summary.env;
     let x: Vec<f64> = rows.iter().map(|r| r.episode as f64).collect();
     let returns: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();

@@ -177,8 +177,8 @@ pub fn advantage(study: &Study, path: &Path) -> anyhow::Result<bool> {
         for (env, &n) in study.experiment.file.environments.iter().zip(&sizes) {
             let cell = |local: bool| study.cells.iter().find(|c| &c.cell.env == env && c.cell.algo == algo && c.cell.connection.threshold().is_some() == local && (local || c.cell.connection == crate::connection::ConnectionSpec::Global));
             let (Some(local), Some(global)) = (cell(true), cell(false)) else { continue };
-            let optimum = local.runs.iter().find_map(|r| r.summary.masked_lqr_return).unwrap_or(1.0).abs().max(1e-9);
-            let eval = |c: &CellRuns| c.runs.iter().map(|r| r.summary.eval_return / optimum).collect::<Vec<f64>>();
+            let optimum = local.runs.iter().find_map(|r| r.summary.evaluation.masked_lqr_return).unwrap_or(1.0).abs().max(1e-9);
+            let eval = |c: &CellRuns| c.runs.iter().map(|r| r.summary.evaluation.eval_return / optimum).collect::<Vec<f64>>();
             if let Some(w) = super::stats::welch(&eval(local), &eval(global)) {
                 x.push(n as f64);
                 mean.push(w.difference);

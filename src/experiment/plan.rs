@@ -15,7 +15,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
-use lcrl_learner::run_files::TrainSummary;
+use lcrl_learner::summary::RunSummary;
 use lcrl_learner::Algo;
 
 use super::config::{algo_name, env_slug, ConnectionSpec, Experiment};
@@ -147,7 +147,7 @@ pub fn run_dir(out: &Path, cell: &Cell, seed: u64) -> PathBuf {
 }
 
 /// A finished run's summary, if it has one that parses.
-pub fn finished_run(dir: &Path) -> Option<TrainSummary> {
+pub fn finished_run(dir: &Path) -> Option<RunSummary> {
     let text = std::fs::read_to_string(dir.join("summary.json")).ok()?;
     serde_json::from_str(&text).ok()
 }

@@ -7,7 +7,8 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use lcrl_learner::run_files::{EpisodeRow, TrainSummary};
+use lcrl_learner::run_files::EpisodeRow;
+use lcrl_learner::summary::RunSummary;
 use serde::Serialize;
 
 use super::config::{algo_name, Experiment};
@@ -20,7 +21,7 @@ use crate::output::write_atomic;
 pub struct Run {
     pub seed: u64,
     pub dir: PathBuf,
-    pub summary: TrainSummary,
+    pub summary: RunSummary,
     /// Episode returns in order (metrics.csv).
     pub returns: Vec<f64>,
     /// Training safety (metrics.csv).
@@ -40,7 +41,7 @@ impl CellRuns {
     /// typical agent.
     pub fn median_run(&self) -> Option<&Run> {
         let mut order: Vec<&Run> = self.runs.iter().collect();
-        order.sort_by(|a, b| a.summary.eval_return.total_cmp(&b.summary.eval_return));
+        order.sort_by(|a, b| a.summary.evaluation.eval_return.total_cmp(&b.summary.evaluation.eval_return));
         order.get(order.len().saturating_sub(1) / 2).copied()
     }
 }
@@ -60,8 +61,8 @@ pub struct BestConstant {
 impl BestConstant {
     /// Whether a run was evaluated on exactly these starts, so their
     /// returns compare start for start.
-    fn same_starts(&self, run: &TrainSummary, eval_episodes: usize) -> bool {
-        self.eval_seed.is_some() && run.eval_seed == self.eval_seed && eval_episodes == self.eval_episodes
+    fn same_starts(&self, run: &RunSummary, eval_episodes: usize) -> bool {
+        self.eval_seed.is_some() && run.evaluation.eval_seed == self.eval_seed && eval_episodes == self.eval_episodes
     }
 }
 
@@ -240,12 +241,12 @@ impl Study {
             let reached: Vec<Option<usize>> =
                 c.runs.iter().map(|r| threshold.and_then(|t| episodes_to_threshold(&r.returns, t, AVERAGE_WINDOW))).collect();
             let of = |f: &dyn Fn(&Run) -> f64| mean_ci(&c.runs.iter().map(f).collect::<Vec<_>>());
-            let success: Vec<f64> = c.runs.iter().filter_map(|r| r.summary.eval_success_rate).collect();
+            let success: Vec<f64> = c.runs.iter().filter_map(|r| r.summary.evaluation.eval_success_rate).collect();
             let bar = self.best_constant.get(&c.cell.env);
             let beats: Vec<Option<bool>> = c
                 .runs
                 .iter()
-                .map(|r| bar.filter(|b| b.same_starts(&r.summary, e.file.eval_episodes)).map(|b| r.summary.eval_return > b.mean_return))
+                .map(|r| bar.filter(|b| b.same_starts(&r.summary, e.file.eval_episodes)).map(|b| r.summary.evaluation.eval_return > b.mean_return))
                 .collect();
             let diverged: Vec<bool> = c.runs.iter().map(|r| diverged(r, bar, e.file.eval_episodes)).collect();
             cells.push(CellReport {
@@ -255,7 +256,7 @@ impl Study {
                 episodes: budget,
                 seeds: c.runs.iter().map(|r| r.seed).collect(),
                 final_return: of(&|r| r.summary.final_return),
-                eval_return: of(&|r| r.summary.eval_return),
+                eval_return: of(&|r| r.summary.evaluation.eval_return),
                 eval_success_rate: (!success.is_empty()).then(|| success.iter().sum::<f64>() / success.len() as f64),
                 beat_best_constant: beats.iter().map(|b| b.map(usize::from)).sum(),
                 diverged: diverged.iter().filter(|d| **d).count(),
@@ -265,7 +266,7 @@ impl Study {
                 total_seconds: of(&|r| c.graph_seconds + r.summary.total_seconds),
                 safety: safety::of_cell(
                     &c.runs.iter().filter_map(|r| r.safety).collect::<Vec<_>>(),
-                    c.runs.first().and_then(|r| safety::base_of_run(&r.dir, r.summary.zero_action_return, bar)),
+                    c.runs.first().and_then(|r| safety::base_of_run(&r.dir, r.summary.evaluation.zero_action_return, bar)),
                 ),
                 per_seed: c
                     .runs
@@ -275,7 +276,7 @@ impl Study {
                     .map(|((r, k), (beats, diverged))| SeedFigures {
                         seed: r.seed,
                         final_return: r.summary.final_return,
-                        eval_return: r.summary.eval_return,
+                        eval_return: r.summary.evaluation.eval_return,
                         beats_best_constant: *beats,
                         diverged: *diverged,
                         episodes_to_threshold: *k,
@@ -310,7 +311,7 @@ impl Study {
         let mut out = Vec::new();
         for a in &self.cells {
             for b in self.cells.iter().filter(|b| b.cell.env == a.cell.env && b.cell.algo == a.cell.algo && pairs_with(&a.cell.connection, &b.cell.connection)) {
-                let metrics: [(&'static str, fn(&Run) -> f64); 2] = [("final_return", |r| r.summary.final_return), ("eval_return", |r| r.summary.eval_return)];
+                let metrics: [(&'static str, fn(&Run) -> f64); 2] = [("final_return", |r| r.summary.final_return), ("eval_return", |r| r.summary.evaluation.eval_return)];
                 for (metric, f) in metrics {
                     let (xa, xb): (Vec<f64>, Vec<f64>) = (a.runs.iter().map(f).collect(), b.runs.iter().map(f).collect());
                     if let Some(w) = welch(&xa, &xb) {
@@ -339,8 +340,8 @@ impl Study {
 /// the run's own a = 0 evaluation (summary.json), or else the best
 /// constant's file when the run was evaluated on its starts.
 fn diverged(run: &Run, bar: Option<&BestConstant>, eval_episodes: usize) -> bool {
-    let zero = run.summary.zero_action_return.or_else(|| bar.filter(|b| b.same_starts(&run.summary, eval_episodes)).map(|b| b.zero_action_return));
-    zero.is_some_and(|zero| run.summary.eval_return < zero)
+    let zero = run.summary.evaluation.zero_action_return.or_else(|| bar.filter(|b| b.same_starts(&run.summary, eval_episodes)).map(|b| b.zero_action_return));
+    zero.is_some_and(|zero| run.summary.evaluation.eval_return < zero)
 }
 
 /// Three decimals, as every number in report.md.

@@ -151,6 +151,12 @@ impl Ingest {
                 return Verdict::Reject { reason: "non_finite", message: format!("transition {k} holds a non-finite number") };
             }
         }
+        // An episode's return feeds the training curve, its statistics and
+        // selection's record: a NaN there poisons every mean after it.
+        if let Some(k) = batch.episodes.iter().position(|e| !e.episode_return.is_finite()) {
+            self.count("non_finite", count);
+            return Verdict::Reject { reason: "non_finite", message: format!("episode {k} has a non-finite return") };
+        }
         if self.last_sequence.get(&batch.actor_id).is_some_and(|&last| batch.sequence <= last) {
             self.count("duplicate", count);
             return Verdict::Duplicate;
@@ -265,7 +271,10 @@ mod tests {
         assert!(matches!(ingest.check(&wrong_run, 3), Verdict::Reject { reason: "unknown_run", .. }));
         assert!(matches!(ingest.check(&batch("a1", 2, vec![0.0; 4]), 3), Verdict::Reject { reason: "dimensions", .. }));
         assert!(matches!(ingest.check(&batch("a1", 3, vec![0.0, f32::NAN, 0.0]), 3), Verdict::Reject { reason: "non_finite", .. }));
-        assert_eq!(ingest.rejected.values().sum::<u64>(), 3);
+        let mut nan_return = batch("a1", 4, vec![0.0; 3]);
+        nan_return.episodes.push(EpisodeSummary { episode_return: f64::NAN, length: 1, success: None });
+        assert!(matches!(ingest.check(&nan_return, 3), Verdict::Reject { reason: "non_finite", .. }));
+        assert_eq!(ingest.rejected.values().sum::<u64>(), 4);
         // A rejected batch does not consume its sequence number.
         assert!(matches!(ingest.check(&batch("a1", 1, vec![0.0; 3]), 3), Verdict::Accept(_)));
     }

@@ -14,8 +14,9 @@
 //!    checkpoints on its interval;
 //! 4. **idles** until the next batch when there was nothing to do.
 //!
-//! At the end of the budget it waits for the last validation and serves
-//! the chosen policy (`Policy.Act`, `GetStatus.served_version`).
+//! At the end of the budget it waits for the last validation, serves the
+//! chosen policy (`Policy.Act`, `GetStatus.served_version`), evaluates it
+//! as `lcrl train` does and writes summary.json (crate::summary).
 
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
@@ -34,6 +35,7 @@ use crate::selection::SelectionRecord;
 use crate::service::shared::{Command, Served, Shared};
 use crate::service::validator::Validator;
 use crate::snapshot::{encode_weights, Architecture};
+use crate::summary::{evaluate_hand_over, Controller, EvaluationPlan, PolicyLag, RunSummary, ServiceFigures};
 use crate::LearnerError;
 
 /// How often the training thread publishes and checkpoints.
@@ -64,6 +66,9 @@ pub struct Schedule {
     /// The choice of the run's policy on held-out starts (None:
     /// `run.validation_episodes` is 0, and the last policy is the run's).
     pub validator: Option<Validator>,
+    /// A headroom reference to evaluate beside the handed-over policy
+    /// (`lcrl-learner --headroom`), as `lcrl run` shows it.
+    pub headroom: Option<lcrl_sim::tune::feedback::StoredPolicy>,
 }
 
 /// Batches stored per loop turn before training gets its turn: with fast
@@ -75,42 +80,6 @@ pub fn snapshot(agent: &dyn Agent, architecture: &Architecture, version: u64) ->
     let weights = encode_weights(&agent.actor_variables())?;
     let architecture = serde_json::to_string(architecture).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
     Ok(PolicySnapshot { version, weights, architecture, explore_uniform: false, exploration_noise: 0.0 })
-}
-
-/// The learner's own summary at the end of its budget (run_dir/summary.json).
-#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
-pub struct LearnerSummary {
-    pub episodes: u64,
-    pub env_steps: u64,
-    pub updates: u64,
-    pub sampled: u64,
-    pub inserted: u64,
-    /// sampled / inserted.
-    pub replay_ratio: f64,
-    /// The limiter's target (0: unlimited).
-    pub replay_ratio_target: f64,
-    pub policy_lag: PolicyLag,
-    pub actors_waited_s: f64,
-    pub learner_waited_s: f64,
-    /// Mean return of the last 10 episodes (with exploration).
-    pub final_return: f64,
-    pub policy_version: u64,
-    /// The policy served once training ended: the selected one, or the
-    /// newest without a selection.
-    #[serde(default)]
-    pub served_version: u64,
-    /// Which policy validation chose, with every validation (None without
-    /// validation).
-    #[serde(default)]
-    pub selection: Option<SelectionRecord>,
-}
-
-/// Policy lag over the window of recently stored transitions.
-#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
-pub struct PolicyLag {
-    pub min: u64,
-    pub mean: f64,
-    pub max: u64,
 }
 
 /// Runs the training loop until told to stop, every sender is gone or the
@@ -142,6 +111,8 @@ pub struct TrainingLoop {
     published_exploration: Option<(bool, f64)>,
     last_checkpoint: Instant,
     turn_started: Instant,
+    /// When this process's training began (summary.json's total_seconds).
+    started: Instant,
     /// The budget is reached: nothing more is stored or trained.
     finished: bool,
 }
@@ -178,6 +149,7 @@ impl TrainingLoop {
             published_exploration,
             last_checkpoint: Instant::now(),
             turn_started: Instant::now(),
+            started: Instant::now(),
             finished: false,
         };
         training.finished = training.budget_reached();
@@ -347,9 +319,9 @@ impl TrainingLoop {
             },
             None => Served { snapshot: self.shared.policy.borrow().clone(), reason: "newest: training ended without validation (run.validation_episodes = 0)".into() },
         };
-        let served_version = served.snapshot.version;
+        let snapshot = served.snapshot.clone();
         self.shared.serve(served);
-        self.write_summary(served_version, chosen.and_then(|c| c.record))?;
+        self.write_summary(&snapshot, chosen.and_then(|c| c.record))?;
         self.shared.flow_mut().finished = true;
         tracing::info!(episodes = self.episodes(), "episode budget reached: training ends");
         Ok(())
@@ -477,27 +449,68 @@ impl TrainingLoop {
         Ok(())
     }
 
-    fn write_summary(&self, served_version: u64, selection: Option<SelectionRecord>) -> Result<(), LearnerError> {
+    /// The hand-over: the served policy (and the last, when selection
+    /// chose another) evaluated on `run.eval_episodes` starts beside the
+    /// references, as `lcrl train` evaluates, then summary.json.
+    fn write_summary(&self, served: &PolicySnapshot, selection: Option<SelectionRecord>) -> Result<(), LearnerError> {
+        let meta = &self.schedule.meta;
+        let config = &meta.config;
+        let mut env = lcrl_sim::make_env(&meta.shape.env)?;
+        let probe = env.fresh();
+        // The last policy is the agent as training left it (the final
+        // checkpoint's); the served one is evaluated apart when it differs.
+        let last_snapshot = snapshot(self.agent.as_ref(), &self.shared.architecture, self.shared.policy_version())?;
+        let last = crate::policy::Policy::from_snapshot(&last_snapshot.architecture, &last_snapshot.weights, last_snapshot.version)?;
+        let chosen = (served.weights != last_snapshot.weights)
+            .then(|| crate::policy::Policy::from_snapshot(&served.architecture, &served.weights, served.version))
+            .transpose()?;
+        let mut last_policy = |s: &[f64]| last.act(probe.as_ref(), s);
+        let probe_ref = probe.as_ref();
+        let mut chosen_policy = chosen.as_ref().map(|p| move |s: &[f64]| p.act(probe_ref, s));
+        let plan = EvaluationPlan {
+            episodes: config.run.eval_episodes,
+            first_seed: config.run.first_eval_seed(),
+            local_mask: (meta.shape.connection == crate::config::Connection::Local).then_some(meta.shape.mask.as_slice()),
+            headroom: self.schedule.headroom.as_ref(),
+        };
+        let evaluation = evaluate_hand_over(env.as_mut(), chosen_policy.as_mut().map(|p| p as Controller), &mut last_policy, &plan)?;
         let flow = self.shared.flow();
         let (min, mean, max) = flow.lag.stats();
         let counters = self.agent.counters();
-        let summary = LearnerSummary {
-            episodes: self.episodes(),
+        let (actor_params, critic_params) = self.agent.param_counts();
+        let summary = RunSummary {
+            env: meta.shape.env.clone(),
+            algo: meta.shape.algo,
+            connection: meta.shape.connection,
+            seed: config.run.seed,
+            episodes: self.episodes() as usize,
+            final_return: self.shared.recent_return(),
+            evaluation,
+            selection,
+            graph_seconds: meta.graph_seconds,
+            optimization_seconds: 0.0,
+            total_seconds: meta.elapsed_seconds + self.started.elapsed().as_secs_f64(),
             env_steps: counters.env_steps,
             updates: counters.updates,
-            sampled: flow.sampled(),
-            inserted: flow.inserted(),
-            replay_ratio: flow.achieved_ratio(),
-            replay_ratio_target: flow.replay_ratio_target(),
-            policy_lag: PolicyLag { min, mean, max },
-            actors_waited_s: flow.actors_waited_s,
-            learner_waited_s: flow.learner_waited_s,
-            final_return: self.shared.recent_return(),
-            policy_version: self.shared.policy_version(),
-            served_version,
-            selection,
+            samples_drawn: flow.sampled(),
+            actor_params,
+            critic_params,
+            service: Some(ServiceFigures {
+                sampled: flow.sampled(),
+                inserted: flow.inserted(),
+                replay_ratio: flow.achieved_ratio(),
+                replay_ratio_target: flow.replay_ratio_target(),
+                policy_lag: PolicyLag { min, mean, max },
+                actors_waited_s: flow.actors_waited_s,
+                learner_waited_s: flow.learner_waited_s,
+                policy_version: self.shared.policy_version(),
+                served_version: served.version,
+                actors: None,
+                transport: None,
+            }),
         };
-        crate::run_files::write_summary(&self.shared.run_dir, &summary)
+        drop(flow);
+        crate::summary::write_summary(&self.shared.run_dir, &summary)
     }
 }
 

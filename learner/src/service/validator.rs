@@ -193,6 +193,7 @@ mod tests {
             budget_episodes: Some(120),
             limiter: None,
             validator,
+            headroom: None,
         };
         run_training(agent, inbox, shared.clone(), schedule).unwrap();
         let last = latest_checkpoint(dir).unwrap();
