@@ -43,7 +43,7 @@ for target in $chosen; do
   echo "== $target (${2}s)"
   # Leak checking is off: libtorch keeps its global allocations to exit.
   cargo +nightly fuzz run "$target" "$corpus" "fuzz/seeds/$target" "fuzz/regressions/$target" -- \
-    -detect_leaks=0 -rss_limit_mb=4096 "${flags[@]}" 2>&1 | tee "fuzz/target/$target.log" | grep -E '^(#[0-9]+ +(INITED|DONE)|Done|stat::|==[0-9]+==|SUMMARY|thread .* panicked)' || true
+    -detect_leaks=0 -rss_limit_mb=4096 "${flags[@]}" 2>&1 | tee "fuzz/target/$target.log" | grep -E '^(#[0-9]+[[:space:]]+(INITED|DONE)|Done|stat::|==[0-9]+==|SUMMARY|thread .* panicked)' || true
   status=${PIPESTATUS[0]}
   if [[ $status -ne 0 ]]; then
     echo "fuzz.sh: $target failed (exit $status); the input is under fuzz/artifacts/$target/, the log in fuzz/target/$target.log" >&2

@@ -53,6 +53,24 @@ pub fn load_for(path: &Path, spec: &EnvSpec) -> Result<GraphReport, GraphError> 
 /// [`load_for`] on a graph file's text; `path` names it in errors and in
 /// the origin (fuzzed by fuzz/fuzz_targets/graph_json.rs).
 pub fn parse_for(text: &str, path: &Path, spec: &EnvSpec) -> Result<GraphReport, GraphError> {
+    let report = parse_measured_for(text, path, spec)?;
+    if let Some(i) = report.g.iter().position(|row| !row.contains(&1)) {
+        let message = format!("action {} ({}) has no edge; every action's subnetwork needs at least one state", i + 1, report.action_names[i]);
+        return Err(GraphError::BadGraphFile { path: path.into(), message });
+    }
+    Ok(report)
+}
+
+/// A graph CS3 measured (`lcrl graph --out`, `lcrl-learner --graph`): the
+/// checks of [`load_for`] but the edge per action. CS3 may find an action
+/// that moves no state above the cut; its subnetwork then sees no state and
+/// learns a constant, which the networks support (learner/src/nets.rs).
+pub fn load_measured_for(path: &Path, spec: &EnvSpec) -> Result<GraphReport, GraphError> {
+    let text = std::fs::read_to_string(path).map_err(|source| GraphError::Io { path: path.into(), source })?;
+    parse_measured_for(&text, path, spec)
+}
+
+fn parse_measured_for(text: &str, path: &Path, spec: &EnvSpec) -> Result<GraphReport, GraphError> {
     let mut report = GraphReport::from_json(text, path)?;
     let bad = |message: String| GraphError::BadGraphFile { path: path.into(), message };
     let (n, m) = (spec.action_dim(), spec.state_dim());
@@ -69,9 +87,6 @@ pub fn parse_for(text: &str, path: &Path, spec: &EnvSpec) -> Result<GraphReport,
             "its actions {:?} and states {:?} are not those of environment {} (actions {:?}, states {:?}, in this order)",
             report.action_names, report.state_names, spec.name, spec.action_names, spec.state_names
         )));
-    }
-    if let Some(i) = report.g.iter().position(|row| !row.contains(&1)) {
-        return Err(bad(format!("action {} ({}) has no edge; every action's subnetwork needs at least one state", i + 1, report.action_names[i])));
     }
     if report.origin.is_none() {
         report.origin = Some(format!("graph:{}", path.display()));
@@ -179,6 +194,8 @@ mod tests {
         report.write_json(&path).unwrap();
         let err = load_for(&path, &spec).unwrap_err().to_string();
         assert!(err.contains("g.json") && err.contains("action 1 (a0) has no edge"), "{err}");
+        // A measured graph may leave an action unconnected (CS3 found it moves nothing).
+        assert_eq!(load_measured_for(&path, &spec).unwrap().g[0], vec![0, 0, 0]);
 
         let mut renamed = spec.clone();
         renamed.state_names.swap(0, 1);

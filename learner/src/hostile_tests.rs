@@ -165,7 +165,12 @@ fn snapshot_weights_with_nan_or_the_wrong_shape_are_refused() {
 /// The weights of a freshly built actor of `architecture()`, optionally
 /// with one value replaced.
 fn valid_weights(poison: Option<f32>) -> Vec<u8> {
-    let arch: crate::snapshot::Architecture = serde_json::from_value(architecture()).expect("valid architecture");
+    weights_of(architecture(), poison)
+}
+
+/// The weights of a freshly built actor of `architecture`.
+fn weights_of(architecture: serde_json::Value, poison: Option<f32>) -> Vec<u8> {
+    let arch: crate::snapshot::Architecture = serde_json::from_value(architecture).expect("valid architecture");
     let vs = tch::nn::VarStore::new(tch::Device::Cpu);
     let _actor = crate::agent::build_actor(&vs.root(), arch.shape.connection, &arch.shape.mask, 3, 3, &arch.network, 0);
     let named: Vec<(String, tch::Tensor)> = vs
@@ -201,4 +206,19 @@ fn checkpoints_are_checked_as_snapshots_are() {
     assert!(err.contains("state_dim"), "{err}");
     let nan = Policy::from_checkpoint(&serde_json::to_string(&meta).expect("writes"), &valid_weights(Some(f32::NAN)));
     assert!(nan.err().map(|e| e.to_string()).unwrap_or_default().contains("non-finite"));
+}
+
+/// CS3 may leave an action without an edge (peg-group2 at T = 1 leaves dz
+/// unconnected): that actor's subnetwork sees no state and outputs a
+/// learned constant; snapshots and checkpoints of it load and act.
+#[test]
+fn a_local_actor_with_an_unconnected_action_loads_and_acts() {
+    let mut a = architecture();
+    a["mask"] = serde_json::json!([[0, 0, 0], [1, 1, 0], [0, 0, 1]]);
+    let policy = Policy::from_snapshot(&a.to_string(), &weights_of(a.clone(), None), 1).expect("loads");
+    let first = policy.act_normalized(&[0.1, 0.2, 0.3]);
+    let second = policy.act_normalized(&[-0.5, 0.9, 0.3]);
+    assert!(first.iter().chain(&second).all(|v| v.is_finite()));
+    assert_eq!(first[0], second[0], "the unconnected action ignores the state");
+    assert_ne!(first[1], second[1]);
 }

@@ -19,9 +19,7 @@ use lcrl_learner::service::runtime::{run_training, snapshot, Schedule};
 use lcrl_learner::service::validator::Validator;
 use lcrl_learner::service::shared::Shared;
 use lcrl_learner::service::server::{LearnerService, PolicyService};
-use lcrl_learner::checkpoint::CheckpointMeta;
-use lcrl_learner::run_start::{checkpoint_to_resume, fix_base_controller, resolve_mask};
-use lcrl_learner::algorithms::make_agent;
+use lcrl_learner::run_start::{prepare, GraphSource, Prepared, RunStart};
 use lcrl_proto::security::{ClientSecurity, ServerSecurity, ServerSecurityArgs};
 use lcrl_proto::v1::graph_client::GraphClient;
 use tonic::service::interceptor::InterceptedService;
@@ -168,51 +166,42 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let graph_builder_security = ClientSecurity::new(args.graph_builder_tls_ca.as_deref(), own_identity, args.security.token_file.as_deref())?;
     let env = lcrl_sim::make_env(&args.env)?;
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
-    std::fs::create_dir_all(&args.run_dir).with_context(|| format!("creating {}", args.run_dir.display()))?;
-    let resume = checkpoint_to_resume(&args.run_dir, &args.env, args.algo, args.connection)?;
-    let (config, mask, meta) = match &resume {
-        Some((dir, meta)) => {
-            tracing::info!(checkpoint = %dir.display(), episodes = meta.episode, "resuming");
-            (meta.config.clone(), meta.shape.mask.clone(), meta.clone())
-        }
-        None => {
-            let mut config = match &args.config {
-                // One fallback rule with `lcrl train`: the environment's settings.
-                Some(path) => TrainConfig::load_for_env(path, &args.env)?,
-                None => TrainConfig::for_env(&args.env).0,
-            };
-            fix_base_controller(&mut config, env.as_ref())?;
-            let mask = match (args.connection, &args.graph, &args.graph_builder) {
-                (Connection::Local, None, Some(url)) => fetch_graph(url, &graph_builder_security, Duration::from_secs(args.graph_timeout), n, m).await?,
-                (connection, graph, _) => {
-                    let (mask, report) = resolve_mask(connection, graph.as_deref(), env.as_ref(), &config)?;
-                    // A graph built here is kept beside the run's records.
-                    if let Some(report) = report.filter(|_| graph.is_none()) {
-                        report.write_json(&args.run_dir.join("graph.json"))?;
-                    }
-                    mask
-                }
-            };
-            let meta = CheckpointMeta::start(&args.env, args.algo, args.connection, m, n, mask.clone(), config.clone());
-            (config, mask, meta)
-        }
+    // The graph builder is asked only for a new run: a resumed one has its
+    // mask in the checkpoint.
+    let resuming = lcrl_learner::checkpoint::latest_checkpoint(&args.run_dir).is_some();
+    let graph = match (args.connection, &args.graph, &args.graph_builder) {
+        (Connection::Local, None, Some(url)) if !resuming => GraphSource::Mask(fetch_graph(url, &graph_builder_security, Duration::from_secs(args.graph_timeout), n, m).await?),
+        (_, Some(path), _) => GraphSource::File(path),
+        _ => GraphSource::Measure,
     };
-    let mut config = config;
-    if let Some(device) = &args.device {
-        config.run.device = device.clone();
+    let config = match &args.config {
+        // One fallback rule with `lcrl train`: the environment's settings.
+        Some(path) => TrainConfig::load_for_env(path, &args.env)?,
+        None => TrainConfig::for_env(&args.env).0,
+    };
+    let start = RunStart {
+        env: &args.env,
+        algo: args.algo,
+        connection: args.connection,
+        run_dir: &args.run_dir,
+        config,
+        graph,
+        // A learner always continues its run directory (a restart after a
+        // crash or a rescheduled pod).
+        resume: true,
+        device: args.device.clone(),
+        threads: args.threads,
+    };
+    let Prepared { config, checkpoint, meta, graph, agent, actions, threads } = prepare(start, env.as_ref())?;
+    if let Some(dir) = &checkpoint {
+        tracing::info!(checkpoint = %dir.display(), episodes = meta.episode, "resuming");
     }
-    if let Some(threads) = args.threads {
-        config.run.threads = threads;
+    // A graph built here is kept beside the run's records.
+    if let Some(report) = graph.filter(|_| args.graph.is_none()) {
+        report.write_json(&args.run_dir.join("graph.json"))?;
     }
-    config.validate()?;
-    let threads = lcrl_learner::device::apply_threads(config.run.threads, 0);
     tracing::info!(device = %config.run.device, threads, "learner compute");
-    let mut agent = make_agent(args.algo, args.connection, &config, &mask, m, n)?;
-    if let Some((dir, _)) = &resume {
-        agent.load(dir)?;
-    }
     let architecture = meta.architecture();
-    let actions = lcrl_learner::action::ActionMap::new(env.spec(), architecture.base.as_deref())?;
     let first = snapshot(agent.as_ref(), &architecture, meta.policy_version)?;
     let staleness = (args.algo == Algo::Ppo).then_some(args.max_staleness);
     let ingest = Ingest::new(&args.run_id, lcrl_sim::make_env(&args.env)?, staleness)
@@ -240,7 +229,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
             fresh.check_steps(lcrl_learner::service::shm::MAX_TRANSITIONS as u64, agent.samples_per_update() as u64).map_err(|e| anyhow::anyhow!("{e}; raise --replay-slack"))?;
             // A resumed run keeps its counters (no burst of updates on a
             // buffer that the checkpoint restored).
-            match resume.as_ref().and_then(|(_, meta)| meta.rate_limiter.clone()) {
+            match checkpoint.as_ref().and_then(|_| meta.rate_limiter.clone()) {
                 Some(saved) => Some(lcrl_learner::rate_limiter::RateLimiter { samples_per_insert: spi, error_buffer: fresh.error_buffer, ..saved }),
                 None => Some(fresh),
             }
@@ -258,7 +247,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     }
     // The run's policy is chosen on held-out starts as `lcrl train` chooses
     // it (run.validation_episodes, run.validate_every), on its own thread.
-    let validator = match lcrl_learner::selection::Selection::new(&config.run, &args.run_dir, resume.is_some())? {
+    let validator = match lcrl_learner::selection::Selection::new(&config.run, &args.run_dir, checkpoint.is_some())? {
         Some(selection) => Some(Validator::start(selection, lcrl_sim::make_env(&args.env)?, &args.run_dir, config.run.validate_every)?),
         None => None,
     };

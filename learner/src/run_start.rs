@@ -1,15 +1,121 @@
-//! How a run starts, the same for `lcrl train` and the distributed learner:
-//! the checkpoint to resume (checked against what the caller asks for), the
-//! base controller written down as numbers, and the actor's mask.
+//! How a run starts, the same for `lcrl train` and the distributed learner
+//! ([`prepare`]): the checkpoint to resume (checked against what the caller
+//! asks for) or the new run's settings, the actor's mask, the base
+//! controller written down as numbers, the compute threads, the agent and
+//! its action map.
 
 use std::path::{Path, PathBuf};
 
 use lcrl_graph_builder::{build_graph, GraphOptions, GraphReport};
 use lcrl_sim::Env;
 
+use crate::action::ActionMap;
+use crate::agent::Agent;
 use crate::checkpoint::{latest_checkpoint, read_meta, CheckpointMeta};
 use crate::config::{Algo, BaseController, Connection, TrainConfig};
 use crate::LearnerError;
+
+/// Where a new run's mask comes from (connection local; other connections
+/// see every state).
+#[derive(Debug, Clone)]
+pub enum GraphSource<'a> {
+    /// CS3 here, with the run's seed, samples and threshold.
+    Measure,
+    /// A graph.json (`--graph`).
+    File(&'a Path),
+    /// A mask already checked against the environment (the graph builder's).
+    Mask(Vec<Vec<u8>>),
+}
+
+/// What a run asks for at its start.
+#[derive(Debug, Clone)]
+pub struct RunStart<'a> {
+    pub env: &'a str,
+    pub algo: Algo,
+    pub connection: Connection,
+    pub run_dir: &'a Path,
+    /// A new run's settings, resolved by the one fallback rule
+    /// ([`TrainConfig::load_for_env`], [`TrainConfig::for_env`]). A resumed
+    /// run keeps its checkpoint's, but for the episode budget, which may
+    /// grow, and the device and threads below.
+    pub config: TrainConfig,
+    pub graph: GraphSource<'a>,
+    /// Continue the newest checkpoint of `run_dir`. Without it, a run
+    /// directory that holds one is an error.
+    pub resume: bool,
+    /// Where and on how many threads to compute, when asked for
+    /// (`--device`, `--threads`): a resumed run may change them.
+    pub device: Option<String>,
+    pub threads: Option<usize>,
+}
+
+/// A run ready for its first episode.
+pub struct Prepared {
+    /// The settings the run trains with (base controller as numbers).
+    pub config: TrainConfig,
+    /// The checkpoint resumed, if any.
+    pub checkpoint: Option<PathBuf>,
+    /// Its metadata, or a new run's (episode 0, with the graph's time).
+    pub meta: CheckpointMeta,
+    /// The graph built or read here for a new run (to keep as graph.json).
+    pub graph: Option<GraphReport>,
+    pub agent: Box<dyn Agent>,
+    /// How the agent's actions become the environment's.
+    pub actions: ActionMap,
+    /// libtorch intra-op threads in use.
+    pub threads: usize,
+}
+
+/// Starts or resumes a run in `start.run_dir` on `env`: the one start-up
+/// sequence of `lcrl train` and `lcrl-learner`.
+pub fn prepare(start: RunStart, env: &dyn Env) -> Result<Prepared, LearnerError> {
+    let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
+    std::fs::create_dir_all(start.run_dir).map_err(crate::io(start.run_dir))?;
+    if !start.resume && latest_checkpoint(start.run_dir).is_some() {
+        return Err(LearnerError::Mismatch(format!(
+            "{} already holds a run; pass --resume to continue it or choose another --run-dir",
+            start.run_dir.display()
+        )));
+    }
+    let resumed = if start.resume { checkpoint_to_resume(start.run_dir, start.env, start.algo, start.connection)? } else { None };
+    let (mut config, checkpoint, mut meta, graph) = match resumed {
+        Some((dir, meta)) => {
+            let mut config = meta.config.clone();
+            config.run.episodes = start.config.run.episodes.max(meta.episode);
+            (config, Some(dir), meta, None)
+        }
+        None => {
+            let measured_here = matches!(start.graph, GraphSource::Measure);
+            let (mask, graph) = match start.graph {
+                GraphSource::Mask(mask) if start.connection == Connection::Local => (mask, None),
+                GraphSource::File(path) => resolve_mask(start.connection, Some(path), env, &start.config)?,
+                _ => resolve_mask(start.connection, None, env, &start.config)?,
+            };
+            // Time spent building G here (none when it was given).
+            let graph_seconds = graph.as_ref().filter(|_| measured_here).map_or(0.0, |r| r.elapsed_s);
+            let meta = CheckpointMeta { graph_seconds, ..CheckpointMeta::start(start.env, start.algo, start.connection, m, n, mask, start.config.clone()) };
+            (start.config, None, meta, graph)
+        }
+    };
+    if let Some(device) = start.device {
+        config.run.device = device;
+    }
+    if let Some(threads) = start.threads {
+        config.run.threads = threads;
+    }
+    config.validate()?;
+    // The base controller as numbers, so config.toml and every checkpoint
+    // record exactly what the agent acts around.
+    let base = fix_base_controller(&mut config, env)?;
+    let actions = ActionMap::new(env.spec(), base.as_deref())?;
+    meta.config = config.clone();
+    let threads = crate::device::apply_threads(config.run.threads, 0);
+    let mut agent = crate::algorithms::make_agent(start.algo, start.connection, &config, &meta.shape.mask, m, n)?;
+    if let Some(dir) = &checkpoint {
+        agent.load(dir)?;
+    }
+    Ok(Prepared { config, checkpoint, meta, graph, agent, actions, threads })
+}
 
 /// The newest checkpoint in `run_dir` with its metadata, if there is one.
 /// A checkpoint of another environment, algorithm or connection is an
@@ -50,8 +156,9 @@ pub fn resolve_mask(connection: Connection, graph: Option<&Path>, env: &dyn Env,
     }
     let report = match graph {
         // The one loader of graph files (lcrl_graph_builder::given): shape,
-        // 0/1, this environment's names in its order, an edge per action.
-        Some(path) => lcrl_graph_builder::given::load_for(path, env.spec())?,
+        // 0/1, this environment's names in its order. A measured graph may
+        // leave an action without an edge (its subnetwork learns a constant).
+        Some(path) => lcrl_graph_builder::given::load_measured_for(path, env.spec())?,
         None => {
             let options = GraphOptions {
                 rule: lcrl_graph_builder::Rule::Threshold(config.run.graph_threshold),

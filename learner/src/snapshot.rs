@@ -54,9 +54,9 @@ impl Architecture {
         if self.shape.mask.len() != n || self.shape.mask.iter().any(|row| row.len() != m || row.iter().any(|&v| v > 1)) {
             return bad(format!("the mask must be {n}×{m} of 0/1"));
         }
-        if self.shape.connection == Connection::Local && self.shape.mask.iter().any(|row| row.iter().all(|&v| v == 0)) {
-            return bad("a local actor's mask row sees no state".into());
-        }
+        // A local mask row of zeros is allowed: CS3 may find an action that
+        // moves no state above the cut, and its subnetwork then learns a
+        // constant (learner/src/nets.rs builds and trains it).
         if let Some(base) = &self.base {
             if base.len() != n || base.iter().any(|b| !b.is_finite()) {
                 return bad(format!("the base action must hold {n} finite numbers"));

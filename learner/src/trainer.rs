@@ -17,11 +17,10 @@ use lcrl_sim::{make_env, Env};
 
 use crate::action::ActionMap;
 use crate::agent::observe;
-use crate::algorithms::make_agent;
 use crate::run_files::{read_rows, EpisodeRow, MetricsLog};
 use crate::summary::{evaluate_hand_over, write_summary, Controller, EvaluationPlan, RunSummary};
 use crate::checkpoint::{write_checkpoint, CheckpointMeta};
-use crate::run_start::{checkpoint_to_resume, fix_base_controller, resolve_mask};
+use crate::run_start::{prepare, GraphSource, Prepared, RunStart};
 use crate::config::{Algo, Connection, TrainConfig};
 use crate::selection::Selection;
 use crate::{io, LearnerError};
@@ -75,42 +74,31 @@ pub fn step_env(env: &mut dyn Env, actions: &ActionMap, u: &[f32]) -> Result<(lc
 pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Result<TrainOutcome, LearnerError> {
     let started = Instant::now();
     let mut env = make_env(&req.env)?;
-    let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
-    std::fs::create_dir_all(&req.run_dir).map_err(io(&req.run_dir))?;
-    if !req.resume && crate::checkpoint::latest_checkpoint(&req.run_dir).is_some() {
-        return Err(LearnerError::Mismatch(format!(
-            "{} already holds a run; pass --resume to continue it or choose another --run-dir",
-            req.run_dir.display()
-        )));
+    let prepared = prepare(
+        RunStart {
+            env: &req.env,
+            algo: req.algo,
+            connection: req.connection,
+            run_dir: &req.run_dir,
+            config: req.config.clone(),
+            graph: req.graph.as_deref().map_or(GraphSource::Measure, GraphSource::File),
+            resume: req.resume,
+            // lcrl train computes as this invocation says, resumed or not.
+            device: Some(req.config.run.device.clone()),
+            threads: Some(req.config.run.threads),
+        },
+        env.as_ref(),
+    )?;
+    let Prepared { config: cfg, checkpoint, meta: start, graph, mut agent, actions, .. } = prepared;
+    if let Some(report) = &graph {
+        report.write_json(&req.run_dir.join("graph.json"))?;
     }
-    let existing = if req.resume { checkpoint_to_resume(&req.run_dir, &req.env, req.algo, req.connection)? } else { None };
-
-    let mut cfg = req.config.clone();
-    let (mask, graph_seconds, mut prior_opt, prior_elapsed, mut rows, checkpoint) = match existing {
-        Some((dir, meta)) => {
-            let episodes = cfg.run.episodes;
-            cfg = meta.config.clone();
-            cfg.run.episodes = episodes.max(meta.episode);
-            let rows = read_rows(&req.run_dir.join("metrics.csv"), meta.episode)?;
-            (meta.shape.mask.clone(), meta.graph_seconds, meta.optimization_seconds, meta.elapsed_seconds, rows, Some(dir))
-        }
-        None => {
-            let (mask, report) = resolve_mask(req.connection, req.graph.as_deref(), env.as_ref(), &req.config)?;
-            // Time spent building G here (none when it was given).
-            let seconds = report.as_ref().filter(|_| req.graph.is_none()).map_or(0.0, |r| r.elapsed_s);
-            if let Some(report) = report {
-                report.write_json(&req.run_dir.join("graph.json"))?;
-            }
-            (mask, seconds, 0.0, 0.0, Vec::new(), None)
-        }
+    let mask = start.shape.mask.clone();
+    let (graph_seconds, mut prior_opt, prior_elapsed) = (start.graph_seconds, start.optimization_seconds, start.elapsed_seconds);
+    let mut rows = match &checkpoint {
+        Some(_) => read_rows(&req.run_dir.join("metrics.csv"), start.episode)?,
+        None => Vec::new(),
     };
-    cfg.validate()?;
-    // The base controller as numbers, so config.toml and every checkpoint
-    // record exactly what the agent acted around.
-    let base = fix_base_controller(&mut cfg, env.as_ref())?;
-    let actions = crate::action::ActionMap::new(env.spec(), base.as_deref())?;
-    // lcrl train steps the environment and updates in turn: every core.
-    crate::device::apply_threads(cfg.run.threads, 0);
     let resolved = toml::to_string_pretty(&cfg).map_err(|e| LearnerError::Config(e.to_string()))?;
     let header = format!(
         "# resolved configuration\n# env = {:?}, algo = {:?}, connection = {:?}\n# settings from: {}\n",
@@ -119,15 +107,10 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     let config_path = req.run_dir.join("config.toml");
     crate::run_files::write_atomically(&config_path, (header + &resolved).as_bytes())?;
 
-    let mut agent = make_agent(req.algo, req.connection, &cfg, &mask, m, n)?;
-    if let Some(dir) = &checkpoint {
-        agent.load(dir)?;
-    }
     let metrics_path = req.run_dir.join("metrics.csv");
     let mut metrics = MetricsLog::create(&metrics_path, &rows)?;
     let mut tensorboard = crate::tensorboard::EventWriter::create(&req.run_dir).map_err(io(&req.run_dir))?;
     let mut optimization = prior_opt;
-    let start = CheckpointMeta { graph_seconds, ..CheckpointMeta::start(&req.env, req.algo, req.connection, m, n, mask.clone(), cfg.clone()) };
     let meta_for = |episode: usize, optimization: f64, elapsed: f64| CheckpointMeta { episode, optimization_seconds: optimization, elapsed_seconds: elapsed, ..start.clone() };
 
     let last_episode = req.stop_after.map_or(cfg.run.episodes, |stop| stop.min(cfg.run.episodes));
