@@ -1,0 +1,107 @@
+#!/usr/bin/env bash
+# Parity of the distributed service with `lcrl train` (docs/scaling.md,
+# "Parity"): one preset and its seeds through `lcrl train` and through `lcrl
+# run` with 1, 2 and 4 actors, one run at a time, then a table of the eval
+# return, the runs above the best constant, training safety (failed episodes,
+# the worst 10-episode mean) and the wall time of each loop.
+#
+#   bash scripts/parity.sh [PRESET] [SEEDS] [ACTOR COUNTS...]
+#   bash scripts/parity.sh configs/peg-group1-ppo-local.toml 3 1 2 4
+#
+# Runs go to runs/parity/<preset>/<loop>/seed<k>; the table is printed and
+# written to runs/parity/<preset>/parity.md. A run folder that already holds
+# summary.json is kept (rerun after an interruption to finish the rest).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+preset=${1:-configs/peg-group1-ppo-local.toml}
+seeds=${2:-3}
+shift $(( $# < 2 ? $# : 2 ))
+actor_counts=("$@")
+[[ ${#actor_counts[@]} -gt 0 ]] || actor_counts=(1 2 4)
+[[ -f $preset ]] || { echo "parity.sh: no preset $preset" >&2; exit 2; }
+[[ $seeds =~ ^[1-9][0-9]*$ ]] || { echo "parity.sh: SEEDS must be a positive number, not '$seeds'" >&2; exit 2; }
+bash scripts/setup.sh >/dev/null
+cargo build --workspace --bins
+lcrl=target/debug/lcrl
+name=$(basename "$preset" .toml)
+out=runs/parity/$name
+mkdir -p "$out/presets"
+read -r env algo connection < <(python3 -c 'import sys, tomllib; j = tomllib.load(open(sys.argv[1], "rb"))["job"]; print(j["env"], j["algo"], j["connection"])' "$preset")
+
+# The preset with `seed = K` in its [run] table (added when it has none),
+# and its training sections alone for `lcrl train --config`.
+with_seed() {
+  awk -v seed="$2" '
+    /^\[run\][[:space:]]*$/ { print; print "seed = " seed; done = 1; next }
+    /^seed[[:space:]]*=/ && in_run { next }
+    /^\[/ { in_run = ($0 ~ /^\[run\]/) }
+    { print }
+    END { if (!done) { print "\n[run]\nseed = " seed } }' "$1"
+}
+training_sections() {
+  awk '/^\[job\]/ { skip = 1; next } /^\[/ { skip = 0 } !skip' "$1"
+}
+
+for seed in $(seq 0 $((seeds - 1))); do
+  seeded=$out/presets/seed$seed.toml
+  # Relative paths in the preset (headroom, graph) stay relative to its folder.
+  with_seed "$preset" "$seed" | sed "s#\"\.\./#\"$(cd "$(dirname "$preset")/.." && pwd)/#g" > "$seeded"
+  training_sections "$seeded" > "$out/presets/seed$seed-train.toml"
+  dir=$out/train/seed$seed
+  if [[ ! -f $dir/summary.json ]]; then
+    rm -rf "$dir"
+    echo "== lcrl train, seed $seed"
+    "$lcrl" train --env "$env" --algo "$algo" --connection "$connection" --config "$out/presets/seed$seed-train.toml" --run-dir "$dir" >/dev/null
+  fi
+  for actors in "${actor_counts[@]}"; do
+    dir=$out/run$actors/seed$seed
+    if [[ ! -f $dir/summary.json ]]; then
+      rm -rf "$dir"
+      echo "== lcrl run --actors $actors, seed $seed"
+      "$lcrl" run --config "$seeded" --actors "$actors" --run-dir "$dir" >/dev/null
+    fi
+  done
+done
+
+python3 - "$out" "${actor_counts[@]}" <<'EOF'
+import csv, json, pathlib, statistics, sys
+
+out = pathlib.Path(sys.argv[1])
+loops = ["train"] + [f"run{a}" for a in sys.argv[2:]]
+
+def metrics(run):
+    path = run / "metrics.csv" if (run / "metrics.csv").is_file() else run / "learner" / "metrics.csv"
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+def interval(values):
+    m = statistics.fmean(values)
+    if len(values) < 2:
+        return f"{m:.3f}"
+    half = 1.96 * statistics.stdev(values) / len(values) ** 0.5
+    return f"{m:.3f} [{m - half:.3f}, {m + half:.3f}]"
+
+lines = ["| loop | seeds | eval return (mean [≈95% CI]) | above the best constant | failed training episodes | worst 10-episode mean | wall s |",
+         "|---|---|---|---|---|---|---|"]
+for loop in loops:
+    runs = sorted((out / loop).glob("seed*/summary.json"))
+    if not runs:
+        continue
+    evals, above, failed, episodes, worst, wall = [], 0, 0, 0, [], []
+    for path in runs:
+        s = json.loads(path.read_text())
+        evals.append(s["eval_return"])
+        bar = next((r["mean_return"] for r in s.get("references", []) if r["controller"] == "best constant"), None)
+        above += bar is not None and s["eval_return"] > bar
+        rows = metrics(path.parent)
+        returns = [float(r["return"]) for r in rows]
+        failed += sum(r["success"] == "false" for r in rows)
+        episodes += len(rows)
+        worst.append(min(statistics.fmean(returns[k:k + 10]) for k in range(max(1, len(returns) - 9))))
+        wall.append(s["total_seconds"])
+    name = "lcrl train" if loop == "train" else f"lcrl run, {loop[3:]} actor(s)"
+    lines.append(f"| {name} | {len(runs)} | {interval(evals)} | {above} of {len(runs)} | {failed} of {episodes} | {statistics.fmean(worst):.3f} (lowest {min(worst):.3f}) | {statistics.fmean(wall):.1f} |")
+table = "\n".join(lines)
+(out / "parity.md").write_text(table + "\n")
+print(table)
+EOF
