@@ -26,10 +26,11 @@ lcrl=target/debug/lcrl
 name=$(basename "$preset" .toml)
 out=runs/parity/$name
 mkdir -p "$out/presets"
-read -r env algo connection < <(python3 -c 'import sys, tomllib; j = tomllib.load(open(sys.argv[1], "rb"))["job"]; print(j["env"], j["algo"], j["connection"])' "$preset")
+read -r env algo connection episodes < <(python3 -c 'import sys, tomllib; j = tomllib.load(open(sys.argv[1], "rb"))["job"]; print(j["env"], j["algo"], j["connection"], j["episodes"])' "$preset")
 
 # The preset with `seed = K` in its [run] table (added when it has none),
-# and its training sections alone for `lcrl train --config`.
+# and its training sections alone for `lcrl train --config` (the budget,
+# [job] episodes, goes to `lcrl train --episodes`).
 with_seed() {
   awk -v seed="$2" '
     /^\[run\][[:space:]]*$/ { print; print "seed = " seed; done = 1; next }
@@ -51,7 +52,7 @@ for seed in $(seq 0 $((seeds - 1))); do
   if [[ ! -f $dir/summary.json ]]; then
     rm -rf "$dir"
     echo "== lcrl train, seed $seed"
-    "$lcrl" train --env "$env" --algo "$algo" --connection "$connection" --config "$out/presets/seed$seed-train.toml" --run-dir "$dir" >/dev/null
+    "$lcrl" train --env "$env" --algo "$algo" --connection "$connection" --episodes "$episodes" --config "$out/presets/seed$seed-train.toml" --run-dir "$dir" >/dev/null
   fi
   for actors in "${actor_counts[@]}"; do
     dir=$out/run$actors/seed$seed
