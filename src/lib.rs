@@ -7,7 +7,7 @@
 //! - [`run_security`]: TLS and the token as every process's flags.
 //! - [`binaries`]: the workspace binaries and the Python a command starts.
 //! - [`supervise`]: child processes that stop when dropped, health waits.
-//! - [`run_summary`]: a distributed run's summary and evaluation.
+//! - [`run_summary`]: `lcrl run`'s summary.json, its learner's with the run's actors and wall time.
 //! - [`plots`]: the PNG figures.
 //! - [`experiment`]: `lcrl experiment`, a study of many runs.
 //! - [`output`]: writing result files.

@@ -16,7 +16,7 @@
 //! - [`run_files`]: metrics.csv, the selection record and the one atomic writer, for both loops.
 //! - [`summary`]: summary.json of every loop, and the one evaluation of a handed-over policy.
 //! - [`checkpoint`]: the checkpoint store (atomic writes, newest kept, resume).
-//! - [`run_start`]: how a run starts (the checkpoint to resume, the base controller, the mask), for both loops.
+//! - [`run_start`]: how a run starts (`prepare`: the checkpoint to resume or the new settings, the mask, the base controller, the agent), for both loops.
 //! - [`selection`]: the run's policy chosen on held-out validation starts.
 //! - [`trainer`]: the single-process loop: episodes, metrics.csv, summary.json, resume.
 //! - [`policy`]: a trained actor loaded from a checkpoint or a snapshot.
