@@ -464,7 +464,7 @@ impl TrainConfig {
         let layered = |files: &[&str]| -> Option<TrainConfig> {
             let mut merged = toml::Table::new();
             for text in files {
-                overlay(&mut merged, &toml::from_str::<toml::Table>(text).ok()?);
+                lcrl_sim::overlay(&mut merged, &toml::from_str::<toml::Table>(text).ok()?);
             }
             toml::Value::Table(merged).try_into().ok()
         };
@@ -481,7 +481,7 @@ impl TrainConfig {
         let mut merged = toml::Table::try_from(&defaults).map_err(|e| LearnerError::Config(e.to_string()))?;
         let mut overrides = overrides.clone();
         migrate_legacy_tables(&mut overrides);
-        overlay(&mut merged, &overrides);
+        lcrl_sim::overlay(&mut merged, &overrides);
         let cfg: TrainConfig = toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| LearnerError::Config(e.to_string()))?;
         cfg.validate()?;
         Ok(cfg)
@@ -573,18 +573,6 @@ impl TrainConfig {
             return bad("run.device", &format!("must be \"cpu\" or \"cuda\", got \"{}\"", self.run.device));
         }
         Ok(())
-    }
-}
-
-/// Lays `over` onto `base`: tables merge key by key, anything else replaces.
-pub fn overlay(base: &mut toml::Table, over: &toml::Table) {
-    for (key, value) in over {
-        match (base.get_mut(key), value) {
-            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => overlay(b, o),
-            _ => {
-                base.insert(key.clone(), value.clone());
-            }
-        }
     }
 }
 

@@ -24,4 +24,4 @@ pub mod tune;
 
 pub use env::{Env, EnvError, EnvSpec, EpisodeMetrics, ReturnColumns, ReturnTerms, Step};
 pub use remote::step_all;
-pub use registry::{env_from_toml, known_env_names, make_env};
+pub use registry::{env_from_toml, known_env_names, make_env, overlay};

@@ -308,7 +308,7 @@ impl PegConfig {
     /// struct) on top of this config, then validates the result.
     pub fn with_overrides(&self, overrides: &toml::Table, source: &str) -> Result<Self, EnvError> {
         let mut merged = toml::Table::try_from(self).map_err(|e| EnvError::invalid("(preset)", e.to_string()))?;
-        merge(&mut merged, overrides);
+        crate::registry::overlay(&mut merged, overrides);
         let cfg: PegConfig = merged
             .try_into()
             .map_err(|e: toml::de::Error| EnvError::Parse { path: source.to_string(), message: e.to_string() })?;
@@ -444,17 +444,6 @@ impl PegConfig {
             }
         }
         Ok(())
-    }
-}
-
-fn merge(base: &mut toml::Table, overrides: &toml::Table) {
-    for (key, value) in overrides {
-        match (base.get_mut(key), value) {
-            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => merge(b, o),
-            _ => {
-                base.insert(key.clone(), value.clone());
-            }
-        }
     }
 }
 
