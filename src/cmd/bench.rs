@@ -60,18 +60,30 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 4000)]
         steps: usize,
     },
-    /// Control steps per second of peg-group1 on one core.
+    /// Control steps per second of peg-group1 on one core (and, with
+    /// valgrind on the PATH, instructions per step, which machine noise
+    /// does not move), and a 100-episode evaluation on 1 thread against all.
     Sim {
         /// Episodes per setting.
         #[arg(long, default_value_t = 100)]
         episodes: usize,
+    },
+    /// The episodes `bench sim` counts instructions of, run under valgrind
+    /// by `bench sim` itself.
+    #[command(hide = true)]
+    SimEpisodes {
+        #[arg(long)]
+        episodes: usize,
+        #[arg(long)]
+        substeps: usize,
     },
 }
 
 pub fn run(command: BenchCommand) -> anyhow::Result<()> {
     match command {
         BenchCommand::Graph { samples, repeats } => bench_graph(samples, repeats.max(1)),
-        BenchCommand::Sim { episodes } => bench_sim(episodes.max(1)),
+        BenchCommand::Sim { episodes } => crate::cmd::bench_sim::run(episodes.max(1)),
+        BenchCommand::SimEpisodes { episodes, substeps } => crate::cmd::bench_sim::episodes(episodes, substeps),
         BenchCommand::Learner { updates, device, threads, python } => bench_learner(updates.max(1), &device, &threads, python.as_deref()),
         BenchCommand::Transport { seconds } => crate::cmd::bench_transport::run(seconds.max(1.0)),
         BenchCommand::Env { gym, instances, steps } => crate::cmd::bench_env::run(&gym, &instances, steps.max(1)),
@@ -210,39 +222,6 @@ fn torch_eager(python: Option<&str>, device: &str, threads: &[usize], updates: u
         };
         println!("{t:>7} PyTorch {version} eager DDPG update (global): {ms:.3} ms{against}");
     }
-    Ok(())
-}
-
-/// Control steps per second of the constant controller on peg-group1 on
-/// one thread, at the default physics substeps and at half and double, to
-/// show how much of a control step is the physics.
-fn bench_sim(episodes: usize) -> anyhow::Result<()> {
-    use lcrl_sim::evaluate::evaluate;
-    use lcrl_sim::peg::{PegConfig, PegEnv};
-    let default = PegConfig::group1().physics.substeps;
-    println!("peg-group1, constant controller, {episodes} episodes, one thread");
-    println!("{:>9} {:>16} {:>14}", "substeps", "control steps/s", "µs per step");
-    for substeps in [default / 2, default, default * 2] {
-        let mut cfg = PegConfig::group1();
-        cfg.physics.substeps = substeps;
-        let mut env = PegEnv::new("peg-group1", cfg)?;
-        let (summary, _) = evaluate(&mut env, "constant", episodes, 0, &mut |_| vec![0.0; 6], &mut |_| {})?;
-        let per_step = 1e6 / summary.control_steps_per_sec;
-        println!("{substeps:>9} {:>16.0} {per_step:>14.1}", summary.control_steps_per_sec);
-    }
-    // An evaluation's independent episodes on every core
-    // (evaluate_parallel), against one thread, same episodes.
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let env = PegEnv::new("peg-group1", PegConfig::group1())?;
-    let constant = |_: &[f64]| vec![0.0; 6];
-    let wall = |threads: usize| -> anyhow::Result<f64> {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
-        let started = Instant::now();
-        pool.install(|| lcrl_sim::evaluate::evaluate_parallel(&env, "constant", episodes, 0, &constant))?;
-        Ok(started.elapsed().as_secs_f64())
-    };
-    let (one, all) = (wall(1)?, wall(cores)?);
-    println!("evaluation of {episodes} episodes (default substeps): {:.2} s on 1 thread, {:.2} s on {cores}: {:.2}×", one, all, one / all);
     Ok(())
 }
 

@@ -3,6 +3,7 @@
 
 pub mod bench;
 pub mod bench_env;
+pub mod bench_sim;
 pub mod bench_transport;
 pub mod certs;
 pub mod compare;
