@@ -49,8 +49,8 @@ pub fn run(episodes: usize) -> anyhow::Result<()> {
 /// `lcrl bench sim-episodes`: the counted run, its step count on stdout.
 pub fn episodes(episodes: usize, substeps: usize) -> anyhow::Result<()> {
     let mut env = env_with(substeps)?;
-    let (summary, _) = evaluate(&mut env, "constant", episodes, 0, &mut |_| vec![0.0; 6], &mut |_| {})?;
-    println!("steps {}", (summary.mean_steps * episodes as f64).round() as u64);
+    let (_, records) = evaluate(&mut env, "constant", episodes, 0, &mut |_| vec![0.0; 6], &mut |_| {})?;
+    println!("steps {}", records.iter().map(|r| r.steps).sum::<usize>());
     Ok(())
 }
 

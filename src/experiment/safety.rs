@@ -54,11 +54,11 @@ pub struct BaseFigures {
 /// How far a recorded best constant may sit from the study's tuned one.
 const RECORDED_ROUNDING: f64 = 0.005 + 1e-9;
 
-/// The base of a run from its resolved config.toml (`[controller] base`,
-/// a list of numbers once resolved): a = 0 (its return: the run's own
-/// `zero_action_return`, else the study's) or the recorded best constant,
-/// with that controller's figures. None without a base, or for a base that
-/// is neither.
+/// The base of a run from its resolved config.toml (`[base] action`, a
+/// list of numbers once resolved; `[controller] base` before the rename):
+/// a = 0 (its return: the run's own `zero_action_return`, else the
+/// study's) or the recorded best constant, with that controller's figures.
+/// None without a base, or for a base that is neither.
 pub fn base_of_run(run_dir: &Path, zero_action_return: Option<f64>, bar: Option<&BestConstant>) -> Option<BaseFigures> {
     let text = std::fs::read_to_string(run_dir.join("config.toml")).ok()?;
     let table: toml::Table = text.parse().ok()?;
