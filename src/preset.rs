@@ -30,6 +30,22 @@ pub struct Job {
     /// Algorithm 2's, one update of ddpg.batch_size per environment step.
     #[serde(default)]
     pub replay_ratio: Option<String>,
+    /// DDPG: the learner publishes a new policy every this many updates
+    /// (`lcrl-learner --publish-every`; default its own).
+    #[serde(default)]
+    pub publish_every: Option<u64>,
+    /// DDPG: how far, in inserted transitions, the actors may run ahead of
+    /// the replay ratio (`lcrl-learner --replay-slack`; default its own).
+    #[serde(default)]
+    pub replay_slack: Option<u64>,
+    /// Batches that may wait in the learner's queue
+    /// (`lcrl-learner --queued-batches`; default its own).
+    #[serde(default)]
+    pub queued_batches: Option<u64>,
+    /// Transitions per batch an actor sends (`lcrl-actor --batch`; default
+    /// its own). A batch's steps all wait for the learner together.
+    #[serde(default)]
+    pub actor_batch: Option<u64>,
     /// T of eq. 7 for the graph builder (default 0.1, the publication's).
     #[serde(default)]
     pub graph_threshold: Option<f64>,
@@ -269,6 +285,11 @@ impl Preset {
         if let Some(ratio) = &self.job.replay_ratio {
             args.extend(os(&["--replay-ratio", ratio]));
         }
+        for (flag, value) in [("--publish-every", self.job.publish_every), ("--replay-slack", self.job.replay_slack), ("--queued-batches", self.job.queued_batches)] {
+            if let Some(value) = value {
+                args.extend(os(&[flag, &value.to_string()]));
+            }
+        }
         args.extend([OsString::from("--config"), train_config.into(), OsString::from("--run-dir"), learner_dir.into()]);
         args
     }
@@ -278,6 +299,9 @@ impl Preset {
     pub fn actor_args(&self, learner: &str, run_id: &str, transport: &str, actor_id: Option<&str>, seed_offset: u64) -> Vec<OsString> {
         let mut args = os(&["--learner", learner, "--run-id", run_id, "--transport", transport]);
         args.extend(os(&["--envs", &self.job.envs_per_actor.to_string(), "--seed", &(self.train.run.seed + seed_offset).to_string()]));
+        if let Some(batch) = self.job.actor_batch {
+            args.extend(os(&["--batch", &batch.to_string()]));
+        }
         if let Some(id) = actor_id {
             args.extend(os(&["--actor-id", id]));
         }
@@ -367,7 +391,7 @@ mod tests {
     /// graph source; each actor its batch size, envs and its own seed.
     #[test]
     fn a_preset_becomes_each_processs_command_line() {
-        let p = preset("replay_ratio = \"unlimited\"\ngraph_threshold = 0.25\n");
+        let p = preset("replay_ratio = \"unlimited\"\ngraph_threshold = 0.25\npublish_every = 7\nreplay_slack = 48\nqueued_batches = 2\nactor_batch = 16\n");
         let graph = strings(&p.graph_builder_args("127.0.0.1:0", Path::new("/runs/x")));
         assert_eq!(value(&graph, "--env"), Some("lti-paper"));
         assert_eq!((value(&graph, "--samples"), value(&graph, "--seed"), value(&graph, "--threshold")), (Some("32"), Some("5"), Some("0.25")));
@@ -380,6 +404,9 @@ mod tests {
             ("--connection", "local"),
             ("--episodes", "40"),
             ("--replay-ratio", "unlimited"),
+            ("--publish-every", "7"),
+            ("--replay-slack", "48"),
+            ("--queued-batches", "2"),
             ("--run-id", "run-a"),
             ("--config", "/t.toml"),
             ("--run-dir", "/runs/x/learner"),
@@ -396,6 +423,7 @@ mod tests {
         let third = strings(&p.actor_args("http://l:2", "run-a", "shm", Some("actor-2"), 2));
         assert_eq!((value(&first, "--learner"), value(&first, "--transport"), value(&first, "--envs")), (Some("http://l:2"), Some("shm"), Some("2")));
         assert_eq!((value(&first, "--seed"), value(&third, "--seed")), (Some("5"), Some("7")), "actors explore with distinct seeds");
+        assert_eq!((value(&first, "--batch"), value(&third, "--batch")), (Some("16"), Some("16")));
         assert_eq!((value(&first, "--actor-id"), value(&third, "--actor-id")), (None, Some("actor-2")));
     }
 
@@ -408,7 +436,10 @@ mod tests {
         let graph = strings(&p.graph_builder_args("127.0.0.1:0", Path::new("/r")));
         assert_eq!(value(&graph, "--threshold"), None);
         let learner = strings(&p.learner_args("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), Some("http://g:1")).unwrap());
-        assert_eq!(value(&learner, "--replay-ratio"), None);
+        for flag in ["--replay-ratio", "--publish-every", "--replay-slack", "--queued-batches"] {
+            assert_eq!(value(&learner, flag), None, "{flag}");
+        }
+        assert_eq!(value(&strings(&p.actor_args("http://l:2", "r", "shm", None, 0)), "--batch"), None);
         let mut global = p.clone();
         global.job.connection = Connection::Global;
         let learner = strings(&global.learner_args("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), None).unwrap());

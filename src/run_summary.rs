@@ -62,10 +62,12 @@ fn service_figures(status: &LearnerStatus) -> ServiceFigures {
 /// here, its counters as the learner last reported them.
 fn interrupted_run_summary(preset: &Preset, learner_dir: &Path, status: &LearnerStatus) -> anyhow::Result<RunSummary> {
     let job = &preset.job;
-    let policy = Policy::load(learner_dir).with_context(|| format!("loading the policy from {}", learner_dir.display()))?;
-    let mut env = lcrl_sim::make_env(&job.env)?;
+    let snapshot = lcrl_learner::policy::policy_dir(learner_dir)
+        .and_then(|dir| lcrl_learner::snapshot::read_snapshot(&dir))
+        .with_context(|| format!("loading the policy from {}", learner_dir.display()))?;
+    let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
+    let env = lcrl_sim::make_env(&job.env)?;
     policy.check_env(env.as_ref())?;
-    let probe = env.fresh();
     let headroom = preset.headroom()?;
     let plan = EvaluationPlan {
         episodes: preset.train.run.eval_episodes,
@@ -73,7 +75,7 @@ fn interrupted_run_summary(preset: &Preset, learner_dir: &Path, status: &Learner
         local_mask: (job.connection == Connection::Local).then_some(policy.architecture.shape.mask.as_slice()),
         headroom: headroom.as_ref(),
     };
-    let evaluation = evaluate_hand_over(env.as_mut(), None, &mut |s: &[f64]| policy.act(probe.as_ref(), s), &plan)?;
+    let evaluation = evaluate_hand_over(env.as_ref(), None, &snapshot, &plan)?;
     Ok(RunSummary {
         env: job.env.clone(),
         algo: job.algo,

@@ -246,7 +246,7 @@ mod tests {
         let agent = lcrl_learner::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
         let shape = lcrl_learner::snapshot::ActorShape { env: "lti-paper".into(), algo, connection: Connection::Local, state_dim: 3, action_dim: 3, mask };
         let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: None };
-        let snapshot = lcrl_learner::service::runtime::snapshot(agent.as_ref(), &architecture, 7).unwrap();
+        let snapshot = lcrl_learner::snapshot::snapshot(agent.as_ref(), &architecture, 7).unwrap();
         Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap()
     }
 
@@ -323,7 +323,7 @@ mod tests {
             let agent = lcrl_learner::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, m, n).unwrap();
             let shape = lcrl_learner::snapshot::ActorShape { env: name.into(), algo, connection: Connection::Local, state_dim: m, action_dim: n, mask };
             let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: Some(base.clone()) };
-            let snapshot = lcrl_learner::service::runtime::snapshot(agent.as_ref(), &architecture, 1).unwrap();
+            let snapshot = lcrl_learner::snapshot::snapshot(agent.as_ref(), &architecture, 1).unwrap();
             let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap();
 
             // The actor: one environment, one episode, one batch.

@@ -15,7 +15,8 @@ use clap::Parser;
 use lcrl_proto::process::shutdown_signal;
 use lcrl_learner::config::{Algo, Connection, TrainConfig};
 use lcrl_learner::service::ingest::Ingest;
-use lcrl_learner::service::runtime::{run_training, snapshot, Schedule};
+use lcrl_learner::service::runtime::{run_training, Schedule};
+use lcrl_learner::snapshot::snapshot;
 use lcrl_learner::service::validator::Validator;
 use lcrl_learner::service::shared::Shared;
 use lcrl_learner::service::server::{LearnerService, PolicyService};
@@ -109,6 +110,12 @@ struct Args {
     /// transitions (Reverb's error buffer divided by SPI).
     #[arg(long, default_value_t = 256)]
     replay_slack: u64,
+    /// Batches that may wait in the learner's queue before actors' sends
+    /// block (over shared memory also in the subscriber's buffer, up to
+    /// 4). Every queued batch is policy lag: the actors step that much
+    /// further ahead of the policy they act with.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u64).range(1..=1024))]
+    queued_batches: u64,
     /// A headroom reference (`lcrl tune --headroom`'s JSON) to evaluate
     /// beside the handed-over policy in summary.json; `lcrl run` passes a
     /// preset's `job.headroom`.
@@ -241,7 +248,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     // Few batches in flight: every queued batch is policy lag (an actor a
     // whole queue ahead acts with a policy that many updates old), and the
     // rate limiter holds actors back through this queue.
-    let (commands, inbox) = mpsc::channel(8);
+    let (commands, inbox) = mpsc::channel(args.queued_batches as usize);
     if !(args.checkpoint_secs.is_finite() && args.checkpoint_secs > 0.0) {
         bail!("--checkpoint-secs must be a positive number of seconds");
     }
@@ -293,10 +300,11 @@ async fn run(args: Args) -> anyhow::Result<()> {
     // Same-host actors may stream over shared memory instead of gRPC.
     let shm_shared = shared.clone();
     let shm_commands = commands.clone();
+    let shm_buffer = args.queued_batches as usize;
     let shm = std::thread::Builder::new()
         .name("shm-ingest".into())
         .spawn(move || {
-            if let Err(e) = lcrl_learner::service::shm::run_subscriber(shm_shared, shm_commands) {
+            if let Err(e) = lcrl_learner::service::shm::run_subscriber(shm_shared, shm_commands, shm_buffer) {
                 tracing::warn!("shared-memory transport unavailable: {e}");
             }
         })

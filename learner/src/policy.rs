@@ -3,7 +3,9 @@
 
 use std::path::Path;
 
-use lcrl_sim::Env;
+use lcrl_proto::v1::PolicySnapshot;
+use lcrl_sim::evaluate::{evaluate_parallel_with, EpisodeRecord, Summary};
+use lcrl_sim::{Env, EnvError};
 use tch::nn;
 
 use crate::action::ActionMap;
@@ -39,14 +41,7 @@ impl Policy {
     /// directory, meaning the run's policy: the one validation selected
     /// (RUN/selected/) if the run has one, else its newest checkpoint.
     pub fn load(dir: &Path) -> Result<Self, LearnerError> {
-        let selected = crate::selection::selected_dir(dir);
-        let dir = if dir.join("checkpoint.json").is_file() {
-            dir.to_path_buf()
-        } else if selected.join("checkpoint.json").is_file() {
-            selected
-        } else {
-            latest_checkpoint(dir).ok_or_else(|| LearnerError::Checkpoint(format!("{} holds no checkpoint (checkpoint.json)", dir.display())))?
-        };
+        let dir = policy_dir(dir)?;
         let meta_path = dir.join("checkpoint.json");
         let weights_path = dir.join("actor.safetensors");
         let meta = std::fs::read_to_string(&meta_path).map_err(io(&meta_path))?;
@@ -146,4 +141,46 @@ impl Policy {
         self.action_map(env)?;
         Ok(())
     }
+}
+
+/// The folder of the policy `dir` means: `dir` itself when it is a
+/// `checkpoints/epNNNNNN` or `selected` folder; for a run directory the
+/// run's policy, the one validation selected (RUN/selected/) if the run has
+/// one, else its newest checkpoint.
+pub fn policy_dir(dir: &Path) -> Result<std::path::PathBuf, LearnerError> {
+    let selected = crate::selection::selected_dir(dir);
+    if dir.join("checkpoint.json").is_file() {
+        Ok(dir.to_path_buf())
+    } else if selected.join("checkpoint.json").is_file() {
+        Ok(selected)
+    } else {
+        latest_checkpoint(dir).ok_or_else(|| LearnerError::Checkpoint(format!("{} holds no checkpoint (checkpoint.json)", dir.display())))
+    }
+}
+
+/// Evaluates the deterministic policy of `snapshot` on `episodes` starts of
+/// `env` from seed `first`, the episodes spread over the current rayon
+/// pool. A libtorch network cannot be shared between threads, so every
+/// thread builds its own copy from the snapshot's bytes; the copies act
+/// alike, and the records are those of one thread (a test checks it).
+/// `on_episode` sees each finished episode (progress).
+pub fn evaluate_snapshot(
+    env: &dyn Env,
+    controller: &str,
+    snapshot: &PolicySnapshot,
+    episodes: usize,
+    first: u64,
+    on_episode: &(dyn Fn(&EpisodeRecord) + Sync),
+) -> Result<(Summary, Vec<EpisodeRecord>), LearnerError> {
+    // Checked once here: a bad snapshot fails with its own message, not
+    // as a copy that failed on some thread.
+    Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?.check_env(env)?;
+    let copy_error = |e: LearnerError| EnvError::Invalid { field: "policy".into(), message: e.to_string() };
+    let make = || {
+        let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).map_err(copy_error)?;
+        let actions = policy.action_map(env).map_err(copy_error)?;
+        let probe = env.fresh();
+        Ok(move |state: &[f64]| actions.to_env(&policy.act_normalized(&crate::agent::observe(probe.as_ref(), state))))
+    };
+    Ok(evaluate_parallel_with(env, controller, episodes, first, &make, on_episode)?)
 }

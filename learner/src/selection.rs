@@ -21,11 +21,11 @@
 
 use std::path::{Path, PathBuf};
 
-use lcrl_sim::evaluate::evaluate;
+use lcrl_proto::v1::PolicySnapshot;
 use lcrl_sim::Env;
 
-use crate::action::ActionMap;
-use crate::agent::{write_tensors, Agent};
+use crate::agent::Agent;
+use crate::policy::evaluate_snapshot;
 use crate::checkpoint::{write_folder, CheckpointMeta};
 use crate::run_files::write_atomically;
 use crate::config::RunConfig;
@@ -98,36 +98,28 @@ impl Selection {
 
     /// Validates the agent's current policy; if it beats every earlier one
     /// (strictly: a tie keeps the earlier), it becomes RUN/selected/.
-    pub fn validate(&mut self, env: &dyn Env, agent: &dyn Agent, actions: &ActionMap, run_dir: &Path, meta: &CheckpointMeta) -> Result<Validation, LearnerError> {
-        let write_actor = |staging: &Path| write_tensors(&staging.join("actor.safetensors"), &agent.actor_variables());
-        self.validate_policy(env, &|obs| agent.act(obs), actions, run_dir, meta, &write_actor).map(|(validation, _)| validation)
+    pub fn validate(&mut self, env: &dyn Env, agent: &dyn Agent, run_dir: &Path, meta: &CheckpointMeta) -> Result<Validation, LearnerError> {
+        let snapshot = crate::snapshot::snapshot(agent, &meta.architecture(), meta.policy_version)?;
+        self.validate_policy(env, &snapshot, run_dir, meta).map(|(validation, _)| validation)
     }
 
-    /// Validates a deterministic policy `act` (normalized observation to
-    /// u) as the policy after `meta.episode` episodes; if it beats every
-    /// earlier one, RUN/selected/ is replaced by `meta` and what
-    /// `write_actor` writes into the staging folder (actor.safetensors).
-    /// Returns the validation and whether it was selected.
-    pub fn validate_policy(
-        &mut self,
-        env: &dyn Env,
-        act: &dyn Fn(&[f32]) -> Vec<f32>,
-        actions: &ActionMap,
-        run_dir: &Path,
-        meta: &CheckpointMeta,
-        write_actor: &dyn Fn(&Path) -> Result<(), LearnerError>,
-    ) -> Result<(Validation, bool), LearnerError> {
+    /// Validates the deterministic policy of `snapshot` as the policy after
+    /// `meta.episode` episodes, its starts on every core of the current
+    /// rayon pool; if it beats every earlier one, RUN/selected/ is replaced
+    /// by `meta` and the snapshot's weights. Returns the validation and
+    /// whether it was selected.
+    pub fn validate_policy(&mut self, env: &dyn Env, snapshot: &PolicySnapshot, run_dir: &Path, meta: &CheckpointMeta) -> Result<(Validation, bool), LearnerError> {
         let _span = tracing::info_span!("validation", episode = meta.episode).entered();
-        let mut run_env = env.fresh();
-        let probe = env.fresh();
-        let mut policy = |s: &[f64]| actions.to_env(&act(&crate::agent::observe(probe.as_ref(), s)));
         let first = lcrl_sim::seeds::validation(self.run_seed, 0);
-        let (summary, _) = evaluate(run_env.as_mut(), "validation", self.starts, first, &mut policy, &mut |_| {})?;
+        let (summary, _) = evaluate_snapshot(env, "validation", snapshot, self.starts, first, &|_| {})?;
         let validation = Validation { episode: meta.episode, mean_return: summary.mean_return, success_rate: summary.success_rate };
         let better = self.best().is_none_or(|best| validation.mean_return > best.mean_return);
         self.history.push(validation);
         if better {
-            write_folder(&selected_dir(run_dir), meta, write_actor)?;
+            write_folder(&selected_dir(run_dir), meta, |staging| {
+                let path = staging.join("actor.safetensors");
+                std::fs::write(&path, &snapshot.weights).map_err(|source| LearnerError::Io { path, source })
+            })?;
         }
         self.write_record(run_dir)?;
         tracing::info!(episode = validation.episode, mean_return = validation.mean_return, selected = better, "validated");

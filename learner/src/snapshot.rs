@@ -1,9 +1,14 @@
 //! A policy as it travels between processes: the actor's architecture
 //! (JSON) and its weights (safetensors bytes, in memory).
 
+use std::path::Path;
+
 use serde::{Deserialize, Serialize};
 use tch::Tensor;
 
+use lcrl_proto::v1::PolicySnapshot;
+
+use crate::agent::Agent;
 use crate::config::{Algo, Connection, NetworkConfig};
 use crate::LearnerError;
 
@@ -112,6 +117,25 @@ pub fn decode_weights(bytes: &[u8]) -> Result<Vec<(String, Tensor)>, LearnerErro
             Tensor::try_from(view).map(|t| (name.clone(), t)).map_err(|e| LearnerError::Checkpoint(format!("weights {name}: {e}")))
         })
         .collect()
+}
+
+/// Encodes the agent's actor as policy version `version`: what actors,
+/// validation and the hand-over evaluation build their copies from.
+pub fn snapshot(agent: &dyn Agent, architecture: &Architecture, version: u64) -> Result<PolicySnapshot, LearnerError> {
+    let weights = encode_weights(&agent.actor_variables())?;
+    let architecture = serde_json::to_string(architecture).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    Ok(PolicySnapshot { version, weights, architecture, explore_uniform: false, exploration_noise: 0.0 })
+}
+
+/// The snapshot of a `checkpoints/epNNNNNN` or `selected` folder (its
+/// checkpoint.json and actor.safetensors), as version
+/// `policy_version` of its metadata.
+pub fn read_snapshot(dir: &Path) -> Result<PolicySnapshot, LearnerError> {
+    let meta = crate::checkpoint::read_meta(dir)?;
+    let path = dir.join("actor.safetensors");
+    let weights = std::fs::read(&path).map_err(|source| LearnerError::Io { path, source })?;
+    let architecture = serde_json::to_string(&meta.architecture()).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    Ok(PolicySnapshot { version: meta.policy_version, weights, architecture, explore_uniform: false, exploration_noise: 0.0 })
 }
 
 #[cfg(test)]

@@ -6,12 +6,14 @@
 
 use std::path::Path;
 
-use lcrl_sim::evaluate::{evaluate, references, Summary, ZERO_ACTION};
+use lcrl_proto::v1::PolicySnapshot;
+use lcrl_sim::evaluate::{references, Summary, ZERO_ACTION};
 use lcrl_sim::tune::feedback::StoredPolicy;
 use lcrl_sim::Env;
 use serde::{Deserialize, Serialize};
 
 use crate::config::{Algo, Connection};
+use crate::policy::evaluate_snapshot;
 use crate::run_files::{write_atomically, SelectionRecord};
 use crate::LearnerError;
 
@@ -141,17 +143,15 @@ pub struct EvaluationPlan<'a> {
     pub headroom: Option<&'a StoredPolicy>,
 }
 
-/// A deterministic policy as a map from raw states to environment actions.
-pub type Controller<'a> = &'a mut dyn FnMut(&[f64]) -> Vec<f64>;
-
 /// Evaluates the handed-over policy: `selected` when validation chose a
 /// policy other than the last, else `last`; the last too when they differ;
-/// and the references, all on the same starts.
-pub fn evaluate_hand_over(env: &mut dyn Env, selected: Option<Controller>, last: Controller, plan: &EvaluationPlan) -> Result<Evaluation, LearnerError> {
+/// and the references, all on the same starts, every one's episodes on
+/// every core of the current rayon pool.
+pub fn evaluate_hand_over(env: &dyn Env, selected: Option<&PolicySnapshot>, last: &PolicySnapshot, plan: &EvaluationPlan) -> Result<Evaluation, LearnerError> {
     let (episodes, first) = (plan.episodes.max(1), plan.first_seed);
-    let (last_summary, _) = evaluate(env, "last policy", episodes, first, last, &mut |_| {})?;
+    let (last_summary, _) = evaluate_snapshot(env, "last policy", last, episodes, first, &|_| {})?;
     let (handed, last_eval_return) = match selected {
-        Some(policy) => (evaluate(env, "selected policy", episodes, first, policy, &mut |_| {})?.0, Some(last_summary.mean_return)),
+        Some(policy) => (evaluate_snapshot(env, "selected policy", policy, episodes, first, &|_| {})?.0, Some(last_summary.mean_return)),
         None => (last_summary, None),
     };
     let references = references(env, plan.headroom, episodes, first)?;

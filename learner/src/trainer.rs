@@ -18,7 +18,7 @@ use lcrl_sim::{make_env, Env};
 use crate::action::ActionMap;
 use crate::agent::observe;
 use crate::run_files::{read_rows, EpisodeRow, MetricsLog};
-use crate::summary::{evaluate_hand_over, write_summary, Controller, EvaluationPlan, RunSummary};
+use crate::summary::{evaluate_hand_over, write_summary, EvaluationPlan, RunSummary};
 use crate::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::run_start::{prepare, GraphSource, Prepared, RunStart};
 use crate::config::{Algo, Connection, TrainConfig};
@@ -117,7 +117,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     let mut selection = Selection::new(&cfg.run, &req.run_dir, checkpoint.is_some())?;
     if let Some(selection) = selection.as_mut().filter(|s| s.due(rows.len(), last_episode)) {
         let elapsed = prior_elapsed + started.elapsed().as_secs_f64();
-        selection.validate(env.as_ref(), agent.as_ref(), &actions, &req.run_dir, &meta_for(rows.len(), optimization, elapsed))?;
+        selection.validate(env.as_ref(), agent.as_ref(), &req.run_dir, &meta_for(rows.len(), optimization, elapsed))?;
     }
     for episode in rows.len()..last_episode {
         let episode_started = Instant::now();
@@ -180,30 +180,27 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         }
         if let Some(selection) = selection.as_mut().filter(|s| s.due(done, last_episode)) {
             let elapsed = prior_elapsed + started.elapsed().as_secs_f64();
-            selection.validate(env.as_ref(), agent.as_ref(), &actions, &req.run_dir, &meta_for(done, optimization, elapsed))?;
+            selection.validate(env.as_ref(), agent.as_ref(), &req.run_dir, &meta_for(done, optimization, elapsed))?;
         }
     }
     prior_opt = optimization;
 
     // The run's policy (the selected one, or the last) beside the
     // references, on the same starts (crate::summary, as the learner does).
-    let env_ref = env.fresh();
-    let mut last_policy = |s: &[f64]| actions.to_env(&agent.act(&observe(env_ref.as_ref(), s)));
     let chosen = selection.as_ref().and_then(Selection::record);
+    let last = crate::snapshot::snapshot(agent.as_ref(), &start.architecture(), 0)?;
     // The last validation chose the agent as it is: that is the last policy.
     let selected = match &chosen {
-        Some(c) if c.episode != rows.len() => Some(crate::policy::Policy::load(&crate::selection::selected_dir(&req.run_dir))?),
+        Some(c) if c.episode != rows.len() => Some(crate::snapshot::read_snapshot(&crate::selection::selected_dir(&req.run_dir))?),
         _ => None,
     };
-    let probe = env_ref.as_ref();
-    let mut selected_policy = selected.as_ref().map(|p| move |s: &[f64]| p.act(probe, s));
     let plan = EvaluationPlan {
         episodes: cfg.run.eval_episodes,
         first_seed: cfg.run.first_eval_seed(),
         local_mask: (req.connection == Connection::Local).then_some(mask.as_slice()),
         headroom: None,
     };
-    let evaluation = evaluate_hand_over(env.as_mut(), selected_policy.as_mut().map(|p| p as Controller), &mut last_policy, &plan)?;
+    let evaluation = evaluate_hand_over(env.as_ref(), selected.as_ref(), &last, &plan)?;
     let recent = &rows[rows.len().saturating_sub(10)..];
     let (actor_params, critic_params) = agent.param_counts();
     let counters = agent.counters();

@@ -136,14 +136,34 @@ pub fn evaluate_parallel(
     seed: u64,
     policy: &(dyn Fn(&[f64]) -> Vec<f64> + Sync),
 ) -> Result<(Summary, Vec<EpisodeRecord>), EnvError> {
+    evaluate_parallel_with(env, controller, episodes, seed, &|| Ok(|s: &[f64]| policy(s)), &|_| {})
+}
+
+/// [`evaluate_parallel`] for a policy that threads cannot share (a libtorch
+/// network is `Send` but not `Sync`): every worker thread builds its own
+/// copy with `make`, once per run of episodes rayon hands it. The copies
+/// must act alike (the same weights), and then the records are those of
+/// [`evaluate`] with one of them, whatever the number of threads.
+/// `on_episode` sees each finished episode, in the order they finish.
+pub fn evaluate_parallel_with<P: FnMut(&[f64]) -> Vec<f64>>(
+    env: &dyn Env,
+    controller: &str,
+    episodes: usize,
+    seed: u64,
+    make: &(dyn Fn() -> Result<P, EnvError> + Sync),
+    on_episode: &(dyn Fn(&EpisodeRecord) + Sync),
+) -> Result<(Summary, Vec<EpisodeRecord>), EnvError> {
     use rayon::prelude::*;
     let started = Instant::now();
     let records = (0..episodes)
         .into_par_iter()
-        .map(|k| {
-            let mut own = env.fresh();
-            run_episode(own.as_mut(), seed.wrapping_add(k as u64), &mut |s| policy(s), k == 0)
-        })
+        .map_init(
+            || make().map(|policy| (policy, env.fresh())),
+            |copy, k| match copy {
+                Ok((policy, own)) => run_episode(own.as_mut(), seed.wrapping_add(k as u64), policy, k == 0).inspect(on_episode),
+                Err(e) => Err(EnvError::Invalid { field: "policy".into(), message: format!("cannot copy the policy onto an evaluation thread: {e}") }),
+            },
+        )
         .collect::<Result<Vec<_>, _>>()?;
     let elapsed = started.elapsed().as_secs_f64();
     Ok((summarize(env.spec().name.clone(), controller, seed, &records, elapsed), records))

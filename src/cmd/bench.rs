@@ -68,6 +68,16 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 100)]
         episodes: usize,
     },
+    /// `lcrl tune`'s best-constant search on peg-group1 (a short one) on 1
+    /// thread against every core, and whether both found the same constant.
+    Tune {
+        /// Candidates CMA-ES evaluates.
+        #[arg(long, default_value_t = 60)]
+        evaluations: usize,
+        /// Tuning starts per candidate.
+        #[arg(long, default_value_t = 16)]
+        episodes: usize,
+    },
     /// The episodes `bench sim` counts instructions of, run under valgrind
     /// by `bench sim` itself.
     #[command(hide = true)]
@@ -83,6 +93,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
     match command {
         BenchCommand::Graph { samples, repeats } => bench_graph(samples, repeats.max(1)),
         BenchCommand::Sim { episodes } => crate::cmd::bench_sim::run(episodes.max(1)),
+        BenchCommand::Tune { evaluations, episodes } => crate::cmd::bench_sim::tune(evaluations.max(2), episodes.max(1)),
         BenchCommand::SimEpisodes { episodes, substeps } => crate::cmd::bench_sim::episodes(episodes, substeps),
         BenchCommand::Learner { updates, device, threads, python } => bench_learner(updates.max(1), &device, &threads, python.as_deref()),
         BenchCommand::Transport { seconds } => crate::cmd::bench_transport::run(seconds.max(1.0)),

@@ -6,7 +6,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use indicatif::{ProgressBar, ProgressStyle};
-use lcrl_sim::evaluate::{evaluate, EpisodeRecord, Summary};
+use lcrl_learner::policy::evaluate_snapshot;
+use lcrl_sim::evaluate::{evaluate_parallel_with, EpisodeRecord, Summary};
 use lcrl_sim::Env;
 
 use lcrl::plots::{line_panels, Panel};
@@ -54,12 +55,18 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
         bail!("--episodes must be at least 1");
     }
     let policy = args.checkpoint.as_deref().map(lcrl_learner::policy::Policy::load).transpose()?;
+    // What every evaluation thread builds its own copy of the network from.
+    let snapshot = args
+        .checkpoint
+        .as_deref()
+        .map(|dir| lcrl_learner::policy::policy_dir(dir).and_then(|dir| lcrl_learner::snapshot::read_snapshot(&dir)))
+        .transpose()?;
     let env_name = match (&args.env, &policy) {
         (Some(name), _) => name.clone(),
         (None, Some(policy)) => policy.architecture.shape.env.clone(),
         (None, None) => bail!("--env is required without --checkpoint"),
     };
-    let mut env = lcrl_sim::make_env(&env_name)?;
+    let env = lcrl_sim::make_env(&env_name)?;
     if let Some(policy) = &policy {
         policy.check_env(env.as_ref())?;
     }
@@ -80,27 +87,25 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
         }
         None => vec![0.0; n],
     };
-    // The policy normalizes states with the environment's scales; a snapshot
-    // serves that while `evaluate` steps the environment itself.
-    let scales = env.fresh();
-    let (label, mut act): (String, Box<dyn FnMut(&[f64]) -> Vec<f64>>) = match &policy {
-        Some(policy) => (
-            format!("{:?}/{:?} policy (episode {})", policy.architecture.shape.algo, policy.architecture.shape.connection, policy.episode.unwrap_or(0)).to_lowercase(),
-            Box::new(move |s: &[f64]| policy.act(scales.as_ref(), s)),
-        ),
-        None => {
-            let label = if args.action.is_some() { format!("constant a = {constant:?}") } else { "constant".to_string() };
-            (label, Box::new(move |_: &[f64]| constant.clone()))
-        }
+    let label = match &policy {
+        Some(policy) => format!("{:?}/{:?} policy (episode {})", policy.architecture.shape.algo, policy.architecture.shape.connection, policy.episode.unwrap_or(0)).to_lowercase(),
+        None if args.action.is_some() => format!("constant a = {constant:?}"),
+        None => "constant".to_string(),
     };
     let bar = ProgressBar::new(args.episodes as u64);
     if let Ok(style) = ProgressStyle::with_template("episodes [{bar:30}] {pos}/{len} {msg} ({elapsed})") {
         bar.set_style(style.progress_chars("=> "));
     }
-    let result = evaluate(env.as_mut(), &label, args.episodes, args.seed, &mut act, &mut |r| {
+    let on_episode = |r: &EpisodeRecord| {
         bar.set_message(format!("return {:.2}", r.episode_return));
         bar.inc(1);
-    });
+    };
+    // The episodes run on every core (RAYON_NUM_THREADS=1: one), with the
+    // records of one thread.
+    let result = match &snapshot {
+        Some(snapshot) => evaluate_snapshot(env.as_ref(), &label, snapshot, args.episodes, args.seed, &on_episode).map_err(anyhow::Error::from),
+        None => evaluate_parallel_with(env.as_ref(), &label, args.episodes, args.seed, &|| Ok(|_: &[f64]| constant.clone()), &on_episode).map_err(anyhow::Error::from),
+    };
     bar.finish_and_clear();
     let (summary, records) = result?;
     write_outputs(env.as_ref(), &summary, &records[0], &args.out)?;

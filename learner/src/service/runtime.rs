@@ -34,8 +34,8 @@ use crate::service::ingest::Accepted;
 use crate::selection::SelectionRecord;
 use crate::service::shared::{Command, Served, Shared};
 use crate::service::validator::Validator;
-use crate::snapshot::{encode_weights, Architecture};
-use crate::summary::{evaluate_hand_over, Controller, EvaluationPlan, PolicyLag, RunSummary, ServiceFigures};
+use crate::snapshot::snapshot;
+use crate::summary::{evaluate_hand_over, EvaluationPlan, PolicyLag, RunSummary, ServiceFigures};
 use crate::LearnerError;
 
 /// How often the training thread publishes and checkpoints.
@@ -74,13 +74,6 @@ pub struct Schedule {
 /// Batches stored per loop turn before training gets its turn: with fast
 /// actors the queue is never empty, and training must not starve.
 const BATCHES_PER_TURN: usize = 8;
-
-/// Encodes the agent's actor as the next policy version.
-pub fn snapshot(agent: &dyn Agent, architecture: &Architecture, version: u64) -> Result<PolicySnapshot, LearnerError> {
-    let weights = encode_weights(&agent.actor_variables())?;
-    let architecture = serde_json::to_string(architecture).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    Ok(PolicySnapshot { version, weights, architecture, explore_uniform: false, exploration_noise: 0.0 })
-}
 
 /// Runs the training loop until told to stop, every sender is gone or the
 /// budget is reached; a checkpoint is written on the way out.
@@ -455,25 +448,18 @@ impl TrainingLoop {
     fn write_summary(&self, served: &PolicySnapshot, selection: Option<SelectionRecord>) -> Result<(), LearnerError> {
         let meta = &self.schedule.meta;
         let config = &meta.config;
-        let mut env = lcrl_sim::make_env(&meta.shape.env)?;
-        let probe = env.fresh();
+        let env = lcrl_sim::make_env(&meta.shape.env)?;
         // The last policy is the agent as training left it (the final
         // checkpoint's); the served one is evaluated apart when it differs.
-        let last_snapshot = snapshot(self.agent.as_ref(), &self.shared.architecture, self.shared.policy_version())?;
-        let last = crate::policy::Policy::from_snapshot(&last_snapshot.architecture, &last_snapshot.weights, last_snapshot.version)?;
-        let chosen = (served.weights != last_snapshot.weights)
-            .then(|| crate::policy::Policy::from_snapshot(&served.architecture, &served.weights, served.version))
-            .transpose()?;
-        let mut last_policy = |s: &[f64]| last.act(probe.as_ref(), s);
-        let probe_ref = probe.as_ref();
-        let mut chosen_policy = chosen.as_ref().map(|p| move |s: &[f64]| p.act(probe_ref, s));
+        let last = snapshot(self.agent.as_ref(), &self.shared.architecture, self.shared.policy_version())?;
+        let chosen = (served.weights != last.weights).then_some(served);
         let plan = EvaluationPlan {
             episodes: config.run.eval_episodes,
             first_seed: config.run.first_eval_seed(),
             local_mask: (meta.shape.connection == crate::config::Connection::Local).then_some(meta.shape.mask.as_slice()),
             headroom: self.schedule.headroom.as_ref(),
         };
-        let evaluation = evaluate_hand_over(env.as_mut(), chosen_policy.as_mut().map(|p| p as Controller), &mut last_policy, &plan)?;
+        let evaluation = evaluate_hand_over(env.as_ref(), chosen, &last, &plan)?;
         let flow = self.shared.flow();
         let (min, mean, max) = flow.lag.stats();
         let counters = self.agent.counters();

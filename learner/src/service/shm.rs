@@ -197,6 +197,9 @@ pub fn services_of(run_id: &str) -> Vec<String> {
     names
 }
 
+/// Most transition samples the learner's subscriber may hold.
+pub const SUBSCRIBER_MAX_BUFFER: usize = 4;
+
 type Service = iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, TransitionSample, ()>;
 
 fn open_service(node: &Node<ipc::Service>, run_id: &str) -> Result<Service, String> {
@@ -204,9 +207,10 @@ fn open_service(node: &Node<ipc::Service>, run_id: &str) -> Result<Service, Stri
     node.service_builder(&name)
         .publish_subscribe::<TransitionSample>()
         .enable_safe_overflow(false)
-        // A few batches of slack: every batch buffered here is policy lag,
-        // and the replay-ratio limiter holds actors back through it.
-        .subscriber_max_buffer_size(4)
+        // A few batches of slack at most: every batch buffered here is
+        // policy lag, and the replay-ratio limiter holds actors back
+        // through it.
+        .subscriber_max_buffer_size(SUBSCRIBER_MAX_BUFFER)
         .max_publishers(64)
         .open_or_create()
         .map_err(|e| format!("cannot open the shared-memory service {}: {e:?}", service_name(run_id)))
@@ -241,14 +245,20 @@ impl ShmPublisher {
 
 /// The learner's end, on its own thread: receives samples, checks them like
 /// gRPC batches and hands them to the training thread, until shutdown.
-pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>) -> Result<(), String> {
+/// `buffer`: samples that may wait in shared memory (1 to
+/// [`SUBSCRIBER_MAX_BUFFER`]); each is policy lag.
+pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>, buffer: usize) -> Result<(), String> {
     let cleaned = remove_dead_nodes();
     if cleaned > 0 {
         tracing::info!(cleaned, "removed shared-memory resources of crashed processes");
     }
     let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
     let service = open_service(&node, &shared.run_id)?;
-    let subscriber = service.subscriber_builder().create().map_err(|e| format!("iceoryx2 subscriber: {e:?}"))?;
+    let subscriber = service
+        .subscriber_builder()
+        .buffer_size(buffer.clamp(1, SUBSCRIBER_MAX_BUFFER))
+        .create()
+        .map_err(|e| format!("iceoryx2 subscriber: {e:?}"))?;
     tracing::info!(service = %service_name(&shared.run_id), "shared-memory transport ready");
     let stop = shared.shutdown.subscribe();
     // Poll fast while data flows, back off to 2 ms when idle, so an idle

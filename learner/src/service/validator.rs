@@ -19,8 +19,7 @@ use std::thread::JoinHandle;
 use lcrl_proto::v1::PolicySnapshot;
 use lcrl_sim::Env;
 
-use crate::checkpoint::{read_meta, CheckpointMeta};
-use crate::policy::Policy;
+use crate::checkpoint::CheckpointMeta;
 use crate::selection::{selected_dir, validation_due, Selection, SelectionRecord};
 use crate::LearnerError;
 
@@ -101,15 +100,15 @@ impl Validator {
 }
 
 fn validate_jobs(mut selection: Selection, env: Box<dyn Env>, run_dir: &Path, inbox: &mpsc::Receiver<Job>, chosen: &Mutex<Chosen>) -> Result<(), LearnerError> {
+    // One thread: validation runs beside training and the actors, and
+    // must not take their cores (`lcrl train` pauses for it and validates
+    // on every core instead).
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .map_err(|e| LearnerError::Config(format!("cannot start the validation thread pool: {e}")))?;
     for job in inbox {
-        let policy = Policy::from_snapshot(&job.snapshot.architecture, &job.snapshot.weights, job.snapshot.version)?;
-        let actions = policy.action_map(env.as_ref())?;
-        let weights = &job.snapshot.weights;
-        let write_actor = |staging: &Path| {
-            let path = staging.join("actor.safetensors");
-            std::fs::write(&path, weights).map_err(|source| LearnerError::Io { path, source })
-        };
-        let (_, selected) = selection.validate_policy(env.as_ref(), &|obs| policy.act_normalized(obs), &actions, run_dir, &job.meta, &write_actor)?;
+        let (_, selected) = pool.install(|| selection.validate_policy(env.as_ref(), &job.snapshot, run_dir, &job.meta))?;
         let mut chosen = chosen.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
         chosen.record = selection.record();
         if selected {
@@ -126,11 +125,7 @@ fn read_selected(run_dir: &Path) -> Result<Option<PolicySnapshot>, LearnerError>
     if !dir.join("checkpoint.json").is_file() {
         return Ok(None);
     }
-    let meta = read_meta(&dir)?;
-    let path = dir.join("actor.safetensors");
-    let weights = std::fs::read(&path).map_err(|source| LearnerError::Io { path, source })?;
-    let architecture = serde_json::to_string(&meta.architecture()).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    Ok(Some(PolicySnapshot { version: meta.policy_version, weights, architecture, explore_uniform: false, exploration_noise: 0.0 }))
+    crate::snapshot::read_snapshot(&dir).map(Some)
 }
 
 #[cfg(test)]
@@ -146,7 +141,8 @@ mod tests {
     use crate::selection::read_record;
     use crate::config::{Algo, Connection, TrainConfig};
     use crate::service::ingest::{Accepted, AgentTransition, Ingest};
-    use crate::service::runtime::{run_training, snapshot, Schedule};
+    use crate::service::runtime::{run_training, Schedule};
+    use crate::snapshot::snapshot;
     use crate::service::shared::{Command, Shared};
 
     /// The same 60 batches (2 episodes of 10 steps each) through the

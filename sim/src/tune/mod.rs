@@ -21,7 +21,7 @@ use cmaes::{CMAESOptions, DVector};
 use serde::Serialize;
 
 use crate::env::{Env, EnvError, EnvSpec};
-use crate::evaluate::{evaluate, run_episode, Summary};
+use crate::evaluate::{evaluate_parallel, run_episode, Summary};
 
 /// How the search runs.
 #[derive(Debug, Clone, PartialEq)]
@@ -115,22 +115,22 @@ pub fn u_of(spec: &EnvSpec, action: &[f64]) -> Vec<f64> {
         .collect()
 }
 
-/// Mean return of a constant action over `episodes` starts from `seed`.
+/// Mean return of a constant action over `episodes` starts from `seed`,
+/// the episodes on the current rayon pool (the sum is taken in episode
+/// order, so the mean does not depend on the thread count).
 pub fn constant_return(template: &dyn Env, action: &[f64], episodes: usize, seed: u64) -> Result<f64, EnvError> {
+    use rayon::prelude::*;
     template.spec().check_action(action)?;
-    let mut env = template.fresh();
-    let mut total = 0.0;
-    for k in 0..episodes {
-        let record = run_episode(env.as_mut(), seed.wrapping_add(k as u64), &mut |_| action.to_vec(), false)?;
-        total += record.episode_return;
-    }
-    Ok(total / episodes as f64)
+    let returns = (0..episodes)
+        .into_par_iter()
+        .map_init(|| template.fresh(), |env, k| run_episode(env.as_mut(), seed.wrapping_add(k as u64), &mut |_| action.to_vec(), false).map(|r| r.episode_return))
+        .collect::<Result<Vec<f64>, EnvError>>()?;
+    Ok(returns.iter().sum::<f64>() / episodes as f64)
 }
 
 fn evaluate_constant(template: &dyn Env, action: &[f64], tuning_return: f64, opts: &TuneOptions) -> Result<ConstantResult, EnvError> {
-    let mut env = template.fresh();
     let label = format!("constant {action:?}");
-    let (eval, _) = evaluate(env.as_mut(), &label, opts.eval_episodes, opts.eval_seed, &mut |_| action.to_vec(), &mut |_| {})?;
+    let (eval, _) = evaluate_parallel(template, &label, opts.eval_episodes, opts.eval_seed, &|_| action.to_vec())?;
     Ok(ConstantResult { action: action.to_vec(), tuning_return, eval })
 }
 
@@ -249,6 +249,32 @@ mod tests {
     /// s_0 = 1, cost s_t² + 0.1 a² for t = 0, 1, 2. The return
     /// −[1 + (1+a)² + (1+2a)²] − 0.3 a² is a concave quadratic with its
     /// maximum at a = −6/10.6; the search must find it to 0.02.
+    /// The search and its evaluations run on every core of the pool; the
+    /// report (but for its timing) is that of one thread.
+    #[test]
+    fn tune_does_not_depend_on_thread_count() {
+        // Starts in [0.5, 1.5]: a constant push towards 0 beats a = 0.
+        let mut cfg = LtiConfig::from_matrices(vec![vec![1.0, 0.0], vec![0.0, 1.0]], vec![vec![1.0, 0.0], vec![0.0, 1.0]]);
+        cfg.initial_state_low = Some(vec![0.5, 0.5]);
+        cfg.initial_state_high = Some(vec![1.5, 1.5]);
+        cfg.episode_steps = 3;
+        let env = LtiEnv::new("two", &cfg).unwrap();
+        let opts = TuneOptions { episodes: 6, evaluations: 40, eval_episodes: 10, ..TuneOptions::default() };
+        let report = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let mut report = pool.install(|| tune(&env, &opts, &|_| {})).unwrap();
+            report.elapsed_s = 0.0;
+            for result in [&mut report.best, &mut report.zero_action] {
+                result.eval.elapsed_s = 0.0;
+                result.eval.control_steps_per_sec = 0.0;
+            }
+            (serde_json::to_string(&report).unwrap(), report.action)
+        };
+        let (one, action) = report(1);
+        assert_eq!(one, report(3).0);
+        assert_ne!(action, [0.0, 0.0], "the search found nothing: {one}");
+    }
+
     #[test]
     fn finds_the_known_best_constant_of_a_linear_system() {
         let mut cfg = LtiConfig::from_matrices(vec![vec![1.0]], vec![vec![1.0]]);
