@@ -46,8 +46,10 @@ struct Args {
     /// This actor's name (default: host name and process id).
     #[arg(long)]
     actor_id: Option<String>,
-    /// Transitions per batch.
-    #[arg(long, default_value_t = 64)]
+    /// Transitions per batch. A batch's steps all wait for the learner
+    /// together, so a smaller batch is less policy lag (docs/scaling.md,
+    /// "Policy lag").
+    #[arg(long, default_value_t = 16)]
     batch: usize,
     /// Exploration noise std in normalized action units (DDPG; PPO uses the
     /// policy's own std).

@@ -76,8 +76,11 @@ struct Args {
     /// How long to wait for the graph builder, seconds.
     #[arg(long, default_value_t = 300)]
     graph_timeout: u64,
-    /// DDPG: publish a new policy version every this many updates.
-    #[arg(long, default_value_t = 100)]
+    /// DDPG: publish a new policy version every this many updates. Every
+    /// update between two versions is policy lag for the actors, and lag
+    /// is what kept the distributed DDPG behind `lcrl train`
+    /// (docs/scaling.md, "Policy lag"): 10 holds it near 40 updates.
+    #[arg(long, default_value_t = 10)]
     publish_every: u64,
     /// PPO: discard batches more than this many versions older than the
     /// newest. 0 (default): strictly on-policy, as `lcrl train`'s PPO; the
@@ -107,14 +110,17 @@ struct Args {
     #[arg(long, value_name = "SPI|unlimited")]
     replay_ratio: Option<String>,
     /// Slack of the replay-ratio limiter around its target, in inserted
-    /// transitions (Reverb's error buffer divided by SPI).
-    #[arg(long, default_value_t = 256)]
+    /// transitions (Reverb's error buffer divided by SPI). How far the
+    /// actors may run ahead of the updates, so policy lag; the learner
+    /// refuses a slack below half a shared-memory batch (33 at Algorithm
+    /// 2's ratio), where inserts could stall.
+    #[arg(long, default_value_t = 40)]
     replay_slack: u64,
     /// Batches that may wait in the learner's queue before actors' sends
     /// block (over shared memory also in the subscriber's buffer, up to
     /// 4). Every queued batch is policy lag: the actors step that much
     /// further ahead of the policy they act with.
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u64).range(1..=1024))]
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=1024))]
     queued_batches: u64,
     /// A headroom reference (`lcrl tune --headroom`'s JSON) to evaluate
     /// beside the handed-over policy in summary.json; `lcrl run` passes a
