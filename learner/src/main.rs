@@ -15,7 +15,7 @@ use clap::Parser;
 use lcrl_proto::process::shutdown_signal;
 use lcrl_learner::config::{Algo, Connection, TrainConfig};
 use lcrl_learner::service::ingest::Ingest;
-use lcrl_learner::service::runtime::{run_training, Schedule};
+use lcrl_learner::service::runtime::{Schedule, TrainingLoop};
 use lcrl_learner::snapshot::snapshot;
 use lcrl_learner::service::validator::Validator;
 use lcrl_learner::service::shared::Shared;
@@ -287,14 +287,17 @@ async fn run(args: Args) -> anyhow::Result<()> {
         validator,
         headroom,
     };
-    let trainer_shared = shared.clone();
+    // Built here, before any server starts: it hands the limiter's
+    // restored counters and the budget to the flow statistics, which
+    // GetStatus reads from the first request on.
+    let training = TrainingLoop::new(agent, inbox, shared.clone(), schedule);
     // A failed training thread stops the server too: a learner that cannot
     // learn should exit with the error, not keep accepting transitions.
     let (trainer_failed, mut trainer_failure) = tokio::sync::oneshot::channel::<String>();
     let trainer = std::thread::Builder::new()
         .name("training".into())
         .spawn(move || {
-            let result = run_training(agent, inbox, trainer_shared, schedule);
+            let result = training.run();
             if let Err(e) = &result {
                 tracing::error!("training stopped: {e}");
                 let _ = trainer_failed.send(e.to_string());

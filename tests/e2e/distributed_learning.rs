@@ -121,13 +121,14 @@ async fn a_restarted_learner_keeps_the_replay_ratio() {
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
     let port = free_port();
-    // SMALL: warm-up 100, batch 32, so SPI 32, min size 100; slack 256.
-    let (first, url) = learner_with_args(&run, "rk", port, "ddpg", &[]);
+    // SMALL: warm-up 100, batch 32, so SPI 32, min size 100; slack 40.
+    let slack = ["--replay-slack", "40"];
+    let (first, url) = learner_with_args(&run, "rk", port, "ddpg", &slack);
     let _actor = actor_with_args(&url, "rk", &["--transport", "grpc"]);
     let within = |s: &lcrl_proto::v1::LearnerStatus| {
         let expected = 32.0 * (s.inserted as f64 - 100.0).max(0.0);
-        // The window (error buffer 256 × 32) plus one sample in flight.
-        (s.sampled as f64 - expected).abs() <= 256.0 * 32.0 + 32.0
+        // The window (error buffer 40 × 32) plus one sample in flight.
+        (s.sampled as f64 - expected).abs() <= 40.0 * 32.0 + 32.0
     };
     let before = wait_for(&url, "training", |s| s.updates > 300).await;
     assert!(within(&before), "{before:?}");
@@ -145,7 +146,7 @@ async fn a_restarted_learner_keeps_the_replay_ratio() {
     };
     first.signal("KILL");
     drop(first);
-    let (_second, url) = learner_with_args(&run, "rk", port, "ddpg", &[]);
+    let (_second, url) = learner_with_args(&run, "rk", port, "ddpg", &slack);
     let resumed = status(&url).await.unwrap();
     assert!(resumed.inserted >= saved.inserts && resumed.sampled >= saved.samples, "counters restored: {resumed:?} vs {saved:?}");
     assert!(within(&resumed), "{resumed:?}");
