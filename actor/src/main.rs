@@ -46,11 +46,12 @@ struct Args {
     /// This actor's name (default: host name and process id).
     #[arg(long)]
     actor_id: Option<String>,
-    /// Transitions per batch. A batch's steps all wait for the learner
-    /// together, so a smaller batch is less policy lag (docs/scaling.md,
-    /// "Policy lag").
-    #[arg(long, default_value_t = 16)]
-    batch: usize,
+    /// Transitions per batch. Default: 16 for DDPG (a batch's steps all
+    /// wait for the learner together, so a smaller batch is less policy
+    /// lag), 64 for PPO (each batch end cuts PPO's advantage estimates);
+    /// docs/scaling.md, "Policy lag".
+    #[arg(long)]
+    batch: Option<usize>,
     /// Exploration noise std in normalized action units (DDPG; PPO uses the
     /// policy's own std).
     #[arg(long, default_value_t = 0.1)]
@@ -83,10 +84,10 @@ fn main() -> std::process::ExitCode {
 }
 
 async fn run(args: Args) -> anyhow::Result<()> {
-    if args.envs == 0 || args.batch == 0 {
+    if args.envs == 0 || args.batch == Some(0) {
         bail!("--envs and --batch must be at least 1");
     }
-    if matches!(args.transport, Transport::Shm) && args.batch > lcrl_learner::service::shm::MAX_TRANSITIONS {
+    if matches!(args.transport, Transport::Shm) && args.batch.is_some_and(|b| b > lcrl_learner::service::shm::MAX_TRANSITIONS) {
         bail!("--transport shm carries at most {} transitions per batch; lower --batch", lcrl_learner::service::shm::MAX_TRANSITIONS);
     }
     let deadline = Duration::from_secs(args.connect_deadline);

@@ -27,13 +27,25 @@ impl Exploration {
     }
 }
 
+/// DDPG's default batch: a batch's steps all wait for the learner
+/// together, so its size is policy lag (docs/scaling.md, "Policy lag").
+pub const DDPG_BATCH: usize = 16;
+
+/// PPO's default batch, the largest a shared-memory sample carries: every
+/// batch end cuts each environment's stream, and there PPO's advantage
+/// estimate (GAE) bootstraps from the value instead of running on, so small
+/// batches bias PPO (docs/scaling.md, "Policy lag"). PPO discards stale
+/// data anyway (`--max-staleness`), so a larger batch costs it no lag.
+pub const PPO_BATCH: usize = 64;
+
 /// What a rollout is asked to do.
 #[derive(Debug, Clone)]
 pub struct RolloutSettings {
     /// K, environment instances.
     pub envs: usize,
-    /// Transitions per batch.
-    pub batch: usize,
+    /// Transitions per batch (None: [`DDPG_BATCH`] or [`PPO_BATCH`], by
+    /// the policy's algorithm).
+    pub batch: Option<usize>,
     /// Exploration noise std where the learner sets none (DDPG).
     pub noise: f64,
     pub seed: u64,
@@ -83,6 +95,8 @@ pub struct Rollout {
     std: Vec<f64>,
     /// PPO samples its own Gaussian; the learner's uniform warm-up is DDPG's.
     own_distribution: bool,
+    /// Transitions per batch.
+    batch: usize,
     rng: ChaCha8Rng,
     episode_seed: u64,
     states: Vec<Vec<f64>>,
@@ -100,7 +114,7 @@ pub struct Rollout {
 impl Rollout {
     /// K fresh environments of the policy's environment, reset.
     pub fn new(settings: RolloutSettings, policy: &Policy, explore: Exploration) -> anyhow::Result<Self> {
-        if settings.envs == 0 || settings.batch == 0 {
+        if settings.envs == 0 || settings.batch == Some(0) {
             anyhow::bail!("a rollout needs at least one environment and one transition per batch");
         }
         let name = &policy.architecture.shape.env;
@@ -117,10 +131,13 @@ impl Rollout {
             })
             .collect::<Result<_, _>>()?;
         let k = settings.envs;
+        let own_distribution = policy.exploration_std().is_some();
+        let batch = settings.batch.unwrap_or(if own_distribution { PPO_BATCH } else { DDPG_BATCH });
         Ok(Rollout {
+            batch,
             rng: ChaCha8Rng::seed_from_u64(settings.seed ^ salt),
             std: exploration_std(policy, explore, settings.noise),
-            own_distribution: policy.exploration_std().is_some(),
+            own_distribution,
             explore,
             action_map,
             envs,
@@ -211,7 +228,7 @@ impl Rollout {
             }
         }
         let collected: usize = self.segments.iter().map(Vec::len).sum();
-        if collected < self.settings.batch && !(self.finished() && collected > 0) {
+        if collected < self.batch && !(self.finished() && collected > 0) {
             return Ok(None);
         }
         let mut batch = TransitionBatch { run_id: self.settings.run_id.clone(), actor_id: self.settings.actor_id.clone(), ..Default::default() };
@@ -251,7 +268,28 @@ mod tests {
     }
 
     fn settings(episodes: u64) -> RolloutSettings {
-        RolloutSettings { envs: 3, batch: 50, noise: 0.1, seed: 4, episodes: Some(episodes), run_id: "r".into(), actor_id: "a".into() }
+        RolloutSettings { envs: 3, batch: Some(50), noise: 0.1, seed: 4, episodes: Some(episodes), run_id: "r".into(), actor_id: "a".into() }
+    }
+
+    /// Without `--batch`, DDPG sends short batches (policy lag) and PPO
+    /// long ones (fewer cuts in its advantage estimates).
+    #[test]
+    fn the_default_batch_follows_the_algorithm() {
+        for (algo, expected) in [(Algo::Ddpg, DDPG_BATCH), (Algo::Ppo, PPO_BATCH)] {
+            let policy = policy(algo);
+            let settings = RolloutSettings { batch: None, episodes: Some(20), ..settings(20) };
+            let mut rollout = Rollout::new(settings, &policy, Exploration { uniform: false, noise: 0.0 }).unwrap();
+            let metrics = ActorMetrics::default();
+            let first = loop {
+                if let Some(batch) = rollout.step(&policy, &metrics).unwrap() {
+                    break batch;
+                }
+            };
+            // Three environments step together: a batch closes at the
+            // first whole round at or past the size.
+            assert_eq!(first.transitions.len(), expected.div_ceil(3) * 3, "{algo:?}");
+        }
+        assert!(DDPG_BATCH < PPO_BATCH && PPO_BATCH <= lcrl_learner::service::shm::MAX_TRANSITIONS);
     }
 
     fn run(algo: Algo, episodes: u64) -> Vec<TransitionBatch> {
@@ -327,7 +365,7 @@ mod tests {
             let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap();
 
             // The actor: one environment, one episode, one batch.
-            let settings = RolloutSettings { envs: 1, batch: 100_000, noise: 0.3, seed: 5, episodes: Some(1), run_id: "r".into(), actor_id: "a".into() };
+            let settings = RolloutSettings { envs: 1, batch: Some(100_000), noise: 0.3, seed: 5, episodes: Some(1), run_id: "r".into(), actor_id: "a".into() };
             let first_seed = settings.seed_before_first_episode() + 1;
             let mut rollout = Rollout::new(settings, &policy, Exploration { uniform: false, noise: 0.3 }).unwrap();
             let metrics = ActorMetrics::default();

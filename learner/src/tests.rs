@@ -166,36 +166,42 @@ fn resumed_run_continues_exactly() {
 /// The evaluation of a trained policy on every core (each thread with its
 /// own copy of the network, built from the snapshot's bytes) gives the
 /// records of one thread, and those of the agent itself stepping the
-/// episodes in order: on the real peg simulator, with a base controller.
+/// episodes in order: on the real peg simulator, with a base controller,
+/// for the global actor and for LCRL's local one (a sparse graph).
 #[test]
 fn parallel_policy_evaluation_equals_one_thread() {
     let env = make_env("peg-group1").unwrap();
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
     let mut cfg = tiny();
     cfg.base.action = crate::config::BaseController::Action(vec![1.0; n]);
-    let mask = vec![vec![1; m]; n];
-    let mut agent = make_agent(Algo::Ddpg, Connection::Global, &cfg, &mask, m, n).unwrap();
-    // Some training so the weights are not the initial ones.
-    let obs = vec![0.1f32; m];
-    for k in 0..80 {
-        let u = agent.explore(&obs, k);
-        agent.observe(crate::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &obs, terminated: false, truncated: k % 40 == 39, log_prob: None });
+    for connection in [Connection::Global, Connection::Local] {
+        let mask: Vec<Vec<u8>> = match connection {
+            Connection::Global => vec![vec![1; m]; n],
+            _ => (0..n).map(|i| (0..m).map(|j| u8::from(j % n == i || j == 0)).collect()).collect(),
+        };
+        let mut agent = make_agent(Algo::Ddpg, connection, &cfg, &mask, m, n).unwrap();
+        // Some training so the weights are not the initial ones.
+        let obs = vec![0.1f32; m];
+        for k in 0..80 {
+            let u = agent.explore(&obs, k);
+            agent.observe(crate::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &obs, terminated: false, truncated: k % 40 == 39, log_prob: None });
+        }
+        let meta = CheckpointMeta::start("peg-group1", Algo::Ddpg, connection, m, n, mask, cfg.clone());
+        let snapshot = crate::snapshot::snapshot(agent.as_ref(), &meta.architecture(), 0).unwrap();
+        let actions = crate::action::ActionMap::new(env.spec(), meta.architecture().base.as_deref()).unwrap();
+        let (episodes, first) = (6, 40);
+        let mut stepped = env.fresh();
+        let probe = env.fresh();
+        let mut own = |s: &[f64]| actions.to_env(&agent.act(&crate::agent::observe(probe.as_ref(), s)));
+        let (_, in_order) = lcrl_sim::evaluate::evaluate(stepped.as_mut(), "policy", episodes, first, &mut own, &mut |_| {}).unwrap();
+        for threads in [1, 3] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let (summary, records) = pool.install(|| crate::policy::evaluate_snapshot(env.as_ref(), "policy", &snapshot, episodes, first, &|_| {})).unwrap();
+            assert_eq!(records, in_order, "{connection:?}, {threads} threads");
+            assert_eq!(summary.mean_return, in_order.iter().map(|r| r.episode_return).sum::<f64>() / episodes as f64);
+        }
+        assert!(in_order.windows(2).any(|w| w[0].episode_return != w[1].episode_return), "the starts must differ");
     }
-    let meta = CheckpointMeta::start("peg-group1", Algo::Ddpg, Connection::Global, m, n, mask, cfg.clone());
-    let snapshot = crate::snapshot::snapshot(agent.as_ref(), &meta.architecture(), 0).unwrap();
-    let actions = crate::action::ActionMap::new(env.spec(), meta.architecture().base.as_deref()).unwrap();
-    let (episodes, first) = (6, 40);
-    let mut stepped = env.fresh();
-    let probe = env.fresh();
-    let mut own = |s: &[f64]| actions.to_env(&agent.act(&crate::agent::observe(probe.as_ref(), s)));
-    let (_, in_order) = lcrl_sim::evaluate::evaluate(stepped.as_mut(), "policy", episodes, first, &mut own, &mut |_| {}).unwrap();
-    for threads in [1, 3] {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-        let (summary, records) = pool.install(|| crate::policy::evaluate_snapshot(env.as_ref(), "policy", &snapshot, episodes, first, &|_| {})).unwrap();
-        assert_eq!(records, in_order, "{threads} threads");
-        assert_eq!(summary.mean_return, in_order.iter().map(|r| r.episode_return).sum::<f64>() / episodes as f64);
-    }
-    assert!(in_order.windows(2).any(|w| w[0].episode_return != w[1].episode_return), "the starts must differ");
 }
 
 /// Validation every 2 episodes of 6 chooses the run's policy: the choice
