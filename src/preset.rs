@@ -185,6 +185,13 @@ impl Preset {
         if job.actors == 0 || job.envs_per_actor == 0 || job.episodes == 0 {
             bail!("job.actors, job.envs_per_actor and job.episodes must be at least 1");
         }
+        // The learner and the actors would refuse these too, but only once
+        // the run has started; a preset check should say so first.
+        for (key, value, most) in [("publish_every", job.publish_every, u64::MAX), ("queued_batches", job.queued_batches, 1024), ("actor_batch", job.actor_batch, u64::MAX)] {
+            if let Some(v) = value.filter(|v| !(1..=most).contains(v)) {
+                bail!("job.{key} must be between 1 and {most}, not {v}");
+            }
+        }
         if let Some(t) = job.graph_threshold {
             if !(t.is_finite() && t > 0.0) {
                 bail!("job.graph_threshold must be a positive number (T of eq. 7), not {t}");
@@ -444,6 +451,16 @@ mod tests {
         global.job.connection = Connection::Global;
         let learner = strings(&global.learner_args("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), None).unwrap());
         assert!(!learner.iter().any(|a| a == "--graph-builder" || a == "--graph"), "{learner:?}");
+    }
+
+    /// Lag settings out of range fail the preset check, naming the key.
+    #[test]
+    fn lag_settings_out_of_range_fail_the_check() {
+        preset("publish_every = 1\nqueued_batches = 1024\nactor_batch = 1\n").check().unwrap();
+        for (bad, key) in [("publish_every = 0", "job.publish_every"), ("queued_batches = 0", "job.queued_batches"), ("queued_batches = 1025", "job.queued_batches"), ("actor_batch = 0", "job.actor_batch")] {
+            let err = preset(bad).check().unwrap_err().to_string();
+            assert!(err.contains(key), "{bad}: {err}");
+        }
     }
 
     /// `--threads 0` (automatic) leaves a run's learner the cores its
