@@ -188,8 +188,10 @@ impl Preset {
         // The learner and the actors would refuse these too, but only once
         // the run has started; a preset check should say so first.
         for (key, value, most) in [("publish_every", job.publish_every, u64::MAX), ("queued_batches", job.queued_batches, 1024), ("actor_batch", job.actor_batch, u64::MAX)] {
-            if let Some(v) = value.filter(|v| !(1..=most).contains(v)) {
-                bail!("job.{key} must be between 1 and {most}, not {v}");
+            match value {
+                Some(0) => bail!("job.{key} must be at least 1, not 0"),
+                Some(v) if v > most => bail!("job.{key} must be at most {most}, not {v}"),
+                _ => {}
             }
         }
         if let Some(t) = job.graph_threshold {
@@ -457,10 +459,20 @@ mod tests {
     #[test]
     fn lag_settings_out_of_range_fail_the_check() {
         preset("publish_every = 1\nqueued_batches = 1024\nactor_batch = 1\n").check().unwrap();
-        for (bad, key) in [("publish_every = 0", "job.publish_every"), ("queued_batches = 0", "job.queued_batches"), ("queued_batches = 1025", "job.queued_batches"), ("actor_batch = 0", "job.actor_batch")] {
-            let err = preset(bad).check().unwrap_err().to_string();
-            assert!(err.contains(key), "{bad}: {err}");
+        let mut good = preset("");
+        for (set, key) in [(0, "job.publish_every"), (1, "job.queued_batches"), (2, "job.queued_batches"), (3, "job.actor_batch")] {
+            let mut p = good.clone();
+            match set {
+                0 => p.job.publish_every = Some(0),
+                1 => p.job.queued_batches = Some(0),
+                2 => p.job.queued_batches = Some(1025),
+                _ => p.job.actor_batch = Some(0),
+            }
+            let err = p.check().unwrap_err().to_string();
+            assert!(err.contains(key), "{err}");
         }
+        good.job.queued_batches = Some(1024);
+        good.check().unwrap();
     }
 
     /// `--threads 0` (automatic) leaves a run's learner the cores its
