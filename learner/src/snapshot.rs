@@ -122,9 +122,7 @@ pub fn decode_weights(bytes: &[u8]) -> Result<Vec<(String, Tensor)>, LearnerErro
 /// Encodes the agent's actor as policy version `version`: what actors,
 /// validation and the hand-over evaluation build their copies from.
 pub fn snapshot(agent: &dyn Agent, architecture: &Architecture, version: u64) -> Result<PolicySnapshot, LearnerError> {
-    let weights = encode_weights(&agent.actor_variables())?;
-    let architecture = serde_json::to_string(architecture).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    Ok(PolicySnapshot { version, weights, architecture, explore_uniform: false, exploration_noise: 0.0 })
+    policy_snapshot(architecture, encode_weights(&agent.actor_variables())?, version)
 }
 
 /// The snapshot of a `checkpoints/epNNNNNN` or `selected` folder (its
@@ -134,8 +132,14 @@ pub fn read_snapshot(dir: &Path) -> Result<PolicySnapshot, LearnerError> {
     let meta = crate::checkpoint::read_meta(dir)?;
     let path = dir.join("actor.safetensors");
     let weights = std::fs::read(&path).map_err(|source| LearnerError::Io { path, source })?;
-    let architecture = serde_json::to_string(&meta.architecture()).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    Ok(PolicySnapshot { version: meta.policy_version, weights, architecture, explore_uniform: false, exploration_noise: 0.0 })
+    policy_snapshot(&meta.architecture(), weights, meta.policy_version)
+}
+
+/// A policy version as it travels: the architecture as JSON beside the
+/// safetensors bytes; exploration is set by the publisher.
+fn policy_snapshot(architecture: &Architecture, weights: Vec<u8>, version: u64) -> Result<PolicySnapshot, LearnerError> {
+    let architecture = serde_json::to_string(architecture).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    Ok(PolicySnapshot { version, weights, architecture, explore_uniform: false, exploration_noise: 0.0 })
 }
 
 #[cfg(test)]

@@ -75,12 +75,6 @@ pub struct Schedule {
 /// actors the queue is never empty, and training must not starve.
 const BATCHES_PER_TURN: usize = 8;
 
-/// Runs the training loop until told to stop, every sender is gone or the
-/// budget is reached; a checkpoint is written on the way out.
-pub fn run_training(agent: Box<dyn Agent>, commands: mpsc::Receiver<Command>, shared: Arc<Shared>, schedule: Schedule) -> Result<(), LearnerError> {
-    TrainingLoop::new(agent, commands, shared, schedule).run()
-}
-
 /// What admitting batches for one turn saw.
 struct Admitted {
     /// At least one batch was stored.
@@ -150,6 +144,8 @@ impl TrainingLoop {
         training
     }
 
+    /// Runs until told to stop, every sender is gone or the budget is
+    /// reached; a checkpoint is written on the way out.
     pub fn run(mut self) -> Result<(), LearnerError> {
         // The starting policy is a candidate, as in `lcrl train` (with a
         // base controller it is the base itself).

@@ -141,7 +141,7 @@ mod tests {
     use crate::selection::read_record;
     use crate::config::{Algo, Connection, TrainConfig};
     use crate::service::ingest::{Accepted, AgentTransition, Ingest};
-    use crate::service::runtime::{run_training, Schedule};
+    use crate::service::runtime::{Schedule, TrainingLoop};
     use crate::snapshot::snapshot;
     use crate::service::shared::{Command, Shared};
 
@@ -191,7 +191,7 @@ mod tests {
             validator,
             headroom: None,
         };
-        run_training(agent, inbox, shared.clone(), schedule).unwrap();
+        TrainingLoop::new(agent, inbox, shared.clone(), schedule).run().unwrap();
         let last = latest_checkpoint(dir).unwrap();
         let updates = shared.updates.load(std::sync::atomic::Ordering::Relaxed);
         (std::fs::read(last.join("actor.safetensors")).unwrap(), read_record(&selected_dir(dir)).unwrap(), updates)
