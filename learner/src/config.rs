@@ -200,6 +200,20 @@ pub enum Activation {
     Elu,
 }
 
+/// How DDPG acts while its replay buffer warms up (`warmup_steps`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WarmupActions {
+    /// Uniform over the whole normalized box: the usual random start, which
+    /// shows the critic every action but drives a robot with them.
+    Uniform,
+    /// The initial policy plus the exploration noise (`noise_start`), as
+    /// after the warm-up, only without updates. The last layer's init makes
+    /// the initial residual ≈ 0, so under a base controller this explores
+    /// around the base (docs/peg.md, "Training that stays near its base").
+    Policy,
+}
+
 /// DDPG (Algorithm 2). Defaults from docs/method.md Table I where it gives them.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -211,8 +225,11 @@ pub struct DdpgConfig {
     pub gamma: f64,
     pub batch_size: usize,
     pub buffer_capacity: usize,
-    /// Environment steps with random actions before updates start.
+    /// Environment steps before updates start, acted as `warmup_actions` says.
     pub warmup_steps: usize,
+    /// What the agent does during those steps: uniformly random actions
+    /// (the default), or its initial policy with the exploration noise.
+    pub warmup_actions: WarmupActions,
     /// Gaussian exploration noise (normalized action units), decaying
     /// linearly from start to end over `noise_decay_episodes`.
     pub noise_start: f64,
@@ -367,6 +384,7 @@ impl Default for DdpgConfig {
             batch_size: 256,
             buffer_capacity: 1_000_000,
             warmup_steps: 1000,
+            warmup_actions: WarmupActions::Uniform,
             noise_start: 0.3,
             noise_end: 0.05,
             noise_decay_episodes: 150,

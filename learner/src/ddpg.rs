@@ -1,7 +1,8 @@
 //! DDPG with the LCRL actor (docs/method.md §5, Algorithm 2).
 //!
 //! Per environment step: act with μ(s) + Gaussian noise (uniform random
-//! during warm-up), store the transition, and once warm do one update:
+//! during warm-up, unless `warmup_actions = "policy"`), store the
+//! transition, and once warm do one update:
 //!   y      = r + γ (1 − done) Q'(s', μ'(s'))
 //!   L_Q    = mean (Q(s, a) − y)²
 //!   L_μ    = −mean Q(s, μ(s))
@@ -29,7 +30,7 @@ use crate::agent::{
     build_actor, build_critic, load_optimizer, load_vs, read_agent_state, read_tensors, save_optimizer, save_vs, write_agent_state, write_tensors, Agent,
     Counters, RngState, Transition,
 };
-use crate::config::{Connection, DdpgConfig, NetworkConfig};
+use crate::config::{Connection, DdpgConfig, NetworkConfig, WarmupActions};
 use crate::exploration;
 use crate::nets::{batch, ActorNet, Mlp};
 use crate::replay::ReplayBuffer;
@@ -151,6 +152,11 @@ impl Ddpg {
         self.cfg.noise_start + (self.cfg.noise_end - self.cfg.noise_start) * progress
     }
 
+    /// Still in the warm-up, and it acts uniformly there (`warmup_actions`).
+    fn warming_up_uniformly(&self) -> bool {
+        self.replay.len() < self.cfg.warmup_steps && self.cfg.warmup_actions == WarmupActions::Uniform
+    }
+
     /// One DDPG update on a minibatch from the replay buffer.
     fn update(&mut self) {
         let b = self.replay.sample(self.cfg.batch_size, &mut self.rng).to_device(self.device);
@@ -208,7 +214,7 @@ impl Ddpg {
 
 impl Agent for Ddpg {
     fn explore(&mut self, obs: &[f32], episode: usize) -> Vec<f32> {
-        if self.replay.len() < self.cfg.warmup_steps {
+        if self.warming_up_uniformly() {
             return exploration::uniform(self.action_dim, &mut self.rng);
         }
         let std = vec![self.noise_std(episode); self.action_dim];
@@ -265,7 +271,7 @@ impl Agent for Ddpg {
     }
 
     fn exploration(&self, episodes: usize) -> Option<(bool, f64)> {
-        Some((self.replay.len() < self.cfg.warmup_steps, self.noise_std(episodes)))
+        Some((self.warming_up_uniformly(), self.noise_std(episodes)))
     }
 
     fn samples_per_update(&self) -> usize {
@@ -366,6 +372,34 @@ mod tests {
         assert_eq!(actor(&agent), actor0);
         agent.update();
         assert_ne!(actor(&agent), actor0, "the actor did not move after the head start");
+    }
+
+    /// `warmup_actions`: uniform warm-up actions spread over the box; with
+    /// "policy" they are the initial policy's action (≈ 0, the base) plus
+    /// noise of std `noise_start`, and the actor tells actors so too
+    /// (`exploration`). After the warm-up both act the same way.
+    #[test]
+    fn warm_up_acts_uniformly_or_around_the_initial_policy() {
+        tch::set_num_threads(1);
+        let mut cfg = TrainConfig::default();
+        cfg.network.global_hidden = vec![16];
+        cfg.network.critic_hidden = vec![16];
+        let spread = |warmup_actions| {
+            let ddpg = DdpgConfig { warmup_steps: 10, noise_start: 0.1, warmup_actions, ..cfg.ddpg.clone() };
+            let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1, 1]], 2, 1, 5, Device::Cpu);
+            let uniform = agent.exploration(0).map(|(u, _)| u);
+            let mean = agent.act(&[0.3, -0.2])[0];
+            let draws: Vec<f32> = (0..2000).map(|_| agent.explore(&[0.3, -0.2], 0)[0] - mean).collect();
+            let rms = (draws.iter().map(|d| d * d).sum::<f32>() / draws.len() as f32).sqrt();
+            (uniform, mean, rms)
+        };
+        let (uniform, _, rms) = spread(WarmupActions::Uniform);
+        assert_eq!(uniform, Some(true));
+        assert!(rms > 0.5, "uniform over [-1, 1] has an rms of about 0.58, got {rms}");
+        let (uniform, mean, rms) = spread(WarmupActions::Policy);
+        assert_eq!(uniform, Some(false));
+        assert!(mean.abs() < 0.05, "the initial policy's residual is near 0, got {mean}");
+        assert!((rms - 0.1).abs() < 0.01, "noise_start 0.1 around the policy, got an rms of {rms}");
     }
 
     /// The update rule, without the on-policy feedback loop: on exploratory
