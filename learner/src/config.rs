@@ -259,6 +259,11 @@ pub struct DdpgConfig {
     /// steadies the start but biases actions toward zero, so it is gone by
     /// the end.
     pub preactivation_anneal: bool,
+    /// Weight of mean‖μ(s) − μ'(s)‖² in the actor's loss, μ' the target
+    /// actor (τ-averaged): a trust region toward the recent policy. It
+    /// limits how fast the actor moves, not where it settles, unlike the
+    /// residual penalty, which pulls toward the base all run.
+    pub proximal_l2: f64,
     /// Std of clipped Gaussian noise on the target action (TD3's target
     /// policy smoothing); 0 is plain DDPG.
     pub target_noise: f64,
@@ -392,6 +397,7 @@ impl Default for DdpgConfig {
             target_noise: 0.0,
             preactivation_l2: 0.0,
             preactivation_anneal: false,
+            proximal_l2: 0.0,
             twin_critics: false,
             anneal_lr: false,
             critic_warmup_updates: 0,
@@ -549,7 +555,7 @@ impl TrainConfig {
                 return bad(field, &format!("must be within [0, 1], got {v}"));
             }
         }
-        for (field, v) in [("ddpg.noise_start", self.ddpg.noise_start), ("ddpg.noise_end", self.ddpg.noise_end), ("ddpg.target_noise", self.ddpg.target_noise), ("ddpg.preactivation_l2", self.ddpg.preactivation_l2), ("ddpg.huber_delta", self.ddpg.huber_delta), ("ppo.entropy_coef", self.ppo.entropy_coef)] {
+        for (field, v) in [("ddpg.noise_start", self.ddpg.noise_start), ("ddpg.noise_end", self.ddpg.noise_end), ("ddpg.target_noise", self.ddpg.target_noise), ("ddpg.preactivation_l2", self.ddpg.preactivation_l2), ("ddpg.proximal_l2", self.ddpg.proximal_l2), ("ddpg.huber_delta", self.ddpg.huber_delta), ("ppo.entropy_coef", self.ppo.entropy_coef)] {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(field, &format!("must be a finite number ≥ 0, got {v}"));
             }

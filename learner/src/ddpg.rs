@@ -14,7 +14,9 @@
 //! (y uses min(Q₁', Q₂'), against the overestimation that drives the actor
 //! to saturated actions). `anneal_lr` lowers both learning rates to 0 over
 //! the run. `critic_warmup_updates` holds the actor still while the critic
-//! learns from the first transitions.
+//! learns from the first transitions. `preactivation_l2` pulls the actor
+//! toward a zero residual (the base), `proximal_l2` toward its own target
+//! (a trust region around the recent policy).
 
 use std::path::Path;
 use std::time::Instant;
@@ -195,7 +197,12 @@ impl Ddpg {
             let raw = self.actor.forward_raw(&b.obs);
             let q = self.critics[0].net.forward(&Tensor::cat(&[&b.obs, &raw.tanh()], 1));
             let l2 = if self.cfg.preactivation_anneal { self.cfg.preactivation_l2 * (1.0 - self.progress) } else { self.cfg.preactivation_l2 };
-            let actor_loss = -q.mean(Kind::Float) + l2 * raw.square().mean(Kind::Float);
+            let mut actor_loss = -q.mean(Kind::Float) + l2 * raw.square().mean(Kind::Float);
+            if self.cfg.proximal_l2 > 0.0 {
+                // The trust region toward the target actor (`proximal_l2`).
+                let anchor = tch::no_grad(|| self.actor_target.forward(&b.obs));
+                actor_loss = actor_loss + self.cfg.proximal_l2 * (raw.tanh() - anchor).square().mean(Kind::Float);
+            }
             self.actor_opt.zero_grad();
             actor_loss.backward();
             self.actor_opt.step();
@@ -372,6 +379,40 @@ mod tests {
         assert_eq!(actor(&agent), actor0);
         agent.update();
         assert_ne!(actor(&agent), actor0, "the actor did not move after the head start");
+    }
+
+    /// `proximal_l2`: the actor's first step is unchanged by it (the actor
+    /// equals its target then, so the term and its gradient are 0), and
+    /// over later steps on the same batches it keeps the actor's actions
+    /// closer to where they started.
+    #[test]
+    fn the_trust_region_slows_the_actor_without_changing_its_first_step() {
+        tch::set_num_threads(1);
+        let mut cfg = TrainConfig::default();
+        cfg.network.global_hidden = vec![16];
+        cfg.network.critic_hidden = vec![16];
+        let probe: Vec<[f32; 2]> = (0..20).map(|k| [k as f32 / 10.0 - 1.0, 1.0 - k as f32 / 10.0]).collect();
+        let run = |proximal_l2: f64, updates: usize| -> Vec<f32> {
+            let ddpg = DdpgConfig { batch_size: 16, warmup_steps: 0, proximal_l2, tau: 0.01, ..cfg.ddpg.clone() };
+            let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1, 1]], 2, 1, 5, Device::Cpu);
+            let mut rng = ChaCha8Rng::seed_from_u64(6);
+            for _ in 0..256 {
+                let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
+                let a: f32 = rng.random_range(-1.0..1.0);
+                // The best action is a = 0.8 everywhere: the actor must move.
+                agent.replay.push(&s, &[a], -(a - 0.8) * (a - 0.8), &s, true);
+            }
+            for _ in 0..updates {
+                agent.update();
+            }
+            probe.iter().map(|s| agent.act(s)[0]).collect()
+        };
+        let start = run(0.0, 0);
+        assert_eq!(run(0.0, 1), run(100.0, 1), "the first step differs");
+        let moved = |actions: &[f32]| actions.iter().zip(&start).map(|(a, b)| (a - b).abs()).sum::<f32>() / start.len() as f32;
+        let (free, held) = (moved(&run(0.0, 300)), moved(&run(100.0, 300)));
+        assert!(free > 0.2, "without the trust region the actor moves toward 0.8: {free}");
+        assert!(held < 0.5 * free, "the trust region did not slow the actor: {held} against {free}");
     }
 
     /// `warmup_actions`: uniform warm-up actions spread over the box; with
