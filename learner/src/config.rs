@@ -464,6 +464,9 @@ const PEG_EXPERIMENT: &str = include_str!("../../configs/peg-experiment.toml");
 /// configs/peg-rand.toml, compiled in: the randomized presets' DDPG
 /// settings, laid over configs/peg.toml.
 const PEG_RAND: &str = include_str!("../../configs/peg-rand.toml");
+/// configs/peg-group1.toml, compiled in: peg-group1's DDPG settings, laid
+/// over configs/peg.toml.
+const PEG_GROUP1: &str = include_str!("../../configs/peg-group1.toml");
 
 impl TrainConfig {
     /// The training settings that work on a registered environment, used
@@ -480,6 +483,7 @@ impl TrainConfig {
             (name, _) if lcrl_sim::lti::LtiConfig::blocks_size(name).is_some() => Some((&[LTI_FAST], "configs/lti-fast.toml (the linear systems' settings, used for lti-blocks-N)")),
             ("peg-experiment", _) => Some((&[PEG, PEG_EXPERIMENT], "configs/peg.toml with configs/peg-experiment.toml (the settings for peg-experiment)")),
             (_, Some(peg)) if peg.randomize.is_some() => Some((&[PEG, PEG_RAND], "configs/peg.toml with configs/peg-rand.toml (the settings for the randomized peg presets)")),
+            ("peg-group1", _) => Some((&[PEG, PEG_GROUP1], "configs/peg.toml with configs/peg-group1.toml (the settings for peg-group1)")),
             (_, Some(_)) => Some((&[PEG], "configs/peg.toml (the settings for the peg presets)")),
             (_, None) => None,
         };
@@ -644,13 +648,17 @@ mod tests {
         lti.validate().unwrap();
         assert_eq!(lti.run.episodes, 1000, "lti-fast.toml's budget is 1000 episodes");
         assert_eq!(lti.network.activation, Activation::Elu);
-        let (peg, source) = TrainConfig::for_env("peg-group1");
+        let (peg, source) = TrainConfig::for_env("peg-group2");
         assert!(source.contains("configs/peg.toml"), "{source}");
         assert_eq!(peg, toml::from_str::<TrainConfig>(PEG).unwrap());
         peg.validate().unwrap();
-        for name in ["peg-group1", "peg-group2"] {
-            assert_eq!(TrainConfig::for_env(name).0, peg, "{name}");
-        }
+        // peg-group1: peg.toml with the trust region, nothing else.
+        let (group1, source) = TrainConfig::for_env("peg-group1");
+        assert!(source.contains("configs/peg-group1.toml"), "{source}");
+        group1.validate().unwrap();
+        assert_eq!((group1.ddpg.proximal_l2, peg.ddpg.proximal_l2), (3.0, 0.0));
+        let ddpg = DdpgConfig { proximal_l2: 0.0, ..group1.ddpg.clone() };
+        assert_eq!(TrainConfig { ddpg, ..group1 }, peg, "peg-group1.toml changes only [ddpg] proximal_l2");
         // The randomized presets: peg.toml with the residual penalty, nothing else.
         for name in ["peg-group1-rand", "peg-group2-rand"] {
             let (rand, source) = TrainConfig::for_env(name);
