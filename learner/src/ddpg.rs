@@ -345,17 +345,28 @@ mod tests {
     use crate::config::TrainConfig;
     use rand::Rng;
 
+    /// Table I's settings with 16-unit networks, for the update-rule tests.
+    fn tiny() -> TrainConfig {
+        let mut cfg = TrainConfig::default();
+        cfg.network.global_hidden = vec![16];
+        cfg.network.critic_hidden = vec![16];
+        cfg
+    }
+
+    /// A global agent on 2 states and 1 action.
+    fn agent(ddpg: &DdpgConfig, cfg: &TrainConfig) -> Ddpg {
+        Ddpg::new(ddpg, &cfg.network, Connection::Global, &[vec![1, 1]], 2, 1, 5, Device::Cpu)
+    }
+
     /// `critic_warmup_updates`: the actor (the base controller, under one)
     /// stays exactly as it started for that many updates while the critics
     /// learn, and moves on the first update after.
     #[test]
     fn actor_waits_for_the_critics_head_start() {
         tch::set_num_threads(1);
-        let mut cfg = TrainConfig::default();
-        cfg.network.global_hidden = vec![16];
-        cfg.network.critic_hidden = vec![16];
+        let cfg = tiny();
         let ddpg = DdpgConfig { batch_size: 8, warmup_steps: 0, critic_warmup_updates: 6, policy_delay: 2, ..cfg.ddpg };
-        let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1, 1]], 2, 1, 5, Device::Cpu);
+        let mut agent = agent(&ddpg, &cfg);
         let mut rng = ChaCha8Rng::seed_from_u64(6);
         for _ in 0..64 {
             let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
@@ -388,13 +399,11 @@ mod tests {
     #[test]
     fn the_trust_region_slows_the_actor_without_changing_its_first_step() {
         tch::set_num_threads(1);
-        let mut cfg = TrainConfig::default();
-        cfg.network.global_hidden = vec![16];
-        cfg.network.critic_hidden = vec![16];
+        let cfg = tiny();
         let probe: Vec<[f32; 2]> = (0..20).map(|k| [k as f32 / 10.0 - 1.0, 1.0 - k as f32 / 10.0]).collect();
         let run = |proximal_l2: f64, updates: usize| -> Vec<f32> {
             let ddpg = DdpgConfig { batch_size: 16, warmup_steps: 0, proximal_l2, tau: 0.01, ..cfg.ddpg.clone() };
-            let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1, 1]], 2, 1, 5, Device::Cpu);
+            let mut agent = agent(&ddpg, &cfg);
             let mut rng = ChaCha8Rng::seed_from_u64(6);
             for _ in 0..256 {
                 let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
@@ -422,12 +431,10 @@ mod tests {
     #[test]
     fn warm_up_acts_uniformly_or_around_the_initial_policy() {
         tch::set_num_threads(1);
-        let mut cfg = TrainConfig::default();
-        cfg.network.global_hidden = vec![16];
-        cfg.network.critic_hidden = vec![16];
+        let cfg = tiny();
         let spread = |warmup_actions| {
             let ddpg = DdpgConfig { warmup_steps: 10, noise_start: 0.1, warmup_actions, ..cfg.ddpg.clone() };
-            let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1, 1]], 2, 1, 5, Device::Cpu);
+            let mut agent = agent(&ddpg, &cfg);
             let uniform = agent.exploration(0).map(|(u, _)| u);
             let mean = agent.act(&[0.3, -0.2])[0];
             let draws: Vec<f32> = (0..2000).map(|_| agent.explore(&[0.3, -0.2], 0)[0] - mean).collect();
