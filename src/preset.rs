@@ -460,14 +460,15 @@ mod tests {
     fn lag_settings_out_of_range_fail_the_check() {
         preset("publish_every = 1\nqueued_batches = 1024\nactor_batch = 1\n").check().unwrap();
         let mut good = preset("");
-        for (set, key) in [(0, "job.publish_every"), (1, "job.queued_batches"), (2, "job.queued_batches"), (3, "job.actor_batch")] {
+        let edits: [(fn(&mut Preset), &str); 4] = [
+            (|p| p.job.publish_every = Some(0), "job.publish_every"),
+            (|p| p.job.queued_batches = Some(0), "job.queued_batches"),
+            (|p| p.job.queued_batches = Some(1025), "job.queued_batches"),
+            (|p| p.job.actor_batch = Some(0), "job.actor_batch"),
+        ];
+        for (edit, key) in edits {
             let mut p = good.clone();
-            match set {
-                0 => p.job.publish_every = Some(0),
-                1 => p.job.queued_batches = Some(0),
-                2 => p.job.queued_batches = Some(1025),
-                _ => p.job.actor_batch = Some(0),
-            }
+            edit(&mut p);
             let err = p.check().unwrap_err().to_string();
             assert!(err.contains(key), "{err}");
         }

@@ -200,6 +200,9 @@ impl Ddpg {
             let mut actor_loss = -q.mean(Kind::Float) + l2 * raw.square().mean(Kind::Float);
             if self.cfg.proximal_l2 > 0.0 {
                 // The trust region toward the target actor (`proximal_l2`).
+                // (tanh is applied again rather than shared with Q's input:
+                // the gradient then sums in the order the documented runs
+                // were measured with, so they replay bit for bit.)
                 let anchor = tch::no_grad(|| self.actor_target.forward(&b.obs));
                 actor_loss = actor_loss + self.cfg.proximal_l2 * (raw.tanh() - anchor).square().mean(Kind::Float);
             }
@@ -346,7 +349,7 @@ mod tests {
     use rand::Rng;
 
     /// Table I's settings with 16-unit networks, for the update-rule tests.
-    fn tiny() -> TrainConfig {
+    fn small_nets() -> TrainConfig {
         let mut cfg = TrainConfig::default();
         cfg.network.global_hidden = vec![16];
         cfg.network.critic_hidden = vec![16];
@@ -364,7 +367,7 @@ mod tests {
     #[test]
     fn actor_waits_for_the_critics_head_start() {
         tch::set_num_threads(1);
-        let cfg = tiny();
+        let cfg = small_nets();
         let ddpg = DdpgConfig { batch_size: 8, warmup_steps: 0, critic_warmup_updates: 6, policy_delay: 2, ..cfg.ddpg };
         let mut agent = agent(&ddpg, &cfg);
         let mut rng = ChaCha8Rng::seed_from_u64(6);
@@ -399,7 +402,7 @@ mod tests {
     #[test]
     fn the_trust_region_slows_the_actor_without_changing_its_first_step() {
         tch::set_num_threads(1);
-        let cfg = tiny();
+        let cfg = small_nets();
         let probe: Vec<[f32; 2]> = (0..20).map(|k| [k as f32 / 10.0 - 1.0, 1.0 - k as f32 / 10.0]).collect();
         let run = |proximal_l2: f64, updates: usize| -> Vec<f32> {
             let ddpg = DdpgConfig { batch_size: 16, warmup_steps: 0, proximal_l2, tau: 0.01, ..cfg.ddpg.clone() };
@@ -431,7 +434,7 @@ mod tests {
     #[test]
     fn warm_up_acts_uniformly_or_around_the_initial_policy() {
         tch::set_num_threads(1);
-        let cfg = tiny();
+        let cfg = small_nets();
         let spread = |warmup_actions| {
             let ddpg = DdpgConfig { warmup_steps: 10, noise_start: 0.1, warmup_actions, ..cfg.ddpg.clone() };
             let mut agent = agent(&ddpg, &cfg);
