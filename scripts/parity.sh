@@ -7,6 +7,7 @@
 #
 #   bash scripts/parity.sh [PRESET] [SEEDS] [ACTOR COUNTS...]
 #   bash scripts/parity.sh configs/peg-group1-ppo-local.toml 3 1 2 4
+#   LCRL_BIN_DIR=/tmp/lcrl-bin bash scripts/parity.sh ...   (binaries copied there)
 #
 # Runs go to runs/parity/<preset>/<loop>/seed<k>; the table is printed and
 # written to runs/parity/<preset>/parity.md. A run folder that already holds
@@ -20,9 +21,16 @@ actor_counts=("$@")
 [[ ${#actor_counts[@]} -gt 0 ]] || actor_counts=(1 2 4)
 [[ -f $preset ]] || { echo "parity.sh: no preset $preset" >&2; exit 2; }
 [[ $seeds =~ ^[1-9][0-9]*$ ]] || { echo "parity.sh: SEEDS must be a positive number, not '$seeds'" >&2; exit 2; }
-bash scripts/setup.sh >/dev/null
-cargo build --workspace --bins
-lcrl=target/debug/lcrl
+# LCRL_BIN_DIR: binaries copied elsewhere (lcrl and the lcrl-* it starts),
+# so that a long comparison is not broken by rebuilding target/debug.
+if [[ -n ${LCRL_BIN_DIR:-} ]]; then
+  lcrl=$LCRL_BIN_DIR/lcrl
+  [[ -x $lcrl ]] || { echo "parity.sh: no lcrl in LCRL_BIN_DIR=$LCRL_BIN_DIR" >&2; exit 2; }
+else
+  bash scripts/setup.sh >/dev/null
+  cargo build --workspace --bins
+  lcrl=target/debug/lcrl
+fi
 name=$(basename "$preset" .toml)
 out=runs/parity/$name
 mkdir -p "$out/presets"

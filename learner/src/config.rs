@@ -281,6 +281,13 @@ pub struct DdpgConfig {
     /// carry it to an arbitrary residual (docs/peg.md, "The critic's head
     /// start"). The critic's target still follows it meanwhile.
     pub critic_warmup_updates: usize,
+    /// Raise the actor's learning rate linearly from 0 to `actor_lr` over
+    /// its first this many updates (0: full rate from the first). Adam's
+    /// step is about lr per weight however weak ∂Q/∂a is, so an actor at
+    /// full rate leaves its base at full speed on an untrained critic
+    /// (docs/peg.md, "Training that stays near its base"); the ramp slows
+    /// only the start, where the trust region (`proximal_l2`) brakes all run.
+    pub actor_lr_warmup_updates: usize,
 }
 
 /// PPO with a Gaussian policy whose mean comes from the actor.
@@ -401,6 +408,7 @@ impl Default for DdpgConfig {
             twin_critics: false,
             anneal_lr: false,
             critic_warmup_updates: 0,
+            actor_lr_warmup_updates: 0,
             huber_delta: 0.0,
             update_every: 1,
             gradient_steps: 1,

@@ -14,7 +14,8 @@
 //! (y uses min(Q₁', Q₂'), against the overestimation that drives the actor
 //! to saturated actions). `anneal_lr` lowers both learning rates to 0 over
 //! the run. `critic_warmup_updates` holds the actor still while the critic
-//! learns from the first transitions. `preactivation_l2` pulls the actor
+//! learns from the first transitions, `actor_lr_warmup_updates` ramps the
+//! actor's learning rate up from 0. `preactivation_l2` pulls the actor
 //! toward a zero residual (the base), `proximal_l2` toward its own target
 //! (a trust region around the recent policy).
 
@@ -159,6 +160,22 @@ impl Ddpg {
         self.replay.len() < self.cfg.warmup_steps && self.cfg.warmup_actions == WarmupActions::Uniform
     }
 
+    /// The actor's learning rate for its next step: `actor_lr`, lowered
+    /// over the run by `anneal_lr` and ramped up over the actor's first
+    /// `actor_lr_warmup_updates` steps. The count of actor steps follows
+    /// from the critic's (one per `policy_delay`, none in the critic's head
+    /// start), so a resumed run ramps where it left off.
+    fn actor_lr(&self) -> f64 {
+        let d = self.cfg.policy_delay.max(1) as u64;
+        let actor_steps = (self.critic_updates / d).saturating_sub(self.cfg.critic_warmup_updates as u64 / d);
+        let ramp = match self.cfg.actor_lr_warmup_updates {
+            0 => 1.0,
+            n => (actor_steps as f64 / n as f64).min(1.0),
+        };
+        let anneal = if self.cfg.anneal_lr { 1.0 - self.progress } else { 1.0 };
+        self.cfg.actor_lr * anneal * ramp
+    }
+
     /// One DDPG update on a minibatch from the replay buffer.
     fn update(&mut self) {
         let b = self.replay.sample(self.cfg.batch_size, &mut self.rng).to_device(self.device);
@@ -205,6 +222,9 @@ impl Ddpg {
                 // were measured with, so they replay bit for bit.)
                 let anchor = tch::no_grad(|| self.actor_target.forward(&b.obs));
                 actor_loss = actor_loss + self.cfg.proximal_l2 * (raw.tanh() - anchor).square().mean(Kind::Float);
+            }
+            if self.cfg.actor_lr_warmup_updates > 0 {
+                self.actor_opt.set_lr(self.actor_lr());
             }
             self.actor_opt.zero_grad();
             actor_loss.backward();
@@ -273,7 +293,7 @@ impl Agent for Ddpg {
         self.progress = fraction.clamp(0.0, 1.0);
         if self.cfg.anneal_lr {
             let left = 1.0 - self.progress;
-            self.actor_opt.set_lr(self.cfg.actor_lr * left);
+            self.actor_opt.set_lr(self.actor_lr());
             for critic in &mut self.critics {
                 critic.opt.set_lr(self.cfg.critic_lr * left);
             }
@@ -425,6 +445,49 @@ mod tests {
         let (free, held) = (moved(&run(0.0, 300)), moved(&run(100.0, 300)));
         assert!(free > 0.2, "without the trust region the actor moves toward 0.8: {free}");
         assert!(held < 0.5 * free, "the trust region did not slow the actor: {held} against {free}");
+    }
+
+    /// `actor_lr_warmup_updates`: the actor's rate climbs linearly from 0
+    /// over its first N steps (counted after the critic's head start and
+    /// under `policy_delay`), so its first step is 1/N of the full-rate
+    /// one (Adam's first step is lr · sign(g), to its ε), and from step N
+    /// on it is `actor_lr`.
+    #[test]
+    fn the_actors_learning_rate_ramps_up_over_its_first_steps() {
+        tch::set_num_threads(1);
+        let cfg = small_nets();
+        let first_step = |actor_lr_warmup_updates| -> (Vec<f32>, Ddpg) {
+            let ddpg = DdpgConfig { batch_size: 8, warmup_steps: 0, policy_delay: 2, critic_warmup_updates: 2, actor_lr_warmup_updates, ..cfg.ddpg.clone() };
+            let mut agent = agent(&ddpg, &cfg);
+            let mut rng = ChaCha8Rng::seed_from_u64(9);
+            for _ in 0..64 {
+                let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
+                agent.replay.push(&s, &[rng.random_range(-1.0..1.0)], -(s[0] * s[0]), &s, true);
+            }
+            let weights = |agent: &Ddpg| -> Vec<f32> { agent.actor_variables().iter().flat_map(|(_, t)| Vec::<f32>::try_from(t.flatten(0, -1)).expect("f32 tensor")).collect() };
+            let before = weights(&agent);
+            // Updates 1–2: the critic's head start; 3 is odd; 4 is the actor's first step.
+            for _ in 0..4 {
+                agent.update();
+            }
+            let delta = weights(&agent).iter().zip(&before).map(|(a, b)| a - b).collect();
+            (delta, agent)
+        };
+        let (full, _) = first_step(0);
+        let (ramped, mut agent) = first_step(4);
+        let (mut num, mut den) = (0.0f64, 0.0f64);
+        for (r, f) in ramped.iter().zip(&full) {
+            num += f64::from(*r) * f64::from(*f);
+            den += f64::from(*f) * f64::from(*f);
+        }
+        assert!(den > 0.0, "the actor did not move at full rate");
+        assert!((num / den - 0.25).abs() < 1e-3, "the first step of 4 is not a quarter of the full one: {}", num / den);
+        // Actor steps 2, 3, 4 and after: 2/4, 3/4, 1, 1 of the rate.
+        for expected in [0.5, 0.75, 1.0, 1.0] {
+            agent.update();
+            agent.update();
+            assert!((agent.actor_lr() - expected * cfg.ddpg.actor_lr).abs() < 1e-12, "{} against {expected}", agent.actor_lr() / cfg.ddpg.actor_lr);
+        }
     }
 
     /// `warmup_actions`: uniform warm-up actions spread over the box; with
