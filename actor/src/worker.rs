@@ -106,7 +106,9 @@ pub struct Rollout {
     /// contiguous in a batch, the last one marked as a cut, so the learner
     /// sees whole trajectory segments.
     segments: Vec<Vec<Transition>>,
-    episodes_in_batch: Vec<EpisodeSummary>,
+    /// Each environment's episodes finished since the last batch: sent in
+    /// segment order, so that they follow their ends in the batch.
+    episodes_in_batch: Vec<Vec<EpisodeSummary>>,
     sequence: u64,
     episodes_done: u64,
 }
@@ -146,7 +148,7 @@ impl Rollout {
             returns: vec![0.0; k],
             lengths: vec![0; k],
             segments: vec![Vec::new(); k],
-            episodes_in_batch: Vec::new(),
+            episodes_in_batch: vec![Vec::new(); k],
             // The learner keeps the highest sequence per actor id and drops
             // what is not above it. Starting from the clock (µs) keeps a
             // restarted actor with the same id above everything its
@@ -214,10 +216,11 @@ impl Rollout {
                 policy_version: policy.version,
                 sampled_action: u,
                 log_prob,
+                cut: false,
             });
             if step.terminated || step.truncated {
                 let success = self.envs[k].episode_metrics().success;
-                self.episodes_in_batch.push(EpisodeSummary { episode_return: self.returns[k], length: self.lengths[k], success });
+                self.episodes_in_batch[k].push(EpisodeSummary { episode_return: self.returns[k], length: self.lengths[k], success });
                 self.episodes_done += 1;
                 metrics.episodes.inc();
                 (self.returns[k], self.lengths[k]) = (0.0, 0);
@@ -232,15 +235,15 @@ impl Rollout {
             return Ok(None);
         }
         let mut batch = TransitionBatch { run_id: self.settings.run_id.clone(), actor_id: self.settings.actor_id.clone(), ..Default::default() };
-        for segment in self.segments.iter_mut() {
+        for (segment, episodes) in self.segments.iter_mut().zip(&mut self.episodes_in_batch) {
             // A batch boundary is not an episode end, but each
-            // environment's stream is cut there for PPO's advantages.
+            // environment's stream is cut there (PPO's advantages stop).
             if let Some(last) = segment.last_mut() {
-                last.truncated |= !last.terminated;
+                last.cut = !(last.terminated || last.truncated);
             }
             batch.transitions.append(segment);
+            batch.episodes.append(episodes);
         }
-        batch.episodes = std::mem::take(&mut self.episodes_in_batch);
         self.sequence += 1;
         batch.sequence = self.sequence;
         batch.episode_id = self.episodes_done;
@@ -323,12 +326,13 @@ mod tests {
                 assert!(batch.transitions.iter().all(|t| t.policy_version == 7 && t.state.len() == 3 && t.action.len() == 3));
                 // Contiguity: within a segment next_state is the next state.
                 for pair in batch.transitions.windows(2) {
-                    if !(pair[0].terminated || pair[0].truncated) {
+                    if !(pair[0].terminated || pair[0].truncated || pair[0].cut) {
                         assert_eq!(pair[0].next_state, pair[1].state, "{algo:?}: a segment was interleaved");
                     }
                 }
                 let last = batch.transitions.last().unwrap();
-                assert!(last.terminated || last.truncated, "each batch ends a segment");
+                assert!(last.terminated || last.truncated || last.cut, "each batch ends a segment");
+                assert!(batch.transitions.iter().all(|t| !(t.cut && (t.terminated || t.truncated))), "a cut is not an episode end");
                 if k > 0 {
                     assert_eq!(batch.sequence, batches[k - 1].sequence + 1);
                 }
@@ -337,6 +341,82 @@ mod tests {
             let strip = |b: &[TransitionBatch]| b.iter().map(|b| (b.transitions.clone(), b.episodes.clone())).collect::<Vec<_>>();
             assert_eq!(strip(&batches), strip(&again), "{algo:?}: same seed, same batches");
         }
+    }
+
+    /// An untrained peg-group1 policy over its best constant, version 1.
+    fn peg_policy(algo: Algo) -> Policy {
+        let name = "peg-group1";
+        let base = lcrl_sim::peg::measured_best_constant(name).expect("measured").to_vec();
+        let env = lcrl_sim::make_env(name).unwrap();
+        let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
+        let cfg = TrainConfig::for_env(name).0;
+        let mask = vec![vec![1u8; m]; n];
+        let agent = lcrl_learner::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, m, n).unwrap();
+        let shape = lcrl_learner::snapshot::ActorShape { env: name.into(), algo, connection: Connection::Local, state_dim: m, action_dim: n, mask };
+        let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: Some(base) };
+        let snapshot = lcrl_learner::snapshot::snapshot(agent.as_ref(), &architecture, 1).unwrap();
+        Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap()
+    }
+
+    /// With several environments a batch lists its episodes in the order
+    /// their ends appear in its transitions (segment by segment), and only
+    /// real ends count: batch-end cuts carry `cut`, not `truncated`. So
+    /// the learner's `keep_episodes` keeps exactly the episodes it counts.
+    /// A peg task with a 12 N force limit, acted on uniformly at random,
+    /// fails at varying steps, so the three environments' ends interleave
+    /// in time; one batch holds all of them.
+    #[test]
+    fn a_batchs_episodes_follow_their_ends_and_cuts_are_not_ends() {
+        use lcrl_learner::service::ingest::{Ingest, Verdict};
+        let dir = std::env::temp_dir().join(format!("lcrl-cut-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let name = dir.join("fragile.toml").display().to_string();
+        std::fs::write(&name, "kind = \"peg\"\npreset = \"peg-group1\"\n[limits]\nforce_limit_n = 12.0\n").unwrap();
+        let env = lcrl_sim::make_env(&name).unwrap();
+        let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
+        let cfg = TrainConfig::for_env(&name).0;
+        let mask = vec![vec![1u8; m]; n];
+        let agent = lcrl_learner::algorithms::make_agent(Algo::Ddpg, Connection::Local, &cfg, &mask, m, n).unwrap();
+        let shape = lcrl_learner::snapshot::ActorShape { env: name.clone(), algo: Algo::Ddpg, connection: Connection::Local, state_dim: m, action_dim: n, mask };
+        let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: None };
+        let snapshot = lcrl_learner::snapshot::snapshot(agent.as_ref(), &architecture, 1).unwrap();
+        let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap();
+
+        let settings = RolloutSettings { envs: 3, batch: Some(100_000), noise: 0.3, seed: 2, episodes: Some(9), run_id: "r".into(), actor_id: "a".into() };
+        let mut rollout = Rollout::new(settings, &policy, Exploration { uniform: true, noise: 0.3 }).unwrap();
+        let metrics = ActorMetrics::default();
+        let batch = loop {
+            if let Some(batch) = rollout.step(&policy, &metrics).unwrap() {
+                break batch;
+            }
+        };
+        let lengths: Vec<u32> = batch.episodes.iter().map(|e| e.length).collect();
+        assert!(lengths.iter().any(|&l| l != lengths[0]), "episodes of one length end together and would not test the order: {lengths:?}");
+        // Returns summed between ends, in transition order (a segment
+        // starts where an episode does: this batch is the run's first).
+        let (mut returns, mut sum) = (Vec::new(), 0.0f64);
+        for t in &batch.transitions {
+            sum += f64::from(t.reward);
+            if t.terminated || t.truncated {
+                returns.push(sum);
+            }
+            if t.terminated || t.truncated || t.cut {
+                sum = 0.0;
+            }
+        }
+        let cuts = batch.transitions.iter().filter(|t| t.cut).count();
+        assert!((1..=3).contains(&cuts), "each environment's unfinished episode is cut once: {cuts} cuts");
+        assert_eq!(returns.len(), batch.episodes.len());
+        for (k, (summed, sent)) in returns.iter().zip(&batch.episodes).enumerate() {
+            assert!((summed - sent.episode_return).abs() < 1e-3 * sent.episode_return.abs().max(1.0), "episode {k}: {summed} vs {}", sent.episode_return);
+        }
+        let mut ingest = Ingest::new("r", lcrl_sim::make_env(&name).unwrap(), None);
+        let Verdict::Accept(mut accepted) = ingest.check(&batch, 1) else { panic!("the batch was not accepted") };
+        accepted.keep_episodes(4);
+        let ends = accepted.transitions.iter().filter(|t| t.terminated || t.truncated).count();
+        assert_eq!((ends, accepted.episodes.len()), (4, 4));
+        assert!(accepted.transitions.last().is_some_and(|t| t.terminated || t.truncated), "the kept transitions end with the fourth episode");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// One transition, one meaning (docs/architecture.md): an actor's
@@ -352,17 +432,9 @@ mod tests {
         use lcrl_learner::agent::observe;
         use lcrl_learner::trainer::step_env;
         let name = "peg-group1";
-        let base = lcrl_sim::peg::measured_best_constant(name).expect("measured").to_vec();
         for algo in [Algo::Ddpg, Algo::Ppo] {
             let mut env = lcrl_sim::make_env(name).unwrap();
-            let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
-            let cfg = TrainConfig::for_env(name).0;
-            let mask = vec![vec![1u8; m]; n];
-            let agent = lcrl_learner::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, m, n).unwrap();
-            let shape = lcrl_learner::snapshot::ActorShape { env: name.into(), algo, connection: Connection::Local, state_dim: m, action_dim: n, mask };
-            let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: Some(base.clone()) };
-            let snapshot = lcrl_learner::snapshot::snapshot(agent.as_ref(), &architecture, 1).unwrap();
-            let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap();
+            let policy = peg_policy(algo);
 
             // The actor: one environment, one episode, one batch.
             let settings = RolloutSettings { envs: 1, batch: Some(100_000), noise: 0.3, seed: 5, episodes: Some(1), run_id: "r".into(), actor_id: "a".into() };
@@ -396,7 +468,7 @@ mod tests {
                 assert!(close(&stored.next_obs, &next_obs), "{algo:?} step {k}: next_obs");
                 assert_eq!(&stored.action, u, "{algo:?} step {k}: the stored action is the sampled u");
                 assert_eq!(stored.reward, step.reward as f32, "{algo:?} step {k}: reward");
-                assert_eq!((stored.terminated, stored.truncated), (step.terminated, step.truncated), "{algo:?} step {k}: flags");
+                assert_eq!((stored.terminated, stored.truncated, stored.cut), (step.terminated, step.truncated, false), "{algo:?} step {k}: flags");
                 match algo {
                     // PPO's behaviour log-probability of u under the policy that acted.
                     Algo::Ppo => {

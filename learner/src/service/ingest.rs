@@ -20,7 +20,12 @@ pub struct AgentTransition {
     pub reward: f32,
     pub next_obs: Vec<f32>,
     pub terminated: bool,
+    /// The step cap ended the episode.
     pub truncated: bool,
+    /// The actor's batch ended this environment's stream here, mid-episode
+    /// (proto `Transition.cut`): the agent bootstraps as at a truncation,
+    /// but no episode ended.
+    pub cut: bool,
     /// The policy version that chose the action (the batch's when the
     /// actor did not say: version 0 is then indistinguishable from unset).
     pub policy_version: u64,
@@ -38,7 +43,8 @@ pub struct Accepted {
 impl Accepted {
     /// Keeps the batch's first `episodes` episodes: its transitions up to
     /// the end of the last one kept (a batch lists its episodes in the
-    /// order their ends appear). Returns how many transitions were dropped.
+    /// order their ends appear; a cut is not an end). Returns how many
+    /// transitions were dropped.
     /// The learner's budget ends exactly at its last episode this way,
     /// as `lcrl train`'s does, even when a batch holds several ends.
     pub fn keep_episodes(&mut self, episodes: usize) -> usize {
@@ -182,6 +188,7 @@ impl Ingest {
                 next_obs: to_obs(&t.next_state),
                 terminated: t.terminated,
                 truncated: t.truncated,
+                cut: t.cut,
                 policy_version: if t.policy_version > 0 { t.policy_version } else { batch.policy_version },
             })
             .collect::<Vec<_>>();
@@ -213,7 +220,7 @@ mod tests {
 
     #[test]
     fn a_batch_is_cut_after_the_last_episode_the_budget_allows() {
-        let t = |end: bool| AgentTransition { obs: vec![], action: vec![], log_prob: None, reward: 0.0, next_obs: vec![], terminated: end, truncated: false, policy_version: 0 };
+        let t = |end: bool| AgentTransition { obs: vec![], action: vec![], log_prob: None, reward: 0.0, next_obs: vec![], terminated: end, truncated: false, cut: false, policy_version: 0 };
         let e = || EpisodeSummary { episode_return: -1.0, length: 2, success: None };
         // Two episode ends (after transitions 2 and 4) and a started third.
         let batch = || Accepted { transitions: vec![t(false), t(true), t(false), t(true), t(false)], episodes: vec![e(), e()], policy_version: 1 };
@@ -223,6 +230,10 @@ mod tests {
         let mut all = batch();
         assert_eq!(all.keep_episodes(2), 0);
         assert_eq!(all.transitions.len(), 5, "within the budget nothing is cut");
+        // A cut (the actor's batch end, mid-episode) is not an end.
+        let mut cut = batch();
+        cut.transitions[0].cut = true;
+        assert_eq!(cut.keep_episodes(1), 3);
         let mut none = batch();
         assert_eq!(none.keep_episodes(0), 5);
         assert!(none.transitions.is_empty() && none.episodes.is_empty());

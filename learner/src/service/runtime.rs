@@ -253,7 +253,8 @@ impl TrainingLoop {
                 reward: t.reward,
                 next_obs: &t.next_obs,
                 terminated: t.terminated,
-                truncated: t.truncated,
+                // To the agent a cut is a truncation: bootstrap, stop GAE.
+                truncated: t.truncated || t.cut,
                 log_prob: t.log_prob,
             });
         }

@@ -49,7 +49,7 @@ pub struct TransitionSample {
     pub log_probs: [f32; MAX_TRANSITIONS],
     pub rewards: [f32; MAX_TRANSITIONS],
     /// bit 0: terminated, bit 1: truncated, bit 2: sampled action present,
-    /// bit 3: log-probability present.
+    /// bit 3: log-probability present, bit 4: cut.
     pub flags: [u8; MAX_TRANSITIONS],
     /// The policy version that chose each action.
     pub versions: [u64; MAX_TRANSITIONS],
@@ -107,7 +107,7 @@ impl TransitionSample {
             }
             s.log_probs[k] = t.log_prob.unwrap_or(0.0);
             s.rewards[k] = t.reward;
-            s.flags[k] = u8::from(t.terminated) | (u8::from(t.truncated) << 1) | (u8::from(sampled) << 2) | (u8::from(t.log_prob.is_some()) << 3);
+            s.flags[k] = u8::from(t.terminated) | (u8::from(t.truncated) << 1) | (u8::from(sampled) << 2) | (u8::from(t.log_prob.is_some()) << 3) | (u8::from(t.cut) << 4);
             s.versions[k] = t.policy_version;
         }
         for (k, e) in batch.episodes.iter().enumerate() {
@@ -140,6 +140,7 @@ impl TransitionSample {
                     next_state: self.next_states[k * m..(k + 1) * m].to_vec(),
                     terminated: self.flags[k] & 1 != 0,
                     truncated: self.flags[k] & 2 != 0,
+                    cut: self.flags[k] & 16 != 0,
                     policy_version: self.versions[k],
                 })
                 .collect(),
@@ -428,6 +429,7 @@ mod tests {
             policy_version: v as u64,
             sampled_action: if v > 1.0 { vec![1.5 * v; 6] } else { vec![] },
             log_prob: (v > 2.0).then_some(-v),
+            cut: (1.0..2.0).contains(&v),
         };
         let batch = TransitionBatch {
             run_id: "r".into(),
