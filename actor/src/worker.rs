@@ -259,15 +259,23 @@ mod tests {
     use super::*;
     use lcrl_learner::config::{Algo, Connection, TrainConfig};
 
-    /// An untrained lti-paper policy, as the learner would publish it.
-    fn policy(algo: Algo) -> Policy {
-        let cfg = TrainConfig::for_env("lti-paper").0;
-        let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
-        let agent = lcrl_learner::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
-        let shape = lcrl_learner::snapshot::ActorShape { env: "lti-paper".into(), algo, connection: Connection::Local, state_dim: 3, action_dim: 3, mask };
-        let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: None };
-        let snapshot = lcrl_learner::snapshot::snapshot(agent.as_ref(), &architecture, 7).unwrap();
+    /// An untrained policy of `env` with connection graph `mask` (None: all
+    /// ones) over `base`, published as `version`, as the learner would.
+    fn untrained_policy(env: &str, algo: Algo, mask: Option<Vec<Vec<u8>>>, base: Option<Vec<f64>>, version: u64) -> Policy {
+        let made = lcrl_sim::make_env(env).unwrap();
+        let (m, n) = (made.spec().state_dim(), made.spec().action_dim());
+        let cfg = TrainConfig::for_env(env).0;
+        let mask = mask.unwrap_or_else(|| vec![vec![1u8; m]; n]);
+        let agent = lcrl_learner::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, m, n).unwrap();
+        let shape = lcrl_learner::snapshot::ActorShape { env: env.into(), algo, connection: Connection::Local, state_dim: m, action_dim: n, mask };
+        let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base };
+        let snapshot = lcrl_learner::snapshot::snapshot(agent.as_ref(), &architecture, version).unwrap();
         Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap()
+    }
+
+    /// An untrained lti-paper policy, version 7.
+    fn policy(algo: Algo) -> Policy {
+        untrained_policy("lti-paper", algo, Some(vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]]), None, 7)
     }
 
     fn settings(episodes: u64) -> RolloutSettings {
@@ -345,17 +353,8 @@ mod tests {
 
     /// An untrained peg-group1 policy over its best constant, version 1.
     fn peg_policy(algo: Algo) -> Policy {
-        let name = "peg-group1";
-        let base = lcrl_sim::peg::measured_best_constant(name).expect("measured").to_vec();
-        let env = lcrl_sim::make_env(name).unwrap();
-        let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
-        let cfg = TrainConfig::for_env(name).0;
-        let mask = vec![vec![1u8; m]; n];
-        let agent = lcrl_learner::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, m, n).unwrap();
-        let shape = lcrl_learner::snapshot::ActorShape { env: name.into(), algo, connection: Connection::Local, state_dim: m, action_dim: n, mask };
-        let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: Some(base) };
-        let snapshot = lcrl_learner::snapshot::snapshot(agent.as_ref(), &architecture, 1).unwrap();
-        Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap()
+        let base = lcrl_sim::peg::measured_best_constant("peg-group1").expect("measured").to_vec();
+        untrained_policy("peg-group1", algo, None, Some(base), 1)
     }
 
     /// With several environments a batch lists its episodes in the order
@@ -372,15 +371,7 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let name = dir.join("fragile.toml").display().to_string();
         std::fs::write(&name, "kind = \"peg\"\npreset = \"peg-group1\"\n[limits]\nforce_limit_n = 12.0\n").unwrap();
-        let env = lcrl_sim::make_env(&name).unwrap();
-        let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
-        let cfg = TrainConfig::for_env(&name).0;
-        let mask = vec![vec![1u8; m]; n];
-        let agent = lcrl_learner::algorithms::make_agent(Algo::Ddpg, Connection::Local, &cfg, &mask, m, n).unwrap();
-        let shape = lcrl_learner::snapshot::ActorShape { env: name.clone(), algo: Algo::Ddpg, connection: Connection::Local, state_dim: m, action_dim: n, mask };
-        let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base: None };
-        let snapshot = lcrl_learner::snapshot::snapshot(agent.as_ref(), &architecture, 1).unwrap();
-        let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap();
+        let policy = untrained_policy(&name, Algo::Ddpg, None, None, 1);
 
         let settings = RolloutSettings { envs: 3, batch: Some(100_000), noise: 0.3, seed: 2, episodes: Some(9), run_id: "r".into(), actor_id: "a".into() };
         let mut rollout = Rollout::new(settings, &policy, Exploration { uniform: true, noise: 0.3 }).unwrap();

@@ -376,6 +376,11 @@ mod tests {
         cfg
     }
 
+    /// The actor's weights, flattened in the variables' sorted order.
+    fn actor_weights(agent: &Ddpg) -> Vec<f32> {
+        agent.actor_variables().iter().flat_map(|(_, t)| Vec::<f32>::try_from(t.flatten(0, -1)).expect("f32 tensor")).collect()
+    }
+
     /// A global agent on 2 states and 1 action.
     fn agent(ddpg: &DdpgConfig, cfg: &TrainConfig) -> Ddpg {
         Ddpg::new(ddpg, &cfg.network, Connection::Global, &[vec![1, 1]], 2, 1, 5, Device::Cpu)
@@ -396,23 +401,20 @@ mod tests {
             let a: f32 = rng.random_range(-1.0..1.0);
             agent.replay.push(&s, &[a], -(s[0] * s[0]) - a * a, &s, false);
         }
-        let actor = |agent: &Ddpg| -> Vec<Vec<f32>> {
-            agent.actor_variables().iter().map(|(_, t)| Vec::<f32>::try_from(t.flatten(0, -1)).expect("f32 tensor")).collect()
-        };
         let critic = |agent: &Ddpg| -> Vec<f32> {
             crate::agent::sorted_variables(&agent.critics[0].vs).iter().flat_map(|(_, t)| Vec::<f32>::try_from(t.flatten(0, -1)).expect("f32 tensor")).collect()
         };
-        let (actor0, critic0) = (actor(&agent), critic(&agent));
+        let (actor0, critic0) = (actor_weights(&agent), critic(&agent));
         for _ in 0..6 {
             agent.update();
         }
-        assert_eq!(actor(&agent), actor0, "the actor moved during the critics' head start");
+        assert_eq!(actor_weights(&agent), actor0, "the actor moved during the critics' head start");
         assert_ne!(critic(&agent), critic0, "the critic did not learn during the head start");
         // Update 7 is odd: no actor step under policy_delay = 2; update 8 is one.
         agent.update();
-        assert_eq!(actor(&agent), actor0);
+        assert_eq!(actor_weights(&agent), actor0);
         agent.update();
-        assert_ne!(actor(&agent), actor0, "the actor did not move after the head start");
+        assert_ne!(actor_weights(&agent), actor0, "the actor did not move after the head start");
     }
 
     /// `proximal_l2`: the actor's first step is unchanged by it (the actor
@@ -464,13 +466,12 @@ mod tests {
                 let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
                 agent.replay.push(&s, &[rng.random_range(-1.0..1.0)], -(s[0] * s[0]), &s, true);
             }
-            let weights = |agent: &Ddpg| -> Vec<f32> { agent.actor_variables().iter().flat_map(|(_, t)| Vec::<f32>::try_from(t.flatten(0, -1)).expect("f32 tensor")).collect() };
-            let before = weights(&agent);
+            let before = actor_weights(&agent);
             // Updates 1–2: the critic's head start; 3 is odd; 4 is the actor's first step.
             for _ in 0..4 {
                 agent.update();
             }
-            let delta = weights(&agent).iter().zip(&before).map(|(a, b)| a - b).collect();
+            let delta = actor_weights(&agent).iter().zip(&before).map(|(a, b)| a - b).collect();
             (delta, agent)
         };
         let (full, _) = first_step(0);
