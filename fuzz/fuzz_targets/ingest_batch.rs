@@ -6,7 +6,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use lcrl_learner::service::ingest::{Ingest, Verdict};
+use lcrl_learner::service::ingest::{Accepted, Ingest, Verdict};
 use lcrl_proto::v1::TransitionBatch;
 use prost::Message;
 
@@ -21,12 +21,20 @@ fuzz_target!(|data: &[u8]| {
         assert!(t.obs.iter().chain(&t.next_obs).chain(&t.action).chain([&t.reward]).chain(&t.log_prob).all(|v| v.is_finite()));
     }
     assert!(accepted.episodes.iter().all(|e| e.episode_return.is_finite()));
+    // One summary per episode end (a cut is not an end).
+    let ends = |a: &Accepted| a.transitions.iter().filter(|t| t.terminated || t.truncated).count();
+    assert_eq!(ends(&accepted), accepted.episodes.len());
     // The budget's cut keeps whole episodes and never grows a batch.
-    let before = accepted.transitions.len();
+    let (before, episodes_before) = (accepted.transitions.len(), accepted.episodes.len());
     let keep = data.len() % 3;
     let dropped = accepted.keep_episodes(keep);
     assert_eq!(accepted.transitions.len() + dropped, before);
-    assert!(accepted.episodes.len() <= keep.max(accepted.episodes.len().min(keep)));
+    assert_eq!(accepted.episodes.len(), episodes_before.min(keep));
+    assert_eq!(ends(&accepted), accepted.episodes.len());
+    if dropped > 0 {
+        // What is kept ends at an episode end (or is nothing).
+        assert!(accepted.transitions.last().is_none_or(|t| t.terminated || t.truncated));
+    }
     // The same batch again is a duplicate, never stored twice.
     assert_eq!(ingest.check(&batch, 3), Verdict::Duplicate);
 });

@@ -41,15 +41,17 @@ fn batch() -> impl Strategy<Value = TransitionBatch> {
         any::<u64>(),
         proptest::collection::vec(transition(), 0..40),
         proptest::collection::vec((any::<f64>(), any::<u32>(), any::<Option<bool>>()), 0..5),
+        prop::bool::weighted(0.75),
     )
-        .prop_map(|(run_id, actor_id, sequence, policy_version, transitions, episodes)| TransitionBatch {
-            run_id,
-            actor_id,
-            sequence,
-            episode_id: 0,
-            policy_version,
-            transitions,
-            episodes: episodes.into_iter().map(|(episode_return, length, success)| EpisodeSummary { episode_return, length, success }).collect(),
+        .prop_map(|(run_id, actor_id, sequence, policy_version, transitions, summaries, paired)| {
+            let mut episodes: Vec<EpisodeSummary> = summaries.into_iter().map(|(episode_return, length, success)| EpisodeSummary { episode_return, length, success }).collect();
+            // Mostly one summary per episode end, as actors send them (so
+            // that most batches reach the checks after that one).
+            if paired {
+                let ends = transitions.iter().filter(|t| t.terminated || t.truncated).count();
+                episodes.resize(ends, EpisodeSummary { episode_return: -1.0, length: 1, success: None });
+            }
+            TransitionBatch { run_id, actor_id, sequence, episode_id: 0, policy_version, transitions, episodes }
         })
 }
 
@@ -63,6 +65,8 @@ fn check_invariants(ingest: &mut Ingest, batch: &TransitionBatch) -> Result<(), 
     match ingest.check(batch, 5) {
         Verdict::Accept(accepted) => {
             prop_assert_eq!(accepted.transitions.len(), batch.transitions.len());
+            let ends = accepted.transitions.iter().filter(|t| t.terminated || t.truncated).count();
+            prop_assert_eq!(ends, accepted.episodes.len(), "one summary per episode end");
             prop_assert_eq!(ingest.accepted, accepted_before + batch.transitions.len() as u64);
             for t in &accepted.transitions {
                 prop_assert!(t.obs.len() == 3 && t.next_obs.len() == 3 && t.action.len() == 3);

@@ -163,6 +163,22 @@ impl Ingest {
             self.count("non_finite", count);
             return Verdict::Reject { reason: "non_finite", message: format!("episode {k} has a non-finite return") };
         }
+        // One summary per episode end, in the order of the ends (the
+        // contract, proto/lcrl.proto): the budget counts summaries and
+        // `keep_episodes` cuts at ends, so a batch whose two counts differ
+        // would end the run early or run past its budget.
+        let ends = batch.transitions.iter().filter(|t| t.terminated || t.truncated).count();
+        if ends != batch.episodes.len() {
+            self.count("episodes", count);
+            return Verdict::Reject {
+                reason: "episodes",
+                message: format!(
+                    "{} episode summaries for {ends} episode ends (transitions terminated or truncated); send one summary per end, in \
+                     the order of the ends (a batch end inside an episode is `cut`, not an end)",
+                    batch.episodes.len()
+                ),
+            };
+        }
         if self.last_sequence.get(&batch.actor_id).is_some_and(|&last| batch.sequence <= last) {
             self.count("duplicate", count);
             return Verdict::Duplicate;
@@ -283,11 +299,24 @@ mod tests {
         assert!(matches!(ingest.check(&batch("a1", 2, vec![0.0; 4]), 3), Verdict::Reject { reason: "dimensions", .. }));
         assert!(matches!(ingest.check(&batch("a1", 3, vec![0.0, f32::NAN, 0.0]), 3), Verdict::Reject { reason: "non_finite", .. }));
         let mut nan_return = batch("a1", 4, vec![0.0; 3]);
+        nan_return.transitions[0].terminated = true;
         nan_return.episodes.push(EpisodeSummary { episode_return: f64::NAN, length: 1, success: None });
         assert!(matches!(ingest.check(&nan_return, 3), Verdict::Reject { reason: "non_finite", .. }));
-        assert_eq!(ingest.rejected.values().sum::<u64>(), 4);
+        // Summaries and ends must pair up: a summary without an end, an end
+        // without a summary (a cut is not an end and needs none).
+        let mut no_end = batch("a1", 5, vec![0.0; 3]);
+        no_end.episodes.push(EpisodeSummary { episode_return: -1.0, length: 1, success: None });
+        assert!(matches!(ingest.check(&no_end, 3), Verdict::Reject { reason: "episodes", .. }));
+        let mut no_summary = batch("a1", 6, vec![0.0; 3]);
+        no_summary.transitions[0].truncated = true;
+        assert!(matches!(ingest.check(&no_summary, 3), Verdict::Reject { reason: "episodes", .. }));
+        assert_eq!(ingest.rejected.values().sum::<u64>(), 6);
+        assert_eq!(ingest.rejected["episodes"], 2);
         // A rejected batch does not consume its sequence number.
         assert!(matches!(ingest.check(&batch("a1", 1, vec![0.0; 3]), 3), Verdict::Accept(_)));
+        let mut cut = batch("a1", 2, vec![0.0; 3]);
+        cut.transitions[0].cut = true;
+        assert!(matches!(ingest.check(&cut, 3), Verdict::Accept(_)), "a cut needs no summary");
     }
 
     #[test]
