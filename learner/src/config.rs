@@ -353,6 +353,16 @@ pub struct RunConfig {
     /// its last.
     pub validation_episodes: usize,
     pub validate_every: usize,
+    /// Falling back to the run's selected policy (learner/src/fallback.rs):
+    /// a training episode of the current policy that returns less than the
+    /// base's validation return minus this margin hands the next
+    /// `fallback_episodes` training episodes to the selected policy. Unset
+    /// (the default): off. `lcrl train` with DDPG and validation only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fallback_margin: Option<f64>,
+    /// Episodes the selected policy acts after each such episode; unset: 5.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fallback_episodes: Option<usize>,
 }
 
 impl Default for TrainConfig {
@@ -436,6 +446,13 @@ impl Default for PpoConfig {
 }
 
 impl RunConfig {
+    /// The fallback rule this run asks for, given its base's validation
+    /// return (None when `fallback_margin` is unset).
+    pub fn fallback(&self, base_return: f64, returns: impl IntoIterator<Item = f64>) -> Option<crate::fallback::Fallback> {
+        let margin = self.fallback_margin?;
+        Some(crate::fallback::Fallback::replayed(base_return, margin, self.fallback_episodes.unwrap_or(5), returns))
+    }
+
     /// The final evaluation's first start: `eval_seed`, or the run's own
     /// evaluation range.
     pub fn first_eval_seed(&self) -> u64 {
@@ -458,6 +475,8 @@ impl Default for RunConfig {
             eval_seed: None,
             validation_episodes: 0,
             validate_every: 20,
+            fallback_margin: None,
+            fallback_episodes: None,
         }
     }
 }
@@ -571,6 +590,17 @@ impl TrainConfig {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(field, &format!("must be a finite number ≥ 0, got {v}"));
             }
+        }
+        if let Some(margin) = self.run.fallback_margin {
+            if !(margin.is_finite() && margin >= 0.0) {
+                return bad("run.fallback_margin", &format!("must be a finite number ≥ 0 (a return below the base's by more hands over), got {margin}"));
+            }
+            if self.run.validation_episodes == 0 {
+                return bad("run.fallback_margin", "needs validation (run.validation_episodes ≥ 1): the fallback acts with the run's selected policy");
+            }
+        }
+        if self.run.fallback_episodes == Some(0) {
+            return bad("run.fallback_episodes", "must be at least 1");
         }
         if !self.ppo.log_std_init.is_finite() {
             return bad("ppo.log_std_init", "must be finite");

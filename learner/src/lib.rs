@@ -32,6 +32,7 @@ pub mod config;
 pub mod ddpg;
 pub mod device;
 pub mod exploration;
+pub mod fallback;
 pub mod lqr;
 pub mod nets;
 pub mod policy;

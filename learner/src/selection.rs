@@ -88,6 +88,12 @@ impl Selection {
         self.history.last().map(|v| v.episode)
     }
 
+    /// The first validation's mean return: the starting policy's (with a
+    /// base controller, the base's own), the fallback rule's reference.
+    pub fn first_return(&self) -> Option<f64> {
+        self.history.first().map(|v| v.mean_return)
+    }
+
     /// The chosen validation: the best mean return, the earliest of equals.
     fn best(&self) -> Option<&Validation> {
         self.history.iter().fold(None, |best: Option<&Validation>, v| match best {

@@ -246,6 +246,67 @@ fn validation_selects_the_best_policy_and_survives_resume() {
     assert_eq!(resumed.summary.evaluation.eval_return, straight.summary.evaluation.eval_return);
 }
 
+/// `run.fallback_margin`: a training episode below the base's validation
+/// return minus the margin hands the next episodes to the selected policy,
+/// which acts deterministically (an episode it acted replays as its
+/// deterministic episode from the same start); training is the plain run's
+/// until the first such episode; the rule's state resumes exactly; a
+/// margin nothing falls below changes nothing; PPO and a run without
+/// validation are refused.
+#[test]
+fn the_selected_policy_acts_after_an_episode_below_the_margin() {
+    let mut cfg = tiny_with_episodes(8);
+    cfg.run.validation_episodes = 3;
+    cfg.run.validate_every = 2;
+    let plain = run(Algo::Ddpg, Connection::Local, cfg.clone(), tempfile::tempdir().unwrap().path(), false);
+    let mut guarded = cfg.clone();
+    (guarded.run.fallback_margin, guarded.run.fallback_episodes) = (Some(0.0), Some(2));
+    let dir = tempfile::tempdir().unwrap();
+    let straight = run(Algo::Ddpg, Connection::Local, guarded.clone(), dir.path(), false);
+
+    // Who acted, by the rule, from the returns.
+    let chosen = straight.summary.selection.clone().unwrap();
+    let mut rule = crate::fallback::Fallback::new(chosen.history[0].mean_return, 0.0, 2);
+    let acting: Vec<_> = straight.rows.iter().map(|r| { let who = rule.next(); rule.record(who, r.episode_return); who }).collect();
+    let first_selected = acting.iter().position(|&a| a == crate::fallback::Acting::Selected).expect("some episode falls below the base's return");
+    assert_eq!(straight.summary.fallback_episodes, Some(rule.selected_episodes()));
+    assert_eq!(timeless(&plain.rows[..first_selected]), timeless(&straight.rows[..first_selected]), "the same run until the fallback acts");
+    assert_ne!(timeless(&plain.rows), timeless(&straight.rows));
+    // An episode after the final choice's validation was acted by that policy.
+    let policy = Policy::load(dir.path()).unwrap();
+    let mut env = make_env("lti-paper").unwrap();
+    let probe = env.fresh();
+    let mut checked = 0;
+    for (k, row) in straight.rows.iter().enumerate().filter(|(k, _)| acting[*k] == crate::fallback::Acting::Selected && *k >= chosen.episode) {
+        let start = lcrl_sim::seeds::training(guarded.run.seed, k);
+        let (replayed, _) = lcrl_sim::evaluate::evaluate(env.as_mut(), "selected", 1, start, &mut |s| policy.act(probe.as_ref(), s), &mut |_| {}).unwrap();
+        assert!((replayed.mean_return - row.episode_return).abs() <= 1e-6 * row.episode_return.abs().max(1.0), "episode {}: {} against {}", k + 1, row.episode_return, replayed.mean_return);
+        checked += 1;
+    }
+    assert!(checked > 0, "no episode of the final selected policy to replay");
+
+    let resumed_dir = tempfile::tempdir().unwrap();
+    run_until(Algo::Ddpg, Connection::Local, guarded.clone(), resumed_dir.path(), false, Some(first_selected + 1));
+    let resumed = run(Algo::Ddpg, Connection::Local, guarded.clone(), resumed_dir.path(), true);
+    assert_eq!(timeless(&resumed.rows), timeless(&straight.rows), "the rule resumes where it stood");
+    assert_eq!(resumed.summary.fallback_episodes, straight.summary.fallback_episodes);
+
+    let mut never = cfg.clone();
+    never.run.fallback_margin = Some(1e9);
+    let unguarded = run(Algo::Ddpg, Connection::Local, never, tempfile::tempdir().unwrap().path(), false);
+    assert_eq!(timeless(&unguarded.rows), timeless(&plain.rows));
+    assert_eq!(unguarded.summary.fallback_episodes, Some(0));
+
+    let refused = |algo: Algo, cfg: TrainConfig| {
+        let request = TrainRequest { env: "lti-paper".into(), algo, connection: Connection::Local, graph: None, config: cfg, settings_source: "test".into(), run_dir: tempfile::tempdir().unwrap().path().into(), resume: false, stop_after: None };
+        train(&request, &mut |_| {}).err().map(|e| e.to_string()).unwrap_or_default()
+    };
+    assert!(refused(Algo::Ppo, guarded.clone()).contains("for DDPG"));
+    let mut unvalidated = guarded;
+    unvalidated.run.validation_episodes = 0;
+    assert!(unvalidated.validate().unwrap_err().to_string().contains("needs validation"));
+}
+
 /// The final evaluation runs on the run's own starts by default, and on
 /// the given ones with `run.eval_seed` (a study's: the best constant's),
 /// and says which: a = 0 on those starts matches a direct evaluation.

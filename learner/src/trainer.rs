@@ -22,7 +22,9 @@ use crate::summary::{evaluate_hand_over, write_summary, EvaluationPlan, RunSumma
 use crate::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::run_start::{prepare, GraphSource, Prepared, RunStart};
 use crate::config::{Algo, Connection, TrainConfig};
-use crate::selection::Selection;
+use crate::fallback::{Acting, Fallback};
+use crate::policy::Policy;
+use crate::selection::{selected_dir, Selection};
 use crate::{io, LearnerError};
 
 /// What to train, and where.
@@ -119,15 +121,25 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         let elapsed = prior_elapsed + started.elapsed().as_secs_f64();
         selection.validate(env.as_ref(), agent.as_ref(), &req.run_dir, &meta_for(rows.len(), optimization, elapsed))?;
     }
+    let mut fallback = fallback_rule(req.algo, &cfg, selection.as_ref(), &rows)?;
     for episode in rows.len()..last_episode {
         let episode_started = Instant::now();
+        let acting = fallback.as_ref().map_or(Acting::Current, Fallback::next);
+        let _span = tracing::info_span!("episode", episode = episode + 1, acting = ?acting).entered();
+        let selected = match acting {
+            Acting::Selected => Some(Policy::load(&selected_dir(&req.run_dir))?),
+            Acting::Current => None,
+        };
         agent.set_progress(episode as f64 / cfg.run.episodes as f64);
         let steps_before = agent.counters().env_steps;
         let mut state = env.reset(lcrl_sim::seeds::training(cfg.run.seed, episode))?;
         let (mut total, mut length, mut opt_seconds) = (0.0, 0, 0.0);
         loop {
             let obs = observe(env.as_ref(), &state);
-            let u = agent.explore(&obs, episode);
+            let u = match &selected {
+                Some(policy) => policy.act_normalized(&obs),
+                None => agent.explore(&obs, episode),
+            };
             let (step, next_obs) = step_env(env.as_mut(), &actions, &u)?;
             opt_seconds += agent.observe(crate::agent::Transition {
                 obs: &obs,
@@ -146,6 +158,12 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
             }
         }
         optimization += opt_seconds;
+        if let Some(rule) = fallback.as_mut() {
+            rule.record(acting, total);
+            if acting == Acting::Current && rule.next() == Acting::Selected {
+                tracing::info!(episode_return = total, threshold = rule.threshold(), "below the fallback threshold: the selected policy acts next");
+            }
+        }
         let metrics_now = env.episode_metrics();
         let row = EpisodeRow {
             episode: episode + 1,
@@ -191,7 +209,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     let last = crate::snapshot::snapshot(agent.as_ref(), &start.architecture(), 0)?;
     // The last validation chose the agent as it is: that is the last policy.
     let selected = match &chosen {
-        Some(c) if c.episode != rows.len() => Some(crate::snapshot::read_snapshot(&crate::selection::selected_dir(&req.run_dir))?),
+        Some(c) if c.episode != rows.len() => Some(crate::snapshot::read_snapshot(&selected_dir(&req.run_dir))?),
         _ => None,
     };
     let plan = EvaluationPlan {
@@ -222,7 +240,26 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         actor_params,
         critic_params,
         service: None,
+        fallback_episodes: fallback.as_ref().map(Fallback::selected_episodes),
     };
     write_summary(&req.run_dir, &summary)?;
     Ok(TrainOutcome { summary, rows })
+}
+
+/// The fallback rule a run asks for (`run.fallback_margin`), standing where
+/// the run's metrics so far leave it. Its reference is the first
+/// validation's return: the starting policy's, the base's.
+fn fallback_rule(algo: Algo, cfg: &TrainConfig, selection: Option<&Selection>, rows: &[EpisodeRow]) -> Result<Option<Fallback>, LearnerError> {
+    if cfg.run.fallback_margin.is_none() {
+        return Ok(None);
+    }
+    if algo != Algo::Ddpg {
+        return Err(LearnerError::Config(
+            "`run.fallback_margin` is for DDPG: the selected policy's episodes are off-policy data, which PPO cannot learn from; remove it".into(),
+        ));
+    }
+    let base_return = selection
+        .and_then(Selection::first_return)
+        .ok_or_else(|| LearnerError::Config("`run.fallback_margin` needs validation (run.validation_episodes ≥ 1)".into()))?;
+    Ok(cfg.run.fallback(base_return, rows.iter().map(|r| r.episode_return)))
 }

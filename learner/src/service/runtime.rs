@@ -491,6 +491,7 @@ impl TrainingLoop {
                 actors: None,
                 transport: None,
             }),
+            fallback_episodes: None,
         };
         drop(flow);
         crate::summary::write_summary(&self.shared.run_dir, &summary)
