@@ -297,11 +297,13 @@ fn the_selected_policy_acts_after_an_episode_below_the_margin() {
     assert_eq!(timeless(&unguarded.rows), timeless(&plain.rows));
     assert_eq!(unguarded.summary.fallback_episodes, Some(0));
 
-    let refused = |algo: Algo, cfg: TrainConfig| {
-        let request = TrainRequest { env: "lti-paper".into(), algo, connection: Connection::Local, graph: None, config: cfg, settings_source: "test".into(), run_dir: tempfile::tempdir().unwrap().path().into(), resume: false, stop_after: None };
+    let refused = |algo: Algo, cfg: TrainConfig, run_dir: &Path| {
+        let request = TrainRequest { env: "lti-paper".into(), algo, connection: Connection::Local, graph: None, config: cfg, settings_source: "test".into(), run_dir: run_dir.join("run"), resume: false, stop_after: None };
         train(&request, &mut |_| {}).err().map(|e| e.to_string()).unwrap_or_default()
     };
-    assert!(refused(Algo::Ppo, guarded.clone()).contains("for DDPG"));
+    let ppo_dir = tempfile::tempdir().unwrap();
+    assert!(refused(Algo::Ppo, guarded.clone(), ppo_dir.path()).contains("for DDPG"));
+    assert!(std::fs::read_dir(ppo_dir.path()).unwrap().next().is_none(), "refused before anything is written");
     let mut unvalidated = guarded;
     unvalidated.run.validation_episodes = 0;
     assert!(unvalidated.validate().unwrap_err().to_string().contains("needs validation"));

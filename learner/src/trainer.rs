@@ -75,6 +75,11 @@ pub fn step_env(env: &mut dyn Env, actions: &ActionMap, u: &[f32]) -> Result<(lc
 /// ones), writing the run directory as it goes.
 pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Result<TrainOutcome, LearnerError> {
     let started = Instant::now();
+    if req.config.run.fallback_margin.is_some() && req.algo != Algo::Ddpg {
+        return Err(LearnerError::Config(
+            "`run.fallback_margin` is for DDPG: the selected policy's episodes are off-policy data, which PPO cannot learn from; remove it".into(),
+        ));
+    }
     let mut env = make_env(&req.env)?;
     let prepared = prepare(
         RunStart {
@@ -121,7 +126,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         let elapsed = prior_elapsed + started.elapsed().as_secs_f64();
         selection.validate(env.as_ref(), agent.as_ref(), &req.run_dir, &meta_for(rows.len(), optimization, elapsed))?;
     }
-    let mut fallback = fallback_rule(req.algo, &cfg, selection.as_ref(), &rows)?;
+    let mut fallback = fallback_rule(&cfg, selection.as_ref(), &rows)?;
     for episode in rows.len()..last_episode {
         let episode_started = Instant::now();
         let acting = fallback.as_ref().map_or(Acting::Current, Fallback::next);
@@ -249,14 +254,9 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
 /// The fallback rule a run asks for (`run.fallback_margin`), standing where
 /// the run's metrics so far leave it. Its reference is the first
 /// validation's return: the starting policy's, the base's.
-fn fallback_rule(algo: Algo, cfg: &TrainConfig, selection: Option<&Selection>, rows: &[EpisodeRow]) -> Result<Option<Fallback>, LearnerError> {
+fn fallback_rule(cfg: &TrainConfig, selection: Option<&Selection>, rows: &[EpisodeRow]) -> Result<Option<Fallback>, LearnerError> {
     if cfg.run.fallback_margin.is_none() {
         return Ok(None);
-    }
-    if algo != Algo::Ddpg {
-        return Err(LearnerError::Config(
-            "`run.fallback_margin` is for DDPG: the selected policy's episodes are off-policy data, which PPO cannot learn from; remove it".into(),
-        ));
     }
     let base_return = selection
         .and_then(Selection::first_return)

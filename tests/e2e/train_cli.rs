@@ -198,6 +198,15 @@ fn bad_input_fails_cleanly() {
         .output()
         .unwrap();
     assert_clean_failure(&out, "--graph only applies");
+
+    // The fallback to the selected policy: DDPG with validation only.
+    let fallback = work.path().join("fallback.toml");
+    fs::write(&fallback, "[run]\nfallback_margin = 2.0\n").unwrap();
+    assert_clean_failure(&train(&work.path().join("r3"), &fallback, &[]), "needs validation");
+    fs::write(&fallback, "[run]\nfallback_margin = 2.0\nvalidation_episodes = 3\n").unwrap();
+    let out = lcrl().args(["train", "--env", "lti-paper", "--algo", "ppo", "--connection", "global", "--config"]).arg(&fallback).arg("--run-dir").arg(work.path().join("r4")).output().unwrap();
+    assert_clean_failure(&out, "is for DDPG");
+    assert!(!work.path().join("r4").exists(), "a refused run leaves no folder");
 }
 
 /// Peg runs record the return's terms per episode (metrics.csv) and for the
