@@ -363,6 +363,10 @@ pub struct RunConfig {
     /// Episodes the selected policy acts after each such episode; unset: 5.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fallback_episodes: Option<usize>,
+    /// The fallback's gate: the current policy also acts only while its
+    /// latest validation scored within the margin.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub fallback_gate: bool,
 }
 
 impl Default for TrainConfig {
@@ -448,9 +452,9 @@ impl Default for PpoConfig {
 impl RunConfig {
     /// The fallback rule this run asks for, given its base's validation
     /// return (None when `fallback_margin` is unset).
-    pub fn fallback(&self, base_return: f64, returns: impl IntoIterator<Item = f64>) -> Option<crate::fallback::Fallback> {
-        let margin = self.fallback_margin?;
-        Some(crate::fallback::Fallback::replayed(base_return, margin, self.fallback_episodes.unwrap_or(5), returns))
+    pub fn fallback(&self, base_return: f64) -> Option<crate::fallback::Fallback> {
+        let rule = crate::fallback::Fallback::new(base_return, self.fallback_margin?, self.fallback_episodes.unwrap_or(5));
+        Some(if self.fallback_gate { rule.gated() } else { rule })
     }
 
     /// The final evaluation's first start: `eval_seed`, or the run's own
@@ -477,6 +481,7 @@ impl Default for RunConfig {
             validate_every: 20,
             fallback_margin: None,
             fallback_episodes: None,
+            fallback_gate: false,
         }
     }
 }
@@ -598,6 +603,9 @@ impl TrainConfig {
             if self.run.validation_episodes == 0 {
                 return bad("run.fallback_margin", "needs validation (run.validation_episodes ≥ 1): the fallback acts with the run's selected policy");
             }
+        }
+        if self.run.fallback_gate && self.run.fallback_margin.is_none() {
+            return bad("run.fallback_gate", "needs run.fallback_margin (the gate's threshold is the base's validation return minus it)");
         }
         if self.run.fallback_episodes == Some(0) {
             return bad("run.fallback_episodes", "must be at least 1");

@@ -13,8 +13,15 @@
 //! episode's transitions go to the replay buffer and the updates go on as
 //! always, so the current policy keeps learning while it is not acting.
 //!
-//! The rule's state follows from the episode returns alone, so a resumed
-//! run rebuilds it exactly from its metrics ([`Fallback::replayed`]).
+//! With the gate (`fallback_gate`), the current policy also acts only
+//! while its latest validation (held-out starts, in simulation) scored
+//! within the margin: a policy that fails its validation does not get to
+//! try episodes on the robot, and the rule's retries after a bad episode
+//! wait for a validation that passes instead of probing.
+//!
+//! The rule's state follows from the episode returns and the validations
+//! alone, so a resumed run rebuilds it exactly from its metrics and its
+//! selection record ([`Fallback::replayed`]).
 //! DDPG only: the selected policy's episodes are off-policy data, which
 //! PPO cannot use.
 
@@ -37,6 +44,10 @@ pub struct Fallback {
     episodes: usize,
     /// Selected-policy episodes left before the current policy acts again.
     left: usize,
+    /// Gate on validations: whether the current policy's latest one scored
+    /// below the threshold (it may not act until one passes).
+    gate: bool,
+    failed_validation: bool,
     /// Episodes the selected policy acted so far.
     acted: usize,
 }
@@ -45,22 +56,39 @@ impl Fallback {
     /// The rule for a run whose base scored `base_return` on the
     /// validation starts.
     pub fn new(base_return: f64, margin: f64, episodes: usize) -> Self {
-        Fallback { below: base_return - margin, episodes, left: 0, acted: 0 }
+        Fallback { below: base_return - margin, episodes, left: 0, gate: false, failed_validation: false, acted: 0 }
     }
 
-    /// The rule after the episodes of `returns` (a resumed run's metrics),
-    /// as it stood when they were run.
-    pub fn replayed(base_return: f64, margin: f64, episodes: usize, returns: impl IntoIterator<Item = f64>) -> Self {
-        let mut rule = Fallback::new(base_return, margin, episodes);
-        for episode_return in returns {
-            rule.record(rule.next(), episode_return);
+    /// The same rule, with the gate on validations.
+    pub fn gated(self) -> Self {
+        Fallback { gate: true, ..self }
+    }
+
+    /// The rule after the episodes of `returns` (a resumed run's metrics)
+    /// and the validations `(episodes done, mean return)` made between
+    /// them, as it stood when they were run.
+    pub fn replayed(mut self, returns: &[f64], validations: &[(usize, f64)]) -> Self {
+        for (done, &episode_return) in returns.iter().enumerate() {
+            for &(_, mean_return) in validations.iter().filter(|(episode, _)| *episode == done) {
+                self.validated(mean_return);
+            }
+            self.record(self.next(), episode_return);
         }
-        rule
+        for &(_, mean_return) in validations.iter().filter(|(episode, _)| *episode == returns.len()) {
+            self.validated(mean_return);
+        }
+        self
     }
 
     /// The policy that acts in the next training episode.
     pub fn next(&self) -> Acting {
-        if self.left > 0 { Acting::Selected } else { Acting::Current }
+        if self.left > 0 || (self.gate && self.failed_validation) { Acting::Selected } else { Acting::Current }
+    }
+
+    /// Records a validation of the current policy (its mean return on the
+    /// held-out starts); only the gate reads it.
+    pub fn validated(&mut self, mean_return: f64) {
+        self.failed_validation = mean_return < self.below;
     }
 
     /// Records a finished training episode: who acted and its return.
@@ -118,8 +146,39 @@ mod tests {
             for &r in &returns[..cut] {
                 live.record(live.next(), r);
             }
-            assert_eq!(Fallback::replayed(-3.5, 2.0, 2, returns[..cut].iter().copied()), live, "after {cut} episodes");
+            assert_eq!(Fallback::new(-3.5, 2.0, 2).replayed(&returns[..cut], &[]), live, "after {cut} episodes");
         }
+        // With the gate, validations after 0, 3 and 6 episodes (the one
+        // after 3 fails) interleave with the episodes.
+        let validations = [(0, -3.5), (3, -6.0), (6, -4.0), (9, -3.0)];
+        for cut in 0..=returns.len() {
+            let mut live = Fallback::new(-3.5, 2.0, 2).gated();
+            for (done, &r) in returns[..cut].iter().enumerate() {
+                validations.iter().filter(|v| v.0 == done).for_each(|v| live.validated(v.1));
+                live.record(live.next(), r);
+            }
+            validations.iter().filter(|v| v.0 == cut).for_each(|v| live.validated(v.1));
+            assert_eq!(Fallback::new(-3.5, 2.0, 2).gated().replayed(&returns[..cut], &validations), live, "after {cut} episodes");
+        }
+    }
+
+    #[test]
+    fn the_gate_keeps_a_policy_that_failed_its_validation_from_acting() {
+        let mut rule = Fallback::new(-3.5, 2.0, 2).gated();
+        rule.validated(-3.4);
+        assert_eq!(rule.next(), Acting::Current);
+        rule.validated(-6.0);
+        // However many episodes pass, until a validation passes.
+        for _ in 0..7 {
+            assert_eq!(rule.next(), Acting::Selected);
+            rule.record(Acting::Selected, -3.0);
+        }
+        rule.validated(-5.5);
+        assert_eq!(rule.next(), Acting::Current, "−5.5 is not below −5.5");
+        // Without the gate, a failed validation changes nothing.
+        let mut plain = Fallback::new(-3.5, 2.0, 2);
+        plain.validated(-60.0);
+        assert_eq!(plain.next(), Acting::Current);
     }
 
     #[test]

@@ -94,6 +94,11 @@ impl Selection {
         self.history.first().map(|v| v.mean_return)
     }
 
+    /// Every validation so far: (episodes done, mean return).
+    pub fn validations(&self) -> Vec<(usize, f64)> {
+        self.history.iter().map(|v| (v.episode, v.mean_return)).collect()
+    }
+
     /// The chosen validation: the best mean return, the earliest of equals.
     fn best(&self) -> Option<&Validation> {
         self.history.iter().fold(None, |best: Option<&Validation>, v| match best {

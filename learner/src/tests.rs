@@ -291,6 +291,23 @@ fn the_selected_policy_acts_after_an_episode_below_the_margin() {
     assert_eq!(timeless(&resumed.rows), timeless(&straight.rows), "the rule resumes where it stood");
     assert_eq!(resumed.summary.fallback_episodes, straight.summary.fallback_episodes);
 
+    // The gate: the rule replayed from the run's returns and validations
+    // counts the run's fallback episodes, and the run resumes exactly.
+    let mut gated = guarded.clone();
+    gated.run.fallback_gate = true;
+    let gated_straight = run(Algo::Ddpg, Connection::Local, gated.clone(), tempfile::tempdir().unwrap().path(), false);
+    let history = gated_straight.summary.selection.clone().unwrap().history;
+    let validations: Vec<(usize, f64)> = history.iter().map(|v| (v.episode, v.mean_return)).collect();
+    let returns: Vec<f64> = gated_straight.rows.iter().map(|r| r.episode_return).collect();
+    let replayed = crate::fallback::Fallback::new(history[0].mean_return, 0.0, 2).gated().replayed(&returns, &validations);
+    assert_eq!(gated_straight.summary.fallback_episodes, Some(replayed.selected_episodes()));
+    assert!(history.iter().skip(1).any(|v| v.mean_return < history[0].mean_return), "a validation below the base's, for the gate to act on");
+    assert_ne!(timeless(&gated_straight.rows), timeless(&straight.rows), "the gate held a policy back that the plain rule let act");
+    let gated_dir = tempfile::tempdir().unwrap();
+    run_until(Algo::Ddpg, Connection::Local, gated.clone(), gated_dir.path(), false, Some(3));
+    let gated_resumed = run(Algo::Ddpg, Connection::Local, gated, gated_dir.path(), true);
+    assert_eq!(timeless(&gated_resumed.rows), timeless(&gated_straight.rows), "the gate resumes where it stood");
+
     let mut never = cfg.clone();
     never.run.fallback_margin = Some(1e9);
     let unguarded = run(Algo::Ddpg, Connection::Local, never, tempfile::tempdir().unwrap().path(), false);

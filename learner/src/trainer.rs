@@ -203,7 +203,10 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         }
         if let Some(selection) = selection.as_mut().filter(|s| s.due(done, last_episode)) {
             let elapsed = prior_elapsed + started.elapsed().as_secs_f64();
-            selection.validate(env.as_ref(), agent.as_ref(), &req.run_dir, &meta_for(done, optimization, elapsed))?;
+            let validation = selection.validate(env.as_ref(), agent.as_ref(), &req.run_dir, &meta_for(done, optimization, elapsed))?;
+            if let Some(rule) = fallback.as_mut() {
+                rule.validated(validation.mean_return);
+            }
         }
     }
     prior_opt = optimization;
@@ -261,5 +264,7 @@ fn fallback_rule(cfg: &TrainConfig, selection: Option<&Selection>, rows: &[Episo
     let base_return = selection
         .and_then(Selection::first_return)
         .ok_or_else(|| LearnerError::Config("`run.fallback_margin` needs validation (run.validation_episodes ≥ 1)".into()))?;
-    Ok(cfg.run.fallback(base_return, rows.iter().map(|r| r.episode_return)))
+    let returns: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();
+    let validations = selection.map(Selection::validations).unwrap_or_default();
+    Ok(cfg.run.fallback(base_return).map(|rule| rule.replayed(&returns, &validations)))
 }

@@ -203,6 +203,8 @@ fn bad_input_fails_cleanly() {
     let fallback = work.path().join("fallback.toml");
     fs::write(&fallback, "[run]\nfallback_margin = 2.0\n").unwrap();
     assert_clean_failure(&train(&work.path().join("r3"), &fallback, &[]), "needs validation");
+    fs::write(&fallback, "[run]\nfallback_gate = true\nvalidation_episodes = 3\n").unwrap();
+    assert_clean_failure(&train(&work.path().join("r3"), &fallback, &[]), "needs run.fallback_margin");
     fs::write(&fallback, "[run]\nfallback_margin = 2.0\nvalidation_episodes = 3\n").unwrap();
     let out = lcrl().args(["train", "--env", "lti-paper", "--algo", "ppo", "--connection", "global", "--config"]).arg(&fallback).arg("--run-dir").arg(work.path().join("r4")).output().unwrap();
     assert_clean_failure(&out, "is for DDPG");
