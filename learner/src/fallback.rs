@@ -22,6 +22,7 @@
 //! The rule's state follows from the episode returns and the validations
 //! alone, so a resumed run rebuilds it exactly from its metrics and its
 //! selection record ([`Fallback::replayed`]).
+//!
 //! DDPG only: the selected policy's episodes are off-policy data, which
 //! PPO cannot use.
 
