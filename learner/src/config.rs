@@ -367,6 +367,10 @@ pub struct RunConfig {
     /// latest validation scored within the margin.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub fallback_gate: bool,
+    /// The selected policy acts in fallback episodes with the run's
+    /// exploration noise around it (off: deterministic).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub fallback_explore: bool,
 }
 
 impl Default for TrainConfig {
@@ -482,6 +486,7 @@ impl Default for RunConfig {
             fallback_margin: None,
             fallback_episodes: None,
             fallback_gate: false,
+            fallback_explore: false,
         }
     }
 }
@@ -604,8 +609,10 @@ impl TrainConfig {
                 return bad("run.fallback_margin", "needs validation (run.validation_episodes ≥ 1): the fallback acts with the run's selected policy");
             }
         }
-        if self.run.fallback_gate && self.run.fallback_margin.is_none() {
-            return bad("run.fallback_gate", "needs run.fallback_margin (the gate's threshold is the base's validation return minus it)");
+        for (field, set) in [("run.fallback_gate", self.run.fallback_gate), ("run.fallback_explore", self.run.fallback_explore)] {
+            if set && self.run.fallback_margin.is_none() {
+                return bad(field, "needs run.fallback_margin (the fallback's threshold is the base's validation return minus it)");
+            }
         }
         if self.run.fallback_episodes == Some(0) {
             return bad("run.fallback_episodes", "must be at least 1");

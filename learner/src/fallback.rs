@@ -26,6 +26,35 @@
 //! DDPG only: the selected policy's episodes are off-policy data, which
 //! PPO cannot use.
 
+/// The selected policy as it acts in a fallback episode: deterministic, or
+/// (`fallback_explore`) with the run's exploration noise around it, so
+/// that the critic also learns from actions beside the selected ones.
+pub struct FallbackPolicy {
+    policy: crate::policy::Policy,
+    /// The noise's standard deviation and its random stream, seeded per
+    /// episode so that a resumed run draws the same noise.
+    noise: Option<(f64, rand_chacha::ChaCha8Rng)>,
+}
+
+impl FallbackPolicy {
+    /// The selected policy of `run_dir`, acting in training episode
+    /// `episode_seed`'s start; `noise_std`: explore with this deviation.
+    pub fn load(run_dir: &std::path::Path, noise_std: Option<f64>, episode_seed: u64) -> Result<Self, crate::LearnerError> {
+        use rand::SeedableRng;
+        let policy = crate::policy::Policy::load(&crate::selection::selected_dir(run_dir))?;
+        Ok(FallbackPolicy { policy, noise: noise_std.map(|std| (std, rand_chacha::ChaCha8Rng::seed_from_u64(episode_seed ^ 0xFA11_BAC4))) })
+    }
+
+    /// u for a normalized observation.
+    pub fn act(&mut self, obs: &[f32]) -> Vec<f32> {
+        let mean = self.policy.act_normalized(obs);
+        match &mut self.noise {
+            Some((std, rng)) => crate::exploration::gaussian(&mean, &vec![*std; mean.len()], true, rng),
+            None => mean,
+        }
+    }
+}
+
 /// Which policy acts in a training episode.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Acting {

@@ -308,6 +308,18 @@ fn the_selected_policy_acts_after_an_episode_below_the_margin() {
     let gated_resumed = run(Algo::Ddpg, Connection::Local, gated, gated_dir.path(), true);
     assert_eq!(timeless(&gated_resumed.rows), timeless(&gated_straight.rows), "the gate resumes where it stood");
 
+    // Exploring fallback episodes: the same run until the first of them,
+    // which the noise changes; resumed, the same noise again.
+    let mut exploring = guarded.clone();
+    exploring.run.fallback_explore = true;
+    let explored = run(Algo::Ddpg, Connection::Local, exploring.clone(), tempfile::tempdir().unwrap().path(), false);
+    assert_eq!(timeless(&explored.rows[..first_selected]), timeless(&straight.rows[..first_selected]));
+    assert_ne!(explored.rows[first_selected].episode_return, straight.rows[first_selected].episode_return, "the noise changes the fallback's episode");
+    let explored_dir = tempfile::tempdir().unwrap();
+    run_until(Algo::Ddpg, Connection::Local, exploring.clone(), explored_dir.path(), false, Some(first_selected + 1));
+    let explored_resumed = run(Algo::Ddpg, Connection::Local, exploring, explored_dir.path(), true);
+    assert_eq!(timeless(&explored_resumed.rows), timeless(&explored.rows), "the fallback's noise resumes exactly");
+
     let mut never = cfg.clone();
     never.run.fallback_margin = Some(1e9);
     let unguarded = run(Algo::Ddpg, Connection::Local, never, tempfile::tempdir().unwrap().path(), false);

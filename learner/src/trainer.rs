@@ -22,8 +22,7 @@ use crate::summary::{evaluate_hand_over, write_summary, EvaluationPlan, RunSumma
 use crate::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::run_start::{prepare, GraphSource, Prepared, RunStart};
 use crate::config::{Algo, Connection, TrainConfig};
-use crate::fallback::{Acting, Fallback};
-use crate::policy::Policy;
+use crate::fallback::{Acting, Fallback, FallbackPolicy};
 use crate::selection::{selected_dir, Selection};
 use crate::{io, LearnerError};
 
@@ -131,8 +130,11 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         let episode_started = Instant::now();
         let acting = fallback.as_ref().map_or(Acting::Current, Fallback::next);
         let _span = tracing::info_span!("episode", episode = episode + 1, acting = ?acting).entered();
-        let selected = match acting {
-            Acting::Selected => Some(Policy::load(&selected_dir(&req.run_dir))?),
+        let mut selected = match acting {
+            Acting::Selected => {
+                let noise = cfg.run.fallback_explore.then(|| agent.exploration(episode).map_or(0.0, |(_, std)| std));
+                Some(FallbackPolicy::load(&req.run_dir, noise, lcrl_sim::seeds::training(cfg.run.seed, episode))?)
+            }
             Acting::Current => None,
         };
         agent.set_progress(episode as f64 / cfg.run.episodes as f64);
@@ -141,8 +143,8 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         let (mut total, mut length, mut opt_seconds) = (0.0, 0, 0.0);
         loop {
             let obs = observe(env.as_ref(), &state);
-            let u = match &selected {
-                Some(policy) => policy.act_normalized(&obs),
+            let u = match selected.as_mut() {
+                Some(policy) => policy.act(&obs),
                 None => agent.explore(&obs, episode),
             };
             let (step, next_obs) = step_env(env.as_mut(), &actions, &u)?;
