@@ -33,7 +33,7 @@ pub struct FallbackPolicy {
     policy: crate::policy::Policy,
     /// The noise's standard deviation and its random stream, seeded per
     /// episode so that a resumed run draws the same noise.
-    noise: Option<(f64, rand_chacha::ChaCha8Rng)>,
+    noise: Option<(Vec<f64>, rand_chacha::ChaCha8Rng)>,
 }
 
 impl FallbackPolicy {
@@ -42,14 +42,15 @@ impl FallbackPolicy {
     pub fn load(run_dir: &std::path::Path, noise_std: Option<f64>, episode_seed: u64) -> Result<Self, crate::LearnerError> {
         use rand::SeedableRng;
         let policy = crate::policy::Policy::load(&crate::selection::selected_dir(run_dir))?;
-        Ok(FallbackPolicy { policy, noise: noise_std.map(|std| (std, rand_chacha::ChaCha8Rng::seed_from_u64(episode_seed ^ 0xFA11_BAC4))) })
+        let n = policy.architecture.shape.action_dim;
+        Ok(FallbackPolicy { policy, noise: noise_std.map(|std| (vec![std; n], rand_chacha::ChaCha8Rng::seed_from_u64(episode_seed ^ 0xFA11_BAC4))) })
     }
 
     /// u for a normalized observation.
     pub fn act(&mut self, obs: &[f32]) -> Vec<f32> {
         let mean = self.policy.act_normalized(obs);
         match &mut self.noise {
-            Some((std, rng)) => crate::exploration::gaussian(&mean, &vec![*std; mean.len()], true, rng),
+            Some((std, rng)) => crate::exploration::gaussian(&mean, std, true, rng),
             None => mean,
         }
     }
