@@ -2,9 +2,9 @@
 //! count) kept as named tensors so a checkpoint can store and restore it
 //! exactly. tch's built-in optimizer hides that state.
 
-use std::collections::BTreeMap;
-
 use tch::{nn::VarStore, Tensor};
+
+use crate::flat::FlatParams;
 
 pub struct Adam {
     lr: f64,
@@ -12,22 +12,24 @@ pub struct Adam {
     beta2: f64,
     eps: f64,
     step: i64,
-    /// Variable name → (parameter, first moment, second moment), in name order.
-    slots: BTreeMap<String, (Tensor, Tensor, Tensor)>,
+    /// The trainable variables, moved into one buffer (`flat.rs`), so a
+    /// step is a dozen operations on the whole network, not per variable.
+    params: FlatParams,
+    /// First and second moments, laid out as `params`.
+    m: Tensor,
+    v: Tensor,
 }
 
 impl Adam {
     pub fn new(vs: &VarStore, lr: f64) -> Self {
-        let slots = vs
-            .variables()
-            .into_iter()
-            .filter(|(_, t)| t.requires_grad())
-            .map(|(name, p)| {
-                let (m, v) = (p.zeros_like(), p.zeros_like());
-                (name, (p, m, v))
-            })
-            .collect();
-        Adam { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, step: 0, slots }
+        let params = FlatParams::new(vs.variables().into_iter().filter(|(_, t)| t.requires_grad()));
+        let (m, v) = (params.flat().zeros_like(), params.flat().zeros_like());
+        Adam { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, step: 0, params, m, v }
+    }
+
+    /// The parameters as one buffer (for a soft update of a target copy).
+    pub fn params(&self) -> &FlatParams {
+        &self.params
     }
 
     pub fn set_lr(&mut self, lr: f64) {
@@ -35,49 +37,47 @@ impl Adam {
     }
 
     pub fn zero_grad(&mut self) {
-        for (p, _, _) in self.slots.values_mut() {
-            p.zero_grad();
-        }
+        self.params.zero_grad();
     }
 
     /// Scales all gradients so their global L2 norm is at most `max_norm`.
     pub fn clip_grad_norm(&mut self, max_norm: f64) {
-        let total: f64 = self
-            .slots
-            .values()
-            .filter(|(p, _, _)| p.grad().defined())
-            .map(|(p, _, _)| f64::try_from(p.grad().square().sum(tch::Kind::Double)).unwrap_or(0.0))
-            .sum::<f64>()
-            .sqrt();
+        let grads: Vec<Tensor> = self.params.slices(self.params.flat()).map(|(_, p, _)| p.grad()).filter(Tensor::defined).collect();
+        let total: f64 = grads.iter().map(|g| f64::try_from(g.square().sum(tch::Kind::Double)).unwrap_or(0.0)).sum::<f64>().sqrt();
         if total > max_norm {
             let scale = max_norm / (total + 1e-6);
             tch::no_grad(|| {
-                for (p, _, _) in self.slots.values() {
-                    let mut g = p.grad();
-                    if g.defined() {
-                        let _ = g.g_mul_scalar_(scale);
-                    }
+                for mut g in grads {
+                    let _ = g.g_mul_scalar_(scale);
                 }
             });
         }
     }
 
-    /// One Adam step on the accumulated gradients.
+    /// One Adam step on the accumulated gradients. With every variable's
+    /// gradient at hand, on the whole buffer at once; otherwise per
+    /// variable, skipping those without one (PyTorch's rule). Both give the
+    /// same numbers per element.
     pub fn step(&mut self) {
         self.step += 1;
         let bias1 = 1.0 - self.beta1.powi(self.step as i32);
         let bias2 = 1.0 - self.beta2.powi(self.step as i32);
         let step_size = self.lr / bias1;
-        tch::no_grad(|| {
-            for (p, m, v) in self.slots.values_mut() {
-                let g = p.grad();
-                if !g.defined() {
-                    continue;
+        let update = |p: &mut Tensor, m: &mut Tensor, v: &mut Tensor, g: &Tensor| {
+            let _ = m.g_mul_scalar_(self.beta1).g_add_(&(g * (1.0 - self.beta1)));
+            let _ = v.g_mul_scalar_(self.beta2).g_add_(&(g * g * (1.0 - self.beta2)));
+            let denom = (&*v / bias2).sqrt() + self.eps;
+            let _ = p.g_sub_(&(&*m / denom * step_size));
+        };
+        tch::no_grad(|| match self.params.gradients() {
+            Some(g) => update(&mut self.params.flat().shallow_clone(), &mut self.m, &mut self.v, &g),
+            None => {
+                for ((_, p, mut m), (_, _, mut v)) in self.params.slices(&self.m).zip(self.params.slices(&self.v)) {
+                    let g = p.grad();
+                    if g.defined() {
+                        update(&mut p.shallow_clone(), &mut m, &mut v, &g);
+                    }
                 }
-                let _ = m.g_mul_scalar_(self.beta1).g_add_(&(&g * (1.0 - self.beta1)));
-                let _ = v.g_mul_scalar_(self.beta2).g_add_(&(&g * &g * (1.0 - self.beta2)));
-                let denom = (&*v / bias2).sqrt() + self.eps;
-                let _ = p.g_sub_(&(&*m / denom * step_size));
             }
         });
     }
@@ -85,9 +85,10 @@ impl Adam {
     /// The state as named tensors: `<name>.m`, `<name>.v`, and `step`.
     pub fn state(&self) -> Vec<(String, Tensor)> {
         let mut out: Vec<(String, Tensor)> = self
-            .slots
-            .iter()
-            .flat_map(|(name, (_, m, v))| [(format!("{name}.m"), m.shallow_clone()), (format!("{name}.v"), v.shallow_clone())])
+            .params
+            .slices(&self.m)
+            .zip(self.params.slices(&self.v))
+            .flat_map(|((name, _, m), (_, _, v))| [(format!("{name}.m"), m), (format!("{name}.v"), v)])
             .collect();
         out.push(("step".into(), Tensor::from(self.step)));
         out
@@ -98,10 +99,10 @@ impl Adam {
         let find = |key: &str| named.iter().find(|(n, _)| n == key).map(|(_, t)| t);
         let step = find("step").ok_or("optimizer state lacks `step`")?;
         self.step = i64::try_from(step).map_err(|e| e.to_string())?;
-        for (name, (_, m, v)) in self.slots.iter_mut() {
+        for ((name, _, mut m), (_, _, mut v)) in self.params.slices(&self.m).zip(self.params.slices(&self.v)) {
             let saved_m = find(&format!("{name}.m")).ok_or_else(|| format!("optimizer state lacks {name}.m"))?;
             let saved_v = find(&format!("{name}.v")).ok_or_else(|| format!("optimizer state lacks {name}.v"))?;
-            if saved_m.size() != m.size() {
+            if saved_m.size() != m.size() || saved_v.size() != v.size() {
                 return Err(format!("optimizer state for {name} has shape {:?}, expected {:?}", saved_m.size(), m.size()));
             }
             tch::no_grad(|| {
@@ -110,5 +111,56 @@ impl Adam {
             });
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tch::{nn, Kind};
+
+    /// A store with `w` [3, 4] and `b` [4] from fixed values, and, with
+    /// `idle`, a variable that takes no part in the loss.
+    fn store(idle: bool) -> (nn::VarStore, Tensor, Tensor) {
+        let vs = nn::VarStore::new(tch::Device::Cpu);
+        let w = vs.root().var_copy("w", &Tensor::from_slice(&(0..12).map(|k| (k as f32 * 0.7).sin()).collect::<Vec<_>>()).view([3, 4]));
+        let b = vs.root().var_copy("b", &Tensor::from_slice(&[0.1f32, -0.2, 0.3, -0.4]));
+        if idle {
+            let _ = vs.root().var_copy("c_idle", &Tensor::from_slice(&[5.0f32, 6.0]));
+        }
+        (vs, w, b)
+    }
+
+    fn train(idle: bool) -> (Vec<f32>, Vec<(String, Vec<f32>)>) {
+        let (vs, w, b) = store(idle);
+        let mut adam = Adam::new(&vs, 0.01);
+        let x = Tensor::from_slice(&(0..6).map(|k| k as f32 * 0.3 - 1.0).collect::<Vec<_>>()).view([2, 3]);
+        for _ in 0..5 {
+            let loss = (x.matmul(&w) + &b).tanh().square().mean(Kind::Float);
+            adam.zero_grad();
+            loss.backward();
+            adam.step();
+        }
+        let values = [&w, &b].iter().flat_map(|t| Vec::<f32>::try_from(t.flatten(0, -1)).unwrap()).collect();
+        let state = adam.state().into_iter().filter(|(n, _)| !n.starts_with("c_idle") && n != "step").map(|(n, t)| (n, Vec::<f32>::try_from(t.flatten(0, -1)).unwrap())).collect();
+        (values, state)
+    }
+
+    /// The whole-buffer step (every gradient there) and the per-variable
+    /// step (one variable without a gradient) give the same bits, and the
+    /// variable without a gradient does not move.
+    #[test]
+    fn the_flat_step_equals_the_per_variable_step() {
+        let (flat, flat_state) = train(false);
+        let (per_variable, per_variable_state) = train(true);
+        assert_eq!(flat, per_variable);
+        assert_eq!(flat_state, per_variable_state);
+        let (vs, _, _) = store(true);
+        let mut adam = Adam::new(&vs, 0.01);
+        let idle = vs.variables()["c_idle"].shallow_clone();
+        let loss = vs.variables()["w"].sum(Kind::Float);
+        loss.backward();
+        adam.step();
+        assert_eq!(Vec::<f32>::try_from(&idle).unwrap(), vec![5.0, 6.0]);
     }
 }

@@ -35,8 +35,9 @@ use crate::agent::{
 };
 use crate::config::{Connection, DdpgConfig, NetworkConfig, WarmupActions};
 use crate::exploration;
+use crate::flat::FlatParams;
 use crate::nets::{batch, ActorNet, Mlp};
-use crate::replay::ReplayBuffer;
+use crate::replay::{DeviceMirror, ReplayBuffer};
 use crate::LearnerError;
 
 pub struct Ddpg {
@@ -52,9 +53,12 @@ pub struct Ddpg {
     /// Q(s, a): one critic (Algorithm 2), or two with `twin_critics`. The
     /// actor follows the first.
     critics: Vec<Critic>,
-    /// (target, source) variable pairs for the soft update.
-    soft_pairs: Vec<(Tensor, Tensor)>,
+    /// (target, source buffer) per network for the soft update.
+    soft_pairs: Vec<(FlatParams, Tensor)>,
     replay: ReplayBuffer,
+    /// On a GPU: the replay buffer's copy there, where minibatches are
+    /// gathered (no host-to-device copy of a whole minibatch per update).
+    mirror: Option<DeviceMirror>,
     rng: ChaCha8Rng,
     counters: Counters,
     critic_updates: u64,
@@ -119,18 +123,22 @@ impl Ddpg {
         if cfg.twin_critics {
             critics.push(Critic::new("critic2", cfg, net, m + n, seed ^ 0xC718, device));
         }
-        let mut soft_pairs = Vec::new();
-        let stores = std::iter::once((&actor_target_vs, &actor_vs)).chain(critics.iter().map(|c| (&c.target_vs, &c.vs)));
-        for (target, source) in stores {
-            let sources = source.variables();
-            for (name, t) in target.variables() {
-                if let Some(s) = sources.get(&name) {
-                    soft_pairs.push((t, s.shallow_clone()));
-                }
-            }
-        }
+        let replay = ReplayBuffer::new(cfg.buffer_capacity, m, n);
+        let mirror = device.is_cuda().then(|| DeviceMirror::new(&replay, device));
+        let actor_opt = Adam::new(&actor_vs, cfg.actor_lr);
+        // Each target's variables in one buffer laid out as its source's
+        // (the optimizer's), so the soft update is a few operations per
+        // network (flat.rs).
+        let sources = std::iter::once((&actor_target_vs, &actor_opt)).chain(critics.iter().map(|c| (&c.target_vs, &c.opt)));
+        let soft_pairs = sources
+            .map(|(target, source)| {
+                let target = FlatParams::new(target.variables());
+                assert!(target.same_layout(source.params()), "a target network is built as its source");
+                (target, source.params().flat().shallow_clone())
+            })
+            .collect();
         Ddpg {
-            actor_opt: Adam::new(&actor_vs, cfg.actor_lr),
+            actor_opt,
             cfg: cfg.clone(),
             device,
             obs_dim: m,
@@ -141,7 +149,8 @@ impl Ddpg {
             actor_target,
             critics,
             soft_pairs,
-            replay: ReplayBuffer::new(cfg.buffer_capacity, m, n),
+            replay,
+            mirror,
             rng: ChaCha8Rng::seed_from_u64(seed ^ 0xDD96),
             counters: Counters::default(),
             critic_updates: 0,
@@ -178,13 +187,16 @@ impl Ddpg {
 
     /// One DDPG update on a minibatch from the replay buffer.
     fn update(&mut self) {
-        let b = self.replay.sample(self.cfg.batch_size, &mut self.rng).to_device(self.device);
+        let b = match self.mirror.as_mut() {
+            Some(mirror) => mirror.sample(&self.replay, self.cfg.batch_size, &mut self.rng),
+            None => self.replay.sample(self.cfg.batch_size, &mut self.rng).to_device(self.device),
+        };
         let target: Tensor = tch::no_grad(|| {
             let mut next_action = self.actor_target.forward(&b.next_obs);
             if self.cfg.target_noise > 0.0 {
                 let noise = Normal::new(0.0, self.cfg.target_noise).expect("validated target_noise");
                 let values: Vec<f32> = (0..next_action.numel()).map(|_| noise.sample(&mut self.rng).clamp(-0.5, 0.5) as f32).collect();
-                let noise = Tensor::from_slice(&values).to_device(self.device).view_as(&next_action);
+                let noise = crate::device::to_device_async(Tensor::from_slice(&values), self.device).view_as(&next_action);
                 next_action = (next_action + noise).clamp(-1.0, 1.0);
             }
             // With twin critics, the smaller of the two target values (TD3).
@@ -233,9 +245,9 @@ impl Ddpg {
 
         let tau = self.cfg.tau;
         tch::no_grad(|| {
-            for (target, source) in &mut self.soft_pairs {
-                let mixed = source.as_ref() * tau + target.as_ref() * (1.0 - tau);
-                target.copy_(&mixed);
+            for (target, source) in &self.soft_pairs {
+                let mixed = source * tau + target.flat() * (1.0 - tau);
+                target.flat().shallow_clone().copy_(&mixed);
             }
         });
         self.counters.updates += 1;
@@ -349,6 +361,9 @@ impl Agent for Ddpg {
         if replay.is_file() {
             self.replay = ReplayBuffer::from_tensors(self.cfg.buffer_capacity, self.obs_dim, self.action_dim, &read_tensors(&replay)?)
                 .map_err(LearnerError::Checkpoint)?;
+            if self.mirror.is_some() {
+                self.mirror = Some(DeviceMirror::new(&self.replay, self.device));
+            }
         }
         let state: DdpgState = read_agent_state(dir)?;
         self.rng = state.rng.restore()?;

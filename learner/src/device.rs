@@ -14,6 +14,8 @@
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
+use tch::Tensor;
+
 use crate::LearnerError;
 
 /// The libtorch library folder the binaries were linked against (their
@@ -95,6 +97,18 @@ pub fn resolve_device(name: &str) -> Result<tch::Device, LearnerError> {
             Err(LearnerError::Config(format!("device \"cuda\" asked for, but CUDA is not available: {why}; use device \"cpu\" (`lcrl doctor` shows what libtorch sees)")))
         }
         other => Err(LearnerError::Config(format!("device must be \"cpu\" or \"cuda\", got {other:?}"))),
+    }
+}
+
+/// A host tensor on `device`. To a GPU it goes through page-locked memory
+/// without waiting: a copy from ordinary (pageable) memory makes the host
+/// wait until the GPU's queue has drained, which in the update path would
+/// stall every update on the one before it. libtorch's pinned-memory
+/// allocator keeps the staging block until the copy has finished.
+pub fn to_device_async(host: Tensor, device: tch::Device) -> Tensor {
+    match device {
+        tch::Device::Cuda(_) => host.pin_memory(device).to_device_(device, host.kind(), true, false),
+        _ => host.to_device(device),
     }
 }
 

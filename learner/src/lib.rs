@@ -7,7 +7,7 @@
 //! - [`nets`]: locally connected (batched, masked), full-subnets and global actors; critics.
 //! - [`action`]: normalized actions to the environment's box, around an optional base controller (residual RL).
 //! - [`device`]: the libtorch device (CUDA loaded at run time) and intra-op threads.
-//! - [`adam`]: Adam with savable state. [`replay`]: the replay buffer.
+//! - [`adam`]: Adam with savable state, over [`flat`] parameters (one buffer per network). [`replay`]: the replay buffer (mirrored on a GPU).
 //! - [`rate_limiter`]: the replay-ratio limiter of the distributed learner (Reverb's semantics).
 //! - [`agent`]: the algorithm interface and the state normalization; [`ddpg`] and [`ppo`] implement it, [`algorithms`] builds one by name.
 //! - [`exploration`]: how a training action is sampled, for `lcrl train` and the actors alike.
@@ -32,6 +32,7 @@ pub mod config;
 pub mod ddpg;
 pub mod device;
 pub mod exploration;
+pub mod flat;
 pub mod fallback;
 pub mod lqr;
 pub mod nets;

@@ -1,6 +1,7 @@
 //! The DDPG replay buffer: fixed capacity, oldest overwritten, uniform
 //! sampling. Stored as flat f32 arrays so a checkpoint can save it as
-//! tensors.
+//! tensors. On a GPU learner a [`DeviceMirror`] keeps a copy on the device
+//! and gathers minibatches there.
 
 use rand::Rng;
 use tch::Tensor;
@@ -39,6 +40,9 @@ pub struct ReplayBuffer {
     done: Vec<f32>,
     /// Where the next transition goes once the buffer is full.
     cursor: usize,
+    /// Transitions pushed, counted so that push k went to slot
+    /// k mod capacity (a restored buffer continues the count).
+    pushed: u64,
 }
 
 impl ReplayBuffer {
@@ -53,6 +57,7 @@ impl ReplayBuffer {
             next_obs: Vec::new(),
             done: Vec::new(),
             cursor: 0,
+            pushed: 0,
         }
     }
 
@@ -66,6 +71,7 @@ impl ReplayBuffer {
 
     pub fn push(&mut self, obs: &[f32], action: &[f32], reward: f32, next_obs: &[f32], done: bool) {
         let done = f32::from(u8::from(done));
+        self.pushed += 1;
         if self.len() < self.capacity {
             self.obs.extend_from_slice(obs);
             self.action.extend_from_slice(action);
@@ -83,9 +89,14 @@ impl ReplayBuffer {
         self.cursor = (self.cursor + 1) % self.capacity;
     }
 
+    /// `size` slots drawn uniformly with replacement.
+    fn picks(&self, size: usize, rng: &mut impl Rng) -> Vec<usize> {
+        (0..size).map(|_| rng.random_range(0..self.len())).collect()
+    }
+
     /// `size` transitions drawn uniformly with replacement.
     pub fn sample(&self, size: usize, rng: &mut impl Rng) -> Batch {
-        let picks: Vec<usize> = (0..size).map(|_| rng.random_range(0..self.len())).collect();
+        let picks = self.picks(size, rng);
         let gather = |data: &[f32], width: usize| -> Tensor {
             let mut out = Vec::with_capacity(size * width);
             for &k in &picks {
@@ -122,7 +133,7 @@ impl ReplayBuffer {
             Vec::<f32>::try_from(t.flatten(0, -1)).map_err(|e| e.to_string())
         };
         let cursor = named.iter().find(|(n, _)| n == "cursor").map(|(_, t)| i64::try_from(t)).ok_or("replay buffer lacks cursor")?;
-        let buffer = ReplayBuffer {
+        let mut buffer = ReplayBuffer {
             capacity,
             obs_dim,
             action_dim,
@@ -132,11 +143,79 @@ impl ReplayBuffer {
             next_obs: get("next_obs")?,
             done: get("done")?,
             cursor: cursor.map_err(|e| e.to_string())? as usize,
+            pushed: 0,
         };
+        // The next push goes to the cursor once full, else to the end.
+        buffer.pushed = if buffer.len() == capacity { (capacity + buffer.cursor) as u64 } else { buffer.len() as u64 };
+        if buffer.cursor >= capacity.max(1) || buffer.len() > capacity {
+            return Err("replay buffer holds more than its capacity".into());
+        }
         if buffer.obs.len() != buffer.len() * obs_dim || buffer.action.len() != buffer.len() * action_dim {
             return Err("replay buffer shapes do not match the environment".into());
         }
         Ok(buffer)
+    }
+}
+
+/// The replay buffer's copy on a GPU: one row per slot, [obs | action |
+/// reward | next_obs | done]. Before each minibatch the rows pushed since
+/// the last one travel in one copy (two where they wrap), without waiting
+/// (`device::to_device_async`); the minibatch is gathered on the device
+/// from the same slots the host buffer would draw, so a GPU learner trains
+/// on exactly the CPU learner's minibatches.
+pub struct DeviceMirror {
+    rows: Tensor,
+    /// How many of the buffer's pushes the rows hold.
+    mirrored: u64,
+}
+
+impl DeviceMirror {
+    /// Room for the whole buffer on `device` (capacity × (2m + n + 2) floats).
+    pub fn new(buffer: &ReplayBuffer, device: tch::Device) -> Self {
+        let width = (2 * buffer.obs_dim + buffer.action_dim + 2) as i64;
+        DeviceMirror { rows: Tensor::zeros([buffer.capacity as i64, width], (tch::Kind::Float, device)), mirrored: 0 }
+    }
+
+    /// Copies the rows pushed since the last call.
+    fn catch_up(&mut self, buffer: &ReplayBuffer) {
+        let capacity = buffer.capacity as u64;
+        // Older pushes than the last `capacity` were overwritten.
+        let mut k = self.mirrored.max(buffer.pushed.saturating_sub(capacity));
+        while k < buffer.pushed {
+            let first = (k % capacity) as usize;
+            let count = (buffer.pushed - k).min(capacity - first as u64) as usize;
+            let (m, n) = (buffer.obs_dim, buffer.action_dim);
+            let mut packed = Vec::with_capacity(count * (2 * m + n + 2));
+            for slot in first..first + count {
+                packed.extend_from_slice(&buffer.obs[slot * m..(slot + 1) * m]);
+                packed.extend_from_slice(&buffer.action[slot * n..(slot + 1) * n]);
+                packed.push(buffer.reward[slot]);
+                packed.extend_from_slice(&buffer.next_obs[slot * m..(slot + 1) * m]);
+                packed.push(buffer.done[slot]);
+            }
+            let host = Tensor::from_slice(&packed).view([count as i64, -1]);
+            let on_device = crate::device::to_device_async(host, self.rows.device());
+            self.rows.narrow(0, first as i64, count as i64).copy_(&on_device);
+            k += count as u64;
+        }
+        self.mirrored = buffer.pushed;
+    }
+
+    /// What [`ReplayBuffer::sample`] draws with the same `rng`, gathered on
+    /// the device.
+    pub fn sample(&mut self, buffer: &ReplayBuffer, size: usize, rng: &mut impl Rng) -> Batch {
+        self.catch_up(buffer);
+        let picks: Vec<i64> = buffer.picks(size, rng).into_iter().map(|k| k as i64).collect();
+        let index = crate::device::to_device_async(Tensor::from_slice(&picks), self.rows.device());
+        let rows = self.rows.index_select(0, &index);
+        let (m, n) = (buffer.obs_dim as i64, buffer.action_dim as i64);
+        Batch {
+            obs: rows.narrow(1, 0, m),
+            action: rows.narrow(1, m, n),
+            reward: rows.narrow(1, m + n, 1),
+            next_obs: rows.narrow(1, m + n + 1, m),
+            done: rows.narrow(1, 2 * m + n + 1, 1),
+        }
     }
 }
 
@@ -156,11 +235,61 @@ mod tests {
         // Transitions 0 and 1 were overwritten by 3 and 4.
         assert_eq!(buffer.reward, vec![3.0, 4.0, 2.0]);
         let restored = ReplayBuffer::from_tensors(3, 2, 1, &buffer.to_tensors()).unwrap();
-        assert_eq!(restored, buffer);
+        // The restored count of pushes differs, but it maps the next push
+        // to the same slot.
+        assert_eq!(restored.pushed % 3, buffer.pushed % 3);
+        assert_eq!(ReplayBuffer { pushed: buffer.pushed, ..restored }, buffer);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
         let batch = buffer.sample(8, &mut rng);
         assert_eq!(batch.obs.size(), vec![8, 2]);
         let rewards: Vec<f32> = Vec::try_from(batch.reward.flatten(0, -1)).unwrap();
         assert!(rewards.iter().all(|r| [2.0, 3.0, 4.0].contains(r)));
+    }
+}
+
+/// The device mirror gathers what the host buffer samples: same seed, same
+/// minibatch, through wrap-around, overwrites and a restore. On the CPU
+/// device here; `cuda_updates_equal_cpu_updates` runs it on a GPU.
+#[cfg(test)]
+mod mirror_tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    fn values(t: &Tensor) -> Vec<f32> {
+        Vec::try_from(t.contiguous().flatten(0, -1)).unwrap()
+    }
+
+    fn same(a: &Batch, b: &Batch) {
+        for (x, y) in [(&a.obs, &b.obs), (&a.action, &b.action), (&a.reward, &b.reward), (&a.next_obs, &b.next_obs), (&a.done, &b.done)] {
+            assert_eq!(x.size(), y.size());
+            assert_eq!(values(x), values(y));
+        }
+    }
+
+    #[test]
+    fn the_mirror_samples_what_the_buffer_samples() {
+        let mut buffer = ReplayBuffer::new(7, 3, 2);
+        let mut mirror = DeviceMirror::new(&buffer, tch::Device::Cpu);
+        let (mut host_rng, mut mirror_rng) = (rand_chacha::ChaCha8Rng::seed_from_u64(3), rand_chacha::ChaCha8Rng::seed_from_u64(3));
+        // Pushes of 1, 5 and 12 between samples: a partial fill, a wrap,
+        // and more than the whole capacity at once.
+        let mut k = 0;
+        for burst in [1, 5, 12, 2, 3] {
+            for _ in 0..burst {
+                let v = k as f32;
+                buffer.push(&[v, v + 0.1, v + 0.2], &[-v, v * 0.5], v * 10.0, &[v + 1.0, v + 1.1, v + 1.2], k % 4 == 0);
+                k += 1;
+            }
+            same(&buffer.sample(9, &mut host_rng), &mirror.sample(&buffer, 9, &mut mirror_rng));
+        }
+        // A restored buffer and a fresh mirror continue alike.
+        let mut restored = ReplayBuffer::from_tensors(7, 3, 2, &buffer.to_tensors()).unwrap();
+        let mut fresh = DeviceMirror::new(&restored, tch::Device::Cpu);
+        for k in 100..104 {
+            let v = k as f32;
+            buffer.push(&[v; 3], &[v; 2], v, &[v; 3], false);
+            restored.push(&[v; 3], &[v; 2], v, &[v; 3], false);
+        }
+        same(&buffer.sample(20, &mut host_rng), &fresh.sample(&restored, 20, &mut mirror_rng));
     }
 }
