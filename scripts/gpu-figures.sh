@@ -36,8 +36,8 @@ section "lcrl doctor" "$bin/lcrl" doctor
 
 if [ -n "$tests" ]; then
   # The unit-test binary's GPU tests, then the end-to-end GPU run.
-  section "learner GPU tests" "$tests/learner-tests" --exact tests::cuda_updates_equal_cpu_updates replay::mirror_tests::the_mirror_samples_what_the_buffer_samples flat::tests::variables_become_views_of_the_buffer_and_keep_their_values --nocapture
-  section "e2e GPU test" "$tests/e2e" --exact doctor::a_cuda_run_reaches_the_cpu_runs_bar --nocapture
+  section "learner GPU tests" "$tests/learner-tests" --exact tests::cuda_updates_equal_cpu_updates device::tests::cuda_resolves_exactly_when_a_device_is_there replay::mirror_tests::the_mirror_samples_what_the_buffer_samples flat::tests::variables_become_views_of_the_buffer_and_keep_their_values --nocapture
+  section "e2e GPU test" "$tests/e2e" --exact e2e::doctor::a_cuda_run_reaches_the_cpu_runs_bar e2e::doctor::cuda_is_loaded_reported_and_refused_cleanly_without_a_gpu --test-threads 1 --nocapture
 fi
 
 if [ -n "$baseline" ]; then
