@@ -107,7 +107,7 @@ pub fn resolve_device(name: &str) -> Result<tch::Device, LearnerError> {
 /// allocator keeps the staging block until the copy has finished.
 pub fn to_device_async(host: Tensor, device: tch::Device) -> Tensor {
     match device {
-        tch::Device::Cuda(_) => host.pin_memory(device).to_device_(device, host.kind(), true, false),
+        tch::Device::Cuda(_) => host.internal_pin_memory(device).to_device_(device, host.kind(), true, false),
         _ => host.to_device(device),
     }
 }
