@@ -487,7 +487,7 @@ mod tests {
         let mut p = preset("");
         p.set_compute(&LearnerCompute { device: Some("cpu".into()), threads: Some(0) }).unwrap();
         p.pin_learner_threads();
-        assert_eq!(p.train.run.threads, lcrl_learner::device::available_cores().saturating_sub(3).max(1));
+        assert_eq!(p.train.run.threads, lcrl_learner::device::available_cores().saturating_sub(3).clamp(1, lcrl_learner::device::AUTO_MAX_THREADS));
         let err = p.set_compute(&LearnerCompute { device: None, threads: Some(1 << 20) }).unwrap_err().to_string();
         assert!(err.contains("run.threads"), "{err}");
     }

@@ -319,10 +319,11 @@ pub struct PpoConfig {
 pub struct RunConfig {
     pub episodes: usize,
     pub seed: u64,
-    /// libtorch intra-op threads; 0 (the default): automatic, every core
+    /// libtorch intra-op threads; 0 (the default): automatic, the cores
     /// for `lcrl train`, the cores left over after the actors for a
-    /// distributed learner (`lcrl run`), all of its own for a learner alone
-    /// in its container or pod.
+    /// distributed learner (`lcrl run`), the container's own for a learner
+    /// alone in its pod, in each case at most 4 (more make an update at
+    /// these sizes slower: `device::AUTO_MAX_THREADS`).
     pub threads: usize,
     /// Where the learner's networks compute: "cpu" or "cuda" (actors always
     /// run on the CPU).

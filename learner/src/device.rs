@@ -117,14 +117,28 @@ pub fn available_cores() -> usize {
     std::thread::available_parallelism().map_or(1, |n| n.get())
 }
 
+/// The most threads the automatic setting gives one learner. An update at
+/// these sizes (batch 256, 256-wide layers) is a few dozen small matrix
+/// products, and every thread adds its synchronization to each: on a
+/// 16-core machine the global DDPG update took 5.4, 3.3, 3.0, 3.3 and
+/// 5.4 ms on 1, 2, 4, 8 and 16 threads, and `lcrl scale` ran 2.0–2.3× the
+/// environment steps/s with 4 learner threads than with all the cores the
+/// actors left over (docs/scaling.md, "The learner's device and threads").
+pub const AUTO_MAX_THREADS: usize = 4;
+
 /// libtorch intra-op threads for `run.threads`: the number itself, or with
 /// 0 ("auto") the cores left over after `reserved` cores that other
-/// processes of the run on this machine use (its actors), at least 1.
+/// processes of the run on this machine use (its actors), at least 1 and
+/// at most [`AUTO_MAX_THREADS`].
 pub fn resolve_threads(configured: usize, reserved: usize) -> usize {
     match configured {
-        0 => available_cores().saturating_sub(reserved).max(1),
+        0 => auto_threads(available_cores(), reserved),
         n => n,
     }
+}
+
+fn auto_threads(cores: usize, reserved: usize) -> usize {
+    cores.saturating_sub(reserved).clamp(1, AUTO_MAX_THREADS)
 }
 
 /// Sets libtorch's intra-op threads for `run.threads` (see
@@ -141,11 +155,12 @@ mod tests {
 
     #[test]
     fn auto_threads_leave_the_reserved_cores_and_never_drop_to_zero() {
-        let cores = available_cores();
         assert_eq!(resolve_threads(3, 100), 3, "an explicit count is kept");
-        assert_eq!(resolve_threads(0, 0), cores);
-        assert_eq!(resolve_threads(0, 1), (cores - 1).max(1));
-        assert_eq!(resolve_threads(0, cores + 5), 1);
+        assert_eq!(resolve_threads(0, 1), auto_threads(available_cores(), 1));
+        // (cores, reserved) → threads: what is left, capped, at least one.
+        for ((cores, reserved), threads) in [((2, 0), 2), ((2, 1), 1), ((2, 5), 1), ((16, 0), 4), ((16, 14), 2), ((16, 15), 1), ((64, 8), 4)] {
+            assert_eq!(auto_threads(cores, reserved), threads, "{cores} cores, {reserved} reserved");
+        }
     }
 
     #[test]
