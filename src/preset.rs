@@ -329,7 +329,7 @@ pub struct LearnerCompute {
     #[arg(long, value_parser = ["cpu", "cuda"])]
     pub device: Option<String>,
     /// The learner's libtorch intra-op threads (overrides run.threads; 0:
-    /// the cores this machine has left over after the actors, at least 1).
+    /// the cores this machine has left over after the actors, 1 to 4).
     #[arg(long)]
     pub threads: Option<usize>,
 }

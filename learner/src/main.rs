@@ -53,9 +53,9 @@ struct Args {
     /// change it).
     #[arg(long, value_parser = ["cpu", "cuda"])]
     device: Option<String>,
-    /// libtorch intra-op threads (overrides run.threads; 0: every core of
-    /// this machine or container; `lcrl run` passes the cores its actors
-    /// leave over).
+    /// libtorch intra-op threads (overrides run.threads; 0: the cores of
+    /// this machine or container, at most 4; `lcrl run` passes the cores
+    /// its actors leave over, at most 4).
     #[arg(long)]
     threads: Option<usize>,
     /// Run directory: graph.json, checkpoints; resumed if it holds one.

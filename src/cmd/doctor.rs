@@ -10,7 +10,7 @@ pub fn run() -> anyhow::Result<()> {
     let sum = tensor_smoke_check()?;
     println!("libtorch: ok (2 · [1, 2, 3] sums to {sum})");
     println!("cores: {}", lcrl_learner::device::available_cores());
-    println!("torch threads: {} (run.threads = 0 uses every core, or what the actors leave over)", tch::get_num_threads());
+    println!("torch threads: {} (libtorch's own default; run.threads = 0 uses the cores, or what the actors leave over, at most 4)", tch::get_num_threads());
     println!("libtorch_cuda: {cuda_library}");
     let available = tch::Cuda::is_available();
     println!("cuda available: {available}");

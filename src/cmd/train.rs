@@ -41,7 +41,8 @@ pub struct TrainArgs {
     /// Seed of networks, exploration and episodes (overrides run.seed).
     #[arg(long)]
     pub seed: Option<u64>,
-    /// libtorch intra-op threads (overrides run.threads; 0: every core).
+    /// libtorch intra-op threads (overrides run.threads; 0: the cores, at
+    /// most 4).
     #[arg(long)]
     pub threads: Option<usize>,
     /// Where the networks compute (overrides run.device).
