@@ -42,7 +42,7 @@ impl Adam {
 
     /// Scales all gradients so their global L2 norm is at most `max_norm`.
     pub fn clip_grad_norm(&mut self, max_norm: f64) {
-        let grads: Vec<Tensor> = self.params.slices(self.params.flat()).map(|(_, p, _)| p.grad()).filter(Tensor::defined).collect();
+        let grads: Vec<Tensor> = self.params.variables().map(Tensor::grad).filter(Tensor::defined).collect();
         let total: f64 = grads.iter().map(|g| f64::try_from(g.square().sum(tch::Kind::Double)).unwrap_or(0.0)).sum::<f64>().sqrt();
         if total > max_norm {
             let scale = max_norm / (total + 1e-6);

@@ -69,6 +69,11 @@ impl FlatParams {
         self.slots.iter().map(|s| s.name.as_str())
     }
 
+    /// The variables, in buffer order.
+    pub fn variables(&self) -> impl Iterator<Item = &Tensor> {
+        self.slots.iter().map(|s| &s.var)
+    }
+
     /// (name, variable, the same slice of `buffer` shaped as the variable)
     /// per variable: for state kept beside the parameters (Adam's moments).
     pub fn slices<'a>(&'a self, buffer: &'a Tensor) -> impl Iterator<Item = (&'a str, &'a Tensor, Tensor)> + 'a {
@@ -78,7 +83,7 @@ impl FlatParams {
     /// The variables' gradients as one flat tensor (one copy), or None when
     /// a variable has none (it took no part in the last backward pass).
     pub fn gradients(&self) -> Option<Tensor> {
-        let grads: Vec<Tensor> = self.slots.iter().map(|s| s.var.grad()).collect();
+        let grads: Vec<Tensor> = self.variables().map(Tensor::grad).collect();
         if grads.iter().any(|g| !g.defined()) {
             return None;
         }
