@@ -45,11 +45,8 @@ impl FlatParams {
             .into_iter()
             .map(|(name, mut var)| {
                 let numel = var.numel() as i64;
-                let view = flat.narrow(0, offset, numel).view(var.size().as_slice());
-                tch::no_grad(|| {
-                    let mut view = view.shallow_clone();
-                    view.copy_(&var);
-                });
+                let mut view = flat.narrow(0, offset, numel).view(var.size().as_slice());
+                tch::no_grad(|| view.copy_(&var));
                 var.set_data(&view);
                 let slot = Slot { name, var, offset, numel };
                 offset += numel;

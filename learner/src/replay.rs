@@ -145,11 +145,11 @@ impl ReplayBuffer {
             cursor: cursor.map_err(|e| e.to_string())? as usize,
             pushed: 0,
         };
-        // The next push goes to the cursor once full, else to the end.
-        buffer.pushed = if buffer.len() == capacity { (capacity + buffer.cursor) as u64 } else { buffer.len() as u64 };
         if buffer.cursor >= capacity.max(1) || buffer.len() > capacity {
             return Err("replay buffer holds more than its capacity".into());
         }
+        // The next push goes to the cursor once full, else to the end.
+        buffer.pushed = if buffer.len() == capacity { (capacity + buffer.cursor) as u64 } else { buffer.len() as u64 };
         if buffer.obs.len() != buffer.len() * obs_dim || buffer.action.len() != buffer.len() * action_dim {
             return Err("replay buffer shapes do not match the environment".into());
         }

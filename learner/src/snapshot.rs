@@ -86,15 +86,11 @@ impl Architecture {
 
 /// Named f32 tensors as a safetensors byte buffer.
 pub fn encode_weights(named: &[(String, Tensor)]) -> Result<Vec<u8>, LearnerError> {
-    // From a GPU, all in one copy: each copy back waits for the GPU's queue
-    // to drain, and the training thread publishes while it updates.
-    let on_host: Vec<Tensor> = if named.iter().any(|(_, t)| t.device() != tch::Device::Cpu) {
-        let flat: Vec<Tensor> = named.iter().map(|(_, t)| t.to_kind(tch::Kind::Float).reshape([-1])).collect();
-        let sizes: Vec<i64> = flat.iter().map(|t| t.numel() as i64).collect();
-        Tensor::cat(&flat, 0).to_device(tch::Device::Cpu).split_with_sizes(sizes.as_slice(), 0)
-    } else {
-        named.iter().map(|(_, t)| t.to_kind(tch::Kind::Float).flatten(0, -1)).collect()
-    };
+    // All in one copy: from a GPU each copy back waits for its queue to
+    // drain, and the training thread publishes while it updates.
+    let flat: Vec<Tensor> = named.iter().map(|(_, t)| t.to_kind(tch::Kind::Float).reshape([-1])).collect();
+    let sizes: Vec<i64> = flat.iter().map(|t| t.numel() as i64).collect();
+    let on_host = Tensor::cat(&flat, 0).to_device(tch::Device::Cpu).split_with_sizes(sizes.as_slice(), 0);
     let owned: Vec<(String, Vec<usize>, Vec<u8>)> = named
         .iter()
         .zip(on_host)
