@@ -264,6 +264,14 @@ pub struct DdpgConfig {
     /// limits how fast the actor moves, not where it settles, unlike the
     /// residual penalty, which pulls toward the base all run.
     pub proximal_l2: f64,
+    /// Weight κ of the twin critics' disagreement in the actor's objective:
+    /// the actor maximizes mean(Q₁, Q₂) − κ·|Q₁ − Q₂| instead of Q₁ (κ = 0.5
+    /// is min(Q₁, Q₂)). Two critics fitted to the same targets agree where
+    /// the buffer has data and drift apart where they extrapolate, so the
+    /// actor is held back from actions only an extrapolating critic
+    /// praises (docs/peg.md, "Training that stays near its base"). Needs
+    /// `twin_critics`; 0 (the default) follows the first critic alone.
+    pub critic_disagreement: f64,
     /// Std of clipped Gaussian noise on the target action (TD3's target
     /// policy smoothing); 0 is plain DDPG.
     pub target_noise: f64,
@@ -424,6 +432,7 @@ impl Default for DdpgConfig {
             preactivation_l2: 0.0,
             preactivation_anneal: false,
             proximal_l2: 0.0,
+            critic_disagreement: 0.0,
             twin_critics: false,
             anneal_lr: false,
             critic_warmup_updates: 0,
@@ -597,10 +606,13 @@ impl TrainConfig {
                 return bad(field, &format!("must be within [0, 1], got {v}"));
             }
         }
-        for (field, v) in [("ddpg.noise_start", self.ddpg.noise_start), ("ddpg.noise_end", self.ddpg.noise_end), ("ddpg.target_noise", self.ddpg.target_noise), ("ddpg.preactivation_l2", self.ddpg.preactivation_l2), ("ddpg.proximal_l2", self.ddpg.proximal_l2), ("ddpg.huber_delta", self.ddpg.huber_delta), ("ppo.entropy_coef", self.ppo.entropy_coef)] {
+        for (field, v) in [("ddpg.noise_start", self.ddpg.noise_start), ("ddpg.noise_end", self.ddpg.noise_end), ("ddpg.target_noise", self.ddpg.target_noise), ("ddpg.preactivation_l2", self.ddpg.preactivation_l2), ("ddpg.proximal_l2", self.ddpg.proximal_l2), ("ddpg.critic_disagreement", self.ddpg.critic_disagreement), ("ddpg.huber_delta", self.ddpg.huber_delta), ("ppo.entropy_coef", self.ppo.entropy_coef)] {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(field, &format!("must be a finite number ≥ 0, got {v}"));
             }
+        }
+        if self.ddpg.critic_disagreement > 0.0 && !self.ddpg.twin_critics {
+            return bad("ddpg.critic_disagreement", "needs ddpg.twin_critics = true (the disagreement is between the two critics)");
         }
         if let Some(margin) = self.run.fallback_margin {
             if !(margin.is_finite() && margin >= 0.0) {
@@ -764,5 +776,7 @@ mod tests {
         assert!(err("[network]\nsubnet_hidden = []\n").contains("network.subnet_hidden"));
         assert!(err("[run]\ndevice = \"tpu\"\n").contains("run.device"));
         assert!(err("[ddpg]\nactor_rate = 0.1\n").contains("actor_rate"));
+        assert!(err("[ddpg]\ncritic_disagreement = 1.0\n").contains("needs ddpg.twin_critics"));
+        assert!(err("[ddpg]\ntwin_critics = true\ncritic_disagreement = -1.0\n").contains("ddpg.critic_disagreement"));
     }
 }
