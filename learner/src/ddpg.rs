@@ -411,6 +411,22 @@ mod tests {
         Ddpg::new(ddpg, &cfg.network, Connection::Global, &[vec![1, 1]], 2, 1, 5, Device::Cpu)
     }
 
+    /// Fills `agent`'s buffer with `data.0` one-step episodes (s uniform in
+    /// [−1, 1]², a uniform in ±`data.1`, reward `reward(a)`), runs `updates`
+    /// updates and returns its actions on 20 fixed probe states.
+    fn probe_after_updates(mut agent: Ddpg, seed: u64, data: (usize, f32), reward: impl Fn(f32) -> f32, updates: usize) -> Vec<f32> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        for _ in 0..data.0 {
+            let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
+            let a: f32 = rng.random_range(-data.1..data.1);
+            agent.replay.push(&s, &[a], reward(a), &s, true);
+        }
+        for _ in 0..updates {
+            agent.update();
+        }
+        (0..20).map(|k| agent.act(&[k as f32 / 10.0 - 1.0, 1.0 - k as f32 / 10.0])[0]).collect()
+    }
+
     /// `critic_warmup_updates`: the actor (the base controller, under one)
     /// stays exactly as it started for that many updates while the critics
     /// learn, and moves on the first update after.
@@ -450,21 +466,10 @@ mod tests {
     fn the_trust_region_slows_the_actor_without_changing_its_first_step() {
         tch::set_num_threads(1);
         let cfg = small_nets();
-        let probe: Vec<[f32; 2]> = (0..20).map(|k| [k as f32 / 10.0 - 1.0, 1.0 - k as f32 / 10.0]).collect();
+        // The best action is a = 0.8 everywhere: the actor must move.
         let run = |proximal_l2: f64, updates: usize| -> Vec<f32> {
             let ddpg = DdpgConfig { batch_size: 16, warmup_steps: 0, proximal_l2, tau: 0.01, ..cfg.ddpg.clone() };
-            let mut agent = agent(&ddpg, &cfg);
-            let mut rng = ChaCha8Rng::seed_from_u64(6);
-            for _ in 0..256 {
-                let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
-                let a: f32 = rng.random_range(-1.0..1.0);
-                // The best action is a = 0.8 everywhere: the actor must move.
-                agent.replay.push(&s, &[a], -(a - 0.8) * (a - 0.8), &s, true);
-            }
-            for _ in 0..updates {
-                agent.update();
-            }
-            probe.iter().map(|s| agent.act(s)[0]).collect()
+            probe_after_updates(agent(&ddpg, &cfg), 6, (256, 1.0), |a| -(a - 0.8) * (a - 0.8), updates)
         };
         let start = run(0.0, 0);
         assert_eq!(run(0.0, 1), run(100.0, 1), "the first step differs");
@@ -482,20 +487,9 @@ mod tests {
     fn pessimism_toward_the_critics_disagreement_keeps_the_actor_near_its_data() {
         tch::set_num_threads(1);
         let cfg = small_nets();
-        let probe: Vec<[f32; 2]> = (0..20).map(|k| [k as f32 / 10.0 - 1.0, 1.0 - k as f32 / 10.0]).collect();
         let run = |critic_disagreement: f64, updates: usize| -> Vec<f32> {
             let ddpg = DdpgConfig { batch_size: 32, warmup_steps: 0, twin_critics: true, critic_disagreement, ..cfg.ddpg.clone() };
-            let mut agent = agent(&ddpg, &cfg);
-            let mut rng = ChaCha8Rng::seed_from_u64(11);
-            for _ in 0..512 {
-                let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
-                let a: f32 = rng.random_range(-0.1..0.1);
-                agent.replay.push(&s, &[a], a, &s, true);
-            }
-            for _ in 0..updates {
-                agent.update();
-            }
-            probe.iter().map(|s| agent.act(s)[0]).collect()
+            probe_after_updates(agent(&ddpg, &cfg), 11, (512, 0.1), |a| a, updates)
         };
         let outside = |actions: &[f32]| actions.iter().map(|a| (a.abs() - 0.1).max(0.0)).sum::<f32>() / actions.len() as f32;
         // The critics' disagreement grows slowly outside their data (both
