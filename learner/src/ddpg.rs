@@ -226,14 +226,14 @@ impl Ddpg {
         if self.critic_updates > self.cfg.critic_warmup_updates as u64 {
             let raw = self.actor.forward_raw(&b.obs);
             let input = Tensor::cat(&[&b.obs, &raw.tanh()], 1);
-            let q = match self.cfg.critic_disagreement {
-                0.0 => self.critics[0].net.forward(&input),
-                kappa => {
-                    // Pessimism toward the critics' disagreement
-                    // (`critic_disagreement`): mean(Q₁, Q₂) − κ·|Q₁ − Q₂|.
-                    let (q1, q2) = (self.critics[0].net.forward(&input), self.critics[1].net.forward(&input));
-                    (&q1 + &q2) * 0.5 - (q1 - q2).abs() * kappa
-                }
+            let kappa = self.cfg.critic_disagreement;
+            let q = if kappa > 0.0 {
+                // Pessimism toward the critics' disagreement
+                // (`critic_disagreement`): mean(Q₁, Q₂) − κ·|Q₁ − Q₂|.
+                let (q1, q2) = (self.critics[0].net.forward(&input), self.critics[1].net.forward(&input));
+                (&q1 + &q2) * 0.5 - (q1 - q2).abs() * kappa
+            } else {
+                self.critics[0].net.forward(&input)
             };
             let l2 = if self.cfg.preactivation_anneal { self.cfg.preactivation_l2 * (1.0 - self.progress) } else { self.cfg.preactivation_l2 };
             let mut actor_loss = -q.mean(Kind::Float) + l2 * raw.square().mean(Kind::Float);
