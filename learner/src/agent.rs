@@ -13,6 +13,7 @@ use crate::nets::{ActorNet, Mlp, SubnetActor};
 use crate::LearnerError;
 
 /// One environment step as the learner sees it (normalized units).
+#[derive(Default)]
 pub struct Transition<'a> {
     pub obs: &'a [f32],
     /// The normalized action the agent chose (before clipping to [−1, 1]
@@ -27,6 +28,14 @@ pub struct Transition<'a> {
     /// evaluates it with its current policy on storing, which in
     /// `lcrl train`'s loop is the policy that acted.
     pub log_prob: Option<f32>,
+    /// An actor's batch ended this environment's stream here, mid-episode
+    /// (never in `lcrl train`, whose episodes arrive whole). Not an
+    /// episode end: PPO carries its advantages on to the stream's next
+    /// step when that arrives in the same rollout (docs/method.md §5).
+    pub cut: bool,
+    /// The actor the step came from (0 in `lcrl train`): a cut stream
+    /// goes on only in steps of the same actor.
+    pub stream: u64,
 }
 
 /// A raw state as the agent's input: normalized, f32. The one

@@ -5,6 +5,10 @@
 //! Collect `rollout_steps` transitions, then:
 //!   δ_t = r_t + γ (1 − terminated_t) V(s_{t+1}) − V(s_t)
 //!   A_t = δ_t + γλ (1 − end_t) A_{t+1}            (GAE; end = terminated or truncated)
+//! where t + 1 is the step after t in its own stream: the next row in
+//! `lcrl train`, and across an actor's batch boundary (a cut) the row where
+//! the same actor's stream goes on, when it arrives in the same rollout
+//! (otherwise the cut ends the sum there, as a truncation would).
 //!   R_t = A_t + V(s_t)
 //! and for `epochs` passes over shuffled minibatches:
 //!   ratio = exp(log π(u|s) − log π_old(u|s))
@@ -41,7 +45,48 @@ struct Rollout {
     rewards: Vec<f32>,
     next_values: Vec<f32>,
     terminated: Vec<bool>,
+    /// No step of the same stream follows in this rollout's order: an
+    /// episode end or a cut (unless `joins` continues it).
     ended: Vec<bool>,
+    /// Cuts whose stream went on in a later row: (cut row, next row).
+    #[serde(default)]
+    joins: Vec<(usize, usize)>,
+    /// Cuts waiting for their stream's next step.
+    #[serde(default)]
+    open_cuts: Vec<OpenCut>,
+}
+
+/// A cut row and where its stream stands: the next step of the same
+/// actor that starts from exactly this state continues it.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct OpenCut {
+    row: usize,
+    stream: u64,
+    next_obs: Vec<f32>,
+}
+
+impl Rollout {
+    /// The row whose advantage carries into row t's (none at an end).
+    fn successors(&self) -> Vec<Option<usize>> {
+        let len = self.rewards.len();
+        let mut next: Vec<Option<usize>> = (0..len).map(|t| (!self.ended[t] && t + 1 < len).then_some(t + 1)).collect();
+        for &(cut, row) in &self.joins {
+            next[cut] = Some(row);
+        }
+        next
+    }
+
+    /// Links a cut to this row if the row goes on from it, and opens a cut.
+    fn link(&mut self, t: &Transition) {
+        let row = self.rewards.len();
+        if let Some(k) = self.open_cuts.iter().position(|c| c.stream == t.stream && c.next_obs == t.obs) {
+            let cut = self.open_cuts.swap_remove(k);
+            self.joins.push((cut.row, row));
+        }
+        if t.cut {
+            self.open_cuts.push(OpenCut { row, stream: t.stream, next_obs: t.next_obs.to_vec() });
+        }
+    }
 }
 
 pub struct Ppo {
@@ -113,13 +158,13 @@ impl Ppo {
         let r = &self.rollout;
         let (gamma, lambda) = (self.cfg.gamma as f32, self.cfg.gae_lambda as f32);
         let mut advantages = vec![0.0f32; r.rewards.len()];
-        let mut next = 0.0f32;
-        for t in (0..r.rewards.len()).rev() {
+        // A successor's row is always later than its step's, so one
+        // backward pass has every A_{t+1} ready.
+        for (t, next) in r.successors().into_iter().enumerate().rev() {
             let bootstrap = if r.terminated[t] { 0.0 } else { gamma * r.next_values[t] };
             let delta = r.rewards[t] + bootstrap - r.values[t];
-            let carry = if r.ended[t] { 0.0 } else { gamma * lambda * next };
-            next = delta + carry;
-            advantages[t] = next;
+            let carry = next.map_or(0.0, |row| gamma * lambda * advantages[row]);
+            advantages[t] = delta + carry;
         }
         let returns = advantages.iter().zip(&r.values).map(|(a, v)| a + v).collect();
         (advantages, returns)
@@ -194,6 +239,7 @@ impl Agent for Ppo {
         });
         let value = self.value(t.obs);
         let r = &mut self.rollout;
+        r.link(&t);
         r.obs.extend_from_slice(t.obs);
         r.actions.extend_from_slice(t.action);
         r.log_probs.push(log_prob);
@@ -201,7 +247,7 @@ impl Agent for Ppo {
         r.rewards.push(t.reward);
         r.next_values.push(next_value);
         r.terminated.push(t.terminated);
-        r.ended.push(t.terminated || t.truncated);
+        r.ended.push(t.terminated || t.truncated || t.cut);
         self.counters.env_steps += 1;
     }
 
@@ -279,10 +325,77 @@ mod tests {
             let plain = exploration::gaussian_log_prob(&ppo.act(&obs), &std, &u);
             assert!((tensor - plain).abs() < 1e-4, "{u:?}: tensor {tensor}, plain {plain}");
         }
-        let t = |log_prob| Transition { obs: &obs, action: &[0.5, 0.5, 0.5], reward: -1.0, next_obs: &obs, terminated: false, truncated: false, log_prob };
+        let t = |log_prob| Transition { obs: &obs, action: &[0.5, 0.5, 0.5], reward: -1.0, next_obs: &obs, terminated: false, truncated: false, log_prob, ..Default::default() };
         ppo.store(t(Some(-42.0)));
         ppo.store(t(None));
         assert_eq!(ppo.rollout.log_probs[0], -42.0, "the actor's behaviour log-probability is kept");
         assert!((ppo.rollout.log_probs[1] - exploration::gaussian_log_prob(&ppo.act(&obs), &std, &[0.5, 0.5, 0.5])).abs() < 1e-4);
+    }
+
+    /// Two actors' episodes arriving cut into interleaved batches get the
+    /// advantages they get stored whole, one after the other (as
+    /// `lcrl train` stores an episode); a cut whose stream does not go on
+    /// from its state (a batch lost in between), or goes on only in
+    /// another actor's steps, ends the sum as a truncation does.
+    #[test]
+    fn advantages_run_on_across_an_actors_batch_ends() {
+        let (m, n) = (3, 2);
+        let mask = vec![vec![1; m]; n];
+        let ppo = || Ppo::new(&PpoConfig::default(), &NetworkConfig::default(), Connection::Local, &mask, m, n, 5, Device::Cpu);
+        // Stream s, step k: distinct states; the episode ends at its last step.
+        let len = 12;
+        let state = |s: usize, k: usize| vec![(s * 31 + k) as f32 * 0.07 - 1.0, ((s + 2) * k) as f32 * 0.05, (k as f32).sin()];
+        let store = |ppo: &mut Ppo, s: usize, k: usize, cut: bool, stream: u64| {
+            let (obs, next) = (state(s, k), state(s, k + 1));
+            let action = [0.1 * k as f32, -0.2];
+            ppo.store(Transition { obs: &obs, action: &action, reward: -(k as f32) * 0.3 - s as f32, next_obs: &next, terminated: false, truncated: k + 1 == len, log_prob: Some(-1.0), cut, stream });
+        };
+        let mut whole = ppo();
+        for s in 0..2 {
+            (0..len).for_each(|k| store(&mut whole, s, k, false, 0));
+        }
+        let (expected, _) = whole.advantages();
+
+        // Actor 0 sends steps 0–4, 5–8, 9–11; actor 1 steps 0–3, 4–11.
+        let (a, b) = (crate::service::ingest::stream_of("actor-0"), crate::service::ingest::stream_of("actor-1"));
+        let batches = [(0, a, 0..5), (1, b, 0..4), (0, a, 5..9), (1, b, 4..len), (0, a, 9..len)];
+        let mut cut = ppo();
+        let mut rows = Vec::new();
+        for (s, stream, steps) in batches {
+            for k in steps.clone() {
+                store(&mut cut, s, k, k + 1 == steps.end && steps.end < len, stream);
+                rows.push(s * len + k);
+            }
+        }
+        let (advantages, _) = cut.advantages();
+        for (row, &whole_row) in rows.iter().enumerate() {
+            assert_eq!(advantages[row], expected[whole_row], "stream {} step {}", whole_row / len, whole_row % len);
+        }
+        assert!(cut.rollout.open_cuts.is_empty() && cut.rollout.joins.len() == 3);
+
+        // Actor 0's middle batch lost: its first cut ends the sum at step 4,
+        // and the later rows are their own segment. Actor 1's first batch
+        // sent as actor 0's: its cut opens in another stream and stays open.
+        let mut lost = ppo();
+        for k in 0..5 {
+            store(&mut lost, 0, k, k == 4, a);
+        }
+        for k in 9..len {
+            store(&mut lost, 0, k, false, a);
+        }
+        for k in 0..4 {
+            store(&mut lost, 1, k, k == 3, a);
+        }
+        for k in 4..len {
+            store(&mut lost, 1, k, false, b);
+        }
+        let (advantages, _) = lost.advantages();
+        let r = &lost.rollout;
+        let gamma = PpoConfig::default().gamma as f32;
+        let delta = |t: usize| r.rewards[t] + gamma * r.next_values[t] - r.values[t];
+        assert_eq!(advantages[4], delta(4), "an unjoined cut bootstraps and stops");
+        assert_eq!(advantages[11], delta(11), "so does a cut whose stream goes on in another actor");
+        assert!(r.joins.is_empty() && r.open_cuts.len() == 2);
+        assert_ne!(advantages[3], delta(3), "inside a segment the sum runs on");
     }
 }

@@ -121,7 +121,7 @@ fn checkpoint_round_trip_gives_identical_actions() {
         for k in 0..80 {
             let u = agent.explore(&obs, k);
             let next = [obs[0] * 0.9, obs[1] + 0.01 * k as f32, -obs[2]];
-            agent.observe(crate::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &next, terminated: false, truncated: k % 50 == 49, log_prob: None });
+            agent.observe(crate::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &next, terminated: false, truncated: k % 50 == 49, log_prob: None, ..Default::default() });
         }
         let meta = CheckpointMeta { episode: 1, ..CheckpointMeta::start("lti-paper", algo, Connection::Local, 3, 3, mask.clone(), cfg.clone()) };
         let saved = write_checkpoint(dir.path(), agent.as_ref(), &meta).unwrap();
@@ -184,7 +184,7 @@ fn parallel_policy_evaluation_equals_one_thread() {
         let obs = vec![0.1f32; m];
         for k in 0..80 {
             let u = agent.explore(&obs, k);
-            agent.observe(crate::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &obs, terminated: false, truncated: k % 40 == 39, log_prob: None });
+            agent.observe(crate::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &obs, terminated: false, truncated: k % 40 == 39, log_prob: None, ..Default::default() });
         }
         let meta = CheckpointMeta::start("peg-group1", Algo::Ddpg, connection, m, n, mask, cfg.clone());
         let snapshot = crate::snapshot::snapshot(agent.as_ref(), &meta.architecture(), 0).unwrap();
@@ -495,7 +495,7 @@ fn cuda_updates_equal_cpu_updates() {
                 let action = agent.explore(&obs, 0);
                 let next: Vec<f32> = obs.iter().zip(action.iter().cycle()).map(|(s, a)| 0.9 * s + 0.1 * a).collect();
                 let reward = -obs.iter().map(|v| v * v).sum::<f32>();
-                agent.observe(crate::agent::Transition { obs: &obs, action: &action, reward, next_obs: &next, terminated: false, truncated: k % 40 == 39, log_prob: None });
+                agent.observe(crate::agent::Transition { obs: &obs, action: &action, reward, next_obs: &next, terminated: false, truncated: k % 40 == 39, log_prob: None, ..Default::default() });
             }
             agent.actor_variables().into_iter().map(|(name, t)| (name, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect()
         };

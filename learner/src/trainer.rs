@@ -156,6 +156,8 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
                 terminated: step.terminated,
                 truncated: step.truncated,
                 log_prob: None,
+                cut: false,
+                stream: 0,
             });
             total += step.reward;
             length += 1;

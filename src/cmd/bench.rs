@@ -171,7 +171,7 @@ fn time_updates(
     let mut ddpg = make_agent(Algo::Ddpg, connection, cfg, mask, m, n)?;
     for _ in 0..cfg.ddpg.batch_size {
         let (obs, action, next) = (random(m), random(n), random(m));
-        ddpg.store(Transition { obs: &obs, action: &action, reward: -1.0, next_obs: &next, terminated: false, truncated: false, log_prob: None });
+        ddpg.store(Transition { obs: &obs, action: &action, reward: -1.0, next_obs: &next, terminated: false, truncated: false, log_prob: None, ..Default::default() });
     }
     // Warm-up updates (allocator, kernels' first launches) are not timed.
     for _ in 0..10 {
@@ -191,7 +191,7 @@ fn time_updates(
         let obs = random(m);
         let action = ppo.explore(&obs, 0);
         let next = random(m);
-        ppo_seconds += ppo.observe(Transition { obs: &obs, action: &action, reward: -1.0, next_obs: &next, terminated: false, truncated: false, log_prob: None });
+        ppo_seconds += ppo.observe(Transition { obs: &obs, action: &action, reward: -1.0, next_obs: &next, terminated: false, truncated: false, log_prob: None, ..Default::default() });
     }
     sync();
     Ok((ddpg_seconds, ppo_seconds, ddpg.param_counts().0))

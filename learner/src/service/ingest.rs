@@ -38,6 +38,15 @@ pub struct Accepted {
     pub episodes: Vec<EpisodeSummary>,
     /// The policy version that produced the batch.
     pub policy_version: u64,
+    /// The sending actor, as a number ([`stream_of`]): the stream that a
+    /// cut at this batch's end goes on in.
+    pub stream: u64,
+}
+
+/// An actor's name as a stream number for the agent (FNV-1a: stable
+/// across builds, so that a checkpointed rollout resumes its streams).
+pub fn stream_of(actor_id: &str) -> u64 {
+    actor_id.bytes().fold(0xcbf2_9ce4_8422_2325, |hash, byte| (hash ^ u64::from(byte)).wrapping_mul(0x0100_0000_01b3))
 }
 
 impl Accepted {
@@ -209,7 +218,7 @@ impl Ingest {
             })
             .collect::<Vec<_>>();
         self.accepted += transitions.len() as u64;
-        Verdict::Accept(Accepted { transitions, episodes: batch.episodes.clone(), policy_version: batch.policy_version })
+        Verdict::Accept(Accepted { transitions, episodes: batch.episodes.clone(), policy_version: batch.policy_version, stream: stream_of(&batch.actor_id) })
     }
 }
 
@@ -239,7 +248,7 @@ mod tests {
         let t = |end: bool| AgentTransition { obs: vec![], action: vec![], log_prob: None, reward: 0.0, next_obs: vec![], terminated: end, truncated: false, cut: false, policy_version: 0 };
         let e = || EpisodeSummary { episode_return: -1.0, length: 2, success: None };
         // Two episode ends (after transitions 2 and 4) and a started third.
-        let batch = || Accepted { transitions: vec![t(false), t(true), t(false), t(true), t(false)], episodes: vec![e(), e()], policy_version: 1 };
+        let batch = || Accepted { transitions: vec![t(false), t(true), t(false), t(true), t(false)], episodes: vec![e(), e()], policy_version: 1, stream: 0 };
         let mut one = batch();
         assert_eq!(one.keep_episodes(1), 3);
         assert_eq!((one.transitions.len(), one.episodes.len()), (2, 1));

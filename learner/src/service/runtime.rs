@@ -253,9 +253,10 @@ impl TrainingLoop {
                 reward: t.reward,
                 next_obs: &t.next_obs,
                 terminated: t.terminated,
-                // To the agent a cut is a truncation: bootstrap, stop GAE.
-                truncated: t.truncated || t.cut,
+                truncated: t.truncated,
                 log_prob: t.log_prob,
+                cut: t.cut,
+                stream: batch.stream,
             });
         }
         {

@@ -176,7 +176,7 @@ mod tests {
                 .map(|k| AgentTransition { obs: row(3), action: row(3), log_prob: None, reward: -1.0, next_obs: row(3), terminated: false, truncated: k % 10 == 9, cut: false, policy_version: 0 })
                 .collect();
             let episodes = vec![EpisodeSummary { episode_return: -10.0, length: 10, success: None }; 2];
-            commands.try_send(Command::Batch(Accepted { transitions, episodes, policy_version: 0 })).unwrap();
+            commands.try_send(Command::Batch(Accepted { transitions, episodes, policy_version: 0, stream: 0 })).unwrap();
         }
         commands.try_send(Command::Stop).unwrap();
         let schedule = Schedule {
