@@ -1,0 +1,109 @@
+use super::load::{LTI_FAST, PEG};
+use super::*;
+use std::path::Path;
+
+/// `[controller] base = …`, the deprecated name of `[base] action = …`,
+/// still loads, to the same config, from a file, through overrides laid
+/// over an environment's settings, and from a checkpoint's JSON; both
+/// at once are refused.
+#[test]
+fn the_deprecated_controller_table_still_loads() {
+    let new: TrainConfig = toml::from_str("[base]\naction = \"a = 0\"\n").unwrap();
+    let old: TrainConfig = toml::from_str("[controller]\nbase = \"a = 0\"\n").unwrap();
+    assert_eq!(new, old);
+    assert_eq!(new.base.action, BaseController::Zero);
+    let overrides = |text: &str| TrainConfig::for_env_with("peg-group1", &toml::from_str(text).unwrap()).unwrap();
+    let (new, old) = (overrides("[base]\naction = \"a = 0\"\n"), overrides("[controller]\nbase = \"a = 0\"\n"));
+    assert_eq!(new, old);
+    assert_eq!(old.base.action, BaseController::Zero, "the override wins over peg.toml's best constant");
+    let json = serde_json::to_value(&new).unwrap();
+    let mut legacy = json.as_object().unwrap().clone();
+    let base = legacy.remove("base").unwrap();
+    legacy.insert("controller".into(), serde_json::json!({ "base": base["action"] }));
+    assert_eq!(serde_json::from_value::<TrainConfig>(serde_json::Value::Object(legacy)).unwrap(), new);
+    let both = toml::from_str::<TrainConfig>("[base]\naction = \"none\"\n[controller]\nbase = \"a = 0\"\n").unwrap_err().to_string();
+    assert!(both.contains("both [base] and [controller]"), "{both}");
+}
+
+#[test]
+fn defaults_follow_table_1_and_validate() {
+    let cfg = TrainConfig::default();
+    cfg.validate().unwrap();
+    assert_eq!((cfg.ddpg.actor_lr, cfg.ddpg.critic_lr, cfg.ddpg.tau), (1e-3, 1e-2, 1e-3));
+    assert_eq!((cfg.ppo.actor_lr, cfg.ppo.critic_lr), (1e-4, 1e-3));
+}
+
+#[test]
+fn registered_environments_get_their_working_settings() {
+    let (lti, source) = TrainConfig::for_env("lti-paper");
+    assert!(source.contains("lti-fast"), "{source}");
+    let file: TrainConfig = toml::from_str(LTI_FAST).unwrap();
+    assert_eq!(lti, file);
+    lti.validate().unwrap();
+    assert_eq!(lti.run.episodes, 1000, "lti-fast.toml's budget is 1000 episodes");
+    assert_eq!(lti.network.activation, Activation::Elu);
+    let (peg, source) = TrainConfig::for_env("peg-group2");
+    assert!(source.contains("configs/peg.toml"), "{source}");
+    assert_eq!(peg, toml::from_str::<TrainConfig>(PEG).unwrap());
+    peg.validate().unwrap();
+    // peg-group1: peg.toml with the trust region, nothing else.
+    let (group1, source) = TrainConfig::for_env("peg-group1");
+    assert!(source.contains("configs/peg-group1.toml"), "{source}");
+    group1.validate().unwrap();
+    assert_eq!((group1.ddpg.proximal_l2, peg.ddpg.proximal_l2), (3.0, 0.0));
+    let ddpg = DdpgConfig { proximal_l2: 0.0, ..group1.ddpg.clone() };
+    assert_eq!(TrainConfig { ddpg, ..group1 }, peg, "peg-group1.toml changes only [ddpg] proximal_l2");
+    // The randomized presets: peg.toml with the residual penalty, nothing else.
+    for name in ["peg-group1-rand", "peg-group2-rand"] {
+        let (rand, source) = TrainConfig::for_env(name);
+        assert!(source.contains("configs/peg-rand.toml"), "{source}");
+        rand.validate().unwrap();
+        assert_eq!((rand.ddpg.critic_warmup_updates, rand.ddpg.preactivation_l2), (0, 10.0), "{name}");
+        let ddpg = DdpgConfig { preactivation_l2: peg.ddpg.preactivation_l2, ..rand.ddpg.clone() };
+        assert_eq!(TrainConfig { ddpg, ..rand }, peg, "peg-rand.toml changes only [ddpg] preactivation_l2 ({name})");
+    }
+    // peg-experiment: peg.toml with its own DDPG keys over it, nothing else.
+    let (experiment, source) = TrainConfig::for_env("peg-experiment");
+    assert!(source.contains("configs/peg-experiment.toml"), "{source}");
+    experiment.validate().unwrap();
+    assert_eq!((experiment.ddpg.critic_warmup_updates, experiment.ddpg.preactivation_l2), (5000, 10.0));
+    let with_peg_ddpg = TrainConfig { ddpg: peg.ddpg.clone(), ..experiment.clone() };
+    assert_eq!(with_peg_ddpg, peg, "peg-experiment.toml changes only [ddpg]");
+    assert_eq!(TrainConfig::for_env("grpc://127.0.0.1:1").0, TrainConfig::default());
+}
+
+/// The named Table I files hold exactly the publication's settings
+/// (the defaults of this file), whatever environment they are laid
+/// over: a study can put them beside the working settings.
+#[test]
+fn table1_files_are_table1_over_any_environment() {
+    for name in ["table1-ddpg.toml", "table1-ppo.toml"] {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs").join(name);
+        for env in ["peg-group1", "lti-paper"] {
+            let cfg = TrainConfig::load_for_env(&path, env).unwrap();
+            let table1 = TrainConfig::default();
+            if name.contains("ddpg") {
+                assert_eq!((&cfg.ddpg, &cfg.network, &cfg.base), (&table1.ddpg, &table1.network, &table1.base), "{name} over {env}");
+            } else {
+                assert_eq!((&cfg.ppo, &cfg.network, &cfg.base), (&table1.ppo, &table1.network, &table1.base), "{name} over {env}");
+            }
+        }
+    }
+}
+
+#[test]
+fn bad_values_name_the_field() {
+    let err = |text: &str| -> String {
+        match toml::from_str::<TrainConfig>(text).map_err(|e| e.to_string()).and_then(|c| c.validate().map_err(|e| e.to_string())) {
+            Err(e) => e,
+            Ok(()) => panic!("accepted {text}"),
+        }
+    };
+    assert!(err("[ddpg]\nactor_lr = -0.001\n").contains("ddpg.actor_lr"));
+    assert!(err("[ppo]\ngamma = 1.5\n").contains("ppo.gamma"));
+    assert!(err("[network]\nsubnet_hidden = []\n").contains("network.subnet_hidden"));
+    assert!(err("[run]\ndevice = \"tpu\"\n").contains("run.device"));
+    assert!(err("[ddpg]\nactor_rate = 0.1\n").contains("actor_rate"));
+    assert!(err("[ddpg]\ncritic_disagreement = 1.0\n").contains("needs ddpg.twin_critics"));
+    assert!(err("[ddpg]\ntwin_critics = true\ncritic_disagreement = -1.0\n").contains("ddpg.critic_disagreement"));
+}
