@@ -83,7 +83,8 @@ impl Rollout {
             let cut = self.open_cuts.swap_remove(k);
             self.joins.push((cut.row, row));
         }
-        if t.cut {
+        // An episode end goes on nowhere, whatever else a peer marked.
+        if t.cut && !(t.terminated || t.truncated) {
             self.open_cuts.push(OpenCut { row, stream: t.stream, next_obs: t.next_obs.to_vec() });
         }
     }
