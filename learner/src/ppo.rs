@@ -398,5 +398,10 @@ mod tests {
         assert_eq!(advantages[11], delta(11), "so does a cut whose stream goes on in another actor");
         assert!(r.joins.is_empty() && r.open_cuts.len() == 2);
         assert_ne!(advantages[3], delta(3), "inside a segment the sum runs on");
+
+        // A peer marking an episode's last step cut as well opens nothing.
+        let mut ended = ppo();
+        store(&mut ended, 0, len - 1, true, a);
+        assert!(ended.rollout.open_cuts.is_empty());
     }
 }
