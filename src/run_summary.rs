@@ -53,6 +53,8 @@ fn service_figures(status: &LearnerStatus) -> ServiceFigures {
         learner_waited_s: status.learner_waited_s,
         policy_version: status.policy_version,
         served_version: status.served_version,
+        cuts: None,
+        cuts_joined: None,
         actors: None,
         transport: None,
     }

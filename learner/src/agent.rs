@@ -50,6 +50,12 @@ pub struct Counters {
     pub env_steps: u64,
     /// Gradient steps of the actor.
     pub updates: u64,
+    /// Steps stored marked `cut` (an actor's batch end mid-episode), and
+    /// how many of them PPO joined to their stream's next step.
+    #[serde(default)]
+    pub cuts: u64,
+    #[serde(default)]
+    pub cuts_joined: u64,
 }
 
 /// A training algorithm over a normalized action space [−1, 1]^n.

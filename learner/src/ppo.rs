@@ -76,10 +76,12 @@ impl Rollout {
         next
     }
 
-    /// Links a cut to this row if the row goes on from it, and opens a cut.
-    fn link(&mut self, t: &Transition) {
+    /// Links a cut to this row if the row goes on from it (returns
+    /// whether it did), and opens a cut.
+    fn link(&mut self, t: &Transition) -> bool {
         let row = self.rewards.len();
-        if let Some(k) = self.open_cuts.iter().position(|c| c.stream == t.stream && c.next_obs == t.obs) {
+        let joined = self.open_cuts.iter().position(|c| c.stream == t.stream && c.next_obs == t.obs);
+        if let Some(k) = joined {
             let cut = self.open_cuts.swap_remove(k);
             self.joins.push((cut.row, row));
         }
@@ -87,6 +89,7 @@ impl Rollout {
         if t.cut && !(t.terminated || t.truncated) {
             self.open_cuts.push(OpenCut { row, stream: t.stream, next_obs: t.next_obs.to_vec() });
         }
+        joined.is_some()
     }
 }
 
@@ -240,7 +243,8 @@ impl Agent for Ppo {
         });
         let value = self.value(t.obs);
         let r = &mut self.rollout;
-        r.link(&t);
+        self.counters.cuts_joined += u64::from(r.link(&t));
+        self.counters.cuts += u64::from(t.cut);
         r.obs.extend_from_slice(t.obs);
         r.actions.extend_from_slice(t.action);
         r.log_probs.push(log_prob);
@@ -373,6 +377,7 @@ mod tests {
             assert_eq!(advantages[row], expected[whole_row], "stream {} step {}", whole_row / len, whole_row % len);
         }
         assert!(cut.rollout.open_cuts.is_empty() && cut.rollout.joins.len() == 3);
+        assert_eq!((cut.counters.cuts, cut.counters.cuts_joined), (3, 3));
 
         // Actor 0's middle batch lost: its first cut ends the sum at step 4,
         // and the later rows are their own segment. Actor 1's first batch
@@ -397,6 +402,7 @@ mod tests {
         assert_eq!(advantages[4], delta(4), "an unjoined cut bootstraps and stops");
         assert_eq!(advantages[11], delta(11), "so does a cut whose stream goes on in another actor");
         assert!(r.joins.is_empty() && r.open_cuts.len() == 2);
+        assert_eq!((lost.counters.cuts, lost.counters.cuts_joined), (2, 0));
         assert_ne!(advantages[3], delta(3), "inside a segment the sum runs on");
 
         // A peer marking an episode's last step cut as well opens nothing.

@@ -122,6 +122,13 @@ pub struct ServiceFigures {
     /// (the selected one, or the newest without a selection).
     pub policy_version: u64,
     pub served_version: u64,
+    /// PPO: steps that arrived marked `cut` (an actor's batch end
+    /// mid-episode) and how many its advantages ran on across
+    /// (docs/architecture.md, "One transition, one meaning").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cuts: Option<u64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cuts_joined: Option<u64>,
     /// `lcrl run`: its actor processes and their transport.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub actors: Option<usize>,
@@ -249,6 +256,8 @@ mod tests {
             learner_waited_s: 0.75,
             policy_version: 12,
             served_version: 9,
+            cuts: None,
+            cuts_joined: None,
             actors: Some(2),
             transport: Some("shm".into()),
         };

@@ -72,11 +72,16 @@ fn run_ppo_local_one_actor_reaches_the_g_structured_optimum() {
 /// PPO with the global actor is left out on purpose: `lcrl train` itself
 /// ends 7.1–7.9% from LQR with these settings (seeds 0–2) and `lcrl run`
 /// 7.4–10.5% (five runs), so a 10% bar would fail now and then for either.
+/// Batches of 64 steps cut lti-paper's 50-step episodes; each actor's cut
+/// streams go on in its next batch, and the learner joins most of them
+/// (not those whose next batch falls in the next rollout or is stale).
 #[test]
 fn run_ppo_local_two_actors_reaches_the_g_structured_optimum() {
     let dir = tempfile::tempdir().unwrap();
     let s = run_preset(&lti_fast_preset(dir.path(), "ppo", "local", 2), &dir.path().join("run"));
     assert_reaches_the_bar(&s);
+    let (cuts, joined) = (s["cuts"].as_u64().unwrap(), s["cuts_joined"].as_u64().unwrap());
+    assert!(cuts > 0 && 2 * joined >= cuts && joined <= cuts, "{joined} of {cuts} cuts joined: {s}");
 }
 
 /// peg-group1 DDPG with 2 actors: at the end, updates × batch_size /

@@ -461,6 +461,7 @@ impl TrainingLoop {
         let flow = self.shared.flow();
         let (min, mean, max) = flow.lag.stats();
         let counters = self.agent.counters();
+        let ppo = meta.shape.algo == crate::config::Algo::Ppo;
         let (actor_params, critic_params) = self.agent.param_counts();
         let summary = RunSummary {
             env: meta.shape.env.clone(),
@@ -489,6 +490,8 @@ impl TrainingLoop {
                 learner_waited_s: flow.learner_waited_s,
                 policy_version: self.shared.policy_version(),
                 served_version: served.version,
+                cuts: ppo.then_some(counters.cuts),
+                cuts_joined: ppo.then_some(counters.cuts_joined),
                 actors: None,
                 transport: None,
             }),
