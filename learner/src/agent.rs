@@ -31,7 +31,8 @@ pub struct Transition<'a> {
     /// An actor's batch ended this environment's stream here, mid-episode
     /// (never in `lcrl train`, whose episodes arrive whole). Not an
     /// episode end: PPO carries its advantages on to the stream's next
-    /// step when that arrives in the same rollout (docs/method.md §5).
+    /// step when that arrives in the same rollout (docs/architecture.md,
+    /// "One transition, one meaning").
     pub cut: bool,
     /// The actor the step came from (0 in `lcrl train`): a cut stream
     /// goes on only in steps of the same actor.
