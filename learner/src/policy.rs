@@ -38,7 +38,7 @@ impl Policy {
     }
 
     /// Loads `dir`: a `checkpoints/epNNNNNN` or `selected` folder, or a run
-    /// directory, meaning the run's policy: the one validation selected
+    /// directory, meaning the run's policy: the one selection chose
     /// (RUN/selected/) if the run has one, else its newest checkpoint.
     pub fn load(dir: &Path) -> Result<Self, LearnerError> {
         let dir = policy_dir(dir)?;

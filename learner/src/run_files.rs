@@ -75,6 +75,45 @@ pub struct SelectionRecord {
     /// Validation starts per validation.
     pub starts: usize,
     pub history: Vec<Validation>,
+    /// The end's second look (`run.confirm_candidates`): the best few
+    /// validated policies and the starting one scored on many more starts;
+    /// when present, `episode` is the one it handed over.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub confirmation: Option<Confirmation>,
+}
+
+impl SelectionRecord {
+    /// How the policy was chosen, in words for a log or a status line.
+    pub fn how_chosen(&self) -> String {
+        let validated = format!("{} validations on {} held-out starts", self.history.len(), self.starts);
+        match &self.confirmation {
+            Some(c) => {
+                let score = c.candidates.iter().find(|k| k.episode == self.episode).map_or(f64::NAN, |k| k.mean_return);
+                format!("best of {} candidates on {} confirmation starts ({score:.4}; {:.4} in its validation), from {validated}", c.candidates.len(), c.starts, self.validation_return)
+            }
+            None => format!("best of {validated} ({:.4})", self.validation_return),
+        }
+    }
+}
+
+/// The confirmation of a run's choice: each candidate's score on the
+/// confirmation starts (`lcrl_sim::seeds::confirmation`), in the order
+/// they were ranked by validation (the starting policy last unless it
+/// ranked). The chosen one is the best score, the higher-ranked of equals.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Confirmation {
+    pub starts: usize,
+    pub candidates: Vec<ConfirmedCandidate>,
+}
+
+/// One candidate of a confirmation.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ConfirmedCandidate {
+    /// The training episodes behind the policy (0: the starting one).
+    pub episode: usize,
+    pub validation_return: f64,
+    pub mean_return: f64,
+    pub success_rate: Option<f64>,
 }
 
 /// The first `keep` rows of a metrics.csv (a resumed run's history).

@@ -215,8 +215,12 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
     }
     prior_opt = optimization;
 
-    // The run's policy (the selected one, or the last) beside the
-    // references, on the same starts (crate::summary, as the learner does).
+    // The run's policy (the selected one, confirmed on more starts where
+    // the run asks, or the last) beside the references, on the same
+    // starts (crate::summary, as the learner does).
+    if let Some(selection) = selection.as_mut() {
+        selection.confirm(env.as_ref(), &req.run_dir)?;
+    }
     let chosen = selection.as_ref().and_then(Selection::record);
     let last = crate::snapshot::snapshot(agent.as_ref(), &start.architecture(), 0)?;
     // The last validation chose the agent as it is: that is the last policy.

@@ -10,8 +10,9 @@
 //! | training episodes of run seed r | [`training`]: 2⁴⁰ + r·2²⁰ + episode |
 //! | validation (choosing the run's policy) | [`validation`]: 2⁴¹ + r·2²⁰ + k |
 //! | a run's own final evaluation | [`run_evaluation`]: 2⁴² + r·2²⁰ + k |
+//! | confirming the choice at the end (many starts, few candidates) | [`confirmation`]: 2⁴³ + r·2²⁰ + k |
 //!
-//! For run seeds and episode counts below 2²⁰ (a million) the last three
+//! For run seeds and episode counts below 2²⁰ (a million) the last four
 //! never meet each other, the first 2⁴⁰ seeds, or tuning's range.
 
 /// The first tuning start of `lcrl tune` (its candidates are scored there).
@@ -23,6 +24,7 @@ pub const PER_RUN: u64 = 1 << 20;
 const TRAINING_BASE: u64 = 1 << 40;
 const VALIDATION_BASE: u64 = 1 << 41;
 const RUN_EVALUATION_BASE: u64 = 1 << 42;
+const CONFIRMATION_BASE: u64 = 1 << 43;
 
 fn in_range(base: u64, run_seed: u64, k: usize) -> u64 {
     base.wrapping_add(run_seed.wrapping_mul(PER_RUN)).wrapping_add(k as u64)
@@ -44,6 +46,13 @@ pub fn run_evaluation(run_seed: u64, k: usize) -> u64 {
     in_range(RUN_EVALUATION_BASE, run_seed, k)
 }
 
+/// The seed of confirmation start `k`: the starts on which a run's best
+/// few validated policies are scored again before one is handed over
+/// (learner/src/selection.rs).
+pub fn confirmation(run_seed: u64, k: usize) -> u64 {
+    in_range(CONFIRMATION_BASE, run_seed, k)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -59,7 +68,7 @@ mod tests {
         let mut drawn = 0;
         for run in 0..8 {
             for k in 0..300 {
-                for seed in [training(run, k), validation(run, k), run_evaluation(run, k)] {
+                for seed in [training(run, k), validation(run, k), run_evaluation(run, k), confirmation(run, k)] {
                     assert!(seen.insert(seed), "seed {seed} (run {run}, k {k}) serves two purposes");
                     drawn += 1;
                 }
@@ -70,5 +79,6 @@ mod tests {
         let last = PER_RUN - 1;
         assert!(training(last, last as usize) < validation(0, 0));
         assert!(validation(last, last as usize) < run_evaluation(0, 0));
+        assert!(run_evaluation(last, last as usize) < confirmation(0, 0));
     }
 }

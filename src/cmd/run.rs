@@ -222,12 +222,7 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
         _ => reference_table(job, evaluation),
     };
     let which = match (&summary.selection, evaluation.last_eval_return) {
-        (Some(chosen), Some(last)) => format!(
-            "the policy validation selected (after {} episodes, best of {} validations on {} held-out starts; the last policy scores {last:.3})",
-            chosen.episode,
-            chosen.history.len(),
-            chosen.starts
-        ),
+        (Some(chosen), Some(last)) => format!("the selected policy (after {} episodes, {}; the last policy scores {last:.3})", chosen.episode, chosen.how_chosen()),
         _ => "the final policy".to_string(),
     };
     Ok(format!(

@@ -159,7 +159,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         (Some(chosen), Some(last)) => {
             let which = if chosen.episode == 0 { "the starting policy".to_string() } else { format!("episode {}'s policy", chosen.episode) };
             println!("  eval return           {:.3} (the selected policy, {} episodes)", s.evaluation.eval_return, config.run.eval_episodes.max(1));
-            println!("  selected              {which}: {:.3} on {} validation starts (best of {} validations)", chosen.validation_return, chosen.starts, chosen.history.len());
+            println!("  selected              {which}: {}", chosen.how_chosen());
             println!("  last policy           {last:.3} (same evaluation episodes)");
         }
         _ => println!("  eval return           {:.3} (deterministic policy, {} episodes)", s.evaluation.eval_return, config.run.eval_episodes.max(1)),

@@ -236,16 +236,18 @@ async fn a_learner_holding_actors_back_stops_promptly() {
 /// The distributed learner chooses its policy on held-out starts as
 /// `lcrl train` does (issue: selection in the distributed learner): a
 /// learner killed mid-run resumes its selection from `selected/`, the
-/// policy it hands over is the best of its validations, `selected/`
-/// replays its recorded validation return exactly, and once training has
-/// ended `Policy.Act` serves the selected policy and `GetStatus` says so.
+/// policy it hands over is the best of its confirmed candidates (the 2
+/// best validations and the first, each scored on 20 more starts, every
+/// score replaying exactly), `selected/` replays its recorded validation
+/// return exactly, and once training has ended `Policy.Act` serves the
+/// selected policy and `GetStatus` says so.
 #[tokio::test]
 async fn the_learner_selects_resumes_its_selection_and_serves_the_choice() {
     use lcrl_learner::selection::{read_record, selected_dir};
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
     let port = free_port();
-    let settings = "validation_episodes = 10\nvalidate_every = 20\n";
+    let settings = "validation_episodes = 10\nvalidate_every = 20\nconfirm_candidates = 2\nconfirm_episodes = 20\n";
     let extra = ["--episodes", "400"];
     let (first, url) = learner_with_run_settings(&run, "sel", port, "ppo", settings, &extra);
     let _actor = actor_with_args(&url, "sel", &["--transport", "grpc"]);
@@ -271,16 +273,32 @@ async fn the_learner_selects_resumes_its_selection_and_serves_the_choice() {
     assert_eq!(&record.history[..before.history.len()], &before.history[..], "the restarted learner resumed its selection");
     assert!(record.history.len() > before.history.len() + 2, "validations went on: {record:?}");
     assert!(record.history.last().unwrap().episode >= 400, "the last policy was validated: {record:?}");
-    // The handed-over policy is the first of the best.
-    let best = record.history.iter().fold(f64::NEG_INFINITY, |b, v| b.max(v.mean_return));
-    let first_best = record.history.iter().find(|v| v.mean_return == best).unwrap();
-    assert_eq!((record.episode, record.validation_return), (first_best.episode, best), "{record:?}");
+    // The candidates are the 2 best validations (the earlier of equals
+    // first) and the first; the handed-over policy is the first of their
+    // best confirmation scores, and each score replays from its folder.
+    let mut ranked = record.history.clone();
+    ranked.sort_by(|a, b| b.mean_return.total_cmp(&a.mean_return));
+    let mut expected: Vec<usize> = ranked[..2].iter().map(|v| v.episode).collect();
+    if !expected.contains(&0) {
+        expected.push(0);
+    }
+    let confirmation = record.confirmation.clone().expect("the learner confirms its choice");
+    assert_eq!(confirmation.candidates.iter().map(|c| c.episode).collect::<Vec<_>>(), expected, "{record:?}");
+    let best = confirmation.candidates.iter().fold(f64::NEG_INFINITY, |b, c| b.max(c.mean_return));
+    let pick = confirmation.candidates.iter().find(|c| c.mean_return == best).unwrap();
+    assert_eq!(record.episode, pick.episode, "{record:?}");
+    let mut env = lcrl_sim::make_env("lti-paper").unwrap();
+    let probe = env.fresh();
+    for c in &confirmation.candidates {
+        let candidate = lcrl_learner::policy::Policy::load(&run.join(format!("candidates/episode-{:07}", c.episode))).unwrap();
+        let first_start = lcrl_sim::seeds::confirmation(0, 0);
+        let (replay, _) = lcrl_sim::evaluate::evaluate(env.as_mut(), "replay", 20, first_start, &mut |s| candidate.act(probe.as_ref(), s), &mut |_| {}).unwrap();
+        assert_eq!(replay.mean_return, c.mean_return, "candidate after {} episodes", c.episode);
+    }
 
     // selected/ replays its validation return exactly, on the same starts.
     let policy = lcrl_learner::policy::Policy::load(&selected_dir(&run)).unwrap();
     assert_eq!(policy.episode, Some(record.episode));
-    let mut env = lcrl_sim::make_env("lti-paper").unwrap();
-    let probe = env.fresh();
     let first_start = lcrl_sim::seeds::validation(0, 0);
     let (replay, _) = lcrl_sim::evaluate::evaluate(env.as_mut(), "replay", record.starts, first_start, &mut |s| policy.act(probe.as_ref(), s), &mut |_| {}).unwrap();
     assert_eq!(replay.mean_return, record.validation_return);

@@ -360,6 +360,14 @@ pub struct RunConfig {
     /// its last.
     pub validation_episodes: usize,
     pub validate_every: usize,
+    /// Confirming the choice at the end (learner/src/selection.rs): the
+    /// best `confirm_candidates` validated policies, and the starting one,
+    /// each run `confirm_episodes` starts of their own, and the best of
+    /// them is handed over. 30 validation starts rank policies but cannot
+    /// see a failure that comes once in 100–200 starts (docs/peg.md); a
+    /// few hundred starts do. 0: the best validation is handed over.
+    pub confirm_candidates: usize,
+    pub confirm_episodes: usize,
     /// Falling back to the run's selected policy (learner/src/fallback.rs):
     /// a training episode of the current policy that returns less than the
     /// base's validation return minus this margin hands the next
@@ -491,6 +499,8 @@ impl Default for RunConfig {
             eval_seed: None,
             validation_episodes: 0,
             validate_every: 20,
+            confirm_candidates: 0,
+            confirm_episodes: 300,
             fallback_margin: None,
             fallback_episodes: None,
             fallback_gate: false,

@@ -49,6 +49,14 @@ impl TrainConfig {
                 return bad(field, "needs run.fallback_margin (the fallback's threshold is the base's validation return minus it)");
             }
         }
+        if self.run.confirm_candidates > 0 {
+            if self.run.validation_episodes == 0 {
+                return bad("run.confirm_candidates", "needs validation (run.validation_episodes ≥ 1): it confirms the best validated policies");
+            }
+            if self.run.confirm_episodes == 0 {
+                return bad("run.confirm_episodes", "must be at least 1 when run.confirm_candidates is set (0 candidates turns the confirmation off)");
+            }
+        }
         if self.run.fallback_episodes == Some(0) {
             return bad("run.fallback_episodes", "must be at least 1");
         }

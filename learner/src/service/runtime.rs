@@ -299,13 +299,7 @@ impl TrainingLoop {
         let chosen = self.schedule.validator.as_mut().map(Validator::finish).transpose()?;
         let served = match chosen.as_ref().and_then(|c| c.snapshot.clone().zip(c.record.clone())) {
             Some((snapshot, record)) => Served {
-                reason: format!(
-                    "selected: the policy after {} episodes, best of {} validations (mean return {:.4} on {} held-out starts)",
-                    record.episode,
-                    record.history.len(),
-                    record.validation_return,
-                    record.starts
-                ),
+                reason: format!("selected: the policy after {} episodes, {}", record.episode, record.how_chosen()),
                 snapshot,
             },
             None => Served { snapshot: self.shared.policy.borrow().clone(), reason: "newest: training ended without validation (run.validation_episodes = 0)".into() },

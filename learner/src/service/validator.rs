@@ -8,8 +8,8 @@
 //! [`crate::selection::validation_due`]); snapshots are copies, so
 //! validating one reads nothing the training thread writes and training is
 //! the same with or without it. At the end of the budget the training
-//! thread waits for the last validation ([`Validator::finish`]) and serves
-//! the chosen policy from then on.
+//! thread waits for the last validation and the confirmation
+//! ([`Validator::finish`]) and serves the chosen policy from then on.
 
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
@@ -114,6 +114,16 @@ fn validate_jobs(mut selection: Selection, env: Box<dyn Env>, run_dir: &Path, in
         if selected {
             chosen.snapshot = Some(job.snapshot);
         }
+    }
+    // The inbox closes when training has ended (`Validator::finish`): the
+    // confirmation has every core of the global pool to itself.
+    if selection.confirm(env.as_ref(), run_dir)? {
+        let snapshot = read_selected(run_dir)?.map(Arc::new);
+        let mut chosen = chosen.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        chosen.record = selection.record();
+        chosen.snapshot = snapshot;
+    } else {
+        chosen.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).record = selection.record();
     }
     Ok(())
 }
