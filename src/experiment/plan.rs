@@ -252,16 +252,13 @@ pub fn prepare_out(e: &Experiment, file: &Path, out: &Path, shared: bool) -> any
     std::fs::create_dir_all(out).with_context(|| format!("cannot create output directory {}", out.display()))?;
     let parsed = serde_json::to_string_pretty(&e.file)? + "\n";
     let recorded = out.join("experiment.json");
-    // What the recorded file says once checked (deprecated names renamed).
-    let same = |existing: &str| {
-        serde_json::from_str(existing).ok().and_then(|file| Experiment::check(file).ok()).is_some_and(|old| old.file == e.file)
-    };
     match std::fs::read_to_string(&recorded) {
-        Ok(existing) if existing != parsed && !same(&existing) => {
+        Ok(existing) if existing != parsed && !extends(&existing, e) => {
             let other: Option<String> = serde_json::from_str::<serde_json::Value>(&existing).ok().and_then(|v| v["name"].as_str().map(String::from));
             bail!(
                 "{} belongs to a different experiment ({}); {} describes another study. Nothing was changed: \
-                 run it with another --out, or restore the file that made this directory to continue it",
+                 run it with another --out, or restore the file that made this directory to continue it \
+                 (adding seeds is the one change a study folder takes: its finished runs keep their meaning)",
                 out.display(),
                 other.map_or("unreadable experiment.json".into(), |n| format!("\"{n}\", see {}", out.join("experiment.toml").display())),
                 file.display()
@@ -291,6 +288,18 @@ pub fn recorded_experiment(out: &Path) -> anyhow::Result<Experiment> {
     let text = std::fs::read_to_string(&path).with_context(|| format!("{} holds no experiment (no experiment.json); give the --out of `lcrl experiment run`", out.display()))?;
     let file = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
     Experiment::check(file).with_context(|| format!("{}", path.display()))
+}
+
+/// Whether `e` continues the study recorded in `existing` (its
+/// experiment.json): the same study once checked (deprecated names
+/// renamed), or the same study with more seeds. Adding seeds leaves every
+/// finished run what it was, so the folder takes them (the report then
+/// covers them all); any other change would mix two studies in one report.
+fn extends(existing: &str, e: &Experiment) -> bool {
+    let Some(old) = serde_json::from_str(existing).ok().and_then(|file| Experiment::check(file).ok()) else { return false };
+    let mut widened = old.file.clone();
+    widened.seeds = e.file.seeds.clone();
+    widened == e.file && old.seeds.iter().all(|seed| e.seeds.contains(seed))
 }
 
 #[cfg(test)]
@@ -353,3 +362,4 @@ mod tests {
         assert!(err.contains("matches no cell") && err.contains("lti-paper/ppo/local@0.1"), "{err}");
     }
 }
+

@@ -219,13 +219,28 @@ fn bad_experiments_are_refused_and_finished_runs_kept() {
     assert_eq!(finished.len(), 1);
 
     // Another experiment file into the same folder: refused, nothing lost.
-    let other = write("other.toml", &TINY.replace("seeds = 1", "seeds = 2"));
+    let other = write("other.toml", &TINY.replace("ppo = 4", "ppo = 5"));
     assert_clean_failure(&run(&other, &out), "belongs to a different experiment (\"tiny\"");
     assert_eq!(finished_runs(&out), finished);
+    // Dropping a seed is another study too.
+    let fewer = write("fewer.toml", &TINY.replace("seeds = 1", "seeds = [1]"));
+    assert_clean_failure(&run(&fewer, &out), "adding seeds is the one change");
+    assert_eq!(finished_runs(&out), finished);
+    // More seeds extend the study: only the new seed runs, and the report
+    // covers both.
+    let more = write("more.toml", &TINY.replace("seeds = 1", "seeds = 2"));
+    let extended = run(&more, &out);
+    assert!(extended.status.success() && stdout(&extended).contains("1 of 2 tasks finished before"), "{}", stdout(&extended));
+    let both = finished_runs(&out);
+    assert_eq!(both.len(), 2);
+    assert!(finished.iter().all(|(run, file)| both.get(run) == Some(file)), "a finished run was touched");
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(report.contains("| global | 2 |"), "{report}");
+    let finished = both;
     // The same file again (comments may change): everything is finished.
-    let commented = write("tiny-commented.toml", &format!("# the same study\n{TINY}"));
+    let commented = write("tiny-commented.toml", &format!("# the same study\n{}", TINY.replace("seeds = 1", "seeds = 2")));
     let again = run(&commented, &out);
-    assert!(again.status.success() && stdout(&again).contains("1 of 1 tasks finished before"), "{}", stdout(&again));
+    assert!(again.status.success() && stdout(&again).contains("2 of 2 tasks finished before"), "{}", stdout(&again));
     assert_eq!(finished_runs(&out), finished);
     // A folder that holds something else is not taken over.
     assert_clean_failure(&run(&tiny, tmp.path()), "holds no experiment");
