@@ -214,20 +214,35 @@ impl Selection {
     /// Confirms the choice (see the module's notes): each candidate runs
     /// the confirmation starts, on every core of the current rayon pool,
     /// and the best of them becomes RUN/selected/. Does nothing when the
-    /// confirmation is off, or already done with no validation since (a
-    /// resumed run that had ended). Returns whether it changed the choice.
+    /// confirmation is off, already done with no validation since (a
+    /// resumed run that had ended), or when every candidate holds the same
+    /// weights. Returns whether it changed the choice.
     pub fn confirm(&mut self, env: &dyn Env, run_dir: &Path) -> Result<bool, LearnerError> {
         if self.confirmation.is_some() || self.history.is_empty() || self.confirm_candidates == 0 {
             return Ok(false);
         }
         let _span = tracing::info_span!("confirmation", starts = self.confirm_episodes).entered();
+        let kept = self.candidates();
+        let snapshots = kept.iter().map(|v| crate::snapshot::read_snapshot(&candidate_dir(run_dir, v.episode))).collect::<Result<Vec<_>, _>>()?;
+        // The same weights score the same (a policy validated twice before
+        // its first update, say): each distinct policy runs once, and with
+        // one distinct policy there is nothing to choose.
+        let first_of = |k: usize| snapshots.iter().position(|s| s.weights == snapshots[k].weights).unwrap_or(k);
+        if (0..kept.len()).all(|k| first_of(k) == 0) {
+            return Ok(false);
+        }
         let first = lcrl_sim::seeds::confirmation(self.run_seed, 0);
-        let mut candidates = Vec::new();
-        for v in self.candidates() {
-            let snapshot = crate::snapshot::read_snapshot(&candidate_dir(run_dir, v.episode))?;
-            let (summary, _) = evaluate_snapshot(env, "confirmation", &snapshot, self.confirm_episodes, first, &|_| {})?;
-            tracing::info!(episode = v.episode, validation_return = v.mean_return, mean_return = summary.mean_return, "confirmed");
-            candidates.push(ConfirmedCandidate { episode: v.episode, validation_return: v.mean_return, mean_return: summary.mean_return, success_rate: summary.success_rate });
+        let mut candidates: Vec<ConfirmedCandidate> = Vec::new();
+        for (k, v) in kept.iter().enumerate() {
+            let (mean_return, success_rate) = match candidates.get(first_of(k)) {
+                Some(same) => (same.mean_return, same.success_rate),
+                None => {
+                    let (summary, _) = evaluate_snapshot(env, "confirmation", &snapshots[k], self.confirm_episodes, first, &|_| {})?;
+                    (summary.mean_return, summary.success_rate)
+                }
+            };
+            tracing::info!(episode = v.episode, validation_return = v.mean_return, mean_return, "confirmed");
+            candidates.push(ConfirmedCandidate { episode: v.episode, validation_return: v.mean_return, mean_return, success_rate });
         }
         let before = self.chosen().map(|v| v.episode);
         self.confirmation = Some(Confirmation { starts: self.confirm_episodes, candidates });

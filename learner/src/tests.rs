@@ -537,6 +537,12 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
         // And it scores as the base does on the same starts.
         let constant = lcrl_sim::tune::constant_return(env.as_ref(), &base, 3, lcrl_sim::seeds::run_evaluation(0, 0)).unwrap();
         assert!((outcome.summary.evaluation.eval_return - constant).abs() < 0.05 * constant.abs(), "{algo:?}: {} vs {constant}", outcome.summary.evaluation.eval_return);
+        // No update happened, so both validations held the same weights:
+        // the end's confirmation (on in the peg settings) has nothing to
+        // choose between and runs nothing.
+        let selection = outcome.summary.selection.expect("the peg settings validate");
+        assert_eq!((selection.history.len(), selection.confirmation), (2, None), "{algo:?}");
+        assert!(run_dir.join("candidates").is_dir(), "{algo:?}: the candidates are kept");
     }
 }
 
