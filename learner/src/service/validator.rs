@@ -108,11 +108,18 @@ fn validate_jobs(mut selection: Selection, env: Box<dyn Env>, run_dir: &Path, in
         .build()
         .map_err(|e| LearnerError::Config(format!("cannot start the validation thread pool: {e}")))?;
     for job in inbox {
+        let before = selection.record().map(|r| r.episode);
         let (_, selected) = pool.install(|| selection.validate_policy(env.as_ref(), &job.snapshot, run_dir, &job.meta))?;
+        // A resumed run whose confirmation had chosen another policy goes
+        // back to the best validation, which RUN/selected/ now holds.
+        let restored = !selected && selection.record().map(|r| r.episode) != before;
+        let snapshot = if restored { read_selected(run_dir)?.map(Arc::new) } else { None };
         let mut chosen = chosen.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
         chosen.record = selection.record();
         if selected {
             chosen.snapshot = Some(job.snapshot);
+        } else if restored {
+            chosen.snapshot = snapshot;
         }
     }
     // The inbox closes when training has ended (`Validator::finish`): the
