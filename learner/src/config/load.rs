@@ -19,13 +19,17 @@ const PEG_RAND: &str = include_str!("../../../configs/peg-rand.toml");
 /// configs/peg-group1.toml, compiled in: peg-group1's DDPG settings, laid
 /// over configs/peg.toml.
 const PEG_GROUP1: &str = include_str!("../../../configs/peg-group1.toml");
+/// configs/peg-group2.toml, compiled in: peg-group2's DDPG settings, laid
+/// over configs/peg.toml.
+const PEG_GROUP2: &str = include_str!("../../../configs/peg-group2.toml");
 
 impl TrainConfig {
     /// The training settings that work on a registered environment, used
     /// when no --config is given, and where they come from. lti-paper gets
     /// configs/lti-fast.toml and the peg presets configs/peg.toml (Table
     /// I's defaults diverge on both; docs/peg.md), with
-    /// configs/peg-experiment.toml over it on peg-experiment and
+    /// configs/peg-experiment.toml over it on peg-experiment,
+    /// configs/peg-group1.toml and peg-group2.toml on the group presets and
     /// configs/peg-rand.toml on the randomized presets; every other environment
     /// gets Table I's defaults (configs/table1-ddpg.toml, table1-ppo.toml).
     pub fn for_env(env: &str) -> (TrainConfig, &'static str) {
@@ -36,6 +40,7 @@ impl TrainConfig {
             ("peg-experiment", _) => Some((&[PEG, PEG_EXPERIMENT], "configs/peg.toml with configs/peg-experiment.toml (the settings for peg-experiment)")),
             (_, Some(peg)) if peg.randomize.is_some() => Some((&[PEG, PEG_RAND], "configs/peg.toml with configs/peg-rand.toml (the settings for the randomized peg presets)")),
             ("peg-group1", _) => Some((&[PEG, PEG_GROUP1], "configs/peg.toml with configs/peg-group1.toml (the settings for peg-group1)")),
+            ("peg-group2", _) => Some((&[PEG, PEG_GROUP2], "configs/peg.toml with configs/peg-group2.toml (the settings for peg-group2)")),
             (_, Some(_)) => Some((&[PEG], "configs/peg.toml (the settings for the peg presets)")),
             (_, None) => None,
         };

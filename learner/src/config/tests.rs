@@ -42,10 +42,16 @@ fn registered_environments_get_their_working_settings() {
     lti.validate().unwrap();
     assert_eq!(lti.run.episodes, 1000, "lti-fast.toml's budget is 1000 episodes");
     assert_eq!(lti.network.activation, Activation::Elu);
-    let (peg, source) = TrainConfig::for_env("peg-group2");
-    assert!(source.contains("configs/peg.toml"), "{source}");
-    assert_eq!(peg, toml::from_str::<TrainConfig>(PEG).unwrap());
+    let peg: TrainConfig = toml::from_str(PEG).unwrap();
     peg.validate().unwrap();
+    // peg-group2: peg.toml with the trust region at 1 and the critic's
+    // head start, nothing else.
+    let (group2, source) = TrainConfig::for_env("peg-group2");
+    assert!(source.contains("configs/peg-group2.toml"), "{source}");
+    group2.validate().unwrap();
+    assert_eq!((group2.ddpg.proximal_l2, group2.ddpg.critic_warmup_updates), (1.0, 2000));
+    let ddpg = DdpgConfig { proximal_l2: 0.0, critic_warmup_updates: 0, ..group2.ddpg.clone() };
+    assert_eq!(TrainConfig { ddpg, ..group2 }, peg, "peg-group2.toml changes only [ddpg] proximal_l2 and critic_warmup_updates");
     // peg-group1: peg.toml with the trust region, nothing else.
     let (group1, source) = TrainConfig::for_env("peg-group1");
     assert!(source.contains("configs/peg-group1.toml"), "{source}");
