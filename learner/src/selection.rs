@@ -62,7 +62,8 @@ fn candidate_dir(run_dir: &Path, episode: usize) -> PathBuf {
 }
 
 /// The running choice of a run's policy: every validation so far; the
-/// choice is the first of the best among them.
+/// choice is the first of the best among them, or, once the end has
+/// confirmed, the best of the candidates on the confirmation starts.
 pub struct Selection {
     run_seed: u64,
     starts: usize,
@@ -222,13 +223,15 @@ impl Selection {
             return Ok(false);
         }
         let _span = tracing::info_span!("confirmation", starts = self.confirm_episodes).entered();
-        let kept = self.candidates();
+        // A run resumed with the confirmation newly turned on kept no
+        // policies before: it confirms among those it has.
+        let kept: Vec<Validation> = self.candidates().into_iter().filter(|v| candidate_dir(run_dir, v.episode).join("checkpoint.json").is_file()).collect();
         let snapshots = kept.iter().map(|v| crate::snapshot::read_snapshot(&candidate_dir(run_dir, v.episode))).collect::<Result<Vec<_>, _>>()?;
         // The same weights score the same (a policy validated twice before
         // its first update, say): each distinct policy runs once, and with
         // one distinct policy there is nothing to choose.
         let first_of = |k: usize| snapshots.iter().position(|s| s.weights == snapshots[k].weights).unwrap_or(k);
-        if (0..kept.len()).all(|k| first_of(k) == 0) {
+        if kept.is_empty() || (0..kept.len()).all(|k| first_of(k) == 0) {
             return Ok(false);
         }
         let first = lcrl_sim::seeds::confirmation(self.run_seed, 0);
