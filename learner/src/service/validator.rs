@@ -110,29 +110,32 @@ fn validate_jobs(mut selection: Selection, env: Box<dyn Env>, run_dir: &Path, in
     for job in inbox {
         let before = selection.record().map(|r| r.episode);
         let (_, selected) = pool.install(|| selection.validate_policy(env.as_ref(), &job.snapshot, run_dir, &job.meta))?;
-        // A resumed run whose confirmation had chosen another policy goes
-        // back to the best validation, which RUN/selected/ now holds.
-        let restored = !selected && selection.record().map(|r| r.episode) != before;
-        let snapshot = if restored { read_selected(run_dir)?.map(Arc::new) } else { None };
-        let mut chosen = chosen.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-        chosen.record = selection.record();
-        if selected {
-            chosen.snapshot = Some(job.snapshot);
-        } else if restored {
-            chosen.snapshot = snapshot;
-        }
+        let moved = if selected {
+            Some(Some(job.snapshot))
+        } else if selection.record().map(|r| r.episode) != before {
+            // A resumed run whose confirmation had chosen another policy
+            // goes back to the best validation, which RUN/selected/ now holds.
+            Some(read_selected(run_dir)?.map(Arc::new))
+        } else {
+            None
+        };
+        publish(chosen, &selection, moved);
     }
     // The inbox closes when training has ended (`Validator::finish`): the
     // confirmation has every core of the global pool to itself.
-    if selection.confirm(env.as_ref(), run_dir)? {
-        let snapshot = read_selected(run_dir)?.map(Arc::new);
-        let mut chosen = chosen.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-        chosen.record = selection.record();
-        chosen.snapshot = snapshot;
-    } else {
-        chosen.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).record = selection.record();
-    }
+    let moved = if selection.confirm(env.as_ref(), run_dir)? { Some(read_selected(run_dir)?.map(Arc::new)) } else { None };
+    publish(chosen, &selection, moved);
     Ok(())
+}
+
+/// Shows the selection's record to the training thread and, when the
+/// choice moved to another policy, that policy's snapshot.
+fn publish(chosen: &Mutex<Chosen>, selection: &Selection, moved: Option<Option<Arc<PolicySnapshot>>>) {
+    let mut chosen = chosen.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    chosen.record = selection.record();
+    if let Some(snapshot) = moved {
+        chosen.snapshot = snapshot;
+    }
 }
 
 /// The snapshot of the policy in RUN/selected/, if there is one (a resumed
