@@ -139,17 +139,14 @@ impl Selection {
 
     /// The best validation: the best mean return, the earliest of equals.
     fn best(&self) -> Option<&Validation> {
-        self.history.iter().fold(None, |best: Option<&Validation>, v| match best {
-            Some(b) if b.mean_return >= v.mean_return => Some(b),
-            _ => Some(v),
-        })
+        first_of_best(&self.history, |v| v.mean_return)
     }
 
     /// The chosen validation: the confirmation's choice if the end has
     /// confirmed, else the best.
     fn chosen(&self) -> Option<&Validation> {
         match &self.confirmation {
-            Some(c) => chosen_candidate(&c.candidates).and_then(|pick| self.history.iter().find(|v| v.episode == pick.episode)),
+            Some(c) => first_of_best(&c.candidates, |k| k.mean_return).and_then(|pick| self.history.iter().find(|v| v.episode == pick.episode)),
             None => self.best(),
         }
     }
@@ -203,10 +200,11 @@ impl Selection {
             // A resumed run that had confirmed another policy selects the best again.
             copy_policy(&candidate_dir(run_dir, best), &selected_dir(run_dir))?;
         }
-        if self.candidates().iter().any(|v| v.episode == meta.episode) {
+        let candidates = self.candidates();
+        if candidates.iter().any(|v| v.episode == meta.episode) {
             write_folder(&candidate_dir(run_dir, meta.episode), meta, write_weights)?;
         }
-        self.prune_candidates(run_dir)?;
+        prune_candidates(run_dir, &candidates)?;
         self.write_record(run_dir)?;
         tracing::info!(episode = validation.episode, mean_return = validation.mean_return, selected = better, "validated");
         Ok((validation, better))
@@ -269,17 +267,6 @@ impl Selection {
         })
     }
 
-    /// Deletes the kept policies that are no longer candidates.
-    fn prune_candidates(&self, run_dir: &Path) -> Result<(), LearnerError> {
-        let keep: Vec<PathBuf> = self.candidates().iter().map(|v| candidate_dir(run_dir, v.episode)).collect();
-        let root = candidates_dir(run_dir);
-        let Ok(entries) = std::fs::read_dir(&root) else { return Ok(()) };
-        for path in entries.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| !keep.contains(p)) {
-            std::fs::remove_dir_all(&path).map_err(|source| LearnerError::Io { path: path.clone(), source })?;
-        }
-        Ok(())
-    }
-
     fn write_record(&self, run_dir: &Path) -> Result<(), LearnerError> {
         let Some(record) = self.record() else { return Ok(()) };
         let path = selected_dir(run_dir).join("selection.json");
@@ -288,12 +275,23 @@ impl Selection {
     }
 }
 
-/// The confirmation's choice: the best score, the higher-ranked of equals.
-fn chosen_candidate(candidates: &[ConfirmedCandidate]) -> Option<&ConfirmedCandidate> {
-    candidates.iter().fold(None, |best: Option<&ConfirmedCandidate>, c| match best {
-        Some(b) if b.mean_return >= c.mean_return => Some(b),
-        _ => Some(c),
+/// The first item of the best score (the earliest validation, or the
+/// higher-ranked candidate, of equals).
+fn first_of_best<T>(items: &[T], score: impl Fn(&T) -> f64) -> Option<&T> {
+    items.iter().fold(None, |best: Option<&T>, item| match best {
+        Some(b) if score(b) >= score(item) => Some(b),
+        _ => Some(item),
     })
+}
+
+/// Deletes the kept policies that are no longer `candidates`.
+fn prune_candidates(run_dir: &Path, candidates: &[Validation]) -> Result<(), LearnerError> {
+    let keep: Vec<PathBuf> = candidates.iter().map(|v| candidate_dir(run_dir, v.episode)).collect();
+    let Ok(entries) = std::fs::read_dir(candidates_dir(run_dir)) else { return Ok(()) };
+    for path in entries.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| !keep.contains(p)) {
+        std::fs::remove_dir_all(&path).map_err(|source| LearnerError::Io { path: path.clone(), source })?;
+    }
+    Ok(())
 }
 
 /// Replaces the policy folder `to` with a copy of `from` (checkpoint.json
