@@ -252,11 +252,13 @@ async fn the_learner_selects_resumes_its_selection_and_serves_the_choice() {
     let extra = ["--episodes", "400"];
     let (first, url) = learner_with_run_settings(&run, "sel", port, "ppo", settings, &extra);
     let _actor = actor_with_args(&url, "sel", &["--transport", "grpc"]);
-    // Kill it once a few validations are recorded, well before the budget.
+    // Kill it once a few validations are recorded and a checkpoint is
+    // written, well before the budget: a learner killed before its first
+    // checkpoint has nothing to resume and starts the run afresh.
     let deadline = Instant::now() + Duration::from_secs(120);
     let before = loop {
         if let Ok(Some(record)) = read_record(&selected_dir(&run)) {
-            if record.history.len() >= 3 {
+            if record.history.len() >= 3 && lcrl_learner::checkpoint::latest_checkpoint(&run).is_some() {
                 break record;
             }
         }
