@@ -262,13 +262,18 @@ mod tests {
     /// An untrained policy of `env` with connection graph `mask` (None: all
     /// ones) over `base`, published as `version`, as the learner would.
     fn untrained_policy(env: &str, algo: Algo, mask: Option<Vec<Vec<u8>>>, base: Option<Vec<f64>>, version: u64) -> Policy {
+        untrained_policy_reaching(env, algo, mask, base, version, 1.0)
+    }
+
+    /// The same, with the residual's reach `residual_scale` around `base`.
+    fn untrained_policy_reaching(env: &str, algo: Algo, mask: Option<Vec<Vec<u8>>>, base: Option<Vec<f64>>, version: u64, residual_scale: f64) -> Policy {
         let made = lcrl_sim::make_env(env).unwrap();
         let (m, n) = (made.spec().state_dim(), made.spec().action_dim());
         let cfg = TrainConfig::for_env(env).0;
         let mask = mask.unwrap_or_else(|| vec![vec![1u8; m]; n]);
         let agent = lcrl_learner::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, m, n).unwrap();
         let shape = lcrl_learner::snapshot::ActorShape { env: env.into(), algo, connection: Connection::Local, state_dim: m, action_dim: n, mask };
-        let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base };
+        let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base, residual_scale };
         let snapshot = lcrl_learner::snapshot::snapshot(agent.as_ref(), &architecture, version).unwrap();
         Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap()
     }
@@ -351,10 +356,28 @@ mod tests {
         }
     }
 
-    /// An untrained peg-group1 policy over its best constant, version 1.
+    /// An untrained peg-group1 policy over its best constant with half the
+    /// box's reach (`[base] residual_scale = 0.5`), version 1.
     fn peg_policy(algo: Algo) -> Policy {
         let base = lcrl_sim::peg::measured_best_constant("peg-group1").expect("measured").to_vec();
-        untrained_policy("peg-group1", algo, None, Some(base), 1)
+        untrained_policy_reaching("peg-group1", algo, None, Some(base), 1, 0.5)
+    }
+
+    /// The residual's reach travels in the snapshot (its architecture's
+    /// JSON) to the actor, whose actions then stay within it.
+    #[test]
+    fn the_residual_reach_travels_with_the_snapshot() {
+        let policy = peg_policy(Algo::Ddpg);
+        let env = lcrl_sim::make_env("peg-group1").unwrap();
+        let spec = env.spec();
+        let base = lcrl_sim::peg::measured_best_constant("peg-group1").expect("measured");
+        let map = policy.action_map(env.as_ref()).unwrap();
+        let (low, high) = (map.to_env(&[-1.0; 6]), map.to_env(&[1.0; 6]));
+        for i in 0..6 {
+            let half = 0.5 * (spec.action_high[i] - spec.action_low[i]);
+            assert!((low[i] - (base[i] - 0.5 * half).max(spec.action_low[i])).abs() < 1e-12, "{low:?}");
+            assert!((high[i] - (base[i] + 0.5 * half).min(spec.action_high[i])).abs() < 1e-12, "{high:?}");
+        }
     }
 
     /// With several environments a batch lists its episodes in the order

@@ -1,13 +1,15 @@
 //! Between the agent's normalized action u ∈ [−1, 1]ⁿ and the environment's
 //! action a ∈ [lb, ub] (docs/method.md eq. 15 on peg tasks), in one place.
 //!
-//!     a = clip(b + u ⊙ (ub − lb)/2, lb, ub)
+//!     a = clip(b + s · u ⊙ (ub − lb)/2, lb, ub)
 //!
 //! b is the base controller the agent acts around (residual RL). Without a
-//! base, b is the box centre and the map is the plain linear one onto the
-//! box (Table I's setting: u = 0 is the middle of the box, never clipped).
-//! With a base, u = 0 is the base controller itself, and the actor's
-//! near-zero initial output (nets.rs) makes the first policy the base.
+//! base, b is the box centre, s = 1 and the map is the plain linear one
+//! onto the box (Table I's setting: u = 0 is the middle of the box, never
+//! clipped). With a base, u = 0 is the base controller itself, and the
+//! actor's near-zero initial output (nets.rs) makes the first policy the
+//! base. s ∈ (0, 1] is the residual's reach (`[base] residual_scale`): the
+//! policy never leaves b ± s·(ub − lb)/2, whatever it learns.
 
 use lcrl_sim::EnvSpec;
 use serde::Deserialize;
@@ -22,6 +24,8 @@ pub struct ActionMap {
     high: Vec<f64>,
     /// b: the base action, or the box centre without one.
     centre: Vec<f64>,
+    /// s·(ub − lb)/2: how far u = ±1 moves each action from b.
+    reach: Vec<f64>,
     /// The base action, when there is one (for reports).
     base: Option<Vec<f64>>,
 }
@@ -30,7 +34,8 @@ impl ActionMap {
     /// The plain map onto the box (no base controller).
     pub fn plain(spec: &EnvSpec) -> Self {
         let centre = spec.action_low.iter().zip(&spec.action_high).map(|(lo, hi)| 0.5 * (lo + hi)).collect();
-        ActionMap { low: spec.action_low.clone(), high: spec.action_high.clone(), centre, base: None }
+        let reach = Self::plain_reach(&spec.action_low, &spec.action_high);
+        ActionMap { low: spec.action_low.clone(), high: spec.action_high.clone(), centre, reach, base: None }
     }
 
     /// The map around a base action (None: [`ActionMap::plain`]), which must
@@ -45,6 +50,19 @@ impl ActionMap {
         Ok(map)
     }
 
+    /// The map with the residual's reach s (`[base] residual_scale`): u = ±1
+    /// moves each action s half-widths of its box from the base. Validated
+    /// configurations and snapshots hold s ∈ (0, 1], 1 without a base.
+    pub fn with_residual_scale(mut self, s: f64) -> Self {
+        let full = Self::plain_reach(&self.low, &self.high);
+        self.reach = full.iter().map(|half| s * half).collect();
+        self
+    }
+
+    fn plain_reach(low: &[f64], high: &[f64]) -> Vec<f64> {
+        low.iter().zip(high).map(|(lo, hi)| 0.5 * (hi - lo)).collect()
+    }
+
     /// The base action, if the map has one.
     pub fn base(&self) -> Option<&[f64]> {
         self.base.as_deref()
@@ -54,10 +72,7 @@ impl ActionMap {
     pub fn to_env(&self, u: &[f32]) -> Vec<f64> {
         u.iter()
             .enumerate()
-            .map(|(i, &u)| {
-                let half = 0.5 * (self.high[i] - self.low[i]);
-                (self.centre[i] + f64::from(u).clamp(-1.0, 1.0) * half).clamp(self.low[i], self.high[i])
-            })
+            .map(|(i, &u)| (self.centre[i] + f64::from(u).clamp(-1.0, 1.0) * self.reach[i]).clamp(self.low[i], self.high[i]))
             .collect()
     }
 
@@ -67,8 +82,8 @@ impl ActionMap {
         a.iter()
             .enumerate()
             .map(|(i, &a)| {
-                let half = 0.5 * (self.high[i] - self.low[i]);
-                if half > 0.0 { ((a - self.centre[i]) / half).clamp(-1.0, 1.0) as f32 } else { 0.0 }
+                let reach = self.reach[i];
+                if reach > 0.0 { ((a - self.centre[i]) / reach).clamp(-1.0, 1.0) as f32 } else { 0.0 }
             })
             .collect()
     }
@@ -166,6 +181,31 @@ mod tests {
         let u = [-0.3f32, -0.2, 0.1, 0.4, -0.1, 0.2];
         let back = map.to_normalized(&map.to_env(&u));
         assert!(back.iter().zip(&u).all(|(x, y)| (x - y).abs() < 1e-6), "{back:?}");
+    }
+
+    #[test]
+    fn the_residual_scale_bounds_the_policy_around_its_base() {
+        let spec = spec();
+        let base = [1.0, 0.5, 0.0, 1.5, 1.0, 2.0];
+        let map = ActionMap::new(&spec, Some(&base)).unwrap().with_residual_scale(0.25);
+        assert_eq!(map.to_env(&[0.0; 6]), base.to_vec());
+        // u = ±1 reaches a quarter of each half-width (1.5 on [−1, 2],
+        // 2.5 on [−1, 4]), nowhere near the box's edges.
+        let up = map.to_env(&[1.0; 6]);
+        let down = map.to_env(&[-1.0; 6]);
+        for i in 0..6 {
+            let half = 0.5 * (spec.action_high[i] - spec.action_low[i]);
+            assert!((up[i] - (base[i] + 0.25 * half)).abs() < 1e-12, "{up:?}");
+            assert!((down[i] - (base[i] - 0.25 * half)).abs() < 1e-12, "{down:?}");
+        }
+        // u beyond ±1 stays at the reach; the inverse recovers u.
+        assert_eq!(map.to_env(&[3.0; 6]), up);
+        let u = [-0.9f32, -0.2, 0.1, 0.4, -0.1, 0.7];
+        let back = map.to_normalized(&map.to_env(&u));
+        assert!(back.iter().zip(&u).all(|(x, y)| (x - y).abs() < 1e-6), "{back:?}");
+        // Scale 1 is the unscaled map.
+        let full = ActionMap::new(&spec, Some(&base)).unwrap();
+        assert_eq!(full.clone().with_residual_scale(1.0), full);
     }
 
     #[test]

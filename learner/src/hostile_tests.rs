@@ -132,7 +132,7 @@ proptest! {
 
     #[test]
     fn hostile_policy_snapshots_are_refused_not_built(
-        field in 0usize..6,
+        field in 0usize..7,
         number in prop_oneof![Just(0u64), Just(1u64 << 40), any::<u64>(), 1u64..10],
         weights in proptest::collection::vec(any::<u8>(), 0..256),
     ) {
@@ -143,12 +143,18 @@ proptest! {
             2 => a["mask"] = serde_json::json!([[number, 0], [1]]),
             3 => a["network"]["subnet_hidden"] = serde_json::json!([number, number]),
             4 => a["network"]["global_hidden"] = serde_json::json!(vec![8; (number % 64) as usize]),
+            // A reach without a base, or outside (0, 1].
+            5 => a["residual_scale"] = serde_json::json!(number as f64 / 4.0),
             _ => a["env"] = serde_json::json!(number),
         }
         // Arbitrary bytes as weights: refused unless they decode, fit the
         // architecture and are finite.
         match Policy::from_snapshot(&a.to_string(), &weights, 1) {
-            Ok(policy) => prop_assert!(policy.act_normalized(&[0.1, 0.2, 0.3]).iter().all(|v| v.is_finite())),
+            Ok(policy) => {
+                // This architecture has no base: only the full reach fits.
+                prop_assert!(field != 5 || number == 4, "residual_scale {} accepted without a base", number as f64 / 4.0);
+                prop_assert!(policy.act_normalized(&[0.1, 0.2, 0.3]).iter().all(|v| v.is_finite()))
+            }
             Err(e) => prop_assert!(!e.to_string().is_empty()),
         }
     }

@@ -113,7 +113,7 @@ impl Policy {
     /// How this policy's normalized actions become `env`'s actions (around
     /// its base controller, if it has one).
     pub fn action_map(&self, env: &dyn Env) -> Result<ActionMap, LearnerError> {
-        ActionMap::new(env.spec(), self.architecture.base.as_deref())
+        Ok(ActionMap::new(env.spec(), self.architecture.base.as_deref())?.with_residual_scale(self.architecture.residual_scale))
     }
 
     /// The full action for a raw environment state, in the environment's

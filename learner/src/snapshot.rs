@@ -38,6 +38,18 @@ pub struct Architecture {
     /// learner/src/action.rs); None: the plain map onto the box.
     #[serde(default)]
     pub base: Option<Vec<f64>>,
+    /// The residual's reach around the base (`[base] residual_scale`,
+    /// learner/src/action.rs); 1, the whole box, is left out of the JSON.
+    #[serde(default = "full_reach", skip_serializing_if = "is_full_reach")]
+    pub residual_scale: f64,
+}
+
+fn full_reach() -> f64 {
+    1.0
+}
+
+fn is_full_reach(s: &f64) -> bool {
+    *s == 1.0
 }
 
 /// Largest dimensions and layer widths a snapshot may ask an actor to
@@ -66,6 +78,10 @@ impl Architecture {
             if base.len() != n || base.iter().any(|b| !b.is_finite()) {
                 return bad(format!("the base action must hold {n} finite numbers"));
             }
+        }
+        let reach = self.residual_scale;
+        if !(reach > 0.0 && reach <= 1.0) || (reach != 1.0 && self.base.is_none()) {
+            return bad(format!("residual_scale {reach} must lie in (0, 1], and be 1 without a base action"));
         }
         let net = &self.network;
         for (name, widths) in [("global_hidden", &net.global_hidden), ("subnet_hidden", &net.subnet_hidden), ("critic_hidden", &net.critic_hidden)] {

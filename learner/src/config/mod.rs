@@ -79,7 +79,7 @@ impl TryFrom<TrainConfigFile> for TrainConfig {
             (Some(base), None) => base,
             (None, Some(legacy)) => {
                 tracing::warn!("{CONTROLLER_DEPRECATED}");
-                BaseConfig { action: legacy.base, best_constant_file: legacy.best_constant_file }
+                BaseConfig { action: legacy.base, best_constant_file: legacy.best_constant_file, ..BaseConfig::default() }
             }
             (None, None) => BaseConfig::default(),
         };
@@ -104,8 +104,8 @@ pub fn migrate_legacy_tables(table: &mut toml::Table) {
 }
 
 /// The controller under the agent (residual RL, learner/src/action.rs):
-/// a = clip(base + u·(ub − lb)/2, lb, ub). `[base]` in a training TOML.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+/// a = clip(base + s·u·(ub − lb)/2, lb, ub). `[base]` in a training TOML.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct BaseConfig {
     /// "none" (the plain map onto the box, Table I), "a = 0" (on peg
@@ -116,6 +116,21 @@ pub struct BaseConfig {
     /// (default: the constant measured for a registered peg preset).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub best_constant_file: Option<std::path::PathBuf>,
+    /// s, the residual's reach: u = ±1 moves each action s half-widths of
+    /// its box from the base, so the policy never leaves base ± s·(ub − lb)/2
+    /// (1, the default: anywhere in the box). Needs a base controller.
+    #[serde(skip_serializing_if = "is_full_reach")]
+    pub residual_scale: f64,
+}
+
+fn is_full_reach(s: &f64) -> bool {
+    *s == 1.0
+}
+
+impl Default for BaseConfig {
+    fn default() -> Self {
+        BaseConfig { action: BaseController::None, best_constant_file: None, residual_scale: 1.0 }
+    }
 }
 
 impl BaseConfig {

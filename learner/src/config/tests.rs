@@ -114,4 +114,7 @@ fn bad_values_name_the_field() {
     assert!(err("[ddpg]\ntwin_critics = true\ncritic_disagreement = -1.0\n").contains("ddpg.critic_disagreement"));
     assert!(err("[run]\nconfirm_candidates = 3\n").contains("`run.confirm_candidates` needs validation"));
     assert!(err("[run]\nvalidation_episodes = 30\nconfirm_candidates = 3\nconfirm_episodes = 0\n").contains("run.confirm_episodes"));
+    assert!(err("[base]\naction = \"best-constant\"\nresidual_scale = 0.0\n").contains("base.residual_scale"));
+    assert!(err("[base]\naction = \"best-constant\"\nresidual_scale = 1.5\n").contains("base.residual_scale"));
+    assert!(err("[base]\nresidual_scale = 0.5\n").contains("needs a base controller"));
 }

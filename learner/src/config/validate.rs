@@ -33,6 +33,13 @@ impl TrainConfig {
                 return bad(field, &format!("must be a finite number ≥ 0, got {v}"));
             }
         }
+        let reach = self.base.residual_scale;
+        if !(reach.is_finite() && reach > 0.0 && reach <= 1.0) {
+            return bad("base.residual_scale", &format!("must lie in (0, 1] (the share of the box's half-width the residual may move the base), got {reach}"));
+        }
+        if reach != 1.0 && self.base.action == super::BaseController::None {
+            return bad("base.residual_scale", "needs a base controller (base.action): without one there is no residual to scale");
+        }
         if self.ddpg.critic_disagreement > 0.0 && !self.ddpg.twin_critics {
             return bad("ddpg.critic_disagreement", "needs ddpg.twin_critics = true (the disagreement is between the two critics)");
         }
