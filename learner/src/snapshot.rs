@@ -40,16 +40,12 @@ pub struct Architecture {
     pub base: Option<Vec<f64>>,
     /// The residual's reach around the base (`[base] residual_scale`,
     /// learner/src/action.rs); 1, the whole box, is left out of the JSON.
-    #[serde(default = "full_reach", skip_serializing_if = "is_full_reach")]
+    #[serde(default = "full_reach", skip_serializing_if = "crate::config::is_full_reach")]
     pub residual_scale: f64,
 }
 
 fn full_reach() -> f64 {
     1.0
-}
-
-fn is_full_reach(s: &f64) -> bool {
-    *s == 1.0
 }
 
 /// Largest dimensions and layer widths a snapshot may ask an actor to

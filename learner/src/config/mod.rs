@@ -123,7 +123,8 @@ pub struct BaseConfig {
     pub residual_scale: f64,
 }
 
-fn is_full_reach(s: &f64) -> bool {
+/// Whether a residual scale is the whole box (1): left out of JSON and TOML.
+pub(crate) fn is_full_reach(s: &f64) -> bool {
     *s == 1.0
 }
 
