@@ -89,6 +89,13 @@ impl ActionMap {
     }
 }
 
+/// Whether `s` is a residual reach a map can take: within (0, 1], and the
+/// whole box (1) when there is no base to reach around. Configurations and
+/// snapshots are checked with it.
+pub fn residual_scale_fits(s: f64, has_base: bool) -> bool {
+    s > 0.0 && s <= 1.0 && (has_base || s == 1.0)
+}
+
 fn check_base(spec: &EnvSpec, base: &[f64]) -> Result<(), LearnerError> {
     let n = spec.action_dim();
     if base.len() != n {

@@ -76,7 +76,7 @@ impl Architecture {
             }
         }
         let reach = self.residual_scale;
-        if !(reach > 0.0 && reach <= 1.0) || (reach != 1.0 && self.base.is_none()) {
+        if !crate::action::residual_scale_fits(reach, self.base.is_some()) {
             return bad(format!("residual_scale {reach} must lie in (0, 1], and be 1 without a base action"));
         }
         let net = &self.network;

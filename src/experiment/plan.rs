@@ -362,4 +362,3 @@ mod tests {
         assert!(err.contains("matches no cell") && err.contains("lti-paper/ppo/local@0.1"), "{err}");
     }
 }
-

@@ -34,10 +34,10 @@ impl TrainConfig {
             }
         }
         let reach = self.base.residual_scale;
-        if !(reach.is_finite() && reach > 0.0 && reach <= 1.0) {
+        if !crate::action::residual_scale_fits(reach, true) {
             return bad("base.residual_scale", &format!("must lie in (0, 1] (the share of the box's half-width the residual may move the base), got {reach}"));
         }
-        if reach != 1.0 && self.base.action == super::BaseController::None {
+        if !crate::action::residual_scale_fits(reach, self.base.action != super::BaseController::None) {
             return bad("base.residual_scale", "needs a base controller (base.action): without one there is no residual to scale");
         }
         if self.ddpg.critic_disagreement > 0.0 && !self.ddpg.twin_critics {
