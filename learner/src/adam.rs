@@ -6,6 +6,34 @@ use tch::{nn::VarStore, Tensor};
 
 use crate::flat::FlatParams;
 
+/// A number an update uses that changes from one update to the next (a
+/// step size, a bias correction, an annealed weight): a host number in an
+/// eager update, or a one-element tensor on the device in a captured one,
+/// which the host refills before each replay (a CUDA graph bakes host
+/// numbers in: cuda_graph.rs).
+pub enum Coefficient {
+    Host(f64),
+    Device(Tensor),
+}
+
+impl Coefficient {
+    /// t × c
+    pub fn scale(&self, t: &Tensor) -> Tensor {
+        match self {
+            Coefficient::Host(c) => t * *c,
+            Coefficient::Device(c) => t * c,
+        }
+    }
+
+    /// t / c
+    pub fn divide(&self, t: &Tensor) -> Tensor {
+        match self {
+            Coefficient::Host(c) => t / *c,
+            Coefficient::Device(c) => t / c,
+        }
+    }
+}
+
 pub struct Adam {
     lr: f64,
     beta1: f64,
@@ -54,20 +82,33 @@ impl Adam {
         }
     }
 
-    /// One Adam step on the accumulated gradients. With every variable's
-    /// gradient at hand, on the whole buffer at once; otherwise per
-    /// variable, skipping those without one (PyTorch's rule). Both give the
-    /// same numbers per element.
+    /// One Adam step on the accumulated gradients: [`Adam::advance`], then
+    /// [`Adam::apply`] with its numbers.
     pub fn step(&mut self) {
+        let [step_size, bias2] = self.advance();
+        self.apply(&Coefficient::Host(step_size), &Coefficient::Host(bias2));
+    }
+
+    /// Counts a step and returns its two numbers: the step size
+    /// lr / (1 − β₁ᵗ) and the second moment's bias correction 1 − β₂ᵗ.
+    pub fn advance(&mut self) -> [f64; 2] {
         self.step += 1;
         let bias1 = 1.0 - self.beta1.powi(self.step as i32);
         let bias2 = 1.0 - self.beta2.powi(self.step as i32);
-        let step_size = self.lr / bias1;
+        [self.lr / bias1, bias2]
+    }
+
+    /// The step's arithmetic, with the numbers [`Adam::advance`] gave (as
+    /// host numbers, or read from the device in a captured update). With
+    /// every variable's gradient at hand, on the whole buffer at once;
+    /// otherwise per variable, skipping those without one (PyTorch's
+    /// rule). Both give the same numbers per element.
+    pub fn apply(&mut self, step_size: &Coefficient, bias2: &Coefficient) {
         let update = |p: &mut Tensor, m: &mut Tensor, v: &mut Tensor, g: &Tensor| {
             let _ = m.g_mul_scalar_(self.beta1).g_add_(&(g * (1.0 - self.beta1)));
             let _ = v.g_mul_scalar_(self.beta2).g_add_(&(g * g * (1.0 - self.beta2)));
-            let denom = (&*v / bias2).sqrt() + self.eps;
-            let _ = p.g_sub_(&(&*m / denom * step_size));
+            let denom = bias2.divide(v).sqrt() + self.eps;
+            let _ = p.g_sub_(&step_size.scale(&(&*m / denom)));
         };
         tch::no_grad(|| match self.params.gradients() {
             Some(g) => update(&mut self.params.flat().shallow_clone(), &mut self.m, &mut self.v, &g),

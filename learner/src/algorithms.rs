@@ -18,7 +18,16 @@ pub fn make_agent(
     use crate::config::Algo;
     let device = crate::device::resolve_device(&cfg.run.device)?;
     Ok(match algo {
-        Algo::Ddpg => Box::new(crate::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
+        Algo::Ddpg => {
+            let mut ddpg = crate::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed, device);
+            if device.is_cuda() && cfg.run.cuda_graphs {
+                match ddpg.use_cuda_graphs() {
+                    Ok(()) => tracing::info!("DDPG updates run as CUDA graphs"),
+                    Err(why) => tracing::warn!("CUDA graphs unavailable, DDPG updates run eagerly: {why}"),
+                }
+            }
+            Box::new(ddpg)
+        }
         Algo::Ppo => Box::new(crate::ppo::Ppo::new(&cfg.ppo, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
     })
 }

@@ -30,6 +30,8 @@ use serde::{Deserialize, Serialize};
 use tch::{nn, Device, Kind, Tensor};
 
 use crate::adam::Adam;
+use crate::cuda_graph::CudaGraph;
+use crate::ddpg_graphs::{CapturedUpdates, UpdateKind, UpdateNumbers};
 use crate::agent::{
     build_actor, build_critic, load_optimizer, load_vs, read_agent_state, read_tensors, save_optimizer, save_vs, write_agent_state, write_tensors, Agent,
     Counters, RngState, Transition,
@@ -38,7 +40,7 @@ use crate::config::{Connection, DdpgConfig, NetworkConfig, WarmupActions};
 use crate::exploration;
 use crate::flat::FlatParams;
 use crate::nets::{batch, ActorNet, Mlp};
-use crate::replay::{DeviceMirror, ReplayBuffer};
+use crate::replay::{Batch, DeviceMirror, ReplayBuffer};
 use crate::LearnerError;
 
 pub struct Ddpg {
@@ -65,6 +67,8 @@ pub struct Ddpg {
     critic_updates: u64,
     /// Share of the run done (0..1), for annealed settings.
     progress: f64,
+    /// With `run.cuda_graphs` on a GPU: updates replayed from CUDA graphs.
+    captured: Option<CapturedUpdates>,
 }
 
 /// A global critic Q(s, a) with its target network and optimizer, saved as
@@ -156,6 +160,7 @@ impl Ddpg {
             counters: Counters::default(),
             critic_updates: 0,
             progress: 0.0,
+            captured: None,
         }
     }
 
@@ -186,18 +191,109 @@ impl Ddpg {
         self.cfg.actor_lr * anneal * ramp
     }
 
-    /// One DDPG update on a minibatch from the replay buffer.
+    /// What the `critic_updates`-th update does besides the critics' step.
+    fn kind_of(&self, critic_updates: u64) -> UpdateKind {
+        if critic_updates % self.cfg.policy_delay as u64 != 0 {
+            UpdateKind::Critics
+        } else if critic_updates > self.cfg.critic_warmup_updates as u64 {
+            UpdateKind::Full
+        } else {
+            // The actor waits for the critic's head start (`critic_warmup_updates`).
+            UpdateKind::CriticsAndTargets
+        }
+    }
+
+    /// Captures updates as CUDA graphs from now on (`run.cuda_graphs`; a
+    /// learner on a GPU). Fails, changing nothing, where that is not
+    /// possible: on the CPU, or without the graph shim (cuda_graph.rs).
+    pub fn use_cuda_graphs(&mut self) -> Result<(), String> {
+        if self.mirror.is_none() {
+            return Err("CUDA graphs need the learner on a GPU".into());
+        }
+        let captured = CapturedUpdates::new(self.cfg.batch_size, self.obs_dim, self.action_dim, self.critics.len(), self.cfg.target_noise > 0.0, self.device)?;
+        self.captured = Some(captured);
+        Ok(())
+    }
+
+    /// How many update graphs are captured and in use (0: eager updates).
+    pub fn captured_graphs(&self) -> usize {
+        self.captured.as_ref().map_or(0, CapturedUpdates::len)
+    }
+
+    /// Target policy noise for a minibatch (`target_noise`: clipped
+    /// Gaussian, TD3), drawn from the agent's generator; empty without.
+    fn target_noise_values(&mut self, batch: usize) -> Vec<f32> {
+        if self.cfg.target_noise <= 0.0 {
+            return Vec::new();
+        }
+        let noise = Normal::new(0.0, self.cfg.target_noise).expect("validated target_noise");
+        (0..batch * self.action_dim).map(|_| noise.sample(&mut self.rng).clamp(-0.5, 0.5) as f32).collect()
+    }
+
+    /// One DDPG update on a minibatch from the replay buffer: eager, or
+    /// replayed from a CUDA graph (ddpg_graphs.rs).
     fn update(&mut self) {
-        let b = match self.mirror.as_mut() {
-            Some(mirror) => mirror.sample(&self.replay, self.cfg.batch_size, &mut self.rng),
-            None => self.replay.sample(self.cfg.batch_size, &mut self.rng).to_device(self.device),
-        };
+        self.critic_updates += 1;
+        let kind = self.kind_of(self.critic_updates);
+        // The numbers that change between updates, counted here on the
+        // host whether the update runs eagerly or from a graph.
+        let critics: Vec<[f64; 2]> = self.critics.iter_mut().map(|c| c.opt.advance()).collect();
+        let actor = (kind == UpdateKind::Full).then(|| {
+            if self.cfg.actor_lr_warmup_updates > 0 {
+                self.actor_opt.set_lr(self.actor_lr());
+            }
+            self.actor_opt.advance()
+        });
+        let l2 = if self.cfg.preactivation_anneal { self.cfg.preactivation_l2 * (1.0 - self.progress) } else { self.cfg.preactivation_l2 };
+        match self.captured.take() {
+            Some(mut captured) => match self.update_captured(&mut captured, kind, (&critics, actor, l2)) {
+                Ok(()) => self.captured = Some(captured),
+                Err(why) => tracing::warn!("CUDA graphs turned off, updates run eagerly from now on: {why}"),
+            },
+            None => {
+                let b = match self.mirror.as_mut() {
+                    Some(mirror) => mirror.sample(&self.replay, self.cfg.batch_size, &mut self.rng),
+                    None => self.replay.sample(self.cfg.batch_size, &mut self.rng).to_device(self.device),
+                };
+                let values = self.target_noise_values(self.cfg.batch_size);
+                let noise = (!values.is_empty())
+                    .then(|| crate::device::to_device_async(Tensor::from_slice(&values), self.device).view([self.cfg.batch_size as i64, self.action_dim as i64]));
+                self.apply_update(&b, noise.as_ref(), kind, &UpdateNumbers::host(&critics, actor, l2));
+            }
+        }
+        if kind != UpdateKind::Critics {
+            self.counters.updates += 1;
+        }
+    }
+
+    /// The update from a graph: the minibatch, noise and numbers staged
+    /// into `captured`'s tensors, then the graph of this kind replayed, or
+    /// captured first (its warm-up is this update). An error leaves the
+    /// update done, eagerly where the graph could not do it.
+    fn update_captured(&mut self, captured: &mut CapturedUpdates, kind: UpdateKind, (critics, actor, l2): (&[[f64; 2]], Option<[f64; 2]>, f64)) -> Result<(), String> {
+        let mirror = self.mirror.as_mut().expect("captured updates run on a GPU, beside a device mirror");
+        mirror.sample_into(&self.replay, captured.rows(), &mut self.rng);
+        let noise = self.target_noise_values(self.cfg.batch_size);
+        captured.stage(critics, actor, l2, &noise);
+        let (b, noise, numbers) = captured.inputs(self.obs_dim, self.action_dim, kind);
+        if let Some(graph) = captured.graph(kind) {
+            return graph.replay().inspect_err(|_| self.apply_update(&b, noise.as_ref(), kind, &numbers));
+        }
+        let (graph, ran) = CudaGraph::capture(|| self.apply_update(&b, noise.as_ref(), kind, &numbers));
+        if !ran {
+            self.apply_update(&b, noise.as_ref(), kind, &numbers);
+        }
+        captured.insert(kind, graph?);
+        Ok(())
+    }
+
+    /// The update's arithmetic (docs/method.md §5), on tensors only, so
+    /// that it can be captured: the numbers that change between updates
+    /// come in `numbers`.
+    fn apply_update(&mut self, b: &Batch, noise: Option<&Tensor>, kind: UpdateKind, numbers: &UpdateNumbers) {
         let target: Tensor = tch::no_grad(|| {
             let mut next_action = self.actor_target.forward(&b.next_obs);
-            if self.cfg.target_noise > 0.0 {
-                let noise = Normal::new(0.0, self.cfg.target_noise).expect("validated target_noise");
-                let values: Vec<f32> = (0..next_action.numel()).map(|_| noise.sample(&mut self.rng).clamp(-0.5, 0.5) as f32).collect();
-                let noise = crate::device::to_device_async(Tensor::from_slice(&values), self.device).view_as(&next_action);
+            if let Some(noise) = noise {
                 next_action = (next_action + noise).clamp(-1.0, 1.0);
             }
             // With twin critics, the smaller of the two target values (TD3).
@@ -206,7 +302,7 @@ impl Ddpg {
             &b.reward + self.cfg.gamma * (1.0 - &b.done) * next_q
         });
         let input = Tensor::cat(&[&b.obs, &b.action], 1);
-        for critic in &mut self.critics {
+        for (critic, [step_size, bias2]) in self.critics.iter_mut().zip(&numbers.critics) {
             let q = critic.net.forward(&input);
             let loss = if self.cfg.huber_delta > 0.0 {
                 q.huber_loss(&target, tch::Reduction::Mean, self.cfg.huber_delta)
@@ -215,15 +311,13 @@ impl Ddpg {
             };
             critic.opt.zero_grad();
             loss.backward();
-            critic.opt.step();
+            critic.opt.apply(step_size, bias2);
         }
-        self.critic_updates += 1;
-        if self.critic_updates % self.cfg.policy_delay as u64 != 0 {
+        if kind == UpdateKind::Critics {
             return;
         }
 
-        // The actor waits for the critic's head start (`critic_warmup_updates`).
-        if self.critic_updates > self.cfg.critic_warmup_updates as u64 {
+        if let Some([step_size, bias2]) = &numbers.actor {
             let raw = self.actor.forward_raw(&b.obs);
             let input = Tensor::cat(&[&b.obs, &raw.tanh()], 1);
             let kappa = self.cfg.critic_disagreement;
@@ -235,8 +329,7 @@ impl Ddpg {
             } else {
                 self.critics[0].net.forward(&input)
             };
-            let l2 = if self.cfg.preactivation_anneal { self.cfg.preactivation_l2 * (1.0 - self.progress) } else { self.cfg.preactivation_l2 };
-            let mut actor_loss = -q.mean(Kind::Float) + l2 * raw.square().mean(Kind::Float);
+            let mut actor_loss = -q.mean(Kind::Float) + numbers.preactivation_l2.scale(&raw.square().mean(Kind::Float));
             if self.cfg.proximal_l2 > 0.0 {
                 // The trust region toward the target actor (`proximal_l2`).
                 // (tanh is applied again rather than shared with Q's input:
@@ -245,12 +338,9 @@ impl Ddpg {
                 let anchor = tch::no_grad(|| self.actor_target.forward(&b.obs));
                 actor_loss = actor_loss + self.cfg.proximal_l2 * (raw.tanh() - anchor).square().mean(Kind::Float);
             }
-            if self.cfg.actor_lr_warmup_updates > 0 {
-                self.actor_opt.set_lr(self.actor_lr());
-            }
             self.actor_opt.zero_grad();
             actor_loss.backward();
-            self.actor_opt.step();
+            self.actor_opt.apply(step_size, bias2);
         }
 
         let tau = self.cfg.tau;
@@ -260,7 +350,6 @@ impl Ddpg {
                 target.flat().shallow_clone().copy_(&mixed);
             }
         });
-        self.counters.updates += 1;
     }
 }
 
@@ -379,6 +468,9 @@ impl Agent for Ddpg {
         self.rng = state.rng.restore()?;
         self.counters = state.counters;
         self.critic_updates = state.critic_updates;
+        if let Some(captured) = self.captured.as_mut() {
+            captured.clear();
+        }
         Ok(())
     }
 

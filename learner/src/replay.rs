@@ -172,7 +172,7 @@ pub struct DeviceMirror {
 impl DeviceMirror {
     /// Room for the whole buffer on `device` (capacity × (2m + n + 2) floats).
     pub fn new(buffer: &ReplayBuffer, device: tch::Device) -> Self {
-        let width = (2 * buffer.obs_dim + buffer.action_dim + 2) as i64;
+        let width = Batch::row_width(buffer.obs_dim, buffer.action_dim) as i64;
         DeviceMirror { rows: Tensor::zeros([buffer.capacity as i64, width], (tch::Kind::Float, device)), mirrored: 0 }
     }
 
@@ -204,11 +204,31 @@ impl DeviceMirror {
     /// What [`ReplayBuffer::sample`] draws with the same `rng`, gathered on
     /// the device.
     pub fn sample(&mut self, buffer: &ReplayBuffer, size: usize, rng: &mut impl Rng) -> Batch {
+        let picks = self.picks(buffer, size, rng);
+        let rows = self.rows.index_select(0, &picks);
+        Batch::from_rows(&rows, buffer.obs_dim, buffer.action_dim)
+    }
+
+    /// The same draw as [`DeviceMirror::sample`], gathered into `rows`
+    /// ([size, row width] on the device) in place: a captured update reads
+    /// its minibatch from there (cuda_graph.rs).
+    pub fn sample_into(&mut self, buffer: &ReplayBuffer, rows: &Tensor, rng: &mut impl Rng) {
+        let picks = self.picks(buffer, rows.size()[0] as usize, rng);
+        let _ = self.rows.index_select_out(rows, 0, &picks);
+    }
+
+    /// The slots of the next minibatch, on the device, after catching up.
+    fn picks(&mut self, buffer: &ReplayBuffer, size: usize, rng: &mut impl Rng) -> Tensor {
         self.catch_up(buffer);
         let picks: Vec<i64> = buffer.picks(size, rng).into_iter().map(|k| k as i64).collect();
-        let index = crate::device::to_device_async(Tensor::from_slice(&picks), self.rows.device());
-        let rows = self.rows.index_select(0, &index);
-        let (m, n) = (buffer.obs_dim as i64, buffer.action_dim as i64);
+        crate::device::to_device_async(Tensor::from_slice(&picks), self.rows.device())
+    }
+}
+
+impl Batch {
+    /// A minibatch as views of rows [obs | action | reward | next_obs | done].
+    pub fn from_rows(rows: &Tensor, obs_dim: usize, action_dim: usize) -> Batch {
+        let (m, n) = (obs_dim as i64, action_dim as i64);
         Batch {
             obs: rows.narrow(1, 0, m),
             action: rows.narrow(1, m, n),
@@ -216,6 +236,11 @@ impl DeviceMirror {
             next_obs: rows.narrow(1, m + n + 1, m),
             done: rows.narrow(1, 2 * m + n + 1, 1),
         }
+    }
+
+    /// The width of such a row.
+    pub fn row_width(obs_dim: usize, action_dim: usize) -> usize {
+        2 * obs_dim + action_dim + 2
     }
 }
 
@@ -269,8 +294,9 @@ mod mirror_tests {
     #[test]
     fn the_mirror_samples_what_the_buffer_samples() {
         let mut buffer = ReplayBuffer::new(7, 3, 2);
-        let mut mirror = DeviceMirror::new(&buffer, tch::Device::Cpu);
+        let (mut mirror, mut into) = (DeviceMirror::new(&buffer, tch::Device::Cpu), DeviceMirror::new(&buffer, tch::Device::Cpu));
         let (mut host_rng, mut mirror_rng) = (rand_chacha::ChaCha8Rng::seed_from_u64(3), rand_chacha::ChaCha8Rng::seed_from_u64(3));
+        let mut into_rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
         // Pushes of 1, 5 and 12 between samples: a partial fill, a wrap,
         // and more than the whole capacity at once.
         let mut k = 0;
@@ -280,7 +306,12 @@ mod mirror_tests {
                 buffer.push(&[v, v + 0.1, v + 0.2], &[-v, v * 0.5], v * 10.0, &[v + 1.0, v + 1.1, v + 1.2], k % 4 == 0);
                 k += 1;
             }
-            same(&buffer.sample(9, &mut host_rng), &mirror.sample(&buffer, 9, &mut mirror_rng));
+            let host = buffer.sample(9, &mut host_rng);
+            same(&host, &mirror.sample(&buffer, 9, &mut mirror_rng));
+            // Gathered in place into a fixed tensor (captured updates).
+            let rows = Tensor::full([9, Batch::row_width(3, 2) as i64], -7.0, (tch::Kind::Float, tch::Device::Cpu));
+            into.sample_into(&buffer, &rows, &mut into_rng);
+            same(&host, &Batch::from_rows(&rows, 3, 2));
         }
         // A restored buffer and a fresh mirror continue alike.
         let mut restored = ReplayBuffer::from_tensors(7, 3, 2, &buffer.to_tensors()).unwrap();

@@ -124,15 +124,23 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], python: Option
         cfg.ddpg.batch_size,
         lcrl_learner::device::available_cores()
     );
-    println!("{:>7} {:<12} {:>13} {:>16} {:>12} {:>20}", "threads", "actor", "actor params", "DDPG update ms", "updates/s", "PPO update (10 ep) s");
+    println!("{:>7} {:<16} {:>13} {:>16} {:>12} {:>20}", "threads", "actor", "actor params", "DDPG update ms", "updates/s", "PPO update (10 ep) s");
     let mut globals: Vec<(usize, f64)> = Vec::new();
     for &t in threads {
         tch::set_num_threads(t as i32);
         let mut by_connection = Vec::new();
         for connection in [lcrl_learner::Connection::Global, lcrl_learner::Connection::Local, lcrl_learner::Connection::FullSubnets] {
-            let (ddpg, ppo, params) = time_updates(&cfg, connection, &mask, m, n, updates, torch_device)?;
-            println!("{t:>7} {:<12} {params:>13} {:>16.3} {:>12.0} {ppo:>20.3}", format!("{connection:?}"), ddpg * 1e3, 1.0 / ddpg);
-            by_connection.push((ddpg, ppo));
+            // On a GPU, eager updates first, then the same replayed from
+            // CUDA graphs (`run.cuda_graphs`; ignored on the CPU).
+            for graphs in if torch_device.is_cuda() { vec![false, true] } else { vec![true] } {
+                let cfg = lcrl_learner::TrainConfig { run: lcrl_learner::config::RunConfig { cuda_graphs: graphs, ..cfg.run.clone() }, ..cfg.clone() };
+                let (ddpg, ppo, params) = time_updates(&cfg, connection, &mask, m, n, updates, torch_device)?;
+                let label = if torch_device.is_cuda() && graphs { format!("{connection:?}+graphs") } else { format!("{connection:?}") };
+                println!("{t:>7} {label:<16} {params:>13} {:>16.3} {:>12.0} {ppo:>20.3}", ddpg * 1e3, 1.0 / ddpg);
+                if !graphs || !torch_device.is_cuda() {
+                    by_connection.push((ddpg, ppo));
+                }
+            }
         }
         let (global, local) = (by_connection[0], by_connection[1]);
         println!("{t:>7} local / global: DDPG update {:.2}×, PPO update {:.2}× (target ≤ 1.3×)", local.0 / global.0, local.1 / global.1);

@@ -22,6 +22,12 @@ pub fn run() -> anyhow::Result<()> {
         ensure!(sum == 12.0, "CUDA computed 2·[1,2,3] summed as {sum}, expected 12");
         println!("cuda: ok (2 · [1, 2, 3] sums to {sum} on cuda:0)");
     }
+    // Whether a GPU learner's DDPG updates can run as CUDA graphs
+    // (`run.cuda_graphs`, learner/src/cuda_graph.rs).
+    match lcrl_learner::cuda_graph::availability() {
+        Ok(()) => println!("cuda graphs: available"),
+        Err(why) => println!("cuda graphs: unavailable ({why})"),
+    }
     Ok(())
 }
 

@@ -350,6 +350,12 @@ pub struct RunConfig {
     /// Where the learner's networks compute: "cpu" or "cuda" (actors always
     /// run on the CPU).
     pub device: String,
+    /// On a GPU, DDPG updates are captured once as CUDA graphs and replayed
+    /// (learner/src/ddpg_graphs.rs; docs/scaling.md): the same arithmetic
+    /// without libtorch's per-operation dispatch. false: eager updates.
+    /// Ignored on the CPU and by PPO.
+    #[serde(skip_serializing_if = "is_true")]
+    pub cuda_graphs: bool,
     /// Write a checkpoint every this many episodes (and at the end).
     pub checkpoint_every: usize,
     /// Keep the replay buffer in checkpoints (exact DDPG resume; larger files).
@@ -500,6 +506,10 @@ impl RunConfig {
     }
 }
 
+fn is_true(value: &bool) -> bool {
+    *value
+}
+
 impl Default for RunConfig {
     fn default() -> Self {
         RunConfig {
@@ -507,6 +517,7 @@ impl Default for RunConfig {
             seed: 0,
             threads: 0,
             device: "cpu".into(),
+            cuda_graphs: true,
             checkpoint_every: 50,
             save_replay: true,
             graph_samples: 64,
