@@ -31,7 +31,6 @@ pub mod checkpoint;
 pub mod config;
 pub mod cuda_graph;
 pub mod ddpg;
-pub mod ddpg_graphs;
 pub mod device;
 pub mod exploration;
 pub mod flat;

@@ -351,7 +351,7 @@ pub struct RunConfig {
     /// run on the CPU).
     pub device: String,
     /// On a GPU, DDPG updates are captured once as CUDA graphs and replayed
-    /// (learner/src/ddpg_graphs.rs; docs/scaling.md): the same arithmetic
+    /// (learner/src/ddpg/graphs.rs; docs/scaling.md): the same arithmetic
     /// without libtorch's per-operation dispatch. false: eager updates.
     /// Ignored on the CPU and by PPO.
     #[serde(skip_serializing_if = "is_true")]
