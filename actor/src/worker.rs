@@ -219,8 +219,15 @@ impl Rollout {
                 cut: false,
             });
             if step.terminated || step.truncated {
-                let success = self.envs[k].episode_metrics().success;
-                self.episodes_in_batch[k].push(EpisodeSummary { episode_return: self.returns[k], length: self.lengths[k], success });
+                let measured = self.envs[k].episode_metrics();
+                self.episodes_in_batch[k].push(EpisodeSummary {
+                    episode_return: self.returns[k],
+                    length: self.lengths[k],
+                    success: measured.success,
+                    peak_force_n: measured.peak_force_n,
+                    peak_moment_nm: measured.peak_moment_nm,
+                    return_terms: measured.return_terms.map(|t| lcrl_proto::v1::ReturnTerms { depth: t.depth, force: t.force, moment: t.moment, bonus: t.bonus, failure: t.failure }),
+                });
                 self.episodes_done += 1;
                 metrics.episodes.inc();
                 (self.returns[k], self.lengths[k]) = (0.0, 0);

@@ -44,12 +44,12 @@ fn batch() -> impl Strategy<Value = TransitionBatch> {
         prop::bool::weighted(0.75),
     )
         .prop_map(|(run_id, actor_id, sequence, policy_version, transitions, summaries, paired)| {
-            let mut episodes: Vec<EpisodeSummary> = summaries.into_iter().map(|(episode_return, length, success)| EpisodeSummary { episode_return, length, success }).collect();
+            let mut episodes: Vec<EpisodeSummary> = summaries.into_iter().map(|(episode_return, length, success)| EpisodeSummary { episode_return, length, success, ..Default::default() }).collect();
             // Mostly one summary per episode end, as actors send them (so
             // that most batches reach the checks after that one).
             if paired {
                 let ends = transitions.iter().filter(|t| t.terminated || t.truncated).count();
-                episodes.resize(ends, EpisodeSummary { episode_return: -1.0, length: 1, success: None });
+                episodes.resize(ends, EpisodeSummary { episode_return: -1.0, length: 1, ..Default::default() });
             }
             TransitionBatch { run_id, actor_id, sequence, episode_id: 0, policy_version, transitions, episodes }
         })

@@ -55,3 +55,23 @@ pub fn str_of<'a>(v: &'a serde_yaml::Value, path: &[&str]) -> &'a str {
 pub fn seq<'a>(v: &'a serde_yaml::Value, key: &str) -> Vec<&'a serde_yaml::Value> {
     v[key].as_sequence().map(|s| s.iter().collect()).unwrap_or_default()
 }
+
+/// A peg run's metrics.csv, whichever loop wrote it: every row carries the
+/// episode's peak force and moment, and reward terms that add up to its
+/// return. Returns the number of rows.
+pub fn assert_peg_rows_measured(metrics: &Path) -> usize {
+    let mut rows = csv::Reader::from_path(metrics).unwrap();
+    let header: Vec<String> = rows.headers().unwrap().iter().map(str::to_string).collect();
+    assert_eq!(header, lcrl_learner::run_files::METRICS_COLUMNS.map(String::from), "{}", metrics.display());
+    let mut count = 0;
+    for row in rows.records() {
+        let row = row.unwrap();
+        let (force, moment): (f64, f64) = (row[4].parse().unwrap(), row[5].parse().unwrap());
+        assert!(force.is_finite() && force >= 0.0 && moment.is_finite() && moment >= 0.0, "{row:?}");
+        let total: f64 = row[1].parse().unwrap();
+        let parts: f64 = (8..13).map(|k| row[k].parse::<f64>().unwrap()).sum();
+        assert!((total - parts).abs() < 1e-9, "{row:?}");
+        count += 1;
+    }
+    count
+}

@@ -116,6 +116,10 @@ fn peg_ddpg_with_two_actors_holds_the_replay_ratio() {
     let achieved = updates * 64.0 / steps;
     assert!((achieved - target).abs() <= 0.10 * target, "{achieved} samples per insert against {target} ({updates} updates, {steps} steps)");
     assert!(s["actors_waited_s"].as_f64().unwrap() >= 0.0 && s["policy_lag"]["max"].as_u64().is_some(), "{s}");
+    // The actors report what the environment measured, so the learner's
+    // metrics.csv holds `lcrl train`'s columns filled (the safety figures'
+    // peak force among them), over shared memory here.
+    assert!(super::common::assert_peg_rows_measured(&dir.path().join("run/learner/metrics.csv")) >= 60);
 }
 
 /// SIGKILL the learner mid-run and restart it on the same directory: the

@@ -235,15 +235,7 @@ fn peg_run_splits_returns_into_reward_terms() {
     let names: Vec<&str> = s["references"].as_array().unwrap().iter().map(|r| r["controller"].as_str().unwrap()).collect();
     assert_eq!(names, ["a = 0", "best constant"], "{s}");
     assert_eq!(s["references"][0]["mean_return"], s["zero_action_return"]);
-    let mut rows = csv::Reader::from_path(run.join("metrics.csv")).unwrap();
-    let header: Vec<String> = rows.headers().unwrap().iter().map(str::to_string).collect();
-    assert!(header.ends_with(&["return_depth", "return_force", "return_moment", "return_bonus", "return_failure"].map(String::from)), "{header:?}");
-    for row in rows.records() {
-        let row = row.unwrap();
-        let total: f64 = row[1].parse().unwrap();
-        let parts: f64 = (8..13).map(|k| row[k].parse::<f64>().unwrap()).sum();
-        assert!((total - parts).abs() < 1e-9, "{row:?}");
-    }
+    assert_eq!(super::common::assert_peg_rows_measured(&run.join("metrics.csv")), 2);
 }
 
 /// With no --config, a registered environment gets the settings that work

@@ -27,15 +27,18 @@ impl EpisodeLog {
     pub fn append(&mut self, first: u64, episodes: &[lcrl_proto::v1::EpisodeSummary], shared: &Shared) -> std::io::Result<()> {
         if let Some(csv) = &mut self.csv {
             for (k, e) in episodes.iter().enumerate() {
-                // The actors report return, length and success; the rest
-                // of the row is `lcrl train`'s own.
+                // The actors report what the environment measured; the
+                // wall and update times are `lcrl train`'s own.
                 let row = crate::run_files::EpisodeRow {
                     episode: (first + k as u64 + 1) as usize,
                     episode_return: e.episode_return,
                     length: e.length as usize,
                     success: e.success,
+                    peak_force_n: e.peak_force_n,
+                    peak_moment_nm: e.peak_moment_nm,
                     ..Default::default()
-                };
+                }
+                .with_terms(e.return_terms.as_ref().map(|t| lcrl_sim::ReturnTerms { depth: t.depth, force: t.force, moment: t.moment, bonus: t.bonus, failure: t.failure }));
                 csv.push(&row).map_err(std::io::Error::other)?;
             }
         }

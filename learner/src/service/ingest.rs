@@ -172,6 +172,15 @@ impl Ingest {
             self.count("non_finite", count);
             return Verdict::Reject { reason: "non_finite", message: format!("episode {k} has a non-finite return") };
         }
+        // Likewise its measurements, which feed the safety figures.
+        let measured = |e: &EpisodeSummary| {
+            let terms = e.return_terms.iter().flat_map(|t| [t.depth, t.force, t.moment, t.bonus, t.failure]);
+            e.peak_force_n.into_iter().chain(e.peak_moment_nm).chain(terms).all(f64::is_finite)
+        };
+        if let Some(k) = batch.episodes.iter().position(|e| !measured(e)) {
+            self.count("non_finite", count);
+            return Verdict::Reject { reason: "non_finite", message: format!("episode {k} has a non-finite peak force, moment or return term") };
+        }
         // One summary per episode end, in the order of the ends (the
         // contract, proto/lcrl.proto): the budget counts summaries and
         // `keep_episodes` cuts at ends, so a batch whose two counts differ
@@ -246,7 +255,7 @@ mod tests {
     #[test]
     fn a_batch_is_cut_after_the_last_episode_the_budget_allows() {
         let t = |end: bool| AgentTransition { obs: vec![], action: vec![], log_prob: None, reward: 0.0, next_obs: vec![], terminated: end, truncated: false, cut: false, policy_version: 0 };
-        let e = || EpisodeSummary { episode_return: -1.0, length: 2, success: None };
+        let e = || EpisodeSummary { episode_return: -1.0, length: 2, ..Default::default() };
         // Two episode ends (after transitions 2 and 4) and a started third.
         let batch = || Accepted { transitions: vec![t(false), t(true), t(false), t(true), t(false)], episodes: vec![e(), e()], policy_version: 1, stream: 0 };
         let mut one = batch();
@@ -309,17 +318,26 @@ mod tests {
         assert!(matches!(ingest.check(&batch("a1", 3, vec![0.0, f32::NAN, 0.0]), 3), Verdict::Reject { reason: "non_finite", .. }));
         let mut nan_return = batch("a1", 4, vec![0.0; 3]);
         nan_return.transitions[0].terminated = true;
-        nan_return.episodes.push(EpisodeSummary { episode_return: f64::NAN, length: 1, success: None });
+        nan_return.episodes.push(EpisodeSummary { episode_return: f64::NAN, length: 1, ..Default::default() });
         assert!(matches!(ingest.check(&nan_return, 3), Verdict::Reject { reason: "non_finite", .. }));
+        let mut nan_force = batch("a1", 4, vec![0.0; 3]);
+        nan_force.transitions[0].terminated = true;
+        nan_force.episodes.push(EpisodeSummary { episode_return: -1.0, length: 1, peak_force_n: Some(f64::INFINITY), ..Default::default() });
+        assert!(matches!(ingest.check(&nan_force, 3), Verdict::Reject { reason: "non_finite", .. }));
+        let mut nan_term = batch("a1", 4, vec![0.0; 3]);
+        nan_term.transitions[0].terminated = true;
+        let terms = lcrl_proto::v1::ReturnTerms { failure: f64::NAN, ..Default::default() };
+        nan_term.episodes.push(EpisodeSummary { episode_return: -1.0, length: 1, return_terms: Some(terms), ..Default::default() });
+        assert!(matches!(ingest.check(&nan_term, 3), Verdict::Reject { reason: "non_finite", .. }));
         // Summaries and ends must pair up: a summary without an end, an end
         // without a summary (a cut is not an end and needs none).
         let mut no_end = batch("a1", 5, vec![0.0; 3]);
-        no_end.episodes.push(EpisodeSummary { episode_return: -1.0, length: 1, success: None });
+        no_end.episodes.push(EpisodeSummary { episode_return: -1.0, length: 1, ..Default::default() });
         assert!(matches!(ingest.check(&no_end, 3), Verdict::Reject { reason: "episodes", .. }));
         let mut no_summary = batch("a1", 6, vec![0.0; 3]);
         no_summary.transitions[0].truncated = true;
         assert!(matches!(ingest.check(&no_summary, 3), Verdict::Reject { reason: "episodes", .. }));
-        assert_eq!(ingest.rejected.values().sum::<u64>(), 6);
+        assert_eq!(ingest.rejected.values().sum::<u64>(), 8);
         assert_eq!(ingest.rejected["episodes"], 2);
         // A rejected batch does not consume its sequence number.
         assert!(matches!(ingest.check(&batch("a1", 1, vec![0.0; 3]), 3), Verdict::Accept(_)));

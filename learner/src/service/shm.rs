@@ -57,7 +57,14 @@ pub struct TransitionSample {
     pub episode_lengths: [u32; MAX_EPISODES],
     /// −1: unknown, 0: failed, 1: succeeded.
     pub episode_success: [i8; MAX_EPISODES],
+    /// Per episode: peak force, peak moment, then the return's five terms
+    /// (depth, force, moment, bonus, failure); NaN where not measured (a
+    /// term's NaN in `depth` stands for all five).
+    pub episode_measures: [[f64; MEASURES]; MAX_EPISODES],
 }
+
+/// Numbers per episode in [`TransitionSample::episode_measures`].
+const MEASURES: usize = 7;
 
 impl TransitionSample {
     /// Packs a batch; fails when it exceeds the sample's limits.
@@ -92,6 +99,7 @@ impl TransitionSample {
             episode_returns: [0.0; MAX_EPISODES],
             episode_lengths: [0; MAX_EPISODES],
             episode_success: [-1; MAX_EPISODES],
+            episode_measures: [[f64::NAN; MEASURES]; MAX_EPISODES],
         };
         s.actor_id[..batch.actor_id.len()].copy_from_slice(batch.actor_id.as_bytes());
         for (k, t) in batch.transitions.iter().enumerate() {
@@ -114,6 +122,8 @@ impl TransitionSample {
             s.episode_returns[k] = e.episode_return;
             s.episode_lengths[k] = e.length;
             s.episode_success[k] = e.success.map_or(-1, i8::from);
+            let terms = e.return_terms.as_ref().map_or([f64::NAN; 5], |t| [t.depth, t.force, t.moment, t.bonus, t.failure]);
+            s.episode_measures[k] = [e.peak_force_n.unwrap_or(f64::NAN), e.peak_moment_nm.unwrap_or(f64::NAN), terms[0], terms[1], terms[2], terms[3], terms[4]];
         }
         Ok(s)
     }
@@ -145,10 +155,17 @@ impl TransitionSample {
                 })
                 .collect(),
             episodes: (0..(self.episode_count as usize).min(MAX_EPISODES))
-                .map(|k| EpisodeSummary {
-                    episode_return: self.episode_returns[k],
-                    length: self.episode_lengths[k],
-                    success: (self.episode_success[k] >= 0).then_some(self.episode_success[k] == 1),
+                .map(|k| {
+                    let [force, moment, depth, force_term, moment_term, bonus, failure] = self.episode_measures[k];
+                    let measured = |v: f64| (!v.is_nan()).then_some(v);
+                    EpisodeSummary {
+                        episode_return: self.episode_returns[k],
+                        length: self.episode_lengths[k],
+                        success: (self.episode_success[k] >= 0).then_some(self.episode_success[k] == 1),
+                        peak_force_n: measured(force),
+                        peak_moment_nm: measured(moment),
+                        return_terms: measured(depth).map(|depth| lcrl_proto::v1::ReturnTerms { depth, force: force_term, moment: moment_term, bonus, failure }),
+                    }
                 })
                 .collect(),
         }
@@ -438,7 +455,17 @@ mod tests {
             episode_id: 3,
             policy_version: 2,
             transitions: vec![t(0.5), t(1.5), t(2.5)],
-            episodes: vec![EpisodeSummary { episode_return: -4.5, length: 50, success: Some(true) }, EpisodeSummary { episode_return: -1.0, length: 3, success: None }],
+            episodes: vec![
+                EpisodeSummary {
+                    episode_return: -4.5,
+                    length: 50,
+                    success: Some(true),
+                    peak_force_n: Some(12.5),
+                    peak_moment_nm: Some(0.25),
+                    return_terms: Some(lcrl_proto::v1::ReturnTerms { depth: -1.0, force: -5.0, moment: -0.5, bonus: 2.0, failure: 0.0 }),
+                },
+                EpisodeSummary { episode_return: -1.0, length: 3, success: None, ..Default::default() },
+            ],
         };
         assert_eq!(TransitionSample::from_batch(&batch).unwrap().to_batch("r"), batch);
         let too_long = TransitionBatch { transitions: vec![t(0.1); MAX_TRANSITIONS + 1], ..batch };

@@ -195,7 +195,7 @@ mod tests {
             let transitions = (0..20)
                 .map(|k| AgentTransition { obs: row(3), action: row(3), log_prob: None, reward: -1.0, next_obs: row(3), terminated: false, truncated: k % 10 == 9, cut: false, policy_version: 0 })
                 .collect();
-            let episodes = vec![EpisodeSummary { episode_return: -10.0, length: 10, success: None }; 2];
+            let episodes = vec![EpisodeSummary { episode_return: -10.0, length: 10, ..Default::default() }; 2];
             commands.try_send(Command::Batch(Accepted { transitions, episodes, policy_version: 0, stream: 0 })).unwrap();
         }
         commands.try_send(Command::Stop).unwrap();
