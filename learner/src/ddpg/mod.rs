@@ -19,6 +19,10 @@
 //! toward a zero residual (the base), `proximal_l2` toward its own target
 //! (a trust region around the recent policy); `critic_disagreement` makes
 //! it pessimistic where the twin critics disagree.
+//!
+//! On a GPU each kind of update is captured once as a CUDA graph and
+//! replayed (`run.cuda_graphs`; graphs.rs): the same arithmetic, its
+//! changing inputs staged into fixed tensors.
 
 mod graphs;
 
@@ -33,7 +37,6 @@ use tch::{nn, Device, Kind, Tensor};
 
 use crate::adam::Adam;
 use crate::cuda_graph::CudaGraph;
-use graphs::{CapturedUpdates, UpdateKind, UpdateNumbers};
 use crate::agent::{
     build_actor, build_critic, load_optimizer, load_vs, read_agent_state, read_tensors, save_optimizer, save_vs, write_agent_state, write_tensors, Agent,
     Counters, RngState, Transition,
@@ -44,6 +47,7 @@ use crate::flat::FlatParams;
 use crate::nets::{batch, ActorNet, Mlp};
 use crate::replay::{Batch, DeviceMirror, ReplayBuffer};
 use crate::LearnerError;
+use graphs::{CapturedUpdates, UpdateKind, UpdateNumbers};
 
 pub struct Ddpg {
     cfg: DdpgConfig,
