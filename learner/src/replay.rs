@@ -211,7 +211,7 @@ impl DeviceMirror {
 
     /// The same draw as [`DeviceMirror::sample`], gathered into `rows`
     /// ([size, row width] on the device) in place: a captured update reads
-    /// its minibatch from there (cuda_graph.rs).
+    /// its minibatch from there (ddpg/graphs.rs).
     pub fn sample_into(&mut self, buffer: &ReplayBuffer, rows: &Tensor, rng: &mut impl Rng) {
         let picks = self.picks(buffer, rows.size()[0] as usize, rng);
         let _ = self.rows.index_select_out(rows, 0, &picks);

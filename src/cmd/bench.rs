@@ -132,12 +132,13 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], python: Option
         for connection in [lcrl_learner::Connection::Global, lcrl_learner::Connection::Local, lcrl_learner::Connection::FullSubnets] {
             // On a GPU, eager updates first, then the same replayed from
             // CUDA graphs (`run.cuda_graphs`; ignored on the CPU).
-            for graphs in if torch_device.is_cuda() { vec![false, true] } else { vec![true] } {
+            let settings: &[bool] = if torch_device.is_cuda() { &[false, true] } else { &[false] };
+            for &graphs in settings {
                 let cfg = lcrl_learner::TrainConfig { run: lcrl_learner::config::RunConfig { cuda_graphs: graphs, ..cfg.run.clone() }, ..cfg.clone() };
                 let (ddpg, ppo, params) = time_updates(&cfg, connection, &mask, m, n, updates, torch_device)?;
-                let label = if torch_device.is_cuda() && graphs { format!("{connection:?}+graphs") } else { format!("{connection:?}") };
+                let label = if graphs { format!("{connection:?}+graphs") } else { format!("{connection:?}") };
                 println!("{t:>7} {label:<16} {params:>13} {:>16.3} {:>12.0} {ppo:>20.3}", ddpg * 1e3, 1.0 / ddpg);
-                if !graphs || !torch_device.is_cuda() {
+                if !graphs {
                     by_connection.push((ddpg, ppo));
                 }
             }

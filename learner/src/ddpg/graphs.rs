@@ -39,10 +39,19 @@ pub struct UpdateNumbers {
     pub preactivation_l2: Coefficient,
 }
 
-impl UpdateNumbers {
-    pub fn host(critics: &[[f64; 2]], actor: Option<[f64; 2]>, preactivation_l2: f64) -> Self {
-        let pair = |[a, b]: [f64; 2]| [Coefficient::Host(a), Coefficient::Host(b)];
-        UpdateNumbers { critics: critics.iter().copied().map(pair).collect(), actor: actor.map(pair), preactivation_l2: Coefficient::Host(preactivation_l2) }
+/// This update's numbers as the host counts them (each Adam's
+/// [`crate::adam::Adam::advance`]), before they become [`UpdateNumbers`].
+pub struct HostNumbers {
+    pub critics: Vec<[f64; 2]>,
+    pub actor: Option<[f64; 2]>,
+    pub preactivation_l2: f64,
+}
+
+impl HostNumbers {
+    /// The numbers as host coefficients, for an eager update.
+    pub fn coefficients(&self) -> UpdateNumbers {
+        let pair = |&[a, b]: &[f64; 2]| [Coefficient::Host(a), Coefficient::Host(b)];
+        UpdateNumbers { critics: self.critics.iter().map(pair).collect(), actor: self.actor.as_ref().map(pair), preactivation_l2: Coefficient::Host(self.preactivation_l2) }
     }
 }
 
@@ -82,12 +91,10 @@ impl CapturedUpdates {
 
     /// Copies this update's numbers and target noise (empty without) to the
     /// device, in one copy that does not wait (device.rs).
-    pub fn stage(&mut self, critics: &[[f64; 2]], actor: Option<[f64; 2]>, preactivation_l2: f64, noise: &[f32]) {
-        let mut host: Vec<f32> = critics.iter().chain(actor.as_ref()).flatten().map(|&v| v as f32).collect();
-        if actor.is_none() {
-            host.extend([0.0, 0.0]);
-        }
-        host.push(preactivation_l2 as f32);
+    pub fn stage(&mut self, numbers: &HostNumbers, noise: &[f32]) {
+        let actor = numbers.actor.unwrap_or([0.0; 2]);
+        let mut host: Vec<f32> = numbers.critics.iter().chain([&actor]).flatten().map(|&v| v as f32).collect();
+        host.push(numbers.preactivation_l2 as f32);
         host.extend_from_slice(noise);
         let staged = crate::device::to_device_async(Tensor::from_slice(&host), self.numbers.device());
         self.numbers.copy_(&staged);

@@ -47,7 +47,7 @@ use crate::flat::FlatParams;
 use crate::nets::{batch, ActorNet, Mlp};
 use crate::replay::{Batch, DeviceMirror, ReplayBuffer};
 use crate::LearnerError;
-use graphs::{CapturedUpdates, UpdateKind, UpdateNumbers};
+use graphs::{CapturedUpdates, HostNumbers, UpdateKind, UpdateNumbers};
 
 pub struct Ddpg {
     cfg: DdpgConfig,
@@ -243,7 +243,7 @@ impl Ddpg {
         let kind = self.kind_of(self.critic_updates);
         // The numbers that change between updates, counted here on the
         // host whether the update runs eagerly or from a graph.
-        let critics: Vec<[f64; 2]> = self.critics.iter_mut().map(|c| c.opt.advance()).collect();
+        let critics = self.critics.iter_mut().map(|c| c.opt.advance()).collect();
         let actor = (kind == UpdateKind::Full).then(|| {
             if self.cfg.actor_lr_warmup_updates > 0 {
                 self.actor_opt.set_lr(self.actor_lr());
@@ -251,8 +251,9 @@ impl Ddpg {
             self.actor_opt.advance()
         });
         let l2 = if self.cfg.preactivation_anneal { self.cfg.preactivation_l2 * (1.0 - self.progress) } else { self.cfg.preactivation_l2 };
+        let numbers = HostNumbers { critics, actor, preactivation_l2: l2 };
         match self.captured.take() {
-            Some(mut captured) => match self.update_captured(&mut captured, kind, (&critics, actor, l2)) {
+            Some(mut captured) => match self.update_captured(&mut captured, kind, &numbers) {
                 Ok(()) => self.captured = Some(captured),
                 Err(why) => tracing::warn!("CUDA graphs turned off, updates run eagerly from now on: {why}"),
             },
@@ -264,7 +265,7 @@ impl Ddpg {
                 let values = self.target_noise_values(self.cfg.batch_size);
                 let noise = (!values.is_empty())
                     .then(|| crate::device::to_device_async(Tensor::from_slice(&values), self.device).view([self.cfg.batch_size as i64, self.action_dim as i64]));
-                self.apply_update(&b, noise.as_ref(), kind, &UpdateNumbers::host(&critics, actor, l2));
+                self.apply_update(&b, noise.as_ref(), kind, &numbers.coefficients());
             }
         }
         if kind != UpdateKind::Critics {
@@ -276,11 +277,11 @@ impl Ddpg {
     /// into `captured`'s tensors, then the graph of this kind replayed, or
     /// captured first (its warm-up is this update). An error leaves the
     /// update done, eagerly where the graph could not do it.
-    fn update_captured(&mut self, captured: &mut CapturedUpdates, kind: UpdateKind, (critics, actor, l2): (&[[f64; 2]], Option<[f64; 2]>, f64)) -> Result<(), String> {
+    fn update_captured(&mut self, captured: &mut CapturedUpdates, kind: UpdateKind, numbers: &HostNumbers) -> Result<(), String> {
         let mirror = self.mirror.as_mut().expect("captured updates run on a GPU, beside a device mirror");
         mirror.sample_into(&self.replay, captured.rows(), &mut self.rng);
         let noise = self.target_noise_values(self.cfg.batch_size);
-        captured.stage(critics, actor, l2, &noise);
+        captured.stage(numbers, &noise);
         let (b, noise, numbers) = captured.inputs(self.obs_dim, self.action_dim, kind);
         if let Some(graph) = captured.graph(kind) {
             return graph.replay().inspect_err(|_| self.apply_update(&b, noise.as_ref(), kind, &numbers));
