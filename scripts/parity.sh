@@ -3,7 +3,8 @@
 # "Parity"): one preset and its seeds through `lcrl train` and through `lcrl
 # run` with 1, 2 and 4 actors, one run at a time, then a table of the eval
 # return, the runs above the best constant, training safety (failed episodes,
-# the worst 10-episode mean) and the wall time of each loop.
+# the worst 10-episode mean, the peak training force) and the wall time of
+# each loop.
 #
 #   bash scripts/parity.sh [PRESET] [SEEDS] [ACTOR COUNTS...]
 #   bash scripts/parity.sh configs/peg-group1-ppo-local.toml 3 1 2 4
@@ -90,13 +91,18 @@ def interval(values):
     half = 1.96 * statistics.stdev(values) / len(values) ** 0.5
     return f"{m:.3f} [{m - half:.3f}, {m + half:.3f}]"
 
-lines = ["| loop | seeds | eval return (mean [≈95% CI]) | above the best constant | failed training episodes | worst 10-episode mean | wall s |",
-         "|---|---|---|---|---|---|---|"]
+def peak_force(rows):
+    # Runs from before the actors reported forces leave the column empty.
+    forces = [float(r["peak_force_n"]) for r in rows if r.get("peak_force_n")]
+    return max(forces) if forces else None
+
+lines = ["| loop | seeds | eval return (mean [≈95% CI]) | above the best constant | failed training episodes | worst 10-episode mean | peak training force, N (highest) | wall s |",
+         "|---|---|---|---|---|---|---|---|"]
 for loop in loops:
     runs = sorted((out / loop).glob("seed*/summary.json"))
     if not runs:
         continue
-    evals, above, failed, episodes, worst, wall = [], 0, 0, 0, [], []
+    evals, above, failed, episodes, worst, peaks, wall = [], 0, 0, 0, [], [], []
     for path in runs:
         s = json.loads(path.read_text())
         evals.append(s["eval_return"])
@@ -107,9 +113,12 @@ for loop in loops:
         failed += sum(r["success"] == "false" for r in rows)
         episodes += len(rows)
         worst.append(min(statistics.fmean(returns[k:k + 10]) for k in range(max(1, len(returns) - 9))))
+        peaks.append(peak_force(rows))
         wall.append(s["total_seconds"])
     name = "lcrl train" if loop == "train" else f"lcrl run, {loop[3:]} actor(s)"
-    lines.append(f"| {name} | {len(runs)} | {interval(evals)} | {above} of {len(runs)} | {failed} of {episodes} | {statistics.fmean(worst):.3f} (lowest {min(worst):.3f}) | {statistics.fmean(wall):.1f} |")
+    measured = [p for p in peaks if p is not None]
+    peak = f"{statistics.fmean(measured):.1f} ({max(measured):.1f})" if len(measured) == len(peaks) else "not recorded"
+    lines.append(f"| {name} | {len(runs)} | {interval(evals)} | {above} of {len(runs)} | {failed} of {episodes} | {statistics.fmean(worst):.3f} (lowest {min(worst):.3f}) | {peak} | {statistics.fmean(wall):.1f} |")
 table = "\n".join(lines)
 (out / "parity.md").write_text(table + "\n")
 print(table)
