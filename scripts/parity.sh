@@ -9,6 +9,7 @@
 #   bash scripts/parity.sh [PRESET] [SEEDS] [ACTOR COUNTS...]
 #   bash scripts/parity.sh configs/peg-group1-ppo-local.toml 3 1 2 4
 #   LCRL_BIN_DIR=/tmp/lcrl-bin bash scripts/parity.sh ...   (binaries copied there)
+#   SEED_FROM=5 bash scripts/parity.sh PRESET 5 2   (seeds 5-9; the table covers every seed folder there)
 #
 # Runs go to runs/parity/<preset>/<loop>/seed<k>; the table is printed and
 # written to runs/parity/<preset>/parity.md. A run folder that already holds
@@ -22,6 +23,8 @@ actor_counts=("$@")
 [[ ${#actor_counts[@]} -gt 0 ]] || actor_counts=(1 2 4)
 [[ -f $preset ]] || { echo "parity.sh: no preset $preset" >&2; exit 2; }
 [[ $seeds =~ ^[1-9][0-9]*$ ]] || { echo "parity.sh: SEEDS must be a positive number, not '$seeds'" >&2; exit 2; }
+seed_from=${SEED_FROM:-0}
+[[ $seed_from =~ ^[0-9]+$ ]] || { echo "parity.sh: SEED_FROM must be a seed number, not '$seed_from'" >&2; exit 2; }
 # LCRL_BIN_DIR: binaries copied elsewhere (lcrl and the lcrl-* it starts),
 # so that a long comparison is not broken by rebuilding target/debug.
 if [[ -n ${LCRL_BIN_DIR:-} ]]; then
@@ -52,7 +55,7 @@ training_sections() {
   awk '/^\[job\]/ { skip = 1; next } /^\[/ { skip = 0 } !skip' "$1"
 }
 
-for seed in $(seq 0 $((seeds - 1))); do
+for seed in $(seq "$seed_from" $((seed_from + seeds - 1))); do
   seeded=$out/presets/seed$seed.toml
   # Relative paths in the preset (headroom, graph) stay relative to its folder.
   with_seed "$preset" "$seed" | sed "s#\"\.\./#\"$(cd "$(dirname "$preset")/.." && pwd)/#g" > "$seeded"
