@@ -3,6 +3,7 @@
 //! with confidence intervals, the publication's figures; on every core of
 //! one machine (`run`) or as a Kubernetes Indexed Job (`k8s`).
 
+mod against;
 mod config;
 mod figures;
 mod k8s;
@@ -65,6 +66,23 @@ pub struct RunArgs {
 pub struct ReportArgs {
     /// The --out directory of `lcrl experiment run`.
     pub dir: PathBuf,
+    /// Also compare every cell seed for seed with the same environment and
+    /// algorithm in another finished study (its --out directory), and write
+    /// DIR/against-NAME.json and .md (NAME: that study's name). Made for
+    /// the base held still under the learner's own exploration
+    /// (experiments/peg-group2-bar-base-exploring.toml): a run passes a seed
+    /// when no training episode failed and its worst 10-episode mean is no
+    /// lower than the reference's on that seed minus --margin. Against a
+    /// study with one setting changed, the same tables are a paired
+    /// comparison. See docs/experiment.md, "Against a reference study".
+    #[arg(long, value_name = "REF_DIR")]
+    pub against: Option<PathBuf>,
+    /// How far below the reference's worst 10-episode mean a run's may fall
+    /// and still pass (return units). The default, 1.0, is two standard
+    /// deviations of the exploring base's own worst windows over seeds on
+    /// peg-group2 (docs/peg.md, twelfth round).
+    #[arg(long, default_value_t = 1.0, requires = "against")]
+    pub margin: f64,
 }
 
 #[derive(Debug, clap::Args)]
@@ -104,7 +122,11 @@ pub fn run(command: &ExperimentCommand) -> anyhow::Result<()> {
         ExperimentCommand::Run(args) => run_study(args),
         ExperimentCommand::Report(args) => {
             let e = plan::recorded_experiment(&args.dir)?;
-            write_report(&e, &args.dir)
+            write_report(&e, &args.dir)?;
+            match &args.against {
+                Some(reference) => write_against(&e, &args.dir, reference, args.margin),
+                None => Ok(()),
+            }
         }
         ExperimentCommand::K8s(args) => write_k8s(args),
         ExperimentCommand::Task(args) => run_task(args),
@@ -163,6 +185,19 @@ fn write_report(e: &Experiment, out: &Path) -> anyhow::Result<()> {
     let advantage = figures::advantage(&study, &out.join("advantage.png"))?;
     print!("{}", report::markdown(&report));
     println!("wrote {}/report.json, report.md, curves.png, traces.png{}", out.display(), if advantage { ", advantage.png" } else { "" });
+    Ok(())
+}
+
+/// against-NAME.json and .md: the study seed for seed against a reference study.
+fn write_against(e: &Experiment, out: &Path, reference_dir: &Path, margin: f64) -> anyhow::Result<()> {
+    let reference = plan::recorded_experiment(reference_dir).context("the --against study")?;
+    let against = against::compare(&report::gather(e, out)?, &report::gather(&reference, reference_dir)?, reference_dir, margin)?;
+    let stem = format!("against-{}", config::env_slug(&reference.file.name));
+    crate::output::write_atomic(&out.join(format!("{stem}.json")), &(serde_json::to_string_pretty(&against)? + "\n"))?;
+    let md = against::markdown(&against);
+    crate::output::write_atomic(&out.join(format!("{stem}.md")), &md)?;
+    print!("{md}");
+    println!("wrote {}/{stem}.json, {stem}.md", out.display());
     Ok(())
 }
 

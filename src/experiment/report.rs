@@ -457,13 +457,15 @@ pub fn write(report: &Report, out: &Path) -> anyhow::Result<()> {
     write_atomic(&out.join("report.md"), &markdown(report))
 }
 
+/// Hand-made study folders for the tests of this module and its neighbours.
 #[cfg(test)]
-mod tests {
-    use super::*;
+pub(super) mod fixtures {
+    use std::path::Path;
+
     use serde_json::json;
 
     /// A finished run written by hand: summary.json and a two-row metrics.csv.
-    fn write_run(dir: &Path, connection: &str, seed: u64, eval_return: f64, eval_seed: Option<u64>, zero: Option<f64>) {
+    pub fn write_run(dir: &Path, connection: &str, seed: u64, eval_return: f64, eval_seed: Option<u64>, zero: Option<f64>) {
         std::fs::create_dir_all(dir).unwrap();
         let summary = json!({
             "env": "lti-paper", "algo": "ppo", "connection": connection, "seed": seed, "episodes": 2,
@@ -476,6 +478,13 @@ mod tests {
         let csv = "episode,return,length,success,peak_force_n,peak_moment_nm,wall_s,optimization_s\n1,-9,10,,,,,\n2,-8,10,,,,,\n";
         std::fs::write(dir.join("metrics.csv"), csv).unwrap();
     }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::fixtures::write_run;
+    use super::*;
+    use serde_json::json;
 
     /// The bar counts of a hand-made study: a run beats the best constant
     /// only when strictly above it on the same starts, diverges when below

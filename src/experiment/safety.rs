@@ -26,6 +26,8 @@ pub struct RunSafety {
     /// The lowest mean return over 10 consecutive training episodes (over
     /// all of them when there are fewer).
     pub worst_mean_return: f64,
+    /// The episode that ends that window (the first such window on a tie).
+    pub worst_window_end: usize,
     /// The highest peak contact force of any training episode, N.
     pub peak_force_n: Option<f64>,
 }
@@ -36,10 +38,18 @@ pub fn of_rows(rows: &[EpisodeRow]) -> Option<RunSafety> {
         return None;
     }
     let window = AVERAGE_WINDOW.min(rows.len());
-    let worst_mean_return =
-        rows.windows(window).map(|w| w.iter().map(|r| r.episode_return).sum::<f64>() / window as f64).fold(f64::INFINITY, f64::min);
+    let (worst_window_end, worst_mean_return) = rows
+        .windows(window)
+        .map(|w| (w[w.len() - 1].episode, w.iter().map(|r| r.episode_return).sum::<f64>() / window as f64))
+        .fold((0, f64::INFINITY), |worst, w| if w.1 < worst.1 { w } else { worst });
     let peak_force_n = rows.iter().filter_map(|r| r.peak_force_n).reduce(f64::max);
-    Some(RunSafety { failed_episodes: rows.iter().filter(|r| r.success == Some(false)).count(), episodes: rows.len(), worst_mean_return, peak_force_n })
+    Some(RunSafety {
+        failed_episodes: rows.iter().filter(|r| r.success == Some(false)).count(),
+        episodes: rows.len(),
+        worst_mean_return,
+        worst_window_end,
+        peak_force_n,
+    })
 }
 
 /// The controller a cell's runs act around, with its figures on the
@@ -147,7 +157,7 @@ mod tests {
         }
         let read = lcrl_learner::run_files::read_rows(&dir.path().join("metrics.csv"), usize::MAX).unwrap();
         let safety = of_rows(&read).unwrap();
-        assert_eq!(safety, RunSafety { failed_episodes: 2, episodes: 30, worst_mean_return: -8.0, peak_force_n: Some(40.0) });
+        assert_eq!(safety, RunSafety { failed_episodes: 2, episodes: 30, worst_mean_return: -8.0, worst_window_end: 20, peak_force_n: Some(40.0) });
 
         let bar = BestConstant { action: vec![2.0, 2.0, 0.22], mean_return: -3.5, success_rate: Some(1.0), zero_action_return: -8.7, eval_episodes: 100, eval_seed: Some(1) };
         std::fs::write(dir.path().join("config.toml"), "[base]\naction = [2.0, 2.0, 0.22]\n").unwrap();
@@ -164,7 +174,7 @@ mod tests {
         std::fs::write(dir.path().join("config.toml"), "[run]\nseed = 1\n").unwrap();
         assert_eq!(base_of_run(dir.path(), Some(-8.1), Some(&bar)), None, "no base, no base figures");
 
-        let other = RunSafety { failed_episodes: 0, episodes: 30, worst_mean_return: -3.2, peak_force_n: Some(13.0) };
+        let other = RunSafety { failed_episodes: 0, episodes: 30, worst_mean_return: -3.2, worst_window_end: 10, peak_force_n: Some(13.0) };
         let cell = of_cell(&[safety, other], Some(base)).unwrap();
         assert_eq!((cell.failed_episodes, cell.episodes, cell.lowest_mean_return, cell.peak_force_n), (2, 60, -8.0, Some(40.0)));
         assert_eq!(cell.below_base, Some(1), "only the dipping seed fell below the best constant's −3.5");
@@ -174,7 +184,7 @@ mod tests {
     #[test]
     fn short_runs_use_every_episode() {
         let rows = vec![row(1, -4.0, true, 1.0), row(2, -2.0, true, 1.0)];
-        assert_eq!(of_rows(&rows).unwrap().worst_mean_return, -3.0);
+        assert_eq!((of_rows(&rows).unwrap().worst_mean_return, of_rows(&rows).unwrap().worst_window_end), (-3.0, 2));
         assert_eq!(of_rows(&[]), None);
     }
 }

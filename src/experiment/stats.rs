@@ -52,6 +52,14 @@ pub fn mean_ci(sample: &[f64]) -> Option<Estimate> {
     Some(Estimate { mean: m, ci95, n })
 }
 
+/// The one-sample t statistic of mean(sample) against 0, mean/(s/√n): the
+/// paired t-test when the sample is per-seed differences (None with fewer
+/// than two values or no spread).
+pub fn one_sample_t(sample: &[f64]) -> Option<f64> {
+    let spread = (sample.len() >= 2).then(|| (variance(sample) / sample.len() as f64).sqrt()).filter(|s| *s > 0.0)?;
+    Some(mean(sample) / spread)
+}
+
 /// Welch's two-sample t-test of mean(a) − mean(b).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Welch {

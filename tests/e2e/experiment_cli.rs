@@ -185,6 +185,23 @@ fn smoke_study_survives_sigkill_resumes_and_reports_consistently() {
     assert!(from_archive.status.success(), "{}", stderr(&from_archive));
     assert!(stderr(&from_archive).contains("traces.png: leaving out"), "{}", stderr(&from_archive));
     assert_eq!(std::fs::read_to_string(archive.join("report.md")).unwrap(), md);
+    // Against a reference study (here its own archive), seed for seed: every
+    // difference is 0, so every seed passes, in both files; a folder with no
+    // study and a negative margin are refused, the report already written kept.
+    let against = lcrl().args(["experiment", "report", &out_str, "--against"]).arg(&archive).output().unwrap();
+    assert!(against.status.success(), "{}", stderr(&against));
+    let paired: Value = serde_json::from_str(&std::fs::read_to_string(out.join("against-smoke.json")).unwrap()).unwrap();
+    assert_eq!(paired["cells"].as_array().map(Vec::len), Some(2), "{paired}");
+    for cell in paired["cells"].as_array().unwrap() {
+        assert_eq!((cell["connection"].clone(), cell["passing"].as_u64()), (cell["reference_connection"].clone(), Some(2)), "{cell}");
+        assert_eq!(cell["worst_difference"]["mean"].as_f64(), Some(0.0), "{cell}");
+    }
+    assert!(std::fs::read_to_string(out.join("against-smoke.md")).unwrap().contains("| 2 of 2 |"));
+    let nowhere = lcrl().args(["experiment", "report", &out_str, "--against"]).arg(tmp.path().join("nowhere")).output().unwrap();
+    assert_clean_failure(&nowhere, "holds no experiment");
+    let negative = lcrl().args(["experiment", "report", &out_str, "--margin=-1", "--against"]).arg(&archive).output().unwrap();
+    assert_clean_failure(&negative, "--margin");
+    assert_eq!(std::fs::read_to_string(out.join("report.md")).unwrap(), md);
     let resumed = lcrl().args(["experiment", "run"]).arg(smoke()).arg("--out").arg(&archive).output().unwrap();
     assert!(resumed.status.success(), "{}", stderr(&resumed));
     assert_eq!(finished_runs(&archive).len(), 4);
