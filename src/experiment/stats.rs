@@ -149,6 +149,14 @@ mod tests {
         assert_eq!(mean_ci(&[]), None);
     }
 
+    /// Paired differences 1, 2, 3: mean 2, s = 1, t = 2/(1/√3) = 2√3.
+    #[test]
+    fn one_sample_t_of_a_known_sample() {
+        assert!((one_sample_t(&[1.0, 2.0, 3.0]).unwrap() - 2.0 * 3f64.sqrt()).abs() < 1e-12);
+        assert_eq!(one_sample_t(&[1.0]), None, "one value has no spread");
+        assert_eq!(one_sample_t(&[2.0, 2.0]), None, "no spread, no t");
+    }
+
     #[test]
     fn welch_on_identical_and_on_clearly_different_groups() {
         let same = welch(&[1.0, 2.0, 3.0, 4.0], &[1.0, 2.0, 3.0, 4.0]).unwrap();
