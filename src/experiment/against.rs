@@ -34,7 +34,9 @@ pub struct SeedAgainst {
     pub peak_force_n: Option<f64>,
     pub reference_peak_force_n: Option<f64>,
     pub eval_return: f64,
-    pub reference_eval_return: f64,
+    /// None when the two runs were evaluated on different starts (their
+    /// returns would not compare).
+    pub reference_eval_return: Option<f64>,
     /// No failed training episode and a worst window no lower than the
     /// reference's minus the margin.
     pub passes: bool,
@@ -52,6 +54,7 @@ pub struct CellAgainst {
     pub unpaired_seeds: Vec<u64>,
     pub passing: usize,
     pub worst_difference: Option<Paired>,
+    /// Over the seeds both evaluated on the same starts.
     pub eval_difference: Option<Paired>,
 }
 
@@ -95,28 +98,7 @@ pub fn compare(study: &Study, reference: &Study, reference_dir: &Path, margin: f
     anyhow::ensure!(margin.is_finite() && margin >= 0.0, "--margin must be a finite number ≥ 0, not {margin}");
     let mut cells = Vec::new();
     for c in &study.cells {
-        let same_task: Vec<&CellRuns> = reference.cells.iter().filter(|r| r.cell.env == c.cell.env && r.cell.algo == c.cell.algo).collect();
-        let paired = match same_task.iter().find(|r| r.cell.connection == c.cell.connection) {
-            Some(r) => *r,
-            None => match same_task.as_slice() {
-                [only] => *only,
-                [] => anyhow::bail!(
-                    "the reference study {} has no {}/{} cell to compare {} with: give a study of the same environment and algorithm",
-                    reference_dir.display(),
-                    c.cell.env,
-                    super::config::algo_name(c.cell.algo),
-                    c.cell.label()
-                ),
-                _ => anyhow::bail!(
-                    "the reference study {} has several {}/{} cells and none with {}'s connection: give a study with one",
-                    reference_dir.display(),
-                    c.cell.env,
-                    super::config::algo_name(c.cell.algo),
-                    c.cell.label()
-                ),
-            },
-        };
-        cells.push(cell_against(c, paired, margin));
+        cells.push(cell_against(c, reference_cell(c, reference, reference_dir)?, margin));
     }
     Ok(Against {
         experiment: study.experiment.file.name.clone(),
@@ -128,6 +110,29 @@ pub fn compare(study: &Study, reference: &Study, reference_dir: &Path, margin: f
     })
 }
 
+/// The reference's cell for `c`: the same environment and algorithm, with
+/// the same connection, or else the only one.
+fn reference_cell<'a>(c: &CellRuns, reference: &'a Study, reference_dir: &Path) -> anyhow::Result<&'a CellRuns> {
+    let same_task: Vec<&CellRuns> = reference.cells.iter().filter(|r| r.cell.env == c.cell.env && r.cell.algo == c.cell.algo).collect();
+    if let Some(same) = same_task.iter().find(|r| r.cell.connection == c.cell.connection) {
+        return Ok(same);
+    }
+    let task = format!("{}/{}", c.cell.env, super::config::algo_name(c.cell.algo));
+    match same_task.as_slice() {
+        [only] => Ok(only),
+        [] => anyhow::bail!(
+            "the reference study {} has no {task} cell to compare {} with: give a study of the same environment and algorithm",
+            reference_dir.display(),
+            c.cell.label()
+        ),
+        _ => anyhow::bail!(
+            "the reference study {} has several {task} cells and none with {}'s connection: give a study with one",
+            reference_dir.display(),
+            c.cell.label()
+        ),
+    }
+}
+
 fn cell_against(cell: &CellRuns, reference: &CellRuns, margin: f64) -> CellAgainst {
     let mut per_seed = Vec::new();
     let mut unpaired_seeds = Vec::new();
@@ -137,18 +142,24 @@ fn cell_against(cell: &CellRuns, reference: &CellRuns, margin: f64) -> CellAgain
             None => unpaired_seeds.push(run.seed),
         }
     }
-    let differences = |f: fn(&SeedAgainst) -> f64| Paired::of(&per_seed.iter().map(f).collect::<Vec<_>>());
+    let differences = |f: fn(&SeedAgainst) -> Option<f64>| Paired::of(&per_seed.iter().filter_map(f).collect::<Vec<_>>());
     CellAgainst {
         env: cell.cell.env.clone(),
         algo: super::config::algo_name(cell.cell.algo).into(),
         connection: cell.cell.connection.label(),
         reference_connection: reference.cell.connection.label(),
         passing: per_seed.iter().filter(|s| s.passes).count(),
-        worst_difference: differences(|s| s.worst_difference),
-        eval_difference: differences(|s| s.eval_return - s.reference_eval_return),
+        worst_difference: differences(|s| Some(s.worst_difference)),
+        eval_difference: differences(|s| Some(s.eval_return - s.reference_eval_return?)),
         per_seed,
         unpaired_seeds,
     }
+}
+
+/// Whether both runs were evaluated on the same starts.
+fn same_starts(a: &Run, b: &Run) -> bool {
+    let (a, b) = (&a.summary.evaluation, &b.summary.evaluation);
+    a.eval_seed.is_some() && (a.eval_seed, a.eval_episodes) == (b.eval_seed, b.eval_episodes)
 }
 
 /// None when either run has no training episodes.
@@ -167,7 +178,7 @@ fn seed_against(run: &Run, reference: &Run, margin: f64) -> Option<SeedAgainst> 
         peak_force_n: own.peak_force_n,
         reference_peak_force_n: other.peak_force_n,
         eval_return: run.summary.evaluation.eval_return,
-        reference_eval_return: reference.summary.evaluation.eval_return,
+        reference_eval_return: same_starts(run, reference).then_some(reference.summary.evaluation.eval_return),
         passes: own.failed_episodes == 0 && worst_difference >= -margin,
     })
 }
@@ -226,7 +237,7 @@ pub fn markdown(a: &Against) -> String {
                 force(s.peak_force_n),
                 force(s.reference_peak_force_n),
                 num(s.eval_return),
-                num(s.reference_eval_return),
+                s.reference_eval_return.map_or("— (other starts)".into(), num),
                 if s.passes { "yes" } else { "no" }
             );
         }
@@ -297,6 +308,17 @@ mod tests {
         assert!((eval.mean - 0.8 / 3.0).abs() < 1e-12, "eval differences +0.2, +0.1, +0.5: {eval:?}");
         let md = markdown(&against);
         assert!(md.contains("| 1 of 3 |") && md.contains("| 1 | -7.000 (11) | -6.000 (11) |"), "{md}");
+
+        // A reference run evaluated on other starts keeps its safety
+        // figures but leaves the eval difference.
+        let seed1 = run_dir(&b, &cells(&reference.experiment)[0], 1);
+        write_run(&seed1, "global", 1, -3.5, Some(7), None);
+        std::fs::write(seed1.join("metrics.csv"), std::fs::read(run_dir(&b, &cells(&reference.experiment)[0], 0).join("metrics.csv")).unwrap()).unwrap();
+        let against = compare(&runs, &gather(&reference.experiment, &b).unwrap(), &b, 1.0).unwrap();
+        let c = &against.cells[0];
+        assert_eq!(c.per_seed[1].reference_eval_return, None);
+        assert_eq!(c.eval_difference.as_ref().map(|e| e.n), Some(2), "seeds 0 and 2 only");
+        assert!(markdown(&against).contains("— (other starts)"));
     }
 
     #[test]
