@@ -16,23 +16,19 @@ use std::path::Path;
 use serde::Serialize;
 
 use super::report::{num, CellRuns, Run, Study};
+use super::safety::RunSafety;
 use super::stats::{mean_ci, one_sample_t, Estimate};
 
 /// One seed of a cell beside the same seed of the reference.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct SeedAgainst {
     pub seed: u64,
-    pub worst_mean_return: f64,
-    /// The episode ending that window.
-    pub worst_window_end: usize,
-    pub reference_worst_mean_return: f64,
-    pub reference_worst_window_end: usize,
-    /// worst_mean_return − reference_worst_mean_return.
+    /// This run's training safety (worst window and the episode ending it,
+    /// failed episodes, peak force) and the reference run's.
+    pub safety: RunSafety,
+    pub reference_safety: RunSafety,
+    /// The two worst windows' difference, this run's minus the reference's.
     pub worst_difference: f64,
-    pub failed_episodes: usize,
-    pub reference_failed_episodes: usize,
-    pub peak_force_n: Option<f64>,
-    pub reference_peak_force_n: Option<f64>,
     pub eval_return: f64,
     /// None when the two runs were evaluated on different starts (their
     /// returns would not compare).
@@ -62,16 +58,14 @@ pub struct CellAgainst {
 /// (the paired t-test).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Paired {
-    pub mean: f64,
-    pub ci95: Option<[f64; 2]>,
-    pub n: usize,
+    #[serde(flatten)]
+    pub estimate: Estimate,
     pub t: Option<f64>,
 }
 
 impl Paired {
     fn of(differences: &[f64]) -> Option<Self> {
-        let Estimate { mean, ci95, n } = mean_ci(differences)?;
-        Some(Paired { mean, ci95, n, t: one_sample_t(differences) })
+        Some(Paired { estimate: mean_ci(differences)?, t: one_sample_t(differences) })
     }
 }
 
@@ -164,31 +158,25 @@ fn same_starts(a: &Run, b: &Run) -> bool {
 
 /// None when either run has no training episodes.
 fn seed_against(run: &Run, reference: &Run, margin: f64) -> Option<SeedAgainst> {
-    let (own, other) = (run.safety?, reference.safety?);
-    let worst_difference = own.worst_mean_return - other.worst_mean_return;
+    let (safety, reference_safety) = (run.safety?, reference.safety?);
+    let worst_difference = safety.worst_mean_return - reference_safety.worst_mean_return;
     Some(SeedAgainst {
         seed: run.seed,
-        worst_mean_return: own.worst_mean_return,
-        worst_window_end: own.worst_window_end,
-        reference_worst_mean_return: other.worst_mean_return,
-        reference_worst_window_end: other.worst_window_end,
+        passes: safety.failed_episodes == 0 && worst_difference >= -margin,
+        safety,
+        reference_safety,
         worst_difference,
-        failed_episodes: own.failed_episodes,
-        reference_failed_episodes: other.failed_episodes,
-        peak_force_n: own.peak_force_n,
-        reference_peak_force_n: other.peak_force_n,
         eval_return: run.summary.evaluation.eval_return,
         reference_eval_return: same_starts(run, reference).then_some(reference.summary.evaluation.eval_return),
-        passes: own.failed_episodes == 0 && worst_difference >= -margin,
     })
 }
 
 fn paired(e: &Option<Paired>) -> String {
     match e {
-        Some(Paired { mean, ci95: Some([lo, hi]), t, .. }) => {
+        Some(Paired { estimate: Estimate { mean, ci95: Some([lo, hi]), .. }, t }) => {
             format!("{} [{}, {}]{}", num(*mean), num(*lo), num(*hi), t.map_or(String::new(), |t| format!(", t {t:.2}")))
         }
-        Some(p) => num(p.mean),
+        Some(p) => num(p.estimate.mean),
         None => "—".into(),
     }
 }
@@ -227,15 +215,15 @@ pub fn markdown(a: &Against) -> String {
                 md,
                 "| {} | {} ({}) | {} ({}) | {} | {} ({}) | {} ({}) | {} | {} | {} |",
                 s.seed,
-                num(s.worst_mean_return),
-                s.worst_window_end,
-                num(s.reference_worst_mean_return),
-                s.reference_worst_window_end,
+                num(s.safety.worst_mean_return),
+                s.safety.worst_window_end,
+                num(s.reference_safety.worst_mean_return),
+                s.reference_safety.worst_window_end,
                 num(s.worst_difference),
-                s.failed_episodes,
-                s.reference_failed_episodes,
-                force(s.peak_force_n),
-                force(s.reference_peak_force_n),
+                s.safety.failed_episodes,
+                s.reference_safety.failed_episodes,
+                force(s.safety.peak_force_n),
+                force(s.reference_safety.peak_force_n),
                 num(s.eval_return),
                 s.reference_eval_return.map_or("— (other starts)".into(), num),
                 if s.passes { "yes" } else { "no" }
@@ -297,15 +285,15 @@ mod tests {
         let against = compare(&runs, &reference, &b, 1.0).unwrap();
         let c = &against.cells[0];
         assert_eq!((c.connection.as_str(), c.reference_connection.as_str()), ("local@0.1", "global"), "the only cell of that task");
-        let verdicts: Vec<(u64, bool, usize)> = c.per_seed.iter().map(|s| (s.seed, s.passes, s.worst_window_end)).collect();
+        let verdicts: Vec<(u64, bool, usize)> = c.per_seed.iter().map(|s| (s.seed, s.passes, s.safety.worst_window_end)).collect();
         assert_eq!(verdicts, [(0, true, 11), (1, false, 11), (2, false, 11)]);
         assert_eq!((c.passing, c.unpaired_seeds.as_slice()), (1, &[3][..]));
-        assert_eq!(c.per_seed[2].failed_episodes, 1);
+        assert_eq!(c.per_seed[2].safety.failed_episodes, 1);
         // Differences −1, −1 − 1e-9, +1.5: mean 0.5/3 − 1e-9/3.
         let worst = c.worst_difference.as_ref().unwrap();
-        assert!((worst.mean - (-0.5 / 3.0 - 1e-9 / 3.0)).abs() < 1e-12 && worst.n == 3, "{worst:?}");
+        assert!((worst.estimate.mean - (-0.5 / 3.0 - 1e-9 / 3.0)).abs() < 1e-12 && worst.estimate.n == 3, "{worst:?}");
         let eval = c.eval_difference.as_ref().unwrap();
-        assert!((eval.mean - 0.8 / 3.0).abs() < 1e-12, "eval differences +0.2, +0.1, +0.5: {eval:?}");
+        assert!((eval.estimate.mean - 0.8 / 3.0).abs() < 1e-12, "eval differences +0.2, +0.1, +0.5: {eval:?}");
         let md = markdown(&against);
         assert!(md.contains("| 1 of 3 |") && md.contains("| 1 | -7.000 (11) | -6.000 (11) |"), "{md}");
 
@@ -317,7 +305,7 @@ mod tests {
         let against = compare(&runs, &gather(&reference.experiment, &b).unwrap(), &b, 1.0).unwrap();
         let c = &against.cells[0];
         assert_eq!(c.per_seed[1].reference_eval_return, None);
-        assert_eq!(c.eval_difference.as_ref().map(|e| e.n), Some(2), "seeds 0 and 2 only");
+        assert_eq!(c.eval_difference.as_ref().map(|e| e.estimate.n), Some(2), "seeds 0 and 2 only");
         assert!(markdown(&against).contains("— (other starts)"));
     }
 

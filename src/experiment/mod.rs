@@ -122,9 +122,9 @@ pub fn run(command: &ExperimentCommand) -> anyhow::Result<()> {
         ExperimentCommand::Run(args) => run_study(args),
         ExperimentCommand::Report(args) => {
             let e = plan::recorded_experiment(&args.dir)?;
-            write_report(&e, &args.dir)?;
+            let study = write_report(&e, &args.dir)?;
             match &args.against {
-                Some(reference) => write_against(&e, &args.dir, reference, args.margin),
+                Some(reference) => write_against(&study, &args.dir, reference, args.margin),
                 None => Ok(()),
             }
         }
@@ -176,7 +176,8 @@ fn run_study(args: &RunArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn write_report(e: &Experiment, out: &Path) -> anyhow::Result<()> {
+/// Writes the report and figures; returns the study they were drawn from.
+fn write_report(e: &Experiment, out: &Path) -> anyhow::Result<report::Study> {
     let study = report::gather(e, out)?;
     let report = study.report();
     report::write(&report, out)?;
@@ -185,13 +186,13 @@ fn write_report(e: &Experiment, out: &Path) -> anyhow::Result<()> {
     let advantage = figures::advantage(&study, &out.join("advantage.png"))?;
     print!("{}", report::markdown(&report));
     println!("wrote {}/report.json, report.md, curves.png, traces.png{}", out.display(), if advantage { ", advantage.png" } else { "" });
-    Ok(())
+    Ok(study)
 }
 
 /// against-NAME.json and .md: the study seed for seed against a reference study.
-fn write_against(e: &Experiment, out: &Path, reference_dir: &Path, margin: f64) -> anyhow::Result<()> {
+fn write_against(study: &report::Study, out: &Path, reference_dir: &Path, margin: f64) -> anyhow::Result<()> {
     let reference = plan::recorded_experiment(reference_dir).context("the --against study")?;
-    let against = against::compare(&report::gather(e, out)?, &report::gather(&reference, reference_dir)?, reference_dir, margin)?;
+    let against = against::compare(study, &report::gather(&reference, reference_dir)?, reference_dir, margin)?;
     let stem = format!("against-{}", config::env_slug(&reference.file.name));
     crate::output::write_atomic(&out.join(format!("{stem}.json")), &(serde_json::to_string_pretty(&against)? + "\n"))?;
     let md = against::markdown(&against);
