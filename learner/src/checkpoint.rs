@@ -63,7 +63,7 @@ impl CheckpointMeta {
             shape: self.shape.clone(),
             network: self.config.network.clone(),
             base: self.config.base.base_action(self.shape.action_dim),
-            residual_scale: self.config.base.residual_scale,
+            residual_scale: self.config.residual_scale(self.shape.algo),
         }
     }
 }

@@ -107,7 +107,7 @@ pub fn prepare(start: RunStart, env: &dyn Env) -> Result<Prepared, LearnerError>
     // The base controller as numbers, so config.toml and every checkpoint
     // record exactly what the agent acts around.
     let base = fix_base_controller(&mut config, env)?;
-    let actions = ActionMap::new(env.spec(), base.as_deref())?.with_residual_scale(config.base.residual_scale);
+    let actions = ActionMap::new(env.spec(), base.as_deref())?.with_residual_scale(config.residual_scale(start.algo));
     meta.config = config.clone();
     let threads = crate::device::apply_threads(config.run.threads, 0);
     let mut agent = crate::algorithms::make_agent(start.algo, start.connection, &config, &meta.shape.mask, m, n)?;

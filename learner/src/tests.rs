@@ -492,8 +492,8 @@ fn refuses_to_overwrite_a_run_and_rejects_mismatched_graphs() {
 /// Residual RL (learner/src/action.rs): a run around a base controller
 /// records its numbers in config.toml and the checkpoint, its untrained
 /// policy is the base controller, and the evaluation returns match the
-/// base's own. DDPG and PPO alike; warm-up longer than the run, so the
-/// policy is the freshly built one.
+/// base's own. DDPG and PPO alike (each with its own reach); warm-up
+/// longer than the run, so the policy is the freshly built one.
 #[test]
 fn a_base_controller_is_recorded_and_is_the_first_policy() {
     tch::set_num_threads(1);
@@ -509,6 +509,8 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
         cfg.run.eval_episodes = 3;
         cfg.ddpg.warmup_steps = 10_000;
         cfg.ppo.rollout_steps = 10_000;
+        // DDPG's own reach (configs/peg-group2.toml): PPO's stays 1.
+        cfg.ddpg.residual_scale = Some(0.5);
         let run_dir = dir.path().join(format!("{algo:?}"));
         let request = TrainRequest {
             env: "peg-group1".into(),
@@ -527,6 +529,7 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
         assert_eq!(recorded.base.best_constant_file, None);
         let policy = Policy::load(&run_dir).unwrap();
         assert_eq!(policy.architecture.base.as_deref(), Some(&base[..]));
+        assert_eq!(policy.architecture.residual_scale, if algo == Algo::Ddpg { 0.5 } else { 1.0 }, "{algo:?}");
         let mut env = make_env("peg-group1").unwrap();
         let state = env.reset(5).unwrap();
         let action = policy.act(env.as_ref(), &state);

@@ -66,6 +66,11 @@ impl TrainConfig {
         let mut merged = toml::Table::try_from(&defaults).map_err(|e| LearnerError::Config(e.to_string()))?;
         let mut overrides = overrides.clone();
         migrate_legacy_tables(&mut overrides);
+        if replaces_preset_reach(&overrides) {
+            if let Some(toml::Value::Table(ddpg)) = merged.get_mut("ddpg") {
+                ddpg.remove("residual_scale");
+            }
+        }
         lcrl_sim::overlay(&mut merged, &overrides);
         let cfg: TrainConfig = toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| LearnerError::Config(e.to_string()))?;
         cfg.validate()?;
@@ -93,4 +98,20 @@ impl TrainConfig {
         cfg.validate()?;
         Ok(cfg)
     }
+}
+
+/// Whether overrides replace an environment's own DDPG reach (`[ddpg]
+/// residual_scale`, configs/peg-group2.toml) with `[base]`'s: a preset's
+/// DDPG reach was measured around its best constant, so a user who sets a
+/// reach in `[base]` (for both algorithms), or another base than the best
+/// constant (e.g. "a = 0", training from scratch), gets `[base]` as
+/// written. Overrides that set `[ddpg] residual_scale` themselves keep it.
+fn replaces_preset_reach(overrides: &toml::Table) -> bool {
+    let section = |name: &str| overrides.get(name).and_then(toml::Value::as_table);
+    if section("ddpg").is_some_and(|ddpg| ddpg.contains_key("residual_scale")) {
+        return false;
+    }
+    let Some(base) = section("base") else { return false };
+    let other_base = base.get("action").is_some_and(|action| action.as_str() != Some("best-constant"));
+    base.contains_key("residual_scale") || other_base
 }

@@ -36,6 +36,18 @@ pub struct TrainConfig {
     pub base: BaseConfig,
 }
 
+impl TrainConfig {
+    /// The residual's reach s that `algo` acts with (learner/src/action.rs,
+    /// docs/peg.md "A base controller under the agent"): `[ddpg]
+    /// residual_scale` where DDPG sets its own, else `[base] residual_scale`.
+    pub fn residual_scale(&self, algo: Algo) -> f64 {
+        match (algo, self.ddpg.residual_scale) {
+            (Algo::Ddpg, Some(s)) => s,
+            _ => self.base.residual_scale,
+        }
+    }
+}
+
 /// TrainConfig as a file may spell it: `[base]`, or its name until this
 /// release, `[controller]` with `base = ...` (accepted with a deprecation
 /// warning: in a peg TOML `[controller]` is the compliance controller).
@@ -310,6 +322,15 @@ pub struct DdpgConfig {
     /// (docs/peg.md, "Training that stays near its base"); the ramp slows
     /// only the start, where the trust region (`proximal_l2`) brakes all run.
     pub actor_lr_warmup_updates: usize,
+    /// DDPG's own reach around the base, in place of `[base]
+    /// residual_scale` (same meaning, (0, 1], needs a base); PPO ignores
+    /// it. A preset sets it where the reach that keeps DDPG's exploration
+    /// safe would cost PPO return for nothing (configs/peg-group2.toml).
+    /// A `[base] residual_scale` the user sets is the reach for both
+    /// algorithms: laid over an environment's settings it replaces the
+    /// preset's DDPG reach ([`TrainConfig::for_env_with`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub residual_scale: Option<f64>,
 }
 
 /// PPO with a Gaussian policy whose mean comes from the actor.
@@ -468,6 +489,7 @@ impl Default for DdpgConfig {
             huber_delta: 0.0,
             update_every: 1,
             gradient_steps: 1,
+            residual_scale: None,
         }
     }
 }

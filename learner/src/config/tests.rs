@@ -44,14 +44,14 @@ fn registered_environments_get_their_working_settings() {
     assert_eq!(lti.network.activation, Activation::Elu);
     let peg: TrainConfig = toml::from_str(PEG).unwrap();
     peg.validate().unwrap();
-    // peg-group2: peg.toml with the trust region at 1 and the critic's
-    // head start, nothing else.
+    // peg-group2: peg.toml with the trust region at 1, the critic's head
+    // start and DDPG's reach at 0.875, nothing else.
     let (group2, source) = TrainConfig::for_env("peg-group2");
     assert!(source.contains("configs/peg-group2.toml"), "{source}");
     group2.validate().unwrap();
-    assert_eq!((group2.ddpg.proximal_l2, group2.ddpg.critic_warmup_updates), (1.0, 2000));
-    let ddpg = DdpgConfig { proximal_l2: 0.0, critic_warmup_updates: 0, ..group2.ddpg.clone() };
-    assert_eq!(TrainConfig { ddpg, ..group2 }, peg, "peg-group2.toml changes only [ddpg] proximal_l2 and critic_warmup_updates");
+    assert_eq!((group2.ddpg.proximal_l2, group2.ddpg.critic_warmup_updates, group2.ddpg.residual_scale), (1.0, 2000, Some(0.875)));
+    let ddpg = DdpgConfig { proximal_l2: 0.0, critic_warmup_updates: 0, residual_scale: None, ..group2.ddpg.clone() };
+    assert_eq!(TrainConfig { ddpg, ..group2 }, peg, "peg-group2.toml changes only [ddpg] proximal_l2, critic_warmup_updates and residual_scale");
     // peg-group1: peg.toml with the trust region, nothing else.
     let (group1, source) = TrainConfig::for_env("peg-group1");
     assert!(source.contains("configs/peg-group1.toml"), "{source}");
@@ -117,4 +117,34 @@ fn bad_values_name_the_field() {
     assert!(err("[base]\naction = \"best-constant\"\nresidual_scale = 0.0\n").contains("base.residual_scale"));
     assert!(err("[base]\naction = \"best-constant\"\nresidual_scale = 1.5\n").contains("base.residual_scale"));
     assert!(err("[base]\nresidual_scale = 0.5\n").contains("needs a base controller"));
+    assert!(err("[base]\naction = \"best-constant\"\n[ddpg]\nresidual_scale = 0.0\n").contains("ddpg.residual_scale"));
+    assert!(err("[base]\naction = \"best-constant\"\n[ddpg]\nresidual_scale = 1.5\n").contains("ddpg.residual_scale"));
+    assert!(err("[ddpg]\nresidual_scale = 0.5\n").contains("`ddpg.residual_scale` needs a base controller"));
+}
+
+/// DDPG's own reach: peg-group2's is 0.875 for DDPG and the whole box for
+/// PPO; a reach in `[base]`, or a base other than the best constant, laid
+/// over the preset replaces it, `[ddpg] residual_scale` sets it; and a
+/// run's resolved settings, read back as overrides, resolve to themselves.
+#[test]
+fn ddpg_reach_is_ddpg_alone_and_a_users_base_replaces_it() {
+    let reaches = |text: &str| {
+        let cfg = TrainConfig::for_env_with("peg-group2", &toml::from_str(text).unwrap()).unwrap();
+        let again = TrainConfig::for_env_with("peg-group2", &toml::Table::try_from(&cfg).unwrap()).unwrap();
+        assert_eq!(again, cfg, "{text:?} read back from its resolved settings");
+        (cfg.residual_scale(Algo::Ddpg), cfg.residual_scale(Algo::Ppo))
+    };
+    assert_eq!(reaches(""), (0.875, 1.0));
+    assert_eq!(reaches("[base]\naction = \"best-constant\"\n"), (0.875, 1.0), "the preset's own base keeps its reach");
+    assert_eq!(reaches("[run]\nseed = 3\n"), (0.875, 1.0));
+    assert_eq!(reaches("[base]\nresidual_scale = 0.75\n"), (0.75, 0.75), "configs/peg-safe.toml's reach binds both");
+    assert_eq!(reaches("[base]\naction = \"a = 0\"\n"), (1.0, 1.0), "from scratch the whole box, as measured");
+    assert_eq!(reaches("[ddpg]\nresidual_scale = 0.5\n"), (0.5, 1.0));
+    assert_eq!(reaches("[base]\nresidual_scale = 0.75\n[ddpg]\nresidual_scale = 0.5\n"), (0.5, 0.75));
+    // A recorded base of numbers (config.toml of a run) with no DDPG reach
+    // is a run from before it: it keeps the reach it ran with.
+    assert_eq!(reaches("[base]\naction = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]\n"), (1.0, 1.0));
+    // Environments without a DDPG reach: [base] for both.
+    let group1 = TrainConfig::for_env("peg-group1").0;
+    assert_eq!((group1.residual_scale(Algo::Ddpg), group1.residual_scale(Algo::Ppo)), (1.0, 1.0));
 }

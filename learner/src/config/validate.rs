@@ -33,12 +33,15 @@ impl TrainConfig {
                 return bad(field, &format!("must be a finite number ≥ 0, got {v}"));
             }
         }
-        let reach = self.base.residual_scale;
-        if !crate::action::residual_scale_fits(reach, true) {
-            return bad("base.residual_scale", &format!("must lie in (0, 1] (the share of the box's half-width the residual may move the base), got {reach}"));
-        }
-        if !crate::action::residual_scale_fits(reach, self.base.action != super::BaseController::None) {
-            return bad("base.residual_scale", "needs a base controller (base.action): without one there is no residual to scale");
+        let has_base = self.base.action != super::BaseController::None;
+        for (field, reach) in [("base.residual_scale", Some(self.base.residual_scale)), ("ddpg.residual_scale", self.ddpg.residual_scale)] {
+            let Some(reach) = reach else { continue };
+            if !crate::action::residual_scale_fits(reach, true) {
+                return bad(field, &format!("must lie in (0, 1] (the share of the box's half-width the residual may move the base), got {reach}"));
+            }
+            if !crate::action::residual_scale_fits(reach, has_base) {
+                return bad(field, "needs a base controller (base.action): without one there is no residual to scale");
+            }
         }
         if self.ddpg.critic_disagreement > 0.0 && !self.ddpg.twin_critics {
             return bad("ddpg.critic_disagreement", "needs ddpg.twin_critics = true (the disagreement is between the two critics)");
