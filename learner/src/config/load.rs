@@ -66,12 +66,19 @@ impl TrainConfig {
         let mut merged = toml::Table::try_from(&defaults).map_err(|e| LearnerError::Config(e.to_string()))?;
         let mut overrides = overrides.clone();
         migrate_legacy_tables(&mut overrides);
-        if replaces_preset_reach(&overrides) {
+        let replace_reach = replaces_preset_reach(&overrides);
+        lcrl_sim::overlay(&mut merged, &overrides);
+        if replace_reach {
+            // Written out, not removed: a resolved config whose `[base]`
+            // reach is the default 1 leaves that key out, and read back it
+            // must not bring the preset's DDPG reach back.
+            let base_reach = merged.get("base").and_then(|b| b.get("residual_scale")).cloned().unwrap_or(toml::Value::Float(1.0));
             if let Some(toml::Value::Table(ddpg)) = merged.get_mut("ddpg") {
-                ddpg.remove("residual_scale");
+                if ddpg.contains_key("residual_scale") {
+                    ddpg.insert("residual_scale".into(), base_reach);
+                }
             }
         }
-        lcrl_sim::overlay(&mut merged, &overrides);
         let cfg: TrainConfig = toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| LearnerError::Config(e.to_string()))?;
         cfg.validate()?;
         Ok(cfg)
@@ -104,8 +111,9 @@ impl TrainConfig {
 /// residual_scale`, configs/peg-group2.toml) with `[base]`'s: a preset's
 /// DDPG reach was measured around its best constant, so a user who sets a
 /// reach in `[base]` (for both algorithms), or another base than the best
-/// constant (e.g. "a = 0", training from scratch), gets `[base]` as
-/// written. Overrides that set `[ddpg] residual_scale` themselves keep it.
+/// constant (e.g. "a = 0", training from scratch), gets `[base]`'s reach
+/// for DDPG too (recorded as `[ddpg] residual_scale`). Overrides that set
+/// `[ddpg] residual_scale` themselves keep it.
 fn replaces_preset_reach(overrides: &toml::Table) -> bool {
     let section = |name: &str| overrides.get(name).and_then(toml::Value::as_table);
     if section("ddpg").is_some_and(|ddpg| ddpg.contains_key("residual_scale")) {

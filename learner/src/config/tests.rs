@@ -138,7 +138,9 @@ fn ddpg_reach_is_ddpg_alone_and_a_users_base_replaces_it() {
     assert_eq!(reaches("[base]\naction = \"best-constant\"\n"), (0.875, 1.0), "the preset's own base keeps its reach");
     assert_eq!(reaches("[run]\nseed = 3\n"), (0.875, 1.0));
     assert_eq!(reaches("[base]\nresidual_scale = 0.75\n"), (0.75, 0.75), "configs/peg-safe.toml's reach binds both");
+    assert_eq!(reaches("[base]\nresidual_scale = 1.0\n"), (1.0, 1.0), "the whole box asked for in [base], though [base] does not write it");
     assert_eq!(reaches("[base]\naction = \"a = 0\"\n"), (1.0, 1.0), "from scratch the whole box, as measured");
+    assert_eq!(reaches("[base]\naction = \"none\"\n"), (1.0, 1.0), "no base, no reach to scale");
     assert_eq!(reaches("[ddpg]\nresidual_scale = 0.5\n"), (0.5, 1.0));
     assert_eq!(reaches("[base]\nresidual_scale = 0.75\n[ddpg]\nresidual_scale = 0.5\n"), (0.5, 0.75));
     // A recorded base of numbers (config.toml of a run) with no DDPG reach
