@@ -66,19 +66,8 @@ impl TrainConfig {
         let mut merged = toml::Table::try_from(&defaults).map_err(|e| LearnerError::Config(e.to_string()))?;
         let mut overrides = overrides.clone();
         migrate_legacy_tables(&mut overrides);
-        let replace_reach = replaces_preset_reach(&overrides);
         lcrl_sim::overlay(&mut merged, &overrides);
-        if replace_reach {
-            // Written out, not removed: a resolved config whose `[base]`
-            // reach is the default 1 leaves that key out, and read back it
-            // must not bring the preset's DDPG reach back.
-            let base_reach = merged.get("base").and_then(|b| b.get("residual_scale")).cloned().unwrap_or(toml::Value::Float(1.0));
-            if let Some(toml::Value::Table(ddpg)) = merged.get_mut("ddpg") {
-                if ddpg.contains_key("residual_scale") {
-                    ddpg.insert("residual_scale".into(), base_reach);
-                }
-            }
-        }
+        replace_preset_reach(&mut merged, &overrides);
         let cfg: TrainConfig = toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| LearnerError::Config(e.to_string()))?;
         cfg.validate()?;
         Ok(cfg)
@@ -107,19 +96,30 @@ impl TrainConfig {
     }
 }
 
-/// Whether overrides replace an environment's own DDPG reach (`[ddpg]
-/// residual_scale`, configs/peg-group2.toml) with `[base]`'s: a preset's
-/// DDPG reach was measured around its best constant, so a user who sets a
-/// reach in `[base]` (for both algorithms), or another base than the best
-/// constant (e.g. "a = 0", training from scratch), gets `[base]`'s reach
-/// for DDPG too (recorded as `[ddpg] residual_scale`). Overrides that set
-/// `[ddpg] residual_scale` themselves keep it.
-fn replaces_preset_reach(overrides: &toml::Table) -> bool {
+/// Where overrides (already laid over `merged`) replace an environment's
+/// own DDPG reach (`[ddpg] residual_scale`, configs/peg-group2.toml) with
+/// `[base]`'s. A preset's DDPG reach was measured around its best constant,
+/// so a user who sets a reach in `[base]` (for both algorithms), or another
+/// base than the best constant (e.g. "a = 0", training from scratch), gets
+/// `[base]`'s reach for DDPG too. Overrides that set `[ddpg]
+/// residual_scale` themselves keep it. The reach is written out, not
+/// removed: a resolved config whose `[base]` reach is the default 1 leaves
+/// that key out, and read back it must not bring the preset's reach back.
+fn replace_preset_reach(merged: &mut toml::Table, overrides: &toml::Table) {
     let section = |name: &str| overrides.get(name).and_then(toml::Value::as_table);
     if section("ddpg").is_some_and(|ddpg| ddpg.contains_key("residual_scale")) {
-        return false;
+        return;
     }
-    let Some(base) = section("base") else { return false };
+    let Some(base) = section("base") else { return };
     let other_base = base.get("action").is_some_and(|action| action.as_str() != Some("best-constant"));
-    base.contains_key("residual_scale") || other_base
+    if !(base.contains_key("residual_scale") || other_base) {
+        return;
+    }
+    let default_reach = toml::Value::Float(super::BaseConfig::default().residual_scale);
+    let base_reach = merged.get("base").and_then(|b| b.get("residual_scale")).cloned().unwrap_or(default_reach);
+    if let Some(toml::Value::Table(ddpg)) = merged.get_mut("ddpg") {
+        if ddpg.contains_key("residual_scale") {
+            ddpg.insert("residual_scale".into(), base_reach);
+        }
+    }
 }
