@@ -1,5 +1,6 @@
 //! `lcrl sim`: runs a controller on an environment and writes
-//! summary.json, trace.csv and trace.png.
+//! summary.json, episodes.csv (one row per episode: which starts failed,
+//! how hard each pushed), trace.csv and trace.png.
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -40,7 +41,9 @@ pub struct SimArgs {
     /// Seed of the first episode's initial pose error.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Directory for summary.json, trace.csv (first episode) and trace.png.
+    /// Directory for summary.json, episodes.csv (one row per start),
+    /// trace.csv (first episode) and trace.png. To trace another start,
+    /// run it alone: --seed S --episodes 1.
     #[arg(long, default_value = "runs/sim")]
     pub out: PathBuf,
 }
@@ -109,6 +112,7 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
     bar.finish_and_clear();
     let (summary, records) = result?;
     write_outputs(env.as_ref(), &summary, &records[0], &args.out)?;
+    write_episodes_csv(&records, &args.out.join("episodes.csv"))?;
     print_summary(&summary, &args.out);
     Ok(())
 }
@@ -149,6 +153,33 @@ fn write_trace_csv(env: &dyn Env, record: &EpisodeRecord, path: &Path) -> anyhow
     out.flush().with_context(|| format!("writing {}", path.display()))
 }
 
+/// One row per episode, in seed order: a start that failed, or came near a
+/// limit, can be found and traced on its own (`--seed S --episodes 1`).
+/// Columns a task does not measure are left empty.
+fn write_episodes_csv(records: &[EpisodeRecord], path: &Path) -> anyhow::Result<()> {
+    let mut out = csv::Writer::from_path(path).with_context(|| format!("writing {}", path.display()))?;
+    out.write_record(["seed", "steps", "return", "terminated", "success", "failed", "peak_force_n", "peak_moment_nm", "max_penetration_mm"])?;
+    let opt = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
+    let flag = |v: Option<bool>| v.map_or(String::new(), |v| v.to_string());
+    for r in records {
+        let m = &r.metrics;
+        // The failure charge is paid exactly when a limit was exceeded (docs/peg.md).
+        let failed = m.return_terms.map(|t| t.failure != 0.0);
+        out.write_record([
+            r.seed.to_string(),
+            r.steps.to_string(),
+            r.episode_return.to_string(),
+            r.terminated.to_string(),
+            flag(m.success),
+            flag(failed),
+            opt(m.peak_force_n),
+            opt(m.peak_moment_nm),
+            opt(m.max_penetration_mm),
+        ])?;
+    }
+    out.flush().with_context(|| format!("writing {}", path.display()))
+}
+
 /// Force and moment over the insertion (depth, force, moment panels), as a
 /// robotics paper shows them; other environments get their states over time.
 fn plot_trace(env: &dyn Env, summary: &Summary, record: &EpisodeRecord, path: &Path) -> anyhow::Result<()> {
@@ -184,7 +215,7 @@ fn print_summary(s: &Summary, dir: &Path) {
     println!("  mean return           {:.3} (min {:.3}, max {:.3})", s.mean_return, s.min_return, s.max_return);
     print_terms(&s.terms);
     println!("  control steps/s       {:.0}", s.control_steps_per_sec);
-    println!("wrote {}/summary.json, trace.csv, trace.png", dir.display());
+    println!("wrote {}/summary.json, episodes.csv, trace.csv, trace.png", dir.display());
 }
 
 /// The return split into its terms, where the task has them.

@@ -59,6 +59,48 @@ fn bad_input_fails_cleanly() {
     assert_clean_failure(&run(&["--env", bad.to_str().unwrap()]), "peg_length");
 }
 
+/// episodes.csv has one row per start, in seed order, that agrees with
+/// summary.json; a start that exceeded a limit is marked failed; and a
+/// start run alone (`--seed S --episodes 1`, to trace it) repeats its row.
+#[test]
+fn episodes_csv_finds_the_failed_starts_and_each_reruns_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim = |out: &std::path::Path, seed: &str, episodes: &str| {
+        // Lateral compliance off, rotational at its maximum: jams from most
+        // starts (sim/src/peg/physics_tests.rs).
+        let run = lcrl()
+            .args(["sim", "--env", "peg-group1", "--action", "-1,-1,2,4,4,4", "--seed", seed, "--episodes", episodes, "--out"])
+            .arg(out)
+            .output()
+            .unwrap();
+        assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+        let summary: Value = serde_json::from_str(&fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+        let mut rows = csv_rows(&out.join("episodes.csv"));
+        let header = rows.remove(0);
+        (summary, header, rows)
+    };
+    let (summary, header, rows) = sim(&dir.path().join("all"), "20", "6");
+    assert_eq!(header, ["seed", "steps", "return", "terminated", "success", "failed", "peak_force_n", "peak_moment_nm", "max_penetration_mm"]);
+    let col = |name: &str| header.iter().position(|h| h == name).unwrap();
+    let seeds: Vec<&str> = rows.iter().map(|r| r[col("seed")].as_str()).collect();
+    assert_eq!(seeds, ["20", "21", "22", "23", "24", "25"]);
+    let number = |row: &Vec<String>, name: &str| -> f64 { row[col(name)].parse().unwrap() };
+    let mean_return = rows.iter().map(|r| number(r, "return")).sum::<f64>() / 6.0;
+    assert!((mean_return - summary["mean_return"].as_f64().unwrap()).abs() < 1e-9, "{mean_return} against {summary}");
+    let max_force = rows.iter().map(|r| number(r, "peak_force_n")).fold(f64::MIN, f64::max);
+    assert_eq!(max_force, summary["max_peak_force_n"].as_f64().unwrap());
+    // A failed start exceeded a limit (50 N or 1.5 N·m) and paid the charge.
+    let failed: Vec<&Vec<String>> = rows.iter().filter(|r| r[col("failed")] == "true").collect();
+    assert!(!failed.is_empty(), "the jamming action failed no start: {rows:?}");
+    for row in &failed {
+        assert!(number(row, "peak_force_n") > 50.0 || number(row, "peak_moment_nm") > 1.5, "{row:?}");
+        assert!(number(row, "return") < -600.0 && row[col("success")] == "false", "{row:?}");
+    }
+    // The first failed start, alone, repeats its row exactly.
+    let (_, _, alone) = sim(&dir.path().join("alone"), &failed[0][col("seed")], "1");
+    assert_eq!(&alone[0], failed[0]);
+}
+
 fn csv_rows(path: &std::path::Path) -> Vec<Vec<String>> {
     fs::read_to_string(path).unwrap().lines().map(|l| l.split(',').map(str::to_string).collect()).collect()
 }
