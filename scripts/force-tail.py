@@ -1,0 +1,147 @@
+#!/usr/bin/env python3
+"""Rare handover failures: do a policy's near-limit starts on its
+confirmation predict the starts it fails later? (docs/peg.md, "Rare
+handover failures").
+
+    python3 scripts/force-tail.py STUDY_DIR [--fresh 2000] [--lcrl PATH]
+
+For every training run under STUDY_DIR/runs and every policy the run kept
+for its confirmation (RUN/candidates/episode-*, RUN/selected/), it runs
+`lcrl sim` twice:
+
+- on the run's own 300 confirmation starts (seeds 2^43 + r*2^20 + k, the
+  ones learner/src/selection.rs scored it on; the mean return is checked
+  against selection.json, to the last digit), and
+- on --fresh further starts from seed 100000 (no run trains, validates or
+  is evaluated there),
+
+keeps each episodes.csv under STUDY_DIR/force-tail/, and prints per policy:
+confirmation mean return, failed starts, starts that came near a limit
+(peak force above 0.9 x 50 N or peak moment above 0.9 x 1.5 N*m), highest
+peak force; and on the fresh starts the failures and mean return. Then it
+compares today's confirmation rule (best mean return) with one that first
+sets aside candidates that came near a limit on their confirmation starts.
+
+Written before the data (2026-11-27), the hypothesis and the rule:
+a policy that fails at least one of the fresh starts came near a limit on
+at least one of its confirmation starts more often than one that fails
+none. The near-limit rule becomes the confirmation's default only if, on
+this study's runs, it hands over policies that fail fewer fresh starts
+than today's rule in total, at a fresh-start mean return no more than
+0.05 below today's (paired by run); even then ten runs are a first look,
+to be confirmed on seeds the rule was not read on.
+"""
+
+import argparse
+import csv
+import json
+import math
+import os
+import subprocess
+import sys
+
+FORCE_LIMIT_N = 50.0
+MOMENT_LIMIT_NM = 1.5
+NEAR = 0.9
+CONFIRMATION_BASE = 1 << 43
+PER_RUN = 1 << 20
+FRESH_SEED = 100000
+# Student's t, 97.5% quantile, by degrees of freedom (95% intervals).
+T_975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262, 10: 2.228, 11: 2.201, 12: 2.179,
+         13: 2.160, 14: 2.145, 15: 2.131, 16: 2.120, 17: 2.110, 18: 2.101, 19: 2.093, 20: 2.086, 29: 2.045}
+
+
+def run_seed(run_dir):
+    with open(os.path.join(run_dir, "config.toml")) as f:
+        for line in f:
+            if line.startswith("seed = "):
+                return int(line.split("=")[1])
+    sys.exit(f"{run_dir}/config.toml has no run seed")
+
+
+def sim(lcrl, policy, seed, episodes, out):
+    if not os.path.exists(os.path.join(out, "episodes.csv")):
+        subprocess.run(
+            [lcrl, "sim", "--checkpoint", policy, "--seed", str(seed), "--episodes", str(episodes), "--out", out],
+            check=True,
+            stdout=subprocess.DEVNULL,
+        )
+    with open(os.path.join(out, "episodes.csv")) as f:
+        rows = list(csv.DictReader(f))
+    with open(os.path.join(out, "summary.json")) as f:
+        mean = json.load(f)["mean_return"]
+    return rows, mean
+
+
+def near_limit(row):
+    return float(row["peak_force_n"]) > NEAR * FORCE_LIMIT_N or float(row["peak_moment_nm"]) > NEAR * MOMENT_LIMIT_NM
+
+
+def profile(rows):
+    return {
+        "failed": sum(r["failed"] == "true" for r in rows),
+        "near": sum(near_limit(r) for r in rows),
+        "max_force": max(float(r["peak_force_n"]) for r in rows),
+    }
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("study")
+    ap.add_argument("--fresh", type=int, default=2000)
+    ap.add_argument("--lcrl", default=os.environ.get("LCRL", "target/debug/lcrl"))
+    args = ap.parse_args()
+    runs = []
+    for root, dirs, files in os.walk(os.path.join(args.study, "runs")):
+        if "selected" in dirs and "summary.json" in files:
+            runs.append(root)
+    if not runs:
+        sys.exit(f"no finished runs under {args.study}/runs")
+    today_total = [0, 0.0, 0]
+    near_total = [0, 0.0, 0]
+    diffs = []
+    for run in sorted(runs, key=run_seed):
+        r = run_seed(run)
+        with open(os.path.join(run, "selected", "selection.json")) as f:
+            selection = json.load(f)
+        confirmation = selection.get("confirmation") or {"candidates": []}
+        policies = []
+        for cand in confirmation["candidates"]:
+            episode = cand["episode"]
+            path = os.path.join(run, "candidates", f"episode-{episode:07d}")
+            out = os.path.join(args.study, "force-tail", f"seed{r}", f"episode-{episode:07d}")
+            conf_rows, conf_mean = sim(args.lcrl, path, CONFIRMATION_BASE + r * PER_RUN, 300, out + "/confirmation")
+            if conf_mean != cand["mean_return"]:
+                sys.exit(f"seed {r} episode {episode}: confirmation {conf_mean} does not repeat selection.json's {cand['mean_return']}")
+            fresh_rows, fresh_mean = sim(args.lcrl, path, FRESH_SEED, args.fresh, out + "/fresh")
+            policies.append((episode, conf_mean, profile(conf_rows), fresh_mean, profile(fresh_rows)))
+        if not policies:
+            print(f"seed {r}: no confirmation (one distinct policy), skipped")
+            continue
+        for episode, conf_mean, c, fresh_mean, f in policies:
+            chosen = "*" if episode == selection["episode"] else " "
+            print(
+                f"seed {r:3d} {chosen} episode {episode:4d}: confirmation {conf_mean:8.3f} failed {c['failed']} near {c['near']:3d} "
+                f"max {c['max_force']:5.1f} N | fresh {fresh_mean:8.3f} failed {f['failed']} near {f['near']:3d} max {f['max_force']:5.1f} N"
+            )
+        # Today's rule: the first of the best confirmation means (candidates listed best-validated first).
+        today = max(policies, key=lambda p: (p[1], -policies.index(p)))
+        calm = [p for p in policies if p[2]["near"] == 0] or policies
+        near_rule = max(calm, key=lambda p: (p[1], -policies.index(p)))
+        for total, pick in ((today_total, today), (near_total, near_rule)):
+            total[0] += pick[4]["failed"]
+            total[1] += pick[3]
+            total[2] += 1
+        diffs.append(near_rule[3] - today[3])
+        print(f"seed {r:3d}: today's rule hands over episode {today[0]}, the near-limit rule episode {near_rule[0]}")
+    n = len(diffs)
+    mean = sum(diffs) / n
+    sd = math.sqrt(sum((d - mean) ** 2 for d in diffs) / (n - 1)) if n > 1 else float("nan")
+    half = T_975.get(n - 1, 1.96) * sd / math.sqrt(n)
+    print(f"today's rule: {today_total[0]} failed fresh starts, mean fresh return {today_total[1] / n:.3f}")
+    print(f"near-limit rule: {near_total[0]} failed fresh starts, mean fresh return {near_total[1] / n:.3f}")
+    print(f"near-limit minus today, paired: {mean:+.3f} [{mean - half:+.3f}, {mean + half:+.3f}] over {n} runs")
+
+
+if __name__ == "__main__":
+    main()
