@@ -113,7 +113,7 @@ def main():
             conf_rows, conf_mean = sim(args.lcrl, path, CONFIRMATION_BASE + r * PER_RUN, 300, out + "/confirmation")
             if conf_mean != cand["mean_return"]:
                 sys.exit(f"seed {r} episode {episode}: confirmation {conf_mean} does not repeat selection.json's {cand['mean_return']}")
-            fresh_rows, fresh_mean = sim(args.lcrl, path, FRESH_SEED, args.fresh, out + "/fresh")
+            fresh_rows, fresh_mean = sim(args.lcrl, path, FRESH_SEED, args.fresh, out + f"/fresh{args.fresh}")
             policies.append((episode, conf_mean, profile(conf_rows), fresh_mean, profile(fresh_rows)))
         if not policies:
             print(f"seed {r}: no confirmation (one distinct policy), skipped")
