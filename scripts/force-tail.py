@@ -89,6 +89,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("study")
     ap.add_argument("--fresh", type=int, default=2000)
+    ap.add_argument("--fresh-all", action="store_true", help="run the fresh starts for every candidate, not only the two rules' picks")
+    ap.add_argument("--only", type=int, help="the run of this seed alone")
     ap.add_argument("--lcrl", default=os.environ.get("LCRL", "target/debug/lcrl"))
     args = ap.parse_args()
     runs = []
@@ -102,6 +104,8 @@ def main():
     diffs = []
     for run in sorted(runs, key=run_seed):
         r = run_seed(run)
+        if args.only is not None and r != args.only:
+            continue
         with open(os.path.join(run, "selected", "selection.json")) as f:
             selection = json.load(f)
         confirmation = selection.get("confirmation") or {"candidates": []}
@@ -113,26 +117,29 @@ def main():
             conf_rows, conf_mean = sim(args.lcrl, path, CONFIRMATION_BASE + r * PER_RUN, 300, out + "/confirmation")
             if conf_mean != cand["mean_return"]:
                 sys.exit(f"seed {r} episode {episode}: confirmation {conf_mean} does not repeat selection.json's {cand['mean_return']}")
-            fresh_rows, fresh_mean = sim(args.lcrl, path, FRESH_SEED, args.fresh, out + f"/fresh{args.fresh}")
-            policies.append((episode, conf_mean, profile(conf_rows), fresh_mean, profile(fresh_rows)))
+            policies.append([episode, conf_mean, profile(conf_rows), path, out])
         if not policies:
             print(f"seed {r}: no confirmation (one distinct policy), skipped")
             continue
-        for episode, conf_mean, c, fresh_mean, f in policies:
-            chosen = "*" if episode == selection["episode"] else " "
-            print(
-                f"seed {r:3d} {chosen} episode {episode:4d}: confirmation {conf_mean:8.3f} failed {c['failed']} near {c['near']:3d} "
-                f"max {c['max_force']:5.1f} N | fresh {fresh_mean:8.3f} failed {f['failed']} near {f['near']:3d} max {f['max_force']:5.1f} N"
-            )
         # Today's rule: the first of the best confirmation means (candidates listed best-validated first).
         today = max(policies, key=lambda p: (p[1], -policies.index(p)))
         calm = [p for p in policies if p[2]["near"] == 0] or policies
         near_rule = max(calm, key=lambda p: (p[1], -policies.index(p)))
+        # The fresh starts are the expensive part: the two rules' picks
+        # always run them, the other candidates with --fresh-all.
+        for p in policies:
+            cached = os.path.exists(os.path.join(p[4], f"fresh{args.fresh}", "episodes.csv"))
+            if args.fresh_all or cached or p is today or p is near_rule:
+                fresh_rows, fresh_mean = sim(args.lcrl, p[3], FRESH_SEED, args.fresh, p[4] + f"/fresh{args.fresh}")
+                p += [fresh_mean, profile(fresh_rows)]
+            chosen = "*" if p[0] == selection["episode"] else " "
+            fresh = f"fresh {p[5]:8.3f} failed {p[6]['failed']} near {p[6]['near']:3d} max {p[6]['max_force']:5.1f} N" if len(p) > 5 else "fresh not run"
+            print(f"seed {r:3d} {chosen} episode {p[0]:4d}: confirmation {p[1]:8.3f} failed {p[2]['failed']} near {p[2]['near']:3d} max {p[2]['max_force']:5.1f} N | {fresh}")
         for total, pick in ((today_total, today), (near_total, near_rule)):
-            total[0] += pick[4]["failed"]
-            total[1] += pick[3]
+            total[0] += pick[6]["failed"]
+            total[1] += pick[5]
             total[2] += 1
-        diffs.append(near_rule[3] - today[3])
+        diffs.append(near_rule[5] - today[5])
         print(f"seed {r:3d}: today's rule hands over episode {today[0]}, the near-limit rule episode {near_rule[0]}")
     n = len(diffs)
     mean = sum(diffs) / n
