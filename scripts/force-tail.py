@@ -39,6 +39,8 @@ import math
 import os
 import subprocess
 import sys
+import tomllib
+from dataclasses import dataclass
 
 FORCE_LIMIT_N = 50.0
 MOMENT_LIMIT_NM = 1.5
@@ -52,11 +54,21 @@ T_975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 
 
 
 def run_seed(run_dir):
-    with open(os.path.join(run_dir, "config.toml")) as f:
-        for line in f:
-            if line.startswith("seed = "):
-                return int(line.split("=")[1])
-    sys.exit(f"{run_dir}/config.toml has no run seed")
+    with open(os.path.join(run_dir, "config.toml"), "rb") as f:
+        return tomllib.load(f)["run"]["seed"]
+
+
+@dataclass(eq=False)
+class Candidate:
+    """One kept policy: its confirmation profile, and its fresh one once run."""
+
+    episode: int
+    path: str
+    out: str
+    confirmation_mean: float
+    confirmation: dict
+    fresh_mean: float | None = None
+    fresh: dict | None = None
 
 
 def sim(lcrl, policy, seed, episodes, out):
@@ -99,9 +111,7 @@ def main():
             runs.append(root)
     if not runs:
         sys.exit(f"no finished runs under {args.study}/runs")
-    today_total = [0, 0.0, 0]
-    near_total = [0, 0.0, 0]
-    diffs = []
+    picks = {"today's rule": [], "near-limit rule": []}
     for run in sorted(runs, key=run_seed):
         r = run_seed(run)
         if args.only is not None and r != args.only:
@@ -109,46 +119,47 @@ def main():
         with open(os.path.join(run, "selected", "selection.json")) as f:
             selection = json.load(f)
         confirmation = selection.get("confirmation") or {"candidates": []}
-        policies = []
+        candidates = []
         for cand in confirmation["candidates"]:
             episode = cand["episode"]
             path = os.path.join(run, "candidates", f"episode-{episode:07d}")
             out = os.path.join(args.study, "force-tail", f"seed{r}", f"episode-{episode:07d}")
-            conf_rows, conf_mean = sim(args.lcrl, path, CONFIRMATION_BASE + r * PER_RUN, 300, out + "/confirmation")
-            if conf_mean != cand["mean_return"]:
-                sys.exit(f"seed {r} episode {episode}: confirmation {conf_mean} does not repeat selection.json's {cand['mean_return']}")
-            policies.append([episode, conf_mean, profile(conf_rows), path, out])
-        if not policies:
+            rows, mean = sim(args.lcrl, path, CONFIRMATION_BASE + r * PER_RUN, 300, os.path.join(out, "confirmation"))
+            if mean != cand["mean_return"]:
+                sys.exit(f"seed {r} episode {episode}: confirmation {mean} does not repeat selection.json's {cand['mean_return']}")
+            candidates.append(Candidate(episode, path, out, mean, profile(rows)))
+        if not candidates:
             print(f"seed {r}: no confirmation (one distinct policy), skipped")
             continue
-        # Today's rule: the first of the best confirmation means (candidates listed best-validated first).
-        today = max(policies, key=lambda p: (p[1], -policies.index(p)))
-        calm = [p for p in policies if p[2]["near"] == 0] or policies
-        near_rule = max(calm, key=lambda p: (p[1], -policies.index(p)))
+        # Today's rule: the first of the best confirmation means (max keeps
+        # the first of equals; candidates come best-validated first).
+        today = max(candidates, key=lambda c: c.confirmation_mean)
+        calm = [c for c in candidates if c.confirmation["near"] == 0] or candidates
+        near_rule = max(calm, key=lambda c: c.confirmation_mean)
         # The fresh starts are the expensive part: the two rules' picks
         # always run them, the other candidates with --fresh-all.
-        for p in policies:
-            cached = os.path.exists(os.path.join(p[4], f"fresh{args.fresh}", "episodes.csv"))
-            if args.fresh_all or cached or p is today or p is near_rule:
-                fresh_rows, fresh_mean = sim(args.lcrl, p[3], FRESH_SEED, args.fresh, p[4] + f"/fresh{args.fresh}")
-                p += [fresh_mean, profile(fresh_rows)]
-            chosen = "*" if p[0] == selection["episode"] else " "
-            fresh = f"fresh {p[5]:8.3f} failed {p[6]['failed']} near {p[6]['near']:3d} max {p[6]['max_force']:5.1f} N" if len(p) > 5 else "fresh not run"
-            print(f"seed {r:3d} {chosen} episode {p[0]:4d}: confirmation {p[1]:8.3f} failed {p[2]['failed']} near {p[2]['near']:3d} max {p[2]['max_force']:5.1f} N | {fresh}")
-        for total, pick in ((today_total, today), (near_total, near_rule)):
-            total[0] += pick[6]["failed"]
-            total[1] += pick[5]
-            total[2] += 1
-        diffs.append(near_rule[5] - today[5])
-        print(f"seed {r:3d}: today's rule hands over episode {today[0]}, the near-limit rule episode {near_rule[0]}")
-    n = len(diffs)
+        for c in candidates:
+            fresh_out = os.path.join(c.out, f"fresh{args.fresh}")
+            if args.fresh_all or os.path.exists(os.path.join(fresh_out, "episodes.csv")) or c in (today, near_rule):
+                rows, c.fresh_mean = sim(args.lcrl, c.path, FRESH_SEED, args.fresh, fresh_out)
+                c.fresh = profile(rows)
+            chosen = "*" if c.episode == selection["episode"] else " "
+            conf, fresh = c.confirmation, c.fresh
+            fresh_text = f"fresh {c.fresh_mean:8.3f} failed {fresh['failed']} near {fresh['near']:3d} max {fresh['max_force']:5.1f} N" if fresh else "fresh not run"
+            print(f"seed {r:3d} {chosen} episode {c.episode:4d}: confirmation {c.confirmation_mean:8.3f} failed {conf['failed']} near {conf['near']:3d} max {conf['max_force']:5.1f} N | {fresh_text}")
+        picks["today's rule"].append(today)
+        picks["near-limit rule"].append(near_rule)
+        print(f"seed {r:3d}: today's rule hands over episode {today.episode}, the near-limit rule episode {near_rule.episode}")
+    n = len(picks["today's rule"])
+    if n == 0:
+        sys.exit("no run confirmed between several policies: nothing to compare")
+    for rule, chosen in picks.items():
+        print(f"{rule}: {sum(c.fresh['failed'] for c in chosen)} failed fresh starts, mean fresh return {sum(c.fresh_mean for c in chosen) / n:.3f}")
+    diffs = [near.fresh_mean - today.fresh_mean for today, near in zip(picks["today's rule"], picks["near-limit rule"])]
     mean = sum(diffs) / n
     sd = math.sqrt(sum((d - mean) ** 2 for d in diffs) / (n - 1)) if n > 1 else float("nan")
     half = T_975.get(n - 1, 1.96) * sd / math.sqrt(n)
-    print(f"today's rule: {today_total[0]} failed fresh starts, mean fresh return {today_total[1] / n:.3f}")
-    print(f"near-limit rule: {near_total[0]} failed fresh starts, mean fresh return {near_total[1] / n:.3f}")
     print(f"near-limit minus today, paired: {mean:+.3f} [{mean - half:+.3f}, {mean + half:+.3f}] over {n} runs")
-
 
 if __name__ == "__main__":
     main()

@@ -111,8 +111,7 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
     };
     bar.finish_and_clear();
     let (summary, records) = result?;
-    write_outputs(env.as_ref(), &summary, &records[0], &args.out)?;
-    write_episodes_csv(&records, &args.out.join("episodes.csv"))?;
+    write_outputs(env.as_ref(), &summary, &records, &args.out)?;
     print_summary(&summary, &args.out);
     Ok(())
 }
@@ -124,9 +123,12 @@ pub fn prepare_out_dir(dir: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-pub fn write_outputs(env: &dyn Env, summary: &Summary, first: &EpisodeRecord, dir: &Path) -> anyhow::Result<()> {
+/// summary.json, episodes.csv, and the first episode's trace.csv and trace.png.
+fn write_outputs(env: &dyn Env, summary: &Summary, records: &[EpisodeRecord], dir: &Path) -> anyhow::Result<()> {
     let path = dir.join("summary.json");
     lcrl::output::write_atomic(&path, &(serde_json::to_string_pretty(summary)? + "\n"))?;
+    write_episodes_csv(records, &dir.join("episodes.csv"))?;
+    let first = records.first().context("no episode ran")?;
     write_trace_csv(env, first, &dir.join("trace.csv"))?;
     plot_trace(env, summary, first, &dir.join("trace.png"))
 }
