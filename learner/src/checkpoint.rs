@@ -70,13 +70,22 @@ impl CheckpointMeta {
 
 /// The newest complete checkpoint under `run_dir`, if any.
 pub fn latest_checkpoint(run_dir: &Path) -> Option<PathBuf> {
-    let mut dirs: Vec<PathBuf> = std::fs::read_dir(run_dir.join("checkpoints"))
-        .ok()?
+    complete_checkpoints(&run_dir.join("checkpoints")).pop()
+}
+
+/// The complete checkpoints in `root`, oldest first: folders holding a
+/// checkpoint.json, but not [`write_folder`]'s staging folders
+/// (`.NAME.partial`), which a process killed while writing leaves behind
+/// with a checkpoint.json that may be empty.
+fn complete_checkpoints(root: &Path) -> Vec<PathBuf> {
+    let Ok(entries) = std::fs::read_dir(root) else { return Vec::new() };
+    let mut complete: Vec<PathBuf> = entries
         .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| !p.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.')))
         .filter(|p| p.join("checkpoint.json").is_file())
         .collect();
-    dirs.sort();
-    dirs.pop()
+    complete.sort();
+    complete
 }
 
 pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, LearnerError> {
@@ -118,16 +127,36 @@ pub const KEEP_CHECKPOINTS: usize = 3;
 
 /// Deletes all but the newest `keep` complete checkpoints.
 fn prune_checkpoints(root: &Path, keep: usize) {
-    let Ok(entries) = std::fs::read_dir(root) else { return };
-    let mut complete: Vec<PathBuf> = entries
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.join("checkpoint.json").is_file())
-        .collect();
-    complete.sort();
+    let complete = complete_checkpoints(root);
     let excess = complete.len().saturating_sub(keep);
     for old in &complete[..excess] {
         if let Err(e) = std::fs::remove_dir_all(old) {
             tracing::warn!("cannot remove old checkpoint {}: {e}", old.display());
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A process killed inside `write_folder` leaves its staging folder
+    /// with an empty checkpoint.json (the e2e study killed with SIGKILL hit
+    /// it): resuming must take the newest complete checkpoint, or none.
+    #[test]
+    fn a_staging_folder_left_by_a_kill_is_never_the_checkpoint() {
+        let run = tempfile::tempdir().unwrap();
+        let root = run.path().join("checkpoints");
+        let staging = root.join(".ep000025.partial");
+        std::fs::create_dir_all(&staging).unwrap();
+        std::fs::write(staging.join("checkpoint.json"), "").unwrap();
+        assert_eq!(latest_checkpoint(run.path()), None);
+        for name in ["ep000010", "ep000020"] {
+            std::fs::create_dir_all(root.join(name)).unwrap();
+            std::fs::write(root.join(name).join("checkpoint.json"), "{}").unwrap();
+        }
+        std::fs::create_dir_all(root.join("ep000030")).unwrap(); // no checkpoint.json: not complete
+        assert_eq!(latest_checkpoint(run.path()), Some(root.join("ep000020")));
+        assert_eq!(complete_checkpoints(&root), vec![root.join("ep000010"), root.join("ep000020")]);
     }
 }
