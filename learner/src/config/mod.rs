@@ -290,6 +290,15 @@ pub struct DdpgConfig {
     /// limits how fast the actor moves, not where it settles, unlike the
     /// residual penalty, which pulls toward the base all run.
     pub proximal_l2: f64,
+    /// Weight λ_T of mean‖μ(s) − μ(s′)‖² in the actor's loss, s′ the
+    /// transition's next state: CAPS's temporal smoothness (Mysore et al.,
+    /// "Regularizing Action Policies for Smooth Control", 2021), squared as
+    /// the other terms here. It penalizes policies whose action jumps
+    /// between consecutive states, the bang-bang switching between the
+    /// reach's edges that wedges the peg (docs/peg.md, "Rare handover
+    /// failures"); unlike a rate limit on the applied action it leaves the
+    /// process Markov in s. 0 (the default) is off.
+    pub temporal_smoothness: f64,
     /// Weight κ of the twin critics' disagreement in the actor's objective:
     /// the actor maximizes mean(Q₁, Q₂) − κ·|Q₁ − Q₂| instead of Q₁ (κ = 0.5
     /// is min(Q₁, Q₂)). Two critics fitted to the same targets agree where
@@ -481,6 +490,7 @@ impl Default for DdpgConfig {
             preactivation_l2: 0.0,
             preactivation_anneal: false,
             proximal_l2: 0.0,
+            temporal_smoothness: 0.0,
             critic_disagreement: 0.0,
             twin_critics: false,
             anneal_lr: false,

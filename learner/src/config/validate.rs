@@ -28,7 +28,7 @@ impl TrainConfig {
                 return bad(field, &format!("must be within [0, 1], got {v}"));
             }
         }
-        for (field, v) in [("ddpg.noise_start", self.ddpg.noise_start), ("ddpg.noise_end", self.ddpg.noise_end), ("ddpg.target_noise", self.ddpg.target_noise), ("ddpg.preactivation_l2", self.ddpg.preactivation_l2), ("ddpg.proximal_l2", self.ddpg.proximal_l2), ("ddpg.critic_disagreement", self.ddpg.critic_disagreement), ("ddpg.huber_delta", self.ddpg.huber_delta), ("ppo.entropy_coef", self.ppo.entropy_coef)] {
+        for (field, v) in [("ddpg.noise_start", self.ddpg.noise_start), ("ddpg.noise_end", self.ddpg.noise_end), ("ddpg.target_noise", self.ddpg.target_noise), ("ddpg.preactivation_l2", self.ddpg.preactivation_l2), ("ddpg.proximal_l2", self.ddpg.proximal_l2), ("ddpg.temporal_smoothness", self.ddpg.temporal_smoothness), ("ddpg.critic_disagreement", self.ddpg.critic_disagreement), ("ddpg.huber_delta", self.ddpg.huber_delta), ("ppo.entropy_coef", self.ppo.entropy_coef)] {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(field, &format!("must be a finite number ≥ 0, got {v}"));
             }

@@ -17,7 +17,8 @@
 //! learns from the first transitions, `actor_lr_warmup_updates` ramps the
 //! actor's learning rate up from 0. `preactivation_l2` pulls the actor
 //! toward a zero residual (the base), `proximal_l2` toward its own target
-//! (a trust region around the recent policy); `critic_disagreement` makes
+//! (a trust region around the recent policy), `temporal_smoothness` toward
+//! its own action on the next state (CAPS); `critic_disagreement` makes
 //! it pessimistic where the twin critics disagree.
 //!
 //! On a GPU each kind of update is captured once as a CUDA graph and
@@ -344,6 +345,12 @@ impl Ddpg {
                 // were measured with, so they replay bit for bit.)
                 let anchor = tch::no_grad(|| self.actor_target.forward(&b.obs));
                 actor_loss = actor_loss + self.cfg.proximal_l2 * (raw.tanh() - anchor).square().mean(Kind::Float);
+            }
+            if self.cfg.temporal_smoothness > 0.0 {
+                // CAPS's temporal smoothness (`temporal_smoothness`): the
+                // gradient flows through both μ(s) and μ(s′), as published.
+                let next = self.actor.forward(&b.next_obs);
+                actor_loss = actor_loss + self.cfg.temporal_smoothness * (raw.tanh() - next).square().mean(Kind::Float);
             }
             self.actor_opt.zero_grad();
             actor_loss.backward();

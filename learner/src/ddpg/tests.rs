@@ -90,6 +90,38 @@ fn the_trust_region_slows_the_actor_without_changing_its_first_step() {
     assert!(held < 0.5 * free, "the trust region did not slow the actor: {held} against {free}");
 }
 
+/// `temporal_smoothness` (CAPS): the best action follows the state
+/// (a = 0.8·s₁) and every transition's next state is the mirror −s, so
+/// a plain actor's actions on s and −s end far apart, and the term pulls
+/// them together. Where the next state is the state itself the term and
+/// its gradient are 0, and the run is the plain one to the bit.
+#[test]
+fn temporal_smoothness_pulls_the_actions_of_consecutive_states_together() {
+    tch::set_num_threads(1);
+    let cfg = small_nets();
+    let run = |temporal_smoothness: f64, mirrored: bool| -> (Vec<f32>, f32) {
+        let ddpg = DdpgConfig { batch_size: 32, warmup_steps: 0, temporal_smoothness, ..cfg.ddpg.clone() };
+        let mut agent = agent(&ddpg, &cfg);
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for _ in 0..512 {
+            let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
+            let a: f32 = rng.random_range(-1.0..1.0);
+            let next = if mirrored { [-s[0], -s[1]] } else { s };
+            agent.replay.push(&s, &[a], -(a - 0.8 * s[0]).powi(2), &next, true);
+        }
+        for _ in 0..400 {
+            agent.update();
+        }
+        let probes: Vec<[f32; 2]> = (0..20).map(|k| [k as f32 / 10.0 - 1.0, 0.5 - k as f32 / 20.0]).collect();
+        let gap = probes.iter().map(|s| (agent.act(s)[0] - agent.act(&[-s[0], -s[1]])[0]).abs()).sum::<f32>() / probes.len() as f32;
+        (actor_weights(&agent), gap)
+    };
+    assert_eq!(run(0.0, false).0, run(10.0, false).0, "with s′ = s the term changed the updates");
+    let ((_, free), (_, smooth)) = (run(0.0, true), run(10.0, true));
+    assert!(free > 0.5, "the plain actor did not follow the state: gap {free} between s and −s");
+    assert!(smooth < 0.5 * free, "the term did not pull consecutive actions together: gap {smooth} against {free}");
+}
+
 /// `critic_disagreement`: the buffer holds only actions near 0 with a
 /// reward that rises with a, so both critics praise larger actions but
 /// agree only inside the band they saw. The plain actor follows the
