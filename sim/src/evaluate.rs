@@ -28,6 +28,12 @@ pub struct EpisodeRecord {
     pub episode_return: f64,
     pub terminated: bool,
     pub metrics: EpisodeMetrics,
+    /// The largest change of one applied action component between two
+    /// consecutive control steps, as a share of that component's range
+    /// (ub − lb): 1 is a switch from one edge of the box to the other.
+    /// How bang-bang the policy acts (docs/peg.md, "Rare handover
+    /// failures"); 0 for a one-step episode.
+    pub max_action_jump: f64,
     /// Initial state and every step, when recording was asked for.
     pub initial_state: Vec<f64>,
     pub trace: Vec<TraceRow>,
@@ -47,9 +53,12 @@ pub fn run_episode(
     let mut trace = Vec::new();
     let mut episode_return = 0.0;
     let mut steps = 0;
+    let (mut applied, mut max_action_jump) = (Vec::new(), 0.0f64);
     loop {
         let action = policy(&state);
         let step = env.step(&action)?;
+        max_action_jump = max_action_jump.max(action_jump(env.spec(), &applied, &action));
+        applied = action.clone();
         steps += 1;
         episode_return += step.reward;
         if record {
@@ -63,11 +72,25 @@ pub fn run_episode(
                 episode_return,
                 terminated: step.terminated,
                 metrics: env.episode_metrics(),
+                max_action_jump,
                 initial_state: if record { initial_state } else { Vec::new() },
                 trace,
             });
         }
     }
+}
+
+/// The largest |a_i − b_i| / (ub_i − lb_i) over the components, both
+/// actions clipped to the box first (the environment applies the clipped
+/// one); 0 when `previous` is empty (the first step).
+fn action_jump(spec: &crate::env::EnvSpec, previous: &[f64], action: &[f64]) -> f64 {
+    let clip = |v: f64, i: usize| v.clamp(spec.action_low[i], spec.action_high[i]);
+    previous
+        .iter()
+        .zip(action)
+        .enumerate()
+        .map(|(i, (&b, &a))| (clip(a, i) - clip(b, i)).abs() / (spec.action_high[i] - spec.action_low[i]))
+        .fold(0.0, f64::max)
 }
 
 /// What `summary.json` holds. Task figures are null where the environment
@@ -259,6 +282,28 @@ mod tests {
         assert_eq!(one_records, many_records);
         let timeless = |s: Summary| Summary { control_steps_per_sec: 0.0, elapsed_s: 0.0, ..s };
         assert_eq!(timeless(one), timeless(many));
+    }
+
+    /// The action jump is measured on the applied (clipped) action, as a
+    /// share of each component's range: a constant never jumps, a switch
+    /// of dγ between its edges (−1 and 4) every step is 1, and a switch of
+    /// dx between 0 and 5 (applied: 2, the edge; range 3) is 2/3.
+    #[test]
+    fn the_action_jump_is_the_largest_switch_of_the_applied_action() {
+        let mut env = make_env("peg-group1").unwrap();
+        let mut jump = |policy: &mut dyn FnMut(&[f64]) -> Vec<f64>| run_episode(env.as_mut(), 3, policy, false).unwrap().max_action_jump;
+        assert_eq!(jump(&mut |_| vec![2.0, 2.0, 0.0, -0.5, 0.0, 1.0]), 0.0);
+        let mut k = 0;
+        let mut flip = |low: f64, high: f64, i: usize| {
+            move |_: &[f64]| {
+                k += 1;
+                let mut a = vec![0.0; 6];
+                a[i] = if k % 2 == 0 { low } else { high };
+                a
+            }
+        };
+        assert_eq!(jump(&mut flip(-1.0, 4.0, 5)), 1.0);
+        assert!((jump(&mut flip(0.0, 5.0, 0)) - 2.0 / 3.0).abs() < 1e-12);
     }
 
     #[test]

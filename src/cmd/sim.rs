@@ -160,7 +160,7 @@ fn write_trace_csv(env: &dyn Env, record: &EpisodeRecord, path: &Path) -> anyhow
 /// Columns a task does not measure are left empty.
 fn write_episodes_csv(records: &[EpisodeRecord], path: &Path) -> anyhow::Result<()> {
     let mut out = csv::Writer::from_path(path).with_context(|| format!("writing {}", path.display()))?;
-    out.write_record(["seed", "steps", "return", "terminated", "success", "failed", "peak_force_n", "peak_moment_nm", "max_penetration_mm"])?;
+    out.write_record(["seed", "steps", "return", "terminated", "success", "failed", "peak_force_n", "peak_moment_nm", "max_penetration_mm", "max_action_jump"])?;
     let opt = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
     let flag = |v: Option<bool>| v.map_or(String::new(), |v| v.to_string());
     for r in records {
@@ -177,6 +177,7 @@ fn write_episodes_csv(records: &[EpisodeRecord], path: &Path) -> anyhow::Result<
             opt(m.peak_force_n),
             opt(m.peak_moment_nm),
             opt(m.max_penetration_mm),
+            r.max_action_jump.to_string(),
         ])?;
     }
     out.flush().with_context(|| format!("writing {}", path.display()))

@@ -80,13 +80,15 @@ fn episodes_csv_finds_the_failed_starts_and_each_reruns_alone() {
         (summary, header, rows)
     };
     let (summary, header, rows) = sim(&dir.path().join("all"), "20", "6");
-    assert_eq!(header, ["seed", "steps", "return", "terminated", "success", "failed", "peak_force_n", "peak_moment_nm", "max_penetration_mm"]);
+    assert_eq!(header, ["seed", "steps", "return", "terminated", "success", "failed", "peak_force_n", "peak_moment_nm", "max_penetration_mm", "max_action_jump"]);
     let col = |name: &str| header.iter().position(|h| h == name).unwrap();
     let seeds: Vec<&str> = rows.iter().map(|r| r[col("seed")].as_str()).collect();
     assert_eq!(seeds, ["20", "21", "22", "23", "24", "25"]);
     let number = |row: &Vec<String>, name: &str| -> f64 { row[col(name)].parse().unwrap() };
     let mean_return = rows.iter().map(|r| number(r, "return")).sum::<f64>() / 6.0;
     assert!((mean_return - summary["mean_return"].as_f64().unwrap()).abs() < 1e-9, "{mean_return} against {summary}");
+    // A constant action never jumps.
+    assert!(rows.iter().all(|r| number(r, "max_action_jump") == 0.0), "{rows:?}");
     let max_force = rows.iter().map(|r| number(r, "peak_force_n")).fold(f64::MIN, f64::max);
     assert_eq!(max_force, summary["max_peak_force_n"].as_f64().unwrap());
     // A failed start exceeded a limit (50 N or 1.5 N·m) and paid the charge.
