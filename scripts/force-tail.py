@@ -33,29 +33,18 @@ to be confirmed on seeds the rule was not read on.
 """
 
 import argparse
-import csv
 import json
-import math
 import os
-import subprocess
 import sys
-import tomllib
 from dataclasses import dataclass
+
+from studylib import FRESH_SEED, finished_runs, paired_ci, run_seed, sim
 
 FORCE_LIMIT_N = 50.0
 MOMENT_LIMIT_NM = 1.5
 NEAR = 0.9
 CONFIRMATION_BASE = 1 << 43
 PER_RUN = 1 << 20
-FRESH_SEED = 100000
-# Student's t, 97.5% quantile, by degrees of freedom (95% intervals).
-T_975 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262, 10: 2.228, 11: 2.201, 12: 2.179,
-         13: 2.160, 14: 2.145, 15: 2.131, 16: 2.120, 17: 2.110, 18: 2.101, 19: 2.093, 20: 2.086, 29: 2.045}
-
-
-def run_seed(run_dir):
-    with open(os.path.join(run_dir, "config.toml"), "rb") as f:
-        return tomllib.load(f)["run"]["seed"]
 
 
 @dataclass(eq=False)
@@ -69,20 +58,6 @@ class Candidate:
     confirmation: dict
     fresh_mean: float | None = None
     fresh: dict | None = None
-
-
-def sim(lcrl, policy, seed, episodes, out):
-    if not os.path.exists(os.path.join(out, "episodes.csv")):
-        subprocess.run(
-            [lcrl, "sim", "--checkpoint", policy, "--seed", str(seed), "--episodes", str(episodes), "--out", out],
-            check=True,
-            stdout=subprocess.DEVNULL,
-        )
-    with open(os.path.join(out, "episodes.csv")) as f:
-        rows = list(csv.DictReader(f))
-    with open(os.path.join(out, "summary.json")) as f:
-        mean = json.load(f)["mean_return"]
-    return rows, mean
 
 
 def near_limit(row):
@@ -105,14 +80,11 @@ def main():
     ap.add_argument("--only", type=int, help="the run of this seed alone")
     ap.add_argument("--lcrl", default=os.environ.get("LCRL", "target/debug/lcrl"))
     args = ap.parse_args()
-    runs = []
-    for root, dirs, files in os.walk(os.path.join(args.study, "runs")):
-        if "selected" in dirs and "summary.json" in files:
-            runs.append(root)
+    runs = finished_runs(args.study)
     if not runs:
         sys.exit(f"no finished runs under {args.study}/runs")
     picks = {"today's rule": [], "near-limit rule": []}
-    for run in sorted(runs, key=run_seed):
+    for run in runs:
         r = run_seed(run)
         if args.only is not None and r != args.only:
             continue
@@ -155,11 +127,8 @@ def main():
         sys.exit("no run confirmed between several policies: nothing to compare")
     for rule, chosen in picks.items():
         print(f"{rule}: {sum(c.fresh['failed'] for c in chosen)} failed fresh starts, mean fresh return {sum(c.fresh_mean for c in chosen) / n:.3f}")
-    diffs = [near.fresh_mean - today.fresh_mean for today, near in zip(picks["today's rule"], picks["near-limit rule"])]
-    mean = sum(diffs) / n
-    sd = math.sqrt(sum((d - mean) ** 2 for d in diffs) / (n - 1)) if n > 1 else float("nan")
-    half = T_975.get(n - 1, 1.96) * sd / math.sqrt(n)
-    print(f"near-limit minus today, paired: {mean:+.3f} [{mean - half:+.3f}, {mean + half:+.3f}] over {n} runs")
+    mean, low, high = paired_ci([near.fresh_mean - today.fresh_mean for today, near in zip(picks["today's rule"], picks["near-limit rule"])])
+    print(f"near-limit minus today, paired: {mean:+.3f} [{low:+.3f}, {high:+.3f}] over {n} runs")
 
 if __name__ == "__main__":
     main()
