@@ -53,12 +53,13 @@ pub fn run_episode(
     let mut trace = Vec::new();
     let mut episode_return = 0.0;
     let mut steps = 0;
-    let (mut applied, mut max_action_jump) = (Vec::new(), 0.0f64);
+    // The policy's previous action (clipped to the box inside action_jump).
+    let (mut previous, mut max_action_jump) = (Vec::new(), 0.0f64);
     loop {
         let action = policy(&state);
         let step = env.step(&action)?;
-        max_action_jump = max_action_jump.max(action_jump(env.spec(), &applied, &action));
-        applied = action.clone();
+        max_action_jump = max_action_jump.max(action_jump(env.spec(), &previous, &action));
+        previous.clone_from(&action);
         steps += 1;
         episode_return += step.reward;
         if record {
