@@ -53,13 +53,14 @@ pub fn run_episode(
     let mut trace = Vec::new();
     let mut episode_return = 0.0;
     let mut steps = 0;
-    // The policy's previous action (clipped to the box inside action_jump).
+    // The action the environment applied last step (clipped to the box).
     let (mut previous, mut max_action_jump) = (Vec::new(), 0.0f64);
     loop {
         let action = policy(&state);
         let step = env.step(&action)?;
-        max_action_jump = max_action_jump.max(action_jump(env.spec(), &previous, &action));
-        previous.clone_from(&action);
+        let applied = env.spec().clip_action(&action);
+        max_action_jump = max_action_jump.max(action_jump(env.spec(), &previous, &applied));
+        previous = applied;
         steps += 1;
         episode_return += step.reward;
         if record {
@@ -81,16 +82,14 @@ pub fn run_episode(
     }
 }
 
-/// The largest |a_i − b_i| / (ub_i − lb_i) over the components, both
-/// actions clipped to the box first (the environment applies the clipped
-/// one); 0 when `previous` is empty (the first step).
-fn action_jump(spec: &crate::env::EnvSpec, previous: &[f64], action: &[f64]) -> f64 {
-    let clip = |v: f64, i: usize| v.clamp(spec.action_low[i], spec.action_high[i]);
+/// The largest |a_i − b_i| / (ub_i − lb_i) over the components of two
+/// applied actions; 0 when `previous` is empty (the first step).
+fn action_jump(spec: &crate::env::EnvSpec, previous: &[f64], applied: &[f64]) -> f64 {
     previous
         .iter()
-        .zip(action)
+        .zip(applied)
         .enumerate()
-        .map(|(i, (&b, &a))| (clip(a, i) - clip(b, i)).abs() / (spec.action_high[i] - spec.action_low[i]))
+        .map(|(i, (&b, &a))| (a - b).abs() / (spec.action_high[i] - spec.action_low[i]))
         .fold(0.0, f64::max)
 }
 
