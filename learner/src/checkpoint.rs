@@ -1,11 +1,16 @@
 //! The checkpoint store of a run directory: `checkpoints/epNNNNNN/`, each
 //! the agent's tensors (weights, optimizer state, replay) beside
-//! `checkpoint.json` (this [`CheckpointMeta`]), written atomically, the
-//! newest [`KEEP_CHECKPOINTS`] kept. `lcrl train` and the distributed
+//! `checkpoint.json` (this [`CheckpointMeta`] and a manifest of the files),
+//! written atomically and durably ([`write_folder`]), the newest
+//! [`KEEP_CHECKPOINTS`] kept. Resume takes the newest intact one
+//! ([`latest_checkpoint`]). `lcrl train` and the distributed
 //! learner both write and resume from it.
 
+use std::collections::BTreeMap;
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
+use lcrl_proto::files::{sync_dir, sync_file};
 use serde::{Deserialize, Serialize};
 
 use crate::agent::Agent;
@@ -68,24 +73,142 @@ impl CheckpointMeta {
     }
 }
 
-/// The newest complete checkpoint under `run_dir`, if any.
+/// The newest intact checkpoint under `run_dir`, if any: the highest
+/// episode whose checkpoint.json parses and whose files are whole
+/// ([`check_intact`]). A checkpoint damaged after it was written (a
+/// truncated file, a disk error) must not stop a resume when an older one
+/// is whole, so those are skipped, each logged with the reason.
 pub fn latest_checkpoint(run_dir: &Path) -> Option<PathBuf> {
-    complete_checkpoints(&run_dir.join("checkpoints")).pop()
+    checkpoint_folders(&run_dir.join("checkpoints")).into_iter().rev().find(|dir| match check_intact(dir) {
+        Ok(()) => true,
+        Err(e) => {
+            tracing::warn!(checkpoint = %dir.display(), "skipping a checkpoint that is not intact: {e}");
+            false
+        }
+    })
 }
 
-/// The complete checkpoints in `root`, oldest first: folders holding a
-/// checkpoint.json, but not [`write_folder`]'s staging folders
-/// (`.NAME.partial`), which a process killed while writing leaves behind
-/// with a checkpoint.json that may be empty.
-fn complete_checkpoints(root: &Path) -> Vec<PathBuf> {
+/// The checkpoints in `root` holding a checkpoint.json, oldest first by
+/// the episode in their name (`ep1000000` after `ep999999`: the names
+/// outgrow their zero padding). [`write_folder`]'s staging folders
+/// (`.NAME.partial`) are never among them; a folder it moved aside
+/// (`.NAME.old`) stands for NAME while NAME is missing: a writer killed
+/// between its two renames leaves the previous checkpoint there.
+fn checkpoint_folders(root: &Path) -> Vec<PathBuf> {
     let Ok(entries) = std::fs::read_dir(root) else { return Vec::new() };
-    let mut complete: Vec<PathBuf> = entries
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| !p.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.')))
-        .filter(|p| p.join("checkpoint.json").is_file())
+    let names: Vec<String> = entries
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
+        .map(|e| e.file_name().to_string_lossy().into_owned())
         .collect();
-    complete.sort();
-    complete
+    let mut found: Vec<(usize, PathBuf)> = names
+        .iter()
+        .filter_map(|name| {
+            let plain = match name.strip_prefix('.').and_then(|n| n.strip_suffix(".old")) {
+                Some(plain) if names.iter().any(|n| n == plain) => return None,
+                Some(plain) => plain,
+                None => name.as_str(),
+            };
+            Some((checkpoint_episode(plain)?, root.join(name)))
+        })
+        .filter(|(_, dir)| dir.join("checkpoint.json").is_file())
+        .collect();
+    found.sort();
+    found.into_iter().map(|(_, dir)| dir).collect()
+}
+
+/// The episode of a checkpoint folder's name `epNNNNNN`, if it is one.
+fn checkpoint_episode(name: &str) -> Option<usize> {
+    let digits = name.strip_prefix("ep")?;
+    // Digits only: `parse` would also take a sign.
+    if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    digits.parse().ok()
+}
+
+/// Whether the checkpoint folder `dir` can be resumed: checkpoint.json
+/// parses; every file its manifest lists (the `files` [`write_folder`]
+/// records: name and size) is there with its size; every safetensors file
+/// has a whole header whose tensors end where the file ends; agent.json
+/// parses; and actor.safetensors, which every agent and `lcrl eval` reads,
+/// is there. Checkpoints written before the manifest get all but the
+/// size check. The error says what is wrong.
+pub fn check_intact(dir: &Path) -> Result<(), LearnerError> {
+    let path = dir.join("checkpoint.json");
+    let text = std::fs::read_to_string(&path).map_err(io(&path))?;
+    let bad = |what: String| LearnerError::Checkpoint(format!("{}: {what}", path.display()));
+    serde_json::from_str::<CheckpointMeta>(&text).map_err(|e| bad(e.to_string()))?;
+    let manifest: Manifest = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
+    for (name, size) in manifest.files.unwrap_or_default() {
+        // A manifest names files in this folder, never a path elsewhere.
+        if name.contains('/') || name.contains('\\') || name == ".." || name == "." {
+            return Err(bad(format!("the manifest names {name:?}, not a file of the checkpoint")));
+        }
+        let file = dir.join(&name);
+        let len = std::fs::metadata(&file).map_err(io(&file))?.len();
+        if len != size {
+            return Err(bad(format!("{name} is {len} bytes, the checkpoint wrote {size}")));
+        }
+    }
+    let actor = dir.join("actor.safetensors");
+    if !actor.is_file() {
+        return Err(LearnerError::Checkpoint(format!("{} is missing", actor.display())));
+    }
+    for entry in std::fs::read_dir(dir).map_err(io(dir))? {
+        let file = entry.map_err(io(dir))?.path();
+        let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        if name.ends_with(".safetensors") {
+            check_safetensors(&file)?;
+        } else if name == "agent.json" {
+            let reader = std::io::BufReader::new(std::fs::File::open(&file).map_err(io(&file))?);
+            serde_json::from_reader::<_, serde::de::IgnoredAny>(reader).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", file.display())))?;
+        }
+    }
+    Ok(())
+}
+
+/// The part of checkpoint.json that [`write_folder`] adds beside the
+/// metadata: every other file of the folder with its size in bytes.
+#[derive(Deserialize)]
+struct Manifest {
+    #[serde(default)]
+    files: Option<BTreeMap<String, u64>>,
+}
+
+/// The safetensors format's own bound on a header (the crate refuses
+/// larger ones), so a garbled length cannot make us read gigabytes.
+const MAX_SAFETENSORS_HEADER: u64 = 100_000_000;
+
+/// Whether the safetensors file `path` is whole, reading only its header
+/// (a replay buffer can be hundreds of megabytes): an 8-byte length, a
+/// JSON header, and the tensors' data ending exactly at the file's end.
+fn check_safetensors(path: &Path) -> Result<(), LearnerError> {
+    use std::io::Read as _;
+    let bad = |what: &str| LearnerError::Checkpoint(format!("{}: {what}", path.display()));
+    let mut file = std::fs::File::open(path).map_err(io(path))?;
+    let len = file.metadata().map_err(io(path))?.len();
+    let mut prefix = [0u8; 8];
+    file.read_exact(&mut prefix).map_err(|_| bad("shorter than a safetensors header"))?;
+    let n = u64::from_le_bytes(prefix);
+    if n > MAX_SAFETENSORS_HEADER || n.saturating_add(8) > len {
+        return Err(bad("the header runs past the end of the file"));
+    }
+    let mut header = vec![0u8; n as usize];
+    file.read_exact(&mut header).map_err(io(path))?;
+    let header: BTreeMap<String, serde_json::Value> = serde_json::from_slice(&header).map_err(|_| bad("the header is not a safetensors header"))?;
+    let mut end = 0u64;
+    for (name, info) in header.iter().filter(|(name, _)| name.as_str() != "__metadata__") {
+        let offsets = info.get("data_offsets").and_then(|o| o.as_array()).filter(|o| o.len() == 2);
+        let stop = offsets.and_then(|o| o[1].as_u64()).ok_or_else(|| bad(&format!("tensor {name} has no data offsets")))?;
+        end = end.max(stop);
+    }
+    // Saturating: the offsets are the file's to say, and may be absurd.
+    let described = 8u64.saturating_add(n).saturating_add(end);
+    if described != len {
+        return Err(bad(&format!("{len} bytes, but its header describes {described}")));
+    }
+    Ok(())
 }
 
 pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, LearnerError> {
@@ -94,7 +217,9 @@ pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, LearnerError> {
     serde_json::from_str(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
 }
 
-/// Writes a checkpoint atomically: into a temporary folder, then renamed.
+/// Writes a checkpoint durably ([`write_folder`]), then keeps only the
+/// newest [`KEEP_CHECKPOINTS`]. On an error (a full disk) nothing of the
+/// new checkpoint is left and the earlier ones are as they were.
 pub fn write_checkpoint(run_dir: &Path, agent: &dyn Agent, meta: &CheckpointMeta) -> Result<PathBuf, LearnerError> {
     let root = run_dir.join("checkpoints");
     std::fs::create_dir_all(&root).map_err(io(&root))?;
@@ -104,30 +229,156 @@ pub fn write_checkpoint(run_dir: &Path, agent: &dyn Agent, meta: &CheckpointMeta
     Ok(target)
 }
 
-/// Writes the folder `target` whole or not at all: `fill` writes the
-/// tensors into a staging folder beside it, `meta` goes in as
-/// checkpoint.json, and the staging folder is renamed over `target`.
+/// Writes the folder `target` whole or not at all, and durably:
+/// 1. `fill` writes into the staging folder `.NAME.partial` beside it;
+/// 2. `meta` goes in as checkpoint.json with the manifest of the files
+///    (name and size, which [`check_intact`] checks), and every file and
+///    the staging folder are flushed to disk (fsync);
+/// 3. an existing `target` is renamed aside to `.NAME.old`, the staging
+///    folder renamed to `target`, and the parent folder flushed;
+/// 4. the old folder is deleted.
+///
+/// A kill at any point leaves the old folder or the new one whole: before
+/// step 3 `target` is untouched; between its two renames `.NAME.old` is
+/// the only copy, which [`recover_folder`] (at the next write or resume)
+/// renames back and which the checkpoint listing meanwhile takes for
+/// NAME. On an error (a full disk) the staging folder is removed, so it
+/// does not keep the space it took, and `target` stays as it was.
 pub fn write_folder(target: &Path, meta: &CheckpointMeta, fill: impl FnOnce(&Path) -> Result<(), LearnerError>) -> Result<(), LearnerError> {
-    let name = target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let staging = target.with_file_name(format!(".{name}.partial"));
-    let _ = std::fs::remove_dir_all(&staging);
-    std::fs::create_dir_all(&staging).map_err(io(&staging))?;
-    fill(&staging)?;
-    let text = serde_json::to_string_pretty(meta).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    std::fs::write(staging.join("checkpoint.json"), text).map_err(io(&staging))?;
-    if target.exists() {
-        std::fs::remove_dir_all(target).map_err(io(target))?;
+    let staging = beside(target, "partial")?;
+    // What a writer killed earlier left: the old folder moved aside, or a
+    // half-written staging folder.
+    recover_folder(target)?;
+    remove_dir_if_present(&staging)?;
+    let written = std::fs::create_dir_all(&staging).map_err(io(&staging)).and_then(|()| fill(&staging)).and_then(|()| seal(&staging, meta));
+    if let Err(e) = written {
+        discard(&staging);
+        return Err(e);
     }
-    std::fs::rename(&staging, target).map_err(io(target))
+    swap_in(&staging, target)
+}
+
+/// `.NAME.SUFFIX` beside `target`: where [`write_folder`] stages
+/// (`partial`) and moves the replaced folder aside (`old`).
+fn beside(target: &Path, suffix: &str) -> Result<PathBuf, LearnerError> {
+    let name = target.file_name().ok_or_else(|| LearnerError::Checkpoint(format!("{} names no folder", target.display())))?;
+    Ok(target.with_file_name(format!(".{}.{suffix}", name.to_string_lossy())))
+}
+
+/// Step 2 of [`write_folder`]: every file flushed and listed in
+/// checkpoint.json, then the folder's own entries flushed.
+fn seal(staging: &Path, meta: &CheckpointMeta) -> Result<(), LearnerError> {
+    let mut files = BTreeMap::new();
+    for entry in std::fs::read_dir(staging).map_err(io(staging))? {
+        let entry = entry.map_err(io(staging))?;
+        let path = entry.path();
+        if path.is_file() {
+            sync_file(&path).map_err(io(&path))?;
+            let len = entry.metadata().map_err(io(&path))?.len();
+            files.insert(entry.file_name().to_string_lossy().into_owned(), len);
+        }
+    }
+    let mut value = serde_json::to_value(meta).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    if let serde_json::Value::Object(fields) = &mut value {
+        fields.insert("files".into(), serde_json::to_value(&files).map_err(|e| LearnerError::Checkpoint(e.to_string()))?);
+    }
+    let text = serde_json::to_string_pretty(&value).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+    let path = staging.join("checkpoint.json");
+    let mut file = std::fs::File::create(&path).map_err(io(&path))?;
+    file.write_all(text.as_bytes()).and_then(|()| file.sync_all()).map_err(io(&path))?;
+    sync_dir(staging).map_err(io(staging))
+}
+
+/// Steps 3 and 4 of [`write_folder`]. A failed rename puts things back as
+/// they were and removes the staging folder.
+fn swap_in(staging: &Path, target: &Path) -> Result<(), LearnerError> {
+    let aside = beside(target, "old")?;
+    let parent = target.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let replacing = target.exists();
+    if replacing {
+        if let Err(e) = std::fs::rename(target, &aside) {
+            discard(staging);
+            return Err(io(target)(e));
+        }
+    }
+    if let Err(e) = std::fs::rename(staging, target) {
+        if replacing {
+            if let Err(back) = std::fs::rename(&aside, target) {
+                tracing::warn!("cannot move {} back to {}: {back}; the next write or resume does", aside.display(), target.display());
+            }
+        }
+        discard(staging);
+        return Err(io(target)(e));
+    }
+    // The renames must be on disk before the old copy goes: otherwise a
+    // power cut could bring back neither.
+    sync_dir(parent).map_err(io(parent))?;
+    if replacing {
+        if let Err(e) = std::fs::remove_dir_all(&aside) {
+            tracing::warn!("cannot remove the replaced folder {}: {e}; the next write or resume does", aside.display());
+        }
+    }
+    Ok(())
+}
+
+/// Finishes or undoes what a writer killed inside [`write_folder`]'s swap
+/// left: with `target` there, `.NAME.old` beside it is the replaced folder
+/// and is deleted; with `target` missing it is the only whole copy and is
+/// renamed back.
+pub fn recover_folder(target: &Path) -> Result<(), LearnerError> {
+    let aside = beside(target, "old")?;
+    if !aside.is_dir() {
+        return Ok(());
+    }
+    if target.exists() {
+        return remove_dir_if_present(&aside);
+    }
+    std::fs::rename(&aside, target).map_err(io(target))?;
+    tracing::warn!(folder = %target.display(), "recovered the folder a killed writer had moved aside");
+    let parent = target.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    sync_dir(parent).map_err(io(parent))
+}
+
+/// [`recover_folder`] for every folder in `root`, and the staging folders
+/// (`.NAME.partial`) a killed writer left removed, so they do not keep
+/// their space. For a resume: nothing else may write in `root` meanwhile.
+pub fn recover_folders(root: &Path) -> Result<(), LearnerError> {
+    let Ok(entries) = std::fs::read_dir(root) else { return Ok(()) };
+    for entry in entries.filter_map(|e| e.ok()).filter(|e| e.file_type().is_ok_and(|t| t.is_dir())) {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(hidden) = name.strip_prefix('.') else { continue };
+        if let Some(plain) = hidden.strip_suffix(".old") {
+            recover_folder(&root.join(plain))?;
+        } else if hidden.ends_with(".partial") {
+            tracing::warn!(folder = %entry.path().display(), "removing a staging folder a killed writer left");
+            remove_dir_if_present(&entry.path())?;
+        }
+    }
+    Ok(())
+}
+
+fn remove_dir_if_present(dir: &Path) -> Result<(), LearnerError> {
+    match std::fs::remove_dir_all(dir) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(io(dir)(e)),
+        _ => Ok(()),
+    }
+}
+
+/// Removes a staging folder after a failure, which is already the error
+/// reported: a second one is only logged.
+fn discard(staging: &Path) {
+    if let Err(e) = remove_dir_if_present(staging) {
+        tracing::warn!("cannot remove the staging folder {}: {e}", staging.display());
+    }
 }
 
 /// Checkpoints kept per run: each can hold a replay buffer of hundreds of
 /// megabytes, so only the newest few stay.
 pub const KEEP_CHECKPOINTS: usize = 3;
 
-/// Deletes all but the newest `keep` complete checkpoints.
+/// Deletes all but the newest `keep` checkpoints, in episode order.
 fn prune_checkpoints(root: &Path, keep: usize) {
-    let complete = complete_checkpoints(root);
+    let complete = checkpoint_folders(root);
     let excess = complete.len().saturating_sub(keep);
     for old in &complete[..excess] {
         if let Err(e) = std::fs::remove_dir_all(old) {
@@ -140,6 +391,39 @@ fn prune_checkpoints(root: &Path, keep: usize) {
 mod tests {
     use super::*;
 
+    fn meta(episode: usize) -> CheckpointMeta {
+        CheckpointMeta { episode, ..CheckpointMeta::start("lti-paper", Algo::Ppo, Connection::Local, 1, 1, vec![vec![1]], TrainConfig::default()) }
+    }
+
+    /// A whole safetensors file of one f32 tensor.
+    fn tensors() -> Vec<u8> {
+        let header = br#"{"w":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}}"#;
+        let mut bytes = (header.len() as u64).to_le_bytes().to_vec();
+        bytes.extend_from_slice(header);
+        bytes.extend_from_slice(&1.5f32.to_le_bytes());
+        bytes
+    }
+
+    /// What an agent writes, with `tag` to tell two writes apart.
+    fn fill(tag: &str) -> impl FnOnce(&Path) -> Result<(), LearnerError> + '_ {
+        move |staging| {
+            std::fs::write(staging.join("actor.safetensors"), tensors()).map_err(io(staging))?;
+            std::fs::write(staging.join("agent.json"), format!("{{\"tag\":\"{tag}\"}}")).map_err(io(staging))
+        }
+    }
+
+    fn write(root: &Path, episode: usize) -> PathBuf {
+        let target = root.join(format!("ep{episode:06}"));
+        write_folder(&target, &meta(episode), fill("first")).unwrap();
+        target
+    }
+
+    fn names(dir: &Path) -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+        names.sort();
+        names
+    }
+
     /// A process killed inside `write_folder` leaves its staging folder
     /// with an empty checkpoint.json (the e2e study killed with SIGKILL hit
     /// it): resuming must take the newest complete checkpoint, or none.
@@ -151,12 +435,129 @@ mod tests {
         std::fs::create_dir_all(&staging).unwrap();
         std::fs::write(staging.join("checkpoint.json"), "").unwrap();
         assert_eq!(latest_checkpoint(run.path()), None);
-        for name in ["ep000010", "ep000020"] {
-            std::fs::create_dir_all(root.join(name)).unwrap();
-            std::fs::write(root.join(name).join("checkpoint.json"), "{}").unwrap();
-        }
+        let (ten, twenty) = (write(&root, 10), write(&root, 20));
         std::fs::create_dir_all(root.join("ep000030")).unwrap(); // no checkpoint.json: not complete
-        assert_eq!(latest_checkpoint(run.path()), Some(root.join("ep000020")));
-        assert_eq!(complete_checkpoints(&root), vec![root.join("ep000010"), root.join("ep000020")]);
+        assert_eq!(latest_checkpoint(run.path()), Some(twenty.clone()));
+        assert_eq!(checkpoint_folders(&root), vec![ten, twenty]);
+        // A resume gives the staging folder's space back.
+        recover_folders(&root).unwrap();
+        assert!(!staging.exists());
+    }
+
+    /// Finding 10: with ep1000000 present, ep999999 sorted last as text
+    /// and was resumed (and pruning deleted the newest).
+    #[test]
+    fn checkpoints_are_ordered_by_episode_not_by_name() {
+        let run = tempfile::tempdir().unwrap();
+        let root = run.path().join("checkpoints");
+        for episode in [999_998, 1_000_001, 999_999, 1_000_000] {
+            write(&root, episode);
+        }
+        assert_eq!(latest_checkpoint(run.path()), Some(root.join("ep1000001")));
+        prune_checkpoints(&root, 3);
+        assert_eq!(names(&root), ["ep1000000", "ep1000001", "ep999999"]);
+        assert_eq!(checkpoint_episode("ep+5"), None);
+        assert_eq!(checkpoint_episode("ep"), None);
+    }
+
+    /// Finding 8: with the newest checkpoint truncated or garbled, resume
+    /// failed although the previous one was whole.
+    #[test]
+    fn a_damaged_newest_checkpoint_is_skipped_for_the_previous_one() {
+        let run = tempfile::tempdir().unwrap();
+        let root = run.path().join("checkpoints");
+        let ten = write(&root, 10);
+        let twenty = write(&root, 20);
+        check_intact(&twenty).unwrap();
+        let json = twenty.join("checkpoint.json");
+        let text = std::fs::read_to_string(&json).unwrap();
+        assert!(text.contains("\"files\"") && text.contains("\"actor.safetensors\""), "{text}");
+        let damage: [(&str, Vec<u8>); 5] = [
+            ("checkpoint.json", text.as_bytes()[..text.len() / 2].to_vec()),
+            ("checkpoint.json", b"garbage".to_vec()),
+            ("actor.safetensors", tensors()[..tensors().len() - 2].to_vec()),
+            ("actor.safetensors", b"\xff\xff\xff\xff\xff\xff\xff\xffjunk".to_vec()),
+            ("agent.json", b"{\"tag\":".to_vec()),
+        ];
+        for (file, bytes) in damage {
+            let whole = std::fs::read(twenty.join(file)).unwrap();
+            std::fs::write(twenty.join(file), &bytes).unwrap();
+            assert!(check_intact(&twenty).is_err(), "{file} damaged");
+            assert_eq!(latest_checkpoint(run.path()), Some(ten.clone()), "{file} damaged");
+            std::fs::write(twenty.join(file), whole).unwrap();
+        }
+        // A file the manifest lists is gone; then the same size but the
+        // tensors' header no longer matching the length.
+        std::fs::remove_file(twenty.join("agent.json")).unwrap();
+        assert_eq!(latest_checkpoint(run.path()), Some(ten.clone()));
+        // A checkpoint written before the manifest: the tensors' headers
+        // still tell a file cut short or grown.
+        std::fs::write(ten.join("checkpoint.json"), serde_json::to_string(&meta(10)).unwrap()).unwrap();
+        check_intact(&ten).unwrap();
+        let mut longer = tensors();
+        longer.push(0);
+        std::fs::write(ten.join("actor.safetensors"), longer).unwrap();
+        assert!(check_intact(&ten).is_err());
+        std::fs::write(ten.join("actor.safetensors"), &tensors()[..10]).unwrap();
+        assert!(check_intact(&ten).is_err());
+        assert_eq!(latest_checkpoint(run.path()), None);
+    }
+
+    /// Finding 9: a full disk at a checkpoint left its `.partial` folder
+    /// taking the space. The fill's error stands for ENOSPC.
+    #[test]
+    fn a_failed_fill_leaves_no_staging_folder_and_the_old_folder_whole() {
+        let run = tempfile::tempdir().unwrap();
+        let root = run.path().join("checkpoints");
+        let target = write(&root, 10);
+        let full = |staging: &Path| {
+            std::fs::write(staging.join("actor.safetensors"), b"half").map_err(io(staging))?;
+            Err(LearnerError::Io { path: staging.join("critic.safetensors"), source: std::io::Error::from_raw_os_error(28) })
+        };
+        let err = write_folder(&target, &meta(10), full).unwrap_err();
+        assert!(err.to_string().contains("No space left"), "{err}");
+        assert_eq!(names(&root), ["ep000010"]);
+        check_intact(&target).unwrap();
+        assert_eq!(std::fs::read_to_string(target.join("agent.json")).unwrap(), r#"{"tag":"first"}"#);
+        // A new folder that fails leaves nothing at all.
+        assert!(write_folder(&root.join("ep000020"), &meta(20), full).is_err());
+        assert_eq!(names(&root), ["ep000010"]);
+        // Replacing works, and leaves nothing beside the folder.
+        write_folder(&target, &meta(10), fill("second")).unwrap();
+        assert_eq!(names(&root), ["ep000010"]);
+        assert_eq!(std::fs::read_to_string(target.join("agent.json")).unwrap(), r#"{"tag":"second"}"#);
+    }
+
+    /// Finding 8: the old folder was deleted before the new one was renamed
+    /// in. Now a kill between the two renames leaves `.NAME.old`, which is
+    /// resumed from and put back.
+    #[test]
+    fn an_interrupted_swap_still_resumes_from_a_whole_folder() {
+        let run = tempfile::tempdir().unwrap();
+        let root = run.path().join("checkpoints");
+        write(&root, 10);
+        let twenty = write(&root, 20);
+        let aside = root.join(".ep000020.old");
+        // Killed between the renames: the old folder aside, the new one
+        // still staged (here only partly written).
+        std::fs::rename(&twenty, &aside).unwrap();
+        std::fs::create_dir_all(root.join(".ep000020.partial")).unwrap();
+        std::fs::write(root.join(".ep000020.partial/actor.safetensors"), b"ha").unwrap();
+        assert_eq!(latest_checkpoint(run.path()), Some(aside.clone()));
+        recover_folders(&root).unwrap();
+        assert_eq!(names(&root), ["ep000010", "ep000020"]);
+        assert_eq!(latest_checkpoint(run.path()), Some(twenty.clone()));
+        // Killed after the swap, before the old folder was deleted: the
+        // new folder is the checkpoint, the old one goes.
+        std::fs::create_dir_all(&aside).unwrap();
+        assert_eq!(latest_checkpoint(run.path()), Some(twenty.clone()));
+        assert_eq!(checkpoint_folders(&root).len(), 2);
+        recover_folders(&root).unwrap();
+        assert_eq!(names(&root), ["ep000010", "ep000020"]);
+        // The next write of the folder recovers on its own too.
+        std::fs::rename(&twenty, &aside).unwrap();
+        write_folder(&twenty, &meta(20), fill("second")).unwrap();
+        assert_eq!(names(&root), ["ep000010", "ep000020"]);
+        assert_eq!(std::fs::read_to_string(twenty.join("agent.json")).unwrap(), r#"{"tag":"second"}"#);
     }
 }

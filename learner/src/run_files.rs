@@ -116,11 +116,50 @@ pub struct ConfirmedCandidate {
     pub success_rate: Option<f64>,
 }
 
-/// The first `keep` rows of a metrics.csv (a resumed run's history).
-pub fn read_rows(path: &Path, keep: usize) -> Result<Vec<EpisodeRow>, LearnerError> {
-    let mut reader = csv::Reader::from_path(path).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))?;
-    let rows: Result<Vec<EpisodeRow>, _> = reader.deserialize().take(keep).collect();
-    rows.map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+/// The rows of a metrics.csv through episode `through` (a resumed run's
+/// history, `through` its checkpoint's episode), one per episode in order.
+/// Reading stops there, so rows written after the checkpoint (and a last
+/// row cut short by a kill) are never read. A row whose episode does not
+/// follow the one before is one a learner before this fix wrote again
+/// after a resume, and is skipped.
+pub fn read_rows(path: &Path, through: usize) -> Result<Vec<EpisodeRow>, LearnerError> {
+    let (rows, error) = rows_through(path, through);
+    match error {
+        Some(e) => Err(e),
+        None => Ok(rows),
+    }
+}
+
+/// [`read_rows`], with the rows before an unreadable one kept beside the
+/// error.
+fn rows_through(path: &Path, through: usize) -> (Vec<EpisodeRow>, Option<LearnerError>) {
+    let bad = |e: csv::Error| LearnerError::Checkpoint(format!("{}: {e}", path.display()));
+    let mut rows: Vec<EpisodeRow> = Vec::new();
+    if through == 0 {
+        return (rows, None);
+    }
+    let mut reader = match csv::Reader::from_path(path) {
+        Ok(reader) => reader,
+        Err(e) => return (rows, Some(bad(e))),
+    };
+    for row in reader.deserialize::<EpisodeRow>() {
+        let row = match row {
+            Ok(row) => row,
+            Err(e) => return (rows, Some(bad(e))),
+        };
+        if row.episode > through {
+            break;
+        }
+        if rows.last().is_some_and(|last| row.episode <= last.episode) {
+            continue;
+        }
+        let done = row.episode == through;
+        rows.push(row);
+        if done {
+            break;
+        }
+    }
+    (rows, None)
 }
 
 /// metrics.csv, one flushed row per episode, so an interrupted run still
@@ -132,21 +171,41 @@ pub struct MetricsLog {
 
 impl MetricsLog {
     /// Starts `path` afresh with `rows` (a resumed run's kept history).
+    /// The rows go into `.NAME.partial` first, flushed to disk, which then
+    /// replaces `path` (later rows are appended to it there): a kill while
+    /// the history is rewritten leaves the old file, never a cut one.
     pub fn create(path: &Path, rows: &[EpisodeRow]) -> Result<Self, LearnerError> {
-        let file = std::fs::File::create(path).map_err(io(path))?;
-        let mut log = Self::over(path, file, true)?;
+        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let partial = path.with_file_name(format!(".{name}.partial"));
+        let file = std::fs::File::create(&partial).map_err(io(&partial))?;
+        let mut log = Self::over(&partial, file, true)?;
         for row in rows {
             log.push(row)?;
         }
+        log.writer.get_ref().sync_all().map_err(io(&partial))?;
+        std::fs::rename(&partial, path).map_err(io(path))?;
+        let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        lcrl_proto::files::sync_dir(dir).map_err(io(dir))?;
+        log.path = path.to_path_buf();
         Ok(log)
     }
 
-    /// Appends to `path` (the distributed learner, resumed or not),
-    /// starting it with the header when it is new.
-    pub fn append(path: &Path) -> Result<Self, LearnerError> {
-        let new = std::fs::metadata(path).map_or(true, |m| m.len() == 0);
-        let file = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(io(path))?;
-        Self::over(path, file, new)
+    /// Continues `path` from episode `through` (the distributed learner's
+    /// checkpoint; 0 for a new run): the rows after it are dropped, as the
+    /// episodes they record are trained again and written anew, so no
+    /// episode appears twice. An unreadable row ends the history kept
+    /// (logged): what follows it cannot be trusted either.
+    pub fn resume(path: &Path, through: usize) -> Result<Self, LearnerError> {
+        let rows = if path.exists() {
+            let (rows, error) = rows_through(path, through);
+            if let Some(e) = error {
+                tracing::warn!("metrics.csv kept through episode {}: {e}", rows.last().map_or(0, |r| r.episode));
+            }
+            rows
+        } else {
+            Vec::new()
+        };
+        Self::create(path, &rows)
     }
 
     fn over(path: &Path, file: std::fs::File, header: bool) -> Result<Self, LearnerError> {
@@ -195,5 +254,60 @@ mod tests {
         assert_eq!(lines[0], METRICS_COLUMNS.join(","));
         assert!(lines.iter().all(|l| l.split(',').count() == METRICS_COLUMNS.len()), "{text}");
         assert_eq!(read_rows(&path, 10).unwrap(), vec![peg, lti]);
+    }
+
+    fn row(episode: usize) -> EpisodeRow {
+        EpisodeRow { episode, episode_return: -(episode as f64), length: 10, ..Default::default() }
+    }
+
+    /// Finding 10: a distributed learner resumed from its checkpoint
+    /// appended to metrics.csv, so the episodes it had recorded after the
+    /// checkpoint appeared twice. Resuming cuts the file back to the
+    /// checkpoint's episode, the row a kill cut short included.
+    #[test]
+    fn resuming_cuts_metrics_back_to_the_checkpoint() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("metrics.csv");
+        let mut log = MetricsLog::resume(&path, 0).unwrap();
+        for episode in 1..=8 {
+            log.push(&row(episode)).unwrap();
+        }
+        drop(log);
+        // Killed while writing episode 9's row, after the checkpoint at 5.
+        let mut text = std::fs::read_to_string(&path).unwrap();
+        text.push_str("9,-9.0,1");
+        std::fs::write(&path, text).unwrap();
+        let mut log = MetricsLog::resume(&path, 5).unwrap();
+        for episode in 6..=7 {
+            log.push(&row(episode)).unwrap();
+        }
+        drop(log);
+        assert_eq!(read_rows(&path, usize::MAX).unwrap(), (1..=7).map(row).collect::<Vec<_>>());
+        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+        assert_eq!(left, vec![std::ffi::OsString::from("metrics.csv")]);
+        // A new run (no checkpoint) starts with the header alone.
+        drop(MetricsLog::resume(&path, 0).unwrap());
+        assert_eq!(read_rows(&path, usize::MAX).unwrap(), vec![]);
+    }
+
+    /// `lcrl train` reads its history through the checkpoint's episode, as
+    /// it read the first rows before; repeats an older learner wrote are
+    /// read once, and a damaged row before the checkpoint is an error.
+    #[test]
+    fn the_history_is_read_through_the_checkpoint_once_per_episode() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("metrics.csv");
+        let mut log = MetricsLog::create(&path, &(1..=4).map(row).collect::<Vec<_>>()).unwrap();
+        for episode in [3, 4, 5, 6] {
+            log.push(&row(episode)).unwrap();
+        }
+        drop(log);
+        assert_eq!(read_rows(&path, 5).unwrap(), (1..=5).map(row).collect::<Vec<_>>());
+        assert_eq!(read_rows(&path, 0).unwrap(), vec![]);
+        let mut text = std::fs::read_to_string(&path).unwrap();
+        text.push_str("7,oops\n");
+        std::fs::write(&path, text).unwrap();
+        assert_eq!(read_rows(&path, 6).unwrap().len(), 6);
+        assert!(read_rows(&path, 7).is_err());
     }
 }

@@ -11,7 +11,7 @@ use lcrl_sim::Env;
 
 use crate::action::ActionMap;
 use crate::agent::Agent;
-use crate::checkpoint::{latest_checkpoint, read_meta, CheckpointMeta};
+use crate::checkpoint::{latest_checkpoint, read_meta, recover_folders, CheckpointMeta};
 use crate::config::{Algo, BaseController, Connection, TrainConfig};
 use crate::LearnerError;
 
@@ -71,6 +71,13 @@ pub struct Prepared {
 pub fn prepare(start: RunStart, env: &dyn Env) -> Result<Prepared, LearnerError> {
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
     std::fs::create_dir_all(start.run_dir).map_err(crate::io(start.run_dir))?;
+    // A writer killed mid-checkpoint left a staging folder (space to give
+    // back) or the previous checkpoint moved aside (to put back). Should
+    // that fail, the listing still takes a folder moved aside for the
+    // checkpoint, so the run can go on.
+    if let Err(e) = recover_folders(&start.run_dir.join("checkpoints")) {
+        tracing::warn!("cannot tidy the checkpoints a killed writer left: {e}");
+    }
     if !start.resume && latest_checkpoint(start.run_dir).is_some() {
         return Err(LearnerError::Mismatch(format!(
             "{} already holds a run; pass --resume to continue it or choose another --run-dir",
@@ -117,7 +124,8 @@ pub fn prepare(start: RunStart, env: &dyn Env) -> Result<Prepared, LearnerError>
     Ok(Prepared { config, checkpoint, meta, graph, agent, actions, threads })
 }
 
-/// The newest checkpoint in `run_dir` with its metadata, if there is one.
+/// The newest intact checkpoint in `run_dir` with its metadata, if there
+/// is one (damaged ones are skipped and logged: [`latest_checkpoint`]).
 /// A checkpoint of another environment, algorithm or connection is an
 /// error: resuming it as this run would mix two runs.
 pub fn checkpoint_to_resume(run_dir: &Path, env: &str, algo: Algo, connection: Connection) -> Result<Option<(PathBuf, CheckpointMeta)>, LearnerError> {

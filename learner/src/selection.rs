@@ -14,8 +14,10 @@
 //!
 //! `RUN/selected/` holds the choice (checkpoint.json and actor.safetensors,
 //! which `Policy::load` reads, and selection.json with every validation).
-//! It is replaced whole whenever a better policy is found, so an
-//! interrupted run resumes its selection. Training is untouched: the
+//! It is replaced whole, policy and record in one folder write
+//! (`checkpoint::write_folder`), at every validation, so an interrupted
+//! run resumes its selection and never finds a policy without the record
+//! that chose it. Training is untouched: the
 //! checkpoints under `RUN/checkpoints/` go on from the last policy, and the
 //! validation episodes run in an environment of their own.
 //!
@@ -38,7 +40,7 @@ use lcrl_sim::Env;
 
 use crate::agent::Agent;
 use crate::policy::evaluate_snapshot;
-use crate::checkpoint::{write_folder, CheckpointMeta};
+use crate::checkpoint::{recover_folder, recover_folders, write_folder, CheckpointMeta};
 use crate::run_files::write_atomically;
 use crate::config::RunConfig;
 use crate::LearnerError;
@@ -81,7 +83,12 @@ impl Selection {
     /// Resuming picks up RUN/selected/; a fresh run discards any left there.
     pub fn new(run: &RunConfig, run_dir: &Path, resume: bool) -> Result<Option<Selection>, LearnerError> {
         let dir = selected_dir(run_dir);
-        if !resume {
+        if resume {
+            // A learner killed while replacing a policy folder left it
+            // moved aside: put it back before reading the record.
+            recover_folder(&dir)?;
+            recover_folders(&candidates_dir(run_dir))?;
+        } else {
             for old in [dir.clone(), candidates_dir(run_dir)].iter().filter(|d| d.exists()) {
                 std::fs::remove_dir_all(old).map_err(|source| LearnerError::Io { path: old.clone(), source })?;
             }
@@ -194,18 +201,22 @@ impl Selection {
             let path = staging.join("actor.safetensors");
             std::fs::write(&path, &snapshot.weights).map_err(|source| LearnerError::Io { path, source })
         };
+        // The record goes into the same folder write as the policy it
+        // chose, so a kill never leaves one without the other.
+        let record = self.record();
         if better {
-            write_folder(&selected_dir(run_dir), meta, write_weights)?;
+            write_policy(&selected_dir(run_dir), meta, write_weights, record.as_ref())?;
         } else if let Some(best) = self.best().map(|v| v.episode).filter(|&b| Some(b) != confirmed) {
             // A resumed run that had confirmed another policy selects the best again.
-            copy_policy(&candidate_dir(run_dir, best), &selected_dir(run_dir))?;
+            copy_policy(&candidate_dir(run_dir, best), &selected_dir(run_dir), record.as_ref())?;
+        } else {
+            self.write_record(run_dir)?;
         }
         let candidates = self.candidates();
         if candidates.iter().any(|v| v.episode == meta.episode) {
             write_folder(&candidate_dir(run_dir, meta.episode), meta, write_weights)?;
         }
         prune_candidates(run_dir, &candidates)?;
-        self.write_record(run_dir)?;
         tracing::info!(episode = validation.episode, mean_return = validation.mean_return, selected = better, "validated");
         Ok((validation, better))
     }
@@ -248,10 +259,11 @@ impl Selection {
         let before = self.chosen().map(|v| v.episode);
         self.confirmation = Some(Confirmation { starts: self.confirm_episodes, candidates });
         let after = self.chosen().map(|v| v.episode);
-        if let Some(pick) = after.filter(|&a| Some(a) != before) {
-            copy_policy(&candidate_dir(run_dir, pick), &selected_dir(run_dir))?;
+        match after.filter(|&a| Some(a) != before) {
+            // The new choice and its record in one folder write.
+            Some(pick) => copy_policy(&candidate_dir(run_dir, pick), &selected_dir(run_dir), self.record().as_ref())?,
+            None => self.write_record(run_dir)?,
         }
-        self.write_record(run_dir)?;
         Ok(after != before)
     }
 
@@ -267,9 +279,18 @@ impl Selection {
         })
     }
 
+    /// The record with the policy it keeps: RUN/selected/ rewritten whole,
+    /// the same policy with the new selection.json, so the folder is only
+    /// ever replaced as one unit (its manifest stays true).
     fn write_record(&self, run_dir: &Path) -> Result<(), LearnerError> {
         let Some(record) = self.record() else { return Ok(()) };
-        let path = selected_dir(run_dir).join("selection.json");
+        let dir = selected_dir(run_dir);
+        if dir.join("checkpoint.json").is_file() {
+            return copy_policy(&dir, &dir, Some(&record));
+        }
+        // No policy folder to keep the record with (deleted by hand, say):
+        // the record alone, replaced whole.
+        let path = dir.join("selection.json");
         let text = serde_json::to_string_pretty(&record).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
         write_atomically(&path, text.as_bytes())
     }
@@ -295,12 +316,29 @@ fn prune_candidates(run_dir: &Path, candidates: &[Validation]) -> Result<(), Lea
 }
 
 /// Replaces the policy folder `to` with a copy of `from` (checkpoint.json
-/// and actor.safetensors), atomically as every policy folder is written.
-fn copy_policy(from: &Path, to: &Path) -> Result<(), LearnerError> {
+/// and actor.safetensors) and `record`, atomically as every policy folder
+/// is written.
+fn copy_policy(from: &Path, to: &Path, record: Option<&SelectionRecord>) -> Result<(), LearnerError> {
     let meta = crate::checkpoint::read_meta(from)?;
     let weights = from.join("actor.safetensors");
-    write_folder(to, &meta, |staging| {
+    let copy = |staging: &Path| {
         std::fs::copy(&weights, staging.join("actor.safetensors")).map(|_| ()).map_err(|source| LearnerError::Io { path: weights.clone(), source })
+    };
+    write_policy(to, &meta, copy, record)
+}
+
+/// Writes the policy folder `to` whole ([`write_folder`]): `weights`
+/// writes actor.safetensors, `meta` becomes checkpoint.json, and `record`
+/// (RUN/selected/ only) goes in as selection.json before the folder is
+/// swapped in, so the policy and the record that chose it are one unit.
+fn write_policy(to: &Path, meta: &CheckpointMeta, weights: impl FnOnce(&Path) -> Result<(), LearnerError>, record: Option<&SelectionRecord>) -> Result<(), LearnerError> {
+    write_folder(to, meta, |staging| {
+        weights(staging)?;
+        let Some(record) = record else { return Ok(()) };
+        let path = staging.join("selection.json");
+        let text = serde_json::to_string_pretty(record).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+        // Flushed to disk with the folder's other files (write_folder).
+        std::fs::write(&path, text).map_err(|source| LearnerError::Io { path, source })
     })
 }
 
@@ -323,4 +361,51 @@ pub fn read_record(dir: &Path) -> Result<Option<SelectionRecord>, LearnerError> 
     }
     let text = std::fs::read_to_string(&path).map_err(|source| LearnerError::Io { path: path.clone(), source })?;
     serde_json::from_str(&text).map(Some).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}; delete RUN/selected to start the selection over", path.display())))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::{Algo, Connection, TrainConfig};
+
+    fn meta(episode: usize) -> CheckpointMeta {
+        CheckpointMeta { episode, ..CheckpointMeta::start("lti-paper", Algo::Ppo, Connection::Local, 1, 1, vec![vec![1]], TrainConfig::default()) }
+    }
+
+    fn record(episode: usize) -> SelectionRecord {
+        let validation = Validation { episode, mean_return: -(episode as f64), success_rate: None };
+        SelectionRecord { episode, validation_return: validation.mean_return, validation_success_rate: None, starts: 4, history: vec![validation], confirmation: None }
+    }
+
+    /// Finding 8: selection.json was written after the policy folder was
+    /// swapped in, so a kill in between left a policy without the record
+    /// that chose it. Now the record is one of the folder's files, sealed
+    /// in its manifest, and a failed write changes neither.
+    #[test]
+    fn the_record_is_written_with_the_policy_it_chose() {
+        let run = tempfile::tempdir().unwrap();
+        let dir = selected_dir(run.path());
+        let weights = |bytes: &'static [u8]| {
+            move |staging: &Path| {
+                let path = staging.join("actor.safetensors");
+                std::fs::write(&path, bytes).map_err(|source| LearnerError::Io { path, source })
+            }
+        };
+        write_policy(&dir, &meta(10), weights(b"ten"), Some(&record(10))).unwrap();
+        assert_eq!(read_record(&dir).unwrap().unwrap().episode, 10);
+        let manifest = std::fs::read_to_string(dir.join("checkpoint.json")).unwrap();
+        assert!(manifest.contains("\"selection.json\""), "{manifest}");
+        // A full disk while writing the next choice.
+        let full = |_: &Path| Err(LearnerError::Io { path: PathBuf::from("actor.safetensors"), source: std::io::Error::from_raw_os_error(28) });
+        assert!(write_policy(&dir, &meta(20), full, Some(&record(20))).is_err());
+        assert_eq!(read_record(&dir).unwrap().unwrap().episode, 10);
+        assert_eq!(std::fs::read(dir.join("actor.safetensors")).unwrap(), b"ten");
+        // The same policy with a new record: the folder rewritten whole.
+        copy_policy(&dir, &dir, Some(&record(30))).unwrap();
+        assert_eq!(read_record(&dir).unwrap().unwrap().episode, 30);
+        assert_eq!(std::fs::read(dir.join("actor.safetensors")).unwrap(), b"ten");
+        assert_eq!(crate::checkpoint::read_meta(&dir).unwrap().episode, 10);
+        let left: Vec<_> = std::fs::read_dir(run.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+        assert_eq!(left, vec![std::ffi::OsString::from("selected")]);
+    }
 }

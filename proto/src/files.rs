@@ -16,7 +16,21 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     let mut file = std::fs::File::create(&partial).map_err(named("creating", &partial))?;
     file.write_all(bytes).and_then(|()| file.sync_all()).map_err(named("writing", &partial))?;
     drop(file);
-    std::fs::rename(&partial, path).map_err(named("renaming over", path))
+    std::fs::rename(&partial, path).map_err(named("renaming over", path))?;
+    // The rename itself lives in the folder's entries: without this a
+    // power cut can bring back the old file (or none) after we returned.
+    sync_dir(dir)
+}
+
+/// Flushes a folder's entries (names created, renamed or removed in it) to
+/// disk, as `fsync` on a file flushes its contents.
+pub fn sync_dir(dir: &Path) -> std::io::Result<()> {
+    std::fs::File::open(dir).and_then(|d| d.sync_all()).map_err(named("syncing", dir))
+}
+
+/// Flushes the file `path` to disk.
+pub fn sync_file(path: &Path) -> std::io::Result<()> {
+    std::fs::File::open(path).and_then(|f| f.sync_all()).map_err(named("syncing", path))
 }
 
 /// The error, saying what was being done to which file.

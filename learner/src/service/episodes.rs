@@ -16,11 +16,15 @@ pub struct EpisodeLog {
 }
 
 impl EpisodeLog {
-    pub fn open(run_dir: &std::path::Path) -> EpisodeLog {
+    /// Opens the records of a run that has `episodes` done (its
+    /// checkpoint's; 0 for a new run). metrics.csv is cut back to them: a
+    /// learner killed after its last checkpoint had written rows for
+    /// episodes that are now trained again.
+    pub fn open(run_dir: &std::path::Path, episodes: u64) -> EpisodeLog {
         let tensorboard = crate::tensorboard::EventWriter::create(run_dir)
             .map_err(|e| tracing::warn!("no TensorBoard events in {}: {e}", run_dir.display()))
             .ok();
-        let csv = crate::run_files::MetricsLog::append(&run_dir.join("metrics.csv")).map_err(|e| tracing::warn!("no metrics.csv: {e}")).ok();
+        let csv = crate::run_files::MetricsLog::resume(&run_dir.join("metrics.csv"), episodes as usize).map_err(|e| tracing::warn!("no metrics.csv: {e}")).ok();
         EpisodeLog { csv, tensorboard }
     }
 

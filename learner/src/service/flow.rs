@@ -54,6 +54,8 @@ pub struct FlowStats {
     pub budget_episodes: u64,
     /// The budget is reached: final checkpoint and summary written.
     pub finished: bool,
+    /// Checkpoints that failed (a full disk, say): training went on.
+    pub checkpoint_failures: u64,
 }
 
 impl FlowStats {

@@ -123,7 +123,7 @@ impl TrainingLoop {
                 *current = Arc::new(first);
             });
         }
-        let log = crate::service::episodes::EpisodeLog::open(&shared.run_dir);
+        let log = crate::service::episodes::EpisodeLog::open(&shared.run_dir, shared.episodes.load(Ordering::Relaxed));
         let last_published = agent.counters().updates;
         let mut training = TrainingLoop {
             agent,
@@ -170,7 +170,10 @@ impl TrainingLoop {
             self.publish_if_due(trained)?;
             self.validate_if_due()?;
             if self.last_checkpoint.elapsed() >= self.schedule.checkpoint_interval {
-                self.checkpoint()?;
+                // A failed checkpoint (a full disk) does not end training:
+                // checkpoint() counted and logged it, the earlier
+                // checkpoints stand, and the next interval tries again.
+                let _ = self.checkpoint();
             }
             if self.idle(admitted.received, trained) {
                 return self.checkpoint();
@@ -405,6 +408,10 @@ impl TrainingLoop {
         false
     }
 
+    /// Writes a checkpoint. A failure has left nothing of it on disk
+    /// (`write_folder`); it is counted (`checkpoint_failures` in /metrics)
+    /// and logged here, and returned for the caller to decide: the final
+    /// checkpoint's is the run's error, an interval's is retried.
     fn checkpoint(&mut self) -> Result<(), LearnerError> {
         self.last_checkpoint = Instant::now();
         let mut meta = self.schedule.meta.clone();
@@ -415,7 +422,10 @@ impl TrainingLoop {
         meta.episode = self.episodes() as usize;
         meta.policy_version = self.shared.policy_version();
         meta.actor_sequences = self.shared.ingest().sequences().clone();
-        let dir = write_checkpoint(&self.schedule.run_dir, self.agent.as_ref(), &meta)?;
+        let dir = write_checkpoint(&self.schedule.run_dir, self.agent.as_ref(), &meta).inspect_err(|e| {
+            self.shared.flow_mut().checkpoint_failures += 1;
+            tracing::error!(episodes = meta.episode, "checkpoint failed: {e}");
+        })?;
         tracing::info!(checkpoint = %dir.display(), episodes = meta.episode, policy_version = meta.policy_version, "checkpoint written");
         Ok(())
     }
