@@ -86,7 +86,7 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("lcrl: error: {e:#}");
+            eprintln!("lcrl: error: {}", lcrl_proto::process::error_chain(&e));
             ExitCode::FAILURE
         }
     }

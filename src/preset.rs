@@ -137,6 +137,11 @@ fn one() -> usize {
     1
 }
 
+/// The most actor processes a preset (or `lcrl run --actors`) may ask for.
+pub const MAX_ACTORS: usize = 256;
+/// The most environments per actor (`lcrl-actor --envs` takes as many).
+pub const MAX_ENVS_PER_ACTOR: usize = 1024;
+
 /// A loaded, checked preset.
 #[derive(Debug, Clone)]
 pub struct Preset {
@@ -185,9 +190,16 @@ impl Preset {
         if job.actors == 0 || job.envs_per_actor == 0 || job.episodes == 0 {
             bail!("job.actors, job.envs_per_actor and job.episodes must be at least 1");
         }
+        // Each actor is a process on this machine (`lcrl run`) and each
+        // environment an instance in it: a typo must not fork thousands.
+        for (key, value, most) in [("actors (--actors)", job.actors, MAX_ACTORS), ("envs_per_actor", job.envs_per_actor, MAX_ENVS_PER_ACTOR)] {
+            if value > most {
+                bail!("job.{key} must be from 1 to {most}, not {value}");
+            }
+        }
         // The learner and the actors would refuse these too, but only once
         // the run has started; a preset check should say so first.
-        for (key, value, most) in [("publish_every", job.publish_every, u64::MAX), ("queued_batches", job.queued_batches, 1024), ("actor_batch", job.actor_batch, u64::MAX)] {
+        for (key, value, most) in [("publish_every", job.publish_every, u64::MAX), ("queued_batches", job.queued_batches, 1024), ("actor_batch", job.actor_batch, 4096)] {
             match value {
                 Some(0) => bail!("job.{key} must be at least 1, not 0"),
                 Some(v) if v > most => bail!("job.{key} must be at most {most}, not {v}"),
@@ -310,7 +322,7 @@ impl Preset {
     /// (host name and process id), as replicas in containers must.
     pub fn actor_args(&self, learner: &str, run_id: &str, transport: &str, actor_id: Option<&str>, seed_offset: u64) -> Vec<OsString> {
         let mut args = os(&["--learner", learner, "--run-id", run_id, "--transport", transport]);
-        args.extend(os(&["--envs", &self.job.envs_per_actor.to_string(), "--seed", &(self.train.run.seed + seed_offset).to_string()]));
+        args.extend(os(&["--envs", &self.job.envs_per_actor.to_string(), "--seed", &self.train.run.seed.wrapping_add(seed_offset).to_string()]));
         if let Some(batch) = self.job.actor_batch {
             args.extend(os(&["--batch", &batch.to_string()]));
         }
@@ -463,11 +475,15 @@ mod tests {
     fn lag_settings_out_of_range_fail_the_check() {
         preset("publish_every = 1\nqueued_batches = 1024\nactor_batch = 1\n").check().unwrap();
         let mut good = preset("");
-        let edits: [(fn(&mut Preset), &str); 4] = [
+        let edits: [(fn(&mut Preset), &str); 7] = [
             (|p| p.job.publish_every = Some(0), "job.publish_every"),
             (|p| p.job.queued_batches = Some(0), "job.queued_batches"),
             (|p| p.job.queued_batches = Some(1025), "job.queued_batches"),
             (|p| p.job.actor_batch = Some(0), "job.actor_batch"),
+            (|p| p.job.actor_batch = Some(4097), "job.actor_batch"),
+            // A process each on this machine: bounded, not a fork bomb.
+            (|p| p.job.actors = MAX_ACTORS + 1, "job.actors"),
+            (|p| p.job.envs_per_actor = usize::MAX, "job.envs_per_actor"),
         ];
         for (edit, key) in edits {
             let mut p = good.clone();

@@ -37,8 +37,8 @@ struct Args {
     learner: String,
     #[arg(long, value_enum, default_value_t = Transport::Grpc)]
     transport: Transport,
-    /// Environment instances in this process.
-    #[arg(long, default_value_t = 1)]
+    /// Environment instances in this process (1 to 1024).
+    #[arg(long, default_value_t = 1, value_parser = lcrl_proto::process::count_in::<1, MAX_ENVS>)]
     envs: usize,
     /// The run to join (must match the learner's --run-id).
     #[arg(long, default_value = "default")]
@@ -49,19 +49,19 @@ struct Args {
     /// Transitions per batch. Default: 16 for DDPG (a batch's steps all
     /// wait for the learner together, so a smaller batch is less policy
     /// lag), 64 for PPO (each batch end cuts PPO's advantage estimates);
-    /// docs/scaling.md, "Policy lag".
-    #[arg(long)]
+    /// docs/scaling.md, "Policy lag". 1 to 4096.
+    #[arg(long, value_parser = lcrl_proto::process::count_in::<1, MAX_BATCH>)]
     batch: Option<usize>,
     /// Exploration noise std in normalized action units (DDPG; PPO uses the
-    /// policy's own std).
-    #[arg(long, default_value_t = 0.1)]
+    /// policy's own std). A finite number ≥ 0.
+    #[arg(long, default_value_t = 0.1, value_parser = noise_std)]
     noise: f64,
     /// Seed of episodes and noise.
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Give up when the learner stays unreachable this long, seconds (at
-    /// start and after losing it).
-    #[arg(long, default_value_t = 120)]
+    /// start and after losing it); 1 to 86400 (a day).
+    #[arg(long, default_value_t = 120, value_parser = clap::value_parser!(u64).range(1..=MAX_CONNECT_DEADLINE_S))]
     connect_deadline: u64,
     /// Stop after this many episodes in total (default: run until stopped).
     #[arg(long)]
@@ -75,6 +75,24 @@ struct Args {
     log_json: bool,
     #[command(flatten)]
     security: ClientSecurityArgs,
+}
+
+/// The most environments one actor process runs (`--envs`).
+const MAX_ENVS: usize = 1024;
+/// The most transitions per batch (`--batch`): a gRPC batch stays far
+/// below the learner's message limit.
+const MAX_BATCH: usize = 4096;
+/// The longest `--connect-deadline`, seconds (a day): a longer one would
+/// overflow the clock's deadline arithmetic.
+const MAX_CONNECT_DEADLINE_S: u64 = 86_400;
+
+/// `--noise`: a finite standard deviation ≥ 0 (NaN would poison every
+/// action it is added to).
+fn noise_std(text: &str) -> Result<f64, String> {
+    match text.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err("expected a finite number ≥ 0 (a standard deviation in normalized action units)".to_string()),
+    }
 }
 
 fn main() -> std::process::ExitCode {

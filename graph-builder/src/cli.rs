@@ -16,8 +16,9 @@ pub struct GraphArgs {
     /// environment behind `python -m lcrl_env serve`; CS3 needs it to fork).
     #[arg(long)]
     pub env: String,
-    /// ST: CS3 samples per action component; more samples, steadier phi.
-    #[arg(long, default_value_t = 256)]
+    /// ST: CS3 samples per action component; more samples, steadier phi
+    /// (1 to 100000).
+    #[arg(long, default_value_t = 256, value_parser = lcrl_proto::process::count_in::<1, MAX_SAMPLES>)]
     pub samples: usize,
     /// T of eq. 7: keep action i for state j when phi(i,j) ≥ T × the mean
     /// effect of all actions on j [default: 0.1, the publication's value].
@@ -43,11 +44,13 @@ pub struct GraphArgs {
     /// Seed of the CS3 sampling; the same seed gives the same graph.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Rollout threads (0: one per core); the result does not depend on it.
-    #[arg(long, default_value_t = 0)]
+    /// Rollout threads (0: one per core, at most 1024); the result does
+    /// not depend on it.
+    #[arg(long, default_value_t = 0, value_parser = lcrl_proto::process::count_in::<0, MAX_THREADS>)]
     pub threads: usize,
-    /// Bootstrap resamples for each entry's stability (0 to skip).
-    #[arg(long, default_value_t = crate::DEFAULT_BOOTSTRAP)]
+    /// Bootstrap resamples for each entry's stability (0 to skip, at most
+    /// 100000).
+    #[arg(long, default_value_t = crate::DEFAULT_BOOTSTRAP, value_parser = lcrl_proto::process::count_in::<0, MAX_BOOTSTRAP>)]
     pub bootstrap: usize,
     /// Write the graph as JSON here (read back by `lcrl train --graph`).
     #[arg(long, value_name = "FILE.json")]
@@ -68,6 +71,13 @@ pub struct GraphArgs {
     #[arg(long, value_name = "FILE.png", value_parser = crate::plot::png_path)]
     pub plot: Option<PathBuf>,
 }
+
+/// The most CS3 samples per action (`--samples`).
+pub const MAX_SAMPLES: usize = 100_000;
+/// The most rollout threads (`--threads`).
+pub const MAX_THREADS: usize = 1024;
+/// The most bootstrap resamples (`--bootstrap`).
+pub const MAX_BOOTSTRAP: usize = 100_000;
 
 impl GraphArgs {
     pub fn options(&self) -> GraphOptions {

@@ -73,8 +73,8 @@ struct Args {
     /// Connection local: fetch the graph from this graph builder (gRPC URL).
     #[arg(long)]
     graph_builder: Option<String>,
-    /// How long to wait for the graph builder, seconds.
-    #[arg(long, default_value_t = 300)]
+    /// How long to wait for the graph builder, seconds (1 to 86400).
+    #[arg(long, default_value_t = 300, value_parser = clap::value_parser!(u64).range(1..=86_400))]
     graph_timeout: u64,
     /// DDPG: publish a new policy version every this many updates. Every
     /// update between two versions is policy lag for the actors, and lag
@@ -89,8 +89,8 @@ struct Args {
     #[arg(long, default_value_t = 0)]
     max_staleness: u64,
     /// Checkpoint at this interval, seconds (and on SIGTERM/Ctrl-C); the
-    /// newest 3 checkpoints are kept.
-    #[arg(long, default_value_t = 60.0)]
+    /// newest 3 checkpoints are kept. More than 0, at most 604800 (a week).
+    #[arg(long, default_value_t = 60.0, value_parser = checkpoint_secs)]
     checkpoint_secs: f64,
     /// Store transitions but never train (for ingestion benchmarks).
     #[arg(long)]
@@ -141,6 +141,19 @@ struct Args {
     /// own certificate to it (mutual TLS). The token is --token-file's.
     #[arg(long, value_name = "PEM")]
     graph_builder_tls_ca: Option<PathBuf>,
+}
+
+/// The longest `--checkpoint-secs`: a week (a longer interval would
+/// overflow the clock's arithmetic long before it mattered).
+const MAX_CHECKPOINT_SECS: f64 = 7.0 * 86_400.0;
+
+/// `--checkpoint-secs`: a finite number of seconds in (0, a week], checked
+/// as the arguments are parsed, before any work.
+fn checkpoint_secs(text: &str) -> Result<f64, String> {
+    match text.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 && v <= MAX_CHECKPOINT_SECS => Ok(v),
+        _ => Err(format!("expected a number of seconds above 0 and at most {MAX_CHECKPOINT_SECS} (a week)")),
+    }
 }
 
 fn main() -> std::process::ExitCode {
@@ -260,9 +273,6 @@ async fn run(args: Args) -> anyhow::Result<()> {
     // whole queue ahead acts with a policy that many updates old), and the
     // rate limiter holds actors back through this queue.
     let (commands, inbox) = mpsc::channel(args.queued_batches as usize);
-    if !(args.checkpoint_secs.is_finite() && args.checkpoint_secs > 0.0) {
-        bail!("--checkpoint-secs must be a positive number of seconds");
-    }
     // The run's policy is chosen on held-out starts as `lcrl train` chooses
     // it (run.validation_episodes, run.validate_every), on its own thread.
     let validator = match lcrl_learner::selection::Selection::new(&config.run, &args.run_dir, checkpoint.is_some())? {

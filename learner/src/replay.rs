@@ -69,7 +69,20 @@ impl ReplayBuffer {
         self.reward.is_empty()
     }
 
-    pub fn push(&mut self, obs: &[f32], action: &[f32], reward: f32, next_obs: &[f32], done: bool) {
+    /// Stores one transition, overwriting the oldest once full. Every field
+    /// is checked against the buffer's widths first: a transition with a
+    /// short or long `obs`, `action` or `next_obs` is refused with an error
+    /// and the buffer is left as it was (stored, it would shift every later
+    /// row or panic on overwrite).
+    pub fn push(&mut self, obs: &[f32], action: &[f32], reward: f32, next_obs: &[f32], done: bool) -> Result<(), String> {
+        for (field, len, width) in [("obs", obs.len(), self.obs_dim), ("action", action.len(), self.action_dim), ("next_obs", next_obs.len(), self.obs_dim)] {
+            if len != width {
+                return Err(format!("transition refused: {field} holds {len} values, the replay buffer stores {width}"));
+            }
+        }
+        if self.capacity == 0 {
+            return Err("transition refused: the replay buffer has no capacity".into());
+        }
         let done = f32::from(u8::from(done));
         self.pushed += 1;
         if self.len() < self.capacity {
@@ -78,7 +91,7 @@ impl ReplayBuffer {
             self.reward.push(reward);
             self.next_obs.extend_from_slice(next_obs);
             self.done.push(done);
-            return;
+            return Ok(());
         }
         let k = self.cursor;
         self.obs[k * self.obs_dim..(k + 1) * self.obs_dim].copy_from_slice(obs);
@@ -87,6 +100,7 @@ impl ReplayBuffer {
         self.next_obs[k * self.obs_dim..(k + 1) * self.obs_dim].copy_from_slice(next_obs);
         self.done[k] = done;
         self.cursor = (self.cursor + 1) % self.capacity;
+        Ok(())
     }
 
     /// `size` slots drawn uniformly with replacement.
@@ -133,6 +147,7 @@ impl ReplayBuffer {
             Vec::<f32>::try_from(t.flatten(0, -1)).map_err(|e| e.to_string())
         };
         let cursor = named.iter().find(|(n, _)| n == "cursor").map(|(_, t)| i64::try_from(t)).ok_or("replay buffer lacks cursor")?;
+        let cursor = usize::try_from(cursor.map_err(|e| e.to_string())?).map_err(|_| "replay buffer's cursor is negative".to_string())?;
         let mut buffer = ReplayBuffer {
             capacity,
             obs_dim,
@@ -142,7 +157,7 @@ impl ReplayBuffer {
             reward: get("reward")?,
             next_obs: get("next_obs")?,
             done: get("done")?,
-            cursor: cursor.map_err(|e| e.to_string())? as usize,
+            cursor,
             pushed: 0,
         };
         if buffer.cursor >= capacity.max(1) || buffer.len() > capacity {
@@ -150,8 +165,18 @@ impl ReplayBuffer {
         }
         // The next push goes to the cursor once full, else to the end.
         buffer.pushed = if buffer.len() == capacity { (capacity + buffer.cursor) as u64 } else { buffer.len() as u64 };
-        if buffer.obs.len() != buffer.len() * obs_dim || buffer.action.len() != buffer.len() * action_dim {
-            return Err("replay buffer shapes do not match the environment".into());
+        // Field by field: a short `next_obs` or `done` would panic at the
+        // first minibatch that draws a row past its end.
+        let rows = buffer.len();
+        for (field, len, width) in [
+            ("obs", buffer.obs.len(), obs_dim),
+            ("action", buffer.action.len(), action_dim),
+            ("next_obs", buffer.next_obs.len(), obs_dim),
+            ("done", buffer.done.len(), 1),
+        ] {
+            if Some(len) != rows.checked_mul(width) {
+                return Err(format!("replay buffer shapes do not match the environment: {field} holds {len} values, {rows} transitions need {}", rows * width));
+            }
         }
         Ok(buffer)
     }
@@ -254,7 +279,7 @@ mod tests {
         let mut buffer = ReplayBuffer::new(3, 2, 1);
         for k in 0..5 {
             let v = k as f32;
-            buffer.push(&[v, v], &[v], v, &[v + 1.0, v + 1.0], k == 4);
+            buffer.push(&[v, v], &[v], v, &[v + 1.0, v + 1.0], k == 4).unwrap();
         }
         assert_eq!(buffer.len(), 3);
         // Transitions 0 and 1 were overwritten by 3 and 4.
@@ -269,6 +294,44 @@ mod tests {
         assert_eq!(batch.obs.size(), vec![8, 2]);
         let rewards: Vec<f32> = Vec::try_from(batch.reward.flatten(0, -1)).unwrap();
         assert!(rewards.iter().all(|r| [2.0, 3.0, 4.0].contains(r)));
+    }
+
+    /// A transition whose fields do not have the buffer's widths is refused
+    /// field by field, filling or full, and leaves the buffer as it was; so
+    /// is a restored buffer whose `next_obs` or `done` is short (it used to
+    /// be accepted when only obs and action matched, and panicked at the
+    /// first minibatch that drew a row past the end).
+    #[test]
+    fn refuses_transitions_and_buffers_of_the_wrong_width() {
+        let mut buffer = ReplayBuffer::new(2, 2, 1);
+        for fill in 0..3 {
+            let before = buffer.clone();
+            for (field, (obs, action, next_obs)) in [
+                ("obs", (&[1.0][..], &[0.5][..], &[1.0, 2.0][..])),
+                ("action", (&[1.0, 2.0][..], &[][..], &[1.0, 2.0][..])),
+                ("next_obs", (&[1.0, 2.0][..], &[0.5][..], &[1.0][..])),
+                ("next_obs", (&[1.0, 2.0][..], &[0.5][..], &[1.0, 2.0, 3.0][..])),
+            ] {
+                let err = buffer.push(obs, action, 0.0, next_obs, false).expect_err(field);
+                assert!(err.contains(field), "{err}");
+                assert_eq!(buffer, before, "a refused transition leaves the buffer as it was");
+            }
+            // Fill the buffer, then overwrite: the checks hold in both modes.
+            buffer.push(&[fill as f32; 2], &[0.0], 0.0, &[0.0; 2], false).unwrap();
+        }
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        assert_eq!(buffer.sample(4, &mut rng).next_obs.size(), vec![4, 2]);
+        assert!(ReplayBuffer::new(0, 2, 1).push(&[0.0; 2], &[0.0], 0.0, &[0.0; 2], false).is_err());
+
+        let saved = buffer.to_tensors();
+        for (key, cut) in [("next_obs", Tensor::from_slice(&[1.0f32, 2.0, 3.0])), ("done", Tensor::from_slice(&[0.0f32])), ("obs", Tensor::from_slice(&[0.0f32; 5]))] {
+            let named: Vec<(String, Tensor)> = saved.iter().map(|(n, t)| (n.clone(), if n == key { cut.shallow_clone() } else { t.shallow_clone() })).collect();
+            let err = ReplayBuffer::from_tensors(2, 2, 1, &named).expect_err(key);
+            assert!(err.contains(key), "{err}");
+        }
+        let negative: Vec<(String, Tensor)> = saved.iter().map(|(n, t)| (n.clone(), if n == "cursor" { Tensor::from(-1i64) } else { t.shallow_clone() })).collect();
+        assert!(ReplayBuffer::from_tensors(2, 2, 1, &negative).is_err());
+        assert!(ReplayBuffer::from_tensors(2, 2, 1, &saved).is_ok());
     }
 }
 
@@ -303,7 +366,7 @@ mod mirror_tests {
         for burst in [1, 5, 12, 2, 3] {
             for _ in 0..burst {
                 let v = k as f32;
-                buffer.push(&[v, v + 0.1, v + 0.2], &[-v, v * 0.5], v * 10.0, &[v + 1.0, v + 1.1, v + 1.2], k % 4 == 0);
+                buffer.push(&[v, v + 0.1, v + 0.2], &[-v, v * 0.5], v * 10.0, &[v + 1.0, v + 1.1, v + 1.2], k % 4 == 0).unwrap();
                 k += 1;
             }
             let host = buffer.sample(9, &mut host_rng);
@@ -318,8 +381,8 @@ mod mirror_tests {
         let mut fresh = DeviceMirror::new(&restored, tch::Device::Cpu);
         for k in 100..104 {
             let v = k as f32;
-            buffer.push(&[v; 3], &[v; 2], v, &[v; 3], false);
-            restored.push(&[v; 3], &[v; 2], v, &[v; 3], false);
+            buffer.push(&[v; 3], &[v; 2], v, &[v; 3], false).unwrap();
+            restored.push(&[v; 3], &[v; 2], v, &[v; 3], false).unwrap();
         }
         same(&buffer.sample(20, &mut host_rng), &fresh.sample(&restored, 20, &mut mirror_rng));
     }

@@ -30,9 +30,40 @@ where
     match runtime.block_on(run) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("{name}: error: {e:#}");
+            eprintln!("{name}: error: {}", error_chain(&e));
             ExitCode::FAILURE
         }
+    }
+}
+
+/// An error and its causes on one line, `outer: cause: …`, as `{:#}`
+/// prints them, but without repeating a cause whose text the message
+/// before it already ends with (an I/O error whose message embeds its
+/// `source`, e.g. `missing.toml: No such file or directory (os error 2)`,
+/// would otherwise print its cause twice).
+pub fn error_chain(e: &anyhow::Error) -> String {
+    let mut line = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if line.is_empty() {
+            line = text;
+        } else if !text.is_empty() && !line.ends_with(&text) {
+            line.push_str(": ");
+            line.push_str(&text);
+        }
+    }
+    line
+}
+
+/// A clap value parser for a count from `LO` to `HI`: a value outside is
+/// refused, with the range, as the arguments are parsed (a typo must not
+/// become a huge allocation or an overflow later on).
+pub fn count_in<const LO: usize, const HI: usize>(text: &str) -> Result<usize, String> {
+    let value: usize = text.trim().parse().map_err(|_| format!("expected a whole number from {LO} to {HI}"))?;
+    if (LO..=HI).contains(&value) {
+        Ok(value)
+    } else {
+        Err(format!("{value} is out of range: expected {LO} to {HI}"))
     }
 }
 
@@ -81,4 +112,42 @@ pub fn add_reflection<L>(router: tonic::transport::server::Router<L>, check: &To
     let v1 = configure().build_v1().expect("compiled-in descriptor sets are valid");
     let v1alpha = configure().build_v1alpha().expect("compiled-in descriptor sets are valid");
     router.add_service(InterceptedService::new(v1, check.clone())).add_service(InterceptedService::new(v1alpha, check.clone()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An I/O error whose message embeds its source (thiserror's
+    /// `#[error("{path}: {source}")]`) is printed once, not twice; other
+    /// causes still follow with ": ".
+    #[test]
+    fn an_error_chain_does_not_repeat_its_cause() {
+        #[derive(Debug)]
+        struct Io(std::io::Error);
+        impl std::fmt::Display for Io {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                write!(f, "missing.toml: {}", self.0)
+            }
+        }
+        impl std::error::Error for Io {
+            fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+                Some(&self.0)
+            }
+        }
+        let cause = std::io::Error::new(std::io::ErrorKind::NotFound, "No such file or directory");
+        let e = anyhow::Error::new(Io(cause)).context("reading the config");
+        assert_eq!(error_chain(&e), "reading the config: missing.toml: No such file or directory");
+        let e = anyhow::anyhow!("inner").context("outer");
+        assert_eq!(error_chain(&e), "outer: inner");
+    }
+
+    #[test]
+    fn counts_are_checked_against_their_range() {
+        assert_eq!(count_in::<1, 10>("10"), Ok(10));
+        for bad in ["0", "11", "-1", "x", "18446744073709551616"] {
+            let err = count_in::<1, 10>(bad).unwrap_err();
+            assert!(err.contains("1 to 10"), "{bad}: {err}");
+        }
+    }
 }

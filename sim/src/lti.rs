@@ -97,9 +97,9 @@ impl LtiConfig {
     /// step after that, and nothing else: Lemma 1's G has exactly 3 edges
     /// per action (3N of 2N²), the rest of the state is irrelevant to it.
     /// Stable (eigenvalues 0.9 and 0.9 ± 0.1), so no controller diverges.
-    /// N must be even and at least 2.
+    /// N must be even, at least 2 and at most [`LtiConfig::MAX_BLOCKS`].
     pub fn blocks(n: usize) -> Option<Self> {
-        if n < 2 || n % 2 == 1 {
+        if !(2..=Self::MAX_BLOCKS).contains(&n) || n % 2 == 1 {
             return None;
         }
         let m = 2 * n;
@@ -118,8 +118,13 @@ impl LtiConfig {
         Some(LtiConfig { state_names, action_names, ..Self::from_matrices(e, f) })
     }
 
-    /// The registered block sizes of `lti-blocks-N` (any even N works).
+    /// The registered block sizes of `lti-blocks-N` (any even N from 2 to
+    /// [`LtiConfig::MAX_BLOCKS`] works).
     pub const BLOCK_SIZES: [usize; 4] = [4, 8, 16, 32];
+
+    /// The largest N of `lti-blocks-N`: 256 actions and 512 states (E alone
+    /// is then 2 MB; a name is not a way to ask for any allocation).
+    pub const MAX_BLOCKS: usize = 256;
 
     /// N of a name `lti-blocks-N`.
     pub fn blocks_size(name: &str) -> Option<usize> {

@@ -25,7 +25,7 @@ pub fn make_env(name_or_path: &str) -> Result<Box<dyn Env>, EnvError> {
         return Ok(Box::new(PegEnv::new(name_or_path, cfg)?));
     }
     if let Some(n) = LtiConfig::blocks_size(name_or_path) {
-        let cfg = LtiConfig::blocks(n).ok_or_else(|| EnvError::invalid("lti-blocks-N", format!("N = {n}: N must be even and at least 2 (registered: 4, 8, 16, 32)")))?;
+        let cfg = LtiConfig::blocks(n).ok_or_else(|| EnvError::invalid("lti-blocks-N", format!("N = {n}: N must be even, from 2 to {} (registered: 4, 8, 16, 32)", LtiConfig::MAX_BLOCKS)))?;
         return Ok(Box::new(LtiEnv::new(name_or_path, &cfg)?));
     }
     match name_or_path {
@@ -136,5 +136,19 @@ mod tests {
         assert!(err.contains("`e`") && err.contains("finite"), "{err}");
         let err = make_env("/nonexistent/x.toml").err().unwrap().to_string();
         assert!(err.contains("cannot read"), "{err}");
+    }
+
+    /// `lti-blocks-N` is a name anyone can type: a huge N is refused with
+    /// the accepted range instead of allocating a 2N × 2N matrix (which
+    /// aborted the process).
+    #[test]
+    fn lti_blocks_n_is_bounded() {
+        assert!(LtiConfig::blocks(LtiConfig::MAX_BLOCKS).is_some());
+        assert!(LtiConfig::blocks(LtiConfig::MAX_BLOCKS + 2).is_none());
+        for n in [LtiConfig::MAX_BLOCKS + 2, 1 << 40] {
+            let err = make_env(&format!("lti-blocks-{n}")).err().expect("a huge N is refused").to_string();
+            assert!(err.contains("lti-blocks-N") && err.contains(&LtiConfig::MAX_BLOCKS.to_string()), "{err}");
+        }
+        assert_eq!(make_env("lti-blocks-8").unwrap().spec().action_dim(), 8);
     }
 }

@@ -96,7 +96,14 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Tune { evaluations, episodes } => crate::cmd::bench_sim::tune(evaluations.max(2), episodes.max(1)),
         BenchCommand::SimEpisodes { episodes, substeps } => crate::cmd::bench_sim::episodes(episodes, substeps),
         BenchCommand::Learner { updates, device, threads, python } => bench_learner(updates.max(1), &device, &threads, python.as_deref()),
-        BenchCommand::Transport { seconds } => crate::cmd::bench_transport::run(seconds.max(1.0)),
+        BenchCommand::Transport { seconds } => {
+            // At least 1 s per measurement; at most an hour (1e300 s would
+            // overflow the deadline's clock arithmetic).
+            if !(seconds.is_finite() && seconds <= 3600.0) {
+                anyhow::bail!("--seconds must be a number of seconds up to 3600, got {seconds}");
+            }
+            crate::cmd::bench_transport::run(seconds.max(1.0))
+        }
         BenchCommand::Env { gym, instances, steps } => crate::cmd::bench_env::run(&gym, &instances, steps.max(1)),
     }
 }

@@ -16,21 +16,35 @@ pub struct HealthArgs {
     /// lcrl.v1.Policy); empty: the server as a whole.
     #[arg(long, default_value = "")]
     pub service: String,
-    /// Give up after this many seconds.
-    #[arg(long, default_value_t = 5.0)]
+    /// Give up after this many seconds (above 0, at most 3600).
+    #[arg(long, default_value_t = 5.0, value_parser = timeout_secs)]
     pub timeout: f64,
     #[command(flatten)]
     pub security: ClientSecurityArgs,
 }
 
-pub fn health(args: &HealthArgs) -> anyhow::Result<()> {
-    if !(args.timeout.is_finite() && args.timeout > 0.0) {
-        bail!("--timeout must be a positive number of seconds");
+/// The longest `--timeout`, seconds: an hour is already far past any
+/// health check's patience (and 1e300 s would not fit a `Duration`).
+const MAX_TIMEOUT_S: f64 = 3600.0;
+
+/// `--timeout`: seconds above 0 and at most [`MAX_TIMEOUT_S`].
+fn timeout_secs(text: &str) -> Result<f64, String> {
+    match text.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 && v <= MAX_TIMEOUT_S => Ok(v),
+        _ => Err(format!("expected a number of seconds above 0 and at most {MAX_TIMEOUT_S}")),
     }
+}
+
+pub fn health(args: &HealthArgs) -> anyhow::Result<()> {
+    // Checked again here (without a panic) for callers that build the
+    // arguments themselves.
+    let Some(timeout) = Duration::try_from_secs_f64(args.timeout).ok().filter(|t| !t.is_zero() && t.as_secs_f64() <= MAX_TIMEOUT_S) else {
+        bail!("--timeout must be a number of seconds above 0 and at most {MAX_TIMEOUT_S}, got {}", args.timeout);
+    };
     let security = ClientSecurity::from_args(&args.security)?;
     let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
     let what = if args.service.is_empty() { args.url.clone() } else { format!("{} at {}", args.service, args.url) };
-    match runtime.block_on(async { tokio::time::timeout(Duration::from_secs_f64(args.timeout), is_serving(&args.url, &args.service, &security)).await }) {
+    match runtime.block_on(async { tokio::time::timeout(timeout, is_serving(&args.url, &args.service, &security)).await }) {
         Ok(Ok(true)) => {
             println!("{what}: SERVING");
             Ok(())

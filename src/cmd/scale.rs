@@ -95,11 +95,20 @@ pub struct ScalePoint {
 }
 
 pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
-    if args.actors.is_empty() || args.actors.contains(&0) || args.envs_per_actor.contains(&0) {
-        bail!("--actors and --envs-per-actor take counts of at least 1");
+    use lcrl::preset::{MAX_ACTORS, MAX_ENVS_PER_ACTOR};
+    if args.actors.is_empty() || args.actors.iter().any(|a| !(1..=MAX_ACTORS).contains(a)) {
+        bail!("--actors takes counts from 1 to {MAX_ACTORS}");
     }
-    if !(args.seconds.is_finite() && args.seconds > 0.0 && args.warmup.is_finite() && args.warmup >= 0.0) {
-        bail!("--seconds must be > 0 and --warmup ≥ 0");
+    if args.envs_per_actor.iter().any(|e| !(1..=MAX_ENVS_PER_ACTOR).contains(e)) {
+        bail!("--envs-per-actor takes counts from 1 to {MAX_ENVS_PER_ACTOR}");
+    }
+    // A day at most: longer would overflow the clock's arithmetic.
+    const DAY: f64 = 86_400.0;
+    for (flag, value, least) in [("--seconds", args.seconds, f64::MIN_POSITIVE), ("--warmup", args.warmup, 0.0), ("--threshold-timeout", args.threshold_timeout, 0.0)] {
+        if !(value.is_finite() && value >= least && value <= DAY) {
+            let lower = if least > 0.0 { "above 0" } else { "from 0" };
+            bail!("{flag} must be a number of seconds {lower} and at most {DAY}, got {value}");
+        }
     }
     let mut preset = Preset::load(&args.config)?;
     preset.set_compute(&args.compute)?;

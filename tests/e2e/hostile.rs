@@ -231,3 +231,88 @@ async fn a_malformed_graph_from_a_graph_builder_is_refused() {
     super::common::assert_clean_failure(&out, "G has 8 entries but a 3×3 graph needs 9");
     assert!(!run_dir.join("checkpoints").exists(), "no training started on the malformed graph");
 }
+
+/// Whatever a user types on a command line is refused with an error that
+/// names the option and what it accepts, a non-zero exit and no panic:
+/// durations that would overflow the clock (`Duration::from_secs_f64(1e300)`,
+/// `Instant::now() + u64::MAX s` used to panic), NaN noise (used to be
+/// accepted silently), counts that would allocate or fork without bound,
+/// and an `lti-blocks-N` whose N would not fit in memory (used to abort).
+/// A missing `--config` file is reported once, not its cause twice.
+#[test]
+fn bad_numbers_on_the_command_line_are_refused_without_a_panic() {
+    use super::common::{assert_clean_failure, lcrl, stderr, workspace_bin};
+    let work = tempfile::tempdir().unwrap();
+    let run_dir = work.path().join("learner");
+    let run_dir = run_dir.to_str().unwrap();
+    let learner = |extra: &[&str]| {
+        let mut cmd = workspace_bin("lcrl-learner");
+        cmd.args(["--env", "lti-paper", "--algo", "ddpg", "--listen", "127.0.0.1:0", "--run-dir", run_dir]).args(extra);
+        cmd
+    };
+    let actor = |extra: &[&str]| {
+        let mut cmd = workspace_bin("lcrl-actor");
+        // Nothing listens on port 1: an accepted value would fail later
+        // (within a second), with another message.
+        cmd.args(["--learner", "http://127.0.0.1:1"]).args(extra);
+        cmd
+    };
+    let graph_builder = |extra: &[&str]| {
+        let mut cmd = workspace_bin("lcrl-graph-builder");
+        cmd.args(["--listen", "127.0.0.1:0"]).args(extra);
+        cmd
+    };
+    let cases: Vec<(std::process::Command, &[&str])> = vec![
+        (learner(&["--connection", "global", "--checkpoint-secs", "1e300"]), &["--checkpoint-secs", "604800"]),
+        (learner(&["--connection", "global", "--checkpoint-secs", "nan"]), &["--checkpoint-secs", "604800"]),
+        (learner(&["--connection", "global", "--checkpoint-secs", "0"]), &["--checkpoint-secs", "above 0"]),
+        (learner(&["--connection", "local", "--graph-builder", "http://127.0.0.1:1", "--graph-timeout", "18446744073709551615"]), &["--graph-timeout", "86400"]),
+        ({
+            let mut cmd = workspace_bin("lcrl-learner");
+            cmd.args(["--env", "lti-blocks-1099511627776", "--algo", "ddpg", "--connection", "global", "--run-dir", run_dir]);
+            cmd
+        }, &["lti-blocks-N", "256"]),
+        (actor(&["--connect-deadline", "18446744073709551615"]), &["--connect-deadline", "86400"]),
+        (actor(&["--connect-deadline", "0"]), &["--connect-deadline", "86400"]),
+        (actor(&["--noise", "nan"]), &["--noise", "finite"]),
+        (actor(&["--noise=-1"]), &["--noise", "≥ 0"]),
+        (actor(&["--noise", "inf"]), &["--noise", "finite"]),
+        (actor(&["--envs", "100000000000"]), &["--envs", "1024"]),
+        (actor(&["--batch", "0"]), &["--batch", "4096"]),
+        (graph_builder(&["--env", "lti-paper", "--samples", "18446744073709551615"]), &["--samples", "100000"]),
+        (graph_builder(&["--env", "lti-paper", "--threads", "1000000000"]), &["--threads", "1024"]),
+        (graph_builder(&["--env", "lti-blocks-1099511627776"]), &["lti-blocks-N", "256"]),
+        ({
+            let mut cmd = lcrl();
+            cmd.args(["health", "http://127.0.0.1:1", "--timeout", "1e300"]);
+            cmd
+        }, &["--timeout", "3600"]),
+        ({
+            let mut cmd = lcrl();
+            cmd.args(["run", "--config", concat!(env!("CARGO_MANIFEST_DIR"), "/configs/lti-paper.toml"), "--actors", "1000000", "--check"]);
+            cmd
+        }, &["job.actors", "256"]),
+    ];
+    for (mut cmd, needles) in cases {
+        let shown = format!("{cmd:?}");
+        let out = cmd.output().unwrap();
+        assert_clean_failure(&out, needles[0]);
+        let err = stderr(&out);
+        for needle in needles {
+            assert!(err.contains(needle), "{shown}: the error should say {needle:?}: {err}");
+        }
+    }
+    assert!(!std::path::Path::new(run_dir).join("checkpoints").exists(), "nothing trained on a refused option");
+
+    // `--config missing.toml`: one error line, the OS's reason once.
+    let missing = work.path().join("missing.toml");
+    let missing = missing.to_str().unwrap();
+    let mut train = lcrl();
+    train.args(["train", "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--config", missing]).arg("--run-dir").arg(work.path().join("train"));
+    for mut cmd in [learner(&["--connection", "global", "--config", missing]), train] {
+        let out = cmd.output().unwrap();
+        assert_clean_failure(&out, "missing.toml");
+        let err = stderr(&out);
+        assert_eq!(err.matches("No such file or directory").count(), 1, "the cause is printed once: {err}");
+    }
+}

@@ -384,8 +384,13 @@ impl Agent for Ddpg {
     }
 
     fn store(&mut self, t: Transition) {
-        self.replay.push(t.obs, t.action, t.reward, t.next_obs, t.terminated);
-        self.counters.env_steps += 1;
+        // Ingestion checks every field's length before a transition gets
+        // here; a transition that still does not fit is refused, not stored
+        // misaligned (or a panic on overwrite).
+        match self.replay.push(t.obs, t.action, t.reward, t.next_obs, t.terminated) {
+            Ok(()) => self.counters.env_steps += 1,
+            Err(e) => tracing::warn!("{e}"),
+        }
     }
 
     /// One round: `gradient_steps` updates (1: Algorithm 2's one).

@@ -30,7 +30,7 @@ fn probe_after_updates(mut agent: Ddpg, seed: u64, data: (usize, f32), reward: i
     for _ in 0..data.0 {
         let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
         let a: f32 = rng.random_range(-data.1..data.1);
-        agent.replay.push(&s, &[a], reward(a), &s, true);
+        agent.replay.push(&s, &[a], reward(a), &s, true).unwrap();
     }
     for _ in 0..updates {
         agent.update();
@@ -51,7 +51,7 @@ fn actor_waits_for_the_critics_head_start() {
     for _ in 0..64 {
         let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
         let a: f32 = rng.random_range(-1.0..1.0);
-        agent.replay.push(&s, &[a], -(s[0] * s[0]) - a * a, &s, false);
+        agent.replay.push(&s, &[a], -(s[0] * s[0]) - a * a, &s, false).unwrap();
     }
     let critic = |agent: &Ddpg| -> Vec<f32> {
         crate::agent::sorted_variables(&agent.critics[0].vs).iter().flat_map(|(_, t)| Vec::<f32>::try_from(t.flatten(0, -1)).expect("f32 tensor")).collect()
@@ -107,7 +107,7 @@ fn temporal_smoothness_pulls_the_actions_of_consecutive_states_together() {
             let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
             let a: f32 = rng.random_range(-1.0..1.0);
             let next = if mirrored { [-s[0], -s[1]] } else { s };
-            agent.replay.push(&s, &[a], -(a - 0.8 * s[0]).powi(2), &next, true);
+            agent.replay.push(&s, &[a], -(a - 0.8 * s[0]).powi(2), &next, true).unwrap();
         }
         for _ in 0..400 {
             agent.update();
@@ -158,7 +158,7 @@ fn the_actors_learning_rate_ramps_up_over_its_first_steps() {
         let mut rng = ChaCha8Rng::seed_from_u64(9);
         for _ in 0..64 {
             let s = [rng.random_range(-1.0f32..1.0), rng.random_range(-1.0f32..1.0)];
-            agent.replay.push(&s, &[rng.random_range(-1.0..1.0)], -(s[0] * s[0]), &s, true);
+            agent.replay.push(&s, &[rng.random_range(-1.0..1.0)], -(s[0] * s[0]), &s, true).unwrap();
         }
         let before = actor_weights(&agent);
         // Updates 1–2: the critic's head start; 3 is odd; 4 is the actor's first step.
@@ -232,7 +232,7 @@ fn update_rule_finds_the_optimal_gain_on_exploratory_data() {
         for _ in 0..5000 {
             let s: f32 = rng.random_range(-2.0..2.0);
             let a: f32 = rng.random_range(-1.0..1.0);
-            agent.replay.push(&[s], &[a], -(s * s + 0.1 * a * a), &[s + a], false);
+            agent.replay.push(&[s], &[a], -(s * s + 0.1 * a * a), &[s + a], false).unwrap();
         }
         for _ in 0..4000 {
             agent.update();
