@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # End-to-end check of deploy/compose.yaml on this machine's Docker engine:
 # builds the image, starts graph builder + learner + 2 actors on the linear
-# preset, checks training progresses (GetStatus), kills one actor container
-# and checks the learner keeps training and the restarted actor rejoins,
-# then tears everything down. Skips (exit 0, with a message) when no Docker
+# preset through deploy/compose.sh (which generates the token), checks the
+# safe defaults (ports on 127.0.0.1 only, the token required, no container
+# running as root), checks training progresses (GetStatus), kills one actor
+# container and checks the learner keeps training and the restarted actor
+# rejoins, then tears everything down. Skips (exit 0, with a message) when no Docker
 # engine or docker-compose is available.
 #   bash deploy/compose-e2e.sh
 set -euo pipefail
@@ -28,10 +30,12 @@ bash deploy/build-image.sh lcrl:local
 lcrl=target/debug/lcrl
 project="lcrl-e2e-$$"
 run_dir="$(mktemp -d /tmp/lcrl-compose-XXXXXX)"
+# compose.sh generates the token here at set-up.
+export LCRL_SECRETS_DIR="$run_dir/secrets"
 # A budget the test never reaches: it checks that training goes on through
 # a lost and a rejoined actor, so the learner must not finish meanwhile.
-export LCRL_PRESET=lti-paper.toml LCRL_RUN_DIR="$run_dir" LCRL_RUN_ID="e2e-$$" LCRL_EPISODES=100000000
-dc() { "${compose[@]}" -p "$project" -f deploy/compose.yaml "$@"; }
+export LCRL_PRESET=lti-paper.toml LCRL_RUN_DIR="$run_dir/run" LCRL_RUN_ID="e2e-$$" LCRL_EPISODES=100000000
+dc() { bash deploy/compose.sh -p "$project" "$@"; }
 cleanup() {
   status=$?
   if [ $status -ne 0 ]; then
@@ -46,7 +50,7 @@ trap cleanup EXIT
 
 fail() { echo "compose-e2e: FAILED: $*" >&2; exit 1; }
 # field NAME: one number from the learner's status.
-status() { "$lcrl" status "$url"; }
+status() { "$lcrl" status "$url" --token-file "$LCRL_SECRETS_DIR/token"; }
 field() { status | python3 -c "import json,sys; print(json.load(sys.stdin)['$1'])"; }
 # wait_until SECONDS DESCRIPTION COMMAND...: polls until COMMAND succeeds.
 wait_until() {
@@ -59,9 +63,16 @@ wait_until() {
 }
 
 dc up -d --scale actor=2
-url="http://$(dc port learner 50052)"
+[ -s "$LCRL_SECRETS_DIR/token" ] || fail "compose.sh generated no token"
+learner_port=$(dc port learner 50052)
+case "$learner_port" in 127.0.0.1:*) ;; *) fail "the learner is published on $learner_port, not on 127.0.0.1 only" ;; esac
+url="http://$learner_port"
 metrics="http://$(dc port learner 9090)/metrics"
 echo "compose-e2e: stack up, learner at $url"
+for container in $(dc ps -q); do
+  user=$(docker inspect -f '{{.Config.User}}' "$container")
+  case "$user" in ""|0|0:*|root|root:*) fail "container ${container:0:12} runs as root (user '$user')" ;; esac
+done
 
 actors_are() { [ "$(field connected_actors)" = "$1" ]; }
 steps_above() { [ "$(field env_steps)" -gt "$1" ]; }
@@ -77,6 +88,8 @@ for name in ("lcrl_learner_env_steps_total", "lcrl_learner_updates_total", "lcrl
     assert name in text, name
 PY
 echo "compose-e2e: training: $(status)"
+# The generated token guards the plain stack too.
+if "$lcrl" status "$url" >/dev/null 2>&1; then fail "the learner answered a client without the token"; fi
 
 # sed, not head: head exits after one line, and under pipefail a compose
 # still writing the next one dies of SIGPIPE and fails the pipeline.
@@ -106,7 +119,7 @@ dc down -v --remove-orphans >/dev/null 2>&1
 certs="$run_dir/certs"
 "$lcrl" certs --out "$certs" >/dev/null
 export LCRL_TLS_DIR="$certs" LCRL_RUN_ID="e2e-tls-$$"
-dc() { "${compose[@]}" -p "$project" -f deploy/compose.yaml -f deploy/compose.secure.yaml "$@"; }
+dc() { bash deploy/compose.sh -p "$project" -f deploy/compose.secure.yaml "$@"; }
 dc up -d --scale actor=1
 url="https://$(dc port learner 50052)"
 tls=(--tls-ca "$certs/ca.pem" --tls-client-cert "$certs/client.pem" --tls-client-key "$certs/client.key")

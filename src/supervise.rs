@@ -76,17 +76,54 @@ impl Drop for Managed {
     }
 }
 
-/// Makes a child die with this process (Linux: PR_SET_PDEATHSIG): a killed
-/// `lcrl run` or study leaves no server or run behind.
-#[cfg(target_os = "linux")]
+/// Makes a child die with this process (Linux: PR_SET_PDEATHSIG with
+/// SIGKILL): a killed `lcrl run` or study leaves no server or run behind.
+/// See [`signal_on_parent_death`] for the thread that must start it.
 pub fn die_with_parent(command: &mut Command) {
+    signal_on_parent_death(command, ParentDeath::Kill);
+}
+
+/// Makes a child stop with this process (Linux: PR_SET_PDEATHSIG with
+/// SIGTERM), as it stops on Ctrl-C: a learner writes its final checkpoint.
+/// `lcrl run` starts its graph builder, learner and actors so. See
+/// [`signal_on_parent_death`] for the thread that must start it.
+pub fn stop_with_parent(command: &mut Command) {
+    signal_on_parent_death(command, ParentDeath::Terminate);
+}
+
+/// The signal a child gets when its parent dies.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ParentDeath {
+    /// SIGTERM: the child stops as on Ctrl-C (servers and actors of lcrl
+    /// handle it; the learner checkpoints first).
+    Terminate,
+    /// SIGKILL: nothing survives, nothing is saved.
+    Kill,
+}
+
+/// The parent-death signal (Linux: PR_SET_PDEATHSIG), set in the child
+/// between fork and exec, so the child gets `signal` whatever ends this
+/// process: an error, Ctrl-C, kill -9.
+///
+/// The kernel sends it when the *thread* that forked the child exits, not
+/// the process: start such children from the main thread or a thread that
+/// lives as long as the process (not from a `spawn_blocking`, rayon or
+/// other short-lived worker thread), or they are signalled when that thread
+/// ends. The setting survives exec (but for set-user-ID binaries), so it
+/// also holds for a child that execs again, as `lcrl launch` does.
+#[cfg(target_os = "linux")]
+pub fn signal_on_parent_death(command: &mut Command, signal: ParentDeath) {
     use std::os::unix::process::CommandExt;
     let parent = std::process::id() as libc::pid_t;
+    let signal = match signal {
+        ParentDeath::Terminate => libc::SIGTERM,
+        ParentDeath::Kill => libc::SIGKILL,
+    };
     // SAFETY: the closure runs in the forked child before exec and calls
     // only async-signal-safe functions (prctl, getppid, _exit).
     unsafe {
         command.pre_exec(move || {
-            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, signal as libc::c_ulong) != 0 {
                 return Err(std::io::Error::last_os_error());
             }
             // The parent may have died before prctl took effect.
@@ -99,7 +136,7 @@ pub fn die_with_parent(command: &mut Command) {
 }
 
 #[cfg(not(target_os = "linux"))]
-pub fn die_with_parent(_command: &mut Command) {}
+pub fn signal_on_parent_death(_command: &mut Command, _signal: ParentDeath) {}
 
 pub async fn wait_healthy(url: &str, service: &str, what: &str, timeout: Duration, security: &ClientSecurity) -> anyhow::Result<()> {
     let deadline = Instant::now() + timeout;

@@ -2,8 +2,17 @@
 //! builder, learner or actor) from a preset, replacing this process, so a
 //! container or pod runs exactly one server with the same preset `lcrl run`
 //! uses. Addresses come from flags (service names in compose/Kubernetes).
+//!
+//! Servers listen on loopback unless told otherwise; a non-loopback address
+//! needs TLS (`--tls-dir`) or an explicit `--insecure`.
+//!
+//! One process tree: `lcrl launch` starts no child of its own, it becomes
+//! the server (exec), so a container's or pod's stop signal reaches the
+//! server itself, and a parent-death signal set by whoever started
+//! `lcrl launch` (PR_SET_PDEATHSIG survives exec) holds for the server.
 
 use std::ffi::OsString;
+use std::net::SocketAddr;
 use std::os::unix::process::CommandExt;
 use std::path::PathBuf;
 use std::process::Command;
@@ -31,9 +40,16 @@ pub struct LaunchArgs {
     /// Preset (configs/*.toml).
     #[arg(long)]
     pub config: PathBuf,
-    /// Address to serve on (graph builder: 0.0.0.0:50051, learner: 0.0.0.0:50052).
+    /// Address to serve on [default: loopback only, graph builder
+    /// 127.0.0.1:50051, learner 127.0.0.1:50052]. In a container or pod,
+    /// 0.0.0.0:PORT, which needs --tls-dir (or --insecure).
     #[arg(long)]
     pub listen: Option<String>,
+    /// Allow serving plain text on a non-loopback --listen address (anyone
+    /// who reaches it can read the traffic, the token included): only on a
+    /// network nobody else joins, such as compose's.
+    #[arg(long)]
+    pub insecure: bool,
     /// Learner, connection local: the graph builder's URL.
     #[arg(long, default_value = "http://graph-builder:50051")]
     pub graph_builder: String,
@@ -79,11 +95,13 @@ pub fn command_line(args: &LaunchArgs) -> anyhow::Result<(&'static str, Vec<OsSt
     }
     let (binary, mut argv) = match args.role {
         Role::GraphBuilder => {
-            let listen = args.listen.as_deref().unwrap_or("0.0.0.0:50051");
+            let listen = args.listen.as_deref().unwrap_or("127.0.0.1:50051");
+            check_listen(listen, args)?;
             ("lcrl-graph-builder", preset.graph_builder_args(listen, &args.run_dir))
         }
         Role::Learner => {
-            let listen = args.listen.as_deref().unwrap_or("0.0.0.0:50052");
+            let listen = args.listen.as_deref().unwrap_or("127.0.0.1:50052");
+            check_listen(listen, args)?;
             std::fs::create_dir_all(&args.run_dir).with_context(|| format!("creating {}", args.run_dir.display()))?;
             let train = args.run_dir.join("train.toml");
             preset.write_train_config(&train)?;
@@ -108,6 +126,21 @@ pub fn command_line(args: &LaunchArgs) -> anyhow::Result<(&'static str, Vec<OsSt
         argv.push("--log-json".into());
     }
     Ok((binary, argv))
+}
+
+/// A server's --listen address: loopback, or served with TLS, or
+/// `--insecure` said.
+fn check_listen(listen: &str, args: &LaunchArgs) -> anyhow::Result<()> {
+    let addr: SocketAddr = listen.parse().with_context(|| format!("--listen {listen}: not an IP:PORT address (e.g. 127.0.0.1:50052, or 0.0.0.0:50052 in a container)"))?;
+    if !addr.ip().is_loopback() && args.security.tls_dir.is_none() && !args.insecure {
+        bail!(
+            "--listen {listen} is reachable from other hosts, and without TLS anyone who reaches it can read the traffic{}: \
+             add --tls-dir DIR (a folder `lcrl certs` writes), or --insecure to serve plain text anyway (only on a network nobody else joins), \
+             or listen on 127.0.0.1",
+            if args.security.token_file.is_some() || std::env::var_os(lcrl_proto::security::TOKEN_FILE_ENV).is_some() { ", the token included" } else { " and call every RPC" }
+        );
+    }
+    Ok(())
 }
 
 pub fn run(args: &LaunchArgs) -> anyhow::Result<()> {

@@ -15,7 +15,7 @@ use lcrl_proto::v1::GetStatusRequest;
 use lcrl::binaries::sibling;
 use lcrl::preset::{LearnerCompute, Preset};
 use lcrl::run_security::RunSecurity;
-use lcrl::supervise::{die_with_parent, wait_healthy, Managed};
+use lcrl::supervise::{die_with_parent, stop_with_parent, wait_healthy, Managed};
 
 /// Run graph builder, learner and actors on this machine until the episode
 /// budget is reached (or Ctrl-C), collecting everything in the run directory.
@@ -87,6 +87,10 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let train_path = run_dir.join("train.toml");
     preset.write_train_config(&train_path)?;
     let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build()?;
+    // block_on polls `orchestrate` on this, the main thread, which starts
+    // every child: their parent-death signal (supervise::stop_with_parent)
+    // fires when the thread that forked them ends, so it must not be a
+    // runtime worker or any other short-lived thread.
     let transport = match args.transport {
         TransportArg::Grpc => "grpc",
         TransportArg::Shm => "shm",
@@ -143,6 +147,7 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     if job.connection == Connection::Local && given_graph.is_none() {
         let mut cmd = Command::new(sibling("lcrl-graph-builder")?);
         cmd.args(preset.graph_builder_args("127.0.0.1:0", run_dir)).args(security.server_args(false)?);
+        stop_with_parent(&mut cmd);
         let (process, address) = Managed::spawn("graph-builder", cmd, logs, true)?;
         let url = security.url(&format!("http://{}", address.context("the graph builder did not start; see logs/graph-builder.log")?));
         eprintln!("graph builder at {url}: building the connection graph");
@@ -156,6 +161,9 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
         None => learner_cmd.args(preset.learner_args("127.0.0.1:0", &run_id, train_path, &run_dir.join("learner"), graph_url.as_deref())?),
     };
     learner_cmd.args(security.server_args(graph_url.is_some())?);
+    // Whatever ends this process (kill -9 included), the learner gets
+    // SIGTERM and writes its final checkpoint.
+    stop_with_parent(&mut learner_cmd);
     let (mut learner, address) = Managed::spawn("learner", learner_cmd, logs, true)?;
     let url = security.url(&format!("http://{}", address.context("the learner did not start; see logs/learner.log")?));
     wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120), &client_security).await?;
@@ -164,6 +172,7 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     for k in 0..job.actors {
         let mut cmd = Command::new(sibling("lcrl-actor")?);
         cmd.args(preset.actor_args(&url, &run_id, transport, Some(&format!("actor-{k}")), k as u64)).args(security.client_args()?);
+        stop_with_parent(&mut cmd);
         actors.push(Managed::spawn(&format!("actor-{k}"), cmd, logs, false)?.0);
     }
 
@@ -173,15 +182,29 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     }
     let mut client = LearnerClient::new(client_security.connect(&url).await?);
     let (mut last_steps, mut last_updates, mut last_time) = (0u64, 0u64, Instant::now());
+    // Ctrl-C and SIGTERM stop the run in order from here on (before, they
+    // end this process and every child follows by its parent-death signal).
+    // Listening once, not per loop turn, so no signal falls between turns.
+    let mut stop_signals = StopSignals::new()?;
+    let mut last_status = None;
     let interrupted = loop {
         tokio::select! {
-            _ = tokio::signal::ctrl_c() => break true,
+            _ = stop_signals.recv() => break true,
             _ = tokio::time::sleep(Duration::from_millis(500)) => {}
         }
         let status = match client.get_status(GetStatusRequest {}).await {
             Ok(s) => s.into_inner(),
-            Err(e) => bail!("lost the learner ({e}); see {}/learner.log", logs.display()),
+            // Ctrl-C at a terminal reaches the whole process group: the
+            // learner may stop before this process sees its own SIGINT.
+            Err(e) => {
+                tokio::select! {
+                    _ = stop_signals.recv() => break true,
+                    _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+                }
+                bail!("lost the learner ({e}); see {}/learner.log", logs.display())
+            }
         };
+        last_status = Some(status.clone());
         let dt = last_time.elapsed().as_secs_f64().max(1e-9);
         bar.set_position(status.episodes.min(job.episodes));
         bar.set_message(format!(
@@ -199,7 +222,18 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
         }
     };
     bar.finish_and_clear();
-    let final_status = client.get_status(GetStatusRequest {}).await.map(|s| s.into_inner()).ok();
+    // Stopping (up to 30 s for the learner's checkpoint) and the final
+    // evaluation run on; a further Ctrl-C or SIGTERM ends this process at
+    // once, and the children follow by their parent-death signal.
+    tokio::spawn(async move {
+        stop_signals.recv().await;
+        eprintln!("lcrl run: interrupted again; stopping now");
+        std::process::exit(130);
+    });
+    if interrupted {
+        eprintln!("interrupted: stopping the actors, then the learner (it writes a final checkpoint)");
+    }
+    let final_status = client.get_status(GetStatusRequest {}).await.map(|s| s.into_inner()).ok().or(last_status);
     // Actors first (they would only reconnect), then the learner (it
     // checkpoints on SIGTERM), then the graph builder.
     for actor in actors.iter_mut() {
@@ -246,6 +280,29 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
         evaluation.eval_episodes.unwrap_or(preset.train.run.eval_episodes),
         run_dir.display()
     ))
+}
+
+/// Ctrl-C (SIGINT) and SIGTERM, listened to from creation on.
+struct StopSignals {
+    interrupt: tokio::signal::unix::Signal,
+    terminate: tokio::signal::unix::Signal,
+}
+
+impl StopSignals {
+    fn new() -> anyhow::Result<Self> {
+        use tokio::signal::unix::{signal, SignalKind};
+        Ok(StopSignals {
+            interrupt: signal(SignalKind::interrupt()).context("listening for Ctrl-C")?,
+            terminate: signal(SignalKind::terminate()).context("listening for SIGTERM")?,
+        })
+    }
+
+    async fn recv(&mut self) {
+        tokio::select! {
+            _ = self.interrupt.recv() => {}
+            _ = self.terminate.recv() => {}
+        }
+    }
 }
 
 /// The trained policy beside every reference controller, on the same

@@ -17,11 +17,18 @@ fn repo() -> PathBuf {
 /// `lcrl launch ARGS --dry-run` with the manifest's placeholders filled in:
 /// the command line it would run.
 fn dry_run(args: &[String], run_dir: &Path, tls: &Path) -> String {
-    let configs = repo().join("configs");
-    let args: Vec<String> = args.iter().map(|a| local_path(a, run_dir, tls).replace("/configs", &configs.display().to_string())).collect();
-    let out = lcrl().args(&args).arg("--dry-run").output().unwrap();
+    let out = launch_here(args, run_dir, tls).arg("--dry-run").output().unwrap();
     assert!(out.status.success(), "`lcrl {}` fails: {}", args.join(" "), stderr(&out));
     stdout(&out)
+}
+
+/// `lcrl ARGS` with the container's paths mapped to this machine's.
+fn launch_here(args: &[String], run_dir: &Path, tls: &Path) -> std::process::Command {
+    let configs = repo().join("configs");
+    let args: Vec<String> = args.iter().map(|a| local_path(a, run_dir, tls).replace("/configs", &configs.display().to_string())).collect();
+    let mut cmd = lcrl();
+    cmd.args(&args);
+    cmd
 }
 
 /// A container path on this machine: /runs and /tls (the TLS secret) mapped.
@@ -39,6 +46,56 @@ fn certs() -> tempfile::TempDir {
     let out = lcrl().args(["certs", "--out"]).arg(dir.path()).output().unwrap();
     assert!(out.status.success(), "{}", stderr(&out));
     dir
+}
+
+/// The files of a Secret volume as a pod sees them: its `items`, or every
+/// file `lcrl certs` writes when it lists none.
+fn secret_files(volume: &Value) -> Vec<String> {
+    match volume["secret"]["items"].as_sequence() {
+        Some(items) => items
+            .iter()
+            .map(|item| {
+                assert_eq!(item["key"], item["path"], "a Secret item keeps its file name: {item:?}");
+                str_of(item, &["key"]).to_string()
+            })
+            .collect(),
+        None => ["ca.pem", "server.pem", "server.key", "client.pem", "client.key", "token"].map(String::from).to_vec(),
+    }
+}
+
+/// A folder with only `files` of `certs`: /tls as one pod sees it.
+fn tls_with(certs: &Path, files: &[String]) -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    for file in files {
+        std::fs::copy(certs.join(file), dir.path().join(file)).unwrap_or_else(|e| panic!("{file}: not a file `lcrl certs` writes ({e})"));
+    }
+    dir
+}
+
+/// `s` with every `${VAR:-default}` replaced by its default, as compose
+/// reads it with VAR unset.
+fn with_defaults(s: &str) -> String {
+    let mut out = String::new();
+    let mut rest = s;
+    while let Some(start) = rest.find("${") {
+        out.push_str(&rest[..start]);
+        let end = start + rest[start..].find('}').unwrap_or_else(|| panic!("unclosed ${{ in {s}"));
+        out.push_str(rest[start + 2..end].split_once(":-").map_or("", |(_, default)| default));
+        rest = &rest[end + 1..];
+    }
+    out.push_str(rest);
+    out
+}
+
+/// The unprivileged user deploy/Dockerfile runs as (`USER UID:GID`).
+fn image_user() -> (i64, i64) {
+    let dockerfile = std::fs::read_to_string(repo().join("deploy/Dockerfile")).unwrap();
+    let users: Vec<&str> = dockerfile.lines().filter_map(|l| l.trim().strip_prefix("USER ")).collect();
+    assert_eq!(users.len(), 1, "deploy/Dockerfile names one USER: {users:?}");
+    let (uid, gid) = users[0].trim().split_once(':').expect("USER UID:GID, numeric (no /etc/passwd in the image)");
+    let (uid, gid): (i64, i64) = (uid.parse().unwrap(), gid.parse().unwrap());
+    assert!(uid > 0 && gid > 0, "the image runs as root: USER {}", users[0]);
+    (uid, gid)
 }
 
 /// An exec health probe: `lcrl health https://127.0.0.1:PORT` with TLS
@@ -108,6 +165,7 @@ fn kubernetes_manifests_reference_each_other_consistently() {
     assert_eq!(deployments.len(), 3, "graph builder, learner, actors");
     let run_dir = tempfile::tempdir().unwrap();
     let mut roles = BTreeSet::new();
+    let (image_uid, image_gid) = image_user();
 
     for deployment in &deployments {
         let name = str_of(deployment, &["metadata", "name"]);
@@ -129,7 +187,18 @@ fn kubernetes_manifests_reference_each_other_consistently() {
             }
         }
         assert!(volumes.values().any(|v| v["secret"]["secretName"].as_str() == Some("lcrl-tls")), "{name}: no TLS secret");
+        // Never root: the image's user, and fsGroup so it reads the Secret
+        // and writes its volumes.
+        let security = &pod["securityContext"];
+        assert_eq!(security["runAsNonRoot"].as_bool(), Some(true), "{name}: runAsNonRoot");
+        assert_eq!((security["runAsUser"].as_i64(), security["runAsGroup"].as_i64()), (Some(image_uid), Some(image_gid)), "{name}: runs as the image's user");
+        assert_eq!(security["fsGroup"].as_i64(), Some(image_gid), "{name}: fsGroup");
+        // /tls as this pod sees it: only the Secret's files it mounts.
+        let mounted: Vec<String> = volumes.values().filter(|v| v["secret"].is_mapping()).flat_map(|v| secret_files(v)).collect();
+        let pod_tls = tls_with(tls.path(), &mounted);
+        let tls = &pod_tls;
         for container in seq(pod, "containers") {
+            assert_eq!(container["securityContext"]["allowPrivilegeEscalation"].as_bool(), Some(false), "{name}: allowPrivilegeEscalation");
             assert_eq!(str_of(container, &["image"]), image_name, "{name}: image");
             let ports: BTreeMap<&str, i64> = seq(container, "ports").iter().map(|p| (str_of(p, &["name"]), p["containerPort"].as_i64().unwrap())).collect();
             let mut env = BTreeMap::new();
@@ -181,7 +250,17 @@ fn kubernetes_manifests_reference_each_other_consistently() {
             }
             let command = dry_run(&args, run_dir.path(), tls.path());
             assert!(command.contains("--token-file") && command.contains("--tls-"), "{name}: runs without TLS or token: {command}");
-            roles.insert(command.split_whitespace().next().unwrap().to_string());
+            let binary = command.split_whitespace().next().unwrap().to_string();
+            if binary == "lcrl-actor" {
+                // A client: the CA, its certificate and key; never the server's key.
+                assert!(!mounted.iter().any(|f| f.starts_with("server.")), "{name}: an actor mounts the server's key or certificate: {mounted:?}");
+            } else {
+                // `lcrl launch` listens on loopback unless told: a server in a
+                // pod says 0.0.0.0 on its gRPC port.
+                let grpc = ports.get("grpc").unwrap_or_else(|| panic!("{name}: a server without a grpc port"));
+                assert!(command.contains(&format!("--listen 0.0.0.0:{grpc}")), "{name}: not reachable by its Service: `{command}`");
+            }
+            roles.insert(binary);
         }
     }
     assert_eq!(roles, ["lcrl-actor", "lcrl-graph-builder", "lcrl-learner"].map(String::from).into_iter().collect());
@@ -270,17 +349,55 @@ fn check_compose(compose: &Value, tls: &Path, secure: bool) {
     let services = compose["services"].as_mapping().unwrap();
     let run_dir = tempfile::tempdir().unwrap();
     let substitute = |s: &str| s.replace("${LCRL_PRESET:-lti-paper.toml}", "lti-paper.toml").replace("${LCRL_RUN_ID:-compose}", "compose").replace("${LCRL_EPISODES:-0}", "0");
+    let compose_sh = std::fs::read_to_string(repo().join("deploy/compose.sh")).unwrap();
     let mut binaries = BTreeSet::new();
     for (name, service) in services {
         let name = name.as_str().unwrap();
         let command: Vec<String> = seq(service, "command").iter().map(|a| substitute(a.as_str().unwrap())).collect();
         let launched = dry_run(&command, run_dir.path(), tls);
-        binaries.insert(launched.split_whitespace().next().unwrap().to_string());
+        let binary = launched.split_whitespace().next().unwrap().to_string();
         assert_eq!(launched.contains("--tls-"), secure, "{name}: `{launched}`");
+        let mounts: Vec<&str> = seq(service, "volumes").iter().filter_map(|v| v.as_str()).collect();
         if secure {
-            let mounts: Vec<&str> = seq(service, "volumes").iter().filter_map(|v| v.as_str()).collect();
-            assert!(mounts.iter().any(|m| m.ends_with(":/tls:ro")), "{name}: /tls is not mounted read-only: {mounts:?}");
+            let tls_mounts: Vec<&&str> = mounts.iter().filter(|m| m.contains(":/tls")).collect();
+            assert!(!tls_mounts.is_empty() && tls_mounts.iter().all(|m| m.ends_with(":ro")), "{name}: /tls is not mounted read-only: {mounts:?}");
             assert_eq!(service["environment"]["LCRL_TOKEN_FILE"].as_str(), Some("/tls/token"), "{name}: token");
+            if binary == "lcrl-actor" {
+                // A client: the CA, its certificate and key, the token; never
+                // the server's key (nor the whole folder that holds it).
+                let targets: BTreeSet<String> = tls_mounts.iter().map(|m| with_defaults(m).split(':').nth(1).unwrap().to_string()).collect();
+                assert_eq!(targets, ["/tls/ca.pem", "/tls/client.key", "/tls/client.pem", "/tls/token"].map(String::from).into_iter().collect(), "{name}: {mounts:?}");
+                let files: Vec<String> = targets.iter().map(|t| t.trim_start_matches("/tls/").to_string()).collect();
+                let actor_tls = tls_with(tls, &files);
+                dry_run(&command, run_dir.path(), actor_tls.path());
+            }
+        } else {
+            // The token compose.sh generates at set-up, in every container.
+            assert_eq!(service["environment"]["LCRL_TOKEN_FILE"].as_str(), Some("/secrets/token"), "{name}: token");
+            let secrets = mounts.iter().find(|m| m.contains(":/secrets")).unwrap_or_else(|| panic!("{name}: the token's folder is not mounted: {mounts:?}"));
+            assert!(secrets.ends_with(":/secrets:ro"), "{name}: {secrets}");
+            let default = with_defaults(secrets);
+            let folder = default.split(':').next().unwrap().trim_start_matches("../");
+            assert!(compose_sh.contains(&format!("$repo/{folder}")), "deploy/compose.sh does not write the token where compose.yaml mounts it ({folder})");
+        }
+        // Servers listen on 0.0.0.0 in their container: plain text only with
+        // --insecure said, and `lcrl launch` refuses it without.
+        let insecure = command.iter().any(|a| a == "--insecure");
+        assert_eq!(insecure, !secure && binary != "lcrl-actor", "{name}: --insecure where and only where plain text listens beyond loopback: {command:?}");
+        if insecure {
+            let without: Vec<String> = command.iter().filter(|a| *a != "--insecure").cloned().collect();
+            let out = launch_here(&without, run_dir.path(), tls).arg("--dry-run").output().unwrap();
+            super::common::assert_clean_failure(&out, "--insecure");
+        }
+        binaries.insert(binary);
+        // Never root: the host user compose.sh names, 10001 by default.
+        let user = service["user"].as_str().unwrap_or_else(|| panic!("{name}: no user (it would run as root)"));
+        let ids: Vec<i64> = with_defaults(user).split(':').map(|id| id.parse().unwrap_or_else(|_| panic!("{name}: user {user} is not UID:GID"))).collect();
+        assert!(ids.len() == 2 && ids.iter().all(|&id| id > 0), "{name}: user {user} is root by default");
+        // Published ports on loopback only.
+        for port in seq(service, "ports") {
+            let port = port.as_str().unwrap();
+            assert!(port.starts_with("127.0.0.1:"), "{name}: port {port} is published beyond this host");
         }
         assert!(service["image"].as_str().unwrap().contains("lcrl:local"), "{name}: image");
         if let Some(test) = service["healthcheck"]["test"].as_sequence() {
@@ -309,4 +426,33 @@ fn launch_refuses_presets_that_serve_python() {
     let preset = repo().join("configs/halfcheetah-ddpg-local.toml");
     let out = lcrl().args(["launch", "learner", "--dry-run", "--config"]).arg(&preset).output().unwrap();
     super::common::assert_clean_failure(&out, "serve it yourself");
+}
+
+/// `lcrl launch` serves on loopback unless told, and refuses plain text on
+/// an address other hosts reach unless --insecure is said (issue 61).
+#[test]
+fn launch_listens_on_loopback_and_refuses_plain_text_beyond_it() {
+    let preset = repo().join("configs/lti-paper.toml");
+    let run_dir = tempfile::tempdir().unwrap();
+    for (role, binary, port) in [("graph-builder", "lcrl-graph-builder", 50051), ("learner", "lcrl-learner", 50052)] {
+        let launch = || {
+            let mut cmd = lcrl();
+            cmd.args(["launch", role, "--config"]).arg(&preset).arg("--run-dir").arg(run_dir.path()).env_remove("LCRL_TOKEN_FILE");
+            cmd
+        };
+        let out = launch().arg("--dry-run").output().unwrap();
+        assert!(out.status.success(), "{role}: {}", stderr(&out));
+        assert!(stdout(&out).starts_with(binary) && stdout(&out).contains(&format!("--listen 127.0.0.1:{port}")), "{role}: {}", stdout(&out));
+        // Not a dry run: the real command stops before starting anything.
+        for listen in ["0.0.0.0:0", "[::]:0"] {
+            let out = launch().args(["--listen", listen]).output().unwrap();
+            super::common::assert_clean_failure(&out, "--insecure");
+            assert!(stderr(&out).contains("--tls-dir"), "{role}: {}", stderr(&out));
+        }
+        let out = launch().args(["--listen", "0.0.0.0:0", "--insecure", "--dry-run"]).output().unwrap();
+        assert!(out.status.success() && stdout(&out).contains("--listen 0.0.0.0:0"), "{role}: {}", stderr(&out));
+        let tls = certs();
+        let out = launch().args(["--listen", "0.0.0.0:0", "--dry-run", "--tls-dir"]).arg(tls.path()).output().unwrap();
+        assert!(out.status.success(), "{role} with TLS: {}", stderr(&out));
+    }
 }

@@ -1,7 +1,9 @@
 //! `lcrl run`: the whole system from one preset.
 
 use std::fs;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
 
 use super::common::{assert_clean_failure, lcrl, stdout};
 
@@ -141,4 +143,153 @@ fn run_with_a_given_graph_starts_no_graph_builder() {
     assert!(!run.join("logs/graph-builder.log").exists(), "a graph builder was started");
     fs::write(&preset, format!("{job}graph = \"graph:missing.json\"\n")).unwrap();
     assert_clean_failure(&lcrl().args(["run", "--config"]).arg(&preset).output().unwrap(), "job.graph");
+}
+
+/// A process as /proc shows it: its id and command line, so a reused pid
+/// is not taken for it.
+#[derive(Debug, Clone, PartialEq)]
+struct Proc {
+    pid: u32,
+    cmdline: String,
+}
+
+impl Proc {
+    /// Still running: present with the same command line and not a zombie
+    /// (an orphan's zombie waits for whoever adopted it).
+    fn alive(&self) -> bool {
+        let Ok(stat) = fs::read_to_string(format!("/proc/{}/stat", self.pid)) else { return false };
+        let state = stat.rsplit_once(')').and_then(|(_, rest)| rest.split_whitespace().next()).unwrap_or("X");
+        let cmdline = fs::read(format!("/proc/{}/cmdline", self.pid)).map(|c| String::from_utf8_lossy(&c).replace('\0', " ")).unwrap_or_default();
+        !matches!(state, "Z" | "X") && cmdline == self.cmdline
+    }
+}
+
+/// The children of `parent` (from /proc/PID/stat's ppid field).
+fn children_of(parent: u32) -> Vec<Proc> {
+    let mut found = Vec::new();
+    for entry in fs::read_dir("/proc").unwrap().flatten() {
+        let Ok(pid) = entry.file_name().to_string_lossy().parse::<u32>() else { continue };
+        let Ok(stat) = fs::read_to_string(entry.path().join("stat")) else { continue };
+        let ppid = stat.rsplit_once(')').and_then(|(_, rest)| rest.split_whitespace().nth(1)).and_then(|p| p.parse::<u32>().ok());
+        if ppid == Some(parent) {
+            let cmdline = fs::read(entry.path().join("cmdline")).map(|c| String::from_utf8_lossy(&c).replace('\0', " ")).unwrap_or_default();
+            found.push(Proc { pid, cmdline });
+        }
+    }
+    found
+}
+
+/// A long `lcrl run` on the linear preset (a budget it never reaches),
+/// its output in files under `dir`, with the preparation of `prepare`.
+struct LongRun {
+    child: Child,
+    run: PathBuf,
+    dir: PathBuf,
+    children: Vec<Proc>,
+}
+
+impl LongRun {
+    /// Starts it and waits until its graph builder, learner and actor run
+    /// and the learner has stored episodes (metrics.csv has rows).
+    fn start(dir: &Path, prepare: impl FnOnce(&mut Command)) -> LongRun {
+        let run = dir.join("run");
+        let preset = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/lti-paper.toml");
+        let mut cmd = lcrl();
+        cmd.args(["run", "--episodes", "100000000", "--config"]).arg(&preset).arg("--run-dir").arg(&run);
+        cmd.stdin(Stdio::null()).stdout(fs::File::create(dir.join("stdout")).unwrap()).stderr(fs::File::create(dir.join("stderr")).unwrap());
+        prepare(&mut cmd);
+        let mut long = LongRun { child: cmd.spawn().unwrap(), run, dir: dir.to_path_buf(), children: Vec::new() };
+        let deadline = Instant::now() + Duration::from_secs(180);
+        loop {
+            long.children = children_of(long.child.id());
+            let has = |binary: &str| long.children.iter().any(|c| c.cmdline.contains(binary));
+            let rows = fs::read_to_string(long.run.join("learner/metrics.csv")).map(|t| t.lines().count()).unwrap_or(0);
+            if has("lcrl-graph-builder") && has("lcrl-learner") && has("lcrl-actor") && rows > 5 {
+                return long;
+            }
+            if let Ok(Some(status)) = long.child.try_wait() {
+                panic!("lcrl run ended early ({status}): {}", long.output());
+            }
+            assert!(Instant::now() < deadline, "lcrl run did not start its processes and train within 180 s: {:?}\n{}", long.children, long.output());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
+    fn output(&self) -> String {
+        let read = |name: &str| fs::read_to_string(self.dir.join(name)).unwrap_or_default();
+        format!("stdout:\n{}\nstderr:\n{}", read("stdout"), read("stderr"))
+    }
+
+    /// Waits up to `limit` for every child to be gone; returns those left.
+    fn wait_for_children(&self, limit: Duration) -> Vec<Proc> {
+        let deadline = Instant::now() + limit;
+        loop {
+            let left: Vec<Proc> = self.children.iter().filter(|c| c.alive()).cloned().collect();
+            if left.is_empty() || Instant::now() > deadline {
+                return left;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+impl Drop for LongRun {
+    /// Nothing outlives the test, whatever it found.
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        for c in self.children.iter().filter(|c| c.alive()) {
+            let _ = Command::new("kill").args(["-KILL", &c.pid.to_string()]).status();
+        }
+    }
+}
+
+/// kill -9 of `lcrl run` leaves nothing behind (issue 61): its graph
+/// builder, learner and actor get their parent-death signal (SIGTERM),
+/// the learner writes a final checkpoint, and all are gone within 15 s.
+#[test]
+fn killing_a_run_with_sigkill_stops_every_process_it_started() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut long = LongRun::start(dir.path(), |_| {});
+    let episodes = fs::read_to_string(long.run.join("learner/metrics.csv")).unwrap().lines().count() as u64 - 1;
+    let started = Instant::now();
+    long.child.kill().unwrap();
+    long.child.wait().unwrap();
+    let left = long.wait_for_children(Duration::from_secs(15));
+    assert!(left.is_empty(), "left running {:.0} s after kill -9 of lcrl run: {left:#?}", started.elapsed().as_secs_f64());
+    eprintln!("every child of the killed run gone after {:.2} s", started.elapsed().as_secs_f64());
+    // Written on the way out (the periodic one comes later, every
+    // --checkpoint-secs): it holds every episode stored before the kill.
+    let checkpoint = lcrl_learner::checkpoint::latest_checkpoint(&long.run.join("learner")).expect("the learner's final checkpoint");
+    let meta = lcrl_learner::checkpoint::read_meta(&checkpoint).unwrap();
+    assert!(meta.episode as u64 >= episodes, "the final checkpoint holds {} episodes, {episodes} were stored before the kill", meta.episode);
+}
+
+/// Ctrl-C at a terminal (SIGINT to the whole process group): the run stops
+/// its actors and learner, the learner writes a final checkpoint, the run
+/// reports itself interrupted and exits, leaving nothing behind.
+#[test]
+fn ctrl_c_stops_a_run_with_a_final_checkpoint_and_leaves_nothing() {
+    use std::os::unix::process::CommandExt;
+    let dir = tempfile::tempdir().unwrap();
+    // Its own process group, as a shell gives a foreground job.
+    let mut long = LongRun::start(dir.path(), |cmd| {
+        cmd.process_group(0);
+    });
+    let group = long.child.id();
+    assert!(Command::new("kill").args(["-INT", "--", &format!("-{group}")]).status().unwrap().success());
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let status = loop {
+        if let Some(status) = long.child.try_wait().unwrap() {
+            break status;
+        }
+        assert!(Instant::now() < deadline, "lcrl run did not stop within 120 s of Ctrl-C: {}", long.output());
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert!(status.success(), "lcrl run failed after Ctrl-C ({status}): {}", long.output());
+    assert!(long.output().contains("interrupted: run"), "{}", long.output());
+    let left = long.wait_for_children(Duration::from_secs(5));
+    assert!(left.is_empty(), "left running after Ctrl-C: {left:#?}");
+    let checkpoint = lcrl_learner::checkpoint::latest_checkpoint(&long.run.join("learner")).expect("the learner's final checkpoint");
+    assert!(lcrl_learner::checkpoint::read_meta(&checkpoint).unwrap().episode > 0);
 }
