@@ -7,6 +7,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let out_dir = std::path::PathBuf::from(std::env::var("OUT_DIR")?);
     tonic_prost_build::configure()
         .file_descriptor_set_path(out_dir.join("lcrl_descriptor.bin"))
+        // prost's codec with a check of repeated entries before decoding
+        // (src/codec.rs): what a peer sends cannot decode to 60× its size.
+        .codec_path("crate::codec::BoundedCodec")
         .compile_protos(&["lcrl.proto"], &["."])?;
     println!("cargo:rerun-if-changed=lcrl.proto");
     Ok(())

@@ -16,5 +16,6 @@ mod e2e {
     mod experiment_cli;
     mod security;
     mod hostile;
+    mod faults;
     mod served_env;
 }

@@ -14,7 +14,7 @@ use anyhow::{bail, Context};
 use clap::Parser;
 use lcrl_proto::process::shutdown_signal;
 use lcrl_actor::metrics::ActorMetrics;
-use lcrl_actor::transport::{connect, open_feed, refused, send_batches, watch_policy, PolicySource, Sink};
+use lcrl_actor::transport::{connect, open_feed, refused, send_batches, watch_policy, PolicySource, Progress, Sink};
 use lcrl_actor::worker::{RolloutSettings, Rollout};
 use lcrl_proto::security::{ClientSecurity, ClientSecurityArgs};
 use lcrl_proto::v1::{GetPolicyRequest, TransitionBatch};
@@ -66,8 +66,13 @@ struct Args {
     /// Stop after this many episodes in total (default: run until stopped).
     #[arg(long)]
     episodes: Option<u64>,
-    /// Serve Prometheus metrics on http://ADDR/metrics (port 0: any free
-    /// port, printed as "metrics on ADDR").
+    /// `/healthz` on the metrics address answers 503 when the learner has
+    /// acknowledged no batch and sent no policy for this long, seconds
+    /// (Kubernetes' liveness probe then restarts the actor).
+    #[arg(long, default_value_t = 300, value_parser = clap::value_parser!(u64).range(1..=86_400))]
+    liveness_secs: u64,
+    /// Serve Prometheus metrics and /healthz on http://ADDR (port 0: any
+    /// free port, printed as "metrics on ADDR").
     #[arg(long, value_name = "ADDR")]
     metrics_listen: Option<std::net::SocketAddr>,
     /// Log as JSON lines instead of human-readable text (level: RUST_LOG).
@@ -111,13 +116,22 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let deadline = Duration::from_secs(args.connect_deadline);
     let security = ClientSecurity::from_args(&args.security)?;
     let metrics = ActorMetrics::default();
+    let progress = Progress::default();
     if let Some(addr) = args.metrics_listen {
         let registry = Arc::new(metrics.registry());
         let (listener, bound) = lcrl_learner::service::metrics::bind(addr).await.with_context(|| format!("cannot serve metrics on {addr}; is another process using it?"))?;
         // Not println!: a launcher may have stopped reading stdout.
         let _ = std::io::Write::write_fmt(&mut std::io::stdout(), format_args!("metrics on {bound}\n"));
+        // Live while the learner answers: a batch acknowledged or a policy
+        // received within --liveness-secs (shared memory: the learner is on
+        // this host, and the process is live).
+        let (heard, limit, grpc) = (progress.clone(), Duration::from_secs(args.liveness_secs), matches!(args.transport, Transport::Grpc));
+        let live = move || match heard.since() {
+            silent if grpc && silent > limit => Err(format!("no answer from the learner for {} s (--liveness-secs {})", silent.as_secs(), limit.as_secs())),
+            _ => Ok(()),
+        };
         tokio::spawn(async move {
-            if let Err(e) = lcrl_learner::service::metrics::serve(listener, registry, std::future::pending()).await {
+            if let Err(e) = lcrl_learner::service::metrics::serve(listener, registry, std::future::pending(), live).await {
                 tracing::warn!("metrics endpoint stopped: {e}");
             }
         });
@@ -130,7 +144,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
             let first = client.get_policy(GetPolicyRequest {}).await.map_err(refused).context("asking the learner for its policy")?.into_inner();
             tracing::info!(version = first.version, learner = %args.learner, "connected");
             let (policy_tx, policy_rx) = watch::channel(Arc::new(first));
-            tokio::spawn(watch_policy(args.learner.clone(), security.clone(), policy_tx));
+            tokio::spawn(watch_policy(args.learner.clone(), security.clone(), policy_tx, progress.clone()));
             (Some(client), PolicySource::Grpc(policy_rx))
         }
         Transport::Shm => (None, PolicySource::Shm(args.run_id.clone(), deadline)),
@@ -141,7 +155,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let (sink, sender) = match client {
         Some(client) => {
             let (batches_tx, batches_rx) = mpsc::channel::<TransitionBatch>(2);
-            (Sink::Grpc(batches_tx), Some(tokio::spawn(send_batches(args.learner.clone(), security.clone(), client, batches_rx, deadline, metrics.clone()))))
+            (Sink::Grpc(batches_tx), Some(tokio::spawn(send_batches(args.learner.clone(), security.clone(), client, batches_rx, deadline, metrics.clone(), progress.clone()))))
         }
         None => (Sink::Shm(args.run_id.clone()), None),
     };
@@ -199,7 +213,14 @@ fn work(settings: RolloutSettings, source: PolicySource, sink: Sink, stop: Arc<A
             rollout.set_exploration(&policy, explore);
             metrics.policy_version.set(policy.version as i64);
         }
-        if let Some(batch) = rollout.step(&policy, &metrics)? {
+        if feed.training_finished() {
+            tracing::info!(episodes = rollout.episodes_done(), "the learner's episode budget is spent: stopping");
+            break;
+        }
+        if let Some(mut batch) = rollout.step(&policy, &metrics)? {
+            // The learner process whose policy acted (a PPO learner drops
+            // the batches of its previous process after a restart).
+            batch.incarnation = feed.incarnation();
             if !out.send(batch)? {
                 break;
             }

@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::bail;
 use lcrl_learner::policy::Policy;
+use lcrl_proto::limits::Backoff;
 use lcrl_proto::security::{AuthChannel, ClientSecurity};
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::{PolicySnapshot, TransitionBatch, WatchPolicyRequest};
@@ -22,40 +23,82 @@ use crate::worker::Exploration;
 /// Batches in flight or waiting: the bound on what an actor holds.
 pub const MAX_PENDING_BATCHES: usize = 8;
 
-/// Connects, retrying with backoff until `deadline`.
+/// Connects, retrying with exponential backoff and jitter until
+/// `deadline` (every call on the channel has lcrl_proto::limits' call
+/// deadline and keepalive, so a learner that accepts and never answers
+/// fails calls instead of hanging them).
 pub async fn connect(url: &str, security: &ClientSecurity, deadline: Duration) -> anyhow::Result<LearnerClient<AuthChannel>> {
     let give_up = Instant::now() + deadline;
-    let mut delay = Duration::from_millis(100);
+    let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(5));
     loop {
         match security.connect(url).await {
             Ok(channel) => return Ok(LearnerClient::new(channel).max_decoding_message_size(16 << 20).max_encoding_message_size(16 << 20)),
             Err(e) if Instant::now() < give_up => {
+                let delay = backoff.next_delay();
                 tracing::warn!("learner at {url} unreachable ({e}); retrying in {:.1} s", delay.as_secs_f64());
                 tokio::time::sleep(delay).await;
-                delay = (delay * 2).min(Duration::from_secs(5));
             }
             Err(e) => bail!("the learner at {url} stayed unreachable for {} s ({e}); is lcrl-learner running?", deadline.as_secs()),
         }
     }
 }
 
-/// Keeps `policy` at the learner's newest version, reconnecting forever.
-pub async fn watch_policy(url: String, security: ClientSecurity, policy: watch::Sender<Arc<PolicySnapshot>>) {
+/// Whether `next` replaces `current` as the policy to act with: a newer
+/// version of the same learner process, any version of another one (a
+/// restarted learner counts versions from its checkpoint again), or the
+/// news that training has finished.
+pub fn supersedes(next: &PolicySnapshot, current: &PolicySnapshot) -> bool {
+    next.incarnation != current.incarnation || next.version > current.version || (next.training_finished && !current.training_finished)
+}
+
+/// Keeps `policy` at the learner's newest version, reconnecting forever
+/// (backoff with jitter; a stream that delivered starts the backoff over).
+pub async fn watch_policy(url: String, security: ClientSecurity, policy: watch::Sender<Arc<PolicySnapshot>>, progress: Progress) {
+    // At most a second between attempts: every second without the
+    // watch is a second of acting with a policy that may be gone.
+    let mut backoff = Backoff::new(Duration::from_millis(200), Duration::from_secs(1));
     loop {
-        let after = policy.borrow().version;
-        let stream = async { LearnerClient::new(security.connect(&url).await?).max_decoding_message_size(16 << 20).watch_policy(WatchPolicyRequest { after_version: after }).await.map_err(anyhow::Error::from) };
+        let request = { let current = policy.borrow(); WatchPolicyRequest { after_version: current.version, incarnation: current.incarnation } };
+        let stream = async { LearnerClient::new(security.connect(&url).await?).max_decoding_message_size(16 << 20).watch_policy(request).await.map_err(anyhow::Error::from) };
         match stream.await {
             Ok(response) => {
                 let mut updates = response.into_inner();
                 while let Some(Ok(snapshot)) = updates.next().await {
-                    if snapshot.version > policy.borrow().version {
+                    progress.mark();
+                    backoff = Backoff::new(Duration::from_millis(200), Duration::from_secs(1));
+                    if supersedes(&snapshot, &policy.borrow()) {
+                        if snapshot.incarnation != policy.borrow().incarnation {
+                            tracing::info!(version = snapshot.version, incarnation = %format!("{:016x}", snapshot.incarnation), "the learner restarted: acting with its policy");
+                        }
                         policy.send_replace(Arc::new(snapshot));
                     }
                 }
             }
             Err(e) => tracing::debug!("policy watch: {e}"),
         }
-        tokio::time::sleep(Duration::from_millis(500)).await;
+        tokio::time::sleep(backoff.next_delay()).await;
+    }
+}
+
+/// When the actor last heard from its learner (an acknowledged batch, a
+/// policy): what its liveness endpoint reports, so an actor stuck on a
+/// learner that stopped answering is restarted by its supervisor.
+#[derive(Clone)]
+pub struct Progress(Arc<std::sync::Mutex<Instant>>);
+
+impl Default for Progress {
+    fn default() -> Self {
+        Progress(Arc::new(std::sync::Mutex::new(Instant::now())))
+    }
+}
+
+impl Progress {
+    pub fn mark(&self) {
+        *self.0.lock().unwrap_or_else(|poisoned| poisoned.into_inner()) = Instant::now();
+    }
+
+    pub fn since(&self) -> Duration {
+        self.0.lock().unwrap_or_else(|poisoned| poisoned.into_inner()).elapsed()
     }
 }
 
@@ -63,9 +106,12 @@ pub async fn watch_policy(url: String, security: ClientSecurity, policy: watch::
 /// reconnect (the learner drops duplicates). Returns when the worker is done
 /// and every batch is acknowledged, or fails after `deadline` without a
 /// learner.
-pub async fn send_batches(url: String, security: ClientSecurity, mut client: LearnerClient<AuthChannel>, mut batches: mpsc::Receiver<TransitionBatch>, deadline: Duration, metrics: ActorMetrics) -> anyhow::Result<()> {
+pub async fn send_batches(url: String, security: ClientSecurity, mut client: LearnerClient<AuthChannel>, mut batches: mpsc::Receiver<TransitionBatch>, deadline: Duration, metrics: ActorMetrics, progress: Progress) -> anyhow::Result<()> {
     let mut pending: VecDeque<TransitionBatch> = VecDeque::new();
     let mut worker_done = false;
+    // Between streams: a learner that ends every stream (full, restarting)
+    // is not hammered with reconnects.
+    let mut reconnect = Backoff::new(Duration::from_millis(100), Duration::from_secs(5));
     loop {
         let (requests, request_rx) = mpsc::channel::<TransitionBatch>(MAX_PENDING_BATCHES);
         for batch in &pending {
@@ -73,7 +119,7 @@ pub async fn send_batches(url: String, security: ClientSecurity, mut client: Lea
         }
         let acks = match client.stream_transitions(ReceiverStream::new(request_rx)).await {
             Ok(response) => Some(response.into_inner()),
-            Err(status) if status.code() == tonic::Code::Unauthenticated => return Err(refused(status)),
+            Err(status) if is_fatal(&status) => return Err(refused(status)),
             Err(status) => {
                 tracing::warn!("cannot stream to the learner: {status}");
                 None
@@ -97,6 +143,7 @@ pub async fn send_batches(url: String, security: ClientSecurity, mut client: Lea
                     },
                     ack = acks.next() => match ack {
                         Some(Ok(ack)) => {
+                            progress.mark();
                             pending.retain(|b| b.sequence > ack.sequence);
                             metrics.pending_batches.set(pending.len() as i64);
                             if ack.outcome != "stored" {
@@ -109,7 +156,7 @@ pub async fn send_batches(url: String, security: ClientSecurity, mut client: Lea
                             pending.pop_front();
                             break;
                         }
-                        Some(Err(status)) if status.code() == tonic::Code::Unauthenticated => return Err(refused(status)),
+                        Some(Err(status)) if is_fatal(&status) => return Err(refused(status)),
                         Some(Err(status)) => {
                             tracing::warn!("lost the learner: {status}");
                             break;
@@ -122,16 +169,30 @@ pub async fn send_batches(url: String, security: ClientSecurity, mut client: Lea
         if worker_done && pending.is_empty() {
             return Ok(());
         }
+        tokio::time::sleep(reconnect.next_delay()).await;
         client = connect(&url, &security, deadline).await?;
         metrics.reconnects.inc();
     }
 }
 
-/// A refusal as an error that says what to do (a wrong token never heals,
-/// so the actor stops instead of retrying).
+/// Refusals that retrying cannot mend: a wrong token or certificate, a
+/// wrong run id, a batch too large for the learner. The actor stops with
+/// what to fix instead of looping.
+pub fn is_fatal(status: &tonic::Status) -> bool {
+    use tonic::Code;
+    matches!(status.code(), Code::Unauthenticated | Code::PermissionDenied | Code::FailedPrecondition | Code::OutOfRange)
+        || (status.code() == Code::ResourceExhausted && status.message().starts_with(lcrl_proto::codec::TOO_MANY_ENTRIES))
+}
+
+/// A refusal as an error that says what to do.
 pub fn refused(status: tonic::Status) -> anyhow::Error {
+    use tonic::Code;
     match status.code() {
-        tonic::Code::Unauthenticated => anyhow::anyhow!("the learner refused this actor: {} (give the learner's token with --token-file or LCRL_TOKEN_FILE)", status.message()),
+        Code::Unauthenticated => anyhow::anyhow!("the learner refused this actor: {} (give the learner's token with --token-file or LCRL_TOKEN_FILE)", status.message()),
+        Code::PermissionDenied => anyhow::anyhow!("the learner refused this actor: {} (its certificate is not one the learner accepts; see `lcrl certs`)", status.message()),
+        Code::FailedPrecondition => anyhow::anyhow!("the learner refused this actor: {} (give the learner's run id with --run-id)", status.message()),
+        Code::OutOfRange | Code::ResourceExhausted => anyhow::anyhow!("the learner refused a batch as too large: {} (lower --batch)", status.message()),
+        Code::DeadlineExceeded | Code::Cancelled => anyhow::anyhow!("the learner did not answer within {} s: {} (is it overloaded or stuck? check its log)", lcrl_proto::limits::CALL_TIMEOUT.as_secs(), status.message()),
         _ => anyhow::anyhow!("{status}"),
     }
 }
@@ -147,7 +208,8 @@ pub enum PolicySource {
 /// The worker thread's open end of its policy source.
 pub enum Feed {
     Grpc(watch::Receiver<Arc<PolicySnapshot>>),
-    Shm(lcrl_learner::service::shm::PolicySubscriber),
+    /// The broadcast, and the snapshot acted with now.
+    Shm { subscriber: lcrl_learner::service::shm::PolicySubscriber, current: PolicySnapshot },
 }
 
 /// Opens the source and returns it with the first policy.
@@ -166,7 +228,8 @@ pub fn open_feed(source: PolicySource, stop: &AtomicBool) -> anyhow::Result<(Fee
                 if let Some(snapshot) = subscriber.newest().map_err(anyhow::Error::msg)? {
                     tracing::info!(version = snapshot.version, "policy received over shared memory");
                     let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
-                    return Ok((Feed::Shm(subscriber), policy, Exploration::of(&snapshot)));
+                    let explore = Exploration::of(&snapshot);
+                    return Ok((Feed::Shm { subscriber, current: snapshot }, policy, explore));
                 }
                 if stop.load(Ordering::Relaxed) {
                     bail!("stopped while waiting for the policy");
@@ -199,6 +262,23 @@ pub enum Out {
 }
 
 impl Feed {
+    /// The incarnation of the learner whose policy the actor acts with
+    /// (batches carry it).
+    pub fn incarnation(&self) -> u64 {
+        match self {
+            Feed::Grpc(rx) => rx.borrow().incarnation,
+            Feed::Shm { current, .. } => current.incarnation,
+        }
+    }
+
+    /// The learner said its episode budget is spent: the actor stops.
+    pub fn training_finished(&self) -> bool {
+        match self {
+            Feed::Grpc(rx) => rx.borrow().training_finished,
+            Feed::Shm { current, .. } => current.training_finished,
+        }
+    }
+
     /// Takes the newest policy version if there is one: updates `policy`
     /// in place and returns the version's exploration.
     pub fn poll(&mut self, policy: &mut Policy) -> anyhow::Result<Option<Exploration>> {
@@ -210,11 +290,13 @@ impl Feed {
                     return Ok(Some(Exploration::of(&newest)));
                 }
             }
-            Feed::Shm(subscriber) => {
+            Feed::Shm { subscriber, current } => {
                 if let Some(newest) = subscriber.newest().map_err(anyhow::Error::msg)? {
-                    if newest.version > policy.version {
+                    if supersedes(&newest, current) {
                         policy.update(&newest.weights, newest.version)?;
-                        return Ok(Some(Exploration::of(&newest)));
+                        let explore = Exploration::of(&newest);
+                        *current = newest;
+                        return Ok(Some(explore));
                     }
                 }
             }

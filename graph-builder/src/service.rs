@@ -95,7 +95,8 @@ pub async fn serve(
         }
     });
     let check = security.token_check();
-    let router = tonic::transport::Server::builder()
+    let router = security
+        .server_builder()
         .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
         .add_service(health_service)
         .add_service(InterceptedService::new(GraphServer::new(GraphService::new(state)), check.clone()));

@@ -51,7 +51,7 @@ fn batch() -> impl Strategy<Value = TransitionBatch> {
                 let ends = transitions.iter().filter(|t| t.terminated || t.truncated).count();
                 episodes.resize(ends, EpisodeSummary { episode_return: -1.0, length: 1, ..Default::default() });
             }
-            TransitionBatch { run_id, actor_id, sequence, episode_id: 0, policy_version, transitions, episodes }
+            TransitionBatch { run_id, actor_id, sequence, episode_id: 0, policy_version, transitions, episodes, ..Default::default() }
         })
 }
 

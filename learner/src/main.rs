@@ -28,9 +28,10 @@ use lcrl_proto::v1::learner_server::LearnerServer;
 use lcrl_proto::v1::policy_server::PolicyServer;
 use tokio::sync::mpsc;
 
-/// Message size limit of every service: a policy snapshot is ~0.3 MB at the
-/// default sizes and a batch of 1000 peg transitions ~0.15 MB; 16 MB leaves
-/// room for larger networks without accepting unbounded messages.
+/// Encoding limit (what the learner sends): a policy snapshot is ~0.3 MB
+/// at the default sizes; 16 MB leaves room for larger networks. What it
+/// decodes is bounded apart, per service (--max-batch-bytes,
+/// --max-act-batch).
 const MAX_MESSAGE_BYTES: usize = 16 * 1024 * 1024;
 
 #[derive(Debug, Parser)]
@@ -127,6 +128,14 @@ struct Args {
     /// preset's `job.headroom`.
     #[arg(long, value_name = "FILE")]
     headroom: Option<PathBuf>,
+    /// The largest transition batch accepted, bytes: a larger one ends its
+    /// stream with RESOURCE_EXHAUSTED before it is decoded (counted as
+    /// "oversize"). The default holds 4096 transitions of the peg tasks.
+    #[arg(long, default_value_t = lcrl_proto::limits::MAX_BATCH_BYTES as u64, value_parser = clap::value_parser!(u64).range(1024..=(64 << 20)))]
+    max_batch_bytes: u64,
+    /// The most states one `Policy.ActBatch` call may hold.
+    #[arg(long, default_value_t = 4096, value_parser = clap::value_parser!(u64).range(1..=1_000_000))]
+    max_act_batch: u64,
     /// Serve Prometheus metrics on http://ADDR/metrics (port 0: any free
     /// port, logged as "metrics on").
     #[arg(long, value_name = "ADDR")]
@@ -233,12 +242,18 @@ async fn run(args: Args) -> anyhow::Result<()> {
     }
     tracing::info!(device = %config.run.device, threads, "learner compute");
     let architecture = meta.architecture();
-    let first = snapshot(agent.as_ref(), &architecture, meta.policy_version)?;
+    // A fresh id per start: actors notice a restarted learner by it.
+    let incarnation = lcrl_learner::service::incarnation::begin(&args.run_dir, meta.episode, meta.policy_version)?;
+    tracing::info!(incarnation = %format!("{incarnation:016x}"), "incarnation");
+    let mut first = snapshot(agent.as_ref(), &architecture, meta.policy_version)?;
+    first.incarnation = incarnation;
     let staleness = (args.algo == Algo::Ppo).then_some(args.max_staleness);
     let ingest = Ingest::new(&args.run_id, lcrl_sim::make_env(&args.env)?, staleness)
         .with_actions(actions)
-        .with_sequences(meta.actor_sequences.clone());
-    let shared = Shared::new(&args.run_id, architecture, first, ingest, args.run_dir.clone(), security.refusals());
+        .with_sequences(meta.actor_sequences.clone())
+        .with_incarnation(incarnation);
+    let shared = Shared::new(&args.run_id, architecture, first, ingest, args.run_dir.clone(), security.refusals())
+        .with_connection_refusals(security.connection_refusals());
     // A resumed run's counters.
     let counters = agent.counters();
     shared.env_steps.store(counters.env_steps, Ordering::Relaxed);
@@ -353,7 +368,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let check = security.token_check();
     let stopper = shared.clone();
     let learner = LearnerServer::new(LearnerService { shared: shared.clone(), commands: commands.clone() })
-        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_decoding_message_size(args.max_batch_bytes as usize)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let act_latency = lcrl_learner::service::metrics::act_latency_histogram();
     if let Some(addr) = args.metrics_listen {
@@ -364,18 +379,29 @@ async fn run(args: Args) -> anyhow::Result<()> {
         let _ = std::io::Write::write_fmt(&mut std::io::stdout(), format_args!("metrics on {bound}\n"));
         let stopping = shared.stopping();
         tokio::spawn(async move {
-            if let Err(e) = lcrl_learner::service::metrics::serve(listener, registry, stopping).await {
+            if let Err(e) = lcrl_learner::service::metrics::serve(listener, registry, stopping, || Ok(())).await {
                 tracing::warn!("metrics endpoint stopped: {e}");
             }
         });
     }
-    let policy = PolicyServer::new(PolicyService { shared: shared.clone(), env: Mutex::new(lcrl_sim::make_env(&args.env)?), serving: Mutex::new(None), act_latency })
-        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+    let policy = PolicyService {
+        shared: shared.clone(),
+        env: Mutex::new(lcrl_sim::make_env(&args.env)?),
+        serving: Mutex::new(None),
+        act_latency,
+        max_act_batch: args.max_act_batch as usize,
+        act_batch_slots: tokio::sync::Semaphore::new(lcrl_learner::service::server::ACT_BATCH_CONCURRENCY),
+    };
+    // Its largest request: --max-act-batch states of f32, and some framing.
+    let act_batch_bytes = (args.max_act_batch as usize * m * 4 + 1024).max(64 << 10);
+    let policy = PolicyServer::new(policy)
+        .max_decoding_message_size(act_batch_bytes)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let (stop_server, server_stopped) = tokio::sync::oneshot::channel::<()>();
     let mut server = tokio::spawn(
         lcrl_proto::process::add_reflection(
-            tonic::transport::Server::builder()
+            security
+                .server_builder()
                 .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
                 .add_service(health_service)
                 // Every service but health needs the token, when there is one.

@@ -6,10 +6,13 @@
 //! [`incoming`]: the TLS-accepting connection stream servers are fed from,
 //! and [`process`]: the start-up, logging, shutdown and reflection every
 //! service process shares, and [`files`]: the one atomic writer of the files
-//! those processes hand on.
+//! those processes hand on, and [`limits`] and [`codec`]: the bounds every
+//! server keeps against its peers and the deadlines every client keeps.
 
+pub mod codec;
 pub mod files;
 pub mod incoming;
+pub mod limits;
 pub mod process;
 pub mod security;
 

@@ -145,6 +145,9 @@ pub struct ServerSecurityArgs {
     /// checks [default: the file $LCRL_TOKEN_FILE names, if set].
     #[arg(long, value_name = "FILE")]
     pub token_file: Option<PathBuf>,
+    /// Connections and idle peers (crate::limits).
+    #[command(flatten)]
+    pub limits: crate::limits::ServerLimitsArgs,
 }
 
 /// Client flags, shared by every lcrl client of a learner or graph builder.
@@ -206,6 +209,8 @@ pub struct ServerSecurity {
     /// Whether TLS asks clients for a certificate of a CA (mutual TLS).
     mutual: bool,
     check: TokenCheck,
+    limits: crate::limits::ServerLimitsArgs,
+    connection_refusals: Arc<crate::limits::ConnectionRefusals>,
 }
 
 impl ServerSecurity {
@@ -219,7 +224,13 @@ impl ServerSecurity {
         };
         let token = Token::load(args.token_file.as_deref())?;
         let mutual = tls.is_some() && args.tls_client_ca.is_some();
-        Ok(ServerSecurity { tls, mutual, check: TokenCheck { token, refusals: Arc::default() } })
+        Ok(ServerSecurity {
+            tls,
+            mutual,
+            check: TokenCheck { token, refusals: Arc::default() },
+            limits: args.limits.clone(),
+            connection_refusals: Arc::default(),
+        })
     }
 
     /// The interceptor to put in front of every service but health.
@@ -235,9 +246,21 @@ impl ServerSecurity {
     /// handshakes counted), for `serve_with_incoming`.
     pub fn incoming(&self, listener: tokio::net::TcpListener) -> tokio_stream::wrappers::ReceiverStream<std::io::Result<crate::incoming::Conn>> {
         let refusals = self.check.refusals.clone();
+        let limits = crate::incoming::Limits::new(&self.limits, self.connection_refusals.clone());
         crate::incoming::incoming(listener, self.tls.clone(), Arc::new(move || {
             refusals.tls_handshake.fetch_add(1, Ordering::Relaxed);
-        }))
+        }), limits)
+    }
+
+    /// A tonic server with this server's limits (streams per connection,
+    /// HTTP/2 pings that keep live clients from looking idle).
+    pub fn server_builder(&self) -> tonic::transport::Server {
+        self.limits.server()
+    }
+
+    /// Connections refused or closed (over the limit, idle), for /metrics.
+    pub fn connection_refusals(&self) -> Arc<crate::limits::ConnectionRefusals> {
+        self.connection_refusals.clone()
     }
 
     pub fn describe(&self) -> String {
@@ -289,7 +312,13 @@ impl ClientSecurity {
     /// Connects to `url` (TLS where configured); every call through the
     /// returned channel carries the token.
     pub async fn connect(&self, url: &str) -> Result<AuthChannel, SecurityError> {
-        let channel = self.endpoint(url)?.connect().await.map_err(|e| SecurityError::Connect(format!("{url}: {}", error_chain(&e))))?;
+        // The HTTP/2 handshake too has a deadline: a server that accepts
+        // and never answers fails the connect instead of hanging it.
+        let endpoint = self.endpoint(url)?;
+        let channel = tokio::time::timeout(crate::limits::CALL_TIMEOUT, endpoint.connect())
+            .await
+            .map_err(|_| SecurityError::Connect(format!("{url}: did not answer within {} s", crate::limits::CALL_TIMEOUT.as_secs())))?
+            .map_err(|e| SecurityError::Connect(format!("{url}: {}", error_chain(&e))))?;
         Ok(AuthChannel::new(channel, self.bearer()?))
     }
 
@@ -297,6 +326,8 @@ impl ClientSecurity {
     /// --tls-ca, and --tls-ca needs https://.
     pub fn endpoint(&self, url: &str) -> Result<Endpoint, SecurityError> {
         let endpoint = Endpoint::from_shared(url.to_string()).map_err(|e| SecurityError::Invalid(format!("{url} is not a valid URL: {e}")))?;
+        // Deadlines and pings: a client never hangs on a silent server.
+        let endpoint = crate::limits::client_endpoint(endpoint);
         match (&self.tls, url.starts_with("https://")) {
             (Some(tls), true) => endpoint.tls_config(tls.clone()).map_err(|e| SecurityError::Invalid(format!("TLS for {url}: {e}"))),
             (None, false) => Ok(endpoint),

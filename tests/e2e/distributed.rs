@@ -54,8 +54,11 @@ pub(super) fn learner_with_run_settings(run_dir: &Path, run_id: &str, port: u16,
     let config = run_dir.with_extension("toml");
     let small = SMALL.replace("[run]\n", &format!("[run]\n{run}"));
     std::fs::write(&config, format!("{small}[ppo]\nrollout_steps = 500\nminibatch_size = 100\n")).unwrap();
+    // Checkpoints every half second unless `extra` says otherwise.
+    let checkpoints: &[&str] = if extra.contains(&"--checkpoint-secs") { &[] } else { &["--checkpoint-secs", "0.5"] };
     let mut child = workspace_bin("lcrl-learner")
-        .args(["--env", "lti-paper", "--algo", algo, "--connection", "global", "--publish-every", "20", "--checkpoint-secs", "0.5", "--run-id", run_id])
+        .args(["--env", "lti-paper", "--algo", algo, "--connection", "global", "--publish-every", "20", "--run-id", run_id])
+        .args(checkpoints)
         .arg("--config")
         .arg(&config)
         .arg("--run-dir")
@@ -120,7 +123,7 @@ pub(super) fn batch(run_id: &str, sequence: u64, state_len: usize, value: f32) -
         episode_id: 0,
         policy_version: 0,
         transitions: vec![Transition { state: vec![value; state_len], action: vec![0.1; 3], reward: -1.0, next_state: vec![0.0; state_len], terminated: false, truncated: false, policy_version: 0, ..Default::default() }; 4],
-        episodes: vec![],
+        ..Default::default()
     }
 }
 

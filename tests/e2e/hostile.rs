@@ -159,7 +159,9 @@ async fn hostile_streams_are_refused_and_counted_while_actors_train() {
     }
     let attack_seconds = attack_started.elapsed().as_secs_f64();
     let expected = [
-        ("unknown_run", tonic::Code::InvalidArgument),
+        // Another run's batch: the sender's --run-id is wrong, and retrying
+        // cannot mend it.
+        ("unknown_run", tonic::Code::FailedPrecondition),
         ("non_finite", tonic::Code::InvalidArgument),
         ("dimensions", tonic::Code::InvalidArgument),
         ("oversize", tonic::Code::OutOfRange),

@@ -84,14 +84,30 @@ pub enum Verdict {
     Reject { reason: &'static str, message: String },
 }
 
+/// Distinct actor ids the learner keeps sequences for. A new id beyond
+/// them takes the place of the longest-silent one if that has been silent
+/// for [`ACTOR_SILENCE_TO_FORGET`]; otherwise it is refused ("actors"). A
+/// restarted actor process comes back under a new id, so a long run sees
+/// many; thousands at once are a flood.
+pub const MAX_ACTORS: usize = 4096;
+
+/// How long an actor must have sent nothing before a new one may take its
+/// place among [`MAX_ACTORS`] (its replayed batches would then count as
+/// new: it is long gone).
+pub const ACTOR_SILENCE_TO_FORGET: std::time::Duration = std::time::Duration::from_secs(600);
+
 /// The ingestion state of a run.
 pub struct Ingest {
     run_id: String,
+    /// This learner process's incarnation (PolicySnapshot.incarnation).
+    incarnation: u64,
     env: Box<dyn Env>,
     /// Actors send environment actions; the agent learns normalized ones.
     actions: ActionMap,
     /// Highest sequence stored per actor; sequences increase per actor.
     last_sequence: HashMap<String, u64>,
+    /// When each actor was last heard from (since this process started).
+    last_seen: HashMap<String, std::time::Instant>,
     /// Maximum accepted age (in policy versions) of a batch; None: any.
     max_staleness: Option<u64>,
     /// Transitions rejected or dropped, by reason.
@@ -103,7 +119,24 @@ pub struct Ingest {
 impl Ingest {
     pub fn new(run_id: &str, env: Box<dyn Env>, max_staleness: Option<u64>) -> Self {
         let actions = ActionMap::plain(env.spec());
-        Ingest { run_id: run_id.to_string(), env, actions, last_sequence: HashMap::new(), max_staleness, rejected: BTreeMap::new(), accepted: 0 }
+        Ingest {
+            run_id: run_id.to_string(),
+            incarnation: 0,
+            env,
+            actions,
+            last_sequence: HashMap::new(),
+            last_seen: HashMap::new(),
+            max_staleness,
+            rejected: BTreeMap::new(),
+            accepted: 0,
+        }
+    }
+
+    /// The learner's incarnation: an on-policy learner drops batches that
+    /// name another (0: none checked).
+    pub fn with_incarnation(mut self, incarnation: u64) -> Self {
+        self.incarnation = incarnation;
+        self
     }
 
     /// The run's action map (its base controller): actions arrive in the
@@ -113,10 +146,30 @@ impl Ingest {
         self
     }
 
-    /// Resumes deduplication from a checkpoint.
+    /// Resumes deduplication from a checkpoint (its actors count as heard
+    /// from now: their silence starts with this process).
     pub fn with_sequences(mut self, last_sequence: HashMap<String, u64>) -> Self {
+        let now = std::time::Instant::now();
+        self.last_seen = last_sequence.keys().map(|id| (id.clone(), now)).collect();
         self.last_sequence = last_sequence;
         self
+    }
+
+    /// Makes room for a new actor id: true when there is a place (freeing
+    /// the longest-silent actor's if it has been silent long enough).
+    fn place_for(&mut self, actor_id: &str) -> bool {
+        if self.last_sequence.contains_key(actor_id) || self.last_sequence.len() < MAX_ACTORS {
+            return true;
+        }
+        let oldest = self.last_seen.iter().min_by_key(|(_, seen)| **seen).map(|(id, seen)| (id.clone(), seen.elapsed()));
+        match oldest {
+            Some((id, silent)) if silent >= ACTOR_SILENCE_TO_FORGET => {
+                self.last_sequence.remove(&id);
+                self.last_seen.remove(&id);
+                true
+            }
+            _ => false,
+        }
     }
 
     pub fn sequences(&self) -> &HashMap<String, u64> {
@@ -141,6 +194,15 @@ impl Ingest {
             return Verdict::Reject {
                 reason: "unknown_run",
                 message: format!("run id '{}' is not this learner's run ('{}')", batch.run_id, self.run_id),
+            };
+        }
+        // Names are kept (sequences, checkpoint.json): bounded in length
+        // and number.
+        if batch.actor_id.len() > lcrl_proto::limits::MAX_ACTOR_ID_BYTES {
+            self.count("actor_id", count);
+            return Verdict::Reject {
+                reason: "actor_id",
+                message: format!("actor_id is {} bytes; at most {} are kept", batch.actor_id.len(), lcrl_proto::limits::MAX_ACTOR_ID_BYTES),
             };
         }
         let (m, n) = (self.env.spec().state_dim(), self.env.spec().action_dim());
@@ -201,7 +263,23 @@ impl Ingest {
             self.count("duplicate", count);
             return Verdict::Duplicate;
         }
+        if !self.place_for(&batch.actor_id) {
+            self.count("actors", count);
+            return Verdict::Reject {
+                reason: "actors",
+                message: format!("this learner keeps {MAX_ACTORS} actor ids and none has been silent for {} s; try again later", ACTOR_SILENCE_TO_FORGET.as_secs()),
+            };
+        }
         self.last_sequence.insert(batch.actor_id.clone(), batch.sequence);
+        self.last_seen.insert(batch.actor_id.clone(), std::time::Instant::now());
+        // On-policy: versions of another learner process are not this
+        // one's (after a restart they count from the checkpoint again), so
+        // its data is stale whatever its number says.
+        let other_incarnation = self.incarnation != 0 && batch.incarnation != 0 && batch.incarnation != self.incarnation;
+        if self.max_staleness.is_some() && other_incarnation {
+            self.count("stale_incarnation", count);
+            return Verdict::Stale;
+        }
         if self.max_staleness.is_some_and(|bound| policy_version.saturating_sub(batch.policy_version) > bound) {
             self.count("stale", count);
             return Verdict::Stale;
@@ -244,7 +322,7 @@ mod tests {
             episode_id: 1,
             policy_version: 3,
             transitions: vec![Transition { state: state.clone(), action: vec![0.5, -1.0, 1.0], reward: -1.0, next_state: state, terminated: false, truncated: false, policy_version: 0, ..Default::default() }],
-            episodes: vec![],
+            ..Default::default()
         }
     }
 
@@ -344,6 +422,49 @@ mod tests {
         let mut cut = batch("a1", 2, vec![0.0; 3]);
         cut.transitions[0].cut = true;
         assert!(matches!(ingest.check(&cut, 3), Verdict::Accept(_)), "a cut needs no summary");
+    }
+
+    /// A restarted learner's versions count from its checkpoint again:
+    /// an on-policy learner drops a batch of its previous process however
+    /// new its version looks; an off-policy one stores it; a client that
+    /// names no incarnation is not checked.
+    #[test]
+    fn batches_of_another_incarnation_are_stale_for_an_on_policy_learner() {
+        let mut ppo = ingest(Some(0)).with_incarnation(77);
+        let mut old = batch("a1", 1, vec![0.0; 3]);
+        old.incarnation = 76;
+        old.policy_version = 9;
+        assert_eq!(ppo.check(&old, 3), Verdict::Stale);
+        assert_eq!(ppo.rejected.get("stale_incarnation"), Some(&1));
+        let mut own = batch("a1", 2, vec![0.0; 3]);
+        own.incarnation = 77;
+        assert!(matches!(ppo.check(&own, 3), Verdict::Accept(_)));
+        assert!(matches!(ppo.check(&batch("a2", 1, vec![0.0; 3]), 3), Verdict::Accept(_)), "0: not said, not checked");
+        let mut ddpg = ingest(None).with_incarnation(77);
+        old.sequence = 3;
+        assert!(matches!(ddpg.check(&old, 3), Verdict::Accept(_)));
+    }
+
+    /// Actor ids are kept: one too long is refused, and beyond MAX_ACTORS
+    /// a new one is refused until an old one has been silent long enough.
+    #[test]
+    fn actor_ids_are_bounded_in_length_and_number() {
+        let mut ingest = ingest(None);
+        let long = "x".repeat(lcrl_proto::limits::MAX_ACTOR_ID_BYTES + 1);
+        assert!(matches!(ingest.check(&batch(&long, 1, vec![0.0; 3]), 3), Verdict::Reject { reason: "actor_id", .. }));
+        assert!(matches!(ingest.check(&batch(&long[1..], 1, vec![0.0; 3]), 3), Verdict::Accept(_)));
+        for k in 1..MAX_ACTORS {
+            assert!(matches!(ingest.check(&batch(&format!("a{k}"), 1, vec![0.0; 3]), 3), Verdict::Accept(_)));
+        }
+        assert!(matches!(ingest.check(&batch("one-too-many", 1, vec![0.0; 3]), 3), Verdict::Reject { reason: "actors", .. }));
+        assert!(matches!(ingest.check(&batch("a7", 2, vec![0.0; 3]), 3), Verdict::Accept(_)), "known actors go on");
+        // An actor silent past the limit gives its place up.
+        let forgotten = ingest.last_seen.get_mut("a1").unwrap();
+        *forgotten = forgotten.checked_sub(ACTOR_SILENCE_TO_FORGET).expect("a machine up for ten minutes");
+        assert!(matches!(ingest.check(&batch("one-too-many", 1, vec![0.0; 3]), 3), Verdict::Accept(_)));
+        assert!(!ingest.sequences().contains_key("a1"));
+        assert_eq!(ingest.sequences().len(), MAX_ACTORS);
+        assert_eq!(ingest.rejected.get("actors"), Some(&1));
     }
 
     #[test]

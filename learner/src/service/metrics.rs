@@ -92,6 +92,16 @@ impl Collector for LearnerCollector {
         for (reason, count) in s.auth_refusals.counts() {
             ConstCounter::new(count).encode(refused.encode_family(&vec![("reason".to_string(), reason.to_string())])?)?;
         }
+        drop(refused);
+        let mut closed = encoder.encode_descriptor(
+            "connections_refused",
+            "Connections the server closed by its limits, by reason (connections: over --max-connections; idle: silent past --idle-timeout-secs)",
+            None,
+            family.metric_type(),
+        )?;
+        for (reason, count) in s.connection_refusals.counts() {
+            ConstCounter::new(count).encode(closed.encode_family(&vec![("reason".to_string(), reason.to_string())])?)?;
+        }
         Ok(())
     }
 }
@@ -108,8 +118,24 @@ pub async fn serve(
     listener: tokio::net::TcpListener,
     registry: Arc<Registry>,
     stop: impl std::future::Future<Output = ()> + Send + 'static,
+    live: impl Fn() -> Result<(), String> + Clone + Send + Sync + 'static,
 ) -> std::io::Result<()> {
-    let app = axum::Router::new().route(
+    let app = axum::Router::new()
+        // Liveness for a supervisor (Kubernetes' livenessProbe): 200 while
+        // the process makes progress, 503 with the reason when it does not.
+        .route(
+            "/healthz",
+            axum::routing::get(move || {
+                let live = live.clone();
+                async move {
+                    match live() {
+                        Ok(()) => (axum::http::StatusCode::OK, "ok\n".to_string()).into_response(),
+                        Err(why) => (axum::http::StatusCode::SERVICE_UNAVAILABLE, format!("{why}\n")).into_response(),
+                    }
+                }
+            }),
+        )
+        .route(
         "/metrics",
         axum::routing::get(move || {
             let registry = registry.clone();

@@ -2,6 +2,7 @@
 //! thread learns from them, and new policy versions go back out.
 //!
 //! - [`ingest`]: checks, deduplicates and normalizes batches (plain Rust).
+//! - [`incarnation`]: the learner process's id, so restarts are noticed.
 //! - [`shared`]: what the threads share (counters, the newest policy, ingestion, flow).
 //! - [`runtime`]: the training thread ([`runtime::TrainingLoop`]: admit, train, publish).
 //! - [`episodes`]: metrics.csv and TensorBoard records of actors' episodes.
@@ -13,6 +14,7 @@
 
 pub mod episodes;
 pub mod flow;
+pub mod incarnation;
 pub mod ingest;
 pub mod metrics;
 pub mod runtime;

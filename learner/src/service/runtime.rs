@@ -311,6 +311,13 @@ impl TrainingLoop {
         self.shared.serve(served);
         self.write_summary(&snapshot, chosen.and_then(|c| c.record))?;
         self.shared.flow_mut().finished = true;
+        // Actors learn it from their policy feed (gRPC and shared memory)
+        // and stop: nothing they send from now on is stored.
+        self.shared.policy.send_modify(|current| {
+            let mut last = (**current).clone();
+            last.training_finished = true;
+            *current = Arc::new(last);
+        });
         tracing::info!(episodes = self.episodes(), "episode budget reached: training ends");
         Ok(())
     }
@@ -378,6 +385,10 @@ impl TrainingLoop {
         self.published_exploration = exploration;
         let version = self.shared.policy_version() + 1;
         let mut next = snapshot(self.agent.as_ref(), &self.shared.architecture, version)?;
+        next.incarnation = self.shared.incarnation;
+        // A version published after the budget (a change of exploration)
+        // still says so: actors that join late stop too.
+        next.training_finished = self.finished;
         if let Some((uniform, noise)) = exploration {
             next.explore_uniform = uniform;
             next.exploration_noise = noise;

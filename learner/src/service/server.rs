@@ -67,6 +67,7 @@ impl Learner for LearnerService {
                         // A message over the size limit, or bytes that are no
                         // TransitionBatch: refused and counted; the stream ends.
                         let reason = match status.code() {
+                            tonic::Code::ResourceExhausted if status.message().starts_with(lcrl_proto::codec::TOO_MANY_ENTRIES) => Some("too_many_entries"),
                             tonic::Code::OutOfRange | tonic::Code::ResourceExhausted => Some("oversize"),
                             tonic::Code::Internal if status.message().contains("decode") => Some("undecodable"),
                             _ => None,
@@ -99,7 +100,7 @@ impl Learner for LearnerService {
                     Verdict::Stale => (0, "stale"),
                     Verdict::Reject { reason, message } => {
                         tracing::warn!(reason, %message, "batch rejected");
-                        let _ = acks.send(Err(Status::invalid_argument(message))).await;
+                        let _ = acks.send(Err(rejection(reason, message))).await;
                         break;
                     }
                 };
@@ -117,9 +118,15 @@ impl Learner for LearnerService {
     }
 
     async fn watch_policy(&self, request: Request<WatchPolicyRequest>) -> Result<Response<Self::WatchPolicyStream>, Status> {
-        let after = request.into_inner().after_version;
-        let mut versions = WatchStream::new(self.shared.policy.subscribe())
-            .filter(move |snapshot| snapshot.version > after || (after == 0 && snapshot.version == 0));
+        let request = request.into_inner();
+        let after = request.after_version;
+        // A client that knew another process of this learner (it
+        // restarted) gets the newest version whatever its number: versions
+        // count from the checkpoint again.
+        let other_incarnation = request.incarnation != 0 && request.incarnation != self.shared.incarnation;
+        let mut versions = WatchStream::new(self.shared.policy.subscribe()).filter(move |snapshot| {
+            other_incarnation || snapshot.version > after || (after == 0 && snapshot.version == 0) || snapshot.training_finished
+        });
         // Forwarded by a task that ends at shutdown, so the stream ends too.
         let (out, stream) = mpsc::channel(2);
         let stopping = self.shared.stopping();
@@ -169,9 +176,26 @@ impl Learner for LearnerService {
             unauthenticated: s.auth_refusals.counts().into_iter().map(|(reason, n)| (reason.to_string(), n)).collect(),
             served_version: served.snapshot.version,
             served_reason: served.reason,
+            incarnation: s.incarnation,
+            connections_refused: s.connection_refusals.counts().into_iter().map(|(reason, n)| (reason.to_string(), n)).collect(),
         }))
     }
 }
+
+/// A rejected batch's status: the actor can mend nothing by retrying a
+/// batch of another run (its --run-id is wrong: FAILED_PRECONDITION), and
+/// a full learner is RESOURCE_EXHAUSTED; the rest are malformed batches.
+fn rejection(reason: &str, message: String) -> Status {
+    match reason {
+        "unknown_run" => Status::failed_precondition(message),
+        "actors" => Status::resource_exhausted(message),
+        _ => Status::invalid_argument(message),
+    }
+}
+
+/// ActBatch calls computed at once; more wait their turn. Each holds a
+/// worker thread of its own (off the event loop), and the policy is one.
+pub const ACT_BATCH_CONCURRENCY: usize = 2;
 
 /// `lcrl.v1.Policy`: the served policy (the newest during training, the
 /// selected one after), rebuilt when another version is served.
@@ -181,6 +205,10 @@ pub struct PolicyService {
     pub serving: Mutex<Option<Policy>>,
     /// Handling time of Act/ActBatch, for `/metrics`.
     pub act_latency: prometheus_client::metrics::histogram::Histogram,
+    /// States one ActBatch call may hold (`--max-act-batch`).
+    pub max_act_batch: usize,
+    /// Places for ActBatch calls ([`ACT_BATCH_CONCURRENCY`]).
+    pub act_batch_slots: tokio::sync::Semaphore,
 }
 
 impl PolicyService {
@@ -220,7 +248,9 @@ impl PolicyApi for PolicyService {
         let state = request.into_inner().state;
         self.check_states(&state, 1)?;
         let raw: Vec<f64> = state.iter().map(|&v| f64::from(v)).collect();
-        let (action, version) = self.with_policy(|policy, env| policy.act(env, &raw))?;
+        // The policy's lock may be held by an ActBatch: never wait for it
+        // on the event loop.
+        let (action, version) = tokio::task::block_in_place(|| self.with_policy(|policy, env| policy.act(env, &raw)))?;
         self.act_latency.observe(started.elapsed().as_secs_f64());
         Ok(Response::new(ActResponse { action: action.iter().map(|&a| a as f32).collect(), policy_version: version }))
     }
@@ -229,12 +259,20 @@ impl PolicyApi for PolicyService {
     async fn act_batch(&self, request: Request<ActBatchRequest>) -> Result<Response<ActBatchResponse>, Status> {
         let started = std::time::Instant::now();
         let request = request.into_inner();
+        if request.count as usize > self.max_act_batch {
+            return Err(Status::invalid_argument(format!("{} states in one ActBatch; this learner takes at most {} (--max-act-batch): split the call", request.count, self.max_act_batch)));
+        }
         let m = self.check_states(&request.states, request.count as usize)?;
-        let (actions, version) = self.with_policy(|policy, env| {
-            request.states.chunks(m).flat_map(|row| {
-                let raw: Vec<f64> = row.iter().map(|&v| f64::from(v)).collect();
-                policy.act(env, &raw)
-            }).map(|a| a as f32).collect::<Vec<f32>>()
+        let _slot = self.act_batch_slots.acquire().await.map_err(|_| Status::unavailable("the learner is shutting down"))?;
+        // Off the event loop: health checks and GetStatus stay answered
+        // while a large batch computes.
+        let (actions, version) = tokio::task::block_in_place(|| {
+            self.with_policy(|policy, env| {
+                request.states.chunks(m).flat_map(|row| {
+                    let raw: Vec<f64> = row.iter().map(|&v| f64::from(v)).collect();
+                    policy.act(env, &raw)
+                }).map(|a| a as f32).collect::<Vec<f32>>()
+            })
         })?;
         self.act_latency.observe(started.elapsed().as_secs_f64());
         Ok(Response::new(ActBatchResponse { actions, policy_version: version }))

@@ -56,6 +56,11 @@ pub struct Shared {
     pub flow: Mutex<FlowStats>,
     /// Calls refused for a missing or wrong token (GetStatus, /metrics).
     pub auth_refusals: Arc<lcrl_proto::security::AuthRefusals>,
+    /// Connections the server closed by its limits (GetStatus, /metrics).
+    pub connection_refusals: Arc<lcrl_proto::limits::ConnectionRefusals>,
+    /// This process's incarnation: a random non-zero id drawn at start,
+    /// carried by every published policy (0 in tests that need none).
+    pub incarnation: u64,
 }
 
 /// Locks `mutex` whatever happened to its last holder. The policy for a
@@ -80,6 +85,7 @@ impl Shared {
         run_dir: PathBuf,
         auth_refusals: Arc<lcrl_proto::security::AuthRefusals>,
     ) -> Self {
+        let first_incarnation = first.incarnation;
         Shared {
             run_id: run_id.to_string(),
             algo: architecture.shape.algo,
@@ -98,7 +104,15 @@ impl Shared {
             run_dir,
             flow: Mutex::new(Default::default()),
             auth_refusals,
+            connection_refusals: Default::default(),
+            incarnation: first_incarnation,
         }
+    }
+
+    /// Counts into `refusals` the connections the server closes.
+    pub fn with_connection_refusals(mut self, refusals: Arc<lcrl_proto::limits::ConnectionRefusals>) -> Self {
+        self.connection_refusals = refusals;
+        self
     }
 
     /// Ingestion's checks and counters (every transport goes through them).

@@ -36,6 +36,8 @@ pub struct TransitionSample {
     pub sequence: u64,
     pub episode_id: u64,
     pub policy_version: u64,
+    /// TransitionBatch.incarnation.
+    pub incarnation: u64,
     pub count: u32,
     pub state_dim: u32,
     pub action_dim: u32,
@@ -84,6 +86,7 @@ impl TransitionSample {
             sequence: batch.sequence,
             episode_id: batch.episode_id,
             policy_version: batch.policy_version,
+            incarnation: batch.incarnation,
             count: batch.transitions.len() as u32,
             state_dim: m as u32,
             action_dim: n as u32,
@@ -140,6 +143,7 @@ impl TransitionSample {
             sequence: self.sequence,
             episode_id: self.episode_id,
             policy_version: self.policy_version,
+            incarnation: self.incarnation,
             transitions: (0..count)
                 .map(|k| Transition {
                     state: self.states[k * m..(k + 1) * m].to_vec(),
@@ -326,6 +330,10 @@ pub struct PolicySample {
     /// How actors explore with this version (see `PolicySnapshot`).
     pub exploration_noise: f64,
     pub explore_uniform: u8,
+    /// PolicySnapshot.training_finished (0 or 1).
+    pub training_finished: u8,
+    /// PolicySnapshot.incarnation.
+    pub incarnation: u64,
     pub weights_len: u32,
     pub architecture_len: u32,
     pub architecture: [u8; MAX_ARCHITECTURE_BYTES],
@@ -383,6 +391,8 @@ pub fn run_policy_publisher(shared: Arc<Shared>) -> Result<(), String> {
             (*payload).version = snapshot.version;
             (*payload).exploration_noise = snapshot.exploration_noise;
             (*payload).explore_uniform = u8::from(snapshot.explore_uniform);
+            (*payload).incarnation = snapshot.incarnation;
+            (*payload).training_finished = u8::from(snapshot.training_finished);
             (*payload).weights_len = snapshot.weights.len() as u32;
             (*payload).architecture_len = snapshot.architecture.len() as u32;
             (&mut (*payload).weights)[..snapshot.weights.len()].copy_from_slice(&snapshot.weights);
@@ -423,6 +433,8 @@ impl PolicySubscriber {
                 architecture: String::from_utf8_lossy(&p.architecture[..(p.architecture_len as usize).min(MAX_ARCHITECTURE_BYTES)]).into_owned(),
                 explore_uniform: p.explore_uniform != 0,
                 exploration_noise: p.exploration_noise,
+                incarnation: p.incarnation,
+                training_finished: p.training_finished != 0,
             });
         }
         Ok(newest)
@@ -454,6 +466,7 @@ mod tests {
             sequence: 9,
             episode_id: 3,
             policy_version: 2,
+            incarnation: 0x5eed,
             transitions: vec![t(0.5), t(1.5), t(2.5)],
             episodes: vec![
                 EpisodeSummary {

@@ -1,0 +1,293 @@
+//! Faults and hostile peers against real lcrl-learner and lcrl-actor
+//! processes over real gRPC (docs/reliability.md): a restarted learner, a
+//! silent server, a wrong run id, a spent budget, floods of entries,
+//! sockets and oversized calls. Each test fails on a learner or actor that
+//! does not hold.
+
+use std::io::{Read, Write};
+use std::process::Stdio;
+use std::time::{Duration, Instant};
+
+use lcrl_proto::v1::learner_client::LearnerClient;
+use lcrl_proto::v1::policy_client::PolicyClient;
+use lcrl_proto::v1::{ActBatchRequest, GetStatusRequest, LearnerStatus, Transition, TransitionBatch};
+
+use super::common::{stderr, workspace_bin};
+use super::distributed::{actor_with_args, batch, free_port, learner_with_args, wait_for};
+use super::observability::{sample, scrape};
+
+async fn status(url: &str) -> LearnerStatus {
+    let mut client = LearnerClient::connect(url.to_string()).await.unwrap();
+    client.get_status(GetStatusRequest {}).await.unwrap().into_inner()
+}
+
+/// The status code that ends a stream of `batches`, if one does.
+async fn refusal(url: &str, batches: Vec<TransitionBatch>) -> Option<tonic::Status> {
+    let mut client = LearnerClient::connect(url.to_string()).await.ok()?.max_encoding_message_size(64 << 20);
+    match client.stream_transitions(tokio_stream::iter(batches)).await {
+        Err(status) => Some(status),
+        Ok(response) => {
+            let mut acks = response.into_inner();
+            loop {
+                match acks.message().await {
+                    Ok(Some(_)) => continue,
+                    Ok(None) => return None,
+                    Err(status) => return Some(status),
+                }
+            }
+        }
+    }
+}
+
+/// GET `path` on the actor's metrics address: (status code, body).
+fn http_get(port: u16, path: &str) -> (u16, String) {
+    let mut stream = std::net::TcpStream::connect(("127.0.0.1", port)).expect("metrics endpoint reachable");
+    stream.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    write!(stream, "GET {path} HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n").unwrap();
+    let mut response = String::new();
+    stream.read_to_string(&mut response).unwrap();
+    let code = response.split_whitespace().nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
+    (code, response.split_once("\r\n\r\n").map(|(_, body)| body.to_string()).unwrap_or_default())
+}
+
+/// Waits up to `limit` for `child` to exit; its output, or None if it ran on.
+fn wait_output(mut child: std::process::Child, limit: Duration) -> Option<std::process::Output> {
+    let deadline = Instant::now() + limit;
+    while Instant::now() < deadline {
+        if child.try_wait().unwrap().is_some() {
+            return Some(child.wait_with_output().unwrap());
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    None
+}
+
+fn rss_kib(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    status.lines().find_map(|l| l.strip_prefix("VmRSS:")).and_then(|v| v.split_whitespace().next()?.parse().ok()).unwrap()
+}
+
+/// A batch of many empty transitions is a few bytes each on the wire and a
+/// whole struct each decoded: it is refused before decoding, and a batch
+/// over --max-batch-bytes before it is even read. Four at once leave the
+/// learner's memory where it was; every refusal is counted by reason.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn floods_of_entries_and_bytes_are_refused_before_decoding() {
+    let dir = tempfile::tempdir().unwrap();
+    let metrics_port = free_port();
+    let (learner, url) = learner_with_args(&dir.path().join("run"), "flood", free_port(), "ddpg", &["--metrics-listen", &format!("127.0.0.1:{metrics_port}")]);
+    let rss_before = rss_kib(learner.0.id());
+    // 1 MiB less a little, all empty transitions: ~500k entries.
+    let empty = TransitionBatch { transitions: vec![Transition::default(); 500_000], ..batch("flood", 1, 3, 0.5) };
+    let big = TransitionBatch { transitions: vec![Transition { state: vec![0.5; 1 << 20], ..Default::default() }; 4], ..batch("flood", 2, 3, 0.5) };
+    let mut tasks = tokio::task::JoinSet::new();
+    for k in 0..4 {
+        let (url, batch) = (url.clone(), if k % 2 == 0 { empty.clone() } else { big.clone() });
+        tasks.spawn(async move { refusal(&url, vec![batch]).await });
+    }
+    let mut codes = Vec::new();
+    while let Some(done) = tasks.join_next().await {
+        codes.push(done.unwrap().map(|s| s.code()));
+    }
+    codes.sort_by_key(|c| format!("{c:?}"));
+    assert_eq!(codes, vec![Some(tonic::Code::OutOfRange), Some(tonic::Code::OutOfRange), Some(tonic::Code::ResourceExhausted), Some(tonic::Code::ResourceExhausted)]);
+    let grown_mib = rss_kib(learner.0.id()).saturating_sub(rss_before) / 1024;
+    assert!(grown_mib < 64, "four refused batches grew the learner by {grown_mib} MiB");
+    let s = status(&url).await;
+    assert_eq!(s.rejected.get("too_many_entries"), Some(&2), "{:?}", s.rejected);
+    assert_eq!(s.rejected.get("oversize"), Some(&2), "{:?}", s.rejected);
+    let text = scrape(metrics_port);
+    assert_eq!(sample(&text, "lcrl_learner_transitions_rejected_total{reason=\"too_many_entries\"}"), Some(2.0), "{text}");
+    // An honest batch still goes in.
+    assert!(refusal(&url, vec![batch("flood", 3, 3, 0.5)]).await.is_none());
+    wait_for(&url, "the honest batch", |s| s.env_steps >= 4).await;
+}
+
+/// Sockets opened and left silent cannot hold the server: beyond
+/// --max-connections they are closed on accept, the silent ones after the
+/// idle timeout, and health checks are answered again; both counted.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_sockets_are_capped_and_closed_and_health_checks_answer() {
+    let dir = tempfile::tempdir().unwrap();
+    let metrics_port = free_port();
+    let metrics_flag = format!("127.0.0.1:{metrics_port}");
+    let (_learner, url) = learner_with_args(&dir.path().join("run"), "idle", free_port(), "ddpg", &["--max-connections", "8", "--idle-timeout-secs", "2", "--metrics-listen", &metrics_flag]);
+    let addr = url.trim_start_matches("http://").to_string();
+    let mut sockets: Vec<std::net::TcpStream> = (0..40).map(|_| std::net::TcpStream::connect(&addr).unwrap()).collect();
+    // Every idle socket is closed by the server: over the cap at once,
+    // the rest after 2 s of silence.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    for socket in &mut sockets {
+        // The server may write its HTTP/2 settings first; then it closes.
+        let mut buffer = [0u8; 256];
+        let closed = loop {
+            socket.set_read_timeout(Some(deadline.saturating_duration_since(Instant::now()).max(Duration::from_millis(1)))).unwrap();
+            match socket.read(&mut buffer) {
+                Ok(0) => break true,
+                Ok(_) => continue,
+                Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => break true,
+                Err(_) => break false,
+            }
+        };
+        assert!(closed, "an idle socket was still open 30 s after it was opened");
+    }
+    let channel = tonic::transport::Endpoint::from_shared(url.clone()).unwrap().connect().await.unwrap();
+    let health = tonic_health::pb::health_client::HealthClient::new(channel).check(tonic_health::pb::HealthCheckRequest { service: String::new() }).await;
+    assert!(health.is_ok(), "{health:?}");
+    let s = status(&url).await;
+    assert!(s.connections_refused["connections"] >= 32, "{:?}", s.connections_refused);
+    assert!(s.connections_refused["idle"] >= 8, "{:?}", s.connections_refused);
+    let text = scrape(metrics_port);
+    assert!(sample(&text, "lcrl_learner_connections_refused_total{reason=\"idle\"}").unwrap_or(0.0) >= 8.0, "{text}");
+}
+
+/// ActBatch holds at most --max-act-batch states; two at once are both
+/// answered, and GetStatus with them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn act_batch_is_capped_and_shares_the_server() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_learner, url) = learner_with_args(&dir.path().join("run"), "act", free_port(), "ddpg", &["--max-act-batch", "100"]);
+    let mut policy = PolicyClient::connect(url.clone()).await.unwrap();
+    let refused = policy.act_batch(ActBatchRequest { count: 101, states: vec![0.1; 303] }).await.unwrap_err();
+    assert_eq!(refused.code(), tonic::Code::InvalidArgument);
+    assert!(refused.message().contains("--max-act-batch"), "{}", refused.message());
+    let (mut a, mut b) = (policy.clone(), policy.clone());
+    let (ra, rb, s) = tokio::join!(
+        a.act_batch(ActBatchRequest { count: 100, states: vec![0.1; 300] }),
+        b.act_batch(ActBatchRequest { count: 100, states: vec![0.2; 300] }),
+        status(&url)
+    );
+    assert_eq!(ra.unwrap().into_inner().actions.len(), 300);
+    assert_eq!(rb.unwrap().into_inner().actions.len(), 300);
+    assert_eq!(s.run_id, "act");
+}
+
+/// After kill -9 and a restart, the learner is a new incarnation whose
+/// versions start again below what the actor last saw; the actor acts with
+/// the new learner's policy anyway. While the learner is away the actor's
+/// /healthz says so.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn actors_follow_a_restarted_learner_and_report_when_it_is_gone() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let port = free_port();
+    // No periodic checkpoint: the restart begins again from version 0.
+    let (learner, url) = learner_with_args(&run, "restart", port, "ddpg", &["--checkpoint-secs", "3600"]);
+    let first = status(&url).await.incarnation;
+    assert_ne!(first, 0);
+    let actor_metrics = free_port();
+    let _actor = actor_with_args(&url, "restart", &["--metrics-listen", &format!("127.0.0.1:{actor_metrics}"), "--liveness-secs", "2"]);
+    // None until the actor's endpoint is up.
+    let actor_version = || std::net::TcpStream::connect(("127.0.0.1", actor_metrics)).ok().and_then(|_| sample(&scrape(actor_metrics), "lcrl_actor_policy_version"));
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while actor_version().unwrap_or(0.0) < 100.0 {
+        assert!(Instant::now() < deadline, "the actor never got version 100");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert_eq!(http_get(actor_metrics, "/healthz").0, 200);
+    learner.signal("KILL");
+    drop(learner);
+    let before = actor_version().unwrap();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        let (code, body) = http_get(actor_metrics, "/healthz");
+        if code == 503 {
+            assert!(body.contains("no answer from the learner"), "{body}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "the actor stayed live without its learner");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    // The restarted learner stores but does not train: its versions stay
+    // far below the actor's, whatever the timing.
+    let (_restarted, url) = learner_with_args(&run, "restart", port, "ddpg", &["--checkpoint-secs", "3600", "--no-train"]);
+    let second = status(&url).await.incarnation;
+    assert_ne!(second, first, "a restart is a new incarnation");
+    let restarted = Instant::now();
+    loop {
+        let now = actor_version().unwrap();
+        if now < before {
+            eprintln!("the actor acted with the restarted learner's version {now} {:.2} s after it listened", restarted.elapsed().as_secs_f64());
+            break;
+        }
+        assert!(restarted.elapsed() < Duration::from_secs(45), "the actor kept version {now} (before the kill: {before}) after the restart");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert!(std::fs::read_to_string(run.join("incarnations.csv")).unwrap().lines().count() == 3, "a header and two starts");
+    wait_for(&url, "the actor's batches in the new learner", |s| s.env_steps > 0).await;
+    assert_eq!(http_get(actor_metrics, "/healthz").0, 200);
+}
+
+/// A wrong run id is refused as such, and the actor stops with what to
+/// fix, instead of reconnecting for ever.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_actor_with_the_wrong_run_id_stops_and_says_why() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_learner, url) = learner_with_args(&dir.path().join("run"), "right", free_port(), "ddpg", &[]);
+    let child = workspace_bin("lcrl-actor")
+        .args(["--learner", &url, "--run-id", "wrong", "--envs", "1", "--batch", "10", "--connect-deadline", "10"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let out = tokio::task::spawn_blocking(move || wait_output(child, Duration::from_secs(30))).await.unwrap().expect("the actor still ran after 30 s");
+    assert!(!out.status.success());
+    let err = stderr(&out);
+    assert!(err.contains("--run-id") && err.contains("'wrong' is not this learner's run"), "{err}");
+    let s = status(&url).await;
+    assert!(s.rejected.get("unknown_run").copied().unwrap_or(0) <= 10, "the actor kept sending: {:?}", s.rejected);
+}
+
+/// A server that accepts connections and never answers: the actor's call
+/// deadline ends the wait with an error instead of a silent hang.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_actor_against_a_silent_server_fails_instead_of_hanging() {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    // Accepts and holds every connection, reads nothing, writes nothing.
+    std::thread::spawn(move || {
+        let mut held = Vec::new();
+        for stream in listener.incoming().flatten() {
+            held.push(stream);
+        }
+    });
+    let child = workspace_bin("lcrl-actor")
+        .args(["--learner", &url, "--envs", "1", "--connect-deadline", "2"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let started = Instant::now();
+    let limit = lcrl_proto::limits::CALL_TIMEOUT + Duration::from_secs(20);
+    let out = tokio::task::spawn_blocking(move || wait_output(child, limit)).await.unwrap().expect("the actor hung on a silent server");
+    assert!(!out.status.success());
+    let err = stderr(&out);
+    assert!(err.contains("did not answer") || err.contains("unreachable"), "after {:?}: {err}", started.elapsed());
+}
+
+/// When the learner's episode budget is spent, its actors stop on their
+/// own (over gRPC and shared memory), instead of simulating for nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn actors_stop_when_the_budget_is_spent() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_learner, url) = learner_with_args(&dir.path().join("run"), "budget", free_port(), "ddpg", &["--episodes", "6"]);
+    let spawn = |transport: &str| {
+        workspace_bin("lcrl-actor")
+            .args(["--learner", &url, "--run-id", "budget", "--envs", "1", "--batch", "25", "--connect-deadline", "30", "--transport", transport])
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    let (grpc, shm) = (spawn("grpc"), spawn("shm"));
+    let outs = tokio::task::spawn_blocking(move || (wait_output(grpc, Duration::from_secs(90)), wait_output(shm, Duration::from_secs(90)))).await.unwrap();
+    let s = status(&url).await;
+    assert!(s.finished, "{s:?}");
+    for (transport, out) in [("grpc", outs.0), ("shm", outs.1)] {
+        let out = out.unwrap_or_else(|| panic!("the {transport} actor ran on after the budget"));
+        assert!(out.status.success(), "{transport}: {}", stderr(&out));
+        assert!(stderr(&out).contains("episode budget is spent"), "{transport}: {}", stderr(&out));
+    }
+}
