@@ -28,7 +28,8 @@ pub const MAX_PENDING_BATCHES: usize = 8;
 /// deadline and keepalive, so a learner that accepts and never answers
 /// fails calls instead of hanging them).
 pub async fn connect(url: &str, security: &ClientSecurity, deadline: Duration) -> anyhow::Result<LearnerClient<AuthChannel>> {
-    let give_up = Instant::now() + deadline;
+    // Far deadlines (--connect-deadline is at most a day) cannot overflow.
+    let give_up = Instant::now().checked_add(deadline).unwrap_or_else(|| Instant::now() + Duration::from_secs(86_400));
     let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(5));
     loop {
         match security.connect(url).await {
@@ -144,6 +145,9 @@ pub async fn send_batches(url: String, security: ClientSecurity, mut client: Lea
                     ack = acks.next() => match ack {
                         Some(Ok(ack)) => {
                             progress.mark();
+                            // The learner answers: the next loss starts the
+                            // backoff over.
+                            reconnect = Backoff::new(Duration::from_millis(100), Duration::from_secs(5));
                             pending.retain(|b| b.sequence > ack.sequence);
                             metrics.pending_batches.set(pending.len() as i64);
                             if ack.outcome != "stored" {
@@ -181,7 +185,8 @@ pub async fn send_batches(url: String, security: ClientSecurity, mut client: Lea
 pub fn is_fatal(status: &tonic::Status) -> bool {
     use tonic::Code;
     matches!(status.code(), Code::Unauthenticated | Code::PermissionDenied | Code::FailedPrecondition | Code::OutOfRange)
-        || (status.code() == Code::ResourceExhausted && status.message().starts_with(lcrl_proto::codec::TOO_MANY_ENTRIES))
+        || (status.code() == Code::ResourceExhausted
+            && (status.message().starts_with(lcrl_proto::codec::TOO_MANY_ENTRIES) || status.message().starts_with(lcrl_proto::limits::TOO_LARGE)))
 }
 
 /// A refusal as an error that says what to do.

@@ -99,6 +99,10 @@ pub async fn serve(
         .server_builder()
         .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
         .add_service(health_service)
-        .add_service(InterceptedService::new(GraphServer::new(GraphService::new(state)), check.clone()));
+        .add_service(InterceptedService::new(
+            // Its requests are empty messages: nothing larger is decoded.
+            GraphServer::new(GraphService::new(state)).max_decoding_message_size(64 << 10),
+            check.clone(),
+        ));
     lcrl_proto::process::add_reflection(router, &check).serve_with_incoming_shutdown(security.incoming(listener), shutdown).await
 }

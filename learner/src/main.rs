@@ -174,7 +174,7 @@ fn main() -> std::process::ExitCode {
 /// G from a graph builder, retrying while it is unreachable or building.
 async fn fetch_graph(url: &str, security: &ClientSecurity, timeout: Duration, n: usize, m: usize) -> anyhow::Result<Vec<Vec<u8>>> {
     let deadline = Instant::now() + timeout;
-    let mut delay = Duration::from_millis(200);
+    let mut backoff = lcrl_proto::limits::Backoff::new(Duration::from_millis(200), Duration::from_secs(5));
     loop {
         let attempt = async {
             let mut client = GraphClient::new(security.connect(url).await?);
@@ -186,8 +186,7 @@ async fn fetch_graph(url: &str, security: &ClientSecurity, timeout: Duration, n:
             Ok(graph) => return lcrl_graph_builder::report::mask_from_message(&graph, n, m).map_err(|e| anyhow::anyhow!("{url}: {e}")),
             Err(e) if Instant::now() < deadline => {
                 tracing::info!("waiting for the graph builder at {url}: {e}");
-                tokio::time::sleep(delay).await;
-                delay = (delay * 2).min(Duration::from_secs(5));
+                tokio::time::sleep(backoff.next_delay()).await;
             }
             Err(e) => bail!("no graph from {url} within {} s (last error: {e}); is lcrl-graph-builder running?", timeout.as_secs()),
         }

@@ -164,10 +164,23 @@ fn rows_through(path: &Path, through: usize) -> (Vec<EpisodeRow>, Option<Learner
 
 /// metrics.csv, one flushed row per episode, so an interrupted run still
 /// leaves a well-formed file.
+///
+/// Each row goes out in one write. One that fails (a full disk) is cut off
+/// the file again, so no torn row is left between whole ones, and kept in
+/// memory (up to [`MAX_PENDING_ROWS`]) to be written before the next row:
+/// a disk that fills and frees again costs no row.
 pub struct MetricsLog {
     path: std::path::PathBuf,
-    writer: csv::Writer<std::fs::File>,
+    file: std::fs::File,
+    /// The file's length after its last whole row.
+    written: u64,
+    /// Encoded rows not yet on disk, oldest first.
+    pending: std::collections::VecDeque<Vec<u8>>,
 }
+
+/// Rows kept in memory while the disk refuses them (about 200 bytes each):
+/// beyond them the oldest is dropped, and the drop logged.
+pub const MAX_PENDING_ROWS: usize = 100_000;
 
 impl MetricsLog {
     /// Starts `path` afresh with `rows` (a resumed run's kept history).
@@ -177,12 +190,12 @@ impl MetricsLog {
     pub fn create(path: &Path, rows: &[EpisodeRow]) -> Result<Self, LearnerError> {
         let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let partial = path.with_file_name(format!(".{name}.partial"));
-        let file = std::fs::File::create(&partial).map_err(io(&partial))?;
-        let mut log = Self::over(&partial, file, true)?;
+        let file = std::fs::OpenOptions::new().create(true).truncate(true).write(true).open(&partial).map_err(io(&partial))?;
+        let mut log = Self::over(&partial, file)?;
         for row in rows {
             log.push(row)?;
         }
-        log.writer.get_ref().sync_all().map_err(io(&partial))?;
+        log.file.sync_all().map_err(io(&partial))?;
         std::fs::rename(&partial, path).map_err(io(path))?;
         let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
         lcrl_proto::files::sync_dir(dir).map_err(io(dir))?;
@@ -208,20 +221,50 @@ impl MetricsLog {
         Self::create(path, &rows)
     }
 
-    fn over(path: &Path, file: std::fs::File, header: bool) -> Result<Self, LearnerError> {
+    /// A log over a new, empty `file`, starting with the header.
+    fn over(path: &Path, file: std::fs::File) -> Result<Self, LearnerError> {
+        let mut log = MetricsLog { path: path.to_path_buf(), file, written: 0, pending: Default::default() };
         // The header is written by hand, now (serde's automatic header
         // waits for a first row).
-        let mut writer = csv::WriterBuilder::new().has_headers(false).from_writer(file);
-        if header {
-            writer.write_record(METRICS_COLUMNS).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-            writer.flush().map_err(io(path))?;
-        }
-        Ok(MetricsLog { path: path.to_path_buf(), writer })
+        let mut header = csv::WriterBuilder::new().has_headers(false).from_writer(Vec::new());
+        header.write_record(METRICS_COLUMNS).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
+        log.pending.push_back(header.into_inner().map_err(|e| LearnerError::Checkpoint(e.to_string()))?);
+        log.write_pending()?;
+        Ok(log)
     }
 
+    /// Appends `row`; an error leaves it (and any earlier refused ones)
+    /// pending for the next call.
     pub fn push(&mut self, row: &EpisodeRow) -> Result<(), LearnerError> {
-        self.writer.serialize((row, &row.terms)).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", self.path.display())))?;
-        self.writer.flush().map_err(io(&self.path))
+        let mut line = csv::WriterBuilder::new().has_headers(false).from_writer(Vec::new());
+        line.serialize((row, &row.terms)).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", self.path.display())))?;
+        self.pending.push_back(line.into_inner().map_err(|e| LearnerError::Checkpoint(e.to_string()))?);
+        if self.pending.len() > MAX_PENDING_ROWS {
+            self.pending.pop_front();
+            tracing::warn!("{}: more than {MAX_PENDING_ROWS} rows the disk refused; dropping the oldest", self.path.display());
+        }
+        self.write_pending()
+    }
+
+    /// Writes the pending rows, each whole or not at all.
+    fn write_pending(&mut self) -> Result<(), LearnerError> {
+        use std::io::{Seek, Write};
+        while let Some(line) = self.pending.front() {
+            let wrote = self.file.seek(std::io::SeekFrom::Start(self.written)).and_then(|_| self.file.write_all(line));
+            if let Err(e) = wrote {
+                // Part of the row may be on disk: cut it off again.
+                let _ = self.file.set_len(self.written);
+                return Err(LearnerError::Io { path: self.path.clone(), source: e });
+            }
+            self.written += line.len() as u64;
+            self.pending.pop_front();
+        }
+        Ok(())
+    }
+
+    /// Rows waiting for the disk.
+    pub fn pending(&self) -> usize {
+        self.pending.len()
     }
 }
 
@@ -234,6 +277,28 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A row the disk refuses is not left torn in the file and is written,
+    /// in order, once the disk takes rows again. /dev/full refuses every
+    /// write with ENOSPC, as a full disk does.
+    #[test]
+    fn rows_the_disk_refused_are_written_whole_once_it_takes_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("metrics.csv");
+        let mut log = MetricsLog::create(&path, &[]).unwrap();
+        let row = |episode| EpisodeRow { episode, episode_return: -1.5, length: 50, ..Default::default() };
+        log.push(&row(1)).unwrap();
+        let good = std::mem::replace(&mut log.file, std::fs::OpenOptions::new().write(true).open("/dev/full").unwrap());
+        let refused = log.push(&row(2)).unwrap_err();
+        assert!(refused.to_string().contains("No space left"), "{refused}");
+        assert!(log.push(&row(3)).is_err());
+        assert_eq!(log.pending(), 2);
+        log.file = good;
+        log.push(&row(4)).unwrap();
+        assert_eq!(log.pending(), 0);
+        let episodes: Vec<usize> = read_rows(&path, 10).unwrap().iter().map(|r| r.episode).collect();
+        assert_eq!(episodes, vec![1, 2, 3, 4]);
+    }
 
     /// Rows with return terms (peg) and without (linear systems: blank
     /// columns) come back from metrics.csv as they went in, under the

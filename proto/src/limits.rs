@@ -22,6 +22,10 @@ use tonic::transport::{Endpoint, Server};
 /// (`--max-batch-bytes`).
 pub const MAX_BATCH_BYTES: usize = 1 << 20;
 
+/// The start of the message of a batch refused for its size (over
+/// `--max-batch-bytes`), as the learner answers it (RESOURCE_EXHAUSTED).
+pub const TOO_LARGE: &str = "too large";
+
 /// The most entries of one repeated field a message may hold (transitions
 /// of a batch, sessions of an environment call), checked on the wire
 /// before decoding ([`crate::codec`]).

@@ -224,6 +224,11 @@ fn kubernetes_manifests_reference_each_other_consistently() {
                     }
                 } else if let Some(port) = p["httpGet"]["port"].as_str() {
                     assert!(ports.contains_key(port), "{name}: {probe} on port {port}");
+                    // An actor's liveness is its progress (/healthz), not
+                    // that its metrics endpoint answers.
+                    if probe == "livenessProbe" {
+                        assert_eq!(str_of(p, &["httpGet", "path"]), "/healthz", "{name}: {probe}");
+                    }
                 } else if let Some(command) = p["exec"]["command"].as_sequence() {
                     let words: Vec<&str> = command.iter().filter_map(Value::as_str).collect();
                     let port = check_health_command(&words, tls.path(), &format!("{name} {probe}"));

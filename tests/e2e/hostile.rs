@@ -164,7 +164,7 @@ async fn hostile_streams_are_refused_and_counted_while_actors_train() {
         ("unknown_run", tonic::Code::FailedPrecondition),
         ("non_finite", tonic::Code::InvalidArgument),
         ("dimensions", tonic::Code::InvalidArgument),
-        ("oversize", tonic::Code::OutOfRange),
+        ("oversize", tonic::Code::ResourceExhausted),
         ("undecodable", tonic::Code::Internal),
         ("wrong_token", tonic::Code::Unauthenticated),
     ];

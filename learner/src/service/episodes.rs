@@ -29,6 +29,9 @@ impl EpisodeLog {
     }
 
     pub fn append(&mut self, first: u64, episodes: &[lcrl_proto::v1::EpisodeSummary], shared: &Shared) -> std::io::Result<()> {
+        // Every row is handed over even when the disk refuses one: the log
+        // keeps refused rows and writes them once it can.
+        let mut refused = None;
         if let Some(csv) = &mut self.csv {
             for (k, e) in episodes.iter().enumerate() {
                 // The actors report what the environment measured; the
@@ -43,8 +46,13 @@ impl EpisodeLog {
                     ..Default::default()
                 }
                 .with_terms(e.return_terms.as_ref().map(|t| lcrl_sim::ReturnTerms { depth: t.depth, force: t.force, moment: t.moment, bonus: t.bonus, failure: t.failure }));
-                csv.push(&row).map_err(std::io::Error::other)?;
+                if let Err(e) = csv.push(&row) {
+                    refused.get_or_insert(e);
+                }
             }
+        }
+        if let Some(e) = refused {
+            return Err(std::io::Error::other(e));
         }
         if let Some(tb) = &mut self.tensorboard {
             for (k, e) in episodes.iter().enumerate() {

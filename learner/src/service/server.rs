@@ -76,6 +76,18 @@ impl Learner for LearnerService {
                             Some(reason) => {
                                 shared.record_rejection(reason);
                                 tracing::warn!(reason, %status, "batch refused");
+                                // tonic says OUT_OF_RANGE for a message over
+                                // the limit; gRPC's code for it is
+                                // RESOURCE_EXHAUSTED, what every refusal of
+                                // size here answers.
+                                let status = match reason {
+                                    "oversize" => Status::resource_exhausted(format!(
+                                        "{}: {} (this learner's --max-batch-bytes); send smaller batches (--batch)",
+                                        lcrl_proto::limits::TOO_LARGE,
+                                        status.message()
+                                    )),
+                                    _ => status,
+                                };
                                 let _ = acks.send(Err(status)).await;
                             }
                             None => tracing::debug!(%status, "actor stream ended"),
