@@ -207,9 +207,25 @@ fn work(settings: RolloutSettings, source: PolicySource, sink: Sink, stop: Arc<A
     let out = sink.open()?;
     let (mut feed, mut policy, explore) = open_feed(source, &stop)?;
     metrics.policy_version.set(policy.version as i64);
+    let envs = settings.envs;
     let mut rollout = Rollout::new(settings, &policy, explore)?;
+    let shape = &policy.architecture.shape;
+    lcrl_actor::worker::check_batch_fits(rollout.batch_size(), envs, shape.state_dim, shape.action_dim)?;
     while !stop.load(Ordering::Relaxed) && !rollout.finished() {
+        let (acting, version) = (feed.incarnation(), policy.version);
         if let Some(explore) = feed.poll(&mut policy)? {
+            if feed.incarnation() != acting {
+                // The learner restarted. What was collected so far was
+                // acted by its previous process: it goes out under that
+                // name (an on-policy learner drops it), never mixed into a
+                // batch of the new one.
+                if let Some(mut batch) = rollout.take_batch(version) {
+                    batch.incarnation = acting;
+                    if !send(&out, batch, &metrics)? {
+                        break;
+                    }
+                }
+            }
             rollout.set_exploration(&policy, explore);
             metrics.policy_version.set(policy.version as i64);
         }
@@ -221,10 +237,17 @@ fn work(settings: RolloutSettings, source: PolicySource, sink: Sink, stop: Arc<A
             // The learner process whose policy acted (a PPO learner drops
             // the batches of its previous process after a restart).
             batch.incarnation = feed.incarnation();
-            if !out.send(batch)? {
+            if !send(&out, batch, &metrics)? {
                 break;
             }
         }
     }
     Ok(())
+}
+
+/// Hands a batch to the transport, counted; false when the sender is gone.
+fn send(out: &lcrl_actor::transport::Out, batch: TransitionBatch, metrics: &ActorMetrics) -> anyhow::Result<bool> {
+    metrics.batches_sent.inc();
+    metrics.transitions_sent.inc_by(batch.transitions.len() as u64);
+    out.send(batch)
 }

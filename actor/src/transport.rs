@@ -210,9 +210,11 @@ pub enum PolicySource {
     Shm(String, Duration),
 }
 
-/// The worker thread's open end of its policy source.
+/// The worker thread's open end of its policy source, with the snapshot
+/// whose policy it acts with now (`current`: not the newest received,
+/// which may not be installed yet).
 pub enum Feed {
-    Grpc(watch::Receiver<Arc<PolicySnapshot>>),
+    Grpc { rx: watch::Receiver<Arc<PolicySnapshot>>, current: Arc<PolicySnapshot> },
     /// The broadcast, and the snapshot acted with now.
     Shm { subscriber: lcrl_learner::service::shm::PolicySubscriber, current: PolicySnapshot },
 }
@@ -223,7 +225,8 @@ pub fn open_feed(source: PolicySource, stop: &AtomicBool) -> anyhow::Result<(Fee
         PolicySource::Grpc(mut rx) => {
             let snapshot = rx.borrow_and_update().clone();
             let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
-            Ok((Feed::Grpc(rx), policy, Exploration::of(&snapshot)))
+            let explore = Exploration::of(&snapshot);
+            Ok((Feed::Grpc { rx, current: snapshot }, policy, explore))
         }
         PolicySource::Shm(run_id, deadline) => {
             let subscriber = lcrl_learner::service::shm::PolicySubscriber::open(&run_id).map_err(anyhow::Error::msg)?;
@@ -271,7 +274,7 @@ impl Feed {
     /// (batches carry it).
     pub fn incarnation(&self) -> u64 {
         match self {
-            Feed::Grpc(rx) => rx.borrow().incarnation,
+            Feed::Grpc { current, .. } => current.incarnation,
             Feed::Shm { current, .. } => current.incarnation,
         }
     }
@@ -279,7 +282,7 @@ impl Feed {
     /// The learner said its episode budget is spent: the actor stops.
     pub fn training_finished(&self) -> bool {
         match self {
-            Feed::Grpc(rx) => rx.borrow().training_finished,
+            Feed::Grpc { current, .. } => current.training_finished,
             Feed::Shm { current, .. } => current.training_finished,
         }
     }
@@ -288,11 +291,13 @@ impl Feed {
     /// in place and returns the version's exploration.
     pub fn poll(&mut self, policy: &mut Policy) -> anyhow::Result<Option<Exploration>> {
         match self {
-            Feed::Grpc(rx) => {
+            Feed::Grpc { rx, current } => {
                 if rx.has_changed().unwrap_or(false) {
                     let newest = rx.borrow_and_update().clone();
                     policy.update(&newest.weights, newest.version)?;
-                    return Ok(Some(Exploration::of(&newest)));
+                    let explore = Exploration::of(&newest);
+                    *current = newest;
+                    return Ok(Some(explore));
                 }
             }
             Feed::Shm { subscriber, current } => {

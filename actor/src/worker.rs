@@ -113,6 +113,28 @@ pub struct Rollout {
     episodes_done: u64,
 }
 
+/// Refuses a batch size the learner would refuse (its default limits,
+/// lcrl_proto::limits): said at start, with the size that fits, rather
+/// than a batch refused in the middle of a run. A batch closes at the
+/// first whole round of the K environments at or past `batch`, so it may
+/// hold up to `batch + K − 1` transitions.
+pub fn check_batch_fits(batch: usize, envs: usize, state_dim: usize, action_dim: usize) -> anyhow::Result<()> {
+    use lcrl_proto::limits::{MAX_BATCH_BYTES, MAX_REPEATED_ENTRIES};
+    // Upper bound of one encoded transition: state and next state, the
+    // applied and the sampled action as f32, and its scalars and framing.
+    let per_transition = 4 * (2 * state_dim + 2 * action_dim) + 64;
+    let fits = MAX_REPEATED_ENTRIES.min(MAX_BATCH_BYTES / per_transition);
+    let most = batch + envs - 1;
+    if most > fits {
+        anyhow::bail!(
+            "a batch of --batch {batch} with --envs {envs} may hold {most} transitions of about {per_transition} bytes, but a learner takes at most \
+             {fits} such transitions per batch ({MAX_REPEATED_ENTRIES} transitions, {MAX_BATCH_BYTES} bytes); lower --batch to at most {}",
+            fits.saturating_sub(envs - 1).max(1)
+        );
+    }
+    Ok(())
+}
+
 impl Rollout {
     /// K fresh environments of the policy's environment, reset.
     pub fn new(settings: RolloutSettings, policy: &Policy, explore: Exploration) -> anyhow::Result<Self> {
@@ -172,6 +194,11 @@ impl Rollout {
 
     pub fn episodes_done(&self) -> u64 {
         self.episodes_done
+    }
+
+    /// Transitions per batch (`--batch`, or the algorithm's default).
+    pub fn batch_size(&self) -> usize {
+        self.batch
     }
 
     /// Steps every environment once with `policy`; returns a batch when
@@ -241,6 +268,17 @@ impl Rollout {
         if collected < self.batch && !(self.finished() && collected > 0) {
             return Ok(None);
         }
+        Ok(self.take_batch(policy.version))
+    }
+
+    /// The transitions collected so far as a batch of `version` (None when
+    /// there are none): what `step` sends when a batch is full, and what
+    /// goes out early when the policy that acted is about to change hands
+    /// (a restarted learner), so that no batch mixes two learners' policies.
+    pub fn take_batch(&mut self, version: u64) -> Option<TransitionBatch> {
+        if self.segments.iter().all(Vec::is_empty) {
+            return None;
+        }
         let mut batch = TransitionBatch { run_id: self.settings.run_id.clone(), actor_id: self.settings.actor_id.clone(), ..Default::default() };
         for (segment, episodes) in self.segments.iter_mut().zip(&mut self.episodes_in_batch) {
             // A batch boundary is not an episode end, but each
@@ -254,10 +292,8 @@ impl Rollout {
         self.sequence += 1;
         batch.sequence = self.sequence;
         batch.episode_id = self.episodes_done;
-        batch.policy_version = policy.version;
-        metrics.batches_sent.inc();
-        metrics.transitions_sent.inc_by(batch.transitions.len() as u64);
-        Ok(Some(batch))
+        batch.policy_version = version;
+        Some(batch)
     }
 }
 
@@ -324,8 +360,45 @@ mod tests {
             batches.extend(rollout.step(&policy, &metrics).unwrap());
         }
         assert_eq!(metrics.episodes.get(), rollout.episodes_done());
-        assert_eq!(metrics.transitions_sent.get(), batches.iter().map(|b| b.transitions.len() as u64).sum::<u64>());
+        assert_eq!(metrics.env_steps.get(), batches.iter().map(|b| b.transitions.len() as u64).sum::<u64>());
         batches
+    }
+
+    /// Batch sizes a learner would refuse are refused at start, with the
+    /// size that fits: by bytes on wide states, by count on narrow ones.
+    #[test]
+    fn a_batch_the_learner_would_refuse_is_refused_at_start() {
+        // lti-blocks-32: 64 states, 32 actions, 832 bytes a transition.
+        assert!(check_batch_fits(1200, 1, 64, 32).is_ok());
+        let wide = check_batch_fits(1300, 1, 64, 32).unwrap_err().to_string();
+        assert!(wide.contains("lower --batch to at most 1260"), "{wide}");
+        assert!(check_batch_fits(4096, 1, 3, 3).is_ok());
+        let many = check_batch_fits(4096, 8, 3, 3).unwrap_err().to_string();
+        assert!(many.contains("4103 transitions") && many.contains("at most 4089"), "{many}");
+    }
+
+    /// A batch taken early (the policy is about to change hands) holds
+    /// what was collected, cut where it ends, under the version given; the
+    /// next batch goes on from there with the next sequence number, and
+    /// nothing is taken twice.
+    #[test]
+    fn a_batch_taken_early_holds_what_was_collected_and_nothing_twice() {
+        let policy = policy(Algo::Ddpg);
+        let mut rollout = Rollout::new(settings(100), &policy, Exploration { uniform: false, noise: 0.0 }).unwrap();
+        let metrics = ActorMetrics::default();
+        assert!(rollout.take_batch(7).is_none(), "nothing collected yet");
+        assert!(rollout.step(&policy, &metrics).unwrap().is_none());
+        let early = rollout.take_batch(6).expect("the step's transitions");
+        assert_eq!((early.transitions.len() as u64, early.policy_version), (metrics.env_steps.get(), 6));
+        assert!(early.transitions.iter().all(|t| t.cut || t.terminated || t.truncated), "each environment's stream is cut there");
+        assert!(rollout.take_batch(6).is_none(), "nothing twice");
+        let next = loop {
+            if let Some(batch) = rollout.step(&policy, &metrics).unwrap() {
+                break batch;
+            }
+        };
+        assert_eq!((next.sequence, next.policy_version), (early.sequence + 1, 7));
+        assert_eq!(metrics.env_steps.get(), (early.transitions.len() + next.transitions.len()) as u64);
     }
 
     /// Batches carry whole per-environment segments (each cut at its end),

@@ -17,7 +17,7 @@ pub struct GraphArgs {
     #[arg(long)]
     pub env: String,
     /// ST: CS3 samples per action component; more samples, steadier phi
-    /// (1 to 100000).
+    /// (1 to 100000000).
     #[arg(long, default_value_t = 256, value_parser = lcrl_proto::process::count_in::<1, MAX_SAMPLES>)]
     pub samples: usize,
     /// T of eq. 7: keep action i for state j when phi(i,j) ≥ T × the mean
@@ -72,8 +72,10 @@ pub struct GraphArgs {
     pub plot: Option<PathBuf>,
 }
 
-/// The most CS3 samples per action (`--samples`).
-pub const MAX_SAMPLES: usize = 100_000;
+/// The most CS3 samples per action (`--samples`): far beyond any useful
+/// precision (the graph service's tests keep a builder busy with 2
+/// million), short of counts whose rollouts would never end.
+pub const MAX_SAMPLES: usize = 100_000_000;
 /// The most rollout threads (`--threads`).
 pub const MAX_THREADS: usize = 1024;
 /// The most bootstrap resamples (`--bootstrap`).

@@ -75,7 +75,7 @@ pub async fn serve(
     security: ServerSecurity,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
-    let (health, health_service) = tonic_health::server::health_reporter();
+    let (health, health_service) = lcrl_proto::process::health_service();
     let graph_name = <GraphServer<GraphService> as tonic::server::NamedService>::NAME;
     let mut watcher = state.clone();
     let ready = |w: &mut watch::Receiver<GraphState>| {
@@ -101,7 +101,7 @@ pub async fn serve(
         .add_service(health_service)
         .add_service(InterceptedService::new(
             // Its requests are empty messages: nothing larger is decoded.
-            GraphServer::new(GraphService::new(state)).max_decoding_message_size(64 << 10),
+            GraphServer::new(GraphService::new(state)).max_decoding_message_size(lcrl_proto::process::SMALL_REQUEST_BYTES),
             check.clone(),
         ));
     lcrl_proto::process::add_reflection(router, &check).serve_with_incoming_shutdown(security.incoming(listener), shutdown).await

@@ -361,7 +361,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     println!("listening on {addr}");
     security.warn_if_exposed(addr);
     tracing::info!(%addr, security = %security.describe(), "serving");
-    let (health, health_service) = tonic_health::server::health_reporter();
+    let (health, health_service) = lcrl_proto::process::health_service();
     health.set_serving::<LearnerServer<LearnerService>>().await;
     health.set_serving::<PolicyServer<PolicyService>>().await;
     let check = security.token_check();

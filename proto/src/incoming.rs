@@ -5,13 +5,19 @@
 //! never holds up the others. At most `--max-connections` are served at
 //! once, and a connection whose peer stays silent for the idle timeout is
 //! closed (crate::limits): idle sockets cannot use up the server's files.
+//! When the server is full, a newcomer takes the place of the connection
+//! heard from least recently among those that never spoke (no byte after
+//! TCP and TLS) or have been quiet for [`QUIET_TO_EVICT`]: a flood of
+//! sockets, silent or only answering pings, cannot keep a health check or
+//! an actor out, while connections in use are never closed for it.
 
 use std::future::Future;
 use std::io;
 use std::pin::Pin;
-use std::sync::atomic::Ordering;
-use std::sync::Arc;
-use std::task::{Context, Poll};
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::task::{Context, Poll, Waker};
 use std::time::Duration;
 
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
@@ -35,22 +41,109 @@ enum Stream {
     Tls(Box<TlsStream<TcpStream>>),
 }
 
+/// How long a connection that spoke must have been quiet before a
+/// newcomer may take its place on a full server. Live clients are pinged
+/// every 15 s and answer within milliseconds, so one that is quiet this
+/// long is at most answering pings; one in use sends much more often.
+pub const QUIET_TO_EVICT: Duration = Duration::from_secs(5);
+
+/// Whether an accepted connection has spoken yet and when it was last
+/// heard, and the server's word that it must make room (set by
+/// [`Registry::evict`]).
+#[derive(Default)]
+struct Hush {
+    spoken: AtomicBool,
+    /// Milliseconds from the registry's epoch to the last byte read (or
+    /// to the accept).
+    heard_ms: std::sync::atomic::AtomicU64,
+    evicted: AtomicBool,
+    /// Woken on eviction: the TLS handshake or the connection's reader.
+    waker: Mutex<Option<Waker>>,
+}
+
+impl Hush {
+    fn poll_evicted(&self, cx: &mut Context<'_>) -> Poll<()> {
+        if self.evicted.load(Ordering::Acquire) {
+            return Poll::Ready(());
+        }
+        *self.waker.lock().unwrap_or_else(|p| p.into_inner()) = Some(cx.waker().clone());
+        // Evicted between the check and the registration: seen now.
+        if self.evicted.load(Ordering::Acquire) {
+            Poll::Ready(())
+        } else {
+            Poll::Pending
+        }
+    }
+
+    fn evict(&self) {
+        self.evicted.store(true, Ordering::Release);
+        if let Some(waker) = self.waker.lock().unwrap_or_else(|p| p.into_inner()).take() {
+            waker.wake();
+        }
+    }
+}
+
+/// The server's open connections (an entry whose connection closed holds
+/// the only reference to its [`Hush`], and is dropped on the next sweep).
+struct Registry {
+    epoch: std::time::Instant,
+    open: Mutex<VecDeque<Arc<Hush>>>,
+}
+
+impl Registry {
+    fn new() -> Self {
+        Registry { epoch: std::time::Instant::now(), open: Mutex::new(VecDeque::new()) }
+    }
+
+    fn now_ms(&self) -> u64 {
+        self.epoch.elapsed().as_millis() as u64
+    }
+
+    fn admit(&self, max_connections: usize) -> Arc<Hush> {
+        let hush = Arc::new(Hush::default());
+        hush.heard_ms.store(self.now_ms(), Ordering::Relaxed);
+        let mut open = self.open.lock().unwrap_or_else(|p| p.into_inner());
+        if open.len() >= 2 * max_connections {
+            open.retain(|h| Arc::strong_count(h) > 1);
+        }
+        open.push_back(hush.clone());
+        hush
+    }
+
+    /// Closes the open connection heard from least recently among those
+    /// that never spoke or have been quiet for [`QUIET_TO_EVICT`]; false
+    /// when there is none such.
+    fn evict(&self) -> bool {
+        let now = self.now_ms();
+        let quiet = QUIET_TO_EVICT.as_millis() as u64;
+        let mut open = self.open.lock().unwrap_or_else(|p| p.into_inner());
+        open.retain(|h| Arc::strong_count(h) > 1 && !h.evicted.load(Ordering::Acquire));
+        let evictable = |h: &&Arc<Hush>| !h.spoken.load(Ordering::Acquire) || now.saturating_sub(h.heard_ms.load(Ordering::Relaxed)) >= quiet;
+        let Some(oldest) = open.iter().filter(evictable).min_by_key(|h| h.heard_ms.load(Ordering::Relaxed)) else { return false };
+        oldest.evict();
+        true
+    }
+}
+
 /// One accepted connection: its stream, its place among the server's
 /// `--max-connections` (given back when tonic drops it), and the idle
 /// timer that closes it when the peer sends nothing.
 pub struct Conn {
     stream: Stream,
     _permit: OwnedSemaphorePermit,
+    hush: Arc<Hush>,
+    registry: Arc<Registry>,
     idle: Pin<Box<Sleep>>,
     idle_timeout: Duration,
     refusals: Arc<ConnectionRefusals>,
 }
 
 impl Conn {
-    fn new(stream: Stream, permit: OwnedSemaphorePermit, limits: &Limits) -> Conn {
+    fn new(stream: Stream, permit: OwnedSemaphorePermit, hush: Arc<Hush>, registry: Arc<Registry>, limits: &Limits) -> Conn {
         // Until the peer's first byte the shorter of the two timeouts.
         let first = limits.idle_timeout.min(FIRST_BYTE_TIMEOUT);
-        Conn { stream, _permit: permit, idle: Box::pin(tokio::time::sleep(first)), idle_timeout: limits.idle_timeout, refusals: limits.refusals.clone() }
+        let idle = Box::pin(tokio::time::sleep(first));
+        Conn { stream, _permit: permit, hush, registry, idle, idle_timeout: limits.idle_timeout, refusals: limits.refusals.clone() }
     }
 }
 
@@ -68,6 +161,9 @@ impl Connected for Conn {
 impl AsyncRead for Conn {
     fn poll_read(self: Pin<&mut Self>, cx: &mut Context<'_>, buf: &mut ReadBuf<'_>) -> Poll<io::Result<()>> {
         let this = self.get_mut();
+        if this.hush.poll_evicted(cx).is_ready() {
+            return Poll::Ready(Err(io::Error::new(io::ErrorKind::ConnectionAborted, "closed, quiet, to make room for a newcomer on a full server")));
+        }
         let before = buf.filled().len();
         let read = match &mut this.stream {
             Stream::Plain(s) => Pin::new(s).poll_read(cx, buf),
@@ -75,6 +171,8 @@ impl AsyncRead for Conn {
         };
         match read {
             Poll::Ready(Ok(())) if buf.filled().len() > before => {
+                this.hush.spoken.store(true, Ordering::Release);
+                this.hush.heard_ms.store(this.registry.now_ms(), Ordering::Relaxed);
                 // The peer spoke: the silence starts over.
                 let next = Instant::now() + this.idle_timeout;
                 this.idle.as_mut().reset(next);
@@ -137,6 +235,7 @@ pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, r
     let (tx, rx) = tokio::sync::mpsc::channel(64);
     let acceptor = tls.map(TlsAcceptor::from);
     let places = Arc::new(Semaphore::new(limits.max_connections));
+    let registry = Arc::new(Registry::new());
     tokio::spawn(async move {
         loop {
             let (stream, peer) = match listener.accept().await {
@@ -152,26 +251,49 @@ pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, r
                     continue;
                 }
             };
-            // Over the limit: closed at once (dropping it), counted, so a
-            // flood of sockets costs a file for a moment, not for ever.
-            let Ok(permit) = places.clone().try_acquire_owned() else {
-                limits.refusals.over_limit.fetch_add(1, Ordering::Relaxed);
-                tracing::debug!(%peer, "connection refused: --max-connections reached");
-                continue;
+            // Full: the least recently heard quiet connection makes room
+            // (its reader fails and tonic drops it, giving its place back
+            // at once); with none quiet the newcomer is closed, so a flood of
+            // sockets costs a file for a moment, not for ever.
+            let permit = match places.clone().try_acquire_owned() {
+                Ok(permit) => permit,
+                Err(_) if registry.evict() => {
+                    limits.refusals.evicted.fetch_add(1, Ordering::Relaxed);
+                    match tokio::time::timeout(Duration::from_millis(500), places.clone().acquire_owned()).await {
+                        Ok(Ok(permit)) => permit,
+                        _ => {
+                            limits.refusals.over_limit.fetch_add(1, Ordering::Relaxed);
+                            continue;
+                        }
+                    }
+                }
+                Err(_) => {
+                    limits.refusals.over_limit.fetch_add(1, Ordering::Relaxed);
+                    tracing::debug!(%peer, "connection refused: --max-connections reached, none quiet");
+                    continue;
+                }
             };
+            let hush = registry.admit(limits.max_connections);
             let _ = stream.set_nodelay(true);
             match &acceptor {
                 None => {
-                    if tx.send(Ok(Conn::new(Stream::Plain(stream), permit, &limits))).await.is_err() {
+                    if tx.send(Ok(Conn::new(Stream::Plain(stream), permit, hush, registry.clone(), &limits))).await.is_err() {
                         break;
                     }
                 }
                 Some(acceptor) => {
-                    let (acceptor, tx, refused, limits) = (acceptor.clone(), tx.clone(), refused.clone(), limits.clone());
+                    let (acceptor, tx, refused, limits, registry) = (acceptor.clone(), tx.clone(), refused.clone(), limits.clone(), registry.clone());
                     tokio::spawn(async move {
-                        match tokio::time::timeout(HANDSHAKE_TIMEOUT, acceptor.accept(stream)).await {
+                        // A handshake is silence too: evictable until the
+                        // first byte after it.
+                        let evicted = std::future::poll_fn(|cx| hush.poll_evicted(cx));
+                        let handshake = tokio::select! {
+                            outcome = tokio::time::timeout(HANDSHAKE_TIMEOUT, acceptor.accept(stream)) => outcome,
+                            () = evicted => return,
+                        };
+                        match handshake {
                             Ok(Ok(tls)) => {
-                                let _ = tx.send(Ok(Conn::new(Stream::Tls(Box::new(tls)), permit, &limits))).await;
+                                let _ = tx.send(Ok(Conn::new(Stream::Tls(Box::new(tls)), permit, hush, registry, &limits))).await;
                             }
                             outcome => {
                                 refused();

@@ -59,8 +59,10 @@ pub const FIRST_BYTE_TIMEOUT: Duration = Duration::from_secs(10);
 /// A server's connection limits (flags of every lcrl server).
 #[derive(Debug, Clone, clap::Args)]
 pub struct ServerLimitsArgs {
-    /// Connections served at once; more are closed on accept and counted
-    /// (`refused{reason="connections"}` in /metrics).
+    /// Connections served at once. When all are taken, a newcomer takes
+    /// the place of the least recently heard connection that never spoke
+    /// or has been quiet for 5 s (`connections_refused{reason="evicted"}`
+    /// in /metrics); with none such, it is closed (`reason="connections"`).
     #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(1..=65_536))]
     pub max_connections: u32,
     /// A connection whose peer sends nothing for this long is closed,
@@ -104,11 +106,19 @@ pub struct ConnectionRefusals {
     pub over_limit: AtomicU64,
     /// Closed after the peer sent nothing for the idle timeout.
     pub idle: AtomicU64,
+    /// Closed, while the server was full, to make room for a newcomer:
+    /// the least recently heard of those silent since accepted or quiet
+    /// for 5 s (crate::incoming).
+    pub evicted: AtomicU64,
 }
 
 impl ConnectionRefusals {
-    pub fn counts(&self) -> [(&'static str, u64); 2] {
-        [("connections", self.over_limit.load(Ordering::Relaxed)), ("idle", self.idle.load(Ordering::Relaxed))]
+    pub fn counts(&self) -> [(&'static str, u64); 3] {
+        [
+            ("connections", self.over_limit.load(Ordering::Relaxed)),
+            ("idle", self.idle.load(Ordering::Relaxed)),
+            ("evicted", self.evicted.load(Ordering::Relaxed)),
+        ]
     }
 }
 
@@ -122,9 +132,10 @@ pub fn client_endpoint(endpoint: Endpoint) -> Endpoint {
         .keep_alive_while_idle(true)
 }
 
-/// Exponential backoff with full jitter (a random wait up to the doubled
-/// delay, at most `max`): many actors that lost one learner do not all
-/// come back in the same instant.
+/// Exponential backoff with "equal" jitter (a random wait between half
+/// and all of a delay that doubles up to `max`): many actors that lost one
+/// learner do not all come back in the same instant, and none retries
+/// sooner than half its delay.
 #[derive(Debug, Clone)]
 pub struct Backoff {
     next: Duration,

@@ -98,6 +98,17 @@ pub fn init_logging(json: bool) {
     }
 }
 
+/// The decoding limit of services whose requests are a name or nothing
+/// (health, reflection, the graph): a peer cannot make them buffer more.
+pub const SMALL_REQUEST_BYTES: usize = 64 << 10;
+
+/// The standard health service (no token needed) with
+/// [`SMALL_REQUEST_BYTES`] as its decoding limit.
+pub fn health_service() -> (tonic_health::server::HealthReporter, tonic_health::pb::health_server::HealthServer<impl tonic_health::pb::health_server::Health>) {
+    let (reporter, service) = tonic_health::server::health_reporter();
+    (reporter, service.max_decoding_message_size(SMALL_REQUEST_BYTES))
+}
+
 /// Adds server reflection of lcrl.v1 and grpc.health.v1 in both protocol
 /// versions, behind the token check: v1 (grpcurl, grpcui, newer tools) and
 /// v1alpha (grpcio's `grpcio-reflection`, Postman, older tools).
@@ -109,8 +120,9 @@ pub fn add_reflection<L>(router: tonic::transport::server::Router<L>, check: &To
     };
     // The descriptor sets are compiled in: a failure is a build defect,
     // which every test that starts a server would show.
-    let v1 = configure().build_v1().expect("compiled-in descriptor sets are valid");
-    let v1alpha = configure().build_v1alpha().expect("compiled-in descriptor sets are valid");
+    // Its requests name a symbol or a file: nothing larger is decoded.
+    let v1 = configure().build_v1().expect("compiled-in descriptor sets are valid").max_decoding_message_size(SMALL_REQUEST_BYTES);
+    let v1alpha = configure().build_v1alpha().expect("compiled-in descriptor sets are valid").max_decoding_message_size(SMALL_REQUEST_BYTES);
     router.add_service(InterceptedService::new(v1, check.clone())).add_service(InterceptedService::new(v1alpha, check.clone()))
 }
 

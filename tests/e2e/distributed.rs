@@ -178,9 +178,16 @@ async fn actors_train_the_learner_which_serves_the_policy() {
 async fn bad_batches_are_rejected_counted_and_never_stored() {
     let dir = tempfile::tempdir().unwrap();
     let (_learner, url) = learner(&dir.path().join("run"), "r2", free_port());
-    for (bad, reason) in [(batch("r2", 1, 4, 0.0), "dimensions"), (batch("r2", 1, 3, f32::INFINITY), "non_finite"), (batch("other-run", 1, 3, 0.0), "unknown_run")] {
+    // Another run's batch: the sender's --run-id is wrong, which retrying
+    // cannot mend (FAILED_PRECONDITION); the others are malformed.
+    let cases = [
+        (batch("r2", 1, 4, 0.0), "dimensions", tonic::Code::InvalidArgument),
+        (batch("r2", 1, 3, f32::INFINITY), "non_finite", tonic::Code::InvalidArgument),
+        (batch("other-run", 1, 3, 0.0), "unknown_run", tonic::Code::FailedPrecondition),
+    ];
+    for (bad, reason, code) in cases {
         let err = send(&url, bad).await.unwrap_err();
-        assert_eq!(err.code(), tonic::Code::InvalidArgument, "{reason}: {err:?}");
+        assert_eq!(err.code(), code, "{reason}: {err:?}");
         let s = status(&url).await.unwrap();
         assert_eq!(s.rejected.get(reason), Some(&4), "{reason}: {:?}", s.rejected);
     }

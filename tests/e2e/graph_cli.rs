@@ -85,7 +85,7 @@ fn bad_input_fails_with_one_clear_line() {
     let dir = tempfile::tempdir().unwrap();
     let run = |args: &[&str]| lcrl().arg("graph").args(args).output().unwrap();
     assert_clean_failure(&run(&["--env", "no-such-env"]), "unknown environment 'no-such-env'");
-    assert_clean_failure(&run(&["--env", "lti-paper", "--samples", "0"]), "at least 1");
+    assert_clean_failure(&run(&["--env", "lti-paper", "--samples", "0"]), "expected 1 to 100000000");
     assert_clean_failure(&run(&["--env", "lti-paper", "--threshold", "0"]), "--threshold");
     assert_clean_failure(&run(&["--env", "lti-paper", "--threshold", "-0.5"]), "--threshold");
     assert_clean_failure(&run(&["--env", "lti-paper", "--threshold", "NaN"]), "--threshold");

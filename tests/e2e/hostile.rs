@@ -63,7 +63,7 @@ async fn status(url: &str, security: &ClientSecurity) -> LearnerStatus {
 }
 
 /// Sends `batches` on one stream; the first refusal's status code.
-async fn send_all(url: &str, security: &ClientSecurity, batches: Vec<TransitionBatch>) -> Option<tonic::Code> {
+pub(super) async fn send_all(url: &str, security: &ClientSecurity, batches: Vec<TransitionBatch>) -> Option<tonic::Code> {
     let mut client = LearnerClient::new(security.connect(url).await.ok()?).max_encoding_message_size(64 << 20);
     match client.stream_transitions(tokio_stream::iter(batches)).await {
         Err(status) => Some(status.code()),
@@ -281,7 +281,7 @@ fn bad_numbers_on_the_command_line_are_refused_without_a_panic() {
         (actor(&["--noise", "inf"]), &["--noise", "finite"]),
         (actor(&["--envs", "100000000000"]), &["--envs", "1024"]),
         (actor(&["--batch", "0"]), &["--batch", "4096"]),
-        (graph_builder(&["--env", "lti-paper", "--samples", "18446744073709551615"]), &["--samples", "100000"]),
+        (graph_builder(&["--env", "lti-paper", "--samples", "18446744073709551615"]), &["--samples", "100000000"]),
         (graph_builder(&["--env", "lti-paper", "--threads", "1000000000"]), &["--threads", "1024"]),
         (graph_builder(&["--env", "lti-blocks-1099511627776"]), &["lti-blocks-N", "256"]),
         ({

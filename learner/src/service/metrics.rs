@@ -95,7 +95,7 @@ impl Collector for LearnerCollector {
         drop(refused);
         let mut closed = encoder.encode_descriptor(
             "connections_refused",
-            "Connections the server closed by its limits, by reason (connections: over --max-connections; idle: silent past --idle-timeout-secs)",
+            "Connections the server closed by its limits, by reason (connections: over --max-connections, none to evict; evicted: quiet, for a newcomer; idle: silent past --idle-timeout-secs)",
             None,
             family.metric_type(),
         )?;

@@ -141,6 +141,10 @@ impl TrainingLoop {
         };
         training.finished = training.budget_reached();
         training.shared.flow_mut().finished = training.finished;
+        // A run resumed at its budget: its actors stop at once.
+        if training.finished {
+            tell_actors_finished(&training.shared);
+        }
         training
     }
 
@@ -285,6 +289,8 @@ impl TrainingLoop {
     fn finish(&mut self) -> Result<(), LearnerError> {
         self.finished = true;
         self.held = None;
+        // First, so that no error below keeps the actors running.
+        tell_actors_finished(&self.shared);
         let batch_size = self.agent.samples_per_update() as u64;
         let owed = |training: &Self| {
             let flow = training.shared.flow_mut();
@@ -311,13 +317,6 @@ impl TrainingLoop {
         self.shared.serve(served);
         self.write_summary(&snapshot, chosen.and_then(|c| c.record))?;
         self.shared.flow_mut().finished = true;
-        // Actors learn it from their policy feed (gRPC and shared memory)
-        // and stop: nothing they send from now on is stored.
-        self.shared.policy.send_modify(|current| {
-            let mut last = (**current).clone();
-            last.training_finished = true;
-            *current = Arc::new(last);
-        });
         tracing::info!(episodes = self.episodes(), "episode budget reached: training ends");
         Ok(())
     }
@@ -515,6 +514,17 @@ impl TrainingLoop {
         drop(flow);
         crate::summary::write_summary(&self.shared.run_dir, &summary)
     }
+}
+
+/// Marks the published policy as the last: actors learn it from their
+/// policy feed (gRPC and shared memory) and stop, as nothing they send
+/// from now on is stored.
+fn tell_actors_finished(shared: &Shared) {
+    shared.policy.send_modify(|current| {
+        let mut last = (**current).clone();
+        last.training_finished = true;
+        *current = Arc::new(last);
+    });
 }
 
 /// Blocks for the next command up to `timeout`: Some(command or None for
