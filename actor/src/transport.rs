@@ -23,6 +23,9 @@ use crate::worker::Exploration;
 /// Batches in flight or waiting: the bound on what an actor holds.
 pub const MAX_PENDING_BATCHES: usize = 8;
 
+/// Malformed batches in a row after which an actor stops.
+pub const REJECTIONS_TO_STOP: usize = 3;
+
 /// Connects, retrying with exponential backoff and jitter until
 /// `deadline` (every call on the channel has lcrl_proto::limits' call
 /// deadline and keepalive, so a learner that accepts and never answers
@@ -110,6 +113,10 @@ impl Progress {
 pub async fn send_batches(url: String, security: ClientSecurity, mut client: LearnerClient<AuthChannel>, mut batches: mpsc::Receiver<TransitionBatch>, deadline: Duration, metrics: ActorMetrics, progress: Progress) -> anyhow::Result<()> {
     let mut pending: VecDeque<TransitionBatch> = VecDeque::new();
     let mut worker_done = false;
+    // Batches rejected as malformed since the last one stored: a few is a
+    // bad step (a non-finite number); many in a row is an actor that does
+    // not fit the run (another environment), which retrying cannot mend.
+    let mut rejected_in_a_row = 0usize;
     // Between streams: a learner that ends every stream (full, restarting)
     // is not hammered with reconnects.
     let mut reconnect = Backoff::new(Duration::from_millis(100), Duration::from_secs(5));
@@ -145,6 +152,7 @@ pub async fn send_batches(url: String, security: ClientSecurity, mut client: Lea
                     ack = acks.next() => match ack {
                         Some(Ok(ack)) => {
                             progress.mark();
+                            rejected_in_a_row = 0;
                             // The learner answers: the next loss starts the
                             // backoff over.
                             reconnect = Backoff::new(Duration::from_millis(100), Duration::from_secs(5));
@@ -158,6 +166,13 @@ pub async fn send_batches(url: String, security: ClientSecurity, mut client: Lea
                             // The learner will never take this batch; drop it and go on.
                             tracing::error!("the learner rejected a batch: {}", status.message());
                             pending.pop_front();
+                            rejected_in_a_row += 1;
+                            if rejected_in_a_row >= REJECTIONS_TO_STOP {
+                                bail!(
+                                    "the learner rejected {rejected_in_a_row} batches in a row, the last: {} (does this actor run the learner's environment?)",
+                                    status.message()
+                                );
+                            }
                             break;
                         }
                         Some(Err(status)) if is_fatal(&status) => return Err(refused(status)),

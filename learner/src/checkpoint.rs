@@ -378,9 +378,16 @@ pub const KEEP_CHECKPOINTS: usize = 3;
 
 /// Deletes all but the newest `keep` checkpoints, in episode order.
 fn prune_checkpoints(root: &Path, keep: usize) {
-    let complete = checkpoint_folders(root);
-    let excess = complete.len().saturating_sub(keep);
-    for old in &complete[..excess] {
+    // Counted by intact ones: damaged newer folders (which resume skips)
+    // must not push the last good checkpoints out. Nothing newer than the
+    // `keep`-th intact one is removed.
+    let folders = checkpoint_folders(root);
+    let mut intact = 0;
+    let cut = folders.iter().rposition(|folder| {
+        intact += usize::from(check_intact(folder).is_ok());
+        intact == keep
+    });
+    for old in &folders[..cut.unwrap_or(0)] {
         if let Err(e) = std::fs::remove_dir_all(old) {
             tracing::warn!("cannot remove old checkpoint {}: {e}", old.display());
         }
@@ -458,6 +465,23 @@ mod tests {
         assert_eq!(names(&root), ["ep1000000", "ep1000001", "ep999999"]);
         assert_eq!(checkpoint_episode("ep+5"), None);
         assert_eq!(checkpoint_episode("ep"), None);
+    }
+
+    /// Pruning counts intact checkpoints: two damaged newer folders do not
+    /// push the last good ones out (resume would then find none).
+    #[test]
+    fn pruning_keeps_the_newest_intact_checkpoints() {
+        let run = tempfile::tempdir().unwrap();
+        let root = run.path().join("checkpoints");
+        for episode in [10, 20, 30, 40, 50, 60] {
+            write(&root, episode);
+        }
+        for damaged in [50, 60] {
+            std::fs::write(root.join(format!("ep{damaged:06}")).join("checkpoint.json"), "{").unwrap();
+        }
+        prune_checkpoints(&root, 3);
+        assert_eq!(names(&root), ["ep000020", "ep000030", "ep000040", "ep000050", "ep000060"]);
+        assert_eq!(latest_checkpoint(run.path()), Some(root.join("ep000040")));
     }
 
     /// Finding 8: with the newest checkpoint truncated or garbled, resume

@@ -389,7 +389,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         serving: Mutex::new(None),
         act_latency,
         max_act_batch: args.max_act_batch as usize,
-        act_batch_slots: tokio::sync::Semaphore::new(lcrl_learner::service::server::ACT_BATCH_CONCURRENCY),
+        compute_slots: tokio::sync::Semaphore::new(lcrl_learner::service::server::POLICY_CONCURRENCY),
     };
     // Its largest request: --max-act-batch states of f32, and some framing.
     let act_batch_bytes = (args.max_act_batch as usize * m * 4 + 1024).max(64 << 10);

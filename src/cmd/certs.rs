@@ -20,8 +20,8 @@ pub struct CertsArgs {
     /// server certificate is valid for all of them.
     #[arg(long, value_delimiter = ',', default_value = "learner,graph-builder,localhost,127.0.0.1")]
     pub hosts: Vec<String>,
-    /// Validity of the certificates, days.
-    #[arg(long, default_value_t = 365)]
+    /// Validity of the certificates, days (1 to 36500).
+    #[arg(long, default_value_t = 365, value_parser = clap::value_parser!(u32).range(1..=36_500))]
     pub days: u32,
     /// Replace files already in --out.
     #[arg(long)]

@@ -21,7 +21,7 @@ use serde::Serialize;
 use lcrl::binaries::sibling;
 use lcrl::preset::Preset;
 use crate::cmd::run::TransportArg;
-use lcrl::supervise::{wait_healthy, Managed};
+use lcrl::supervise::{stop_with_parent, wait_healthy, Managed};
 
 /// Measure throughput against the number of actor processes.
 #[derive(Debug, clap::Args)]
@@ -266,6 +266,9 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
     let run_id = format!("scale-{}-a{actors}-e{envs}", std::process::id());
     let mut cmd = Command::new(sibling("lcrl-learner")?);
     cmd.args(preset.learner_args_with_graph_file("127.0.0.1:0", &run_id, &train, &dir.join("learner"), graph));
+    // Spawned from the main thread (this runs inside `block_on`), which
+    // lives as long as `lcrl scale`: they stop when it dies.
+    stop_with_parent(&mut cmd);
     let (mut learner, address) = Managed::spawn("learner", cmd, &logs, true)?;
     let url = format!("http://{}", address.context("the learner did not start; see its log")?);
     wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120), &Default::default()).await?;
@@ -274,6 +277,7 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
     for k in 0..actors {
         let mut cmd = Command::new(sibling("lcrl-actor")?);
         cmd.args(preset.actor_args(&url, &run_id, transport, Some(&format!("actor-{k}")), k as u64));
+        stop_with_parent(&mut cmd);
         workers.push(Managed::spawn(&format!("actor-{k}"), cmd, &logs, false)?.0);
     }
     let mut client = LearnerClient::connect(url.clone()).await?;

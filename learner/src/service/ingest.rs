@@ -193,7 +193,8 @@ impl Ingest {
             self.count("unknown_run", count);
             return Verdict::Reject {
                 reason: "unknown_run",
-                message: format!("run id '{}' is not this learner's run ('{}')", batch.run_id, self.run_id),
+                // A peer's string in the log: at most 64 characters of it.
+                message: format!("run id '{}' is not this learner's run ('{}')", batch.run_id.chars().take(64).collect::<String>(), self.run_id),
             };
         }
         // Names are kept (sequences, checkpoint.json): bounded in length

@@ -205,9 +205,10 @@ fn rejection(reason: &str, message: String) -> Status {
     }
 }
 
-/// ActBatch calls computed at once; more wait their turn. Each holds a
-/// worker thread of its own (off the event loop), and the policy is one.
-pub const ACT_BATCH_CONCURRENCY: usize = 2;
+/// Act and ActBatch calls computed at once (the served policy is one, and
+/// each computation holds a thread off the event loop). More wait their
+/// turn on the event loop, holding no thread.
+pub const POLICY_CONCURRENCY: usize = 1;
 
 /// `lcrl.v1.Policy`: the served policy (the newest during training, the
 /// selected one after), rebuilt when another version is served.
@@ -219,8 +220,8 @@ pub struct PolicyService {
     pub act_latency: prometheus_client::metrics::histogram::Histogram,
     /// States one ActBatch call may hold (`--max-act-batch`).
     pub max_act_batch: usize,
-    /// Places for ActBatch calls ([`ACT_BATCH_CONCURRENCY`]).
-    pub act_batch_slots: tokio::sync::Semaphore,
+    /// Places for Act and ActBatch computations ([`POLICY_CONCURRENCY`]).
+    pub compute_slots: tokio::sync::Semaphore,
 }
 
 impl PolicyService {
@@ -260,8 +261,9 @@ impl PolicyApi for PolicyService {
         let state = request.into_inner().state;
         self.check_states(&state, 1)?;
         let raw: Vec<f64> = state.iter().map(|&v| f64::from(v)).collect();
-        // The policy's lock may be held by an ActBatch: never wait for it
-        // on the event loop.
+        // Waits for its turn without a thread, then computes off the event
+        // loop (an ActBatch may be computing).
+        let _slot = self.compute_slots.acquire().await.map_err(|_| Status::unavailable("the learner is shutting down"))?;
         let (action, version) = tokio::task::block_in_place(|| self.with_policy(|policy, env| policy.act(env, &raw)))?;
         self.act_latency.observe(started.elapsed().as_secs_f64());
         Ok(Response::new(ActResponse { action: action.iter().map(|&a| a as f32).collect(), policy_version: version }))
@@ -275,7 +277,7 @@ impl PolicyApi for PolicyService {
             return Err(Status::invalid_argument(format!("{} states in one ActBatch; this learner takes at most {} (--max-act-batch): split the call", request.count, self.max_act_batch)));
         }
         let m = self.check_states(&request.states, request.count as usize)?;
-        let _slot = self.act_batch_slots.acquire().await.map_err(|_| Status::unavailable("the learner is shutting down"))?;
+        let _slot = self.compute_slots.acquire().await.map_err(|_| Status::unavailable("the learner is shutting down"))?;
         // Off the event loop: health checks and GetStatus stay answered
         // while a large batch computes.
         let (actions, version) = tokio::task::block_in_place(|| {
