@@ -18,6 +18,26 @@ pub fn lcrl_python() -> anyhow::Result<PathBuf> {
     Ok(python)
 }
 
+/// A file of this project (`scripts/...`), wherever the binary was built:
+/// under the working directory, under a folder above the binary (a build
+/// copied with its `target/` into another checkout, or release binaries
+/// beside a checkout), or where this binary was built.
+pub fn project_file(relative: &str) -> anyhow::Result<PathBuf> {
+    let mut roots: Vec<PathBuf> = Vec::new();
+    roots.extend(std::env::current_dir().ok());
+    if let Ok(exe) = std::env::current_exe() {
+        roots.extend(exe.ancestors().skip(1).take(4).map(Path::to_path_buf));
+    }
+    roots.push(PathBuf::from(env!("CARGO_MANIFEST_DIR")));
+    match roots.iter().map(|root| root.join(relative)).find(|path| path.is_file()) {
+        Some(path) => Ok(path),
+        None => bail!(
+            "{relative} is not under the working directory, the folders above this binary or {}; run from the project's root",
+            env!("CARGO_MANIFEST_DIR")
+        ),
+    }
+}
+
 /// A workspace binary next to this one (`lcrl-learner`, ...).
 pub fn sibling(name: &str) -> anyhow::Result<PathBuf> {
     let path = std::env::current_exe()?.with_file_name(name);
@@ -25,4 +45,19 @@ pub fn sibling(name: &str) -> anyhow::Result<PathBuf> {
         bail!("{} is missing; build it with `cargo build --workspace --bins`", path.display());
     }
     Ok(path)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A project file is found (here under the working directory or where
+    /// the binary was built); a missing one is named in the error.
+    #[test]
+    fn project_files_are_found_and_missing_ones_named() {
+        let script = project_file("scripts/bench_torch_ddpg.py").expect("the PyTorch comparison script");
+        assert!(script.ends_with("scripts/bench_torch_ddpg.py") && script.is_file());
+        let missing = project_file("scripts/no-such-script.py").unwrap_err().to_string();
+        assert!(missing.contains("scripts/no-such-script.py") && missing.contains("project's root"), "{missing}");
+    }
 }

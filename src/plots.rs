@@ -69,17 +69,44 @@ const COLORS: [RGBColor; 6] = [
 /// Reference lines: black, grey, dark green, purple (dashed).
 const REFERENCE_COLORS: [RGBColor; 4] = [RGBColor(0, 0, 0), RGBColor(120, 120, 120), RGBColor(0, 100, 0), RGBColor(120, 0, 120)];
 
-/// Draws `panels` top to bottom against `x` into a PNG.
+/// Width of the plot and of the legend beside it, pixels: the legend
+/// never covers data (the end of a reward curve, where the result is).
+const PLOT_WIDTH: u32 = 820;
+const LEGEND_WIDTH: u32 = 300;
+
+/// One legend row: name, colour, and how its sample is drawn.
+struct LegendRow {
+    name: String,
+    color: RGBColor,
+    sample: Sample,
+}
+
+#[derive(Clone, Copy, PartialEq)]
+enum Sample {
+    Line,
+    /// A reference line.
+    Dashed,
+    /// Clipped values' marks.
+    Triangle,
+}
+
+/// Draws `panels` top to bottom against `x` into a PNG, each panel's
+/// legend to its right. Integer x values (episodes) get whole-number
+/// ticks; values a reward panel clips sit on its bottom edge, each marked
+/// with a small triangle.
 pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &[Panel]) -> anyhow::Result<()> {
     lcrl_graph_builder::plot::register_fonts();
     let height = 60 + 260 * panels.len() as u32;
-    let root = BitMapBackend::new(path, (900, height)).into_drawing_area();
+    let root = BitMapBackend::new(path, (PLOT_WIDTH + LEGEND_WIDTH, height)).into_drawing_area();
     let draw_err = |e: &dyn std::fmt::Display| anyhow::anyhow!("cannot draw {}: {e}", path.display());
     root.fill(&WHITE).map_err(|e| draw_err(&e))?;
     let root = root.titled(title, ("sans-serif", 20)).map_err(|e| draw_err(&e))?;
     let areas = root.split_evenly((panels.len(), 1));
-    for (area, panel) in areas.iter().zip(panels) {
+    for (whole, panel) in areas.iter().zip(panels) {
+        let (area, legend_area) = whole.split_horizontally(PLOT_WIDTH);
+        let mut legend: Vec<LegendRow> = Vec::new();
         let x = panel.x.as_deref().unwrap_or(x);
+        let whole_numbers = x.iter().all(|v| v.fract() == 0.0);
         let (x0, x1) = range(x.iter().copied());
         let values: Vec<f64> = panel.series.iter().flat_map(|(_, v)| v.iter().copied()).collect();
         let band = panel.bands.iter().flat_map(|(_, lo, hi)| lo.iter().chain(hi).copied());
@@ -90,19 +117,19 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
         let (y0, y1) = range(kept.chain(band).chain(references).chain(floor));
         let below = floor.map_or(0, |f| panel.series.first().map_or(0, |(_, v)| v.iter().filter(|x| **x < f).count()));
         let y_label = if below > 0 { format!("{} ({below} values below the axis)", panel.y_label) } else { panel.y_label.clone() };
-        let mut chart = ChartBuilder::on(area)
+        let mut chart = ChartBuilder::on(&area)
             .margin(12)
             .x_label_area_size(35)
             .y_label_area_size(70)
             .build_cartesian_2d(x0..x1, y0..y1)
             .map_err(|e| draw_err(&e))?;
-        chart
-            .configure_mesh()
-            .x_desc(x_label)
-            .y_desc(y_label.as_str())
-            .label_style(("sans-serif", 13))
-            .draw()
-            .map_err(|e| draw_err(&e))?;
+        let whole_ticks = |v: &f64| format!("{v:.0}");
+        let mut mesh = chart.configure_mesh();
+        mesh.x_desc(x_label).y_desc(y_label.as_str()).label_style(("sans-serif", 13));
+        if whole_numbers {
+            mesh.x_label_formatter(&whole_ticks);
+        }
+        mesh.draw().map_err(|e| draw_err(&e))?;
         for (k, lo, hi) in &panel.bands {
             let clamp = |v: &[f64]| -> Vec<(f64, f64)> { x.iter().copied().zip(v.iter().map(|y| y.clamp(y0, y1))).collect() };
             let polygon: Vec<(f64, f64)> = clamp(hi).into_iter().chain(clamp(lo).into_iter().rev()).collect();
@@ -112,29 +139,43 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
         for (k, (name, values)) in panel.series.iter().enumerate() {
             let color = COLORS[k % COLORS.len()];
             let points = x.iter().copied().zip(values.iter().map(|y| y.max(y0))).filter(|(_, y)| y.is_finite());
-            chart
-                .draw_series(LineSeries::new(points, color.stroke_width(2)))
-                .map_err(|e| draw_err(&e))?
-                .label(name.as_str())
-                .legend(move |(lx, ly)| PathElement::new(vec![(lx, ly), (lx + 18, ly)], color.stroke_width(2)));
+            chart.draw_series(LineSeries::new(points, color.stroke_width(2))).map_err(|e| draw_err(&e))?;
+            // Clipped values: a triangle on the bottom edge for each.
+            let clipped = x.iter().zip(values).filter(|(_, y)| **y < y0).map(|(x, _)| TriangleMarker::new((*x, y0), 4, color.filled()));
+            chart.draw_series(clipped).map_err(|e| draw_err(&e))?;
+            legend.push(LegendRow { name: name.clone(), color, sample: Sample::Line });
         }
         for (k, (name, y)) in panel.references.iter().enumerate() {
             let color = REFERENCE_COLORS[k % REFERENCE_COLORS.len()];
-            chart
-                .draw_series(DashedLineSeries::new(vec![(x0, *y), (x1, *y)], 8, 5, color.stroke_width(2)))
-                .map_err(|e| draw_err(&e))?
-                .label(format!("{name} ({y:.3})"))
-                .legend(move |(lx, ly)| PathElement::new(vec![(lx, ly), (lx + 18, ly)], color.stroke_width(2)));
+            chart.draw_series(DashedLineSeries::new(vec![(x0, *y), (x1, *y)], 8, 5, color.stroke_width(2))).map_err(|e| draw_err(&e))?;
+            legend.push(LegendRow { name: format!("{name} ({y:.3})"), color, sample: Sample::Dashed });
         }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 13))
-            .draw()
-            .map_err(|e| draw_err(&e))?;
+        if below > 0 {
+            legend.push(LegendRow { name: format!("{below} values below the axis"), color: COLORS[0], sample: Sample::Triangle });
+        }
+        draw_legend(&legend_area, &legend).map_err(|e| draw_err(&e))?;
     }
     root.present().map_err(|e| draw_err(&e)).with_context(|| format!("writing {}", path.display()))
+}
+
+/// The legend rows top down, a line sample (dashed for references) and the
+/// name, beside the plot.
+fn draw_legend<DB: DrawingBackend>(area: &DrawingArea<DB, plotters::coord::Shift>, rows: &[LegendRow]) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    for (k, row) in rows.iter().enumerate() {
+        let y = 24 + 20 * k as i32;
+        let style = row.color.stroke_width(2);
+        match row.sample {
+            Sample::Line => area.draw(&PathElement::new(vec![(4, y), (22, y)], style))?,
+            Sample::Dashed => {
+                for start in [4, 13] {
+                    area.draw(&PathElement::new(vec![(start, y), (start + 6, y)], style))?;
+                }
+            }
+            Sample::Triangle => area.draw(&TriangleMarker::new((13, y), 4, row.color.filled()))?,
+        }
+        area.draw(&Text::new(row.name.as_str(), (28, y - 7), ("sans-serif", 13).into_font().color(&BLACK)))?;
+    }
+    Ok(())
 }
 
 /// A padded [min, max] range that is never empty.

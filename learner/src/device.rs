@@ -11,7 +11,7 @@
 //! run time, before the first CUDA query: by `resolve_device("cuda")` and
 //! by `lcrl doctor`.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use tch::Tensor;
@@ -31,6 +31,9 @@ pub const MAX_THREADS: usize = 1024;
 pub enum CudaLibrary {
     /// Loaded from this path: libtorch's CUDA backend is registered.
     Loaded(PathBuf),
+    /// Already in the process before lcrl looked (LD_PRELOAD, or release
+    /// binaries run beside another libtorch), from this path.
+    Preloaded(PathBuf),
     /// This libtorch is a CPU-only build (no `libtorch_cuda.so` beside it).
     CpuOnlyBuild,
     /// The file is there but would not load (a missing CUDA runtime
@@ -42,6 +45,7 @@ impl std::fmt::Display for CudaLibrary {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             CudaLibrary::Loaded(path) => write!(f, "loaded ({})", path.display()),
+            CudaLibrary::Preloaded(path) => write!(f, "loaded (already in the process: {})", path.display()),
             CudaLibrary::CpuOnlyBuild => write!(f, "absent: this libtorch is a CPU-only build"),
             CudaLibrary::Failed(why) => write!(f, "present but failed to load: {why}"),
         }
@@ -53,6 +57,11 @@ impl std::fmt::Display for CudaLibrary {
 pub fn load_cuda() -> &'static CudaLibrary {
     static LOADED: OnceLock<CudaLibrary> = OnceLock::new();
     LOADED.get_or_init(|| {
+        // Loaded already (a preload): that one is the backend, whatever
+        // the libtorch this was built against holds.
+        if let Some(path) = mapped("libtorch_cuda.so") {
+            return CudaLibrary::Preloaded(path);
+        }
         let Some(dir) = LIBTORCH_LIB else { return CudaLibrary::CpuOnlyBuild };
         let path = PathBuf::from(dir).join("libtorch_cuda.so");
         if !path.is_file() {
@@ -74,6 +83,13 @@ pub fn load_cuda() -> &'static CudaLibrary {
     })
 }
 
+/// The path of a shared library this process has mapped whose file name
+/// is `name` (Linux: /proc/self/maps), if any.
+fn mapped(name: &str) -> Option<PathBuf> {
+    let maps = std::fs::read_to_string("/proc/self/maps").ok()?;
+    maps.lines().filter_map(|line| line.split_whitespace().nth(5)).find(|path| Path::new(path).file_name().is_some_and(|f| f == name)).map(PathBuf::from)
+}
+
 /// Whether libtorch sees a CUDA device (after loading its CUDA backend).
 pub fn cuda_available() -> bool {
     load_cuda();
@@ -91,7 +107,7 @@ pub fn resolve_device(name: &str) -> Result<tch::Device, LearnerError> {
                 return Ok(tch::Device::Cuda(0));
             }
             let why = match library {
-                CudaLibrary::Loaded(_) => "libtorch's CUDA backend loaded, but it sees no CUDA device (no NVIDIA GPU or driver here)".to_string(),
+                CudaLibrary::Loaded(_) | CudaLibrary::Preloaded(_) => "libtorch's CUDA backend loaded, but it sees no CUDA device (no NVIDIA GPU or driver here)".to_string(),
                 other => format!("libtorch_cuda.so: {other}"),
             };
             Err(LearnerError::Config(format!("device \"cuda\" asked for, but CUDA is not available: {why}; use device \"cpu\" (`lcrl doctor` shows what libtorch sees)")))
@@ -170,6 +186,17 @@ mod tests {
         assert!(err.contains("\"cpu\" or \"cuda\""), "{err}");
     }
 
+    /// A library already in the process is found by its file name (how a
+    /// preloaded libtorch_cuda.so is told apart from a CPU-only build).
+    #[test]
+    fn mapped_libraries_are_found_by_file_name() {
+        let _ = tch::Tensor::from_slice(&[1.0f32]);
+        let cpu = mapped("libtorch_cpu.so").expect("libtorch_cpu.so is mapped in a process that computed with libtorch");
+        assert!(cpu.is_absolute() && cpu.ends_with("libtorch_cpu.so"), "{}", cpu.display());
+        assert_eq!(mapped("libtorch_cpu"), None, "whole file names only");
+        assert_eq!(mapped("no-such-library.so"), None);
+    }
+
     /// The mechanism itself, GPU or not: with a CUDA build of libtorch the
     /// backend library is really mapped into this process afterwards.
     #[test]
@@ -178,7 +205,7 @@ mod tests {
         let status = load_cuda();
         let maps = std::fs::read_to_string("/proc/self/maps").unwrap_or_default();
         if has_cuda_build {
-            assert!(matches!(status, CudaLibrary::Loaded(_)), "{status}");
+            assert!(matches!(status, CudaLibrary::Loaded(_) | CudaLibrary::Preloaded(_)), "{status}");
             assert!(maps.contains("libtorch_cuda.so"), "libtorch_cuda.so is not mapped after load_cuda");
         } else {
             assert_eq!(*status, CudaLibrary::CpuOnlyBuild);

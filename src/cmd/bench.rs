@@ -227,7 +227,13 @@ fn torch_eager(python: Option<&str>, device: &str, threads: &[usize], updates: u
             }
         },
     };
-    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/bench_torch_ddpg.py");
+    let script = match lcrl::binaries::project_file("scripts/bench_torch_ddpg.py") {
+        Ok(script) => script,
+        Err(e) => {
+            println!("PyTorch eager: skipped ({e})");
+            return Ok(());
+        }
+    };
     let threads_arg = threads.iter().map(ToString::to_string).collect::<Vec<_>>().join(",");
     let out = std::process::Command::new(&python)
         .arg(&script)
