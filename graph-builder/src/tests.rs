@@ -223,3 +223,77 @@ fn lti_blocks_graphs_equal_lemma1_up_to_32_actions() {
     }
     assert!(make_env("lti-blocks-5").is_err(), "odd N has no pairs");
 }
+
+/// The publication's graph for the peg task as printed (eq. 21, restated
+/// in METHOD.md §6a): states in the publication's column order, then one
+/// row per action in its row order, 23 edges of 72.
+const EQ21_STATES: [&str; 12] = ["x", "y", "z", "alpha", "beta", "gamma", "Fx", "Fy", "Fz", "Mx", "My", "Mz"];
+const EQ21_ROWS: [(&str, [u8; 12]); 6] = [
+    ("dx", [1, 0, 1, 0, 0, 0, 1, 0, 1, 0, 1, 0]),
+    ("dy", [0, 1, 1, 0, 0, 0, 0, 1, 1, 1, 0, 0]),
+    ("dz", [0, 0, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0]),
+    ("dalpha", [0, 1, 0, 1, 0, 0, 0, 1, 1, 1, 0, 0]),
+    ("dbeta", [1, 0, 0, 0, 1, 0, 1, 0, 1, 0, 1, 0]),
+    ("dgamma", [0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 1]),
+];
+/// The same graph as eq. 22 prints it: each action's policy inputs.
+const EQ22_INPUTS: [(&str, &[&str]); 6] = [
+    ("dx", &["x", "z", "Fx", "Fz", "My"]),
+    ("dy", &["y", "z", "Fy", "Fz", "Mx"]),
+    ("dz", &["z"]),
+    ("dalpha", &["y", "alpha", "Fy", "Fz", "Mx"]),
+    ("dbeta", &["x", "beta", "Fx", "Fz", "My"]),
+    ("dgamma", &["gamma", "Mz"]),
+];
+
+#[test]
+fn eq21_graph_file_is_the_publications_edge_by_edge() {
+    use std::collections::BTreeSet;
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../references/peg-eq21/graph.json");
+    let report = crate::GraphReport::load(&path).unwrap();
+    let (n, m) = (report.actions(), report.states());
+    assert_eq!((n, m), (6, 12));
+    // Both printed forms name the same actions and states as the file, each once.
+    fn names(v: &[String]) -> BTreeSet<&str> {
+        v.iter().map(String::as_str).collect()
+    }
+    assert_eq!(names(&report.action_names), EQ21_ROWS.iter().map(|r| r.0).collect::<BTreeSet<_>>());
+    assert_eq!(names(&report.state_names), EQ21_STATES.into_iter().collect::<BTreeSet<_>>());
+    assert_eq!((names(&report.action_names).len(), names(&report.state_names).len()), (n, m));
+
+    // Eq. 21 mapped into the file's order by name, entry by entry.
+    let action = |a: &str| report.action_names.iter().position(|x| x == a).unwrap();
+    let state = |s: &str| report.state_names.iter().position(|x| x == s).unwrap();
+    let mut checked = 0;
+    let mut eq21 = vec![vec![0u8; m]; n];
+    for (a, row) in EQ21_ROWS {
+        for (s, published) in EQ21_STATES.into_iter().zip(row) {
+            eq21[action(a)][state(s)] = published;
+            assert_eq!(report.g[action(a)][state(s)], published, "G({a}, {s}) differs from eq. 21");
+            checked += 1;
+        }
+    }
+    assert_eq!(checked, 72);
+    assert_eq!(report.edges(), 23);
+    assert_eq!(EQ21_ROWS.iter().flat_map(|r| r.1).filter(|&v| v == 1).count(), 23);
+
+    // Eq. 22's per-action inputs give the same graph.
+    let mut eq22 = vec![vec![0u8; m]; n];
+    for (a, inputs) in EQ22_INPUTS {
+        for s in inputs {
+            eq22[action(a)][state(s)] = 1;
+        }
+    }
+    assert_eq!(eq22, eq21, "eq. 22 and eq. 21 disagree");
+    assert_eq!(report.g, eq22);
+
+    // It loads for every peg preset as a study's graph:PATH cell does
+    // (given::load_for) and as `lcrl train --graph` does (load_measured_for).
+    for name in lcrl_sim::peg::PegConfig::NAMES {
+        let env = make_env(name).unwrap();
+        let cell = crate::given::load_for(&path, env.spec()).unwrap_or_else(|e| panic!("{name}: {e}"));
+        let train = crate::given::load_measured_for(&path, env.spec()).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!((&cell.g, &train.g), (&report.g, &report.g), "{name}");
+        assert!(cell.origin.as_deref().is_some_and(|o| o.contains("eq. 21") && o.contains("not measured")), "{name}: {:?}", cell.origin);
+    }
+}
