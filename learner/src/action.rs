@@ -89,12 +89,9 @@ impl ActionMap {
     }
 }
 
-/// Whether `s` is a residual reach a map can take: within (0, 1], and the
-/// whole box (1) when there is no base to reach around. Configurations and
-/// snapshots are checked with it.
-pub fn residual_scale_fits(s: f64, has_base: bool) -> bool {
-    s > 0.0 && s <= 1.0 && (has_base || s == 1.0)
-}
+// Which reaches a map can take is the configuration's rule (config checks
+// it, and snapshots with it).
+pub use crate::config::residual_scale_fits;
 
 fn check_base(spec: &EnvSpec, base: &[f64]) -> Result<(), LearnerError> {
     let n = spec.action_dim();

@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::agent::Agent;
 use crate::config::{Algo, Connection, TrainConfig};
-use crate::snapshot::ActorShape;
+use crate::architecture::{ActorShape, Architecture};
 use crate::{io, LearnerError};
 
 
@@ -63,14 +63,20 @@ impl CheckpointMeta {
     }
 
     /// The actor's architecture, as a published policy describes it.
-    pub fn architecture(&self) -> crate::snapshot::Architecture {
-        crate::snapshot::Architecture {
+    pub fn architecture(&self) -> Architecture {
+        Architecture {
             shape: self.shape.clone(),
             network: self.config.network.clone(),
             base: self.config.base.base_action(self.shape.action_dim),
             residual_scale: self.config.residual_scale(self.shape.algo),
         }
     }
+}
+
+/// The folder of a run's selected policy (written by selection.rs): a
+/// policy folder as a checkpoint is, under `run_dir`.
+pub fn selected_dir(run_dir: &Path) -> PathBuf {
+    run_dir.join("selected")
 }
 
 /// The newest intact checkpoint under `run_dir`, if any: the highest

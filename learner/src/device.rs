@@ -22,9 +22,8 @@ use crate::LearnerError;
 /// rpath), from build.rs.
 const LIBTORCH_LIB: Option<&str> = option_env!("LCRL_LIBTORCH_LIB");
 
-/// The most intra-op threads `run.threads` accepts: far above any machine
-/// this runs on, low enough to catch a typo (a count, not a core mask).
-pub const MAX_THREADS: usize = 1024;
+// The most intra-op threads `run.threads` accepts: the configuration's bound.
+pub use crate::config::MAX_THREADS;
 
 /// What loading `libtorch_cuda.so` found.
 #[derive(Debug, Clone, PartialEq, Eq)]

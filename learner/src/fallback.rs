@@ -26,6 +26,16 @@
 //! DDPG only: the selected policy's episodes are off-policy data, which
 //! PPO cannot use.
 
+impl crate::config::RunConfig {
+    /// The fallback rule this run asks for, given its base's validation
+    /// return (None when `fallback_margin` is unset). Here rather than in
+    /// config: the configuration holds the numbers, this module the rule.
+    pub fn fallback(&self, base_return: f64) -> Option<Fallback> {
+        let rule = Fallback::new(base_return, self.fallback_margin?, self.fallback_episodes.unwrap_or(5));
+        Some(if self.fallback_gate { rule.gated() } else { rule })
+    }
+}
+
 /// The selected policy as it acts in a fallback episode: deterministic, or
 /// (`fallback_explore`) with the run's exploration noise around it, so
 /// that the critic also learns from actions beside the selected ones.
@@ -41,7 +51,7 @@ impl FallbackPolicy {
     /// `episode_seed`'s start; `noise_std`: explore with this deviation.
     pub fn load(run_dir: &std::path::Path, noise_std: Option<f64>, episode_seed: u64) -> Result<Self, crate::LearnerError> {
         use rand::SeedableRng;
-        let policy = crate::policy::Policy::load(&crate::selection::selected_dir(run_dir))?;
+        let policy = crate::policy::Policy::load(&crate::checkpoint::selected_dir(run_dir))?;
         let n = policy.architecture.shape.action_dim;
         Ok(FallbackPolicy { policy, noise: noise_std.map(|std| (vec![std; n], rand_chacha::ChaCha8Rng::seed_from_u64(episode_seed ^ 0xFA11_BAC4))) })
     }

@@ -20,6 +20,7 @@
 //! - [`selection`]: the run's policy chosen on held-out validation starts.
 //! - [`trainer`]: the single-process loop: episodes, metrics.csv, summary.json, resume.
 //! - [`policy`]: a trained actor loaded from a checkpoint or a snapshot.
+//! - [`architecture`]: what identifies an actor, held by snapshots and checkpoints alike.
 //! - [`snapshot`]: a policy on the wire (architecture + safetensors weights).
 //! - [`service`]: the distributed learner (`lcrl-learner`): ingestion, training thread, gRPC.
 
@@ -27,6 +28,7 @@ pub mod action;
 pub mod adam;
 pub mod agent;
 pub mod algorithms;
+pub mod architecture;
 pub mod checkpoint;
 pub mod config;
 pub mod cuda_graph;

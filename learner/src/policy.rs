@@ -148,7 +148,7 @@ impl Policy {
 /// run's policy, the one validation selected (RUN/selected/) if the run has
 /// one, else its newest checkpoint.
 pub fn policy_dir(dir: &Path) -> Result<std::path::PathBuf, LearnerError> {
-    let selected = crate::selection::selected_dir(dir);
+    let selected = crate::checkpoint::selected_dir(dir);
     if dir.join("checkpoint.json").is_file() {
         Ok(dir.to_path_buf())
     } else if selected.join("checkpoint.json").is_file() {

@@ -48,10 +48,9 @@ use crate::LearnerError;
 // The records are run files (summary.json embeds them); selection.rs fills them.
 pub use crate::run_files::{Confirmation, ConfirmedCandidate, SelectionRecord, Validation};
 
-/// The folder of a run's selected policy.
-pub fn selected_dir(run_dir: &Path) -> PathBuf {
-    run_dir.join("selected")
-}
+// The folder of a run's selected policy: a policy folder of the checkpoint
+// store, which policy.rs reads too.
+pub use crate::checkpoint::selected_dir;
 
 /// The folder of the confirmation's candidates: one sub-folder per kept
 /// policy, as `RUN/selected/` holds one.

@@ -140,6 +140,13 @@ pub(crate) fn is_full_reach(s: &f64) -> bool {
     *s == 1.0
 }
 
+/// Whether `s` is a residual reach a map can take: within (0, 1], and the
+/// whole box (1) when there is no base to reach around. Configurations and
+/// snapshots are checked with it.
+pub fn residual_scale_fits(s: f64, has_base: bool) -> bool {
+    s > 0.0 && s <= 1.0 && (has_base || s == 1.0)
+}
+
 impl Default for BaseConfig {
     fn default() -> Self {
         BaseConfig { action: BaseController::None, best_constant_file: None, residual_scale: 1.0 }
@@ -524,19 +531,16 @@ impl Default for PpoConfig {
 }
 
 impl RunConfig {
-    /// The fallback rule this run asks for, given its base's validation
-    /// return (None when `fallback_margin` is unset).
-    pub fn fallback(&self, base_return: f64) -> Option<crate::fallback::Fallback> {
-        let rule = crate::fallback::Fallback::new(base_return, self.fallback_margin?, self.fallback_episodes.unwrap_or(5));
-        Some(if self.fallback_gate { rule.gated() } else { rule })
-    }
-
     /// The final evaluation's first start: `eval_seed`, or the run's own
     /// evaluation range.
     pub fn first_eval_seed(&self) -> u64 {
         self.eval_seed.unwrap_or_else(|| lcrl_sim::seeds::run_evaluation(self.seed, 0))
     }
 }
+
+/// The most intra-op threads `run.threads` accepts: far above any machine
+/// this runs on, low enough to catch a typo (a count, not a core mask).
+pub const MAX_THREADS: usize = 1024;
 
 fn is_true(value: &bool) -> bool {
     *value

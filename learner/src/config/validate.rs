@@ -36,10 +36,10 @@ impl TrainConfig {
         let has_base = self.base.action != super::BaseController::None;
         for (field, reach) in [("base.residual_scale", Some(self.base.residual_scale)), ("ddpg.residual_scale", self.ddpg.residual_scale)] {
             let Some(reach) = reach else { continue };
-            if !crate::action::residual_scale_fits(reach, true) {
+            if !super::residual_scale_fits(reach, true) {
                 return bad(field, &format!("must lie in (0, 1] (the share of the box's half-width the residual may move the base), got {reach}"));
             }
-            if !crate::action::residual_scale_fits(reach, has_base) {
+            if !super::residual_scale_fits(reach, has_base) {
                 return bad(field, "needs a base controller (base.action): without one there is no residual to scale");
             }
         }
@@ -100,8 +100,8 @@ impl TrainConfig {
                 return bad(field, "must list at least one layer width, each at least 1");
             }
         }
-        if self.run.threads > crate::device::MAX_THREADS {
-            return bad("run.threads", &format!("must be 0 (automatic) or a thread count up to {}, got {}", crate::device::MAX_THREADS, self.run.threads));
+        if self.run.threads > super::MAX_THREADS {
+            return bad("run.threads", &format!("must be 0 (automatic) or a thread count up to {}, got {}", super::MAX_THREADS, self.run.threads));
         }
         if !matches!(self.run.device.as_str(), "cpu" | "cuda") {
             return bad("run.device", &format!("must be \"cpu\" or \"cuda\", got \"{}\"", self.run.device));
