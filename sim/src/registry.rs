@@ -62,7 +62,7 @@ pub fn env_from_toml(text: &str, path: &str) -> Result<Box<dyn Env>, EnvError> {
                 None => "peg-group1".to_string(),
             };
             let base = PegConfig::preset(&preset).ok_or_else(|| {
-                EnvError::invalid("preset", format!("unknown preset \"{preset}\"; use peg-group1, peg-group2 or peg-experiment"))
+                EnvError::invalid("preset", format!("unknown preset \"{preset}\"; use one of {}", PegConfig::NAMES.join(", ")))
             })?;
             Ok(Box::new(PegEnv::new(path, base.with_overrides(&overrides, path)?)?))
         }

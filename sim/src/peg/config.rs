@@ -13,6 +13,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::sensor::SensorConfig;
 use crate::env::EnvError;
 
 /// The whole task. Sections mirror the TOML file.
@@ -34,6 +35,10 @@ pub struct PegConfig {
     /// absent: every episode has the parts above.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub randomize: Option<Randomize>,
+    /// The wrist sensor's noise and drift (docs/peg.md, "A sensor that is
+    /// not perfect"); absent: off, the exact wrench.
+    #[serde(default)]
+    pub sensor: SensorConfig,
 }
 
 /// The divisors of the state for learning, in the state's order and units
@@ -252,6 +257,7 @@ impl PegConfig {
             physics: Physics { substeps: 8, solver_iterations: 2 },
             observation: Observation::default(),
             randomize: None,
+            sensor: SensorConfig::default(),
         }
     }
 
@@ -289,8 +295,16 @@ impl PegConfig {
         self
     }
 
+    /// A preset read through an imperfect wrist sensor (the `-noisy`
+    /// presets): the default sensor class, switched on.
+    pub fn noisy(mut self) -> Self {
+        self.sensor = SensorConfig::noisy();
+        self
+    }
+
     /// The registered preset names, in the order help texts list them.
-    pub const NAMES: [&'static str; 5] = ["peg-group1", "peg-group2", "peg-experiment", "peg-group1-rand", "peg-group2-rand"];
+    pub const NAMES: [&'static str; 7] =
+        ["peg-group1", "peg-group2", "peg-experiment", "peg-group1-rand", "peg-group2-rand", "peg-group1-noisy", "peg-group2-noisy"];
 
     /// The preset of a registered name.
     pub fn preset(name: &str) -> Option<Self> {
@@ -300,6 +314,8 @@ impl PegConfig {
             "peg-experiment" => Some(Self::experiment()),
             "peg-group1-rand" => Some(Self::group1().randomized()),
             "peg-group2-rand" => Some(Self::group2().randomized()),
+            "peg-group1-noisy" => Some(Self::group1().noisy()),
+            "peg-group2-noisy" => Some(Self::group2().noisy()),
             _ => None,
         }
     }
@@ -428,6 +444,7 @@ impl PegConfig {
         for (i, &s) in self.observation.scale.iter().enumerate() {
             positive(&format!("observation.scale[{i}]"), s)?;
         }
+        self.sensor.validate()?;
         if let Some(r) = &self.randomize {
             for (field, [lo, hi]) in [("randomize.friction", r.friction), ("randomize.clearance_mm", r.clearance_mm), ("randomize.peg_chamfer_mm", r.peg_chamfer_mm)] {
                 if !(lo.is_finite() && hi.is_finite() && lo <= hi) {

@@ -342,7 +342,7 @@ fn bad_randomization_ranges_name_the_field() {
 /// beats the constant compliance controller on its preset.
 #[test]
 fn recorded_best_constants_beat_a_zero() {
-    for name in ["peg-group1", "peg-group2", "peg-group2-rand"] {
+    for name in ["peg-group1", "peg-group2", "peg-group2-rand", "peg-group1-noisy", "peg-group2-noisy"] {
         let env = env_for(name);
         let best = measured_best_constant(name).unwrap();
         let b = crate::tune::constant_return(&env, &best, 16, 0).unwrap();
