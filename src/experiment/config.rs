@@ -46,6 +46,10 @@ pub struct ExperimentFile {
     /// defaults (`lcrl train` without --config): `[train.ddpg]`, `[train.run]`, …
     #[serde(default)]
     pub train: toml::Table,
+    /// The one comparison named before any run (crate::experiment::primary):
+    /// reported first, on its own; every other comparison is Holm-adjusted.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub primary: Option<super::primary::PrimaryContrast>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -142,6 +146,9 @@ impl Experiment {
         }
         if file.eval_episodes == 0 {
             bail!("`eval_episodes` must be at least 1");
+        }
+        if let Some(primary) = &file.primary {
+            primary.check(&file)?;
         }
         let algos: Vec<&str> = file.algorithms.iter().map(|a| algo_name(*a)).collect();
         for algo in &algos {

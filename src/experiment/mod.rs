@@ -8,6 +8,7 @@ mod config;
 mod figures;
 mod k8s;
 mod plan;
+mod primary;
 mod report;
 mod runner;
 mod safety;

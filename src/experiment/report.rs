@@ -14,7 +14,7 @@ use serde::Serialize;
 use super::config::{algo_name, Experiment};
 use super::plan::{best_constant_path, cells, finished_run, graph_path, run_dir, Cell};
 use super::safety::{self, CellSafety, RunSafety};
-use super::stats::{censored_estimate, episodes_to_threshold, mean_ci, welch, Estimate, ThresholdEstimate, AVERAGE_WINDOW};
+use super::stats::{censored_estimate, episodes_to_threshold, format_p, holm, mean_ci, reading_adjusted, welch, Estimate, ThresholdEstimate, AVERAGE_WINDOW};
 use crate::output::write_atomic;
 
 /// A finished training run.
@@ -140,6 +140,8 @@ pub struct Report {
     pub best_policy: BTreeMap<String, BestConstant>,
     pub cells: Vec<CellReport>,
     pub comparisons: Vec<Comparison>,
+    /// The study file's `[primary]` contrast, tested on its own.
+    pub primary: Option<super::primary::PrimaryResult>,
     /// Runs not finished (yet): their cells report the seeds that are.
     pub missing_runs: Vec<String>,
 }
@@ -228,6 +230,10 @@ pub struct Comparison {
     pub difference: f64,
     pub ci95: [f64; 2],
     pub p_value: f64,
+    /// Holm-adjusted over every comparison of the report.
+    pub p_holm: f64,
+    /// The interval in words (stats::reading).
+    pub reading: String,
     pub test: &'static str,
 }
 
@@ -291,6 +297,7 @@ impl Study {
             best_constant: self.best_constant.clone(),
             best_policy: self.best_policy.clone(),
             comparisons: self.comparisons(),
+            primary: e.file.primary.as_ref().map(|c| super::primary::evaluate(self, c)),
             cells,
             missing_runs: self.missing.clone(),
         }
@@ -326,11 +333,19 @@ impl Study {
                             difference: w.difference,
                             ci95: w.ci95,
                             p_value: w.p_value,
+                            p_holm: f64::NAN,
+                            reading: String::new(),
                             test: "welch_t",
                         });
                     }
                 }
             }
+        }
+        // One family: every comparison the report prints.
+        let adjusted = holm(&out.iter().map(|c| c.p_value).collect::<Vec<_>>());
+        for (c, adjusted) in out.iter_mut().zip(adjusted) {
+            c.p_holm = adjusted;
+            c.reading = reading_adjusted(&c.a, &c.b, c.ci95, adjusted);
         }
         out
     }
@@ -366,6 +381,31 @@ pub fn markdown(report: &Report) -> String {
     let _ = writeln!(md, "Final return: {}. Episodes to threshold: {}. Times: {}.\n", m.final_return, m.episodes_to_threshold, m.times);
     let _ = writeln!(md, "Bars: {}.\n", m.bars);
     let _ = writeln!(md, "Training safety: {}.\n", m.safety);
+    if let Some(p) = &report.primary {
+        let _ = writeln!(md, "## Primary contrast\n");
+        let _ = writeln!(md, "Named in the study file before any run: {}.\n", p.description);
+        match &p.combined {
+            Some(c) => {
+                let _ = writeln!(
+                    md,
+                    "**{}**: difference {} [{}, {}], p {} ({} environment(s); inverse-variance weighted Welch differences, normal approximation across environments). Tested on its own: no adjustment; the comparisons below are secondary.\n",
+                    p.reading,
+                    num(c.difference),
+                    num(c.ci95[0]),
+                    num(c.ci95[1]),
+                    format_p(c.p_value),
+                    c.strata
+                );
+            }
+            None => {
+                let _ = writeln!(md, "{}.\n", p.reading);
+            }
+        }
+        for (env, w) in &p.per_environment {
+            let _ = writeln!(md, "- {env}: {} [{}, {}], p {} (Welch)", num(w.difference), num(w.ci95[0]), num(w.ci95[1]), format_p(w.p_value));
+        }
+        let _ = writeln!(md);
+    }
     if !report.missing_runs.is_empty() {
         let _ = writeln!(md, "**Not finished ({}):** {}\n", report.missing_runs.len(), report.missing_runs.join(", "));
     }
@@ -440,10 +480,23 @@ pub fn markdown(report: &Report) -> String {
         }
         let comparisons: Vec<&Comparison> = report.comparisons.iter().filter(|c| c.env == env && c.algo == algo).collect();
         if !comparisons.is_empty() {
-            let _ = writeln!(md, "\n| comparison | metric | difference | 95% CI | p (Welch) |");
-            let _ = writeln!(md, "|---|---|---|---|---|");
+            let family = report.comparisons.len();
+            let _ = writeln!(md, "\n| comparison | metric | difference | 95% CI | p (Welch) | p (Holm, {family} comparisons) | reading |");
+            let _ = writeln!(md, "|---|---|---|---|---|---|---|");
             for c in comparisons {
-                let _ = writeln!(md, "| {} − {} | {} | {} | [{}, {}] | {:.4} |", c.a, c.b, c.metric, num(c.difference), num(c.ci95[0]), num(c.ci95[1]), c.p_value);
+                let _ = writeln!(
+                    md,
+                    "| {} − {} | {} | {} | [{}, {}] | {} | {} | {} |",
+                    c.a,
+                    c.b,
+                    c.metric,
+                    num(c.difference),
+                    num(c.ci95[0]),
+                    num(c.ci95[1]),
+                    format_p(c.p_value),
+                    format_p(c.p_holm),
+                    c.reading
+                );
             }
         }
         let _ = writeln!(md);
@@ -526,6 +579,45 @@ mod tests {
         let json: serde_json::Value = serde_json::to_value(&report).unwrap();
         assert_eq!(json["cells"][0]["beat_best_constant"], 1);
         assert_eq!(json["cells"][1]["beat_best_constant"], serde_json::Value::Null);
+    }
+
+    /// The file's primary contrast is reported first, on its own (here one
+    /// environment: its Welch test); every other comparison carries
+    /// Holm's adjustment over all of them and its interval in words.
+    #[test]
+    fn the_primary_contrast_stands_alone_and_the_rest_are_holm_adjusted() {
+        let text = "name = \"p\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"global\", \"full-subnets\"]\nseeds = 3\nepisodes = { ppo = 2 }\n\
+                    [primary]\nmetric = \"eval_return\"\na = \"local\"\nb = \"global\"\nalgorithm = \"ppo\"\n";
+        let e = Experiment::parse(text).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path();
+        let returns = [[-1.0, -1.1, -0.9], [-3.0, -3.2, -2.9], [-1.05, -1.0, -0.95]];
+        for (cell, values) in cells(&e).iter().zip(returns) {
+            for (seed, r) in values.iter().enumerate() {
+                write_run(&run_dir(out, cell, seed as u64), "local", seed as u64, *r, Some(0), None);
+            }
+        }
+        let report = gather(&e, out).unwrap().report();
+        let primary = report.primary.as_ref().unwrap();
+        let w = welch(&returns[0], &returns[1]).unwrap();
+        let combined = primary.combined.as_ref().unwrap();
+        assert_eq!((combined.difference, combined.p_value, combined.strata), (w.difference, w.p_value, 1));
+        assert!(primary.reading.starts_with("local@0.1 higher than global"), "{}", primary.reading);
+        // Secondary: local − global and local − full-subnets, on two metrics.
+        assert_eq!(report.comparisons.len(), 4);
+        let adjusted = holm(&report.comparisons.iter().map(|c| c.p_value).collect::<Vec<_>>());
+        for (c, p) in report.comparisons.iter().zip(adjusted) {
+            assert_eq!(c.p_holm, p);
+            assert!(c.p_holm >= c.p_value);
+        }
+        let md = markdown(&report);
+        assert!(md.contains("## Primary contrast") && md.contains("eval_return, local − global, PPO, stratified by environment over lti-paper"), "{md}");
+        assert!(md.contains("p (Holm, 4 comparisons)") && md.contains("not distinguishable, CI ["), "{md}");
+        assert!(w.p_value < 0.001 && md.contains(&format!("p < 0.001 (1 environment(s)")), "p values print as < 0.001, never 0.000:\n{md}");
+        // Named before the runs: a contrast of connections the study lacks is refused.
+        let wrong = text.replace("b = \"global\"", "b = \"random@3\"");
+        let err = format!("{:#}", Experiment::parse(&wrong).unwrap_err());
+        assert!(err.contains("`primary.b` \"random@3\" is not one of `connections`"), "{err}");
     }
 
     /// Which cells are compared: every cell with a graph against global

@@ -64,6 +64,8 @@ pub fn one_sample_t(sample: &[f64]) -> Option<f64> {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Welch {
     pub difference: f64,
+    /// Standard error of the difference (Welch's, unpooled).
+    pub se: f64,
     pub ci95: [f64; 2],
     /// Two-sided.
     pub p_value: f64,
@@ -84,13 +86,98 @@ pub fn welch(a: &[f64], b: &[f64]) -> Option<Welch> {
         // Both groups constant: identical means are no evidence of a
         // difference, different ones are certain.
         let p_value = if difference == 0.0 { 1.0 } else { 0.0 };
-        return Some(Welch { difference, ci95: [difference, difference], p_value, t: 0.0, df: f64::INFINITY });
+        return Some(Welch { difference, se, ci95: [difference, difference], p_value, t: 0.0, df: f64::INFINITY });
     }
     let df = (va + vb).powi(2) / (va.powi(2) / (a.len() as f64 - 1.0) + vb.powi(2) / (b.len() as f64 - 1.0));
     let t = difference / se;
     let p_value = StudentsT::new(0.0, 1.0, df).map_or(f64::NAN, |dist| 2.0 * dist.cdf(-t.abs()));
     let half = t_975(df) * se;
-    Some(Welch { difference, ci95: [difference - half, difference + half], p_value, t, df })
+    Some(Welch { difference, se, ci95: [difference - half, difference + half], p_value, t, df })
+}
+
+/// Holm's step-down adjustment of `p` (any order), returned in the same
+/// order: the k-th smallest p is multiplied by (m − k + 1), made
+/// non-decreasing along the sorted order, and capped at 1. It controls the
+/// family-wise error rate over all m comparisons without assuming they are
+/// independent, and is never less powerful than Bonferroni.
+pub fn holm(p: &[f64]) -> Vec<f64> {
+    let m = p.len();
+    let mut order: Vec<usize> = (0..m).collect();
+    order.sort_by(|&i, &j| p[i].total_cmp(&p[j]));
+    let mut adjusted = vec![1.0; m];
+    let mut running = 0.0f64;
+    for (k, &i) in order.iter().enumerate() {
+        running = running.max(((m - k) as f64 * p[i]).min(1.0));
+        adjusted[i] = running;
+    }
+    adjusted
+}
+
+/// A p value as a report prints it: three decimals, "< 0.001" below that
+/// (never "0.000"), "—" when there is none.
+pub fn format_p(p: f64) -> String {
+    if !p.is_finite() {
+        "—".into()
+    } else if p < 0.001 {
+        "< 0.001".into()
+    } else {
+        format!("{p:.3}")
+    }
+}
+
+/// What a 95% interval of a difference a − b says, in words: which side
+/// is higher when the interval excludes 0, "not distinguishable" when it
+/// holds 0 (which is not evidence that the two are equal).
+pub fn reading(a: &str, b: &str, ci95: [f64; 2]) -> String {
+    let interval = format!("CI [{:.3}, {:.3}]", ci95[0], ci95[1]);
+    if ci95[0] > 0.0 {
+        format!("{a} higher than {b}, {interval}")
+    } else if ci95[1] < 0.0 {
+        format!("{a} lower than {b}, {interval}")
+    } else {
+        format!("not distinguishable, {interval}")
+    }
+}
+
+/// [`reading`] for one comparison of a family: a side is named higher or
+/// lower only when Holm's adjusted p is below 0.05 too; an interval that
+/// excludes 0 on its own but not after the adjustment says so.
+pub fn reading_adjusted(a: &str, b: &str, ci95: [f64; 2], p_holm: f64) -> String {
+    let own = reading(a, b, ci95);
+    if own.starts_with("not distinguishable") || p_holm < 0.05 {
+        own
+    } else {
+        format!("not distinguishable after Holm's adjustment (its own CI [{:.3}, {:.3}] excludes 0)", ci95[0], ci95[1])
+    }
+}
+
+/// Differences of one contrast across strata (environments), combined.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Stratified {
+    pub difference: f64,
+    pub ci95: [f64; 2],
+    /// Two-sided.
+    pub p_value: f64,
+    pub strata: usize,
+}
+
+/// Combines per-stratum differences with their standard errors, weighted
+/// by inverse variance (a fixed-effect stratified test): the combined
+/// difference Σ w·d / Σ w with standard error 1/√Σ w, w = 1/se², and a
+/// normal two-sided p. Strata with no spread (se = 0) or non-finite values
+/// are left out; None when none is left.
+pub fn stratified(strata: &[(f64, f64)]) -> Option<Stratified> {
+    let kept: Vec<(f64, f64)> = strata.iter().copied().filter(|(d, se)| d.is_finite() && se.is_finite() && *se > 0.0).collect();
+    if kept.is_empty() {
+        return None;
+    }
+    let weight: f64 = kept.iter().map(|(_, se)| 1.0 / (se * se)).sum();
+    let difference = kept.iter().map(|(d, se)| d / (se * se)).sum::<f64>() / weight;
+    let se = weight.sqrt().recip();
+    let normal = statrs::distribution::Normal::new(0.0, 1.0).ok()?;
+    let p_value = 2.0 * normal.cdf(-(difference / se).abs());
+    let half = normal.inverse_cdf(0.975) * se;
+    Some(Stratified { difference, ci95: [difference - half, difference + half], p_value, strata: kept.len() })
 }
 
 /// Episodes until the average return reaches a threshold, over seeds.
@@ -131,6 +218,52 @@ pub fn censored_estimate(runs: &[Option<usize>], threshold: f64, budget: usize) 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Holm by hand: sorted 0.005, 0.01, 0.03, 0.04 times 4, 3, 2, 1 are
+    /// 0.02, 0.03, 0.06, 0.04, and the last is raised to 0.06 (step-down
+    /// adjusted p never decrease along the sorted order).
+    #[test]
+    fn holm_adjusts_a_worked_example() {
+        let close = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-12);
+        assert!(close(&holm(&[0.01, 0.04, 0.03, 0.005]), &[0.03, 0.06, 0.06, 0.02]), "{:?}", holm(&[0.01, 0.04, 0.03, 0.005]));
+        assert!(close(&holm(&[0.01, 0.02, 0.03, 0.04, 0.05]), &[0.05, 0.08, 0.09, 0.09, 0.09]));
+        // Capped at 1, one p alone unchanged, none at all fine.
+        assert_eq!(holm(&[0.6, 0.7]), vec![1.0, 1.0]);
+        assert_eq!(holm(&[0.2]), vec![0.2]);
+        assert!(holm(&[]).is_empty());
+    }
+
+    #[test]
+    fn p_values_and_intervals_read_as_a_report_prints_them() {
+        assert_eq!(format_p(0.0), "< 0.001");
+        assert_eq!(format_p(0.0004), "< 0.001");
+        assert_eq!(format_p(0.006), "0.006");
+        assert_eq!(format_p(f64::NAN), "—");
+        assert_eq!(reading("local@1", "global", [0.1, 0.5]), "local@1 higher than global, CI [0.100, 0.500]");
+        assert_eq!(reading("local@1", "global", [-0.5, -0.1]), "local@1 lower than global, CI [-0.500, -0.100]");
+        assert_eq!(reading("a", "b", [-1.4, 13.9]), "not distinguishable, CI [-1.400, 13.900]");
+        // In a family: a side is named only when the adjusted p agrees.
+        assert_eq!(reading_adjusted("a", "b", [0.1, 0.5], 0.01), "a higher than b, CI [0.100, 0.500]");
+        assert_eq!(reading_adjusted("a", "b", [0.1, 0.5], 0.8), "not distinguishable after Holm's adjustment (its own CI [0.100, 0.500] excludes 0)");
+        assert_eq!(reading_adjusted("a", "b", [-0.1, 0.5], 0.001), "not distinguishable, CI [-0.100, 0.500]");
+    }
+
+    /// Two strata of equal weight: the mean difference, with the standard
+    /// error of their average (0.5/√2) and a normal p.
+    #[test]
+    fn strata_combine_by_inverse_variance() {
+        let s = stratified(&[(1.0, 0.5), (2.0, 0.5)]).unwrap();
+        assert!((s.difference - 1.5).abs() < 1e-12);
+        let se = 0.5 / 2f64.sqrt();
+        assert!((s.ci95[1] - s.ci95[0] - 2.0 * 1.959_963_984_540_054 * se).abs() < 1e-9);
+        // z = 1.5 / 0.35355 = 4.2426: p = 2.2090e-5 (scipy.stats.norm.sf).
+        assert!((s.p_value - 2.209e-5).abs() < 1e-8, "{}", s.p_value);
+        // The more precise stratum weighs more; a stratum without spread is left out.
+        let weighted = stratified(&[(1.0, 0.1), (3.0, 1.0), (9.0, 0.0)]).unwrap();
+        assert!((weighted.difference - (100.0 + 3.0) / 101.0).abs() < 1e-12);
+        assert_eq!(weighted.strata, 2);
+        assert_eq!(stratified(&[(1.0, 0.0)]), None);
+    }
 
     // The expected values below were computed independently with SciPy
     // 1.17 (scipy.stats.t.interval, scipy.stats.ttest_ind with
