@@ -39,8 +39,9 @@ impl TrainConfig {
             (name, _) if lcrl_sim::lti::LtiConfig::blocks_size(name).is_some() => Some((&[LTI_FAST], "configs/lti-fast.toml (the linear systems' settings, used for lti-blocks-N)")),
             ("peg-experiment", _) => Some((&[PEG, PEG_EXPERIMENT], "configs/peg.toml with configs/peg-experiment.toml (the settings for peg-experiment)")),
             (_, Some(peg)) if peg.randomize.is_some() => Some((&[PEG, PEG_RAND], "configs/peg.toml with configs/peg-rand.toml (the settings for the randomized peg presets)")),
-            ("peg-group1", _) => Some((&[PEG, PEG_GROUP1], "configs/peg.toml with configs/peg-group1.toml (the settings for peg-group1)")),
-            ("peg-group2", _) => Some((&[PEG, PEG_GROUP2], "configs/peg.toml with configs/peg-group2.toml (the settings for peg-group2)")),
+            // A noisy preset is its group with a sensor: the group's settings.
+            ("peg-group1" | "peg-group1-noisy", _) => Some((&[PEG, PEG_GROUP1], "configs/peg.toml with configs/peg-group1.toml (the settings for peg-group1)")),
+            ("peg-group2" | "peg-group2-noisy", _) => Some((&[PEG, PEG_GROUP2], "configs/peg.toml with configs/peg-group2.toml (the settings for peg-group2)")),
             (_, Some(_)) => Some((&[PEG], "configs/peg.toml (the settings for the peg presets)")),
             (_, None) => None,
         };

@@ -52,6 +52,9 @@ fn registered_environments_get_their_working_settings() {
     assert_eq!((group2.ddpg.proximal_l2, group2.ddpg.critic_warmup_updates, group2.ddpg.residual_scale), (1.0, 2000, Some(0.875)));
     let ddpg = DdpgConfig { proximal_l2: 0.0, critic_warmup_updates: 0, residual_scale: None, ..group2.ddpg.clone() };
     assert_eq!(TrainConfig { ddpg, ..group2 }, peg, "peg-group2.toml changes only [ddpg] proximal_l2, critic_warmup_updates and residual_scale");
+    // A noisy preset is its group with a sensor: the group's settings.
+    assert_eq!(TrainConfig::for_env("peg-group2-noisy"), TrainConfig::for_env("peg-group2"));
+    assert_eq!(TrainConfig::for_env("peg-group1-noisy"), TrainConfig::for_env("peg-group1"));
     // peg-group1: peg.toml with the trust region, nothing else.
     let (group1, source) = TrainConfig::for_env("peg-group1");
     assert!(source.contains("configs/peg-group1.toml"), "{source}");
