@@ -158,9 +158,20 @@ fn smoke_study_survives_sigkill_resumes_and_reports_consistently() {
     let comparisons = report["comparisons"].as_array().unwrap();
     assert_eq!(comparisons.len(), 2, "local − global on final and eval return");
     for c in comparisons {
-        let p = c["p_value"].as_f64().unwrap();
-        assert!((0.0..=1.0).contains(&p));
-        let row = format!("| {} − {} | {} | {} | [{}, {}] | {p:.4} |", c["a"].as_str().unwrap(), c["b"].as_str().unwrap(), c["metric"].as_str().unwrap(), num(&c["difference"]), num(&c["ci95"][0]), num(&c["ci95"][1]));
+        let (p, holm) = (c["p_value"].as_f64().unwrap(), c["p_holm"].as_f64().unwrap());
+        assert!((0.0..=1.0).contains(&p) && (p..=1.0).contains(&holm), "p {p}, Holm {holm}");
+        let row = format!(
+            "| {} − {} | {} | {} | [{}, {}] | {} | {} | {} |",
+            c["a"].as_str().unwrap(),
+            c["b"].as_str().unwrap(),
+            c["metric"].as_str().unwrap(),
+            num(&c["difference"]),
+            num(&c["ci95"][0]),
+            num(&c["ci95"][1]),
+            lcrl::experiment::stats::format_p(p),
+            lcrl::experiment::stats::format_p(holm),
+            c["reading"].as_str().unwrap()
+        );
         assert!(md.contains(&row), "{row} not in\n{md}");
     }
     let bar = &report["best_constant"]["lti-paper"];
