@@ -46,11 +46,66 @@ pub struct ExperimentFile {
     /// defaults (`lcrl train` without --config): `[train.ddpg]`, `[train.run]`, …
     #[serde(default)]
     pub train: toml::Table,
-    /// The one comparison named before any run (crate::experiment::primary):
+    /// The one comparison named before any run ([`PrimaryContrast`]):
     /// reported first, on its own; every other comparison is Holm-adjusted.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub primary: Option<super::primary::PrimaryContrast>,
+    pub primary: Option<PrimaryContrast>,
 }
+
+/// A study's primary contrast: the one comparison its file names before
+/// any run, so that the result it reports first was not picked after
+/// seeing the data (tested by crate::experiment::primary).
+/// Written as `[primary]`, e.g.
+/// `metric = "eval_return"`, `a = "local@1"`, `b = "global"`,
+/// `algorithm = "ddpg"` (strata: every environment, or `environments`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PrimaryContrast {
+    /// `eval_return` or `final_return`.
+    pub metric: String,
+    /// The connections compared, a − b, as `connections` writes them.
+    pub a: String,
+    pub b: String,
+    pub algorithm: Algo,
+    /// The strata; every environment of the study when left out.
+    #[serde(default)]
+    pub environments: Vec<String>,
+}
+
+/// The metrics a contrast may name.
+const METRICS: [&str; 2] = ["eval_return", "final_return"];
+
+impl PrimaryContrast {
+    /// Checked with the file, before a single run.
+    pub fn check(&self, file: &ExperimentFile) -> anyhow::Result<()> {
+        if !METRICS.contains(&self.metric.as_str()) {
+            bail!("`primary.metric` \"{}\" must be one of {}", self.metric, METRICS.join(", "));
+        }
+        let labels: Vec<String> = file.connections.iter().filter_map(|c| ConnectionSpec::parse(c).ok()).map(|c| c.label()).collect();
+        for (key, connection) in [("a", &self.a), ("b", &self.b)] {
+            let label = ConnectionSpec::parse(connection)?.label();
+            if !labels.contains(&label) {
+                bail!("`primary.{key}` \"{connection}\" is not one of `connections` ({})", labels.join(", "));
+            }
+        }
+        if self.a == self.b {
+            bail!("`primary.a` and `primary.b` are the same connection");
+        }
+        if !file.algorithms.contains(&self.algorithm) {
+            bail!("`primary.algorithm` {} is not one of `algorithms`", algo_name(self.algorithm));
+        }
+        if let Some(env) = self.environments.iter().find(|e| !file.environments.contains(e)) {
+            bail!("`primary.environments`: {env} is not one of `environments`");
+        }
+        Ok(())
+    }
+
+    /// In words, as a report's heading gives it.
+    pub fn describe(&self, environments: &[String]) -> String {
+        format!("{}, {} − {}, {}, stratified by environment over {}", self.metric, self.a, self.b, algo_name(self.algorithm).to_uppercase(), environments.join(", "))
+    }
+}
+
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(untagged)]

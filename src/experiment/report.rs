@@ -297,7 +297,17 @@ impl Study {
             best_constant: self.best_constant.clone(),
             best_policy: self.best_policy.clone(),
             comparisons: self.comparisons(),
-            primary: e.file.primary.as_ref().map(|c| super::primary::evaluate(self, c)),
+            primary: e.file.primary.as_ref().map(|contrast| {
+                let values = |env: &str, connection: &str| -> Vec<f64> {
+                    self.cells
+                        .iter()
+                        .filter(|c| c.cell.env == env && c.cell.algo == contrast.algorithm && c.cell.connection.label() == connection)
+                        .flat_map(|c| &c.runs)
+                        .map(|r| if contrast.metric == "final_return" { r.summary.final_return } else { r.summary.evaluation.eval_return })
+                        .collect()
+                };
+                super::primary::evaluate(contrast, &e.file.environments, values)
+            }),
             cells,
             missing_runs: self.missing.clone(),
         }
@@ -382,29 +392,7 @@ pub fn markdown(report: &Report) -> String {
     let _ = writeln!(md, "Bars: {}.\n", m.bars);
     let _ = writeln!(md, "Training safety: {}.\n", m.safety);
     if let Some(p) = &report.primary {
-        let _ = writeln!(md, "## Primary contrast\n");
-        let _ = writeln!(md, "Named in the study file before any run: {}.\n", p.description);
-        match &p.combined {
-            Some(c) => {
-                let _ = writeln!(
-                    md,
-                    "**{}**: difference {} [{}, {}], p {} ({} environment(s); inverse-variance weighted Welch differences, normal approximation across environments). Tested on its own: no adjustment; the comparisons below are secondary.\n",
-                    p.reading,
-                    num(c.difference),
-                    num(c.ci95[0]),
-                    num(c.ci95[1]),
-                    format_p(c.p_value),
-                    c.strata
-                );
-            }
-            None => {
-                let _ = writeln!(md, "{}.\n", p.reading);
-            }
-        }
-        for (env, w) in &p.per_environment {
-            let _ = writeln!(md, "- {env}: {} [{}, {}], p {} (Welch)", num(w.difference), num(w.ci95[0]), num(w.ci95[1]), format_p(w.p_value));
-        }
-        let _ = writeln!(md);
+        md.push_str(&super::primary::markdown(p));
     }
     if !report.missing_runs.is_empty() {
         let _ = writeln!(md, "**Not finished ({}):** {}\n", report.missing_runs.len(), report.missing_runs.join(", "));
@@ -579,45 +567,6 @@ mod tests {
         let json: serde_json::Value = serde_json::to_value(&report).unwrap();
         assert_eq!(json["cells"][0]["beat_best_constant"], 1);
         assert_eq!(json["cells"][1]["beat_best_constant"], serde_json::Value::Null);
-    }
-
-    /// The file's primary contrast is reported first, on its own (here one
-    /// environment: its Welch test); every other comparison carries
-    /// Holm's adjustment over all of them and its interval in words.
-    #[test]
-    fn the_primary_contrast_stands_alone_and_the_rest_are_holm_adjusted() {
-        let text = "name = \"p\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"global\", \"full-subnets\"]\nseeds = 3\nepisodes = { ppo = 2 }\n\
-                    [primary]\nmetric = \"eval_return\"\na = \"local\"\nb = \"global\"\nalgorithm = \"ppo\"\n";
-        let e = Experiment::parse(text).unwrap();
-        let tmp = tempfile::tempdir().unwrap();
-        let out = tmp.path();
-        let returns = [[-1.0, -1.1, -0.9], [-3.0, -3.2, -2.9], [-1.05, -1.0, -0.95]];
-        for (cell, values) in cells(&e).iter().zip(returns) {
-            for (seed, r) in values.iter().enumerate() {
-                write_run(&run_dir(out, cell, seed as u64), "local", seed as u64, *r, Some(0), None);
-            }
-        }
-        let report = gather(&e, out).unwrap().report();
-        let primary = report.primary.as_ref().unwrap();
-        let w = welch(&returns[0], &returns[1]).unwrap();
-        let combined = primary.combined.as_ref().unwrap();
-        assert_eq!((combined.difference, combined.p_value, combined.strata), (w.difference, w.p_value, 1));
-        assert!(primary.reading.starts_with("local@0.1 higher than global"), "{}", primary.reading);
-        // Secondary: local − global and local − full-subnets, on two metrics.
-        assert_eq!(report.comparisons.len(), 4);
-        let adjusted = holm(&report.comparisons.iter().map(|c| c.p_value).collect::<Vec<_>>());
-        for (c, p) in report.comparisons.iter().zip(adjusted) {
-            assert_eq!(c.p_holm, p);
-            assert!(c.p_holm >= c.p_value);
-        }
-        let md = markdown(&report);
-        assert!(md.contains("## Primary contrast") && md.contains("eval_return, local − global, PPO, stratified by environment over lti-paper"), "{md}");
-        assert!(md.contains("p (Holm, 4 comparisons)") && md.contains("not distinguishable, CI ["), "{md}");
-        assert!(w.p_value < 0.001 && md.contains(&format!("p < 0.001 (1 environment(s)")), "p values print as < 0.001, never 0.000:\n{md}");
-        // Named before the runs: a contrast of connections the study lacks is refused.
-        let wrong = text.replace("b = \"global\"", "b = \"random@3\"");
-        let err = format!("{:#}", Experiment::parse(&wrong).unwrap_err());
-        assert!(err.contains("`primary.b` \"random@3\" is not one of `connections`"), "{err}");
     }
 
     /// Which cells are compared: every cell with a graph against global
