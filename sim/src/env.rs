@@ -49,6 +49,23 @@ impl EnvSpec {
     }
 }
 
+/// Maps u ∈ [−1, 1]ⁿ (clipped) onto the action box.
+pub fn action_of(spec: &EnvSpec, u: &[f64]) -> Vec<f64> {
+    u.iter()
+        .zip(spec.action_low.iter().zip(&spec.action_high))
+        .map(|(u, (lo, hi))| lo + (u.clamp(-1.0, 1.0) + 1.0) / 2.0 * (hi - lo))
+        .collect()
+}
+
+/// The u of an action (inverse of [`action_of`]).
+pub fn u_of(spec: &EnvSpec, action: &[f64]) -> Vec<f64> {
+    action
+        .iter()
+        .zip(spec.action_low.iter().zip(&spec.action_high))
+        .map(|(a, (lo, hi))| if hi > lo { 2.0 * (a - lo) / (hi - lo) - 1.0 } else { 0.0 })
+        .collect()
+}
+
 /// The outcome of one control step.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Step {

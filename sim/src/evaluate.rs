@@ -201,7 +201,7 @@ pub const BEST_CONSTANT: &str = "best constant";
 /// the one evaluator of references of `lcrl train` and `lcrl run`: a = 0,
 /// the recorded best constant (docs/peg.md, "The bar") where `env` has one,
 /// and a headroom policy when one is given. Episodes run on every core.
-pub fn references(env: &dyn Env, headroom: Option<&crate::tune::feedback::StoredPolicy>, episodes: usize, first: u64) -> Result<Vec<Summary>, EnvError> {
+pub fn references(env: &dyn Env, headroom: Option<&crate::tune::policy::StoredPolicy>, episodes: usize, first: u64) -> Result<Vec<Summary>, EnvError> {
     let n = env.spec().action_dim();
     let mut out = vec![evaluate_parallel(env, ZERO_ACTION, episodes, first, &|_| vec![0.0; n])?.0];
     if let Some(best) = crate::peg::measured_best_constant(&env.spec().name) {

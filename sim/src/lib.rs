@@ -5,6 +5,7 @@
 //!   snapshots for CS3's paired branches).
 //! - [`lti`]: linear time-invariant systems s' = E s + F a (+ noise), the
 //!   systems with a known connection graph (docs/method.md §4).
+//! - [`mod@overlay`]: how an override file lays onto its base (TOML tables merged key by key).
 //! - [`peg`]: the peg-in-hole assembly simulator on rapier3d (docs/method.md §6).
 //! - [`evaluate`]: whole episodes with a policy, traces and summaries.
 //! - [`registry`]: environments by name, TOML file or server URL.
@@ -16,6 +17,7 @@
 pub mod env;
 pub mod evaluate;
 pub mod lti;
+pub mod overlay;
 pub mod peg;
 pub mod registry;
 pub mod remote;
@@ -24,4 +26,5 @@ pub mod tune;
 
 pub use env::{Env, EnvError, EnvSpec, EpisodeMetrics, ReturnColumns, ReturnTerms, Step};
 pub use remote::step_all;
-pub use registry::{env_from_toml, known_env_names, make_env, overlay};
+pub use overlay::overlay;
+pub use registry::{env_from_toml, known_env_names, make_env};

@@ -71,20 +71,6 @@ pub fn env_from_toml(text: &str, path: &str) -> Result<Box<dyn Env>, EnvError> {
     }
 }
 
-/// Lays `over` onto `base`: tables merge key by key, anything else
-/// replaces. The one rule of every lcrl override: a peg file over its
-/// preset, a training file over the environment's settings.
-pub fn overlay(base: &mut toml::Table, over: &toml::Table) {
-    for (key, value) in over {
-        match (base.get_mut(key), value) {
-            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => overlay(b, o),
-            _ => {
-                base.insert(key.clone(), value.clone());
-            }
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

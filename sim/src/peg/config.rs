@@ -324,7 +324,7 @@ impl PegConfig {
     /// struct) on top of this config, then validates the result.
     pub fn with_overrides(&self, overrides: &toml::Table, source: &str) -> Result<Self, EnvError> {
         let mut merged = toml::Table::try_from(self).map_err(|e| EnvError::invalid("(preset)", e.to_string()))?;
-        crate::registry::overlay(&mut merged, overrides);
+        crate::overlay::overlay(&mut merged, overrides);
         let cfg: PegConfig = merged
             .try_into()
             .map_err(|e: toml::de::Error| EnvError::Parse { path: source.to_string(), message: e.to_string() })?;

@@ -14,13 +14,15 @@
 //! controller on the tuning starts.
 
 pub mod feedback;
+pub mod policy;
 
 use std::time::Instant;
 
 use cmaes::{CMAESOptions, DVector};
 use serde::Serialize;
 
-use crate::env::{Env, EnvError, EnvSpec};
+pub use crate::env::{action_of, u_of};
+use crate::env::{Env, EnvError};
 use crate::evaluate::{evaluate_parallel, run_episode, Summary};
 
 /// How the search runs.
@@ -96,23 +98,6 @@ pub struct TuneReport {
     pub evaluations: usize,
     pub method: String,
     pub elapsed_s: f64,
-}
-
-/// Maps u ∈ [−1, 1]ⁿ (clipped) onto the action box.
-pub fn action_of(spec: &EnvSpec, u: &[f64]) -> Vec<f64> {
-    u.iter()
-        .zip(spec.action_low.iter().zip(&spec.action_high))
-        .map(|(u, (lo, hi))| lo + (u.clamp(-1.0, 1.0) + 1.0) / 2.0 * (hi - lo))
-        .collect()
-}
-
-/// The u of an action (inverse of [`action_of`]).
-pub fn u_of(spec: &EnvSpec, action: &[f64]) -> Vec<f64> {
-    action
-        .iter()
-        .zip(spec.action_low.iter().zip(&spec.action_high))
-        .map(|(a, (lo, hi))| if hi > lo { 2.0 * (a - lo) / (hi - lo) - 1.0 } else { 0.0 })
-        .collect()
 }
 
 /// Mean return of a constant action over `episodes` starts from `seed`,
