@@ -4,6 +4,7 @@
 //! one machine (`run`) or as a Kubernetes Indexed Job (`k8s`).
 
 mod against;
+mod bars;
 mod config;
 mod figures;
 mod k8s;

@@ -11,6 +11,7 @@ use lcrl_learner::run_files::EpisodeRow;
 use lcrl_learner::summary::RunSummary;
 use serde::Serialize;
 
+use super::bars::BestConstant;
 use super::config::{algo_name, Experiment};
 use super::plan::{best_constant_path, cells, finished_run, graph_path, run_dir, Cell};
 use super::safety::{self, CellSafety, RunSafety};
@@ -43,26 +44,6 @@ impl CellRuns {
         let mut order: Vec<&Run> = self.runs.iter().collect();
         order.sort_by(|a, b| a.summary.evaluation.eval_return.total_cmp(&b.summary.evaluation.eval_return));
         order.get(order.len().saturating_sub(1) / 2).copied()
-    }
-}
-
-/// The figures of best_constant.json a report shows.
-#[derive(Debug, Clone, Serialize)]
-pub struct BestConstant {
-    pub action: Vec<f64>,
-    pub mean_return: f64,
-    pub success_rate: Option<f64>,
-    pub zero_action_return: f64,
-    pub eval_episodes: usize,
-    /// The first evaluation start (older files: absent).
-    pub eval_seed: Option<u64>,
-}
-
-impl BestConstant {
-    /// Whether a run was evaluated on exactly these starts, so their
-    /// returns compare start for start.
-    fn same_starts(&self, run: &RunSummary, eval_episodes: usize) -> bool {
-        self.eval_seed.is_some() && run.evaluation.eval_seed == self.eval_seed && eval_episodes == self.eval_episodes
     }
 }
 
@@ -103,17 +84,8 @@ pub fn gather(e: &Experiment, out: &Path) -> anyhow::Result<Study> {
     for env in &e.file.environments {
         let policy_path = out.join("best_policy").join(super::config::env_slug(env)).join("best_policy.json");
         for (path, map) in [(best_constant_path(out, env), &mut study.best_constant), (policy_path, &mut study.best_policy)] {
-            if let Ok(text) = std::fs::read_to_string(&path) {
-                let v: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
-                let action = v["action"].as_array().map(|a| a.iter().filter_map(|x| x.as_f64()).collect()).unwrap_or_default();
-                map.insert(env.clone(), BestConstant {
-                    action,
-                    mean_return: v["mean_return"].as_f64().unwrap_or(f64::NAN),
-                    success_rate: v["success_rate"].as_f64(),
-                    zero_action_return: v["zero_action"]["eval"]["mean_return"].as_f64().unwrap_or(f64::NAN),
-                    eval_episodes: v["eval_episodes"].as_u64().unwrap_or(0) as usize,
-                    eval_seed: v["eval_seed"].as_u64(),
-                });
+            if let Some(bar) = BestConstant::read(&path)? {
+                map.insert(env.clone(), bar);
             }
         }
     }

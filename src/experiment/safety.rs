@@ -14,7 +14,7 @@ use std::path::Path;
 use lcrl_learner::run_files::EpisodeRow;
 use serde::Serialize;
 
-use super::report::BestConstant;
+use super::bars::BestConstant;
 use super::stats::{mean_ci, Estimate, AVERAGE_WINDOW};
 
 /// One run's training safety.
