@@ -294,7 +294,7 @@ mod tests {
         let mut jump = |policy: &mut dyn FnMut(&[f64]) -> Vec<f64>| run_episode(env.as_mut(), 3, policy, false).unwrap().max_action_jump;
         assert_eq!(jump(&mut |_| vec![2.0, 2.0, 0.0, -0.5, 0.0, 1.0]), 0.0);
         let mut k = 0;
-        let mut flip = |low: f64, high: f64, i: usize| {
+        let flip = |low: f64, high: f64, i: usize| {
             move |_: &[f64]| {
                 k += 1;
                 let mut a = vec![0.0; 6];
