@@ -225,7 +225,7 @@ fn lti_blocks_graphs_equal_lemma1_up_to_32_actions() {
 }
 
 /// The publication's graph for the peg task as printed (eq. 21, restated
-/// in METHOD.md §6a): states in the publication's column order, then one
+/// in the publication, eq. 21): states in the publication's column order, then one
 /// row per action in its row order, 23 edges of 72.
 const EQ21_STATES: [&str; 12] = ["x", "y", "z", "alpha", "beta", "gamma", "Fx", "Fy", "Fz", "Mx", "My", "Mz"];
 const EQ21_ROWS: [(&str, [u8; 12]); 6] = [
