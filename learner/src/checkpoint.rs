@@ -10,7 +10,7 @@ use std::collections::BTreeMap;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
-use lcrl_proto::files::{sync_dir, sync_file};
+use lcrl_proto::files::{folder_of, sync_dir, sync_file};
 use serde::{Deserialize, Serialize};
 
 use crate::agent::Agent;
@@ -299,7 +299,7 @@ fn seal(staging: &Path, meta: &CheckpointMeta) -> Result<(), LearnerError> {
 /// they were and removes the staging folder.
 fn swap_in(staging: &Path, target: &Path) -> Result<(), LearnerError> {
     let aside = beside(target, "old")?;
-    let parent = target.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let parent = folder_of(target);
     let replacing = target.exists();
     if replacing {
         if let Err(e) = std::fs::rename(target, &aside) {
@@ -341,7 +341,7 @@ pub fn recover_folder(target: &Path) -> Result<(), LearnerError> {
     }
     std::fs::rename(&aside, target).map_err(io(target))?;
     tracing::warn!(folder = %target.display(), "recovered the folder a killed writer had moved aside");
-    let parent = target.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let parent = folder_of(target);
     sync_dir(parent).map_err(io(parent))
 }
 

@@ -197,7 +197,7 @@ impl MetricsLog {
         }
         log.file.sync_all().map_err(io(&partial))?;
         std::fs::rename(&partial, path).map_err(io(path))?;
-        let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        let dir = lcrl_proto::files::folder_of(path);
         lcrl_proto::files::sync_dir(dir).map_err(io(dir))?;
         log.path = path.to_path_buf();
         Ok(log)

@@ -9,7 +9,7 @@ use std::path::Path;
 /// then renamed over it. A crash leaves the old file or the new one, never
 /// half of one. Errors name the file they concern.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let dir = folder_of(path);
     std::fs::create_dir_all(dir).map_err(named("creating", dir))?;
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     let partial = dir.join(format!(".{name}.{}.partial", std::process::id()));
@@ -20,6 +20,12 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     // The rename itself lives in the folder's entries: without this a
     // power cut can bring back the old file (or none) after we returned.
     sync_dir(dir)
+}
+
+/// The folder `path` is in (`.` for a bare name), whose entries a rename
+/// of `path` changes.
+pub fn folder_of(path: &Path) -> &Path {
+    path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."))
 }
 
 /// Flushes a folder's entries (names created, renamed or removed in it) to

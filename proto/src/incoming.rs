@@ -66,7 +66,11 @@ impl Hush {
         if self.evicted.load(Ordering::Acquire) {
             return Poll::Ready(());
         }
-        *self.waker.lock().unwrap_or_else(|p| p.into_inner()) = Some(cx.waker().clone());
+        let mut slot = self.waker.lock().unwrap_or_else(|p| p.into_inner());
+        if !slot.as_ref().is_some_and(|w| w.will_wake(cx.waker())) {
+            *slot = Some(cx.waker().clone());
+        }
+        drop(slot);
         // Evicted between the check and the registration: seen now.
         if self.evicted.load(Ordering::Acquire) {
             Poll::Ready(())
@@ -133,7 +137,11 @@ pub struct Conn {
     _permit: OwnedSemaphorePermit,
     hush: Arc<Hush>,
     registry: Arc<Registry>,
+    /// Fires at the idle deadline as it was when last set; reads only
+    /// record when the peer was heard, and the timer is moved on when it
+    /// fires early (no timer work per read).
     idle: Pin<Box<Sleep>>,
+    first_byte_timeout: Duration,
     idle_timeout: Duration,
     refusals: Arc<ConnectionRefusals>,
 }
@@ -141,9 +149,24 @@ pub struct Conn {
 impl Conn {
     fn new(stream: Stream, permit: OwnedSemaphorePermit, hush: Arc<Hush>, registry: Arc<Registry>, limits: &Limits) -> Conn {
         // Until the peer's first byte the shorter of the two timeouts.
-        let first = limits.idle_timeout.min(FIRST_BYTE_TIMEOUT);
-        let idle = Box::pin(tokio::time::sleep(first));
-        Conn { stream, _permit: permit, hush, registry, idle, idle_timeout: limits.idle_timeout, refusals: limits.refusals.clone() }
+        let first_byte_timeout = limits.idle_timeout.min(FIRST_BYTE_TIMEOUT);
+        let idle = Box::pin(tokio::time::sleep(first_byte_timeout));
+        Conn { stream, _permit: permit, hush, registry, idle, first_byte_timeout, idle_timeout: limits.idle_timeout, refusals: limits.refusals.clone() }
+    }
+
+    /// Whether the peer has been silent past its timeout (registering the
+    /// task to be woken at the deadline otherwise).
+    fn silent_too_long(&mut self, cx: &mut Context<'_>) -> bool {
+        while self.idle.as_mut().poll(cx).is_ready() {
+            let timeout = if self.hush.spoken.load(Ordering::Relaxed) { self.idle_timeout } else { self.first_byte_timeout };
+            let heard = self.registry.epoch + Duration::from_millis(self.hush.heard_ms.load(Ordering::Relaxed));
+            let deadline = Instant::from_std(heard + timeout);
+            if deadline <= Instant::now() {
+                return true;
+            }
+            self.idle.as_mut().reset(deadline);
+        }
+        false
     }
 }
 
@@ -161,8 +184,9 @@ impl Connected for Conn {
 impl AsyncRead for Conn {
     fn poll_read(self: Pin<&mut Self>, cx: &mut Context<'_>, buf: &mut ReadBuf<'_>) -> Poll<io::Result<()>> {
         let this = self.get_mut();
-        if this.hush.poll_evicted(cx).is_ready() {
-            return Poll::Ready(Err(io::Error::new(io::ErrorKind::ConnectionAborted, "closed, quiet, to make room for a newcomer on a full server")));
+        let evicted = || Poll::Ready(Err(io::Error::new(io::ErrorKind::ConnectionAborted, "closed, quiet, to make room for a newcomer on a full server")));
+        if this.hush.evicted.load(Ordering::Acquire) {
+            return evicted();
         }
         let before = buf.filled().len();
         let read = match &mut this.stream {
@@ -171,14 +195,17 @@ impl AsyncRead for Conn {
         };
         match read {
             Poll::Ready(Ok(())) if buf.filled().len() > before => {
-                this.hush.spoken.store(true, Ordering::Release);
-                this.hush.heard_ms.store(this.registry.now_ms(), Ordering::Relaxed);
                 // The peer spoke: the silence starts over.
-                let next = Instant::now() + this.idle_timeout;
-                this.idle.as_mut().reset(next);
+                if !this.hush.spoken.load(Ordering::Relaxed) {
+                    this.hush.spoken.store(true, Ordering::Release);
+                }
+                this.hush.heard_ms.store(this.registry.now_ms(), Ordering::Relaxed);
                 Poll::Ready(Ok(()))
             }
-            Poll::Pending if this.idle.as_mut().poll(cx).is_ready() => {
+            // Waiting for the peer: woken by its bytes, an eviction or the
+            // idle deadline.
+            Poll::Pending if this.hush.poll_evicted(cx).is_ready() => evicted(),
+            Poll::Pending if this.silent_too_long(cx) => {
                 this.refusals.idle.fetch_add(1, Ordering::Relaxed);
                 tracing::debug!("closing a connection silent for its idle timeout");
                 Poll::Ready(Err(io::Error::new(io::ErrorKind::TimedOut, "the peer sent nothing within the idle timeout")))

@@ -56,6 +56,10 @@ pub const KEEPALIVE_TIMEOUT: Duration = Duration::from_secs(10);
 /// timeout, if shorter): sockets opened and left silent are closed soon.
 pub const FIRST_BYTE_TIMEOUT: Duration = Duration::from_secs(10);
 
+/// `--max-connections` and `--idle-timeout-secs` when not given.
+pub const DEFAULT_MAX_CONNECTIONS: u32 = 512;
+pub const DEFAULT_IDLE_TIMEOUT_SECS: u64 = 300;
+
 /// A server's connection limits (flags of every lcrl server).
 #[derive(Debug, Clone, clap::Args)]
 pub struct ServerLimitsArgs {
@@ -63,19 +67,19 @@ pub struct ServerLimitsArgs {
     /// the place of the least recently heard connection that never spoke
     /// or has been quiet for 5 s (`connections_refused{reason="evicted"}`
     /// in /metrics); with none such, it is closed (`reason="connections"`).
-    #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u32).range(1..=65_536))]
+    #[arg(long, default_value_t = DEFAULT_MAX_CONNECTIONS, value_parser = clap::value_parser!(u32).range(1..=65_536))]
     pub max_connections: u32,
     /// A connection whose peer sends nothing for this long is closed,
     /// seconds (live clients answer the server's pings, every 15 s or half
     /// this, whichever is shorter). Before its first byte a connection gets
     /// at most 10 s.
-    #[arg(long, default_value_t = 300, value_parser = clap::value_parser!(u64).range(1..=86_400))]
+    #[arg(long, default_value_t = DEFAULT_IDLE_TIMEOUT_SECS, value_parser = clap::value_parser!(u64).range(1..=86_400))]
     pub idle_timeout_secs: u64,
 }
 
 impl Default for ServerLimitsArgs {
     fn default() -> Self {
-        ServerLimitsArgs { max_connections: 512, idle_timeout_secs: 300 }
+        ServerLimitsArgs { max_connections: DEFAULT_MAX_CONNECTIONS, idle_timeout_secs: DEFAULT_IDLE_TIMEOUT_SECS }
     }
 }
 

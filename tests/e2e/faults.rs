@@ -16,7 +16,7 @@ use super::common::{stderr, workspace_bin};
 use lcrl_proto::security::ClientSecurity;
 
 use super::distributed::{actor_with_args, batch, free_port, learner_with_args, wait_for};
-use super::hostile::send_all;
+use super::hostile::{rss_kib, send_all};
 use super::observability::{sample, scrape};
 
 async fn status(url: &str) -> LearnerStatus {
@@ -49,10 +49,6 @@ fn wait_output(mut child: std::process::Child, limit: Duration) -> Option<std::p
     None
 }
 
-fn rss_kib(pid: u32) -> u64 {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
-    status.lines().find_map(|l| l.strip_prefix("VmRSS:")).and_then(|v| v.split_whitespace().next()?.parse().ok()).unwrap()
-}
 
 /// A batch of many empty transitions is a few bytes each on the wire and a
 /// whole struct each decoded: it is refused before decoding, and a batch

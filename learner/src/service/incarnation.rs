@@ -41,22 +41,22 @@ fn draw() -> u64 {
     }
 }
 
-/// The incarnations recorded in `run_dir`, oldest first.
-pub fn history(run_dir: &Path) -> Result<Vec<u64>, LearnerError> {
-    let path = run_dir.join(HISTORY_FILE);
-    let text = std::fs::read_to_string(&path).map_err(io(&path))?;
-    text.lines()
-        .skip(1)
-        .map(|line| {
-            let id = line.split(',').next().unwrap_or_default();
-            u64::from_str_radix(id, 16).map_err(|e| LearnerError::Checkpoint(format!("{}: {line:?}: {e}", path.display())))
-        })
-        .collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The incarnations recorded in `run_dir`, oldest first.
+    pub fn history(run_dir: &Path) -> Result<Vec<u64>, LearnerError> {
+        let path = run_dir.join(HISTORY_FILE);
+        let text = std::fs::read_to_string(&path).map_err(io(&path))?;
+        text.lines()
+            .skip(1)
+            .map(|line| {
+                let id = line.split(',').next().unwrap_or_default();
+                u64::from_str_radix(id, 16).map_err(|e| LearnerError::Checkpoint(format!("{}: {line:?}: {e}", path.display())))
+            })
+            .collect()
+    }
 
     #[test]
     fn every_start_draws_a_new_incarnation_and_keeps_the_history() {
