@@ -7,10 +7,18 @@
 //! - `random@K`: K edges drawn at random (`lcrl graph --random K`), the
 //!   control for "does the structure matter, or only the input count?";
 //! - `global`, `full-subnets`: no graph.
+//!
+//! In a study, a measured or random graph takes modifiers after `+`:
+//! - `+per-seed`: each run gets its own graph (CS3 with the run's seed, or
+//!   the run's own draw), so no result rests on one measured graph;
+//! - `+ACTION=T`, `+ACTION=none` (local@T only): that action's row of G
+//!   under its own rule, from the same CS3 values (`lcrl graph --row`),
+//!   e.g. `local@1+dz=0.1` or `local@0.1+dz=none` (the dz control).
 
 use std::path::PathBuf;
 
 use anyhow::{bail, Context};
+use lcrl_graph_builder::RowRule;
 use lcrl_learner::Connection;
 
 /// The publication's threshold T of eq. 7, used by a plain `local`.
@@ -19,11 +27,29 @@ pub const DEFAULT_THRESHOLD: f64 = lcrl_graph_builder::PAPER_THRESHOLD;
 /// One parsed connection.
 #[derive(Debug, Clone, PartialEq)]
 pub enum ConnectionSpec {
-    Local { threshold: f64 },
+    Local { threshold: f64, rows: Vec<RowRule>, per_seed: bool },
     Graph { path: PathBuf },
-    Random { edges: usize },
+    Random { edges: usize, per_seed: bool },
     Global,
     FullSubnets,
+}
+
+/// A graph a study makes before its runs (crate::experiment::plan):
+/// measured by CS3 at T with any row rules, or drawn at random.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MadeGraph {
+    Measured { threshold: f64, rows: Vec<RowRule> },
+    Drawn { edges: usize },
+}
+
+impl MadeGraph {
+    /// Its folder under graphs/ENV/: T1, T1+dz=0.1, random@23.
+    pub fn folder(&self) -> String {
+        match self {
+            MadeGraph::Measured { threshold, rows } => format!("T{threshold}{}", rows.iter().map(|r| format!("+{}", r.text())).collect::<String>()),
+            MadeGraph::Drawn { edges } => format!("random@{edges}"),
+        }
+    }
 }
 
 impl ConnectionSpec {
@@ -35,7 +61,7 @@ impl ConnectionSpec {
             )
         };
         match text {
-            "local" => return Ok(ConnectionSpec::Local { threshold: DEFAULT_THRESHOLD }),
+            "local" => return Ok(ConnectionSpec::Local { threshold: DEFAULT_THRESHOLD, rows: Vec::new(), per_seed: false }),
             "global" => return Ok(ConnectionSpec::Global),
             "full-subnets" => return Ok(ConnectionSpec::FullSubnets),
             _ => {}
@@ -46,27 +72,54 @@ impl ConnectionSpec {
             }
             return Ok(ConnectionSpec::Graph { path: PathBuf::from(path) });
         }
-        if let Some(k) = text.strip_prefix("random@") {
+        let mut parts = text.split('+');
+        let base = parts.next().unwrap_or_default();
+        let (mut rows, mut per_seed) = (Vec::new(), false);
+        for modifier in parts {
+            if modifier == "per-seed" {
+                per_seed = true;
+            } else if modifier.contains('=') {
+                let rule = RowRule::parse(modifier).with_context(|| format!("connection \"{text}\""))?;
+                if rows.iter().any(|r: &RowRule| r.action == rule.action) {
+                    bail!("connection \"{text}\": two rules for the row of {}", rule.action);
+                }
+                rows.push(rule);
+            } else {
+                bail!("connection \"{text}\": unknown modifier \"+{modifier}\"; use +per-seed or +ACTION=T / +ACTION=none (e.g. +dz=0.1)");
+            }
+        }
+        if let Some(k) = base.strip_prefix("random@") {
             let edges: usize = k.parse().map_err(|_| anyhow::anyhow!("connection \"{text}\": \"{k}\" is not an edge count"))?;
             if edges == 0 {
                 bail!("connection \"{text}\": K must be at least the number of actions");
             }
-            return Ok(ConnectionSpec::Random { edges });
+            if !rows.is_empty() {
+                bail!("connection \"{text}\": row rules apply to measured graphs (local@T), not to random draws");
+            }
+            return Ok(ConnectionSpec::Random { edges, per_seed });
         }
-        let t = text.strip_prefix("local@").with_context(unknown)?;
+        let t = base.strip_prefix("local@").with_context(unknown)?;
         let threshold: f64 = t.parse().map_err(|_| anyhow::anyhow!("{}: \"{t}\" is not a number", unknown()))?;
         if !(threshold.is_finite() && threshold >= 0.0) {
             bail!("connection \"{text}\": the threshold T must be a finite number ≥ 0");
         }
-        Ok(ConnectionSpec::Local { threshold })
+        Ok(ConnectionSpec::Local { threshold, rows, per_seed })
     }
 
-    /// The name in tables, folders and plots: local@0.1, graph:…, random@23.
+    /// The name in tables, folders and plots: local@0.1, graph:…, random@23,
+    /// local@1+dz=0.1, random@23+per-seed.
     pub fn label(&self) -> String {
+        let modifiers = |rows: &[RowRule], per_seed: bool| {
+            let mut out: String = rows.iter().map(|r| format!("+{}", r.text())).collect();
+            if per_seed {
+                out.push_str("+per-seed");
+            }
+            out
+        };
         match self {
-            ConnectionSpec::Local { threshold } => format!("local@{threshold}"),
+            ConnectionSpec::Local { threshold, rows, per_seed } => format!("local@{threshold}{}", modifiers(rows, *per_seed)),
             ConnectionSpec::Graph { path } => format!("graph:{}", path.display()),
-            ConnectionSpec::Random { edges } => format!("random@{edges}"),
+            ConnectionSpec::Random { edges, per_seed } => format!("random@{edges}{}", modifiers(&[], *per_seed)),
             ConnectionSpec::Global => "global".into(),
             ConnectionSpec::FullSubnets => "full-subnets".into(),
         }
@@ -96,7 +149,7 @@ impl ConnectionSpec {
     /// T, for graphs measured by CS3.
     pub fn threshold(&self) -> Option<f64> {
         match self {
-            ConnectionSpec::Local { threshold } => Some(*threshold),
+            ConnectionSpec::Local { threshold, .. } => Some(*threshold),
             _ => None,
         }
     }
@@ -106,13 +159,29 @@ impl ConnectionSpec {
         self.connection() == Connection::Local
     }
 
+    /// Whether it carries modifiers that only a study's graph tasks apply.
+    pub fn has_modifiers(&self) -> bool {
+        matches!(self, ConnectionSpec::Local { rows, per_seed, .. } if !rows.is_empty() || *per_seed)
+            || matches!(self, ConnectionSpec::Random { per_seed: true, .. })
+    }
+
+    /// The graph a study makes for this connection (none for a given file
+    /// or a graph-less actor), and whether each run gets its own.
+    pub fn made_graph(&self) -> Option<(MadeGraph, bool)> {
+        match self {
+            ConnectionSpec::Local { threshold, rows, per_seed } => Some((MadeGraph::Measured { threshold: *threshold, rows: rows.clone() }, *per_seed)),
+            ConnectionSpec::Random { edges, per_seed } => Some((MadeGraph::Drawn { edges: *edges }, *per_seed)),
+            _ => None,
+        }
+    }
+
     /// The given (not measured) graph for an environment: the file of
     /// `graph:PATH`, checked against it, or the draw of `random@K` with
     /// `draw_seed`. None for CS3 graphs and graph-less actors.
     pub fn given_graph(&self, spec: &lcrl_sim::EnvSpec, draw_seed: u64) -> anyhow::Result<Option<lcrl_graph_builder::GraphReport>> {
         Ok(match self {
             ConnectionSpec::Graph { path } => Some(lcrl_graph_builder::given::load_for(path, spec)?),
-            ConnectionSpec::Random { edges } => Some(lcrl_graph_builder::given::random(spec, *edges, draw_seed)?),
+            ConnectionSpec::Random { edges, .. } => Some(lcrl_graph_builder::given::random(spec, *edges, draw_seed)?),
             _ => None,
         })
     }
@@ -131,12 +200,15 @@ mod tests {
 
     #[test]
     fn every_form_parses_and_labels_round_trip() {
-        for text in ["local@0.1", "local@0.5", "global", "full-subnets", "random@23", "graph:references/peg-eq21/graph.json"] {
+        for text in [
+            "local@0.1", "local@0.5", "global", "full-subnets", "random@23", "graph:references/peg-eq21/graph.json",
+            "local@1+per-seed", "random@23+per-seed", "local@1+dz=0.1", "local@0.1+dz=none", "local@1+dz=0.1+dx=none+per-seed",
+        ] {
             let spec = ConnectionSpec::parse(text).unwrap();
             assert_eq!(spec.label(), text);
             assert_eq!(ConnectionSpec::parse(&spec.label()).unwrap(), spec);
         }
-        assert_eq!(ConnectionSpec::parse("local").unwrap(), ConnectionSpec::Local { threshold: 0.1 });
+        assert_eq!(ConnectionSpec::parse("local").unwrap(), ConnectionSpec::Local { threshold: 0.1, rows: Vec::new(), per_seed: false });
         assert_eq!(ConnectionSpec::parse("random@23").unwrap().connection(), Connection::Local);
         assert_eq!(ConnectionSpec::parse("graph:g.json").unwrap().threshold(), None);
         assert_eq!(ConnectionSpec::parse("graph:references/peg-eq21/graph.json").unwrap().slug(), "graph-references-peg-eq21-graph");
@@ -144,12 +216,17 @@ mod tests {
 
     #[test]
     fn bad_forms_say_what_is_wrong() {
-        let err = |t: &str| ConnectionSpec::parse(t).unwrap_err().to_string();
+        let err = |t: &str| format!("{:#}", ConnectionSpec::parse(t).unwrap_err());
         assert!(err("loco").contains("graph:PATH") && err("loco").contains("random@K"));
         assert!(err("random@x").contains("\"x\" is not an edge count"));
         assert!(err("random@0").contains("at least"));
         assert!(err("graph:").contains("give the graph file"));
         assert!(err("local@-1").contains("≥ 0"));
+        assert!(err("local@1+sometimes").contains("unknown modifier \"+sometimes\""));
+        assert!(err("local@1+dz=x").contains("\"x\" is not a number"));
+        assert!(err("local@1+dz=0.1+dz=none").contains("two rules for the row of dz"));
+        assert!(err("random@23+dz=none").contains("not to random draws"));
+        assert!(!ConnectionSpec::parse("local@1").unwrap().has_modifiers() && ConnectionSpec::parse("random@9+per-seed").unwrap().has_modifiers());
     }
 
     #[test]

@@ -67,6 +67,11 @@ pub struct GraphArgs {
     /// control graph of `random@K` connections. No CS3 runs.
     #[arg(long, value_name = "K", conflicts_with_all = ["thresholds", "exact", "threshold"])]
     pub random: Option<usize>,
+    /// One action's row under its own rule, from the same phi: `dz=0.1`
+    /// (eq. 7 at T = 0.1 for dz's row) or `dz=none` (dz gets no inputs);
+    /// repeatable. The claim study's dz control (docs/lcrl-value.md).
+    #[arg(long = "row", value_name = "ACTION=T|none", value_parser = parse_row, conflicts_with_all = ["exact", "random", "explain"])]
+    pub rows: Vec<crate::RowRule>,
     /// Draw the normalized-CS3 heatmap with G marked here (PNG).
     #[arg(long, value_name = "FILE.png", value_parser = crate::plot::png_path)]
     pub plot: Option<PathBuf>,
@@ -80,6 +85,10 @@ pub const MAX_SAMPLES: usize = 100_000_000;
 pub const MAX_THREADS: usize = 1024;
 /// The most bootstrap resamples (`--bootstrap`).
 pub const MAX_BOOTSTRAP: usize = 100_000;
+
+fn parse_row(text: &str) -> Result<crate::RowRule, String> {
+    crate::RowRule::parse(text).map_err(|e| e.to_string())
+}
 
 impl GraphArgs {
     pub fn options(&self) -> GraphOptions {
@@ -108,6 +117,9 @@ impl GraphArgs {
             return Err(GraphError::Threshold(*bad));
         }
         let env = lcrl_sim::make_env(&self.env)?;
+        if let Some(rule) = self.rows.iter().find(|r| !env.spec().action_names.contains(&r.action)) {
+            return Err(crate::GraphError::Row(format!("--row {}: no action {} (actions: {})", rule.text(), rule.action, env.spec().action_names.join(", "))));
+        }
         let json_out = self.out.as_deref().map(|p| PendingFile::new(p, ".json")).transpose()?;
         let plot_out = self.plot.as_deref().map(|p| PendingFile::new(p, ".png")).transpose()?;
         if let Some(edges) = self.random {
@@ -126,7 +138,7 @@ impl GraphArgs {
         }
         let report = build_graph(env.as_ref(), &options, &|| bar.inc(1));
         bar.finish_and_clear();
-        let report = report?.with_sweep(&sweep);
+        let report = report?.with_rows(&self.rows)?.with_sweep(&sweep);
 
         if let Some(file) = json_out {
             report.write_json(file.temp.path())?;

@@ -118,6 +118,7 @@ pub fn from_matrix(spec: &EnvSpec, g: Vec<Vec<u8>>, origin: String, seed: u64) -
         sweep: Vec::new(),
         elapsed_s: 0.0,
         origin: Some(origin),
+        rows: Vec::new(),
     }
 }
 

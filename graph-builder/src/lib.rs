@@ -18,6 +18,7 @@ pub mod graph;
 pub mod lemma1;
 pub mod plot;
 pub mod report;
+pub mod rows;
 pub mod service;
 
 use std::path::PathBuf;
@@ -28,6 +29,7 @@ use lcrl_sim::{Env, EnvError};
 pub use cs3::{Cs3Config, Cs3Error, Cs3Samples, Start};
 pub use graph::{ConnectionGraph, Rule, DEFAULT_BOOTSTRAP, EXACT_TOLERANCE, PAPER_THRESHOLD};
 pub use report::{GraphReport, SweepEntry};
+pub use rows::RowRule;
 
 /// How to build a graph: CS3 sampling, the rule, and the bootstrap size.
 #[derive(Debug, Clone, PartialEq)]
@@ -104,6 +106,7 @@ pub fn build_graph(env: &dyn Env, opts: &GraphOptions, on_sample: &(dyn Fn() + S
         sweep: Vec::new(),
         elapsed_s: started.elapsed().as_secs_f64(),
         origin: None,
+        rows: Vec::new(),
     })
 }
 
@@ -128,6 +131,8 @@ pub enum GraphError {
     RandomEdges { edges: usize, actions: usize, entries: usize },
     #[error("{0}")]
     Explain(String),
+    #[error("{0}")]
+    Row(String),
     #[error("cannot encode the graph as JSON: {0}")]
     Json(String),
     #[error("cannot draw {path}: {message}")]

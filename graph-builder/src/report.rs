@@ -56,6 +56,10 @@ pub struct GraphReport {
     /// draw seed 0" or "graph:PATH" (crate::given). Absent for CS3 graphs.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub origin: Option<String>,
+    /// Rows rebuilt under their own rule (`--row dz=0.1`, crate::rows);
+    /// absent when every row follows `threshold`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub rows: Vec<crate::rows::RowRule>,
 }
 
 /// G at one threshold of a sweep.
@@ -222,7 +226,8 @@ impl GraphReport {
         let _ = writeln!(out, "G (action × state; columns {}), {} of {} edges:", self.state_names.join(" "), self.edges(), self.actions() * self.states());
         for (i, name) in self.action_names.iter().enumerate() {
             let row: Vec<String> = self.g[i].iter().map(u8::to_string).collect();
-            let _ = writeln!(out, "{name:<label$} [{}]", row.join(", "));
+            let rule = self.rows.iter().find(|r| r.action == *name).map(|r| format!("  (its own rule: {})", r.text())).unwrap_or_default();
+            let _ = writeln!(out, "{name:<label$} [{}]{rule}", row.join(", "));
         }
         out
     }

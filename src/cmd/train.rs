@@ -4,8 +4,8 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
-use lcrl_learner::run_files::EpisodeRow;
-use lcrl_learner::trainer::{train, TrainRequest};
+use lcrl_learner::run::files::EpisodeRow;
+use lcrl_learner::run::trainer::{train, TrainRequest};
 use lcrl_learner::{Algo, Connection, TrainConfig};
 
 use lcrl::connection::ConnectionSpec;
@@ -90,7 +90,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     }
     if let Some(path) = &args.base_action {
         // Read now, so a bad file fails before any work.
-        lcrl_learner::action::read_best_constant(path)?;
+        lcrl_learner::policy::action::read_best_constant(path)?;
         config.base.action = lcrl_learner::config::BaseController::BestConstant;
         config.base.best_constant_file = Some(path.clone());
     }
@@ -98,6 +98,13 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         config.run.graph_threshold = t;
     }
     config.validate()?;
+    if args.connection.has_modifiers() {
+        anyhow::bail!(
+            "--connection {}: +per-seed and row rules (+ACTION=T) are for studies (lcrl experiment); for one run, build the graph with \
+             `lcrl graph --threshold T --row ACTION=T --seed N --out graph.json` and pass `--connection local --graph graph.json`",
+            args.connection.label()
+        );
+    }
     if args.graph.is_some() && !matches!(args.connection, ConnectionSpec::Local { .. }) {
         anyhow::bail!("--graph only applies to --connection local or local@T (graph:PATH names the file itself)");
     }
@@ -121,7 +128,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         eprintln!("{}", report.origin_line());
     }
     eprintln!("training settings: {source}");
-    if let Some(checkpoint) = args.resume.then(|| lcrl_learner::checkpoint::latest_checkpoint(&args.run_dir)).flatten() {
+    if let Some(checkpoint) = args.resume.then(|| lcrl_learner::policy::checkpoint::latest_checkpoint(&args.run_dir)).flatten() {
         eprintln!("resuming from checkpoint {}", checkpoint.display());
     }
     let request = TrainRequest {
@@ -151,7 +158,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     let outcome = outcome?;
     plot_rewards(&outcome.rows, &outcome.summary, args)?;
     let s = &outcome.summary;
-    let global_equivalent = lcrl_learner::nets::global_actor_params(&config.network, args.env_state_dims(s)?);
+    let global_equivalent = lcrl_learner::algo::nets::global_actor_params(&config.network, args.env_state_dims(s)?);
     println!("{:?} / {:?} on {} — {} episodes, {} env steps, {} updates", s.algo, s.connection, s.env, s.episodes, s.env_steps, s.updates);
     println!("  actor parameters      {} (a global actor of the configured size: {})", s.actor_params, global_equivalent);
     println!("  final return          {:.3} (mean of the last 10 episodes)", s.final_return);
@@ -183,7 +190,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
 }
 
 impl TrainArgs {
-    fn env_state_dims(&self, _s: &lcrl_learner::summary::RunSummary) -> anyhow::Result<(usize, usize)> {
+    fn env_state_dims(&self, _s: &lcrl_learner::run::summary::RunSummary) -> anyhow::Result<(usize, usize)> {
         let env = lcrl_sim::make_env(&self.env)?;
         Ok((env.spec().state_dim(), env.spec().action_dim()))
     }
@@ -191,7 +198,7 @@ impl TrainArgs {
 
 /// Returns per episode with a 10-episode moving average, and the run's
 /// references as horizontal lines.
-fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::summary::RunSummary, args: &TrainArgs) -> anyhow::Result<()> {
+fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::run::summary::RunSummary, args: &TrainArgs) -> anyhow::Result<()> {
     let env = &summary.env;
     let x: Vec<f64> = rows.iter().map(|r| r.episode as f64).collect();
     let returns: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();

@@ -263,6 +263,11 @@ impl Experiment {
             let made = lcrl_sim::make_env(env)?;
             for connection in &connections {
                 connection.given_graph(made.spec(), file.graph.seed).with_context(|| format!("connection \"{}\" on {env}", connection.label()))?;
+                if let ConnectionSpec::Local { rows, .. } = connection {
+                    if let Some(rule) = rows.iter().find(|r| !made.spec().action_names.contains(&r.action)) {
+                        bail!("connection \"{}\": {env} has no action {} (its actions: {})", connection.label(), rule.action, made.spec().action_names.join(", "));
+                    }
+                }
             }
         }
         let experiment = Experiment { file, connections, seeds };
@@ -292,17 +297,6 @@ impl Experiment {
 
     pub fn reward_threshold(&self, env: &str, algo: Algo) -> Option<f64> {
         self.file.reward_threshold.get(env)?.get(algo_name(algo)).copied()
-    }
-
-    /// The distinct thresholds of the local connections, in file order.
-    pub fn thresholds(&self) -> Vec<f64> {
-        let mut out: Vec<f64> = Vec::new();
-        for t in self.connections.iter().filter_map(ConnectionSpec::threshold) {
-            if !out.contains(&t) {
-                out.push(t);
-            }
-        }
-        out
     }
 }
 
@@ -336,7 +330,6 @@ mod tests {
         let e = Experiment::parse(&text).unwrap();
         assert_eq!(e.seeds, vec![0, 1, 2]);
         assert_eq!(e.connections.iter().map(ConnectionSpec::label).collect::<Vec<_>>(), ["local@0.1", "local@0.25", "global"]);
-        assert_eq!(e.thresholds(), vec![0.1, 0.25]);
         let cfg = e.train_config("lti-paper").unwrap();
         assert_eq!(cfg.ppo.actor_lr, 0.005);
         // Everything else keeps lti-paper's own settings (configs/lti-fast.toml).

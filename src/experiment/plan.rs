@@ -8,6 +8,8 @@
 //!   configs/ENV.toml                   training settings of ENV's runs
 //!   best_constant/ENV/best_constant.json
 //!   graphs/ENV/T0.1/graph.json         one graph per (ENV, T), shared by seeds
+//!   graphs/ENV/T1+dz=0.1/seed3/graph.json   a run's own graph (+per-seed),
+//!                                      with a row rule (crate::connection)
 //!   runs/ENV/ALGO/CONNECTION/seedK/    `lcrl train` run directories
 //!   logs/TASK.log                      each task's output
 //!   report.json, report.md, curves.png, traces.png
@@ -15,10 +17,11 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
-use lcrl_learner::summary::RunSummary;
+use lcrl_learner::run::summary::RunSummary;
 use lcrl_learner::Algo;
 
 use super::config::{algo_name, env_slug, ConnectionSpec, Experiment};
+use crate::connection::MadeGraph;
 use crate::output::write_atomic;
 
 /// One (environment, algorithm, connection): a row of the report.
@@ -39,10 +42,10 @@ impl Cell {
 pub enum Task {
     /// `lcrl tune`: the best constant action of an environment.
     Tune { env: String },
-    /// `lcrl graph` at one threshold.
-    Graph { env: String, threshold: f64 },
-    /// `lcrl graph --random K`: the draw every seed of a random@K cell shares.
-    RandomGraph { env: String, edges: usize },
+    /// `lcrl graph`: CS3 at a threshold (with any row rules) or a random
+    /// draw; with the study's [graph] seed, shared by every seed of its
+    /// cells (seed None), or with one run's seed (`+per-seed`).
+    Graph { env: String, made: MadeGraph, seed: Option<u64> },
     /// `lcrl train` of one cell with one seed.
     Train { cell: Cell, seed: u64 },
 }
@@ -53,12 +56,14 @@ pub enum Task {
 pub fn tasks(e: &Experiment) -> Vec<Task> {
     let mut tasks = Vec::new();
     for env in &e.file.environments {
-        for threshold in e.thresholds() {
-            tasks.push(Task::Graph { env: env.clone(), threshold });
-        }
         for connection in &e.connections {
-            if let ConnectionSpec::Random { edges } = connection {
-                tasks.push(Task::RandomGraph { env: env.clone(), edges: *edges });
+            let Some((made, per_seed)) = connection.made_graph() else { continue };
+            let seeds: Vec<Option<u64>> = if per_seed { e.seeds.iter().copied().map(Some).collect() } else { vec![None] };
+            for seed in seeds {
+                let task = Task::Graph { env: env.clone(), made: made.clone(), seed };
+                if !tasks.contains(&task) {
+                    tasks.push(task);
+                }
             }
         }
     }
@@ -92,12 +97,12 @@ pub fn only(e: &Experiment, tasks: Vec<Task>, patterns: &[String]) -> anyhow::Re
         globs.push(pattern);
     }
     let chosen: Vec<Cell> = cells(e).into_iter().filter(|c| globs.iter().any(|g| g.matches(&c.label()))).collect();
+    let needed: Vec<Task> = tasks.iter().filter(|t| matches!(t, Task::Train { cell, .. } if chosen.contains(cell))).filter_map(Task::dependency).collect();
     Ok(tasks
         .into_iter()
         .filter(|t| match t {
             Task::Train { cell, .. } => chosen.contains(cell),
-            Task::Graph { env, threshold } => chosen.iter().any(|c| &c.env == env && c.connection.threshold() == Some(*threshold)),
-            Task::RandomGraph { env, edges } => chosen.iter().any(|c| &c.env == env && c.connection == ConnectionSpec::Random { edges: *edges }),
+            Task::Graph { .. } => needed.contains(t),
             Task::Tune { env } => chosen.iter().any(|c| &c.env == env),
         })
         .collect())
@@ -124,21 +129,29 @@ pub fn best_constant_path(out: &Path, env: &str) -> PathBuf {
     out.join("best_constant").join(env_slug(env)).join("best_constant.json")
 }
 
-pub fn graph_path(out: &Path, env: &str, threshold: f64) -> PathBuf {
-    out.join("graphs").join(env_slug(env)).join(format!("T{threshold}")).join("graph.json")
+/// graphs/ENV/FOLDER/graph.json, or graphs/ENV/FOLDER/seedK/graph.json
+/// for one run's own graph.
+pub fn graph_path(out: &Path, env: &str, made: &MadeGraph, seed: Option<u64>) -> PathBuf {
+    let dir = out.join("graphs").join(env_slug(env)).join(made.folder());
+    match seed {
+        Some(seed) => dir.join(format!("seed{seed}")),
+        None => dir,
+    }
+    .join("graph.json")
 }
 
-pub fn random_graph_path(out: &Path, env: &str, edges: usize) -> PathBuf {
-    out.join("graphs").join(env_slug(env)).join(format!("random@{edges}")).join("graph.json")
+/// The graph task a cell's run with `seed` needs, if the study makes one.
+pub fn graph_task(cell: &Cell, seed: u64) -> Option<Task> {
+    let (made, per_seed) = cell.connection.made_graph()?;
+    Some(Task::Graph { env: cell.env.clone(), made, seed: per_seed.then_some(seed) })
 }
 
-/// The graph file a cell's runs train with, if it has one.
-pub fn cell_graph(out: &Path, cell: &Cell) -> Option<PathBuf> {
-    match &cell.connection {
-        ConnectionSpec::Local { threshold } => Some(graph_path(out, &cell.env, *threshold)),
-        ConnectionSpec::Random { edges } => Some(random_graph_path(out, &cell.env, *edges)),
-        ConnectionSpec::Graph { path } => Some(path.clone()),
-        ConnectionSpec::Global | ConnectionSpec::FullSubnets => None,
+/// The graph file a cell's run with `seed` trains with, if it has one.
+pub fn cell_graph(out: &Path, cell: &Cell, seed: u64) -> Option<PathBuf> {
+    match (&cell.connection, graph_task(cell, seed)) {
+        (ConnectionSpec::Graph { path }, _) => Some(path.clone()),
+        (_, Some(Task::Graph { env, made, seed })) => Some(graph_path(out, &env, &made, seed)),
+        _ => None,
     }
 }
 
@@ -157,8 +170,9 @@ impl Task {
     pub fn id(&self) -> String {
         match self {
             Task::Tune { env } => format!("tune-{}", env_slug(env)),
-            Task::Graph { env, threshold } => format!("graph-{}-T{threshold}", env_slug(env)),
-            Task::RandomGraph { env, edges } => format!("graph-{}-random@{edges}", env_slug(env)),
+            Task::Graph { env, made, seed } => {
+                format!("graph-{}-{}{}", env_slug(env), made.folder(), seed.map(|s| format!("-seed{s}")).unwrap_or_default())
+            }
             Task::Train { cell, seed } => {
                 format!("train-{}-{}-{}-seed{seed}", env_slug(&cell.env), algo_name(cell.algo), cell.connection.slug())
             }
@@ -168,11 +182,7 @@ impl Task {
     /// The task this one needs finished first.
     pub fn dependency(&self) -> Option<Task> {
         match self {
-            Task::Train { cell, .. } => match &cell.connection {
-                ConnectionSpec::Local { threshold } => Some(Task::Graph { env: cell.env.clone(), threshold: *threshold }),
-                ConnectionSpec::Random { edges } => Some(Task::RandomGraph { env: cell.env.clone(), edges: *edges }),
-                _ => None,
-            },
+            Task::Train { cell, seed } => graph_task(cell, *seed),
             _ => None,
         }
     }
@@ -181,8 +191,7 @@ impl Task {
     pub fn is_done(&self, out: &Path) -> bool {
         match self {
             Task::Tune { env } => best_constant_path(out, env).is_file(),
-            Task::Graph { env, threshold } => graph_path(out, env, *threshold).is_file(),
-            Task::RandomGraph { env, edges } => random_graph_path(out, env, *edges).is_file(),
+            Task::Graph { env, made, seed } => graph_path(out, env, made, *seed).is_file(),
             Task::Train { cell, seed } => finished_run(&run_dir(out, cell, *seed)).is_some(),
         }
     }
@@ -191,8 +200,7 @@ impl Task {
     pub fn output_dir(&self, out: &Path) -> PathBuf {
         let file = match self {
             Task::Tune { env } => best_constant_path(out, env),
-            Task::Graph { env, threshold } => graph_path(out, env, *threshold),
-            Task::RandomGraph { env, edges } => random_graph_path(out, env, *edges),
+            Task::Graph { env, made, seed } => graph_path(out, env, made, *seed),
             Task::Train { cell, seed } => run_dir(out, cell, *seed).join("summary.json"),
         };
         file.parent().map(Path::to_path_buf).unwrap_or_else(|| out.to_path_buf())
@@ -214,18 +222,25 @@ impl Task {
                     "--eval-episodes".into(), b.eval_episodes.to_string(),
                 ]
             }
-            Task::Graph { env, threshold } => {
-                let path = graph_path(out, env, *threshold);
-                vec![
-                    "graph".into(), "--env".into(), env.clone(), "--samples".into(), e.file.graph.samples.to_string(),
-                    "--threshold".into(), threshold.to_string(), "--seed".into(), e.file.graph.seed.to_string(),
-                    "--threads".into(), "1".into(), "--out".into(), s(&path), "--plot".into(), s(&path.with_extension("png")),
-                ]
+            Task::Graph { env, made, seed } => {
+                let path = graph_path(out, env, made, *seed);
+                let draw_seed = seed.unwrap_or(e.file.graph.seed).to_string();
+                match made {
+                    MadeGraph::Measured { threshold, rows } => {
+                        let mut args = vec![
+                            "graph".into(), "--env".into(), env.clone(), "--samples".into(), e.file.graph.samples.to_string(),
+                            "--threshold".into(), threshold.to_string(), "--seed".into(), draw_seed,
+                            "--threads".into(), "1".into(), "--out".into(), s(&path), "--plot".into(), s(&path.with_extension("png")),
+                        ];
+                        args.extend(rows.iter().flat_map(|r| ["--row".to_string(), r.text()]));
+                        args
+                    }
+                    MadeGraph::Drawn { edges } => vec![
+                        "graph".into(), "--env".into(), env.clone(), "--random".into(), edges.to_string(),
+                        "--seed".into(), draw_seed, "--out".into(), s(&path),
+                    ],
+                }
             }
-            Task::RandomGraph { env, edges } => vec![
-                "graph".into(), "--env".into(), env.clone(), "--random".into(), edges.to_string(),
-                "--seed".into(), e.file.graph.seed.to_string(), "--out".into(), s(&random_graph_path(out, env, *edges)),
-            ],
             Task::Train { cell, seed } => {
                 let mut args = vec![
                     "train".into(), "--env".into(), cell.env.clone(), "--algo".into(), algo_name(cell.algo).into(),
@@ -233,7 +248,7 @@ impl Task {
                     "--seed".into(), seed.to_string(), "--threads".into(), "1".into(), "--config".into(), s(&config_path(out, &cell.env)),
                     "--run-dir".into(), s(&run_dir(out, cell, *seed)), "--resume".into(),
                 ];
-                if let Some(graph) = cell_graph(out, cell) {
+                if let Some(graph) = cell_graph(out, cell, *seed) {
                     args.extend(["--graph".into(), s(&graph)]);
                 }
                 args
@@ -330,6 +345,45 @@ mod tests {
         assert_eq!(tasks[1].dependency(), Some(tasks[0].clone()));
         assert!(!tasks[2].args(&e, out).contains(&"--graph".to_string()));
         assert_eq!(tasks[2].dependency(), None);
+    }
+
+    /// `+per-seed` gives each run its own graph task (CS3 or draw seeded by
+    /// the run's seed); a row rule reaches `lcrl graph` as `--row`; a graph
+    /// two cells share is made once.
+    #[test]
+    fn per_seed_graphs_and_row_rules_are_their_own_tasks() {
+        let text = "name = \"t\"\nenvironments = [\"peg-group1\"]\nalgorithms = [\"ddpg\"]\n\
+                    connections = [\"local@1\", \"local@1+per-seed\", \"local@1+dz=0.1\", \"random@23+per-seed\"]\n\
+                    seeds = [3, 5]\nepisodes = { ddpg = 7 }\n[best_constant]\nenabled = false\n";
+        let e = Experiment::parse(text).unwrap();
+        let tasks = tasks(&e);
+        let ids: Vec<String> = tasks.iter().map(Task::id).collect();
+        assert_eq!(ids[..6], [
+            "graph-peg-group1-T1",
+            "graph-peg-group1-T1-seed3",
+            "graph-peg-group1-T1-seed5",
+            "graph-peg-group1-T1+dz=0.1",
+            "graph-peg-group1-random@23-seed3",
+            "graph-peg-group1-random@23-seed5",
+        ]);
+        let out = Path::new("/study");
+        let graph_args = |id: &str| tasks[ids.iter().position(|i| i == id).unwrap()].args(&e, out).join(" ");
+        assert!(graph_args("graph-peg-group1-T1-seed5").contains("--threshold 1 --seed 5 "), "{}", graph_args("graph-peg-group1-T1-seed5"));
+        assert!(graph_args("graph-peg-group1-T1").contains("--seed 0 "));
+        assert!(graph_args("graph-peg-group1-T1+dz=0.1").ends_with("--row dz=0.1"));
+        assert!(graph_args("graph-peg-group1-random@23-seed3").contains("--random 23 --seed 3 --out /study/graphs/peg-group1/random@23/seed3/graph.json"));
+        let train = |id: &str| tasks.iter().find(|t| t.id() == id).unwrap();
+        let run = train("train-peg-group1-ddpg-local@1+per-seed-seed5");
+        assert_eq!(run.dependency().map(|d| d.id()).as_deref(), Some("graph-peg-group1-T1-seed5"));
+        assert!(run.args(&e, out).join(" ").contains("--graph /study/graphs/peg-group1/T1/seed5/graph.json"));
+        let shared = train("train-peg-group1-ddpg-local@1+dz=0.1-seed5");
+        assert!(shared.args(&e, out).join(" ").contains("--graph /study/graphs/peg-group1/T1+dz=0.1/graph.json"));
+        // --only takes the per-seed graphs of the chosen cell, no others.
+        let chosen: Vec<String> = only(&e, tasks.clone(), &["*/local@1+per-seed".to_string()]).unwrap().iter().map(Task::id).collect();
+        assert_eq!(chosen, ["graph-peg-group1-T1-seed3", "graph-peg-group1-T1-seed5", "train-peg-group1-ddpg-local@1+per-seed-seed3", "train-peg-group1-ddpg-local@1+per-seed-seed5"]);
+        // A row rule for an action the environment lacks fails at load.
+        let bad = Experiment::parse(&text.replace("dz=0.1", "dq=0.1")).unwrap_err();
+        assert!(format!("{bad:#}").contains("has no action dq"), "{bad:#}");
     }
 
     #[test]

@@ -7,13 +7,13 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use lcrl_learner::run_files::EpisodeRow;
-use lcrl_learner::summary::RunSummary;
+use lcrl_learner::run::files::EpisodeRow;
+use lcrl_learner::run::summary::RunSummary;
 use serde::Serialize;
 
 use super::bars::BestConstant;
 use super::config::{algo_name, Experiment};
-use super::plan::{best_constant_path, cells, finished_run, graph_path, run_dir, Cell};
+use super::plan::{best_constant_path, cell_graph, cells, finished_run, run_dir, Cell};
 use super::safety::{self, CellSafety, RunSafety};
 use super::stats::{censored_estimate, episodes_to_threshold, format_p, holm, mean_ci, reading_adjusted, welch, Estimate, ThresholdEstimate, AVERAGE_WINDOW};
 use crate::output::write_atomic;
@@ -63,8 +63,12 @@ pub fn gather(e: &Experiment, out: &Path) -> anyhow::Result<Study> {
     let mut study = Study { experiment: e.clone(), cells: Vec::new(), best_constant: BTreeMap::new(), best_policy: BTreeMap::new(), missing: Vec::new() };
     for cell in cells(e) {
         // Measured graphs only: a given one cost no rollouts.
+        // (per run, the mean over its seeds' own graphs with +per-seed)
         let graph_seconds = match cell.connection.threshold() {
-            Some(t) => graph_seconds(&graph_path(out, &cell.env, t))?,
+            Some(_) => {
+                let times = e.seeds.iter().filter_map(|&seed| cell_graph(out, &cell, seed)).map(|p| graph_seconds(&p)).collect::<anyhow::Result<Vec<f64>>>()?;
+                times.iter().sum::<f64>() / times.len().max(1) as f64
+            }
             None => 0.0,
         };
         let mut runs = Vec::new();
