@@ -6,7 +6,7 @@
 //
 // With a CUDA build of libtorch whose CUDA runtime headers lie beside it
 // (PyPI's wheels: site-packages/nvidia/*/include), it also compiles
-// cuda/graph_shim.cpp into a small shared library that src/cuda_graph.rs
+// cuda/graph_shim.cpp into a small shared library that src/device/cuda_graph.rs
 // embeds and loads at run time (CUDA graphs; tch binds none). Without
 // them, or if the compiler fails, the learner builds without graphs and
 // says so (a cargo warning here, `lcrl doctor` there).
@@ -20,7 +20,7 @@ fn main() {
     let Ok(dir) = std::env::var("DEP_TCH_LIBTORCH_LIB") else { return };
     let dir = std::fs::canonicalize(&dir).map(|p| p.display().to_string()).unwrap_or(dir);
     println!("cargo:rustc-link-arg=-Wl,-rpath,{dir}");
-    // Where src/device.rs finds libtorch_cuda.so to load at run time.
+    // Where src/device/torch.rs finds libtorch_cuda.so to load at run time.
     println!("cargo:rustc-env=LCRL_LIBTORCH_LIB={dir}");
     match build_graph_shim(Path::new(&dir)) {
         Ok(Some(shim)) => {

@@ -363,7 +363,7 @@ impl Preset {
     /// the job's actors (one core each): 0 ("auto") becomes the cores left
     /// over, so learner and actors do not fight for cores.
     pub fn pin_learner_threads(&mut self) {
-        self.train.run.threads = lcrl_learner::device::resolve_threads(self.train.run.threads, self.job.actors);
+        self.train.run.threads = lcrl_learner::device::torch::resolve_threads(self.train.run.threads, self.job.actors);
     }
 }
 
@@ -503,7 +503,7 @@ mod tests {
         let mut p = preset("");
         p.set_compute(&LearnerCompute { device: Some("cpu".into()), threads: Some(0) }).unwrap();
         p.pin_learner_threads();
-        assert_eq!(p.train.run.threads, lcrl_learner::device::available_cores().saturating_sub(3).clamp(1, lcrl_learner::device::AUTO_MAX_THREADS));
+        assert_eq!(p.train.run.threads, lcrl_learner::device::torch::available_cores().saturating_sub(3).clamp(1, lcrl_learner::device::torch::AUTO_MAX_THREADS));
         let err = p.set_compute(&LearnerCompute { device: None, threads: Some(1 << 20) }).unwrap_err().to_string();
         assert!(err.contains("run.threads"), "{err}");
     }

@@ -1,13 +1,13 @@
 //! The end of `lcrl run`: summary.json of the run, the learner's own
 //! (which evaluated the handed-over policy as `lcrl train` does, beside the
-//! references; lcrl_learner::summary) with the run's actors, transport and
+//! references; lcrl_learner::run::summary) with the run's actors, transport and
 //! wall time added. One type and one evaluation for every loop.
 
 use std::path::Path;
 
 use anyhow::Context;
-use lcrl_learner::policy::Policy;
-use lcrl_learner::summary::{evaluate_hand_over, read_summary, write_summary, EvaluationPlan, PolicyLag, RunSummary, ServiceFigures};
+use lcrl_learner::policy::trained::Policy;
+use lcrl_learner::run::summary::{evaluate_hand_over, read_summary, write_summary, EvaluationPlan, PolicyLag, RunSummary, ServiceFigures};
 use lcrl_learner::Connection;
 use lcrl_proto::v1::LearnerStatus;
 
@@ -64,8 +64,8 @@ fn service_figures(status: &LearnerStatus) -> ServiceFigures {
 /// here, its counters as the learner last reported them.
 fn interrupted_run_summary(preset: &Preset, learner_dir: &Path, status: &LearnerStatus) -> anyhow::Result<RunSummary> {
     let job = &preset.job;
-    let snapshot = lcrl_learner::policy::policy_dir(learner_dir)
-        .and_then(|dir| lcrl_learner::snapshot::read_snapshot(&dir))
+    let snapshot = lcrl_learner::policy::trained::policy_dir(learner_dir)
+        .and_then(|dir| lcrl_learner::policy::snapshot::read_snapshot(&dir))
         .with_context(|| format!("loading the policy from {}", learner_dir.display()))?;
     let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
     let env = lcrl_sim::make_env(&job.env)?;
@@ -86,7 +86,7 @@ fn interrupted_run_summary(preset: &Preset, learner_dir: &Path, status: &Learner
         episodes: status.episodes as usize,
         final_return: status.recent_return,
         evaluation,
-        selection: lcrl_learner::selection::read_record(&lcrl_learner::selection::selected_dir(learner_dir))?,
+        selection: lcrl_learner::run::selection::read_record(&lcrl_learner::run::selection::selected_dir(learner_dir))?,
         graph_seconds: 0.0,
         optimization_seconds: 0.0,
         total_seconds: 0.0,

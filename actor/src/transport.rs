@@ -8,7 +8,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::bail;
-use lcrl_learner::policy::Policy;
+use lcrl_learner::policy::trained::Policy;
 use lcrl_proto::limits::Backoff;
 use lcrl_proto::security::{AuthChannel, ClientSecurity};
 use lcrl_proto::v1::learner_client::LearnerClient;

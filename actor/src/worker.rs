@@ -3,9 +3,9 @@
 //! (proto/lcrl.proto). No network here: [`crate::transport`] moves the
 //! batches and the policies, and tests drive a [`Rollout`] directly.
 
-use lcrl_learner::action::ActionMap;
-use lcrl_learner::exploration;
-use lcrl_learner::policy::Policy;
+use lcrl_learner::policy::action::ActionMap;
+use lcrl_learner::algo::exploration;
+use lcrl_learner::policy::trained::Policy;
 use lcrl_proto::v1::{EpisodeSummary, PolicySnapshot, Transition, TransitionBatch};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -207,7 +207,7 @@ impl Rollout {
         let mut actions = Vec::with_capacity(self.envs.len());
         let mut sampled = Vec::with_capacity(self.envs.len());
         for (k, env) in self.envs.iter().enumerate() {
-            let obs = lcrl_learner::agent::observe(env.as_ref(), &self.states[k]);
+            let obs = lcrl_learner::algo::agent::observe(env.as_ref(), &self.states[k]);
             // u is sampled as `lcrl train`'s agents sample it (one function
             // for both loops), and sent as sampled: the learner stores u.
             let (u, log_prob) = if self.explore.uniform && !self.own_distribution {
@@ -314,10 +314,10 @@ mod tests {
         let (m, n) = (made.spec().state_dim(), made.spec().action_dim());
         let cfg = TrainConfig::for_env(env).0;
         let mask = mask.unwrap_or_else(|| vec![vec![1u8; m]; n]);
-        let agent = lcrl_learner::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, m, n).unwrap();
-        let shape = lcrl_learner::snapshot::ActorShape { env: env.into(), algo, connection: Connection::Local, state_dim: m, action_dim: n, mask };
-        let architecture = lcrl_learner::snapshot::Architecture { shape, network: cfg.network.clone(), base, residual_scale };
-        let snapshot = lcrl_learner::snapshot::snapshot(agent.as_ref(), &architecture, version).unwrap();
+        let agent = lcrl_learner::algo::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, m, n).unwrap();
+        let shape = lcrl_learner::policy::snapshot::ActorShape { env: env.into(), algo, connection: Connection::Local, state_dim: m, action_dim: n, mask };
+        let architecture = lcrl_learner::policy::snapshot::Architecture { shape, network: cfg.network.clone(), base, residual_scale };
+        let snapshot = lcrl_learner::policy::snapshot::snapshot(agent.as_ref(), &architecture, version).unwrap();
         Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).unwrap()
     }
 
@@ -523,8 +523,8 @@ mod tests {
     #[test]
     fn an_actors_episode_is_stored_as_lcrl_train_stores_it() {
         use lcrl_learner::service::ingest::{Ingest, Verdict};
-        use lcrl_learner::agent::observe;
-        use lcrl_learner::trainer::step_env;
+        use lcrl_learner::algo::agent::observe;
+        use lcrl_learner::run::trainer::step_env;
         let name = "peg-group1";
         for algo in [Algo::Ddpg, Algo::Ppo] {
             let mut env = lcrl_sim::make_env(name).unwrap();

@@ -5,7 +5,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use lcrl_learner::policy::Policy;
+use lcrl_learner::policy::trained::Policy;
 
 fuzz_target!(|data: &[u8]| {
     if data.len() < 2 {

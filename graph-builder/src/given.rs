@@ -64,7 +64,7 @@ pub fn parse_for(text: &str, path: &Path, spec: &EnvSpec) -> Result<GraphReport,
 /// A graph CS3 measured (`lcrl graph --out`, `lcrl-learner --graph`): the
 /// checks of [`load_for`] but the edge per action. CS3 may find an action
 /// that moves no state above the cut; its subnetwork then sees no state and
-/// learns a constant, which the networks support (learner/src/nets.rs).
+/// learns a constant, which the networks support (learner/src/algo/nets.rs).
 pub fn load_measured_for(path: &Path, spec: &EnvSpec) -> Result<GraphReport, GraphError> {
     let text = std::fs::read_to_string(path).map_err(|source| GraphError::Io { path: path.into(), source })?;
     parse_measured_for(&text, path, spec)

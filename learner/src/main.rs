@@ -16,11 +16,11 @@ use lcrl_proto::process::shutdown_signal;
 use lcrl_learner::config::{Algo, Connection, TrainConfig};
 use lcrl_learner::service::ingest::Ingest;
 use lcrl_learner::service::runtime::{Schedule, TrainingLoop};
-use lcrl_learner::snapshot::snapshot;
+use lcrl_learner::policy::snapshot::snapshot;
 use lcrl_learner::service::validator::Validator;
 use lcrl_learner::service::shared::Shared;
 use lcrl_learner::service::server::{LearnerService, PolicyService};
-use lcrl_learner::run_start::{prepare, GraphSource, Prepared, RunStart};
+use lcrl_learner::run::start::{prepare, GraphSource, Prepared, RunStart};
 use lcrl_proto::security::{ClientSecurity, ServerSecurity, ServerSecurityArgs};
 use lcrl_proto::v1::graph_client::GraphClient;
 use tonic::service::interceptor::InterceptedService;
@@ -202,7 +202,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
     // The graph builder is asked only for a new run: a resumed one has its
     // mask in the checkpoint.
-    let resuming = lcrl_learner::checkpoint::latest_checkpoint(&args.run_dir).is_some();
+    let resuming = lcrl_learner::policy::checkpoint::latest_checkpoint(&args.run_dir).is_some();
     let graph = match (args.connection, &args.graph, &args.graph_builder) {
         (Connection::Local, None, Some(url)) if !resuming => GraphSource::Mask(fetch_graph(url, &graph_builder_security, Duration::from_secs(args.graph_timeout), n, m).await?),
         (_, Some(path), _) => GraphSource::File(path),
@@ -270,12 +270,12 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 None => config.ddpg.samples_per_insert(),
                 Some(text) => text.parse::<f64>().map_err(|_| anyhow::anyhow!("--replay-ratio must be a number of samples per insert or `unlimited`, got {text}"))?,
             };
-            let fresh = lcrl_learner::rate_limiter::RateLimiter::new(spi, agent.min_size_to_sample() as u64, spi * args.replay_slack as f64).map_err(|e| anyhow::anyhow!("--replay-ratio: {e}"))?;
+            let fresh = lcrl_learner::algo::rate_limiter::RateLimiter::new(spi, agent.min_size_to_sample() as u64, spi * args.replay_slack as f64).map_err(|e| anyhow::anyhow!("--replay-ratio: {e}"))?;
             fresh.check_steps(lcrl_learner::service::shm::MAX_TRANSITIONS as u64, agent.samples_per_update() as u64).map_err(|e| anyhow::anyhow!("{e}; raise --replay-slack"))?;
             // A resumed run keeps its counters (no burst of updates on a
             // buffer that the checkpoint restored).
             match checkpoint.as_ref().and_then(|_| meta.rate_limiter.clone()) {
-                Some(saved) => Some(lcrl_learner::rate_limiter::RateLimiter { samples_per_insert: spi, error_buffer: fresh.error_buffer, ..saved }),
+                Some(saved) => Some(lcrl_learner::algo::rate_limiter::RateLimiter { samples_per_insert: spi, error_buffer: fresh.error_buffer, ..saved }),
                 None => Some(fresh),
             }
         }
@@ -289,7 +289,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let (commands, inbox) = mpsc::channel(args.queued_batches as usize);
     // The run's policy is chosen on held-out starts as `lcrl train` chooses
     // it (run.validation_episodes, run.validate_every), on its own thread.
-    let validator = match lcrl_learner::selection::Selection::new(&config.run, &args.run_dir, checkpoint.is_some())? {
+    let validator = match lcrl_learner::run::selection::Selection::new(&config.run, &args.run_dir, checkpoint.is_some())? {
         Some(selection) => Some(Validator::start(selection, lcrl_sim::make_env(&args.env)?, &args.run_dir, config.run.validate_every)?),
         None => None,
     };

@@ -48,7 +48,7 @@ pub fn run_evaluation(run_seed: u64, k: usize) -> u64 {
 
 /// The seed of confirmation start `k`: the starts on which a run's best
 /// few validated policies are scored again before one is handed over
-/// (learner/src/selection.rs).
+/// (learner/src/run/selection.rs).
 pub fn confirmation(run_seed: u64, k: usize) -> u64 {
     in_range(CONFIRMATION_BASE, run_seed, k)
 }

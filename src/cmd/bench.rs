@@ -113,10 +113,10 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
 /// at the peg task's size with its CS3 graph, for each thread count on
 /// `device`; then the same DDPG update in PyTorch eager (global actor).
 fn bench_learner(updates: usize, device: &str, threads: &[usize], python: Option<&str>) -> anyhow::Result<()> {
-    if threads.is_empty() || threads.iter().any(|&t| t == 0 || t > lcrl_learner::device::MAX_THREADS) {
-        anyhow::bail!("--threads takes counts from 1 to {}", lcrl_learner::device::MAX_THREADS);
+    if threads.is_empty() || threads.iter().any(|&t| t == 0 || t > lcrl_learner::device::torch::MAX_THREADS) {
+        anyhow::bail!("--threads takes counts from 1 to {}", lcrl_learner::device::torch::MAX_THREADS);
     }
-    let torch_device = lcrl_learner::device::resolve_device(device)?;
+    let torch_device = lcrl_learner::device::torch::resolve_device(device)?;
     let env = lcrl_sim::make_env("peg-group1")?;
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
     let options = GraphOptions::paper(32, 0, 0);
@@ -129,7 +129,7 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], python: Option
         "peg-group1 ({m} states, {n} actions, {edges} of {} edges in G), DDPG batch {}, {updates} updates per setting, on {device} ({} cores here)",
         m * n,
         cfg.ddpg.batch_size,
-        lcrl_learner::device::available_cores()
+        lcrl_learner::device::torch::available_cores()
     );
     println!("{:>7} {:<16} {:>13} {:>16} {:>12} {:>20}", "threads", "actor", "actor params", "DDPG update ms", "updates/s", "PPO update (10 ep) s");
     let mut globals: Vec<(usize, f64)> = Vec::new();
@@ -172,8 +172,8 @@ fn time_updates(
     updates: usize,
     device: tch::Device,
 ) -> anyhow::Result<(f64, f64, usize)> {
-    use lcrl_learner::agent::Transition;
-    use lcrl_learner::algorithms::make_agent;
+    use lcrl_learner::algo::agent::Transition;
+    use lcrl_learner::algo::algorithms::make_agent;
     use lcrl_learner::Algo;
     use rand::{Rng, SeedableRng};
 

@@ -9,7 +9,7 @@ use std::process::Command;
 use std::time::Instant;
 
 use anyhow::Context;
-use lcrl_learner::policy::evaluate_snapshot;
+use lcrl_learner::policy::trained::evaluate_snapshot;
 use lcrl_sim::evaluate::{evaluate, evaluate_parallel};
 use lcrl_sim::peg::{PegConfig, PegEnv};
 use lcrl_sim::tune::TuneOptions;
@@ -68,9 +68,9 @@ fn untrained_policy(env: &PegEnv) -> anyhow::Result<lcrl_proto::v1::PolicySnapsh
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
     let (cfg, _) = lcrl_learner::TrainConfig::for_env("peg-group1");
     let mask = vec![vec![1; m]; n];
-    let agent = lcrl_learner::algorithms::make_agent(Algo::Ddpg, Connection::Global, &cfg, &mask, m, n)?;
-    let meta = lcrl_learner::checkpoint::CheckpointMeta::start("peg-group1", Algo::Ddpg, Connection::Global, m, n, mask, cfg);
-    Ok(lcrl_learner::snapshot::snapshot(agent.as_ref(), &meta.architecture(), 0)?)
+    let agent = lcrl_learner::algo::algorithms::make_agent(Algo::Ddpg, Connection::Global, &cfg, &mask, m, n)?;
+    let meta = lcrl_learner::policy::checkpoint::CheckpointMeta::start("peg-group1", Algo::Ddpg, Connection::Global, m, n, mask, cfg);
+    Ok(lcrl_learner::policy::snapshot::snapshot(agent.as_ref(), &meta.architecture(), 0)?)
 }
 
 /// `lcrl bench tune`: the best-constant search on 1 thread against every

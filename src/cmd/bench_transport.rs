@@ -198,7 +198,7 @@ async fn act_latency(dir: &std::path::Path, link: &Link) -> anyhow::Result<f64> 
     // The same work without the network: what the handler itself costs.
     let mut learner_client = LearnerClient::new(link.client.connect(&url).await?).max_decoding_message_size(16 << 20);
     let snapshot = learner_client.get_policy(lcrl_proto::v1::GetPolicyRequest {}).await?.into_inner();
-    let policy = lcrl_learner::policy::Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
+    let policy = lcrl_learner::policy::trained::Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?;
     let env = lcrl_sim::make_env("peg-group1")?;
     let raw: Vec<f64> = state.iter().map(|&v| f64::from(v)).collect();
     let started = Instant::now();
@@ -218,7 +218,7 @@ async fn end_to_end(dir: &std::path::Path, seconds: f64) -> anyhow::Result<()> {
         let (_learner, url) = learner(&dir.join("alone"), env_name, &[], &Link::plain())?;
         let mut client = LearnerClient::connect(url).await?.max_decoding_message_size(16 << 20);
         let snapshot = client.get_policy(lcrl_proto::v1::GetPolicyRequest {}).await?.into_inner();
-        lcrl_learner::policy::Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?
+        lcrl_learner::policy::trained::Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version)?
     };
     let alone = tokio::task::block_in_place(|| -> anyhow::Result<f64> {
         tch::set_num_threads(1);

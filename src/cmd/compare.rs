@@ -5,8 +5,8 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use lcrl_learner::run_files::EpisodeRow;
-use lcrl_learner::summary::RunSummary;
+use lcrl_learner::run::files::EpisodeRow;
+use lcrl_learner::run::summary::RunSummary;
 use serde::Deserialize;
 
 use lcrl::plots::{line_panels, Panel};

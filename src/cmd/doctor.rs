@@ -5,11 +5,11 @@ use anyhow::ensure;
 /// Multiplies a small tensor and checks the answer, then prints versions.
 pub fn run() -> anyhow::Result<()> {
     // Before any CUDA query: libtorch registers its CUDA backend only once
-    // libtorch_cuda.so is loaded (learner/src/device.rs says why).
-    let cuda_library = lcrl_learner::device::load_cuda();
+    // libtorch_cuda.so is loaded (learner/src/device/torch.rs says why).
+    let cuda_library = lcrl_learner::device::torch::load_cuda();
     let sum = tensor_smoke_check()?;
     println!("libtorch: ok (2 · [1, 2, 3] sums to {sum})");
-    println!("cores: {}", lcrl_learner::device::available_cores());
+    println!("cores: {}", lcrl_learner::device::torch::available_cores());
     println!("torch threads: {} (libtorch's own default; run.threads = 0 uses the cores, or what the actors leave over, at most 4)", tch::get_num_threads());
     println!("libtorch_cuda: {cuda_library}");
     let available = tch::Cuda::is_available();
@@ -23,8 +23,8 @@ pub fn run() -> anyhow::Result<()> {
         println!("cuda: ok (2 · [1, 2, 3] sums to {sum} on cuda:0)");
     }
     // Whether a GPU learner's DDPG updates can run as CUDA graphs
-    // (`run.cuda_graphs`, learner/src/cuda_graph.rs).
-    match lcrl_learner::cuda_graph::availability() {
+    // (`run.cuda_graphs`, learner/src/device/cuda_graph.rs).
+    match lcrl_learner::device::cuda_graph::availability() {
         Ok(()) => println!("cuda graphs: available"),
         Err(why) => println!("cuda graphs: unavailable ({why})"),
     }

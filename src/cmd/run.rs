@@ -66,7 +66,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     // A missing or malformed headroom reference fails before training, not after.
     preset.headroom()?;
     // A learner that cannot have its device fails here, before anything starts.
-    lcrl_learner::device::resolve_device(&preset.train.run.device)?;
+    lcrl_learner::device::torch::resolve_device(&preset.train.run.device)?;
     preset.pin_learner_threads();
     if args.check {
         let job = &preset.job;
@@ -307,7 +307,7 @@ impl StopSignals {
 
 /// The trained policy beside every reference controller, on the same
 /// evaluation starts (peg tasks: a = 0, the best constant, the headroom).
-fn reference_table(job: &lcrl::preset::Job, evaluation: &lcrl_learner::summary::Evaluation) -> String {
+fn reference_table(job: &lcrl::preset::Job, evaluation: &lcrl_learner::run::summary::Evaluation) -> String {
     let pct = |r: Option<f64>| r.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
     let force = |f: Option<f64>| f.map_or("n/a".into(), |f| format!("{f:.1} N"));
     let trained = format!("trained: {:?} {:?}", job.algo, job.connection).to_lowercase();
@@ -324,7 +324,7 @@ fn reference_table(job: &lcrl::preset::Job, evaluation: &lcrl_learner::summary::
     table
 }
 
-fn plot_curve(metrics: &Path, out: &Path, env: &str, evaluation: &lcrl_learner::summary::Evaluation) -> anyhow::Result<()> {
+fn plot_curve(metrics: &Path, out: &Path, env: &str, evaluation: &lcrl_learner::run::summary::Evaluation) -> anyhow::Result<()> {
     let Ok(mut reader) = csv::Reader::from_path(metrics) else { return Ok(()) };
     let returns: Vec<f64> = reader.records().filter_map(|r| r.ok()?.get(1)?.parse().ok()).collect();
     if returns.is_empty() {

@@ -112,7 +112,7 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
     }
     let mut preset = Preset::load(&args.config)?;
     preset.set_compute(&args.compute)?;
-    lcrl_learner::device::resolve_device(&preset.train.run.device)?;
+    lcrl_learner::device::torch::resolve_device(&preset.train.run.device)?;
     if args.replay_ratio.is_some() {
         preset.job.replay_ratio = args.replay_ratio.clone();
     }
@@ -193,7 +193,7 @@ fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<S
     config.run.checkpoint_every = usize::MAX / 2;
     let dir = args.out.join("baseline");
     let _ = fs::remove_dir_all(&dir);
-    let request = lcrl_learner::trainer::TrainRequest {
+    let request = lcrl_learner::run::trainer::TrainRequest {
         env: preset.job.env.clone(),
         algo: preset.job.algo,
         connection: preset.job.connection,
@@ -204,7 +204,7 @@ fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<S
         resume: false,
         stop_after: None,
     };
-    let outcome = lcrl_learner::trainer::train(&request, &mut |_| {})?;
+    let outcome = lcrl_learner::run::trainer::train(&request, &mut |_| {})?;
     let after_warmup = &outcome.rows[warm.min(outcome.rows.len().saturating_sub(1))..];
     let wall: f64 = after_warmup.iter().filter_map(|r| r.wall_s).sum();
     let steps: usize = after_warmup.iter().map(|r| r.length).sum();
@@ -217,7 +217,7 @@ fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<S
         processes: 1,
         transport: "-".into(),
         learner_device: preset.train.run.device.clone(),
-        learner_threads: lcrl_learner::device::resolve_threads(preset.train.run.threads, 0),
+        learner_threads: lcrl_learner::device::torch::resolve_threads(preset.train.run.threads, 0),
         seconds: wall,
         env_steps_per_s: rate,
         // Algorithm 2 in one process: one update per step once warm, or

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use indicatif::{ProgressBar, ProgressStyle};
-use lcrl_learner::policy::evaluate_snapshot;
+use lcrl_learner::policy::trained::evaluate_snapshot;
 use lcrl_sim::evaluate::{evaluate_parallel_with, EpisodeRecord, Summary};
 use lcrl_sim::Env;
 
@@ -57,12 +57,12 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
     if args.episodes == 0 {
         bail!("--episodes must be at least 1");
     }
-    let policy = args.checkpoint.as_deref().map(lcrl_learner::policy::Policy::load).transpose()?;
+    let policy = args.checkpoint.as_deref().map(lcrl_learner::policy::trained::Policy::load).transpose()?;
     // What every evaluation thread builds its own copy of the network from.
     let snapshot = args
         .checkpoint
         .as_deref()
-        .map(|dir| lcrl_learner::policy::policy_dir(dir).and_then(|dir| lcrl_learner::snapshot::read_snapshot(&dir)))
+        .map(|dir| lcrl_learner::policy::trained::policy_dir(dir).and_then(|dir| lcrl_learner::policy::snapshot::read_snapshot(&dir)))
         .transpose()?;
     let env_name = match (&args.env, &policy) {
         (Some(name), _) => name.clone(),

@@ -92,7 +92,7 @@ pub fn run(args: &TuneArgs) -> anyhow::Result<()> {
     if let Some(family) = family {
         let n = env.spec().action_dim();
         let start = match &args.start {
-            Some(path) => lcrl_learner::action::read_best_constant(path)?,
+            Some(path) => lcrl_learner::policy::action::read_best_constant(path)?,
             None => lcrl_sim::peg::measured_best_constant(&env.spec().name).map_or(vec![0.0; n], |a| a.to_vec()),
         };
         let report = tune_policy(env.as_ref(), family, &start, &opts, &|best| {
@@ -102,7 +102,7 @@ pub fn run(args: &TuneArgs) -> anyhow::Result<()> {
         bar.finish_and_clear();
         let mut report = report?;
         // On a linear system the optimum is known: LQR on the same starts.
-        report.lqr_return = lcrl_sim::lti::LtiEnv::of(env.as_ref()).and_then(|lti| lcrl_learner::lqr::lqr_return(lti, report.eval_episodes, report.eval_seed));
+        report.lqr_return = lcrl_sim::lti::LtiEnv::of(env.as_ref()).and_then(|lti| lcrl_learner::algo::lqr::lqr_return(lti, report.eval_episodes, report.eval_seed));
         let path = args.out.join("best_policy.json");
         lcrl::output::write_atomic(&path, &(serde_json::to_string_pretty(&report)? + "\n"))?;
         println!("best {:?} policy of {} ({} candidates, {:.1} s):", family, report.env, report.evaluations, report.elapsed_s);

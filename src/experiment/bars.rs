@@ -6,7 +6,7 @@
 use std::path::Path;
 
 use anyhow::Context;
-use lcrl_learner::summary::RunSummary;
+use lcrl_learner::run::summary::RunSummary;
 use serde::Serialize;
 
 /// The figures of best_constant.json a report shows.

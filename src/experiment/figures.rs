@@ -7,7 +7,7 @@
 use std::path::Path;
 
 use anyhow::Context;
-use lcrl_learner::policy::Policy;
+use lcrl_learner::policy::trained::Policy;
 use lcrl_sim::peg::{PegConfig, PegEnv};
 use lcrl_sim::Env;
 

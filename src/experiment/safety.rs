@@ -11,7 +11,7 @@
 
 use std::path::Path;
 
-use lcrl_learner::run_files::EpisodeRow;
+use lcrl_learner::run::files::EpisodeRow;
 use serde::Serialize;
 
 use super::bars::BestConstant;
@@ -151,11 +151,11 @@ mod tests {
                 row(k, if dip { -8.0 } else { -3.0 }, !(dip && k % 5 == 0), if k == 15 { 40.0 } else { 12.0 })
             })
             .collect();
-        let mut log = lcrl_learner::run_files::MetricsLog::create(&dir.path().join("metrics.csv"), &[]).unwrap();
+        let mut log = lcrl_learner::run::files::MetricsLog::create(&dir.path().join("metrics.csv"), &[]).unwrap();
         for r in &rows {
             log.push(r).unwrap();
         }
-        let read = lcrl_learner::run_files::read_rows(&dir.path().join("metrics.csv"), usize::MAX).unwrap();
+        let read = lcrl_learner::run::files::read_rows(&dir.path().join("metrics.csv"), usize::MAX).unwrap();
         let safety = of_rows(&read).unwrap();
         assert_eq!(safety, RunSafety { failed_episodes: 2, episodes: 30, worst_mean_return: -8.0, worst_window_end: 20, peak_force_n: Some(40.0) });
 

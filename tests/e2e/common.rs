@@ -62,7 +62,7 @@ pub fn seq<'a>(v: &'a serde_yaml::Value, key: &str) -> Vec<&'a serde_yaml::Value
 pub fn assert_peg_rows_measured(metrics: &Path) -> usize {
     let mut rows = csv::Reader::from_path(metrics).unwrap();
     let header: Vec<String> = rows.headers().unwrap().iter().map(str::to_string).collect();
-    assert_eq!(header, lcrl_learner::run_files::METRICS_COLUMNS.map(String::from), "{}", metrics.display());
+    assert_eq!(header, lcrl_learner::run::files::METRICS_COLUMNS.map(String::from), "{}", metrics.display());
     let mut count = 0;
     for row in rows.records() {
         let row = row.unwrap();

@@ -170,8 +170,8 @@ async fn actors_train_the_learner_which_serves_the_policy() {
     let mut learner_proc = learner_proc;
     let code = learner_proc.0.wait().unwrap();
     assert!(code.success(), "learner exit {code:?}");
-    let newest = lcrl_learner::checkpoint::latest_checkpoint(&dir.path().join("run")).expect("a checkpoint on SIGTERM");
-    assert!(lcrl_learner::checkpoint::read_meta(&newest).unwrap().episode >= episodes as usize);
+    let newest = lcrl_learner::policy::checkpoint::latest_checkpoint(&dir.path().join("run")).expect("a checkpoint on SIGTERM");
+    assert!(lcrl_learner::policy::checkpoint::read_meta(&newest).unwrap().episode >= episodes as usize);
 }
 
 #[tokio::test]
@@ -228,7 +228,7 @@ async fn a_killed_learner_resumes_and_actors_reconnect() {
     // Wait for a checkpoint on disk that holds that progress.
     let deadline = Instant::now() + Duration::from_secs(30);
     let saved = loop {
-        let meta = lcrl_learner::checkpoint::latest_checkpoint(&run).and_then(|dir| lcrl_learner::checkpoint::read_meta(&dir).ok());
+        let meta = lcrl_learner::policy::checkpoint::latest_checkpoint(&run).and_then(|dir| lcrl_learner::policy::checkpoint::read_meta(&dir).ok());
         match meta {
             Some(meta) if meta.episode >= 15 && meta.policy_version >= 1 => break meta,
             _ => {

@@ -145,7 +145,7 @@ async fn a_restarted_learner_keeps_the_replay_ratio() {
     assert_eq!(before.replay_ratio_target, 32.0);
     let deadline = Instant::now() + Duration::from_secs(30);
     let saved = loop {
-        let meta = lcrl_learner::checkpoint::latest_checkpoint(&run).and_then(|d| lcrl_learner::checkpoint::read_meta(&d).ok());
+        let meta = lcrl_learner::policy::checkpoint::latest_checkpoint(&run).and_then(|d| lcrl_learner::policy::checkpoint::read_meta(&d).ok());
         match meta.and_then(|m| m.rate_limiter) {
             Some(limiter) if limiter.samples > 0 => break limiter,
             _ => {
@@ -235,7 +235,7 @@ async fn a_learner_holding_actors_back_stops_promptly() {
     let mut actor = actor;
     assert!(actor.0.wait().unwrap().success());
     assert!(stopped.elapsed() < Duration::from_secs(8), "the actor took {:?}", stopped.elapsed());
-    assert!(lcrl_learner::checkpoint::latest_checkpoint(&run).is_some(), "a final checkpoint");
+    assert!(lcrl_learner::policy::checkpoint::latest_checkpoint(&run).is_some(), "a final checkpoint");
 }
 
 /// The distributed learner chooses its policy on held-out starts as
@@ -248,7 +248,7 @@ async fn a_learner_holding_actors_back_stops_promptly() {
 /// selected policy and `GetStatus` says so.
 #[tokio::test]
 async fn the_learner_selects_resumes_its_selection_and_serves_the_choice() {
-    use lcrl_learner::selection::{read_record, selected_dir};
+    use lcrl_learner::run::selection::{read_record, selected_dir};
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
     let port = free_port();
@@ -262,7 +262,7 @@ async fn the_learner_selects_resumes_its_selection_and_serves_the_choice() {
     let deadline = Instant::now() + Duration::from_secs(120);
     let before = loop {
         if let Ok(Some(record)) = read_record(&selected_dir(&run)) {
-            if record.history.len() >= 3 && lcrl_learner::checkpoint::latest_checkpoint(&run).is_some() {
+            if record.history.len() >= 3 && lcrl_learner::policy::checkpoint::latest_checkpoint(&run).is_some() {
                 break record;
             }
         }
@@ -297,14 +297,14 @@ async fn the_learner_selects_resumes_its_selection_and_serves_the_choice() {
     let mut env = lcrl_sim::make_env("lti-paper").unwrap();
     let probe = env.fresh();
     for c in &confirmation.candidates {
-        let candidate = lcrl_learner::policy::Policy::load(&run.join(format!("candidates/episode-{:07}", c.episode))).unwrap();
+        let candidate = lcrl_learner::policy::trained::Policy::load(&run.join(format!("candidates/episode-{:07}", c.episode))).unwrap();
         let first_start = lcrl_sim::seeds::confirmation(0, 0);
         let (replay, _) = lcrl_sim::evaluate::evaluate(env.as_mut(), "replay", 20, first_start, &mut |s| candidate.act(probe.as_ref(), s), &mut |_| {}).unwrap();
         assert_eq!(replay.mean_return, c.mean_return, "candidate after {} episodes", c.episode);
     }
 
     // selected/ replays its validation return exactly, on the same starts.
-    let policy = lcrl_learner::policy::Policy::load(&selected_dir(&run)).unwrap();
+    let policy = lcrl_learner::policy::trained::Policy::load(&selected_dir(&run)).unwrap();
     assert_eq!(policy.episode, Some(record.episode));
     let first_start = lcrl_sim::seeds::validation(0, 0);
     let (replay, _) = lcrl_sim::evaluate::evaluate(env.as_mut(), "replay", record.starts, first_start, &mut |s| policy.act(probe.as_ref(), s), &mut |_| {}).unwrap();

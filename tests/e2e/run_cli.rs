@@ -33,12 +33,12 @@ fn run_on_the_linear_preset_finishes_with_every_artifact_and_no_leftovers() {
     assert_eq!(graph["g"], serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]]));
     let metrics = fs::read_to_string(run.join("learner/metrics.csv")).unwrap();
     assert!(metrics.lines().count() > 300, "{} rows", metrics.lines().count());
-    // The same columns as `lcrl train`'s metrics.csv (learner/src/run_files.rs).
-    assert_eq!(metrics.lines().next().unwrap(), lcrl_learner::run_files::METRICS_COLUMNS.join(","));
+    // The same columns as `lcrl train`'s metrics.csv (learner/src/run/files.rs).
+    assert_eq!(metrics.lines().next().unwrap(), lcrl_learner::run::files::METRICS_COLUMNS.join(","));
     assert!(metrics.lines().nth(1).unwrap().split(',').nth(1).unwrap().parse::<f64>().is_ok());
     assert_eq!(super::train_cli::tensorboard_returns(&run.join("learner")).len(), metrics.lines().count() - 1, "TensorBoard has every episode");
-    let checkpoint = lcrl_learner::checkpoint::latest_checkpoint(&run.join("learner")).expect("a final checkpoint");
-    assert!(lcrl_learner::checkpoint::read_meta(&checkpoint).unwrap().episode >= 300);
+    let checkpoint = lcrl_learner::policy::checkpoint::latest_checkpoint(&run.join("learner")).expect("a final checkpoint");
+    assert!(lcrl_learner::policy::checkpoint::read_meta(&checkpoint).unwrap().episode >= 300);
     for file in ["config.toml", "train.toml", "graph.png", "reward_curve.png", "logs/learner.log", "logs/actor-0.log", "logs/graph-builder.log"] {
         assert!(run.join(file).is_file(), "{file} missing");
     }
@@ -260,8 +260,8 @@ fn killing_a_run_with_sigkill_stops_every_process_it_started() {
     eprintln!("every child of the killed run gone after {:.2} s", started.elapsed().as_secs_f64());
     // Written on the way out (the periodic one comes later, every
     // --checkpoint-secs): it holds every episode stored before the kill.
-    let checkpoint = lcrl_learner::checkpoint::latest_checkpoint(&long.run.join("learner")).expect("the learner's final checkpoint");
-    let meta = lcrl_learner::checkpoint::read_meta(&checkpoint).unwrap();
+    let checkpoint = lcrl_learner::policy::checkpoint::latest_checkpoint(&long.run.join("learner")).expect("the learner's final checkpoint");
+    let meta = lcrl_learner::policy::checkpoint::read_meta(&checkpoint).unwrap();
     assert!(meta.episode as u64 >= episodes, "the final checkpoint holds {} episodes, {episodes} were stored before the kill", meta.episode);
 }
 
@@ -290,6 +290,6 @@ fn ctrl_c_stops_a_run_with_a_final_checkpoint_and_leaves_nothing() {
     assert!(long.output().contains("interrupted: run"), "{}", long.output());
     let left = long.wait_for_children(Duration::from_secs(5));
     assert!(left.is_empty(), "left running after Ctrl-C: {left:#?}");
-    let checkpoint = lcrl_learner::checkpoint::latest_checkpoint(&long.run.join("learner")).expect("the learner's final checkpoint");
-    assert!(lcrl_learner::checkpoint::read_meta(&checkpoint).unwrap().episode > 0);
+    let checkpoint = lcrl_learner::policy::checkpoint::latest_checkpoint(&long.run.join("learner")).expect("the learner's final checkpoint");
+    assert!(lcrl_learner::policy::checkpoint::read_meta(&checkpoint).unwrap().episode > 0);
 }

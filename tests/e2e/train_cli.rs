@@ -43,7 +43,7 @@ pub(super) fn tensorboard_returns(run: &Path) -> Vec<(i64, f32)> {
     for entry in fs::read_dir(run).unwrap() {
         let path = entry.unwrap().path();
         if path.file_name().unwrap().to_string_lossy().starts_with("events.out.tfevents.") {
-            for event in lcrl_learner::tensorboard::read_events(&path).unwrap() {
+            for event in lcrl_learner::run::tensorboard::read_events(&path).unwrap() {
                 let values = event.summary.map(|s| s.value).unwrap_or_default();
                 returns.extend(values.iter().filter(|v| v.tag == "episode/return").filter_map(|v| Some((event.step, v.simple_value?))));
             }

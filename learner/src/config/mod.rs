@@ -37,7 +37,7 @@ pub struct TrainConfig {
 }
 
 impl TrainConfig {
-    /// The residual's reach s that `algo` acts with (learner/src/action.rs,
+    /// The residual's reach s that `algo` acts with (learner/src/policy/action.rs,
     /// docs/peg.md "A base controller under the agent"): `[ddpg]
     /// residual_scale` where DDPG sets its own, else `[base] residual_scale`.
     pub fn residual_scale(&self, algo: Algo) -> f64 {
@@ -115,7 +115,7 @@ pub fn migrate_legacy_tables(table: &mut toml::Table) {
     }
 }
 
-/// The controller under the agent (residual RL, learner/src/action.rs):
+/// The controller under the agent (residual RL, learner/src/policy/action.rs):
 /// a = clip(base + s·u·(ub − lb)/2, lb, ub). `[base]` in a training TOML.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -154,7 +154,7 @@ impl Default for BaseConfig {
 }
 
 impl BaseConfig {
-    /// The base action once resolved (learner/src/action.rs): numbers, or
+    /// The base action once resolved (learner/src/policy/action.rs): numbers, or
     /// zeros for "a = 0"; None without a base.
     pub fn base_action(&self, action_dim: usize) -> Option<Vec<f64>> {
         match &self.action {
@@ -388,7 +388,7 @@ pub struct RunConfig {
     /// run on the CPU).
     pub device: String,
     /// On a GPU, DDPG updates are captured once as CUDA graphs and replayed
-    /// (learner/src/ddpg/graphs.rs; docs/scaling.md): the same arithmetic
+    /// (learner/src/algo/ddpg/graphs.rs; docs/scaling.md): the same arithmetic
     /// without libtorch's per-operation dispatch. false: eager updates.
     /// Ignored on the CPU and by PPO.
     #[serde(skip_serializing_if = "is_true")]
@@ -412,14 +412,14 @@ pub struct RunConfig {
     /// never use seeds below 2⁴⁰ other than tuning's 1 000 000 and up.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub eval_seed: Option<u64>,
-    /// Choosing the run's policy on held-out starts (learner/src/selection.rs):
+    /// Choosing the run's policy on held-out starts (learner/src/run/selection.rs):
     /// every `validate_every` episodes, and at the start and the end, the
     /// deterministic policy runs this many validation starts, and the run's
     /// policy (RUN/selected/) is the best one seen. 0: the run's policy is
     /// its last.
     pub validation_episodes: usize,
     pub validate_every: usize,
-    /// Confirming the choice at the end (learner/src/selection.rs): the
+    /// Confirming the choice at the end (learner/src/run/selection.rs): the
     /// best `confirm_candidates` validated policies, and the starting one,
     /// each run `confirm_episodes` starts of their own, and the best of
     /// them is handed over. 30 validation starts rank policies but cannot
@@ -427,7 +427,7 @@ pub struct RunConfig {
     /// few hundred starts do. 0: the best validation is handed over.
     pub confirm_candidates: usize,
     pub confirm_episodes: usize,
-    /// Falling back to the run's selected policy (learner/src/fallback.rs):
+    /// Falling back to the run's selected policy (learner/src/policy/fallback.rs):
     /// a training episode of the current policy that returns less than the
     /// base's validation return minus this margin hands the next
     /// `fallback_episodes` training episodes to the selected policy. Unset

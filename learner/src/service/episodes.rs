@@ -11,8 +11,8 @@ use crate::service::shared::Shared;
 /// TensorBoard scalars beside it.
 pub struct EpisodeLog {
     /// None when the file cannot be opened (warned once; training goes on).
-    csv: Option<crate::run_files::MetricsLog>,
-    tensorboard: Option<crate::tensorboard::EventWriter>,
+    csv: Option<crate::run::files::MetricsLog>,
+    tensorboard: Option<crate::run::tensorboard::EventWriter>,
 }
 
 impl EpisodeLog {
@@ -21,10 +21,10 @@ impl EpisodeLog {
     /// learner killed after its last checkpoint had written rows for
     /// episodes that are now trained again.
     pub fn open(run_dir: &std::path::Path, episodes: u64) -> EpisodeLog {
-        let tensorboard = crate::tensorboard::EventWriter::create(run_dir)
+        let tensorboard = crate::run::tensorboard::EventWriter::create(run_dir)
             .map_err(|e| tracing::warn!("no TensorBoard events in {}: {e}", run_dir.display()))
             .ok();
-        let csv = crate::run_files::MetricsLog::resume(&run_dir.join("metrics.csv"), episodes as usize).map_err(|e| tracing::warn!("no metrics.csv: {e}")).ok();
+        let csv = crate::run::files::MetricsLog::resume(&run_dir.join("metrics.csv"), episodes as usize).map_err(|e| tracing::warn!("no metrics.csv: {e}")).ok();
         EpisodeLog { csv, tensorboard }
     }
 
@@ -36,7 +36,7 @@ impl EpisodeLog {
             for (k, e) in episodes.iter().enumerate() {
                 // The actors report what the environment measured; the
                 // wall and update times are `lcrl train`'s own.
-                let row = crate::run_files::EpisodeRow {
+                let row = crate::run::files::EpisodeRow {
                     episode: (first + k as u64 + 1) as usize,
                     episode_return: e.episode_return,
                     length: e.length as usize,

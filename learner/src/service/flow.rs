@@ -5,7 +5,7 @@
 
 use std::collections::VecDeque;
 
-use crate::rate_limiter::RateLimiter;
+use crate::algo::rate_limiter::RateLimiter;
 
 /// Policy lag of the most recently stored transitions.
 #[derive(Debug, Clone)]

@@ -3,7 +3,7 @@
 //! filtered for staleness (PPO), and converted to the agent's normalized
 //! units. Plain Rust; the gRPC and shared-memory front ends both call it.
 
-use crate::action::ActionMap;
+use crate::policy::action::ActionMap;
 use std::collections::{BTreeMap, HashMap};
 
 use lcrl_proto::v1::{EpisodeSummary, TransitionBatch};
@@ -286,7 +286,7 @@ impl Ingest {
             return Verdict::Stale;
         }
         let to_action = |a: &[f32]| -> Vec<f32> { self.actions.to_normalized(&a.iter().map(|&v| f64::from(v)).collect::<Vec<_>>()) };
-        let to_obs = |s: &[f32]| crate::agent::observe(self.env.as_ref(), &s.iter().map(|&v| f64::from(v)).collect::<Vec<_>>());
+        let to_obs = |s: &[f32]| crate::algo::agent::observe(self.env.as_ref(), &s.iter().map(|&v| f64::from(v)).collect::<Vec<_>>());
         let transitions = batch
             .transitions
             .iter()

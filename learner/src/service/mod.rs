@@ -1,5 +1,9 @@
 //! The distributed learner: actors stream transitions in, the training
-//! thread learns from them, and new policy versions go back out.
+//! thread learns from them, and new policy versions go back out. The top
+//! room of the crate, and the `lcrl-learner` binary's (main.rs) only user.
+//!
+//! May import: every other room ([`crate::run`], [`crate::policy`],
+//! [`crate::algo`], [`crate::device`], [`crate::config`]); none imports it.
 //!
 //! - [`ingest`]: checks, deduplicates and normalizes batches (plain Rust).
 //! - [`incarnation`]: the learner process's id, so restarts are noticed.
@@ -22,3 +26,7 @@ pub mod server;
 pub mod shared;
 pub mod shm;
 pub mod validator;
+
+// Hostile input, property-tested: batches, shared-memory samples, snapshots.
+#[cfg(test)]
+mod hostile_tests;

@@ -16,7 +16,7 @@
 //!
 //! At the end of the budget it waits for the last validation, serves the
 //! chosen policy (`Policy.Act`, `GetStatus.served_version`), evaluates it
-//! as `lcrl train` does and writes summary.json (crate::summary).
+//! as `lcrl train` does and writes summary.json (crate::run::summary).
 
 use std::path::PathBuf;
 use std::sync::atomic::Ordering;
@@ -26,16 +26,16 @@ use std::time::{Duration, Instant};
 use lcrl_proto::v1::PolicySnapshot;
 use tokio::sync::mpsc;
 
-use crate::agent::{Agent, Transition};
-use crate::checkpoint::{write_checkpoint, CheckpointMeta};
+use crate::algo::agent::{Agent, Transition};
+use crate::policy::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::config::Algo;
-use crate::rate_limiter::RateLimiter;
+use crate::algo::rate_limiter::RateLimiter;
 use crate::service::ingest::Accepted;
-use crate::selection::SelectionRecord;
+use crate::run::selection::SelectionRecord;
 use crate::service::shared::{Command, Served, Shared};
 use crate::service::validator::Validator;
-use crate::snapshot::snapshot;
-use crate::summary::{evaluate_hand_over, EvaluationPlan, PolicyLag, RunSummary, ServiceFigures};
+use crate::policy::snapshot::snapshot;
+use crate::run::summary::{evaluate_hand_over, EvaluationPlan, PolicyLag, RunSummary, ServiceFigures};
 use crate::LearnerError;
 
 /// How often the training thread publishes and checkpoints.
@@ -512,7 +512,7 @@ impl TrainingLoop {
             fallback_episodes: None,
         };
         drop(flow);
-        crate::summary::write_summary(&self.shared.run_dir, &summary)
+        crate::run::summary::write_summary(&self.shared.run_dir, &summary)
     }
 }
 

@@ -16,7 +16,7 @@ use tokio_stream::wrappers::{ReceiverStream, WatchStream};
 use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::policy::Policy;
+use crate::policy::trained::Policy;
 use crate::service::ingest::Verdict;
 use crate::service::shared::{Command, Shared};
 

@@ -14,7 +14,7 @@ use tokio::sync::watch;
 use crate::config::{Algo, Connection};
 use crate::service::flow::FlowStats;
 use crate::service::ingest::{Accepted, Ingest};
-use crate::snapshot::Architecture;
+use crate::policy::snapshot::Architecture;
 
 /// What the handlers send to the training thread.
 pub enum Command {

@@ -1,11 +1,11 @@
 //! The distributed learner's choice of its policy on held-out starts, as
-//! `lcrl train` chooses (`crate::selection`: the same starts, the same
+//! `lcrl train` chooses (`crate::run::selection`: the same starts, the same
 //! schedule, the same `RUN/selected/`), on a thread of its own so that
 //! validation episodes never hold up updates.
 //!
 //! The training thread hands over a snapshot of the actor whenever a
 //! validation is due ([`Validator::due`], the rule of
-//! [`crate::selection::validation_due`]); snapshots are copies, so
+//! [`crate::run::selection::validation_due`]); snapshots are copies, so
 //! validating one reads nothing the training thread writes and training is
 //! the same with or without it. At the end of the budget the training
 //! thread waits for the last validation and the confirmation
@@ -19,8 +19,8 @@ use std::thread::JoinHandle;
 use lcrl_proto::v1::PolicySnapshot;
 use lcrl_sim::Env;
 
-use crate::checkpoint::CheckpointMeta;
-use crate::selection::{selected_dir, validation_due, Selection, SelectionRecord};
+use crate::policy::checkpoint::CheckpointMeta;
+use crate::run::selection::{selected_dir, validation_due, Selection, SelectionRecord};
 use crate::LearnerError;
 
 /// The policy chosen so far: its record and its snapshot.
@@ -145,7 +145,7 @@ fn read_selected(run_dir: &Path) -> Result<Option<PolicySnapshot>, LearnerError>
     if !dir.join("checkpoint.json").is_file() {
         return Ok(None);
     }
-    crate::snapshot::read_snapshot(&dir).map(Some)
+    crate::policy::snapshot::read_snapshot(&dir).map(Some)
 }
 
 #[cfg(test)]
@@ -157,12 +157,12 @@ mod tests {
     use tokio::sync::mpsc as queue;
 
     use super::*;
-    use crate::checkpoint::latest_checkpoint;
-    use crate::selection::read_record;
+    use crate::policy::checkpoint::latest_checkpoint;
+    use crate::run::selection::read_record;
     use crate::config::{Algo, Connection, TrainConfig};
     use crate::service::ingest::{Accepted, AgentTransition, Ingest};
     use crate::service::runtime::{Schedule, TrainingLoop};
-    use crate::snapshot::snapshot;
+    use crate::policy::snapshot::snapshot;
     use crate::service::shared::{Command, Shared};
 
     /// The same 60 batches (2 episodes of 10 steps each) through the
@@ -180,7 +180,7 @@ mod tests {
         cfg.run.validation_episodes = if validate { 4 } else { 0 };
         cfg.run.validate_every = 2;
         let mask = vec![vec![1u8; 3]; 3];
-        let agent = crate::algorithms::make_agent(Algo::Ddpg, Connection::Global, &cfg, &mask, 3, 3).unwrap();
+        let agent = crate::algo::algorithms::make_agent(Algo::Ddpg, Connection::Global, &cfg, &mask, 3, 3).unwrap();
         let meta = CheckpointMeta::start("lti-paper", Algo::Ddpg, Connection::Global, 3, 3, mask, cfg.clone());
         let architecture = meta.architecture();
         let first = snapshot(agent.as_ref(), &architecture, 0).unwrap();

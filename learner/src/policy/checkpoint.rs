@@ -13,9 +13,9 @@ use std::path::{Path, PathBuf};
 use lcrl_proto::files::{folder_of, sync_dir, sync_file};
 use serde::{Deserialize, Serialize};
 
-use crate::agent::Agent;
+use crate::algo::agent::Agent;
 use crate::config::{Algo, Connection, TrainConfig};
-use crate::architecture::{ActorShape, Architecture};
+use crate::policy::architecture::{ActorShape, Architecture};
 use crate::{io, LearnerError};
 
 
@@ -41,7 +41,7 @@ pub struct CheckpointMeta {
     /// Distributed DDPG runs: the replay-ratio limiter's settings and
     /// counters, so a restarted learner keeps the ratio.
     #[serde(default)]
-    pub rate_limiter: Option<crate::rate_limiter::RateLimiter>,
+    pub rate_limiter: Option<crate::algo::rate_limiter::RateLimiter>,
 }
 
 impl CheckpointMeta {

@@ -1,6 +1,6 @@
 //! The records of a run directory that people and tools read: one
 //! `metrics.csv` row per episode, the selection record, and the atomic
-//! writer every run file goes through (summary.json: crate::summary). The
+//! writer every run file goes through (summary.json: crate::run::summary). The
 //! same files from `lcrl train` and from the distributed learner.
 
 use std::path::Path;

@@ -38,19 +38,19 @@ use std::path::{Path, PathBuf};
 use lcrl_proto::v1::PolicySnapshot;
 use lcrl_sim::Env;
 
-use crate::agent::Agent;
-use crate::policy::evaluate_snapshot;
-use crate::checkpoint::{recover_folder, recover_folders, write_folder, CheckpointMeta};
-use crate::run_files::write_atomically;
+use crate::algo::agent::Agent;
+use crate::policy::trained::evaluate_snapshot;
+use crate::policy::checkpoint::{recover_folder, recover_folders, write_folder, CheckpointMeta};
+use crate::run::files::write_atomically;
 use crate::config::RunConfig;
 use crate::LearnerError;
 
 // The records are run files (summary.json embeds them); selection.rs fills them.
-pub use crate::run_files::{Confirmation, ConfirmedCandidate, SelectionRecord, Validation};
+pub use crate::run::files::{Confirmation, ConfirmedCandidate, SelectionRecord, Validation};
 
 // The folder of a run's selected policy: a policy folder of the checkpoint
 // store, which policy.rs reads too.
-pub use crate::checkpoint::selected_dir;
+pub use crate::policy::checkpoint::selected_dir;
 
 /// The folder of the confirmation's candidates: one sub-folder per kept
 /// policy, as `RUN/selected/` holds one.
@@ -177,7 +177,7 @@ impl Selection {
     /// Validates the agent's current policy; if it beats every earlier one
     /// (strictly: a tie keeps the earlier), it becomes RUN/selected/.
     pub fn validate(&mut self, env: &dyn Env, agent: &dyn Agent, run_dir: &Path, meta: &CheckpointMeta) -> Result<Validation, LearnerError> {
-        let snapshot = crate::snapshot::snapshot(agent, &meta.architecture(), meta.policy_version)?;
+        let snapshot = crate::policy::snapshot::snapshot(agent, &meta.architecture(), meta.policy_version)?;
         self.validate_policy(env, &snapshot, run_dir, meta).map(|(validation, _)| validation)
     }
 
@@ -234,7 +234,7 @@ impl Selection {
         // A run resumed with the confirmation newly turned on kept no
         // policies before: it confirms among those it has.
         let kept: Vec<Validation> = self.candidates().into_iter().filter(|v| candidate_dir(run_dir, v.episode).join("checkpoint.json").is_file()).collect();
-        let snapshots = kept.iter().map(|v| crate::snapshot::read_snapshot(&candidate_dir(run_dir, v.episode))).collect::<Result<Vec<_>, _>>()?;
+        let snapshots = kept.iter().map(|v| crate::policy::snapshot::read_snapshot(&candidate_dir(run_dir, v.episode))).collect::<Result<Vec<_>, _>>()?;
         // The same weights score the same (a policy validated twice before
         // its first update, say): each distinct policy runs once, and with
         // one distinct policy there is nothing to choose.
@@ -318,7 +318,7 @@ fn prune_candidates(run_dir: &Path, candidates: &[Validation]) -> Result<(), Lea
 /// and actor.safetensors) and `record`, atomically as every policy folder
 /// is written.
 fn copy_policy(from: &Path, to: &Path, record: Option<&SelectionRecord>) -> Result<(), LearnerError> {
-    let meta = crate::checkpoint::read_meta(from)?;
+    let meta = crate::policy::checkpoint::read_meta(from)?;
     let weights = from.join("actor.safetensors");
     let copy = |staging: &Path| {
         std::fs::copy(&weights, staging.join("actor.safetensors")).map(|_| ()).map_err(|source| LearnerError::Io { path: weights.clone(), source })
@@ -403,7 +403,7 @@ mod tests {
         copy_policy(&dir, &dir, Some(&record(30))).unwrap();
         assert_eq!(read_record(&dir).unwrap().unwrap().episode, 30);
         assert_eq!(std::fs::read(dir.join("actor.safetensors")).unwrap(), b"ten");
-        assert_eq!(crate::checkpoint::read_meta(&dir).unwrap().episode, 10);
+        assert_eq!(crate::policy::checkpoint::read_meta(&dir).unwrap().episode, 10);
         let left: Vec<_> = std::fs::read_dir(run.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
         assert_eq!(left, vec![std::ffi::OsString::from("selected")]);
     }

@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use tch::nn;
 
 use crate::config::{Connection, NetworkConfig};
-use crate::nets::{ActorNet, Mlp, SubnetActor};
+use crate::algo::nets::{ActorNet, Mlp, SubnetActor};
 use crate::LearnerError;
 
 /// One environment step as the learner sees it (normalized units).
@@ -180,24 +180,24 @@ pub fn load_vs(vs: &mut nn::VarStore, path: &Path) -> Result<(), LearnerError> {
 }
 
 /// Saves the actor and critic optimizers' state next to the weights.
-pub fn save_optimizers(dir: &Path, actor: &crate::adam::Adam, critic: &crate::adam::Adam) -> Result<(), LearnerError> {
+pub fn save_optimizers(dir: &Path, actor: &crate::algo::adam::Adam, critic: &crate::algo::adam::Adam) -> Result<(), LearnerError> {
     save_optimizer(dir, "actor", actor)?;
     save_optimizer(dir, "critic", critic)
 }
 
 /// Restores what [`save_optimizers`] wrote.
-pub fn load_optimizers(dir: &Path, actor: &mut crate::adam::Adam, critic: &mut crate::adam::Adam) -> Result<(), LearnerError> {
+pub fn load_optimizers(dir: &Path, actor: &mut crate::algo::adam::Adam, critic: &mut crate::algo::adam::Adam) -> Result<(), LearnerError> {
     load_optimizer(dir, "actor", actor)?;
     load_optimizer(dir, "critic", critic)
 }
 
 /// Writes one optimizer's state as `{name}_optimizer.safetensors`.
-pub fn save_optimizer(dir: &Path, name: &str, opt: &crate::adam::Adam) -> Result<(), LearnerError> {
+pub fn save_optimizer(dir: &Path, name: &str, opt: &crate::algo::adam::Adam) -> Result<(), LearnerError> {
     write_tensors(&dir.join(format!("{name}_optimizer.safetensors")), &opt.state())
 }
 
 /// Restores what [`save_optimizer`] wrote.
-pub fn load_optimizer(dir: &Path, name: &str, opt: &mut crate::adam::Adam) -> Result<(), LearnerError> {
+pub fn load_optimizer(dir: &Path, name: &str, opt: &mut crate::algo::adam::Adam) -> Result<(), LearnerError> {
     opt.load_state(&read_tensors(&dir.join(format!("{name}_optimizer.safetensors")))?).map_err(LearnerError::Checkpoint)
 }
 

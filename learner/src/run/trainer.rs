@@ -15,15 +15,15 @@ use std::time::Instant;
 
 use lcrl_sim::{make_env, Env};
 
-use crate::action::ActionMap;
-use crate::agent::observe;
-use crate::run_files::{read_rows, EpisodeRow, MetricsLog};
-use crate::summary::{evaluate_hand_over, write_summary, EvaluationPlan, RunSummary};
-use crate::checkpoint::{write_checkpoint, CheckpointMeta};
-use crate::run_start::{prepare, GraphSource, Prepared, RunStart};
+use crate::policy::action::ActionMap;
+use crate::algo::agent::observe;
+use crate::run::files::{read_rows, EpisodeRow, MetricsLog};
+use crate::run::summary::{evaluate_hand_over, write_summary, EvaluationPlan, RunSummary};
+use crate::policy::checkpoint::{write_checkpoint, CheckpointMeta};
+use crate::run::start::{prepare, GraphSource, Prepared, RunStart};
 use crate::config::{Algo, Connection, TrainConfig};
-use crate::fallback::{Acting, Fallback, FallbackPolicy};
-use crate::selection::{selected_dir, Selection};
+use crate::policy::fallback::{Acting, Fallback, FallbackPolicy};
+use crate::run::selection::{selected_dir, Selection};
 use crate::{io, LearnerError};
 
 /// What to train, and where.
@@ -111,11 +111,11 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         req.env, req.algo, req.connection, req.settings_source
     );
     let config_path = req.run_dir.join("config.toml");
-    crate::run_files::write_atomically(&config_path, (header + &resolved).as_bytes())?;
+    crate::run::files::write_atomically(&config_path, (header + &resolved).as_bytes())?;
 
     let metrics_path = req.run_dir.join("metrics.csv");
     let mut metrics = MetricsLog::create(&metrics_path, &rows)?;
-    let mut tensorboard = crate::tensorboard::EventWriter::create(&req.run_dir).map_err(io(&req.run_dir))?;
+    let mut tensorboard = crate::run::tensorboard::EventWriter::create(&req.run_dir).map_err(io(&req.run_dir))?;
     let mut optimization = prior_opt;
     let meta_for = |episode: usize, optimization: f64, elapsed: f64| CheckpointMeta { episode, optimization_seconds: optimization, elapsed_seconds: elapsed, ..start.clone() };
 
@@ -148,7 +148,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
                 None => agent.explore(&obs, episode),
             };
             let (step, next_obs) = step_env(env.as_mut(), &actions, &u)?;
-            opt_seconds += agent.observe(crate::agent::Transition {
+            opt_seconds += agent.observe(crate::algo::agent::Transition {
                 obs: &obs,
                 action: &u,
                 reward: step.reward as f32,
@@ -217,15 +217,15 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
 
     // The run's policy (the selected one, confirmed on more starts where
     // the run asks, or the last) beside the references, on the same
-    // starts (crate::summary, as the learner does).
+    // starts (crate::run::summary, as the learner does).
     if let Some(selection) = selection.as_mut() {
         selection.confirm(env.as_ref(), &req.run_dir)?;
     }
     let chosen = selection.as_ref().and_then(Selection::record);
-    let last = crate::snapshot::snapshot(agent.as_ref(), &start.architecture(), 0)?;
+    let last = crate::policy::snapshot::snapshot(agent.as_ref(), &start.architecture(), 0)?;
     // The last validation chose the agent as it is: that is the last policy.
     let selected = match &chosen {
-        Some(c) if c.episode != rows.len() => Some(crate::snapshot::read_snapshot(&selected_dir(&req.run_dir))?),
+        Some(c) if c.episode != rows.len() => Some(crate::policy::snapshot::read_snapshot(&selected_dir(&req.run_dir))?),
         _ => None,
     };
     let plan = EvaluationPlan {

@@ -13,9 +13,9 @@ use std::collections::HashMap;
 
 use tch::{Device, Kind, Tensor};
 
-use crate::adam::Coefficient;
-use crate::cuda_graph::CudaGraph;
-use crate::replay::Batch;
+use crate::algo::adam::Coefficient;
+use crate::device::cuda_graph::CudaGraph;
+use crate::algo::replay::Batch;
 
 /// What an update does besides the critics' step (from `policy_delay` and
 /// the critic's head start): each kind is its own graph.
@@ -40,7 +40,7 @@ pub struct UpdateNumbers {
 }
 
 /// This update's numbers as the host counts them (each Adam's
-/// [`crate::adam::Adam::advance`]), before they become [`UpdateNumbers`].
+/// [`crate::algo::adam::Adam::advance`]), before they become [`UpdateNumbers`].
 pub struct HostNumbers {
     pub critics: Vec<[f64; 2]>,
     pub actor: Option<[f64; 2]>,
@@ -72,7 +72,7 @@ impl CapturedUpdates {
     /// critics and an actor, with target noise for `actions` actions when
     /// `target_noise`. Fails where the CUDA graph shim is not available.
     pub fn new(batch: usize, obs_dim: usize, actions: usize, critics: usize, target_noise: bool, device: Device) -> Result<Self, String> {
-        crate::cuda_graph::availability()?;
+        crate::device::cuda_graph::availability()?;
         let rows = Tensor::zeros([batch as i64, Batch::row_width(obs_dim, actions) as i64], (Kind::Float, device));
         let noise_len = if target_noise { batch * actions } else { 0 };
         let numbers = Tensor::zeros([(Self::fixed_len(critics) + noise_len) as i64], (Kind::Float, device));
@@ -96,7 +96,7 @@ impl CapturedUpdates {
         let mut host: Vec<f32> = numbers.critics.iter().chain([&actor]).flatten().map(|&v| v as f32).collect();
         host.push(numbers.preactivation_l2 as f32);
         host.extend_from_slice(noise);
-        let staged = crate::device::to_device_async(Tensor::from_slice(&host), self.numbers.device());
+        let staged = crate::device::torch::to_device_async(Tensor::from_slice(&host), self.numbers.device());
         self.numbers.copy_(&staged);
     }
 

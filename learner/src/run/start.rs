@@ -9,9 +9,9 @@ use std::path::{Path, PathBuf};
 use lcrl_graph_builder::{build_graph, GraphOptions, GraphReport};
 use lcrl_sim::Env;
 
-use crate::action::ActionMap;
-use crate::agent::Agent;
-use crate::checkpoint::{latest_checkpoint, read_meta, recover_folders, CheckpointMeta};
+use crate::policy::action::ActionMap;
+use crate::algo::agent::Agent;
+use crate::policy::checkpoint::{latest_checkpoint, read_meta, recover_folders, CheckpointMeta};
 use crate::config::{Algo, BaseController, Connection, TrainConfig};
 use crate::LearnerError;
 
@@ -116,8 +116,8 @@ pub fn prepare(start: RunStart, env: &dyn Env) -> Result<Prepared, LearnerError>
     let base = fix_base_controller(&mut config, env)?;
     let actions = ActionMap::new(env.spec(), base.as_deref())?.with_residual_scale(config.residual_scale(start.algo));
     meta.config = config.clone();
-    let threads = crate::device::apply_threads(config.run.threads, 0);
-    let mut agent = crate::algorithms::make_agent(start.algo, start.connection, &config, &meta.shape.mask, m, n)?;
+    let threads = crate::device::torch::apply_threads(config.run.threads, 0);
+    let mut agent = crate::algo::algorithms::make_agent(start.algo, start.connection, &config, &meta.shape.mask, m, n)?;
     if let Some(dir) = &checkpoint {
         agent.load(dir)?;
     }
@@ -147,7 +147,7 @@ pub fn checkpoint_to_resume(run_dir: &Path, env: &str, algo: Algo, connection: C
 /// ("best-constant" becomes the constant itself), so config.toml and every
 /// checkpoint record exactly what the agent acts around. Returns them.
 pub fn fix_base_controller(config: &mut TrainConfig, env: &dyn Env) -> Result<Option<Vec<f64>>, LearnerError> {
-    let base = crate::action::resolve_base(&config.base, env.spec())?;
+    let base = crate::policy::action::resolve_base(&config.base, env.spec())?;
     config.base.action = base.clone().map_or(BaseController::None, BaseController::Action);
     config.base.best_constant_file = None;
     Ok(base)

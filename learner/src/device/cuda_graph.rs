@@ -10,7 +10,7 @@
 //! How it is built and found: learner/build.rs compiles the shim when
 //! libtorch is a CUDA build with the CUDA headers beside it; the library is
 //! embedded in the binary, written to the temporary folder and loaded at
-//! run time after `libtorch_cuda.so` (device.rs), so no binary links the
+//! run time after `libtorch_cuda.so` (torch.rs), so no binary links the
 //! CUDA libraries and CPU machines never load it.
 //!
 //! The rules a captured piece of work must keep (as PyTorch's
@@ -62,7 +62,7 @@ fn load() -> Result<Api, String> {
     // process: loaded here from beside libtorch, or already there (a
     // machine whose libtorch lies elsewhere preloads it: docs/scaling.md,
     // "Measuring on a GPU machine"); otherwise loading says what is missing.
-    crate::device::load_cuda();
+    crate::device::torch::load_cuda();
     let path = write_shim(bytes)?;
     let flags = libloading::os::unix::RTLD_NOW | libloading::os::unix::RTLD_LOCAL;
     // SAFETY: the shim only calls libtorch, already loaded with its CUDA

@@ -25,14 +25,14 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use tch::{nn, Device, Kind, Tensor};
 
-use crate::adam::Adam;
-use crate::agent::{
+use crate::algo::adam::Adam;
+use crate::algo::agent::{
     build_actor, build_critic, load_optimizers, load_vs, read_agent_state, save_optimizers, save_vs, write_agent_state, Agent,
     Counters, RngState, Transition,
 };
 use crate::config::{Connection, NetworkConfig, PpoConfig};
-use crate::exploration;
-use crate::nets::{batch, ActorNet, Mlp};
+use crate::algo::exploration;
+use crate::algo::nets::{batch, ActorNet, Mlp};
 use crate::LearnerError;
 
 /// The transitions of the current rollout, flat f32 rows.
@@ -306,7 +306,7 @@ impl Agent for Ppo {
     }
 
     fn actor_variables(&self) -> Vec<(String, Tensor)> {
-        crate::agent::sorted_variables(&self.actor_vs)
+        crate::algo::agent::sorted_variables(&self.actor_vs)
     }
 }
 

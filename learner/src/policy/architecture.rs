@@ -33,11 +33,11 @@ pub struct Architecture {
     pub shape: ActorShape,
     pub network: NetworkConfig,
     /// The base controller the actor acts around (residual RL,
-    /// learner/src/action.rs); None: the plain map onto the box.
+    /// learner/src/policy/action.rs); None: the plain map onto the box.
     #[serde(default)]
     pub base: Option<Vec<f64>>,
     /// The residual's reach around the base (`[base] residual_scale`,
-    /// learner/src/action.rs); 1, the whole box, is left out of the JSON.
+    /// learner/src/policy/action.rs); 1, the whole box, is left out of the JSON.
     #[serde(default = "full_reach", skip_serializing_if = "is_full_reach")]
     pub residual_scale: f64,
 }
@@ -67,7 +67,7 @@ impl Architecture {
         }
         // A local mask row of zeros is allowed: CS3 may find an action that
         // moves no state above the cut, and its subnetwork then learns a
-        // constant (learner/src/nets.rs builds and trains it).
+        // constant (learner/src/algo/nets.rs builds and trains it).
         if let Some(base) = &self.base {
             if base.len() != n || base.iter().any(|b| !b.is_finite()) {
                 return bad(format!("the base action must hold {n} finite numbers"));

@@ -4,7 +4,7 @@
 
 use tch::{nn::VarStore, Tensor};
 
-use crate::flat::FlatParams;
+use crate::algo::flat::FlatParams;
 
 /// A number an update uses that changes from one update to the next (a
 /// step size, a bias correction, an annealed weight): a host number in an

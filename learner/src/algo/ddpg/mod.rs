@@ -36,17 +36,17 @@ use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 use tch::{nn, Device, Kind, Tensor};
 
-use crate::adam::Adam;
-use crate::cuda_graph::CudaGraph;
-use crate::agent::{
+use crate::algo::adam::Adam;
+use crate::device::cuda_graph::CudaGraph;
+use crate::algo::agent::{
     build_actor, build_critic, load_optimizer, load_vs, read_agent_state, read_tensors, save_optimizer, save_vs, write_agent_state, write_tensors, Agent,
     Counters, RngState, Transition,
 };
 use crate::config::{Connection, DdpgConfig, NetworkConfig, WarmupActions};
-use crate::exploration;
-use crate::flat::FlatParams;
-use crate::nets::{batch, ActorNet, Mlp};
-use crate::replay::{Batch, DeviceMirror, ReplayBuffer};
+use crate::algo::exploration;
+use crate::algo::flat::FlatParams;
+use crate::algo::nets::{batch, ActorNet, Mlp};
+use crate::algo::replay::{Batch, DeviceMirror, ReplayBuffer};
 use crate::LearnerError;
 use graphs::{CapturedUpdates, HostNumbers, UpdateKind, UpdateNumbers};
 
@@ -265,7 +265,7 @@ impl Ddpg {
                 };
                 let values = self.target_noise_values(self.cfg.batch_size);
                 let noise = (!values.is_empty())
-                    .then(|| crate::device::to_device_async(Tensor::from_slice(&values), self.device).view([self.cfg.batch_size as i64, self.action_dim as i64]));
+                    .then(|| crate::device::torch::to_device_async(Tensor::from_slice(&values), self.device).view([self.cfg.batch_size as i64, self.action_dim as i64]));
                 self.apply_update(&b, noise.as_ref(), kind, &numbers.coefficients());
             }
         }
@@ -494,7 +494,7 @@ impl Agent for Ddpg {
     }
 
     fn actor_variables(&self) -> Vec<(String, Tensor)> {
-        crate::agent::sorted_variables(&self.actor_vs)
+        crate::algo::agent::sorted_variables(&self.actor_vs)
     }
 }
 

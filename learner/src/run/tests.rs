@@ -6,11 +6,11 @@ use std::path::Path;
 use lcrl_sim::make_env;
 
 use crate::config::{Algo, Connection, TrainConfig};
-use crate::policy::Policy;
-use crate::checkpoint::{write_checkpoint, CheckpointMeta};
-use crate::run_files::EpisodeRow;
-use crate::algorithms::make_agent;
-use crate::trainer::{train, TrainOutcome, TrainRequest};
+use crate::policy::trained::Policy;
+use crate::policy::checkpoint::{write_checkpoint, CheckpointMeta};
+use crate::run::files::EpisodeRow;
+use crate::algo::algorithms::make_agent;
+use crate::run::trainer::{train, TrainOutcome, TrainRequest};
 
 fn lti_fast() -> TrainConfig {
     TrainConfig::load(Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../configs/lti-fast.toml"))).unwrap()
@@ -121,7 +121,7 @@ fn checkpoint_round_trip_gives_identical_actions() {
         for k in 0..80 {
             let u = agent.explore(&obs, k);
             let next = [obs[0] * 0.9, obs[1] + 0.01 * k as f32, -obs[2]];
-            agent.observe(crate::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &next, terminated: false, truncated: k % 50 == 49, log_prob: None, ..Default::default() });
+            agent.observe(crate::algo::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &next, terminated: false, truncated: k % 50 == 49, log_prob: None, ..Default::default() });
         }
         let meta = CheckpointMeta { episode: 1, ..CheckpointMeta::start("lti-paper", algo, Connection::Local, 3, 3, mask.clone(), cfg.clone()) };
         let saved = write_checkpoint(dir.path(), agent.as_ref(), &meta).unwrap();
@@ -154,7 +154,7 @@ fn resumed_run_continues_exactly() {
         let resumed_dir = tempfile::tempdir().unwrap();
         run_until(algo, Connection::Local, cfg.clone(), resumed_dir.path(), false, Some(2));
         if cfg.ddpg.twin_critics {
-            assert!(crate::checkpoint::latest_checkpoint(resumed_dir.path()).unwrap().join("critic2.safetensors").is_file());
+            assert!(crate::policy::checkpoint::latest_checkpoint(resumed_dir.path()).unwrap().join("critic2.safetensors").is_file());
         }
         let resumed = run(algo, Connection::Local, cfg, resumed_dir.path(), true);
         assert_eq!(timeless(&straight.rows), timeless(&resumed.rows), "{algo:?}");
@@ -184,19 +184,19 @@ fn parallel_policy_evaluation_equals_one_thread() {
         let obs = vec![0.1f32; m];
         for k in 0..80 {
             let u = agent.explore(&obs, k);
-            agent.observe(crate::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &obs, terminated: false, truncated: k % 40 == 39, log_prob: None, ..Default::default() });
+            agent.observe(crate::algo::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &obs, terminated: false, truncated: k % 40 == 39, log_prob: None, ..Default::default() });
         }
         let meta = CheckpointMeta::start("peg-group1", Algo::Ddpg, connection, m, n, mask, cfg.clone());
-        let snapshot = crate::snapshot::snapshot(agent.as_ref(), &meta.architecture(), 0).unwrap();
-        let actions = crate::action::ActionMap::new(env.spec(), meta.architecture().base.as_deref()).unwrap();
+        let snapshot = crate::policy::snapshot::snapshot(agent.as_ref(), &meta.architecture(), 0).unwrap();
+        let actions = crate::policy::action::ActionMap::new(env.spec(), meta.architecture().base.as_deref()).unwrap();
         let (episodes, first) = (6, 40);
         let mut stepped = env.fresh();
         let probe = env.fresh();
-        let mut own = |s: &[f64]| actions.to_env(&agent.act(&crate::agent::observe(probe.as_ref(), s)));
+        let mut own = |s: &[f64]| actions.to_env(&agent.act(&crate::algo::agent::observe(probe.as_ref(), s)));
         let (_, in_order) = lcrl_sim::evaluate::evaluate(stepped.as_mut(), "policy", episodes, first, &mut own, &mut |_| {}).unwrap();
         for threads in [1, 3] {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-            let (summary, records) = pool.install(|| crate::policy::evaluate_snapshot(env.as_ref(), "policy", &snapshot, episodes, first, &|_| {})).unwrap();
+            let (summary, records) = pool.install(|| crate::policy::trained::evaluate_snapshot(env.as_ref(), "policy", &snapshot, episodes, first, &|_| {})).unwrap();
             assert_eq!(records, in_order, "{connection:?}, {threads} threads");
             assert_eq!(summary.mean_return, in_order.iter().map(|r| r.episode_return).sum::<f64>() / episodes as f64);
         }
@@ -305,7 +305,7 @@ fn confirmation_hands_over_the_best_candidate_on_more_starts() {
     assert_eq!(chosen.episode, pick.episode);
     assert_ne!(chosen.episode, plain.episode, "the setting must let the confirmation overturn the validations: {chosen:?}");
     assert_eq!(Policy::load(dir.path()).unwrap().episode, Some(pick.episode), "RUN/selected/ is not the confirmed policy");
-    assert_eq!(crate::selection::read_record(&dir.path().join("selected")).unwrap(), Some(chosen.clone()));
+    assert_eq!(crate::run::selection::read_record(&dir.path().join("selected")).unwrap(), Some(chosen.clone()));
     assert_ne!(straight.summary.evaluation.eval_return, unconfirmed.summary.evaluation.eval_return, "another policy is evaluated");
 
     let resumed_dir = tempfile::tempdir().unwrap();
@@ -335,9 +335,9 @@ fn the_selected_policy_acts_after_an_episode_below_the_margin() {
 
     // Who acted, by the rule, from the returns.
     let chosen = straight.summary.selection.clone().unwrap();
-    let mut rule = crate::fallback::Fallback::new(chosen.history[0].mean_return, 0.0, 2);
+    let mut rule = crate::policy::fallback::Fallback::new(chosen.history[0].mean_return, 0.0, 2);
     let acting: Vec<_> = straight.rows.iter().map(|r| { let who = rule.next(); rule.record(who, r.episode_return); who }).collect();
-    let first_selected = acting.iter().position(|&a| a == crate::fallback::Acting::Selected).expect("some episode falls below the base's return");
+    let first_selected = acting.iter().position(|&a| a == crate::policy::fallback::Acting::Selected).expect("some episode falls below the base's return");
     assert_eq!(straight.summary.fallback_episodes, Some(rule.selected_episodes()));
     assert_eq!(timeless(&plain.rows[..first_selected]), timeless(&straight.rows[..first_selected]), "the same run until the fallback acts");
     assert_ne!(timeless(&plain.rows), timeless(&straight.rows));
@@ -346,7 +346,7 @@ fn the_selected_policy_acts_after_an_episode_below_the_margin() {
     let mut env = make_env("lti-paper").unwrap();
     let probe = env.fresh();
     let mut checked = 0;
-    for (k, row) in straight.rows.iter().enumerate().filter(|(k, _)| acting[*k] == crate::fallback::Acting::Selected && *k >= chosen.episode) {
+    for (k, row) in straight.rows.iter().enumerate().filter(|(k, _)| acting[*k] == crate::policy::fallback::Acting::Selected && *k >= chosen.episode) {
         let start = lcrl_sim::seeds::training(guarded.run.seed, k);
         let (replayed, _) = lcrl_sim::evaluate::evaluate(env.as_mut(), "selected", 1, start, &mut |s| policy.act(probe.as_ref(), s), &mut |_| {}).unwrap();
         assert!((replayed.mean_return - row.episode_return).abs() <= 1e-6 * row.episode_return.abs().max(1.0), "episode {}: {} against {}", k + 1, row.episode_return, replayed.mean_return);
@@ -368,7 +368,7 @@ fn the_selected_policy_acts_after_an_episode_below_the_margin() {
     let history = gated_straight.summary.selection.clone().unwrap().history;
     let validations: Vec<(usize, f64)> = history.iter().map(|v| (v.episode, v.mean_return)).collect();
     let returns: Vec<f64> = gated_straight.rows.iter().map(|r| r.episode_return).collect();
-    let replayed = crate::fallback::Fallback::new(history[0].mean_return, 0.0, 2).gated().replayed(&returns, &validations);
+    let replayed = crate::policy::fallback::Fallback::new(history[0].mean_return, 0.0, 2).gated().replayed(&returns, &validations);
     assert_eq!(gated_straight.summary.fallback_episodes, Some(replayed.selected_episodes()));
     assert!(history.iter().skip(1).any(|v| v.mean_return < history[0].mean_return), "a validation below the base's, for the gate to act on");
     assert_ne!(timeless(&gated_straight.rows), timeless(&straight.rows), "the gate held a policy back that the plain rule let act");
@@ -489,7 +489,7 @@ fn refuses_to_overwrite_a_run_and_rejects_mismatched_graphs() {
     assert!(err.contains("3×3") && err.contains("6 actions"), "{err}");
 }
 
-/// Residual RL (learner/src/action.rs): a run around a base controller
+/// Residual RL (learner/src/policy/action.rs): a run around a base controller
 /// records its numbers in config.toml and the checkpoint, its untrained
 /// policy is the base controller, and the evaluation returns match the
 /// base's own. DDPG and PPO alike (each with its own reach); warm-up
@@ -551,14 +551,14 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
 
 /// Feeds `agent` 160 steps of a fixed 3-state system (the run's progress
 /// moving with them) and returns its actor's weights.
-fn fed_actor_weights(agent: &mut dyn crate::agent::Agent) -> Vec<(String, Vec<f32>)> {
+fn fed_actor_weights(agent: &mut dyn crate::algo::agent::Agent) -> Vec<(String, Vec<f32>)> {
     for k in 0..160 {
         agent.set_progress(k as f64 / 160.0);
         let obs: Vec<f32> = (0..3).map(|j| ((k * 3 + j) as f32 * 0.37).sin()).collect();
         let action = agent.explore(&obs, 0);
         let next: Vec<f32> = obs.iter().zip(action.iter().cycle()).map(|(s, a)| 0.9 * s + 0.1 * a).collect();
         let reward = -obs.iter().map(|v| v * v).sum::<f32>();
-        agent.observe(crate::agent::Transition { obs: &obs, action: &action, reward, next_obs: &next, terminated: false, truncated: k % 40 == 39, log_prob: None, ..Default::default() });
+        agent.observe(crate::algo::agent::Transition { obs: &obs, action: &action, reward, next_obs: &next, terminated: false, truncated: k % 40 == 39, log_prob: None, ..Default::default() });
     }
     agent.actor_variables().into_iter().map(|(name, t)| (name, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect()
 }
@@ -578,8 +578,8 @@ fn assert_close(what: &str, a: &[(String, Vec<f32>)], b: &[(String, Vec<f32>)]) 
 /// reason otherwise (`lcrl doctor` says what libtorch sees).
 #[test]
 fn cuda_updates_equal_cpu_updates() {
-    if !crate::device::cuda_available() {
-        eprintln!("skipped: no CUDA device here (libtorch_cuda: {}); run on a GPU machine to check CUDA updates", crate::device::load_cuda());
+    if !crate::device::torch::cuda_available() {
+        eprintln!("skipped: no CUDA device here (libtorch_cuda: {}); run on a GPU machine to check CUDA updates", crate::device::torch::load_cuda());
         return;
     }
     tch::set_num_threads(1);
@@ -590,7 +590,7 @@ fn cuda_updates_equal_cpu_updates() {
             cfg.run.device = device.into();
             (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size) = (32, 32);
             (cfg.ppo.rollout_steps, cfg.ppo.minibatch_size, cfg.ppo.epochs) = (64, 16, 2);
-            fed_actor_weights(crate::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap().as_mut())
+            fed_actor_weights(crate::algo::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap().as_mut())
         };
         assert_close(&format!("{algo:?} CUDA against CPU"), &weights("cpu"), &weights("cuda"));
     }
@@ -605,11 +605,11 @@ fn cuda_updates_equal_cpu_updates() {
 /// otherwise.
 #[test]
 fn cuda_graph_updates_equal_eager_updates() {
-    if !crate::device::cuda_available() {
+    if !crate::device::torch::cuda_available() {
         eprintln!("skipped: no CUDA device here; run on a GPU machine to check CUDA graphs");
         return;
     }
-    if let Err(why) = crate::cuda_graph::availability() {
+    if let Err(why) = crate::device::cuda_graph::availability() {
         eprintln!("skipped: {why}");
         return;
     }
@@ -620,7 +620,7 @@ fn cuda_graph_updates_equal_eager_updates() {
     (cfg.ddpg.twin_critics, cfg.ddpg.policy_delay, cfg.ddpg.target_noise) = (true, 2, 0.2);
     (cfg.ddpg.critic_warmup_updates, cfg.ddpg.actor_lr_warmup_updates) = (10, 20);
     (cfg.ddpg.anneal_lr, cfg.ddpg.preactivation_l2, cfg.ddpg.preactivation_anneal) = (true, 0.05, true);
-    let ddpg = |device: tch::Device| crate::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, Connection::Local, &mask, 3, 3, 7, device);
+    let ddpg = |device: tch::Device| crate::algo::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, Connection::Local, &mask, 3, 3, 7, device);
     let cpu = fed_actor_weights(&mut ddpg(tch::Device::Cpu));
     let eager = fed_actor_weights(&mut ddpg(tch::Device::Cuda(0)));
     let mut graphed = ddpg(tch::Device::Cuda(0));

@@ -8,11 +8,11 @@ use lcrl_sim::evaluate::{evaluate_parallel_with, EpisodeRecord, Summary};
 use lcrl_sim::{Env, EnvError};
 use tch::nn;
 
-use crate::action::ActionMap;
-use crate::agent::build_actor;
-use crate::nets::{batch, ActorNet};
-use crate::snapshot::{decode_weights, Architecture};
-use crate::checkpoint::{latest_checkpoint, CheckpointMeta};
+use crate::policy::action::ActionMap;
+use crate::algo::agent::build_actor;
+use crate::algo::nets::{batch, ActorNet};
+use crate::policy::snapshot::{decode_weights, Architecture};
+use crate::policy::checkpoint::{latest_checkpoint, CheckpointMeta};
 use crate::{io, LearnerError};
 
 /// The deterministic policy of a checkpoint or snapshot.
@@ -119,7 +119,7 @@ impl Policy {
     /// The full action for a raw environment state, in the environment's
     /// bounds, base controller included.
     pub fn act(&self, env: &dyn Env, state: &[f64]) -> Vec<f64> {
-        let u = self.act_normalized(&crate::agent::observe(env, state));
+        let u = self.act_normalized(&crate::algo::agent::observe(env, state));
         match self.action_map(env) {
             Ok(map) => map.to_env(&u),
             // check_env and Architecture::validate refuse a base that does
@@ -148,7 +148,7 @@ impl Policy {
 /// run's policy, the one validation selected (RUN/selected/) if the run has
 /// one, else its newest checkpoint.
 pub fn policy_dir(dir: &Path) -> Result<std::path::PathBuf, LearnerError> {
-    let selected = crate::checkpoint::selected_dir(dir);
+    let selected = crate::policy::checkpoint::selected_dir(dir);
     if dir.join("checkpoint.json").is_file() {
         Ok(dir.to_path_buf())
     } else if selected.join("checkpoint.json").is_file() {
@@ -180,7 +180,7 @@ pub fn evaluate_snapshot(
         let policy = Policy::from_snapshot(&snapshot.architecture, &snapshot.weights, snapshot.version).map_err(copy_error)?;
         let actions = policy.action_map(env).map_err(copy_error)?;
         let probe = env.fresh();
-        Ok(move |state: &[f64]| actions.to_env(&policy.act_normalized(&crate::agent::observe(probe.as_ref(), state))))
+        Ok(move |state: &[f64]| actions.to_env(&policy.act_normalized(&crate::algo::agent::observe(probe.as_ref(), state))))
     };
     Ok(evaluate_parallel_with(env, controller, episodes, first, &make, on_episode)?)
 }

@@ -40,7 +40,7 @@ impl crate::config::RunConfig {
 /// (`fallback_explore`) with the run's exploration noise around it, so
 /// that the critic also learns from actions beside the selected ones.
 pub struct FallbackPolicy {
-    policy: crate::policy::Policy,
+    policy: crate::policy::trained::Policy,
     /// The noise's standard deviation and its random stream, seeded per
     /// episode so that a resumed run draws the same noise.
     noise: Option<(Vec<f64>, rand_chacha::ChaCha8Rng)>,
@@ -51,7 +51,7 @@ impl FallbackPolicy {
     /// `episode_seed`'s start; `noise_std`: explore with this deviation.
     pub fn load(run_dir: &std::path::Path, noise_std: Option<f64>, episode_seed: u64) -> Result<Self, crate::LearnerError> {
         use rand::SeedableRng;
-        let policy = crate::policy::Policy::load(&crate::checkpoint::selected_dir(run_dir))?;
+        let policy = crate::policy::trained::Policy::load(&crate::policy::checkpoint::selected_dir(run_dir))?;
         let n = policy.architecture.shape.action_dim;
         Ok(FallbackPolicy { policy, noise: noise_std.map(|std| (vec![std; n], rand_chacha::ChaCha8Rng::seed_from_u64(episode_seed ^ 0xFA11_BAC4))) })
     }
@@ -60,7 +60,7 @@ impl FallbackPolicy {
     pub fn act(&mut self, obs: &[f32]) -> Vec<f32> {
         let mean = self.policy.act_normalized(obs);
         match &mut self.noise {
-            Some((std, rng)) => crate::exploration::gaussian(&mean, std, true, rng),
+            Some((std, rng)) => crate::algo::exploration::gaussian(&mean, std, true, rng),
             None => mean,
         }
     }

@@ -54,7 +54,7 @@ fn actor_waits_for_the_critics_head_start() {
         agent.replay.push(&s, &[a], -(s[0] * s[0]) - a * a, &s, false).unwrap();
     }
     let critic = |agent: &Ddpg| -> Vec<f32> {
-        crate::agent::sorted_variables(&agent.critics[0].vs).iter().flat_map(|(_, t)| Vec::<f32>::try_from(t.flatten(0, -1)).expect("f32 tensor")).collect()
+        crate::algo::agent::sorted_variables(&agent.critics[0].vs).iter().flat_map(|(_, t)| Vec::<f32>::try_from(t.flatten(0, -1)).expect("f32 tensor")).collect()
     };
     let (actor0, critic0) = (actor_weights(&agent), critic(&agent));
     for _ in 0..6 {

@@ -6,7 +6,7 @@
 
 use proptest::prelude::*;
 
-use crate::policy::Policy;
+use crate::policy::trained::Policy;
 use crate::service::ingest::{Ingest, Verdict};
 use crate::service::shm::{TransitionSample, MAX_EPISODES, MAX_TRANSITIONS};
 use lcrl_proto::v1::{EpisodeSummary, Transition, TransitionBatch};
@@ -168,7 +168,7 @@ fn snapshot_weights_with_nan_or_the_wrong_shape_are_refused() {
     assert!(good.is_ok(), "{:?}", good.err());
     let nan = valid_weights(Some(f32::NAN));
     assert!(Policy::from_snapshot(&a, &nan, 1).err().map(|e| e.to_string()).unwrap_or_default().contains("non-finite"));
-    let wrong = crate::snapshot::encode_weights(&[("nets.0.layer0.weight".into(), Tensor::zeros([2, 2], (tch::Kind::Float, tch::Device::Cpu)))]).expect("encodes");
+    let wrong = crate::policy::snapshot::encode_weights(&[("nets.0.layer0.weight".into(), Tensor::zeros([2, 2], (tch::Kind::Float, tch::Device::Cpu)))]).expect("encodes");
     assert!(Policy::from_snapshot(&a, &wrong, 1).is_err());
 }
 
@@ -180,9 +180,9 @@ fn valid_weights(poison: Option<f32>) -> Vec<u8> {
 
 /// The weights of a freshly built actor of `architecture`.
 fn weights_of(architecture: serde_json::Value, poison: Option<f32>) -> Vec<u8> {
-    let arch: crate::snapshot::Architecture = serde_json::from_value(architecture).expect("valid architecture");
+    let arch: crate::policy::snapshot::Architecture = serde_json::from_value(architecture).expect("valid architecture");
     let vs = tch::nn::VarStore::new(tch::Device::Cpu);
-    let _actor = crate::agent::build_actor(&vs.root(), arch.shape.connection, &arch.shape.mask, 3, 3, &arch.network, 0);
+    let _actor = crate::algo::agent::build_actor(&vs.root(), arch.shape.connection, &arch.shape.mask, 3, 3, &arch.network, 0);
     let named: Vec<(String, tch::Tensor)> = vs
         .variables()
         .into_iter()
@@ -195,7 +195,7 @@ fn weights_of(architecture: serde_json::Value, poison: Option<f32>) -> Vec<u8> {
             (name, t)
         })
         .collect();
-    crate::snapshot::encode_weights(&named).expect("encodes")
+    crate::policy::snapshot::encode_weights(&named).expect("encodes")
 }
 
 /// A checkpoint folder is a file anyone can edit: `checkpoint.json` is
@@ -203,11 +203,11 @@ fn weights_of(architecture: serde_json::Value, poison: Option<f32>) -> Vec<u8> {
 /// was not before, and a 2^40-wide state would have been allocated).
 #[test]
 fn checkpoints_are_checked_as_snapshots_are() {
-    let arch: crate::snapshot::Architecture = serde_json::from_value(architecture()).expect("valid architecture");
+    let arch: crate::policy::snapshot::Architecture = serde_json::from_value(architecture()).expect("valid architecture");
     let shape = arch.shape.clone();
     let mut config = crate::config::TrainConfig::default();
     config.network = arch.network.clone();
-    let meta = crate::checkpoint::CheckpointMeta::start(&shape.env, shape.algo, shape.connection, shape.state_dim, shape.action_dim, shape.mask.clone(), config);
+    let meta = crate::policy::checkpoint::CheckpointMeta::start(&shape.env, shape.algo, shape.connection, shape.state_dim, shape.action_dim, shape.mask.clone(), config);
     let good = Policy::from_checkpoint(&serde_json::to_string(&meta).expect("writes"), &valid_weights(None));
     assert!(good.is_ok(), "{:?}", good.err());
     let mut huge = serde_json::to_value(&meta).expect("writes");

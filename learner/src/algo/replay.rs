@@ -219,7 +219,7 @@ impl DeviceMirror {
                 packed.push(buffer.done[slot]);
             }
             let host = Tensor::from_slice(&packed).view([count as i64, -1]);
-            let on_device = crate::device::to_device_async(host, self.rows.device());
+            let on_device = crate::device::torch::to_device_async(host, self.rows.device());
             self.rows.narrow(0, first as i64, count as i64).copy_(&on_device);
             k += count as u64;
         }
@@ -246,7 +246,7 @@ impl DeviceMirror {
     fn picks(&mut self, buffer: &ReplayBuffer, size: usize, rng: &mut impl Rng) -> Tensor {
         self.catch_up(buffer);
         let picks: Vec<i64> = buffer.picks(size, rng).into_iter().map(|k| k as i64).collect();
-        crate::device::to_device_async(Tensor::from_slice(&picks), self.rows.device())
+        crate::device::torch::to_device_async(Tensor::from_slice(&picks), self.rows.device())
     }
 }
 

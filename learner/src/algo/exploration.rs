@@ -1,5 +1,5 @@
 //! How a training action u is sampled, in one place for both loops: the
-//! agents of `lcrl train` ([`crate::ddpg`], [`crate::ppo`]) and the actors of
+//! agents of `lcrl train` ([`crate::algo::ddpg`], [`crate::algo::ppo`]) and the actors of
 //! a distributed run sample with these functions, so the same policy, state
 //! and random draws give the same u, and the same u is stored
 //! (docs/architecture.md, "One transition, one meaning").
@@ -9,7 +9,7 @@
 //!   [−1, 1] (σ from the noise schedule).
 //! - PPO: u ~ N(μ(s), diag σ²), not clipped: the Gaussian's own sample, so
 //!   that log π(u|s) is the density the ratio needs. The action map
-//!   ([`crate::action::ActionMap::to_env`]) clips when it makes the
+//!   ([`crate::policy::action::ActionMap::to_env`]) clips when it makes the
 //!   environment's action, and only there.
 
 use rand::Rng;
@@ -35,7 +35,7 @@ pub fn uniform(n: usize, rng: &mut impl Rng) -> Vec<f32> {
 }
 
 /// log N(u; μ, diag σ²), summed over components: PPO's log π(u|s) for one
-/// row, as [`crate::ppo`] computes it on tensors.
+/// row, as [`crate::algo::ppo`] computes it on tensors.
 pub fn gaussian_log_prob(mean: &[f32], std: &[f64], u: &[f32]) -> f32 {
     let half_log_two_pi = 0.5 * (2.0 * std::f64::consts::PI).ln();
     mean.iter()

@@ -7,12 +7,12 @@ use tch::Tensor;
 
 use lcrl_proto::v1::PolicySnapshot;
 
-use crate::agent::Agent;
+use crate::algo::agent::Agent;
 use crate::LearnerError;
 
 // What a snapshot describes lives below both it and the checkpoint store,
-// which records it too (learner/src/architecture.rs).
-pub use crate::architecture::{ActorShape, Architecture, MAX_ACTOR_PARAMS, MAX_DIM, MAX_LAYERS};
+// which records it too (learner/src/policy/architecture.rs).
+pub use crate::policy::architecture::{ActorShape, Architecture, MAX_ACTOR_PARAMS, MAX_DIM, MAX_LAYERS};
 
 /// Named f32 tensors as a safetensors byte buffer.
 pub fn encode_weights(named: &[(String, Tensor)]) -> Result<Vec<u8>, LearnerError> {
@@ -65,7 +65,7 @@ pub fn snapshot(agent: &dyn Agent, architecture: &Architecture, version: u64) ->
 /// checkpoint.json and actor.safetensors), as version
 /// `policy_version` of its metadata.
 pub fn read_snapshot(dir: &Path) -> Result<PolicySnapshot, LearnerError> {
-    let meta = crate::checkpoint::read_meta(dir)?;
+    let meta = crate::policy::checkpoint::read_meta(dir)?;
     let path = dir.join("actor.safetensors");
     let weights = std::fs::read(&path).map_err(|source| LearnerError::Io { path, source })?;
     policy_snapshot(&meta.architecture(), weights, meta.policy_version)

@@ -13,8 +13,8 @@ use lcrl_sim::Env;
 use serde::{Deserialize, Serialize};
 
 use crate::config::{Algo, Connection};
-use crate::policy::evaluate_snapshot;
-use crate::run_files::{write_atomically, SelectionRecord};
+use crate::policy::trained::evaluate_snapshot;
+use crate::run::files::{write_atomically, SelectionRecord};
 use crate::LearnerError;
 
 /// What summary.json holds. The JSON is flat: the sections' keys sit at the
@@ -55,7 +55,7 @@ pub struct RunSummary {
     #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
     pub service: Option<ServiceFigures>,
     /// Training episodes the run's selected policy acted in
-    /// (`run.fallback_margin`, learner/src/fallback.rs); absent when off.
+    /// (`run.fallback_margin`, learner/src/policy/fallback.rs); absent when off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fallback_episodes: Option<usize>,
 }
@@ -177,8 +177,8 @@ pub fn evaluate_hand_over(env: &dyn Env, selected: Option<&PolicySnapshot>, last
         last_eval_return,
         zero_action_return: references.iter().find(|r| r.controller == ZERO_ACTION).map(|r| r.mean_return),
         references,
-        lqr_return: lti.and_then(|lti| crate::lqr::lqr_return(lti, episodes, first)),
-        masked_lqr_return: lti.zip(plan.local_mask).and_then(|(lti, mask)| crate::lqr::masked_lqr_return(lti, mask, episodes, first)),
+        lqr_return: lti.and_then(|lti| crate::algo::lqr::lqr_return(lti, episodes, first)),
+        masked_lqr_return: lti.zip(plan.local_mask).and_then(|(lti, mask)| crate::algo::lqr::masked_lqr_return(lti, mask, episodes, first)),
     })
 }
 

@@ -2,7 +2,7 @@
 //! place that knows both DDPG and PPO, so that neither they nor agent.rs
 //! import each other in a circle.
 
-use crate::agent::Agent;
+use crate::algo::agent::Agent;
 use crate::config::Connection;
 use crate::LearnerError;
 
@@ -16,10 +16,10 @@ pub fn make_agent(
     n: usize,
 ) -> Result<Box<dyn Agent>, LearnerError> {
     use crate::config::Algo;
-    let device = crate::device::resolve_device(&cfg.run.device)?;
+    let device = crate::device::torch::resolve_device(&cfg.run.device)?;
     Ok(match algo {
         Algo::Ddpg => {
-            let mut ddpg = crate::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed, device);
+            let mut ddpg = crate::algo::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed, device);
             if device.is_cuda() && cfg.run.cuda_graphs {
                 match ddpg.use_cuda_graphs() {
                     Ok(()) => tracing::info!("DDPG updates run as CUDA graphs"),
@@ -28,6 +28,6 @@ pub fn make_agent(
             }
             Box::new(ddpg)
         }
-        Algo::Ppo => Box::new(crate::ppo::Ppo::new(&cfg.ppo, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
+        Algo::Ppo => Box::new(crate::algo::ppo::Ppo::new(&cfg.ppo, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
     })
 }

@@ -1,0 +1,21 @@
+//! The policy room: a trained actor as it is stored, sent and served. What
+//! identifies an actor, the map from its outputs to the environment's box,
+//! the checkpoint store, the snapshot on the wire, the loaded policy, and the
+//! fallback to the run's selected policy.
+//!
+//! May import: [`crate::algo`], [`crate::device`], [`crate::config`].
+//! Nothing here knows of runs or the service.
+//!
+//! - [`architecture`]: what identifies an actor, held by snapshots and checkpoints alike.
+//! - [`action`]: normalized actions to the environment's box, around an optional base controller (residual RL).
+//! - [`checkpoint`]: the checkpoint store (atomic writes, newest kept, resume).
+//! - [`snapshot`]: a policy on the wire (architecture + safetensors weights).
+//! - [`trained`]: a trained actor ([`trained::Policy`]) loaded from a checkpoint or a snapshot, and its evaluation.
+//! - [`fallback`]: falling back to the run's selected policy after an episode below the margin.
+
+pub mod action;
+pub mod architecture;
+pub mod checkpoint;
+pub mod fallback;
+pub mod snapshot;
+pub mod trained;
