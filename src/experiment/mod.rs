@@ -6,6 +6,7 @@
 mod against;
 mod bars;
 mod config;
+mod draws;
 mod figures;
 mod k8s;
 mod plan;

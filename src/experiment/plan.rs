@@ -273,7 +273,7 @@ pub fn prepare_out(e: &Experiment, file: &Path, out: &Path, shared: bool) -> any
             bail!(
                 "{} belongs to a different experiment ({}); {} describes another study. Nothing was changed: \
                  run it with another --out, or restore the file that made this directory to continue it \
-                 (adding seeds is the one change a study folder takes: its finished runs keep their meaning)",
+                 (adding seeds or connections is the one change a study folder takes: its finished runs keep their meaning)",
                 out.display(),
                 other.map_or("unreadable experiment.json".into(), |n| format!("\"{n}\", see {}", out.join("experiment.toml").display())),
                 file.display()
@@ -307,14 +307,20 @@ pub fn recorded_experiment(out: &Path) -> anyhow::Result<Experiment> {
 
 /// Whether `e` continues the study recorded in `existing` (its
 /// experiment.json): the same study once checked (deprecated names
-/// renamed), or the same study with more seeds. Adding seeds leaves every
-/// finished run what it was, so the folder takes them (the report then
-/// covers them all); any other change would mix two studies in one report.
+/// renamed), or the same study widened: more seeds, more connections (new
+/// cells), or a primary contrast named where it had none (before the runs
+/// of the cells it adds). Each leaves every finished run what it was, so
+/// the folder takes them (the report then covers them all); any other
+/// change would mix two studies in one report.
 fn extends(existing: &str, e: &Experiment) -> bool {
     let Some(old) = serde_json::from_str(existing).ok().and_then(|file| Experiment::check(file).ok()) else { return false };
     let mut widened = old.file.clone();
     widened.seeds = e.file.seeds.clone();
-    widened == e.file && old.seeds.iter().all(|seed| e.seeds.contains(seed))
+    widened.connections = e.file.connections.clone();
+    if widened.primary.is_none() {
+        widened.primary = e.file.primary.clone();
+    }
+    widened == e.file && old.seeds.iter().all(|seed| e.seeds.contains(seed)) && old.connections.iter().all(|c| e.connections.contains(c))
 }
 
 #[cfg(test)]

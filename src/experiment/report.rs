@@ -118,6 +118,9 @@ pub struct Report {
     pub comparisons: Vec<Comparison>,
     /// The study file's `[primary]` contrast, tested on its own.
     pub primary: Option<super::primary::PrimaryResult>,
+    /// Graph cells placed among a `+per-seed` random cell's draws.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub random_draws: Vec<super::draws::Placement>,
     /// Runs not finished (yet): their cells report the seeds that are.
     pub missing_runs: Vec<String>,
 }
@@ -284,6 +287,7 @@ impl Study {
                 };
                 super::primary::evaluate(contrast, &e.file.environments, values)
             }),
+            random_draws: super::draws::placements(&self.cells.iter().map(|c| (&c.cell, c.runs.iter().map(|r| r.summary.evaluation.eval_return).collect())).collect::<Vec<_>>()),
             cells,
             missing_runs: self.missing.clone(),
         }
@@ -465,6 +469,7 @@ pub fn markdown(report: &Report) -> String {
         }
         let _ = writeln!(md);
     }
+    md.push_str(&super::draws::markdown(&report.random_draws));
     md
 }
 

@@ -252,7 +252,7 @@ fn bad_experiments_are_refused_and_finished_runs_kept() {
     assert_eq!(finished_runs(&out), finished);
     // Dropping a seed is another study too.
     let fewer = write("fewer.toml", &TINY.replace("seeds = 1", "seeds = [1]"));
-    assert_clean_failure(&run(&fewer, &out), "adding seeds is the one change");
+    assert_clean_failure(&run(&fewer, &out), "adding seeds or connections is the one change");
     assert_eq!(finished_runs(&out), finished);
     // More seeds extend the study: only the new seed runs, and the report
     // covers both.
@@ -270,6 +270,15 @@ fn bad_experiments_are_refused_and_finished_runs_kept() {
     let again = run(&commented, &out);
     assert!(again.status.success() && stdout(&again).contains("2 of 2 tasks finished before"), "{}", stdout(&again));
     assert_eq!(finished_runs(&out), finished);
+    // A new connection adds cells: only their runs run, the old ones stay.
+    let wider = write("tiny-wider.toml", &TINY.replace("seeds = 1", "seeds = 2").replace("[\"global\"]", "[\"global\", \"full-subnets\"]"));
+    let widened = run(&wider, &out);
+    assert!(widened.status.success() && stdout(&widened).contains("2 of 4 tasks finished before"), "{}", stdout(&widened));
+    let all = finished_runs(&out);
+    assert_eq!(all.len(), 4);
+    assert!(finished.iter().all(|(run, file)| all.get(run) == Some(file)), "a finished run was touched");
+    // Dropping a connection is another study.
+    assert_clean_failure(&run(&commented, &out), "belongs to a different experiment");
     // A folder that holds something else is not taken over.
     assert_clean_failure(&run(&tiny, tmp.path()), "holds no experiment");
     assert_clean_failure(&lcrl().args(["experiment", "report"]).arg(tmp.path()).output().unwrap(), "holds no experiment");
