@@ -10,11 +10,13 @@
 //! - [`run_summary`]: `lcrl run`'s summary.json, its learner's with the run's actors and wall time.
 //! - [`plots`]: the PNG figures.
 //! - [`experiment`]: `lcrl experiment`, a study of many runs.
+//! - [`export`]: `lcrl export`, a trained policy as one TorchScript or ONNX file.
 //! - [`output`]: writing result files.
 
 pub mod binaries;
 pub mod connection;
 pub mod experiment;
+pub mod export;
 pub mod output;
 pub mod plots;
 pub mod preset;

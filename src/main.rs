@@ -45,6 +45,9 @@ enum Command {
     Train(cmd::train::TrainArgs),
     /// Compare training runs: time split, final returns, reward curves.
     Compare(cmd::compare::CompareArgs),
+    /// Write a trained policy as one TorchScript (or ONNX) file for a
+    /// controller: raw state in, applied action out (docs/export.md).
+    Export(cmd::export::ExportArgs),
     /// Many seeds of LCRL against GCRL: statistics, figures, resumable
     /// (experiments/*.toml; see `lcrl experiment run --help`).
     #[command(subcommand)]
@@ -78,6 +81,7 @@ fn main() -> ExitCode {
         Command::Tune(args) => cmd::tune::run(&args),
         Command::Train(args) => cmd::train::run(&args),
         Command::Compare(args) => cmd::compare::run(&args),
+        Command::Export(args) => cmd::export::run(&args),
         Command::Experiment(command) => lcrl::experiment::run(&command),
         Command::Certs(args) => cmd::certs::run(&args),
         Command::Doctor => cmd::doctor::run(),

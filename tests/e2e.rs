@@ -18,4 +18,5 @@ mod e2e {
     mod hostile;
     mod faults;
     mod served_env;
+    mod export;
 }

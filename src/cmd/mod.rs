@@ -8,6 +8,7 @@ pub mod bench_transport;
 pub mod certs;
 pub mod compare;
 pub mod doctor;
+pub mod export;
 pub mod launch;
 pub mod probe;
 pub mod run;
