@@ -3,7 +3,7 @@
 DDPG, small networks) with one fault injected each, and a table of what the
 service did and what was lost (docs/reliability.md). A benchmark, not a
 test: the suite keeps the short deterministic cases (tests/e2e/faults.rs,
-tests/e2e/hostile.rs, tests/e2e/run_cli.rs, learner/src/checkpoint.rs).
+tests/e2e/hostile.rs, tests/e2e/run_cli.rs, learner/src/policy/checkpoint.rs).
 
     bash scripts/chaos.sh                  # every fault, about 4 minutes
     bash scripts/chaos.sh --only flood     # one fault

@@ -10,7 +10,7 @@ for its confirmation (RUN/candidates/episode-*, RUN/selected/), it runs
 `lcrl sim` twice:
 
 - on the run's own 300 confirmation starts (seeds 2^43 + r*2^20 + k, the
-  ones learner/src/selection.rs scored it on; the mean return is checked
+  ones learner/src/run/selection.rs scored it on; the mean return is checked
   against selection.json, to the last digit), and
 - on --fresh further starts from seed 100000 (no run trains, validates or
   is evaluated there),

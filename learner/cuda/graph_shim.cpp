@@ -1,7 +1,7 @@
 // A C interface to libtorch's CUDA graphs (at::cuda::CUDAGraph), which tch
 // does not bind. learner/build.rs compiles it into a small shared library
 // when libtorch is a CUDA build with the CUDA runtime's headers beside it;
-// learner/src/cuda_graph.rs loads it at run time, after libtorch_cuda.so
+// learner/src/device/cuda_graph.rs loads it at run time, after libtorch_cuda.so
 // (device.rs), so no binary links the CUDA libraries.
 //
 // Why graphs (docs/scaling.md, "On a GPU and 16 cores"): a DDPG update at
