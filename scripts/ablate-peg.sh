@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # One change at a time: DDPG with configs/peg.toml and each variant that
-# undoes one of its differences from Table I (docs/peg.md, "Which changes
-# mattered"), on one preset and a few seeds, two runs at a time. Each run is
-# `lcrl train` with the variant's overlay (validation off: it does not
-# change training, and every run is judged by its last policy, on the run's
-# own 100 evaluation starts). Prints one markdown table.
+# undoes one of its differences from Table I
+# (docs/research/2026-11-23-peg-settings-that-do-not-diverge.md, "Which
+# changes mattered"), on one preset and a few seeds, two runs at a time.
+# Each run is `lcrl train` with the variant's overlay (validation off: it
+# does not change training, and every run is judged by its last policy, on
+# the run's own 100 evaluation starts). Prints one markdown table.
 #   bash scripts/ablate-peg.sh [ENV] [SEEDS] [OUT] [VARIANTS]
 # e.g. bash scripts/ablate-peg.sh peg-group1 "0 1 2" runs/ablate-peg-group1 "peg squared-loss"
 # (VARIANTS: a subset of the names below; all by default).

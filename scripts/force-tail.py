@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Rare handover failures: do a policy's near-limit starts on its
-confirmation predict the starts it fails later? (docs/peg.md, "Rare
-handover failures").
+confirmation predict the starts it fails later?
+(docs/research/2026-11-27-peg-rare-handover-failures.md).
 
     python3 scripts/force-tail.py STUDY_DIR [--fresh 2000] [--lcrl PATH]
 

@@ -1,6 +1,9 @@
 #!/usr/bin/env python3
 """Every handed-over policy of a study on fresh starts, and two arms
-paired by seed (docs/peg.md, "Training that stays near its base").
+paired by seed (the twelfth, thirteenth and sixteenth rounds:
+docs/research/2026-11-27-peg-safety-12-exploring-base-bar.md,
+docs/research/2026-11-27-peg-safety-13-reach-seven-eighths.md,
+docs/research/2026-11-27-peg-safety-16-temporal-smoothness.md).
 
     python3 scripts/fresh-starts.py STUDY_DIR [--against OTHER_STUDY_DIR] [--episodes 2000] [--lcrl PATH]
 

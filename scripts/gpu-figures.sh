@@ -1,5 +1,7 @@
 #!/usr/bin/env bash
-# The GPU and many-core figures of docs/scaling.md, in one run on a machine
+# The GPU and many-core figures of docs/scaling.md (the record:
+# docs/research/2026-11-26-gpu-learner-h200.md and
+# docs/research/2026-11-26-cuda-graphs-h100.md), in one run on a machine
 # with a GPU (run from the project root):
 #
 #   scripts/gpu-figures.sh BIN_DIR OUT_DIR [BASELINE_BIN_DIR] [TEST_BIN_DIR]

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The peg-in-hole measurement behind docs/peg.md: for each peg preset, the
+# The peg-in-hole measurement behind
+# docs/research/2026-11-22-peg-table1-results.md: for each peg preset, the
 # constant controllers (a = 0 and the tuned best constant) and DDPG local
 # and global (200 episodes, seeds 0–2, Table I's settings: configs/table1-ddpg.toml), all evaluated on the same 100
 # starts (`lcrl sim --episodes 100 --seed 0`). Two runs at a time.

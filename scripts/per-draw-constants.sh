@@ -7,7 +7,7 @@
 # (`lcrl tune --episodes 1 --seed k --eval-seed k`). A start no constant
 # inserts is one that adapting by a constant cannot win; the count of
 # those a per-start constant does insert bounds what a draw-aware choice
-# of constant could gain (docs/peg.md, "Randomized presets").
+# of constant could gain (docs/research/2026-11-23-peg-rand-adapt.md).
 # Usage: bash scripts/per-draw-constants.sh ENV BEST_CONSTANT_JSON OUT [N] [EVALUATIONS]
 set -euo pipefail
 cd "$(dirname "$0")/.."

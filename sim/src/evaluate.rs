@@ -31,8 +31,9 @@ pub struct EpisodeRecord {
     /// The largest change of one applied action component between two
     /// consecutive control steps, as a share of that component's range
     /// (ub − lb): 1 is a switch from one edge of the box to the other.
-    /// How bang-bang the policy acts (docs/peg.md, "Rare handover
-    /// failures"); 0 for a one-step episode.
+    /// How bang-bang the policy acts
+    /// (docs/research/2026-11-27-peg-rare-handover-failures.md); 0 for a
+    /// one-step episode.
     pub max_action_jump: f64,
     /// Initial state and every step, when recording was asked for.
     pub initial_state: Vec<f64>,

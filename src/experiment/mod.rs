@@ -83,7 +83,8 @@ pub struct ReportArgs {
     /// How far below the reference's worst 10-episode mean a run's may fall
     /// and still pass (return units). The default, 1.0, is two standard
     /// deviations of the exploring base's own worst windows over seeds on
-    /// peg-group2 (docs/peg.md, twelfth round).
+    /// peg-group2 (the twelfth round,
+    /// docs/research/2026-11-27-peg-safety-12-exploring-base-bar.md).
     #[arg(long, default_value_t = 1.0, requires = "against")]
     pub margin: f64,
 }

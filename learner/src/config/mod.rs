@@ -243,7 +243,8 @@ pub enum WarmupActions {
     /// The initial policy plus the exploration noise (`noise_start`), as
     /// after the warm-up, only without updates. The last layer's init makes
     /// the initial residual ≈ 0, so under a base controller this explores
-    /// around the base (docs/peg.md, "Training that stays near its base").
+    /// around the base (the second round,
+    /// docs/research/2026-11-25-peg-safety-02-trust-region.md).
     Policy,
 }
 
@@ -302,16 +303,18 @@ pub struct DdpgConfig {
     /// "Regularizing Action Policies for Smooth Control", 2021), squared as
     /// the other terms here. It penalizes policies whose action jumps
     /// between consecutive states, the bang-bang switching between the
-    /// reach's edges that wedges the peg (docs/peg.md, "Rare handover
-    /// failures"); unlike a rate limit on the applied action it leaves the
-    /// process Markov in s. 0 (the default) is off.
+    /// reach's edges that wedges the peg
+    /// (docs/research/2026-11-27-peg-rare-handover-failures.md); unlike a
+    /// rate limit on the applied action it leaves the process Markov in s.
+    /// 0 (the default) is off.
     pub temporal_smoothness: f64,
     /// Weight κ of the twin critics' disagreement in the actor's objective:
     /// the actor maximizes mean(Q₁, Q₂) − κ·|Q₁ − Q₂| instead of Q₁ (κ = 0.5
     /// is min(Q₁, Q₂)). Two critics fitted to the same targets agree where
     /// the buffer has data and drift apart where they extrapolate, so the
     /// actor is held back from actions only an extrapolating critic
-    /// praises (docs/peg.md, "Training that stays near its base"). Needs
+    /// praises (the fifth round,
+    /// docs/research/2026-11-26-peg-safety-05-critic-disagreement.md). Needs
     /// `twin_critics`; 0 (the default) follows the first critic alone.
     pub critic_disagreement: f64,
     /// Std of clipped Gaussian noise on the target action (TD3's target
@@ -328,15 +331,17 @@ pub struct DdpgConfig {
     /// Critic updates before the actor's first (0: from the start, as in
     /// Algorithm 2). Under a base controller the actor starts as the base;
     /// following an untrained critic's ∂Q/∂a, Adam's first few dozen steps
-    /// carry it to an arbitrary residual (docs/peg.md, "The critic's head
-    /// start"). The critic's target still follows it meanwhile.
+    /// carry it to an arbitrary residual (the critic's head start, second
+    /// round: docs/research/2026-11-25-peg-safety-02-trust-region.md). The
+    /// critic's target still follows it meanwhile.
     pub critic_warmup_updates: usize,
     /// Raise the actor's learning rate linearly from 0 to `actor_lr` over
     /// its first this many updates (0: full rate from the first). Adam's
     /// step is about lr per weight however weak ∂Q/∂a is, so an actor at
-    /// full rate leaves its base at full speed on an untrained critic
-    /// (docs/peg.md, "Training that stays near its base"); the ramp slows
-    /// only the start, where the trust region (`proximal_l2`) brakes all run.
+    /// full rate leaves its base at full speed on an untrained critic (the
+    /// third round, docs/research/2026-11-25-peg-safety-03-actor-lr-ramp.md);
+    /// the ramp slows only the start, where the trust region (`proximal_l2`)
+    /// brakes all run.
     pub actor_lr_warmup_updates: usize,
     /// DDPG's own reach around the base, in place of `[base]
     /// residual_scale` (same meaning, (0, 1], needs a base); PPO ignores

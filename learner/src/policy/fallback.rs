@@ -1,5 +1,6 @@
 //! Falling back to the run's selected policy while the current one scores
-//! below its base (docs/peg.md, "Training that stays near its base").
+//! below its base (the fourth round,
+//! docs/research/2026-11-25-peg-safety-04-lighter-brake-and-fallback.md).
 //!
 //! A robot that trains lives through every training episode. Residual
 //! DDPG's curve dips well below its base while the actor leaves it (the

@@ -351,8 +351,9 @@ fn recorded_best_constants_beat_a_zero() {
     }
 }
 
-/// The default physics against a 4× finer reference (docs/peg.md,
-/// "Simulation accuracy"): starts 0–9 under the best constant, 8 against 32
+/// The default physics against a 4× finer reference
+/// (docs/research/2026-11-25-simulator-step-cost.md, "Cheaper physics,
+/// checked for accuracy"): starts 0–9 under the best constant, 8 against 32
 /// physics steps per control step. The tolerances come from what the
 /// figures are for: the same outcome and length (±1 step); per episode, a
 /// return within 0.2 (below the smallest difference between connections the
