@@ -55,6 +55,16 @@ if ! "$VENV/bin/python" -c 'import grpc, grpc_tools, grpc_health, grpc_reflectio
   echo "setup: installing grpcio, grpcio-tools, grpcio-health-checking, grpcio-reflection into $VENV"
   "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check grpcio grpcio-tools grpcio-health-checking grpcio-reflection
 fi
+# `lcrl export --format onnx` (docs/export.md): PyTorch's ONNX exporter
+# (clients/python/lcrl_export_onnx.py) needs onnx; the export's check, the
+# test that compares the exported files with the served policy, and
+# controllers without libtorch run the file with ONNX Runtime.
+ONNX_VERSION=1.23.2
+ONNXRUNTIME_VERSION=1.32.0
+if ! "$VENV/bin/python" -c "import importlib.metadata as m, sys; sys.exit(m.version('onnx') != '$ONNX_VERSION' or m.version('onnxruntime') != '$ONNXRUNTIME_VERSION')" 2>/dev/null; then
+  echo "setup: installing onnx==$ONNX_VERSION and onnxruntime==$ONNXRUNTIME_VERSION into $VENV"
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check "onnx==$ONNX_VERSION" "onnxruntime==$ONNXRUNTIME_VERSION"
+fi
 # Bring-your-own environments (clients/python/lcrl_env, docs/environments.md):
 # Gymnasium with MuJoCo (HalfCheetah-v5, the example), and lcrl_env itself,
 # editable so it runs from clients/python beside the generated stubs.

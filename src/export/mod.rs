@@ -87,6 +87,10 @@ pub struct Prepared {
 /// Exports one file and policy.json beside it.
 pub fn export(request: &Request) -> anyhow::Result<Outcome> {
     let manifest_path = manifest_path(&request.out)?;
+    // Every product here is one row or a few hundred: on more threads
+    // libtorch only synchronizes (15× slower on 2 busy cores). The file
+    // carries no thread setting; its caller chooses its own.
+    tch::set_num_threads(1);
     let prepared = prepare(request)?;
     let entry = match request.format {
         Format::Torchscript => write_torchscript(&prepared, &request.out)?,
@@ -117,6 +121,13 @@ fn locate(run: &Path, checkpoint: Option<&str>) -> anyhow::Result<(PathBuf, Opti
     };
     if !run.is_dir() {
         bail!("{} is not a folder: name a run directory (runs/peg-group1) or a policy folder (RUN/checkpoints/epNNNNNN)", run.display());
+    }
+    // `lcrl run` keeps its learner's records, policies included, in
+    // RUN/learner/.
+    let learner = run.join("learner");
+    let has_policies = |dir: &Path| is_policy(dir) || is_policy(&selected_dir(dir)) || dir.join("checkpoints").is_dir();
+    if !has_policies(run) && has_policies(&learner) {
+        return locate(&learner, checkpoint);
     }
     match checkpoint {
         None if is_policy(run) => Ok((run.to_path_buf(), run_of(run), "given".into())),
@@ -357,3 +368,6 @@ fn write_manifest(path: &Path, manifest: &Manifest, format: Format, entry: &File
     lcrl_proto::files::write_atomically(path, format!("{text}\n").as_bytes()).with_context(|| format!("writing {}", path.display()))?;
     Ok(manifest)
 }
+
+#[cfg(test)]
+mod tests;

@@ -236,3 +236,145 @@ async fn peg_group1_exports_act_as_the_served_policy() {
 async fn lti_paper_exports_act_as_the_served_policy() {
     exported_files_act_as_the_served_policy(&LTI).await;
 }
+
+/// A quick `lcrl train` run to export (about a second).
+fn quick_run(dir: &Path, env: &str, connection: &str, run_settings: &str) -> PathBuf {
+    let run = dir.join(format!("run-{env}"));
+    let config = dir.join(format!("{env}.toml"));
+    std::fs::write(&config, format!("[ppo]\nrollout_steps = 250\nminibatch_size = 50\nactor_lr = 1e-2\n[run]\neval_episodes = 1\nconfirm_candidates = 0\n{run_settings}")).unwrap();
+    let out = lcrl()
+        .current_dir(root())
+        .args(["train", "--env", env, "--algo", "ppo", "--connection", connection, "--episodes", "10", "--config"])
+        .arg(&config)
+        .arg("--run-dir")
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "lcrl train: {}", stderr(&out));
+    run
+}
+
+/// The fenced blocks of `language` in a Markdown page.
+fn code_blocks(page: &str, language: &str) -> Vec<String> {
+    let fence = format!("```{language}\n");
+    page.split(fence.as_str()).skip(1).map(|rest| rest.split("\n```").next().unwrap_or_default().to_string()).collect()
+}
+
+/// A C++ compiler on this machine ($CXX, c++, g++ or clang++), if any.
+fn cxx() -> Option<String> {
+    let candidates = std::env::var("CXX").into_iter().chain(["c++", "g++", "clang++"].map(String::from));
+    candidates.into_iter().find(|c| Command::new(c).arg("--version").stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok_and(|s| s.success()))
+}
+
+/// docs/export.md's examples run on an exported peg-group1 policy: each
+/// Python block (TorchScript, ONNX Runtime) in the export's folder, and
+/// the C++ block compiled against the .venv's libtorch, whose action for
+/// a state is the served policy's.
+#[test]
+fn the_examples_of_docs_export_md_run_an_exported_policy() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = quick_run(dir.path(), "peg-group1", "graph:references/peg-eq21/graph.json", "validation_episodes = 0\n");
+    let out = dir.path().join("export");
+    export_both(&run, &out);
+    let page = std::fs::read_to_string(root().join("docs/export.md")).unwrap();
+    let python_blocks = code_blocks(&page, "python");
+    assert_eq!(python_blocks.len(), 2, "docs/export.md shows TorchScript and ONNX Runtime from Python");
+    for (k, block) in python_blocks.iter().enumerate() {
+        let script = out.join(format!("example_{k}.py"));
+        std::fs::write(&script, block).unwrap();
+        let result = Command::new(python()).arg(&script).current_dir(&out).output().unwrap();
+        assert!(result.status.success(), "docs/export.md's Python example {k}: {}", stderr(&result));
+        assert!(stdout(&result).contains("'dgamma': "), "{}", stdout(&result));
+    }
+
+    let headers = root().join(".venv/libtorch/include/torch/script.h");
+    let Some(compiler) = cxx() else {
+        println!("skipping docs/export.md's C++ example: no C++ compiler ($CXX, c++, g++, clang++)");
+        return;
+    };
+    if !headers.is_file() {
+        println!("skipping docs/export.md's C++ example: {} is missing (scripts/setup.sh installs libtorch into .venv)", headers.display());
+        return;
+    }
+    let cpp = code_blocks(&page, "cpp");
+    assert_eq!(cpp.len(), 1, "docs/export.md shows one C++ program");
+    let source = dir.path().join("run_policy.cpp");
+    std::fs::write(&source, &cpp[0]).unwrap();
+    let libtorch = std::fs::canonicalize(root().join(".venv/libtorch")).unwrap();
+    let binary = dir.path().join("run_policy");
+    // The flags of docs/export.md's build line.
+    let build = Command::new(&compiler)
+        .args(["-std=c++20", "-O2"])
+        .arg(&source)
+        .arg(format!("-I{}", libtorch.join("include").display()))
+        .arg(format!("-I{}", libtorch.join("include/torch/csrc/api/include").display()))
+        .arg(format!("-L{}", libtorch.join("lib").display()))
+        .arg(format!("-Wl,-rpath,{}", libtorch.join("lib").display()))
+        .args(["-Wl,--no-as-needed", "-ltorch", "-ltorch_cpu", "-lc10", "-o"])
+        .arg(&binary)
+        .output()
+        .unwrap();
+    assert!(build.status.success(), "{compiler} docs/export.md's run_policy.cpp: {}", stderr(&build));
+    // A state mid-episode, in contact.
+    let mut env = lcrl_sim::make_env("peg-group1").unwrap();
+    let mut state = env.reset(3).unwrap();
+    for _ in 0..20 {
+        state = env.step(&[0.0; 6]).unwrap().state;
+    }
+    let state: Vec<f32> = state.iter().map(|&v| v as f32).collect();
+    let result = Command::new(&binary).arg(out.join("policy.pt")).args(state.iter().map(|v| format!("{v:e}"))).output().unwrap();
+    assert!(result.status.success(), "run_policy: {}", stderr(&result));
+    let action: Vec<f64> = stdout(&result).split_whitespace().map(|v| v.parse().unwrap()).collect();
+    let policy = lcrl_learner::policy::trained::Policy::load(&run).unwrap();
+    let served = policy.act(env.as_ref(), &state.iter().map(|&v| f64::from(v)).collect::<Vec<_>>());
+    assert_eq!(action.len(), served.len());
+    let difference = action.iter().zip(&served).map(|(a, b)| (a - f64::from(*b as f32)).abs()).fold(0.0, f64::max);
+    println!("C++ example: action {action:?}, served {served:?}, largest difference {difference:e}");
+    assert!(difference <= TOLERANCE, "C++ {action:?} against served {served:?}");
+}
+
+/// What a user gets wrong is said, with what to do: a folder that is not
+/// a run, one without a policy, a checkpoint that is not there, an --out
+/// that would be policy.json itself, an environment that does not fit,
+/// no Python or a Python without torch for ONNX. And `--checkpoint` picks
+/// another policy, named in policy.json.
+#[test]
+fn export_says_what_is_wrong_and_takes_another_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = quick_run(dir.path(), "lti-paper", "global", "validation_episodes = 0\ncheckpoint_every = 5\n");
+    let out = dir.path().join("out/policy.pt");
+    let export = |args: &[&str]| lcrl().current_dir(root()).arg("export").args(args).output().unwrap();
+    let path = |p: &Path| p.to_str().unwrap().to_string();
+
+    assert_clean_failure(&export(&[&path(&dir.path().join("nothing")), "--out", &path(&out)]), "is not a folder");
+    std::fs::create_dir(dir.path().join("empty")).unwrap();
+    assert_clean_failure(&export(&[&path(&dir.path().join("empty")), "--out", &path(&out)]), "holds no policy");
+    assert_clean_failure(&export(&[&path(&run), "--checkpoint", "ep999999", "--out", &path(&out)]), "ep000010");
+    assert_clean_failure(&export(&[&path(&run), "--out", &path(&dir.path().join("policy.json"))]), "must name the policy file");
+    assert_clean_failure(&export(&[&path(&run), "--env", "peg-group1", "--out", &path(&out)]), "trained on lti-paper (3 states, 3 actions)");
+
+    // Without a selection, the newest checkpoint; --checkpoint another.
+    let newest = export(&[&path(&run), "--out", &path(&out)]);
+    assert!(newest.status.success(), "{}", stderr(&newest));
+    let manifest: Value = serde_json::from_str(&std::fs::read_to_string(out.with_extension("json")).unwrap()).unwrap();
+    assert!(manifest["source"]["chosen"].as_str().unwrap().starts_with("newest checkpoint"), "{manifest}");
+    assert_eq!(manifest["source"]["episode"], 10);
+    assert_eq!(manifest["graph"]["connection"], "global");
+    let earlier = export(&[&path(&run), "--checkpoint", "ep000005", "--out", &path(&out)]);
+    assert!(earlier.status.success(), "{}", stderr(&earlier));
+    let manifest: Value = serde_json::from_str(&std::fs::read_to_string(out.with_extension("json")).unwrap()).unwrap();
+    assert_eq!((manifest["source"]["chosen"].as_str(), manifest["source"]["episode"].as_u64()), (Some("given"), Some(5)), "{manifest}");
+
+    // ONNX needs Python with torch: missing, then without torch.
+    let onnx = |python: &Path| {
+        lcrl().current_dir(root()).env("LCRL_PYTHON", python).args(["export", &path(&run), "--format", "onnx", "--out", &path(&dir.path().join("p.onnx"))]).output().unwrap()
+    };
+    assert_clean_failure(&onnx(&dir.path().join("no-python")), "scripts/setup.sh");
+    let bare = dir.path().join("bare");
+    let made = Command::new(python()).args(["-m", "venv", "--without-pip"]).arg(&bare).output().unwrap();
+    assert!(made.status.success(), "{}", stderr(&made));
+    let failed = onnx(&bare.join("bin/python"));
+    assert_clean_failure(&failed, "lacks torch");
+    assert!(stderr(&failed).contains("scripts/setup.sh"), "{}", stderr(&failed));
+    assert!(!dir.path().join("p.onnx").exists() && !dir.path().join("p.json").exists(), "nothing is left of a failed export");
+}
