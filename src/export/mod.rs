@@ -8,6 +8,7 @@
 //! success, against the policy as the learner serves it on probe states.
 //! docs/export.md.
 
+pub mod file;
 pub mod manifest;
 pub mod model;
 pub mod onnx;
@@ -20,15 +21,10 @@ use lcrl_learner::config::Connection;
 use lcrl_learner::policy::checkpoint::{latest_checkpoint, read_meta, selected_dir};
 use lcrl_learner::policy::trained::Policy;
 use lcrl_sim::Env;
-use tch::{Kind, Tensor};
 
+pub use file::{max_difference, run_module, write_torchscript, Prepared, TOLERANCE};
 use manifest::{ActionComponent, ActionInputs, FileEntry, GraphInfo, Manifest, Source, StateComponent, TensorInfo};
 use model::Pipeline;
-
-/// The largest difference between a written file's actions and the served
-/// policy's that the command accepts (action units). The arithmetic is the
-/// same, so real differences are rounding of a different batch size.
-pub const TOLERANCE: f64 = 1e-5;
 
 /// The file formats `lcrl export` writes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -70,18 +66,6 @@ pub struct Outcome {
     pub manifest_path: PathBuf,
     pub manifest: Manifest,
     pub entry: FileEntry,
-}
-
-/// A policy ready to be written: the loaded policy (the reference), its
-/// environment, the pipeline to trace, policy.json without its files, and
-/// probe states (rows of f32) with the served policy's actions on them.
-pub struct Prepared {
-    pub pipeline: Pipeline,
-    pub manifest: Manifest,
-    pub state_dim: usize,
-    pub action_dim: usize,
-    pub probes: Vec<f32>,
-    pub served: Vec<f32>,
 }
 
 /// Exports one file and policy.json beside it.
@@ -293,62 +277,6 @@ fn probe_states(env: &dyn Env, policy: &Policy, scale: &[f64]) -> anyhow::Result
         rows.push(scale.iter().map(|s| (uniform() * 6.0 - 3.0) * s).collect());
     }
     Ok(rows.iter().flatten().map(|&v| v as f32).collect())
-}
-
-/// The largest |a − b| over two action lists: infinite where their
-/// lengths differ or a value is not finite (a NaN is never "close").
-pub fn max_difference(a: &[f32], b: &[f32]) -> f64 {
-    if a.len() != b.len() {
-        return f64::INFINITY;
-    }
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| if x.is_finite() && y.is_finite() { (f64::from(*x) - f64::from(*y)).abs() } else { f64::INFINITY })
-        .fold(0.0, f64::max)
-}
-
-/// Traces the pipeline and writes it to `path` (atomically), then loads
-/// the written file back and checks it against the served policy.
-pub fn write_torchscript(prepared: &Prepared, path: &Path) -> anyhow::Result<FileEntry> {
-    let m = prepared.state_dim;
-    // The trace's example: a few probe rows (no size is recorded in it).
-    let rows = (prepared.probes.len() / m).min(4);
-    let example = Tensor::from_slice(&prepared.probes[..rows * m]).view([rows as i64, m as i64]);
-    let module = prepared.pipeline.trace(&example)?;
-    let dir = lcrl_proto::files::folder_of(path);
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let partial = dir.join(format!(".{}.{}.partial", path.file_name().map(|n| n.to_string_lossy()).unwrap_or_default(), std::process::id()));
-    module.save(&partial).with_context(|| format!("writing {}", partial.display()))?;
-    std::fs::rename(&partial, path).with_context(|| format!("moving {} to {}", partial.display(), path.display()))?;
-    let written = tch::CModule::load(path).with_context(|| format!("loading the written {} back", path.display()))?;
-    let actions = run_module(&written, &prepared.probes, m)?;
-    check(path, prepared, &actions)
-}
-
-/// A TorchScript module's actions on rows of f32 states.
-pub fn run_module(module: &tch::CModule, states: &[f32], m: usize) -> anyhow::Result<Vec<f32>> {
-    let input = Tensor::from_slice(states).view([-1, m as i64]);
-    let out = tch::no_grad(|| module.forward_ts(&[input])).context("running the exported module")?;
-    Ok(Vec::<f32>::try_from(out.to_kind(Kind::Float).flatten(0, -1))?)
-}
-
-/// The file's entry in policy.json, once its actions on the probe states
-/// are within [`TOLERANCE`] of the served policy's.
-pub fn check(path: &Path, prepared: &Prepared, actions: &[f32]) -> anyhow::Result<FileEntry> {
-    let difference = max_difference(actions, &prepared.served);
-    if !(difference <= TOLERANCE) {
-        bail!(
-            "{} acts differently from the served policy (largest difference {difference:e} on {} probe states, tolerance {TOLERANCE:e}); the file is not the policy: please report this",
-            path.display(),
-            prepared.served.len() / prepared.action_dim.max(1)
-        );
-    }
-    Ok(FileEntry {
-        file: path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default(),
-        bytes: std::fs::metadata(path).map(|m| m.len()).unwrap_or(0),
-        checked_states: prepared.served.len() / prepared.action_dim.max(1),
-        max_abs_difference: difference,
-    })
 }
 
 /// Writes policy.json with `entry` under `format`, keeping the entries of

@@ -8,7 +8,8 @@ use std::process::Command;
 use anyhow::{bail, Context};
 use serde::Deserialize;
 
-use super::{check, write_torchscript, Prepared};
+use super::file::{install, partial_of, write_torchscript, Prepared};
+use super::manifest::FileEntry;
 use crate::binaries::{lcrl_python, project_file};
 
 /// The script's answer: the ONNX file's actions on the probe states
@@ -22,7 +23,7 @@ struct Report {
 }
 
 /// Writes `out` as ONNX, checked like the TorchScript file.
-pub fn write(prepared: &Prepared, out: &Path) -> anyhow::Result<super::FileEntry> {
+pub fn write(prepared: &Prepared, out: &Path) -> anyhow::Result<FileEntry> {
     let python = lcrl_python().context("`--format onnx` runs PyTorch's ONNX exporter in Python")?;
     let script = project_file("clients/python/lcrl_export_onnx.py")?;
     let work = tempfile::tempdir().context("a temporary folder for the TorchScript module")?;
@@ -32,9 +33,7 @@ pub fn write(prepared: &Prepared, out: &Path) -> anyhow::Result<super::FileEntry
     let probe_json = serde_json::json!({ "state_dim": prepared.state_dim, "states": prepared.probes });
     std::fs::write(&probes, probe_json.to_string()).with_context(|| format!("writing {}", probes.display()))?;
     let report_path = work.path().join("report.json");
-    let dir = lcrl_proto::files::folder_of(out);
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let partial = dir.join(format!(".{}.{}.partial", out.file_name().map(|n| n.to_string_lossy()).unwrap_or_default(), std::process::id()));
+    let partial = partial_of(out)?;
     let result = Command::new(&python)
         .arg(&script)
         .arg("--torchscript")
@@ -60,9 +59,16 @@ pub fn write(prepared: &Prepared, out: &Path) -> anyhow::Result<super::FileEntry
             if result.status.code() == Some(3) { "" } else { "; run `bash scripts/setup.sh` (it installs torch, onnx and onnxruntime into .venv), or set $LCRL_PYTHON" }
         );
     }
-    let text = std::fs::read_to_string(&report_path).with_context(|| format!("{} wrote no report", script.display()))?;
-    let report: Report = serde_json::from_str(&text).with_context(|| format!("reading {}'s report", script.display()))?;
+    let report = std::fs::read_to_string(&report_path)
+        .with_context(|| format!("{} wrote no report", script.display()))
+        .and_then(|text| serde_json::from_str::<Report>(&text).with_context(|| format!("reading {}'s report", script.display())));
+    let report = match report {
+        Ok(report) => report,
+        Err(e) => {
+            let _ = std::fs::remove_file(&partial);
+            return Err(e);
+        }
+    };
     tracing::info!(opset = report.opset, torch = %report.torch, onnxruntime = %report.onnxruntime, "ONNX export");
-    std::fs::rename(&partial, out).with_context(|| format!("moving {} to {}", partial.display(), out.display()))?;
-    check(out, prepared, &report.actions)
+    install(&partial, out, prepared, &report.actions)
 }

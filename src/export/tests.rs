@@ -12,7 +12,7 @@ use rand_chacha::ChaCha8Rng;
 use tch::{nn, Device, Tensor};
 
 use super::model::{state_scale, Pipeline};
-use super::{max_difference, run_module};
+use super::file::{max_difference, run_module, TOLERANCE};
 
 /// An actor of `architecture` with weights drawn at twice the default
 /// init's bound, 2/√fan_in, the last layer's too (a trained actor's
@@ -88,9 +88,9 @@ fn the_written_module_acts_as_the_served_policy_for_every_actor() {
         let exported = run_module(&loaded, &probes, m).unwrap();
         let reference = served(&policy, env.as_ref(), &probes, m);
         let difference = max_difference(&exported, &reference);
-        assert!(difference <= super::TOLERANCE, "{env_name} {connection:?}: {difference:e}");
+        assert!(difference <= TOLERANCE, "{env_name} {connection:?}: {difference:e}");
         // One state alone (batch of 1) is the same too.
-        assert!(max_difference(&run_module(&loaded, &probes[..m], m).unwrap(), &reference[..reference.len() / 500]) <= super::TOLERANCE);
+        assert!(max_difference(&run_module(&loaded, &probes[..m], m).unwrap(), &reference[..reference.len() / 500]) <= TOLERANCE);
         // The check is not trivial: actions spread over the box.
         let n = architecture.shape.action_dim;
         let (low, high) = (&env.spec().action_low, &env.spec().action_high);
