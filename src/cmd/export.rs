@@ -14,9 +14,10 @@ pub struct ExportArgs {
     /// or a policy folder (RUN/selected, RUN/checkpoints/epNNNNNN).
     #[arg(value_name = "RUN_DIR")]
     pub run: PathBuf,
-    /// The file to write (policy.json is written beside it, same name).
-    #[arg(long, default_value = "policy.pt")]
-    pub out: PathBuf,
+    /// The file to write (default: policy.pt, or policy.onnx with
+    /// --format onnx); policy.json is written beside it, same name.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
     /// torchscript (libtorch, Python or C++) or onnx (ONNX Runtime; made
     /// from the TorchScript module by PyTorch's exporter in the project's
     /// .venv Python, or $LCRL_PYTHON).
@@ -35,7 +36,8 @@ pub struct ExportArgs {
 }
 
 pub fn run(args: &ExportArgs) -> anyhow::Result<()> {
-    let request = Request { run: args.run.clone(), checkpoint: args.checkpoint.clone(), env: args.env.clone(), out: args.out.clone(), format: args.format };
+    let out = args.out.clone().unwrap_or_else(|| PathBuf::from(if args.format == Format::Onnx { "policy.onnx" } else { "policy.pt" }));
+    let request = Request { run: args.run.clone(), checkpoint: args.checkpoint.clone(), env: args.env.clone(), out, format: args.format };
     let outcome = export(&request)?;
     let source = &outcome.manifest.source;
     let m = &outcome.manifest;

@@ -365,6 +365,13 @@ fn export_says_what_is_wrong_and_takes_another_checkpoint() {
     let manifest: Value = serde_json::from_str(&std::fs::read_to_string(out.with_extension("json")).unwrap()).unwrap();
     assert_eq!((manifest["source"]["chosen"].as_str(), manifest["source"]["episode"].as_u64()), (Some("given"), Some(5)), "{manifest}");
 
+    // `lcrl run` keeps its learner's records in RUN/learner/.
+    let wrapper = dir.path().join("lcrl-run");
+    std::fs::create_dir(&wrapper).unwrap();
+    std::os::unix::fs::symlink(&run, wrapper.join("learner")).unwrap();
+    let from_run = export(&[&path(&wrapper), "--out", &path(&out)]);
+    assert!(from_run.status.success(), "{}", stderr(&from_run));
+
     // ONNX needs Python with torch: missing, then without torch.
     let onnx = |python: &Path| {
         lcrl().current_dir(root()).env("LCRL_PYTHON", python).args(["export", &path(&run), "--format", "onnx", "--out", &path(&dir.path().join("p.onnx"))]).output().unwrap()
