@@ -6,7 +6,11 @@
 //! - `graph:PATH`: a graph file, e.g. references/peg-eq21/graph.json;
 //! - `random@K`: K edges drawn at random (`lcrl graph --random K`), the
 //!   control for "does the structure matter, or only the input count?";
-//! - `global`, `full-subnets`: no graph.
+//! - `global`, `full-subnets`: no graph;
+//! - `global+match=CONNECTION` (studies): a global actor with as many
+//!   parameters as the local actor of CONNECTION on the same environment
+//!   (its hidden widths chosen by `lcrl train --match-params`), so a local
+//!   actor's lead cannot be its size.
 //!
 //! In a study, a measured or random graph takes modifiers after `+`:
 //! - `+per-seed`: each run gets its own graph (CS3 with the run's seed, or
@@ -32,6 +36,8 @@ pub enum ConnectionSpec {
     Random { edges: usize, per_seed: bool },
     Global,
     FullSubnets,
+    /// A global actor sized to the local actor of `to` (`global+match=…`).
+    MatchedGlobal { to: Box<ConnectionSpec> },
 }
 
 /// A graph a study makes before its runs (crate::experiment::plan):
@@ -57,7 +63,7 @@ impl ConnectionSpec {
         let unknown = || {
             format!(
                 "unknown connection \"{text}\"; use local (T = {DEFAULT_THRESHOLD}), local@T such as local@0.25, \
-                 graph:PATH (a graph.json), random@K (K random edges), global or full-subnets"
+                 graph:PATH (a graph.json), random@K (K random edges), global, full-subnets or global+match=CONNECTION"
             )
         };
         match text {
@@ -65,6 +71,13 @@ impl ConnectionSpec {
             "global" => return Ok(ConnectionSpec::Global),
             "full-subnets" => return Ok(ConnectionSpec::FullSubnets),
             _ => {}
+        }
+        if let Some(to) = text.strip_prefix("global+match=") {
+            let to = Self::parse(to).with_context(|| format!("connection \"{text}\""))?;
+            if !to.has_graph() {
+                bail!("connection \"{text}\": match a local actor (local@T, graph:PATH, random@K), e.g. global+match=local@0.1");
+            }
+            return Ok(ConnectionSpec::MatchedGlobal { to: Box::new(to) });
         }
         if let Some(path) = text.strip_prefix("graph:") {
             if path.is_empty() {
@@ -122,6 +135,7 @@ impl ConnectionSpec {
             ConnectionSpec::Random { edges, per_seed } => format!("random@{edges}{}", modifiers(&[], *per_seed)),
             ConnectionSpec::Global => "global".into(),
             ConnectionSpec::FullSubnets => "full-subnets".into(),
+            ConnectionSpec::MatchedGlobal { to } => format!("global+match={}", to.label()),
         }
     }
 
@@ -133,6 +147,7 @@ impl ConnectionSpec {
                 let parts: Vec<String> = stem.components().filter_map(|c| c.as_os_str().to_str()).filter(|c| *c != "." && *c != "..").map(String::from).collect();
                 format!("graph-{}", parts.join("-"))
             }
+            ConnectionSpec::MatchedGlobal { to } => format!("global+match={}", to.slug()),
             other => other.label(),
         }
     }
@@ -141,7 +156,7 @@ impl ConnectionSpec {
     pub fn connection(&self) -> Connection {
         match self {
             ConnectionSpec::Local { .. } | ConnectionSpec::Graph { .. } | ConnectionSpec::Random { .. } => Connection::Local,
-            ConnectionSpec::Global => Connection::Global,
+            ConnectionSpec::Global | ConnectionSpec::MatchedGlobal { .. } => Connection::Global,
             ConnectionSpec::FullSubnets => Connection::FullSubnets,
         }
     }
@@ -162,15 +177,26 @@ impl ConnectionSpec {
     /// Whether it carries modifiers that only a study's graph tasks apply.
     pub fn has_modifiers(&self) -> bool {
         matches!(self, ConnectionSpec::Local { rows, per_seed, .. } if !rows.is_empty() || *per_seed)
-            || matches!(self, ConnectionSpec::Random { per_seed: true, .. })
+            || matches!(self, ConnectionSpec::Random { per_seed: true, .. } | ConnectionSpec::MatchedGlobal { .. })
     }
 
     /// The graph a study makes for this connection (none for a given file
-    /// or a graph-less actor), and whether each run gets its own.
+    /// or a graph-less actor), and whether each run gets its own; for
+    /// `global+match=…`, the graph of the actor it matches.
     pub fn made_graph(&self) -> Option<(MadeGraph, bool)> {
         match self {
             ConnectionSpec::Local { threshold, rows, per_seed } => Some((MadeGraph::Measured { threshold: *threshold, rows: rows.clone() }, *per_seed)),
             ConnectionSpec::Random { edges, per_seed } => Some((MadeGraph::Drawn { edges: *edges }, *per_seed)),
+            ConnectionSpec::MatchedGlobal { to } => to.made_graph(),
+            _ => None,
+        }
+    }
+
+    /// The given graph file (`graph:PATH`), also behind `global+match=`.
+    pub fn graph_file(&self) -> Option<&std::path::Path> {
+        match self {
+            ConnectionSpec::Graph { path } => Some(path),
+            ConnectionSpec::MatchedGlobal { to } => to.graph_file(),
             _ => None,
         }
     }
@@ -203,6 +229,7 @@ mod tests {
         for text in [
             "local@0.1", "local@0.5", "global", "full-subnets", "random@23", "graph:references/peg-eq21/graph.json",
             "local@1+per-seed", "random@23+per-seed", "local@1+dz=0.1", "local@0.1+dz=none", "local@1+dz=0.1+dx=none+per-seed",
+            "global+match=local@0.1", "global+match=local@1+per-seed", "global+match=graph:g.json",
         ] {
             let spec = ConnectionSpec::parse(text).unwrap();
             assert_eq!(spec.label(), text);
@@ -212,6 +239,12 @@ mod tests {
         assert_eq!(ConnectionSpec::parse("random@23").unwrap().connection(), Connection::Local);
         assert_eq!(ConnectionSpec::parse("graph:g.json").unwrap().threshold(), None);
         assert_eq!(ConnectionSpec::parse("graph:references/peg-eq21/graph.json").unwrap().slug(), "graph-references-peg-eq21-graph");
+        // A matched global is a global actor that needs the graph it matches.
+        let matched = ConnectionSpec::parse("global+match=local@1+per-seed").unwrap();
+        assert_eq!(matched.connection(), Connection::Global);
+        assert!(!matched.has_graph() && matched.has_modifiers());
+        assert_eq!(matched.made_graph(), ConnectionSpec::parse("local@1+per-seed").unwrap().made_graph());
+        assert_eq!(ConnectionSpec::parse("global+match=graph:a/g.json").unwrap().graph_file(), Some(std::path::Path::new("a/g.json")));
     }
 
     #[test]
@@ -226,6 +259,8 @@ mod tests {
         assert!(err("local@1+dz=x").contains("\"x\" is not a number"));
         assert!(err("local@1+dz=0.1+dz=none").contains("two rules for the row of dz"));
         assert!(err("random@23+dz=none").contains("not to random draws"));
+        assert!(err("global+match=full-subnets").contains("match a local actor"));
+        assert!(err("global+match=locl").contains("unknown connection \"locl\""));
         assert!(!ConnectionSpec::parse("local@1").unwrap().has_modifiers() && ConnectionSpec::parse("random@9+per-seed").unwrap().has_modifiers());
     }
 

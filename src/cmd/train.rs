@@ -31,6 +31,12 @@ pub struct TrainArgs {
     /// kinds only; the same as --connection graph:PATH).
     #[arg(long, value_name = "graph.json")]
     pub graph: Option<PathBuf>,
+    /// With --connection global: size the global actor's hidden layers
+    /// (network.global_hidden's depth, one width) so it has as many
+    /// parameters as the local actor on this graph.json would, the
+    /// matched-size control of docs/lcrl-value.md.
+    #[arg(long, value_name = "graph.json")]
+    pub match_params: Option<PathBuf>,
     /// The draw of a random@K graph (the same draw for every --seed, so the
     /// seeds of a study cell share one graph).
     #[arg(long, default_value_t = 0)]
@@ -68,6 +74,24 @@ pub struct TrainArgs {
     pub resume: bool,
 }
 
+/// Sets network.global_hidden so the global actor has as many parameters
+/// as the local actor on the graph in `path` (`--match-params`).
+fn match_global_to_local(config: &mut TrainConfig, env: &str, path: &std::path::Path) -> anyhow::Result<()> {
+    let spec = lcrl_sim::make_env(env)?.spec().clone();
+    let graph = lcrl_graph_builder::given::load_measured_for(path, &spec).with_context(|| format!("--match-params {}", path.display()))?;
+    let shape = (spec.state_names.len(), spec.action_names.len());
+    let target = lcrl_learner::algo::nets::local_actor_params(&config.network, &graph.g);
+    config.network.global_hidden = lcrl_learner::algo::nets::matched_global_hidden(&config.network, shape, target);
+    let matched = lcrl_learner::algo::nets::global_actor_params(&config.network, shape);
+    eprintln!(
+        "global actor matched to the local actor of {}: hidden {:?}, {matched} parameters against {target} ({:+.1}%)",
+        path.display(),
+        config.network.global_hidden,
+        100.0 * (matched as f64 / target as f64 - 1.0)
+    );
+    Ok(())
+}
+
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     let (mut config, source) = match &args.config {
         Some(path) => (TrainConfig::load_for_env(path, &args.env)?, format!("{} (missing keys: the environment's settings)", path.display())),
@@ -97,7 +121,21 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     if let Some(t) = args.connection.threshold() {
         config.run.graph_threshold = t;
     }
+    if let Some(path) = &args.match_params {
+        if args.connection != ConnectionSpec::Global {
+            anyhow::bail!("--match-params sizes a global actor: use it with --connection global (it has --connection {})", args.connection.label());
+        }
+        match_global_to_local(&mut config, &args.env, path)?;
+    }
     config.validate()?;
+    if let ConnectionSpec::MatchedGlobal { to } = &args.connection {
+        anyhow::bail!(
+            "--connection {}: for one run, give the graph of the actor it matches: `--connection global --match-params graph.json` \
+             (the graph of {} from `lcrl graph`)",
+            args.connection.label(),
+            to.label()
+        );
+    }
     if args.connection.has_modifiers() {
         anyhow::bail!(
             "--connection {}: +per-seed and row rules (+ACTION=T) are for studies (lcrl experiment); for one run, build the graph with \

@@ -28,6 +28,11 @@ pub struct ExperimentFile {
     pub connections: Vec<String>,
     /// A count n (seeds 0 … n−1) or an explicit list.
     pub seeds: Seeds,
+    /// A connection's own seeds in place of `seeds`, e.g.
+    /// `[seeds_of]` `"random@23+per-seed" = 10`: more draws of a random
+    /// graph than the study has seeds.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub seeds_of: BTreeMap<String, Seeds>,
     /// Training episodes per algorithm, e.g. `{ ddpg = 200, ppo = 900 }`.
     pub episodes: BTreeMap<String, usize>,
     /// Episodes of the deterministic policy evaluated after training.
@@ -114,6 +119,23 @@ pub enum Seeds {
     List(Vec<u64>),
 }
 
+impl Seeds {
+    /// The seeds, checked: at least one, none twice (`key` names the field).
+    fn checked(&self, key: &str) -> anyhow::Result<Vec<u64>> {
+        let seeds: Vec<u64> = match self {
+            Seeds::Count(n) => (0..*n).collect(),
+            Seeds::List(list) => list.clone(),
+        };
+        if seeds.is_empty() {
+            bail!("`{key}` is zero: give a count (5 runs seeds 0–4) or a list ([0, 7, 9])");
+        }
+        if seeds.iter().collect::<std::collections::BTreeSet<_>>().len() != seeds.len() {
+            bail!("`{key}` lists a seed twice: {seeds:?}");
+        }
+        Ok(seeds)
+    }
+}
+
 /// CS3 settings of the graphs (one per environment and threshold).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -158,7 +180,10 @@ fn default_eval_episodes() -> usize {
 pub struct Experiment {
     pub file: ExperimentFile,
     pub connections: Vec<ConnectionSpec>,
+    /// Every seed of the study: `seeds` and those of `[seeds_of]`.
     pub seeds: Vec<u64>,
+    /// The seeds of each connection with its own (`[seeds_of]`), by label.
+    pub seeds_of: BTreeMap<String, Vec<u64>>,
 }
 
 impl Experiment {
@@ -184,20 +209,21 @@ impl Experiment {
         if file.environments.is_empty() || file.algorithms.is_empty() || file.connections.is_empty() {
             bail!("`environments`, `algorithms` and `connections` must each list at least one entry");
         }
-        let seeds = match &file.seeds {
-            Seeds::Count(n) => (0..*n).collect(),
-            Seeds::List(list) => list.clone(),
-        };
-        if seeds.is_empty() {
-            bail!("`seeds` is zero: give a count (seeds = 5 runs seeds 0–4) or a list (seeds = [0, 7, 9])");
-        }
-        if seeds.iter().collect::<std::collections::BTreeSet<_>>().len() != seeds.len() {
-            bail!("`seeds` lists a seed twice: {seeds:?}");
-        }
+        let mut seeds = file.seeds.checked("seeds")?;
         let connections = file.connections.iter().map(|c| ConnectionSpec::parse(c)).collect::<anyhow::Result<Vec<_>>>()?;
         let labels: Vec<String> = connections.iter().map(ConnectionSpec::label).collect();
         if labels.iter().collect::<std::collections::BTreeSet<_>>().len() != labels.len() {
             bail!("`connections` lists a connection twice: {labels:?}");
+        }
+        let mut seeds_of = BTreeMap::new();
+        for (connection, own) in &file.seeds_of {
+            let label = ConnectionSpec::parse(connection).with_context(|| format!("`seeds_of.\"{connection}\"`"))?.label();
+            if !labels.contains(&label) {
+                bail!("`seeds_of.\"{connection}\"`: {connection} is not one of `connections` ({})", labels.join(", "));
+            }
+            let own = own.checked(&format!("seeds_of.\"{connection}\""))?;
+            seeds.extend(own.iter().filter(|s| !seeds.contains(s)).copied().collect::<Vec<_>>());
+            seeds_of.insert(label, own);
         }
         if file.eval_episodes == 0 {
             bail!("`eval_episodes` must be at least 1");
@@ -270,7 +296,7 @@ impl Experiment {
                 }
             }
         }
-        let experiment = Experiment { file, connections, seeds };
+        let experiment = Experiment { file, connections, seeds, seeds_of };
         for env in &experiment.file.environments {
             experiment.train_config(env)?;
         }
@@ -289,6 +315,12 @@ impl Experiment {
         config.run.threads = 1;
         config.validate().map_err(|e| anyhow::anyhow!("`train`: {e}"))?;
         Ok(config)
+    }
+
+    /// The seeds of a connection's cells: its own (`[seeds_of]`) or the
+    /// study's `seeds`.
+    pub fn seeds_for(&self, connection: &ConnectionSpec) -> Vec<u64> {
+        self.seeds_of.get(&connection.label()).cloned().unwrap_or_else(|| self.file.seeds.checked("seeds").unwrap_or_default())
     }
 
     pub fn episodes(&self, algo: Algo) -> usize {

@@ -165,33 +165,41 @@ pub fn traces(study: &Study, path: &Path) -> anyhow::Result<()> {
 
 /// advantage.png for a study of `lti-blocks-N` environments (and only
 /// then; returns false otherwise): LCRL's advantage against N, per
-/// algorithm, as (local − global) eval return over |masked LQR| (the gap's
-/// share of the optimum; above 0: LCRL better), with Welch's 95% interval
-/// as a band. The local cells are those with a measured graph.
+/// algorithm and per baseline the study has (global, full-subnets, each
+/// matched global), as (local − baseline) eval return over |masked LQR|
+/// (the gap's share of the optimum; above 0: LCRL better), with Welch's
+/// 95% interval as a band. The local cells are those with a measured graph.
 pub fn advantage(study: &Study, path: &Path) -> anyhow::Result<bool> {
+    use crate::connection::ConnectionSpec as C;
     let sizes: Option<Vec<usize>> = study.experiment.file.environments.iter().map(|e| lcrl_sim::lti::LtiConfig::blocks_size(e)).collect();
     let Some(sizes) = sizes else { return Ok(false) };
+    let baselines: Vec<&C> = study.experiment.connections.iter().filter(|c| matches!(c, C::Global | C::FullSubnets | C::MatchedGlobal { .. })).collect();
     let mut panels = Vec::new();
     for &algo in &study.experiment.file.algorithms {
-        let (mut x, mut mean, mut low, mut high) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        for (env, &n) in study.experiment.file.environments.iter().zip(&sizes) {
-            let cell = |local: bool| study.cells.iter().find(|c| &c.cell.env == env && c.cell.algo == algo && c.cell.connection.threshold().is_some() == local && (local || c.cell.connection == crate::connection::ConnectionSpec::Global));
-            let (Some(local), Some(global)) = (cell(true), cell(false)) else { continue };
-            let optimum = local.runs.iter().find_map(|r| r.summary.evaluation.masked_lqr_return).unwrap_or(1.0).abs().max(1e-9);
-            let eval = |c: &CellRuns| c.runs.iter().map(|r| r.summary.evaluation.eval_return / optimum).collect::<Vec<f64>>();
-            if let Some(w) = super::stats::welch(&eval(local), &eval(global)) {
-                x.push(n as f64);
-                mean.push(w.difference);
-                low.push(w.ci95[0]);
-                high.push(w.ci95[1]);
+        for &baseline in &baselines {
+            let (mut x, mut mean, mut low, mut high) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            for (env, &n) in study.experiment.file.environments.iter().zip(&sizes) {
+                let find = |pick: &dyn Fn(&C) -> bool| study.cells.iter().find(|c| &c.cell.env == env && c.cell.algo == algo && pick(&c.cell.connection));
+                let (Some(local), Some(other)) = (find(&|c| c.threshold().is_some()), find(&|c| c == baseline)) else { continue };
+                let optimum = local.runs.iter().find_map(|r| r.summary.evaluation.masked_lqr_return).unwrap_or(1.0).abs().max(1e-9);
+                let eval = |c: &CellRuns| c.runs.iter().map(|r| r.summary.evaluation.eval_return / optimum).collect::<Vec<f64>>();
+                if let Some(w) = super::stats::welch(&eval(local), &eval(other)) {
+                    x.push(n as f64);
+                    mean.push(w.difference);
+                    low.push(w.ci95[0]);
+                    high.push(w.ci95[1]);
+                }
             }
+            if x.is_empty() {
+                continue;
+            }
+            let label = format!("{}: (local − {}) / |masked LQR|", algo_name(algo), baseline.label());
+            let mut panel = Panel::lines(label.clone(), vec![(label, mean)]);
+            panel.bands.push((0, low, high));
+            panel.references.push(("no difference".into(), 0.0));
+            panel.x = Some(x);
+            panels.push(panel);
         }
-        let label = format!("{}: (local − global) eval / |masked LQR|", algo_name(algo));
-        let mut panel = Panel::lines(label.clone(), vec![(label, mean)]);
-        panel.bands.push((0, low, high));
-        panel.references.push(("no difference".into(), 0.0));
-        panel.x = Some(x);
-        panels.push(panel);
     }
     let xs = sizes.iter().map(|&n| n as f64).collect::<Vec<f64>>();
     line_panels(path, "LCRL's advantage against N (lti-blocks-N, 95% interval)", &xs, "N (actions; 2N states)", &panels)

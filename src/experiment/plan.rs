@@ -58,7 +58,7 @@ pub fn tasks(e: &Experiment) -> Vec<Task> {
     for env in &e.file.environments {
         for connection in &e.connections {
             let Some((made, per_seed)) = connection.made_graph() else { continue };
-            let seeds: Vec<Option<u64>> = if per_seed { e.seeds.iter().copied().map(Some).collect() } else { vec![None] };
+            let seeds: Vec<Option<u64>> = if per_seed { e.seeds_for(connection).into_iter().map(Some).collect() } else { vec![None] };
             for seed in seeds {
                 let task = Task::Graph { env: env.clone(), made: made.clone(), seed };
                 if !tasks.contains(&task) {
@@ -68,7 +68,7 @@ pub fn tasks(e: &Experiment) -> Vec<Task> {
         }
     }
     for &seed in &e.seeds {
-        for cell in cells(e) {
+        for cell in cells(e).into_iter().filter(|c| e.seeds_for(&c.connection).contains(&seed)) {
             tasks.push(Task::Train { cell, seed });
         }
     }
@@ -148,8 +148,8 @@ pub fn graph_task(cell: &Cell, seed: u64) -> Option<Task> {
 
 /// The graph file a cell's run with `seed` trains with, if it has one.
 pub fn cell_graph(out: &Path, cell: &Cell, seed: u64) -> Option<PathBuf> {
-    match (&cell.connection, graph_task(cell, seed)) {
-        (ConnectionSpec::Graph { path }, _) => Some(path.clone()),
+    match (cell.connection.graph_file(), graph_task(cell, seed)) {
+        (Some(path), _) => Some(path.to_path_buf()),
         (_, Some(Task::Graph { env, made, seed })) => Some(graph_path(out, &env, &made, seed)),
         _ => None,
     }
@@ -249,7 +249,10 @@ impl Task {
                     "--run-dir".into(), s(&run_dir(out, cell, *seed)), "--resume".into(),
                 ];
                 if let Some(graph) = cell_graph(out, cell, *seed) {
-                    args.extend(["--graph".into(), s(&graph)]);
+                    // A matched global sizes itself to the local actor of
+                    // this graph; every other cell with a graph trains on it.
+                    let flag = if matches!(cell.connection, ConnectionSpec::MatchedGlobal { .. }) { "--match-params" } else { "--graph" };
+                    args.extend([flag.into(), s(&graph)]);
                 }
                 args
             }
@@ -311,21 +314,28 @@ pub fn recorded_experiment(out: &Path) -> anyhow::Result<Experiment> {
 /// cells), or a primary contrast named where it had none (before the runs
 /// of the cells it adds). Each leaves every finished run what it was, so
 /// the folder takes them (the report then covers them all); any other
-/// change would mix two studies in one report.
+/// change would mix two studies in one report. A connection's own seeds
+/// (`[seeds_of]`) may grow the same way.
 fn extends(existing: &str, e: &Experiment) -> bool {
     let Some(old) = serde_json::from_str(existing).ok().and_then(|file| Experiment::check(file).ok()) else { return false };
     let mut widened = old.file.clone();
     widened.seeds = e.file.seeds.clone();
+    widened.seeds_of = e.file.seeds_of.clone();
     widened.connections = e.file.connections.clone();
     if widened.primary.is_none() {
         widened.primary = e.file.primary.clone();
     }
-    widened == e.file && old.seeds.iter().all(|seed| e.seeds.contains(seed)) && old.connections.iter().all(|c| e.connections.contains(c))
+    widened == e.file
+        && old.connections.iter().all(|c| e.connections.contains(c) && old.seeds_for(c).iter().all(|seed| e.seeds_for(c).contains(seed)))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn tasks_of(e: &Experiment) -> Vec<String> {
+        tasks(e).iter().map(Task::id).collect()
+    }
 
     #[test]
     fn graphs_come_first_and_local_runs_use_them() {
@@ -382,11 +392,25 @@ mod tests {
         let run = train("train-peg-group1-ddpg-local@1+per-seed-seed5");
         assert_eq!(run.dependency().map(|d| d.id()).as_deref(), Some("graph-peg-group1-T1-seed5"));
         assert!(run.args(&e, out).join(" ").contains("--graph /study/graphs/peg-group1/T1/seed5/graph.json"));
+        let matched = Experiment::parse(&text.replace("\"local@1\", ", "\"local@1\", \"global+match=local@1\", ")).unwrap();
+        let matched_run = Task::Train { cell: cells(&matched)[1].clone(), seed: 5 };
+        assert_eq!(matched_run.dependency().map(|d| d.id()).as_deref(), Some("graph-peg-group1-T1"));
+        let matched_args = matched_run.args(&matched, out).join(" ");
+        assert!(matched_args.contains("--connection global ") && matched_args.ends_with("--match-params /study/graphs/peg-group1/T1/graph.json"), "{matched_args}");
         let shared = train("train-peg-group1-ddpg-local@1+dz=0.1-seed5");
         assert!(shared.args(&e, out).join(" ").contains("--graph /study/graphs/peg-group1/T1+dz=0.1/graph.json"));
         // --only takes the per-seed graphs of the chosen cell, no others.
         let chosen: Vec<String> = only(&e, tasks.clone(), &["*/local@1+per-seed".to_string()]).unwrap().iter().map(Task::id).collect();
         assert_eq!(chosen, ["graph-peg-group1-T1-seed3", "graph-peg-group1-T1-seed5", "train-peg-group1-ddpg-local@1+per-seed-seed3", "train-peg-group1-ddpg-local@1+per-seed-seed5"]);
+        // A connection's own seeds: only its cell runs the extra seed, with
+        // its own draw.
+        let more = Experiment::parse(&text.replace("[best_constant]", "[seeds_of]\n\"random@23+per-seed\" = [3, 5, 8]\n[best_constant]")).unwrap();
+        let more_ids: Vec<String> = tasks_of(&more);
+        assert!(more_ids.contains(&"graph-peg-group1-random@23-seed8".to_string()) && !more_ids.contains(&"graph-peg-group1-T1-seed8".to_string()));
+        assert_eq!(more_ids.iter().filter(|id| id.ends_with("-seed8")).collect::<Vec<_>>(), ["graph-peg-group1-random@23-seed8", "train-peg-group1-ddpg-random@23+per-seed-seed8"]);
+        assert_eq!(more.seeds, [3, 5, 8]);
+        let bad = format!("{:#}", Experiment::parse(&text.replace("[best_constant]", "[seeds_of]\n\"random@9\" = 10\n[best_constant]")).unwrap_err());
+        assert!(bad.contains("random@9 is not one of `connections`"), "{bad}");
         // A row rule for an action the environment lacks fails at load.
         let bad = Experiment::parse(&text.replace("dz=0.1", "dq=0.1")).unwrap_err();
         assert!(format!("{bad:#}").contains("has no action dq"), "{bad:#}");

@@ -66,13 +66,13 @@ pub fn gather(e: &Experiment, out: &Path) -> anyhow::Result<Study> {
         // (per run, the mean over its seeds' own graphs with +per-seed)
         let graph_seconds = match cell.connection.threshold() {
             Some(_) => {
-                let times = e.seeds.iter().filter_map(|&seed| cell_graph(out, &cell, seed)).map(|p| graph_seconds(&p)).collect::<anyhow::Result<Vec<f64>>>()?;
+                let times = e.seeds_for(&cell.connection).iter().filter_map(|&seed| cell_graph(out, &cell, seed)).map(|p| graph_seconds(&p)).collect::<anyhow::Result<Vec<f64>>>()?;
                 times.iter().sum::<f64>() / times.len().max(1) as f64
             }
             None => 0.0,
         };
         let mut runs = Vec::new();
-        for &seed in &e.seeds {
+        for seed in e.seeds_for(&cell.connection) {
             let dir = run_dir(out, &cell, seed);
             match finished_run(&dir) {
                 Some(summary) => {
@@ -294,14 +294,14 @@ impl Study {
     }
 
     /// Per environment and algorithm: each connection with a graph against
-    /// global and against full-subnets, and each given or measured graph
+    /// global, full-subnets and every matched global, and each given or measured graph
     /// (graph:PATH, local@T) against each random@K (does the structure
     /// matter, or only the number of inputs?), on final and evaluation
     /// return.
     fn comparisons(&self) -> Vec<Comparison> {
         use crate::connection::ConnectionSpec as C;
         let pairs_with = |a: &C, b: &C| match (a, b) {
-            (a, C::Global | C::FullSubnets) => a.has_graph(),
+            (a, C::Global | C::FullSubnets | C::MatchedGlobal { .. }) => a.has_graph(),
             (C::Graph { .. } | C::Local { .. }, C::Random { .. }) => true,
             _ => false,
         };

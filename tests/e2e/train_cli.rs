@@ -211,6 +211,38 @@ fn bad_input_fails_cleanly() {
     assert!(!work.path().join("r4").exists(), "a refused run leaves no folder");
 }
 
+/// `--match-params`: a global actor sized to the local actor of a graph
+/// has its parameter count (within the step of one width), records the
+/// widths it got, and is refused with any other connection.
+#[test]
+fn matched_global_has_the_local_actors_parameter_count() {
+    let work = tempfile::tempdir().unwrap();
+    let config = tiny_config(work.path());
+    let local = work.path().join("local");
+    let out = train(&local, &config, &[]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let graph = local.join("graph.json");
+    let matched = work.path().join("matched");
+    let out = train_connected("global", &matched, &config, &["--match-params", graph.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("global actor matched to the local actor of"));
+    let (local_params, matched_params) = (json(&local.join("summary.json"))["actor_params"].as_f64().unwrap(), json(&matched.join("summary.json"))["actor_params"].as_f64().unwrap());
+    // lti-paper (3 states, 3 actions), subnetworks [8, 8]: a global [w, w]
+    // actor gains 2w + 9 parameters a width, so the nearest width lands
+    // within half of that (w ≈ 14: 19) of the local count.
+    assert!((matched_params - local_params).abs() <= 20.0, "matched {matched_params} against local {local_params}");
+    let stderr = String::from_utf8_lossy(&out.stderr).to_string();
+    let width = stderr.split("hidden [").nth(1).and_then(|rest| rest.split(',').next()).unwrap().to_string();
+    assert_ne!(width, "16", "the widths were not changed: {stderr}");
+    let recorded = fs::read_to_string(matched.join("config.toml")).unwrap();
+    assert!(recorded.contains(&format!("global_hidden = [\n    {width},\n    {width},\n]")), "{recorded}");
+
+    let refused = train_connected("local", &work.path().join("r"), &config, &["--match-params", graph.to_str().unwrap()]);
+    assert_clean_failure(&refused, "use it with --connection global");
+    let refused = train_connected("global+match=local@0.1", &work.path().join("r"), &config, &[]);
+    assert_clean_failure(&refused, "--match-params graph.json");
+}
+
 /// Peg runs record the return's terms per episode (metrics.csv) and for the
 /// evaluation (summary.json), with the a = 0 reference beside them.
 #[test]

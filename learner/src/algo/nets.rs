@@ -208,6 +208,38 @@ pub fn global_actor_params(cfg: &crate::config::NetworkConfig, (m, n): (usize, u
     sizes.windows(2).map(|w| w[0] * w[1] + w[1]).sum()
 }
 
+/// Parameters of a local actor on graph `g` (n × m) with the configured
+/// subnetwork widths, counted as [`SubnetActor::param_count`] counts them
+/// (masked first-layer weights excluded).
+pub fn local_actor_params(cfg: &crate::config::NetworkConfig, g: &[Vec<u8>]) -> usize {
+    let inputs: usize = g.iter().flatten().map(|&v| usize::from(v)).sum();
+    let hidden0 = cfg.subnet_hidden.first().copied().unwrap_or(1);
+    let mut rest = cfg.subnet_hidden.clone();
+    rest.push(1);
+    let later: usize = rest.windows(2).map(|w| w[0] * w[1] + w[1]).sum();
+    inputs * hidden0 + g.len() * (hidden0 + later)
+}
+
+/// Hidden widths for a global actor with as many parameters as `target`
+/// (a local actor's, [`local_actor_params`]): the depth of the configured
+/// `global_hidden`, every layer one width, the width whose count is
+/// nearest `target`. The matched-size control of docs/lcrl-value.md: a
+/// local actor's lead is then not its size.
+pub fn matched_global_hidden(cfg: &crate::config::NetworkConfig, (m, n): (usize, usize), target: usize) -> Vec<usize> {
+    let depth = cfg.global_hidden.len().max(1);
+    let count = |width: usize| global_actor_params(&crate::config::NetworkConfig { global_hidden: vec![width; depth], ..cfg.clone() }, (m, n));
+    // The count grows with the width: walk up to the first width at or
+    // over the target, then take the nearer of it and the one before.
+    let mut width = 1;
+    while count(width) < target {
+        width += 1;
+    }
+    if width > 1 && target - count(width - 1) < count(width) - target {
+        width -= 1;
+    }
+    vec![width; depth]
+}
+
 /// A [B, width] tensor from flat f32 rows.
 pub fn batch(rows: &[f32], width: usize, device: Device) -> Tensor {
     Tensor::from_slice(rows).view([(rows.len() / width.max(1)) as i64, width as i64]).to_device(device)
@@ -300,6 +332,28 @@ mod tests {
             let a = actor.forward(&x);
             assert_eq!(a.size(), vec![3, 4]);
             assert!(f64::try_from(a.abs().max()).unwrap() <= 1.0);
+        }
+    }
+
+    /// The formula counts what the built actor holds, and the matched
+    /// global actor lands nearest the target (lti-blocks-8: G has 3 edges a
+    /// row, subnetworks [32, 32], global depth 2).
+    #[test]
+    fn local_and_matched_global_parameter_counts() {
+        let cfg = crate::config::NetworkConfig { subnet_hidden: vec![16, 8], ..Default::default() };
+        let vs = nn::VarStore::new(Device::Cpu);
+        let built = SubnetActor::new(&vs.root(), &graph(), &cfg.subnet_hidden, Activation::Tanh, &mut rng());
+        assert_eq!(local_actor_params(&cfg, &graph()), built.param_count());
+        let cfg = crate::config::NetworkConfig { subnet_hidden: vec![32, 32], global_hidden: vec![64, 64], ..Default::default() };
+        let g: Vec<Vec<u8>> = (0..8).map(|i| (0..16).map(|j| u8::from(j / 2 == i || j == (2 * i + 2) % 16)).collect()).collect();
+        let target = local_actor_params(&cfg, &g);
+        assert_eq!(target, 8 * (3 * 32 + 32 + 32 * 32 + 32 + 32 + 1));
+        let hidden = matched_global_hidden(&cfg, (16, 8), target);
+        assert_eq!(hidden, vec![86, 86]);
+        let matched = global_actor_params(&crate::config::NetworkConfig { global_hidden: hidden, ..cfg.clone() }, (16, 8)) as f64;
+        for other in [85, 87] {
+            let off = global_actor_params(&crate::config::NetworkConfig { global_hidden: vec![other; 2], ..cfg.clone() }, (16, 8)) as f64;
+            assert!((off - target as f64).abs() >= (matched - target as f64).abs());
         }
     }
 }
