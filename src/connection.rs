@@ -174,7 +174,9 @@ impl ConnectionSpec {
         self.connection() == Connection::Local
     }
 
-    /// Whether it carries modifiers that only a study's graph tasks apply.
+    /// Whether only a study can train it: modifiers its graph tasks apply
+    /// (+per-seed, row rules), or a matched global (the study makes the
+    /// graph it matches).
     pub fn has_modifiers(&self) -> bool {
         matches!(self, ConnectionSpec::Local { rows, per_seed, .. } if !rows.is_empty() || *per_seed)
             || matches!(self, ConnectionSpec::Random { per_seed: true, .. } | ConnectionSpec::MatchedGlobal { .. })

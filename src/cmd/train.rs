@@ -24,7 +24,9 @@ pub struct TrainArgs {
     /// graph built with CS3 at T = 0.1; local@T: at another T; graph:PATH:
     /// with a given graph.json (e.g. references/peg-eq21/graph.json);
     /// random@K: with K edges drawn at random (--graph-seed picks the draw);
-    /// global: the GCRL baseline; full-subnets: the ablation.
+    /// global: the GCRL baseline; full-subnets: the ablation. (Studies
+    /// also take global+match=CONNECTION: here --connection global
+    /// --match-params GRAPH.)
     #[arg(long, value_name = "CONNECTION")]
     pub connection: ConnectionSpec,
     /// Use this graph.json instead of building the graph first (local
@@ -78,6 +80,8 @@ pub struct TrainArgs {
 /// as the local actor on the graph in `path` (`--match-params`).
 fn match_global_to_local(config: &mut TrainConfig, env: &str, path: &std::path::Path) -> anyhow::Result<()> {
     let spec = lcrl_sim::make_env(env)?.spec().clone();
+    // As measured (an action may have no edge: dz at T = 1), like the
+    // graphs `lcrl graph` writes for the local cells it matches.
     let graph = lcrl_graph_builder::given::load_measured_for(path, &spec).with_context(|| format!("--match-params {}", path.display()))?;
     let shape = (spec.state_names.len(), spec.action_names.len());
     let target = lcrl_learner::algo::nets::local_actor_params(&config.network, &graph.g);
@@ -93,6 +97,14 @@ fn match_global_to_local(config: &mut TrainConfig, env: &str, path: &std::path::
 }
 
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
+    if let ConnectionSpec::MatchedGlobal { to } = &args.connection {
+        anyhow::bail!(
+            "--connection {}: for one run, give the graph of the actor it matches: `--connection global --match-params graph.json` \
+             (the graph of {} from `lcrl graph`)",
+            args.connection.label(),
+            to.label()
+        );
+    }
     let (mut config, source) = match &args.config {
         Some(path) => (TrainConfig::load_for_env(path, &args.env)?, format!("{} (missing keys: the environment's settings)", path.display())),
         None => {
@@ -121,20 +133,12 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     if let Some(t) = args.connection.threshold() {
         config.run.graph_threshold = t;
     }
+    config.validate()?;
     if let Some(path) = &args.match_params {
         if args.connection != ConnectionSpec::Global {
             anyhow::bail!("--match-params sizes a global actor: use it with --connection global (it has --connection {})", args.connection.label());
         }
         match_global_to_local(&mut config, &args.env, path)?;
-    }
-    config.validate()?;
-    if let ConnectionSpec::MatchedGlobal { to } = &args.connection {
-        anyhow::bail!(
-            "--connection {}: for one run, give the graph of the actor it matches: `--connection global --match-params graph.json` \
-             (the graph of {} from `lcrl graph`)",
-            args.connection.label(),
-            to.label()
-        );
     }
     if args.connection.has_modifiers() {
         anyhow::bail!(

@@ -223,7 +223,9 @@ impl Experiment {
             }
             let own = own.checked(&format!("seeds_of.\"{connection}\""))?;
             seeds.extend(own.iter().filter(|s| !seeds.contains(s)).copied().collect::<Vec<_>>());
-            seeds_of.insert(label, own);
+            if seeds_of.insert(label.clone(), own).is_some() {
+                bail!("`seeds_of` gives {label} its seeds twice (\"{connection}\" names it again)");
+            }
         }
         if file.eval_episodes == 0 {
             bail!("`eval_episodes` must be at least 1");
@@ -288,8 +290,13 @@ impl Experiment {
         for env in &file.environments {
             let made = lcrl_sim::make_env(env)?;
             for connection in &connections {
-                connection.given_graph(made.spec(), file.graph.seed).with_context(|| format!("connection \"{}\" on {env}", connection.label()))?;
-                if let ConnectionSpec::Local { rows, .. } = connection {
+                // A matched global needs the graph of the actor it matches.
+                let graph_of = match connection {
+                    ConnectionSpec::MatchedGlobal { to } => to.as_ref(),
+                    other => other,
+                };
+                graph_of.given_graph(made.spec(), file.graph.seed).with_context(|| format!("connection \"{}\" on {env}", connection.label()))?;
+                if let ConnectionSpec::Local { rows, .. } = graph_of {
                     if let Some(rule) = rows.iter().find(|r| !made.spec().action_names.contains(&r.action)) {
                         bail!("connection \"{}\": {env} has no action {} (its actions: {})", connection.label(), rule.action, made.spec().action_names.join(", "));
                     }
@@ -389,6 +396,17 @@ mod tests {
         // Given graphs are checked against each environment at load.
         assert!(err(&MINIMAL.replace("local@0.25", "random@2")).contains("between 3 and 9"));
         assert!(err(&MINIMAL.replace("local@0.25", "graph:no/such.json")).contains("no/such.json"));
+        // So is the graph a matched global matches, in the cells or not.
+        assert!(err(&MINIMAL.replace("local@0.25", "global+match=graph:no/such.json")).contains("no/such.json"));
+        assert!(err(&MINIMAL.replace("local@0.25", "global+match=random@2")).contains("between 3 and 9"));
+        assert!(err(&MINIMAL.replace("local@0.25", "global+match=local@1+u9=0.1")).contains("has no action u9"));
+        // A connection's own seeds: one entry each, for a listed connection.
+        let own = |entries: &str| format!("{MINIMAL}[seeds_of]\n{entries}");
+        assert!(err(&own("\"local@0.25\" = 5\n\"local@0.250\" = 6\n")).contains("gives local@0.25 its seeds twice"));
+        assert!(err(&own("\"local@0.5\" = 5\n")).contains("local@0.5 is not one of `connections`"));
+        assert!(err(&own("\"local@0.25\" = []\n")).contains("`seeds_of.\"local@0.25\"` is zero"));
+        let e = Experiment::parse(&own("\"local@0.25\" = [1, 4]\n")).unwrap();
+        assert_eq!((e.seeds.clone(), e.seeds_for(&e.connections[1]), e.seeds_for(&e.connections[0])), (vec![0, 1, 2, 4], vec![1, 4], vec![0, 1, 2]));
     }
 
     #[test]

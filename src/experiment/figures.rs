@@ -178,12 +178,20 @@ pub fn advantage(study: &Study, path: &Path) -> anyhow::Result<bool> {
     for &algo in &study.experiment.file.algorithms {
         for &baseline in &baselines {
             let (mut x, mut mean, mut low, mut high) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            let mut local_label = String::from("local");
             for (env, &n) in study.experiment.file.environments.iter().zip(&sizes) {
                 let find = |pick: &dyn Fn(&C) -> bool| study.cells.iter().find(|c| &c.cell.env == env && c.cell.algo == algo && pick(&c.cell.connection));
-                let (Some(local), Some(other)) = (find(&|c| c.threshold().is_some()), find(&|c| c == baseline)) else { continue };
+                // The local cell: the one a matched global matches, else
+                // the first measured graph without modifiers.
+                let is_local = |c: &C| match baseline {
+                    C::MatchedGlobal { to } => c == to.as_ref(),
+                    _ => c.threshold().is_some() && !c.has_modifiers(),
+                };
+                let (Some(local), Some(other)) = (find(&is_local), find(&|c| c == baseline)) else { continue };
                 let optimum = local.runs.iter().find_map(|r| r.summary.evaluation.masked_lqr_return).unwrap_or(1.0).abs().max(1e-9);
                 let eval = |c: &CellRuns| c.runs.iter().map(|r| r.summary.evaluation.eval_return / optimum).collect::<Vec<f64>>();
                 if let Some(w) = super::stats::welch(&eval(local), &eval(other)) {
+                    local_label = local.cell.connection.label();
                     x.push(n as f64);
                     mean.push(w.difference);
                     low.push(w.ci95[0]);
@@ -193,13 +201,16 @@ pub fn advantage(study: &Study, path: &Path) -> anyhow::Result<bool> {
             if x.is_empty() {
                 continue;
             }
-            let label = format!("{}: (local − {}) / |masked LQR|", algo_name(algo), baseline.label());
+            let label = format!("{}: ({} − {}) / |masked LQR|", algo_name(algo), local_label, baseline.label());
             let mut panel = Panel::lines(label.clone(), vec![(label, mean)]);
             panel.bands.push((0, low, high));
             panel.references.push(("no difference".into(), 0.0));
             panel.x = Some(x);
             panels.push(panel);
         }
+    }
+    if panels.is_empty() {
+        return Ok(false);
     }
     let xs = sizes.iter().map(|&n| n as f64).collect::<Vec<f64>>();
     line_panels(path, "LCRL's advantage against N (lti-blocks-N, 95% interval)", &xs, "N (actions; 2N states)", &panels)

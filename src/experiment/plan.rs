@@ -276,7 +276,7 @@ pub fn prepare_out(e: &Experiment, file: &Path, out: &Path, shared: bool) -> any
             bail!(
                 "{} belongs to a different experiment ({}); {} describes another study. Nothing was changed: \
                  run it with another --out, or restore the file that made this directory to continue it \
-                 (adding seeds or connections is the one change a study folder takes: its finished runs keep their meaning)",
+                 (a study folder takes only changes that keep its finished runs' meaning: more seeds, a connection's own seeds growing, added connections, a primary contrast named where there was none)",
                 out.display(),
                 other.map_or("unreadable experiment.json".into(), |n| format!("\"{n}\", see {}", out.join("experiment.toml").display())),
                 file.display()
@@ -414,6 +414,23 @@ mod tests {
         // A row rule for an action the environment lacks fails at load.
         let bad = Experiment::parse(&text.replace("dz=0.1", "dq=0.1")).unwrap_err();
         assert!(format!("{bad:#}").contains("has no action dq"), "{bad:#}");
+    }
+
+    /// A study folder takes a connection's own seeds growing, and refuses
+    /// them shrinking (its finished runs would leave the report).
+    #[test]
+    fn a_folder_takes_own_seeds_growing_not_shrinking() {
+        let base = "name = \"t\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"random@4+per-seed\", \"global\"]\nseeds = 2\nepisodes = { ppo = 7 }\n";
+        let study = |own: &str| Experiment::parse(&format!("{base}[seeds_of]\n\"random@4+per-seed\" = {own}\n")).unwrap();
+        let recorded = |e: &Experiment| serde_json::to_string_pretty(&e.file).unwrap() + "\n";
+        let plain = Experiment::parse(base).unwrap();
+        assert!(extends(&recorded(&plain), &study("[0, 1, 2]")), "more draws for one connection");
+        assert!(extends(&recorded(&study("[0, 1, 2]")), &study("[0, 1, 2, 3]")));
+        assert!(!extends(&recorded(&study("[0, 1, 2]")), &study("[0, 2]")), "seed 1's finished draw would leave the report");
+        assert!(!extends(&recorded(&plain), &study("[1]")), "seed 0's finished draw would leave the report");
+        // Growing them adds the runs of the new seeds to that cell alone.
+        let ids: Vec<String> = tasks(&study("[0, 1, 2]")).iter().map(Task::id).filter(|id| id.ends_with("seed2")).collect();
+        assert_eq!(ids, ["graph-lti-paper-random@4-seed2", "train-lti-paper-ppo-random@4+per-seed-seed2"]);
     }
 
     #[test]

@@ -294,14 +294,17 @@ impl Study {
     }
 
     /// Per environment and algorithm: each connection with a graph against
-    /// global, full-subnets and every matched global, and each given or measured graph
+    /// global and full-subnets, the matched cell against its matched
+    /// global, and each given or measured graph
     /// (graph:PATH, local@T) against each random@K (does the structure
     /// matter, or only the number of inputs?), on final and evaluation
     /// return.
     fn comparisons(&self) -> Vec<Comparison> {
         use crate::connection::ConnectionSpec as C;
         let pairs_with = |a: &C, b: &C| match (a, b) {
-            (a, C::Global | C::FullSubnets | C::MatchedGlobal { .. }) => a.has_graph(),
+            (a, C::Global | C::FullSubnets) => a.has_graph(),
+            // A matched global is sized to one local cell: compared with it.
+            (a, C::MatchedGlobal { to }) => a == to.as_ref(),
             (C::Graph { .. } | C::Local { .. }, C::Random { .. }) => true,
             _ => false,
         };
@@ -561,7 +564,7 @@ mod tests {
         let env = lcrl_sim::make_env("lti-paper").unwrap();
         lcrl_graph_builder::given::random(env.spec(), 4, 1).unwrap().write_json(&given).unwrap();
         let text = format!(
-            "name = \"c\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"graph:{}\", \"random@4\", \"global\"]\nseeds = 2\nepisodes = {{ ppo = 2 }}\n",
+            "name = \"c\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"graph:{}\", \"random@4\", \"global\", \"global+match=local@0.1\"]\nseeds = 2\nepisodes = {{ ppo = 2 }}\n",
             given.display()
         );
         let e = Experiment::parse(&text).unwrap();
@@ -578,6 +581,8 @@ mod tests {
             (graph.clone(), "global".to_string()),
             (graph, "random@4".to_string()),
             ("local@0.1".to_string(), "global".to_string()),
+            // A matched global meets the one cell it is sized to.
+            ("local@0.1".to_string(), "global+match=local@0.1".to_string()),
             ("local@0.1".to_string(), "random@4".to_string()),
             ("random@4".to_string(), "global".to_string()),
         ];

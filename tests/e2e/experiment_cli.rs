@@ -252,7 +252,7 @@ fn bad_experiments_are_refused_and_finished_runs_kept() {
     assert_eq!(finished_runs(&out), finished);
     // Dropping a seed is another study too.
     let fewer = write("fewer.toml", &TINY.replace("seeds = 1", "seeds = [1]"));
-    assert_clean_failure(&run(&fewer, &out), "adding seeds or connections is the one change");
+    assert_clean_failure(&run(&fewer, &out), "a study folder takes only changes that keep its finished runs");
     assert_eq!(finished_runs(&out), finished);
     // More seeds extend the study: only the new seed runs, and the report
     // covers both.
