@@ -182,6 +182,8 @@ pub struct Experiment {
     pub connections: Vec<ConnectionSpec>,
     /// Every seed of the study: `seeds` and those of `[seeds_of]`.
     pub seeds: Vec<u64>,
+    /// `seeds` as checked: the seeds of every connection without its own.
+    study_seeds: Vec<u64>,
     /// The seeds of each connection with its own (`[seeds_of]`), by label.
     pub seeds_of: BTreeMap<String, Vec<u64>>,
 }
@@ -209,7 +211,8 @@ impl Experiment {
         if file.environments.is_empty() || file.algorithms.is_empty() || file.connections.is_empty() {
             bail!("`environments`, `algorithms` and `connections` must each list at least one entry");
         }
-        let mut seeds = file.seeds.checked("seeds")?;
+        let study_seeds = file.seeds.checked("seeds")?;
+        let mut seeds = study_seeds.clone();
         let connections = file.connections.iter().map(|c| ConnectionSpec::parse(c)).collect::<anyhow::Result<Vec<_>>>()?;
         let labels: Vec<String> = connections.iter().map(ConnectionSpec::label).collect();
         if labels.iter().collect::<std::collections::BTreeSet<_>>().len() != labels.len() {
@@ -303,7 +306,7 @@ impl Experiment {
                 }
             }
         }
-        let experiment = Experiment { file, connections, seeds, seeds_of };
+        let experiment = Experiment { file, connections, seeds, study_seeds, seeds_of };
         for env in &experiment.file.environments {
             experiment.train_config(env)?;
         }
@@ -327,7 +330,7 @@ impl Experiment {
     /// The seeds of a connection's cells: its own (`[seeds_of]`) or the
     /// study's `seeds`.
     pub fn seeds_for(&self, connection: &ConnectionSpec) -> Vec<u64> {
-        self.seeds_of.get(&connection.label()).cloned().unwrap_or_else(|| self.file.seeds.checked("seeds").unwrap_or_default())
+        self.seeds_of.get(&connection.label()).unwrap_or(&self.study_seeds).clone()
     }
 
     pub fn episodes(&self, algo: Algo) -> usize {
