@@ -20,17 +20,21 @@ pub struct Panel {
     /// curve into a line); values below the axis sit on its bottom edge and
     /// the axis label says how many.
     pub clip_low_outliers: bool,
+    /// Few points (one per N, say): each drawn as a dot and its band as an
+    /// error bar, so that a series with a single point shows; non-finite
+    /// values are gaps.
+    pub markers: bool,
 }
 
 impl Panel {
     /// A panel of series with no band, references or clipping.
     pub fn lines(y_label: impl Into<String>, series: Vec<(String, Vec<f64>)>) -> Self {
-        Panel { y_label: y_label.into(), series, bands: Vec::new(), x: None, references: Vec::new(), clip_low_outliers: false }
+        Panel { y_label: y_label.into(), series, bands: Vec::new(), x: None, references: Vec::new(), clip_low_outliers: false, markers: false }
     }
 
     /// A reward-curve panel: low outliers clipped, with reference lines.
     pub fn rewards(y_label: impl Into<String>, series: Vec<(String, Vec<f64>)>, references: Vec<(String, f64)>) -> Self {
-        Panel { y_label: y_label.into(), series, bands: Vec::new(), x: None, references, clip_low_outliers: true }
+        Panel { y_label: y_label.into(), series, bands: Vec::new(), x: None, references, clip_low_outliers: true, markers: false }
     }
 }
 
@@ -130,7 +134,16 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
             mesh.x_label_formatter(&whole_ticks);
         }
         mesh.draw().map_err(|e| draw_err(&e))?;
-        for (k, lo, hi) in &panel.bands {
+        // With markers, series at the same x stand a little apart, so that
+        // their error bars do not hide each other.
+        let dodge = |k: usize| if panel.markers { (k as f64 - (panel.series.len() as f64 - 1.0) / 2.0) * 0.012 * (x1 - x0) } else { 0.0 };
+        for (k, lo, hi) in panel.bands.iter().filter(|_| panel.markers) {
+            let color = COLORS[k % COLORS.len()];
+            let bars = x.iter().zip(lo.iter().zip(hi)).filter(|(_, (l, h))| l.is_finite() && h.is_finite());
+            let bars = bars.map(|(x, (l, h))| PathElement::new(vec![(x + dodge(*k), l.clamp(y0, y1)), (x + dodge(*k), h.clamp(y0, y1))], color.stroke_width(2)));
+            chart.draw_series(bars).map_err(|e| draw_err(&e))?;
+        }
+        for (k, lo, hi) in panel.bands.iter().filter(|_| !panel.markers) {
             let clamp = |v: &[f64]| -> Vec<(f64, f64)> { x.iter().copied().zip(v.iter().map(|y| y.clamp(y0, y1))).collect() };
             let polygon: Vec<(f64, f64)> = clamp(hi).into_iter().chain(clamp(lo).into_iter().rev()).collect();
             let color = COLORS[k % COLORS.len()];
@@ -138,8 +151,12 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
         }
         for (k, (name, values)) in panel.series.iter().enumerate() {
             let color = COLORS[k % COLORS.len()];
-            let points = x.iter().copied().zip(values.iter().map(|y| y.max(y0))).filter(|(_, y)| y.is_finite());
-            chart.draw_series(LineSeries::new(points, color.stroke_width(2))).map_err(|e| draw_err(&e))?;
+            // f64::max would turn a gap (NaN) into the bottom edge.
+            let points = x.iter().map(|x| x + dodge(k)).zip(values.iter().map(|y| if y.is_nan() { *y } else { y.max(y0) })).filter(|(_, y)| y.is_finite());
+            chart.draw_series(LineSeries::new(points.clone(), color.stroke_width(2))).map_err(|e| draw_err(&e))?;
+            if panel.markers {
+                chart.draw_series(points.map(|p| Circle::new(p, 4, color.filled()))).map_err(|e| draw_err(&e))?;
+            }
             // Clipped values: a triangle on the bottom edge for each.
             let clipped = x.iter().zip(values).filter(|(_, y)| **y < y0).map(|(x, _)| TriangleMarker::new((*x, y0), 4, color.filled()));
             chart.draw_series(clipped).map_err(|e| draw_err(&e))?;

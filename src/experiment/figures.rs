@@ -55,7 +55,7 @@ pub fn curves(study: &Study, path: &Path) -> anyhow::Result<()> {
             let low: Vec<f64> = (0..episodes).map(|k| at(k).fold(f64::INFINITY, f64::min)).collect();
             let high: Vec<f64> = (0..episodes).map(|k| at(k).fold(f64::NEG_INFINITY, f64::max)).collect();
             bands.push((series.len(), low, high));
-            series.push((format!("{} ({} seeds)", cell.cell.connection.label(), cell.runs.len()), mean));
+            series.push((format!("{} ({} seeds)", cell.label(), cell.runs.len()), mean));
         }
         let mut references = Vec::new();
         if let Some(b) = study.best_constant.get(env) {
@@ -136,7 +136,7 @@ pub fn traces(study: &Study, path: &Path) -> anyhow::Result<()> {
         }
         for cell in &group {
             let Some(run) = cell.median_run() else { continue };
-            let label = format!("{} (seed {}, median)", cell.cell.connection.label(), run.seed);
+            let label = format!("{} (seed {}, median)", cell.label(), run.seed);
             // An archived study (scripts/archive-study.sh) keeps summaries,
             // not policies: its report is still written, without this trace.
             let policy = match Policy::load(&run.dir) {
@@ -168,44 +168,69 @@ pub fn traces(study: &Study, path: &Path) -> anyhow::Result<()> {
 /// algorithm and per baseline the study has (global, full-subnets, each
 /// matched global), as (local − baseline) eval return over |masked LQR|
 /// (the gap's share of the optimum; above 0: LCRL better), with Welch's
-/// 95% interval as a band. The local cells are those with a measured graph.
+/// 95% interval as an error bar. The local cells are those with a
+/// measured graph. A companion study's cell of a baseline's connection
+/// (`--with`, e.g. the global actor at another learning rate) is a second
+/// series in that baseline's panel, at the N it ran.
 pub fn advantage(study: &Study, path: &Path) -> anyhow::Result<bool> {
     use crate::connection::ConnectionSpec as C;
     let sizes: Option<Vec<usize>> = study.experiment.file.environments.iter().map(|e| lcrl_sim::lti::LtiConfig::blocks_size(e)).collect();
     let Some(sizes) = sizes else { return Ok(false) };
-    let baselines: Vec<&C> = study.experiment.connections.iter().filter(|c| matches!(c, C::Global | C::FullSubnets | C::MatchedGlobal { .. })).collect();
+    let is_baseline = |c: &C| matches!(c, C::Global | C::FullSubnets | C::MatchedGlobal { .. });
+    let mut baselines: Vec<&C> = Vec::new();
+    for c in study.experiment.connections.iter().chain(study.cells.iter().map(|c| &c.cell.connection)).filter(|c| is_baseline(c)) {
+        if !baselines.contains(&c) {
+            baselines.push(c);
+        }
+    }
+    let mut companions: Vec<Option<&str>> = vec![None];
+    for c in &study.cells {
+        if let Some(name) = c.from.as_deref().filter(|n| !companions.contains(&Some(*n))) {
+            companions.push(Some(name));
+        }
+    }
     let mut panels = Vec::new();
     for &algo in &study.experiment.file.algorithms {
         for &baseline in &baselines {
-            let (mut x, mut mean, mut low, mut high) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            let (mut series, mut bands) = (Vec::new(), Vec::new());
             let mut local_label = String::from("local");
-            for (env, &n) in study.experiment.file.environments.iter().zip(&sizes) {
-                let find = |pick: &dyn Fn(&C) -> bool| study.cells.iter().find(|c| &c.cell.env == env && c.cell.algo == algo && pick(&c.cell.connection));
-                // The local cell: the one a matched global matches, else
-                // the first measured graph without modifiers.
-                let is_local = |c: &C| match baseline {
-                    C::MatchedGlobal { to } => c == to.as_ref(),
-                    _ => c.threshold().is_some() && !c.has_modifiers(),
-                };
-                let (Some(local), Some(other)) = (find(&is_local), find(&|c| c == baseline)) else { continue };
-                let optimum = local.runs.iter().find_map(|r| r.summary.evaluation.masked_lqr_return).unwrap_or(1.0).abs().max(1e-9);
-                let eval = |c: &CellRuns| c.runs.iter().map(|r| r.summary.evaluation.eval_return / optimum).collect::<Vec<f64>>();
-                if let Some(w) = super::stats::welch(&eval(local), &eval(other)) {
-                    local_label = local.cell.connection.label();
-                    x.push(n as f64);
-                    mean.push(w.difference);
-                    low.push(w.ci95[0]);
-                    high.push(w.ci95[1]);
+            for &from in &companions {
+                let (mut mean, mut low, mut high) = (Vec::new(), Vec::new(), Vec::new());
+                for env in &study.experiment.file.environments {
+                    let find = |from: Option<&str>, pick: &dyn Fn(&C) -> bool| {
+                        study.cells.iter().find(|c| &c.cell.env == env && c.cell.algo == algo && c.from.as_deref() == from && pick(&c.cell.connection))
+                    };
+                    // The local cell (the study's own): the one a matched
+                    // global matches, else the first measured graph
+                    // without modifiers.
+                    let is_local = |c: &C| match baseline {
+                        C::MatchedGlobal { to } => c == to.as_ref(),
+                        _ => c.threshold().is_some() && !c.has_modifiers(),
+                    };
+                    let pair = find(None, &is_local).zip(find(from, &|c| c == baseline));
+                    let difference = pair.and_then(|(local, other)| {
+                        let optimum = local.runs.iter().find_map(|r| r.summary.evaluation.masked_lqr_return).unwrap_or(1.0).abs().max(1e-9);
+                        let eval = |c: &CellRuns| c.runs.iter().map(|r| r.summary.evaluation.eval_return / optimum).collect::<Vec<f64>>();
+                        local_label = local.cell.connection.label();
+                        super::stats::welch(&eval(local), &eval(other))
+                    });
+                    mean.push(difference.as_ref().map_or(f64::NAN, |w| w.difference));
+                    low.push(difference.as_ref().map_or(f64::NAN, |w| w.ci95[0]));
+                    high.push(difference.as_ref().map_or(f64::NAN, |w| w.ci95[1]));
+                }
+                if mean.iter().any(|m| m.is_finite()) {
+                    let other = from.map_or(baseline.label(), |name| format!("{} [{name}]", baseline.label()));
+                    bands.push((series.len(), low, high));
+                    series.push((format!("{local_label} − {other}"), mean));
                 }
             }
-            if x.is_empty() {
+            if series.is_empty() {
                 continue;
             }
-            let label = format!("{}: ({} − {}) / |masked LQR|", algo_name(algo), local_label, baseline.label());
-            let mut panel = Panel::lines(label.clone(), vec![(label, mean)]);
-            panel.bands.push((0, low, high));
+            let mut panel = Panel::lines(format!("{}: (local − {}) / |masked LQR|", algo_name(algo), baseline.label()), series);
+            panel.bands = bands;
+            panel.markers = true;
             panel.references.push(("no difference".into(), 0.0));
-            panel.x = Some(x);
             panels.push(panel);
         }
     }

@@ -5,6 +5,7 @@
 
 mod against;
 mod bars;
+mod companion;
 mod config;
 mod draws;
 mod figures;
@@ -78,8 +79,17 @@ pub struct ReportArgs {
     /// lower than the reference's on that seed minus --margin. Against a
     /// study with one setting changed, the same tables are a paired
     /// comparison. See docs/experiment.md, "Against a reference study".
-    #[arg(long, value_name = "REF_DIR")]
+    #[arg(long, value_name = "REF_DIR", conflicts_with = "with")]
     pub against: Option<PathBuf>,
+    /// A companion study (its --out directory; repeat for more): one of
+    /// the same design with one setting changed, such as the global
+    /// actor's learning rate. Its cells join this report as
+    /// `CONNECTION [NAME]`, compared with this study's cell of the same
+    /// connection and by the usual rules, in the report's one Holm family,
+    /// and drawn in advantage.png. The report written without --with
+    /// leaves them out again. See docs/experiment.md, "Companion studies".
+    #[arg(long = "with", value_name = "DIR")]
+    pub with: Vec<PathBuf>,
     /// How far below the reference's worst 10-episode mean a run's may fall
     /// and still pass (return units). The default, 1.0, is two standard
     /// deviations of the exploring base's own worst windows over seeds on
@@ -126,7 +136,7 @@ pub fn run(command: &ExperimentCommand) -> anyhow::Result<()> {
         ExperimentCommand::Run(args) => run_study(args),
         ExperimentCommand::Report(args) => {
             let e = plan::recorded_experiment(&args.dir)?;
-            let study = write_report(&e, &args.dir)?;
+            let study = write_report(&e, &args.dir, &args.with)?;
             match &args.against {
                 Some(reference) => write_against(&study, &args.dir, reference, args.margin),
                 None => Ok(()),
@@ -168,7 +178,7 @@ fn run_study(args: &RunArgs) -> anyhow::Result<()> {
         outcome.blocked,
         outcome.wall_seconds
     );
-    write_report(&e, &args.out)?;
+    write_report(&e, &args.out, &[])?;
     if !outcome.failed.is_empty() {
         let list: Vec<String> = outcome.failed.iter().map(|(id, log)| format!("  {id}: {}", log.display())).collect();
         bail!(
@@ -180,9 +190,14 @@ fn run_study(args: &RunArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Writes the report and figures; returns the study they were drawn from.
-fn write_report(e: &Experiment, out: &Path) -> anyhow::Result<report::Study> {
-    let study = report::gather(e, out)?;
+/// Writes the report and figures, with the cells of the companion studies
+/// in `with`; returns the study they were drawn from.
+fn write_report(e: &Experiment, out: &Path, with: &[PathBuf]) -> anyhow::Result<report::Study> {
+    let mut study = report::gather(e, out)?;
+    for dir in with {
+        let companion = plan::recorded_experiment(dir).with_context(|| format!("the --with study {}", dir.display()))?;
+        companion::join(&mut study, report::gather(&companion, dir)?)?;
+    }
     let report = study.report();
     report::write(&report, out)?;
     figures::curves(&study, &out.join("curves.png"))?;

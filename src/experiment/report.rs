@@ -34,9 +34,21 @@ pub struct CellRuns {
     pub cell: Cell,
     pub runs: Vec<Run>,
     pub graph_seconds: f64,
+    /// The companion study the cell comes from (`report --with`); None for
+    /// the study's own cells.
+    pub from: Option<String>,
 }
 
 impl CellRuns {
+    /// The connection's label, with the companion study's name after it
+    /// (`global [lti-blocks-32-global-lr3e-4]`).
+    pub fn label(&self) -> String {
+        match &self.from {
+            Some(study) => format!("{} [{study}]", self.cell.connection.label()),
+            None => self.cell.connection.label(),
+        }
+    }
+
     /// The run whose evaluation return is the median (the lower one of the
     /// middle two for an even count), as the publication's traces show a
     /// typical agent.
@@ -83,7 +95,7 @@ pub fn gather(e: &Experiment, out: &Path) -> anyhow::Result<Study> {
                 None => study.missing.push(format!("{} seed {seed}", cell.label())),
             }
         }
-        study.cells.push(CellRuns { cell, runs, graph_seconds });
+        study.cells.push(CellRuns { cell, runs, graph_seconds, from: None });
     }
     for env in &e.file.environments {
         let policy_path = out.join("best_policy").join(super::config::env_slug(env)).join("best_policy.json");
@@ -123,6 +135,9 @@ pub struct Report {
     pub random_draws: Vec<super::draws::Placement>,
     /// Runs not finished (yet): their cells report the seeds that are.
     pub missing_runs: Vec<String>,
+    /// Companion studies whose cells this report holds (`--with`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub companions: Vec<String>,
 }
 
 #[derive(Debug, Serialize)]
@@ -237,7 +252,7 @@ impl Study {
             cells.push(CellReport {
                 env: c.cell.env.clone(),
                 algo: algo_name(c.cell.algo).into(),
-                connection: c.cell.connection.label(),
+                connection: c.label(),
                 episodes: budget,
                 seeds: c.runs.iter().map(|r| r.seed).collect(),
                 final_return: of(&|r| r.summary.final_return),
@@ -280,16 +295,22 @@ impl Study {
                 let values = |env: &str, connection: &str| -> Vec<f64> {
                     self.cells
                         .iter()
-                        .filter(|c| c.cell.env == env && c.cell.algo == contrast.algorithm && c.cell.connection.label() == connection)
+                        .filter(|c| c.from.is_none() && c.cell.env == env && c.cell.algo == contrast.algorithm && c.cell.connection.label() == connection)
                         .flat_map(|c| &c.runs)
                         .map(|r| if contrast.metric == "final_return" { r.summary.final_return } else { r.summary.evaluation.eval_return })
                         .collect()
                 };
                 super::primary::evaluate(contrast, &e.file.environments, values)
             }),
-            random_draws: super::draws::placements(&self.cells.iter().map(|c| (&c.cell, c.runs.iter().map(|r| r.summary.evaluation.eval_return).collect())).collect::<Vec<_>>()),
+            random_draws: super::draws::placements(&self.cells.iter().filter(|c| c.from.is_none()).map(|c| (&c.cell, c.runs.iter().map(|r| r.summary.evaluation.eval_return).collect())).collect::<Vec<_>>()),
             cells,
             missing_runs: self.missing.clone(),
+            companions: self.cells.iter().filter_map(|c| c.from.clone()).fold(Vec::new(), |mut names, n| {
+                if !names.contains(&n) {
+                    names.push(n);
+                }
+                names
+            }),
         }
     }
 
@@ -298,7 +319,10 @@ impl Study {
     /// global, and each given or measured graph
     /// (graph:PATH, local@T) against each random@K (does the structure
     /// matter, or only the number of inputs?), on final and evaluation
-    /// return.
+    /// return. A companion study's cell (`--with`) meets the study's own
+    /// cells by the same rules, and the study's cell of its connection
+    /// (what changing the companion's one setting did); companions' cells
+    /// are not compared with each other.
     fn comparisons(&self) -> Vec<Comparison> {
         use crate::connection::ConnectionSpec as C;
         let pairs_with = |a: &C, b: &C| match (a, b) {
@@ -308,9 +332,14 @@ impl Study {
             (C::Graph { .. } | C::Local { .. }, C::Random { .. }) => true,
             _ => false,
         };
+        let paired = |a: &CellRuns, b: &CellRuns| match (&a.from, &b.from) {
+            (None, None) => pairs_with(&a.cell.connection, &b.cell.connection),
+            (None, Some(_)) => pairs_with(&a.cell.connection, &b.cell.connection) || a.cell.connection == b.cell.connection,
+            (Some(_), _) => false,
+        };
         let mut out = Vec::new();
         for a in &self.cells {
-            for b in self.cells.iter().filter(|b| b.cell.env == a.cell.env && b.cell.algo == a.cell.algo && pairs_with(&a.cell.connection, &b.cell.connection)) {
+            for b in self.cells.iter().filter(|b| b.cell.env == a.cell.env && b.cell.algo == a.cell.algo && paired(a, b)) {
                 let metrics: [(&'static str, fn(&Run) -> f64); 2] = [("final_return", |r| r.summary.final_return), ("eval_return", |r| r.summary.evaluation.eval_return)];
                 for (metric, f) in metrics {
                     let (xa, xb): (Vec<f64>, Vec<f64>) = (a.runs.iter().map(f).collect(), b.runs.iter().map(f).collect());
@@ -318,8 +347,8 @@ impl Study {
                         out.push(Comparison {
                             env: a.cell.env.clone(),
                             algo: algo_name(a.cell.algo).into(),
-                            a: a.cell.connection.label(),
-                            b: b.cell.connection.label(),
+                            a: a.label(),
+                            b: b.label(),
                             metric,
                             n_a: xa.len(),
                             n_b: xb.len(),
@@ -376,6 +405,9 @@ pub fn markdown(report: &Report) -> String {
     let _ = writeln!(md, "Training safety: {}.\n", m.safety);
     if let Some(p) = &report.primary {
         md.push_str(&super::primary::markdown(p));
+    }
+    if !report.companions.is_empty() {
+        let _ = writeln!(md, "**Companion studies** (their cells are labelled `CONNECTION [NAME]`): {}\n", report.companions.join(", "));
     }
     if !report.missing_runs.is_empty() {
         let _ = writeln!(md, "**Not finished ({}):** {}\n", report.missing_runs.len(), report.missing_runs.join(", "));
@@ -506,87 +538,4 @@ pub(super) mod fixtures {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::fixtures::write_run;
-    use super::*;
-    use serde_json::json;
-
-    /// The bar counts of a hand-made study: a run beats the best constant
-    /// only when strictly above it on the same starts, diverges when below
-    /// a = 0 (its own, else the best constant file's on the same starts),
-    /// and a cell with a run evaluated elsewhere gets no beat count at all.
-    #[test]
-    fn bar_counts_follow_the_runs_on_the_same_starts() {
-        let text = "name = \"bars\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"global\"]\nseeds = 3\nepisodes = { ppo = 2 }\n";
-        let e = Experiment::parse(text).unwrap();
-        let tmp = tempfile::tempdir().unwrap();
-        let out = tmp.path();
-        let bar = json!({ "action": [0.0], "mean_return": -5.0, "success_rate": null, "eval_episodes": 100, "eval_seed": 0,
-                          "zero_action": { "eval": { "mean_return": -8.0 } } });
-        let bar_path = best_constant_path(out, "lti-paper");
-        std::fs::create_dir_all(bar_path.parent().unwrap()).unwrap();
-        std::fs::write(&bar_path, bar.to_string()).unwrap();
-        let cell = |i: usize| cells(&e)[i].clone();
-        let (local, global) = (cell(0), cell(1));
-        write_run(&run_dir(out, &local, 0), "local", 0, -4.0, Some(0), Some(-8.0)); // beats
-        write_run(&run_dir(out, &local, 1), "local", 1, -9.0, Some(0), Some(-8.0)); // diverged
-        write_run(&run_dir(out, &local, 2), "local", 2, -5.0, Some(0), Some(-8.0)); // a tie: does not beat
-        write_run(&run_dir(out, &global, 0), "global", 0, -9.0, Some(0), None); // diverged by the file's a = 0
-        write_run(&run_dir(out, &global, 1), "global", 1, -6.0, Some(1 << 42), Some(-6.5)); // other starts
-        // global seed 2 never finished.
-
-        let report = gather(&e, out).unwrap().report();
-        let (l, g) = (&report.cells[0], &report.cells[1]);
-        assert_eq!((l.connection.as_str(), l.beat_best_constant, l.diverged), ("local@0.1", Some(1), 1));
-        let per_seed: Vec<(Option<bool>, bool)> = l.per_seed.iter().map(|s| (s.beats_best_constant, s.diverged)).collect();
-        assert_eq!(per_seed, [(Some(true), false), (Some(false), true), (Some(false), false)]);
-        assert_eq!((g.connection.as_str(), g.beat_best_constant, g.diverged), ("global", None, 1));
-        assert_eq!(g.per_seed.iter().map(|s| s.beats_best_constant).collect::<Vec<_>>(), [Some(false), None]);
-        assert_eq!(report.missing_runs, ["lti-paper/ppo/global seed 2"]);
-
-        let md = markdown(&report);
-        let row = |label: &str| md.lines().find(|l| l.starts_with(&format!("| {label} |"))).unwrap().to_string();
-        assert!(row("local@0.1").contains("| 1 of 3 | 1 of 3 |"), "{md}");
-        assert!(row("global").contains("| — | 1 of 2 |"), "{md}");
-        let json: serde_json::Value = serde_json::to_value(&report).unwrap();
-        assert_eq!(json["cells"][0]["beat_best_constant"], 1);
-        assert_eq!(json["cells"][1]["beat_best_constant"], serde_json::Value::Null);
-    }
-
-    /// Which cells are compared: every cell with a graph against global
-    /// and full-subnets, and a given graph against a random one (does the
-    /// structure matter, or only the count?); never two measured graphs.
-    #[test]
-    fn comparisons_pair_graphs_with_global_and_given_with_random() {
-        let tmp = tempfile::tempdir().unwrap();
-        let out = tmp.path();
-        let given = out.join("g.json");
-        let env = lcrl_sim::make_env("lti-paper").unwrap();
-        lcrl_graph_builder::given::random(env.spec(), 4, 1).unwrap().write_json(&given).unwrap();
-        let text = format!(
-            "name = \"c\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"graph:{}\", \"random@4\", \"global\", \"global+match=local@0.1\"]\nseeds = 2\nepisodes = {{ ppo = 2 }}\n",
-            given.display()
-        );
-        let e = Experiment::parse(&text).unwrap();
-        for (k, cell) in cells(&e).iter().enumerate() {
-            for seed in 0..2 {
-                write_run(&run_dir(out, cell, seed), "local", seed, -4.0 - k as f64 - seed as f64 * 0.5, Some(0), None);
-            }
-        }
-        let report = gather(&e, out).unwrap().report();
-        let mut pairs: Vec<(String, String)> = report.comparisons.iter().filter(|c| c.metric == "eval_return").map(|c| (c.a.clone(), c.b.clone())).collect();
-        pairs.sort();
-        let graph = format!("graph:{}", given.display());
-        let mut expected = vec![
-            (graph.clone(), "global".to_string()),
-            (graph, "random@4".to_string()),
-            ("local@0.1".to_string(), "global".to_string()),
-            // A matched global meets the one cell it is sized to.
-            ("local@0.1".to_string(), "global+match=local@0.1".to_string()),
-            ("local@0.1".to_string(), "random@4".to_string()),
-            ("random@4".to_string(), "global".to_string()),
-        ];
-        expected.sort();
-        assert_eq!(pairs, expected);
-    }
-}
+mod tests;

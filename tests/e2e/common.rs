@@ -1,7 +1,8 @@
 //! Helpers for running the project's binaries.
 
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::{Child, Command, Output, Stdio};
 
 /// `lcrl`, built by cargo for this test binary.
 pub fn lcrl() -> Command {
@@ -16,6 +17,17 @@ pub fn workspace_bin(name: &str) -> Command {
     let path = dir.join(name);
     assert!(path.is_file(), "{} is missing: run `cargo build --workspace --bins` before the tests", path.display());
     Command::new(path)
+}
+
+/// Starts a server (learner, graph builder) and waits for the line it
+/// prints once its port is bound, `listening on ADDR`; returns the child
+/// and ADDR. Its stderr is discarded.
+pub fn spawn_listening(command: &mut Command) -> (Child, String) {
+    let mut child = command.stdout(Stdio::piped()).stderr(Stdio::null()).spawn().unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let addr = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("the server said {line:?}, not \"listening on ADDR\""));
+    (child, addr.to_string())
 }
 
 pub fn stdout(out: &Output) -> String {

@@ -1,7 +1,6 @@
 //! The distributed runtime as real processes on loopback: lcrl-learner and
 //! lcrl-actor over gRPC, with the faults a cluster sees.
 
-use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -10,7 +9,7 @@ use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::policy_client::PolicyClient;
 use lcrl_proto::v1::{ActBatchRequest, ActRequest, GetStatusRequest, LearnerStatus, Transition, TransitionBatch};
 
-use super::common::workspace_bin;
+use super::common::{spawn_listening, workspace_bin};
 
 const SMALL: &str = "[network]\nglobal_hidden = [32, 32]\nsubnet_hidden = [16, 16]\ncritic_hidden = [32, 32]\n\
 [ddpg]\nwarmup_steps = 100\nbatch_size = 32\n[run]\ngraph_samples = 16\n";
@@ -56,22 +55,17 @@ pub(super) fn learner_with_run_settings(run_dir: &Path, run_id: &str, port: u16,
     std::fs::write(&config, format!("{small}[ppo]\nrollout_steps = 500\nminibatch_size = 100\n")).unwrap();
     // Checkpoints every half second unless `extra` says otherwise.
     let checkpoints: &[&str] = if extra.contains(&"--checkpoint-secs") { &[] } else { &["--checkpoint-secs", "0.5"] };
-    let mut child = workspace_bin("lcrl-learner")
-        .args(["--env", "lti-paper", "--algo", algo, "--connection", "global", "--publish-every", "20", "--run-id", run_id])
-        .args(checkpoints)
-        .arg("--config")
-        .arg(&config)
-        .arg("--run-dir")
-        .arg(run_dir)
-        .args(["--listen", &format!("127.0.0.1:{port}")])
-        .args(extra)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    assert!(line.starts_with("listening on"), "learner said {line:?}");
+    let (child, _) = spawn_listening(
+        workspace_bin("lcrl-learner")
+            .args(["--env", "lti-paper", "--algo", algo, "--connection", "global", "--publish-every", "20", "--run-id", run_id])
+            .args(checkpoints)
+            .arg("--config")
+            .arg(&config)
+            .arg("--run-dir")
+            .arg(run_dir)
+            .args(["--listen", &format!("127.0.0.1:{port}")])
+            .args(extra),
+    );
     (Proc(child), format!("http://127.0.0.1:{port}"))
 }
 

@@ -90,6 +90,8 @@ fn run_ppo_local_two_actors_reaches_the_g_structured_optimum() {
 /// `updates` counts actor updates, so the policy delay is 1 here: with the
 /// peg settings' delay of 2 it would count every second critic update. The
 /// end's confirmation (1,200 episodes) is off: it is not what this measures.
+/// Validation is off too, so the learner serves its newest policy, which
+/// must be the one training ended with.
 #[test]
 fn peg_ddpg_with_two_actors_holds_the_replay_ratio() {
     let dir = tempfile::tempdir().unwrap();
@@ -97,7 +99,7 @@ fn peg_ddpg_with_two_actors_holds_the_replay_ratio() {
     fs::write(
         &preset,
         "[job]\nenv = \"peg-group1\"\nalgo = \"ddpg\"\nconnection = \"global\"\nepisodes = 60\nactors = 2\n\n\
-         [network]\nglobal_hidden = [64, 64]\ncritic_hidden = [64, 64]\n[ddpg]\nwarmup_steps = 200\nbatch_size = 64\npolicy_delay = 1\n[run]\neval_episodes = 3\nconfirm_candidates = 0\n",
+         [network]\nglobal_hidden = [64, 64]\ncritic_hidden = [64, 64]\n[ddpg]\nwarmup_steps = 200\nbatch_size = 64\npolicy_delay = 1\n[run]\neval_episodes = 3\nvalidation_episodes = 0\nconfirm_candidates = 0\n",
     )
     .unwrap();
     let reference = Path::new(env!("CARGO_MANIFEST_DIR")).join("references/peg-group1/best_policy.json");
@@ -116,6 +118,12 @@ fn peg_ddpg_with_two_actors_holds_the_replay_ratio() {
     let achieved = updates * 64.0 / steps;
     assert!((achieved - target).abs() <= 0.10 * target, "{achieved} samples per insert against {target} ({updates} updates, {steps} steps)");
     assert!(s["actors_waited_s"].as_f64().unwrap() >= 0.0 && s["policy_lag"]["max"].as_u64().is_some(), "{s}");
+    // Without validation the learner serves its newest policy: the one
+    // training ended with, though DDPG publishes only every so many
+    // updates (a served policy older than the last would be evaluated
+    // apart, as `last_eval_return`).
+    assert_eq!(s["served_version"], s["policy_version"], "{s}");
+    assert!(s.get("last_eval_return").is_none_or(Value::is_null), "the served policy is not the last: {s}");
     // The actors report what the environment measured, so the learner's
     // metrics.csv holds `lcrl train`'s columns filled (the safety figures'
     // peak force among them), over shared memory here.

@@ -212,6 +212,10 @@ fn smoke_study_survives_sigkill_resumes_and_reports_consistently() {
     assert_clean_failure(&nowhere, "holds no experiment");
     let negative = lcrl().args(["experiment", "report", &out_str, "--margin=-1", "--against"]).arg(&archive).output().unwrap();
     assert_clean_failure(&negative, "--margin");
+    // A companion study (--with) must be another study of the same design.
+    let with = |dir: &Path| lcrl().args(["experiment", "report", &out_str, "--with"]).arg(dir).output().unwrap();
+    assert_clean_failure(&with(&archive), "names the study smoke itself");
+    assert_clean_failure(&with(&tmp.path().join("nowhere")), "holds no experiment");
     assert_eq!(std::fs::read_to_string(out.join("report.md")).unwrap(), md);
     let resumed = lcrl().args(["experiment", "run"]).arg(smoke()).arg("--out").arg(&archive).output().unwrap();
     assert!(resumed.status.success(), "{}", stderr(&resumed));

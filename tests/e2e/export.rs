@@ -6,7 +6,6 @@
 //! 1e-5. And the C++ example of docs/export.md, compiled against the
 //! .venv's libtorch, runs an exported file.
 
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
@@ -16,7 +15,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::Value;
 
-use super::common::{assert_clean_failure, lcrl, stderr, stdout, workspace_bin};
+use super::common::{assert_clean_failure, lcrl, spawn_listening, stderr, stdout, workspace_bin};
 use super::distributed::{free_port, wait_for, Proc};
 
 const TOLERANCE: f64 = 1e-5;
@@ -80,22 +79,17 @@ async fn train(case: &Case, dir: &Path) -> (Proc, String, PathBuf) {
     std::fs::write(&config, case.config).unwrap();
     let port = free_port();
     let run_id = format!("export-{}-{}", case.name, std::process::id());
-    let mut child = workspace_bin("lcrl-learner")
-        .current_dir(root())
-        .args(["--env", case.env, "--algo", case.algo, "--connection", case.connection, "--run-id", &run_id])
-        .args(case.flags)
-        .arg("--config")
-        .arg(&config)
-        .arg("--run-dir")
-        .arg(&run)
-        .args(["--episodes", &case.episodes.to_string(), "--checkpoint-secs", "600", "--listen", &format!("127.0.0.1:{port}")])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    assert!(line.starts_with("listening on"), "learner said {line:?}");
+    let (child, _) = spawn_listening(
+        workspace_bin("lcrl-learner")
+            .current_dir(root())
+            .args(["--env", case.env, "--algo", case.algo, "--connection", case.connection, "--run-id", &run_id])
+            .args(case.flags)
+            .arg("--config")
+            .arg(&config)
+            .arg("--run-dir")
+            .arg(&run)
+            .args(["--episodes", &case.episodes.to_string(), "--checkpoint-secs", "600", "--listen", &format!("127.0.0.1:{port}")]),
+    );
     let learner = Proc(child);
     let url = format!("http://127.0.0.1:{port}");
     let _actor = Proc(

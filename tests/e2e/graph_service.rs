@@ -1,7 +1,6 @@
 //! `lcrl-graph-builder` as a real process, queried by a real gRPC client.
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Stdio};
+use std::process::Child;
 use std::time::{Duration, Instant};
 
 use lcrl_proto::v1::graph_client::GraphClient;
@@ -10,7 +9,7 @@ use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 use tonic_health::pb::HealthCheckRequest;
 
-use super::common::workspace_bin;
+use super::common::{spawn_listening, workspace_bin};
 
 /// A running graph builder, killed when dropped.
 struct Server {
@@ -26,16 +25,7 @@ impl Drop for Server {
 }
 
 fn start(samples: &str) -> Server {
-    let mut child = workspace_bin("lcrl-graph-builder")
-        .args(["--env", "lti-paper", "--samples", samples, "--listen", "127.0.0.1:0"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    // The server prints its address once the port is bound.
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    let addr = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("unexpected first line {line:?}"));
+    let (child, addr) = spawn_listening(workspace_bin("lcrl-graph-builder").args(["--env", "lti-paper", "--samples", samples, "--listen", "127.0.0.1:0"]));
     Server { url: format!("http://{addr}"), child }
 }
 

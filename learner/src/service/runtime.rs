@@ -302,6 +302,13 @@ impl TrainingLoop {
             }
         }
         self.shared.updates.store(self.agent.counters().updates, Ordering::Relaxed);
+        // DDPG publishes every `publish_every` updates, so the agent may be
+        // ahead of the last published version: publish where training
+        // ended, so that the final checkpoint, the last validation and the
+        // served policy (without validation, the newest) are one version.
+        if self.agent.counters().updates != self.last_published {
+            self.publish(self.agent.exploration(self.episodes() as usize))?;
+        }
         self.checkpoint()?;
         // The last policy is validated too, then the choice is final.
         self.validate_if_due()?;
@@ -380,6 +387,12 @@ impl TrainingLoop {
         if !(due || exploration_changed) {
             return Ok(());
         }
+        self.publish(exploration)
+    }
+
+    /// Publishes the agent's actor as the next policy version.
+    fn publish(&mut self, exploration: Option<(bool, f64)>) -> Result<(), LearnerError> {
+        let updates = self.agent.counters().updates;
         self.last_published = updates;
         self.published_exploration = exploration;
         let version = self.shared.policy_version() + 1;
