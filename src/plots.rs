@@ -21,8 +21,8 @@ pub struct Panel {
     /// the axis label says how many.
     pub clip_low_outliers: bool,
     /// Few points (one per N, say): each drawn as a dot and its band as an
-    /// error bar, so that a series with a single point shows; non-finite
-    /// values are gaps.
+    /// error bar, so that a series with a single point shows. (In every
+    /// panel a NaN value is a gap in its line.)
     pub markers: bool,
 }
 
@@ -61,13 +61,18 @@ pub fn robust_low(series: &[&[f64]]) -> Option<f64> {
     (lowest < low).then_some(low)
 }
 
-const COLORS: [RGBColor; 6] = [
+/// Matplotlib's tab10 (less its grey, which reference lines use), so that
+/// a study's cells and its companions' rarely share a colour.
+const COLORS: [RGBColor; 9] = [
     RGBColor(31, 119, 180),
     RGBColor(214, 39, 40),
     RGBColor(44, 160, 44),
     RGBColor(255, 127, 14),
     RGBColor(148, 103, 189),
     RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+    RGBColor(188, 189, 34),
+    RGBColor(23, 190, 207),
 ];
 
 /// Reference lines: black, grey, dark green, purple (dashed).
@@ -151,11 +156,13 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
         }
         for (k, (name, values)) in panel.series.iter().enumerate() {
             let color = COLORS[k % COLORS.len()];
-            // f64::max would turn a gap (NaN) into the bottom edge.
-            let points = x.iter().map(|x| x + dodge(k)).zip(values.iter().map(|y| if y.is_nan() { *y } else { y.max(y0) })).filter(|(_, y)| y.is_finite());
-            chart.draw_series(LineSeries::new(points.clone(), color.stroke_width(2))).map_err(|e| draw_err(&e))?;
+            let stretches = stretches(x, values, dodge(k), y0);
+            for stretch in &stretches {
+                chart.draw_series(LineSeries::new(stretch.iter().copied(), color.stroke_width(2))).map_err(|e| draw_err(&e))?;
+            }
             if panel.markers {
-                chart.draw_series(points.map(|p| Circle::new(p, 4, color.filled()))).map_err(|e| draw_err(&e))?;
+                let dots = stretches.iter().flatten().map(|p| Circle::new(*p, 4, color.filled()));
+                chart.draw_series(dots).map_err(|e| draw_err(&e))?;
             }
             // Clipped values: a triangle on the bottom edge for each.
             let clipped = x.iter().zip(values).filter(|(_, y)| **y < y0).map(|(x, _)| TriangleMarker::new((*x, y0), 4, color.filled()));
@@ -173,6 +180,19 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
         draw_legend(&legend_area, &legend).map_err(|e| draw_err(&e))?;
     }
     root.present().map_err(|e| draw_err(&e)).with_context(|| format!("writing {}", path.display()))
+}
+
+/// A series' points as the stretches its line is drawn in: a NaN value is
+/// a gap (the line stops there and starts again after it); values below
+/// the axis bottom `y0` sit on it (they are marked as clipped); x moves by
+/// `dodge`.
+fn stretches(x: &[f64], values: &[f64], dodge: f64, y0: f64) -> Vec<Vec<(f64, f64)>> {
+    let points: Vec<Option<(f64, f64)>> = x.iter().zip(values).map(|(x, y)| (!y.is_nan()).then(|| (x + dodge, y.max(y0)))).collect();
+    points
+        .split(Option::is_none)
+        .map(|stretch| stretch.iter().flatten().copied().filter(|(_, y)| y.is_finite()).collect::<Vec<_>>())
+        .filter(|stretch| !stretch.is_empty())
+        .collect()
 }
 
 /// The legend rows top down, a line sample (dashed for references) and the
@@ -207,7 +227,18 @@ fn range(values: impl Iterator<Item = f64>) -> (f64, f64) {
 
 #[cfg(test)]
 mod tests {
-    use super::robust_low;
+    use super::{robust_low, stretches};
+
+    /// NaN splits a line (a companion that did not run at some N), a
+    /// single point is a stretch of its own, and −∞ sits on the bottom.
+    #[test]
+    fn a_gap_splits_the_line_into_stretches() {
+        let x = [4.0, 8.0, 16.0, 32.0, 64.0];
+        let drawn = stretches(&x, &[1.0, f64::NAN, 2.0, 3.0, f64::NAN], 0.5, -1.0);
+        assert_eq!(drawn, vec![vec![(4.5, 1.0)], vec![(16.5, 2.0), (32.5, 3.0)]]);
+        assert_eq!(stretches(&x, &[f64::NAN; 5], 0.0, -1.0), Vec::<Vec<(f64, f64)>>::new());
+        assert_eq!(stretches(&x[..2], &[f64::NEG_INFINITY, 0.0], 0.0, -1.0), vec![vec![(4.0, -1.0), (8.0, 0.0)]]);
+    }
 
     #[test]
     fn early_disasters_do_not_set_the_axis() {

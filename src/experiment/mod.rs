@@ -196,7 +196,7 @@ fn write_report(e: &Experiment, out: &Path, with: &[PathBuf]) -> anyhow::Result<
     let mut study = report::gather(e, out)?;
     for dir in with {
         let companion = plan::recorded_experiment(dir).with_context(|| format!("the --with study {}", dir.display()))?;
-        companion::join(&mut study, report::gather(&companion, dir)?)?;
+        companion::join(&mut study, report::gather(&companion, dir)?, dir)?;
     }
     let report = study.report();
     report::write(&report, out)?;

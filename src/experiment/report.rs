@@ -68,11 +68,14 @@ pub struct Study {
     /// (`lcrl tune --policy affine --out OUT/best_policy/ENV`), where present.
     pub best_policy: BTreeMap<String, BestConstant>,
     pub missing: Vec<String>,
+    /// The companion studies whose cells joined (`--with`).
+    pub companions: Vec<super::companion::Companion>,
 }
 
 /// Reads every finished run, graph and best constant under `out`.
 pub fn gather(e: &Experiment, out: &Path) -> anyhow::Result<Study> {
-    let mut study = Study { experiment: e.clone(), cells: Vec::new(), best_constant: BTreeMap::new(), best_policy: BTreeMap::new(), missing: Vec::new() };
+    let mut study =
+        Study { experiment: e.clone(), cells: Vec::new(), best_constant: BTreeMap::new(), best_policy: BTreeMap::new(), missing: Vec::new(), companions: Vec::new() };
     for cell in cells(e) {
         // Measured graphs only: a given one cost no rollouts.
         // (per run, the mean over its seeds' own graphs with +per-seed)
@@ -135,9 +138,10 @@ pub struct Report {
     pub random_draws: Vec<super::draws::Placement>,
     /// Runs not finished (yet): their cells report the seeds that are.
     pub missing_runs: Vec<String>,
-    /// Companion studies whose cells this report holds (`--with`).
+    /// Companion studies whose cells this report holds (`--with`), with
+    /// their folders and the settings in which they differ.
     #[serde(skip_serializing_if = "Vec::is_empty")]
-    pub companions: Vec<String>,
+    pub companions: Vec<super::companion::Companion>,
 }
 
 #[derive(Debug, Serialize)]
@@ -177,7 +181,11 @@ const METHODS: Methods = Methods {
 pub struct CellReport {
     pub env: String,
     pub algo: String,
+    /// The connection's label (with ` [NAME]` for a companion's cell).
     pub connection: String,
+    /// The companion study the cell comes from (`--with`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub from: Option<String>,
     pub episodes: usize,
     pub seeds: Vec<u64>,
     pub final_return: Option<Estimate>,
@@ -253,6 +261,7 @@ impl Study {
                 env: c.cell.env.clone(),
                 algo: algo_name(c.cell.algo).into(),
                 connection: c.label(),
+                from: c.from.clone(),
                 episodes: budget,
                 seeds: c.runs.iter().map(|r| r.seed).collect(),
                 final_return: of(&|r| r.summary.final_return),
@@ -305,12 +314,7 @@ impl Study {
             random_draws: super::draws::placements(&self.cells.iter().filter(|c| c.from.is_none()).map(|c| (&c.cell, c.runs.iter().map(|r| r.summary.evaluation.eval_return).collect())).collect::<Vec<_>>()),
             cells,
             missing_runs: self.missing.clone(),
-            companions: self.cells.iter().filter_map(|c| c.from.clone()).fold(Vec::new(), |mut names, n| {
-                if !names.contains(&n) {
-                    names.push(n);
-                }
-                names
-            }),
+            companions: self.companions.clone(),
         }
     }
 
@@ -332,10 +336,12 @@ impl Study {
             (C::Graph { .. } | C::Local { .. }, C::Random { .. }) => true,
             _ => false,
         };
+        // pairs_with(x, x) is false for every connection, so the same-
+        // connection rule adds no pair the usual rules make.
         let paired = |a: &CellRuns, b: &CellRuns| match (&a.from, &b.from) {
-            (None, None) => pairs_with(&a.cell.connection, &b.cell.connection),
             (None, Some(_)) => pairs_with(&a.cell.connection, &b.cell.connection) || a.cell.connection == b.cell.connection,
-            (Some(_), _) => false,
+            (None, None) | (Some(_), None) => pairs_with(&a.cell.connection, &b.cell.connection),
+            (Some(_), Some(_)) => false,
         };
         let mut out = Vec::new();
         for a in &self.cells {
@@ -407,7 +413,12 @@ pub fn markdown(report: &Report) -> String {
         md.push_str(&super::primary::markdown(p));
     }
     if !report.companions.is_empty() {
-        let _ = writeln!(md, "**Companion studies** (their cells are labelled `CONNECTION [NAME]`): {}\n", report.companions.join(", "));
+        let _ = writeln!(md, "**Companion studies** (`--with`; their cells are labelled `CONNECTION [NAME]`):\n");
+        for c in &report.companions {
+            let differs = if c.differs.is_empty() { "no setting".to_string() } else { c.differs.join("; ") };
+            let _ = writeln!(md, "- {} ({}), differs in: {differs}", c.name, c.dir);
+        }
+        let _ = writeln!(md);
     }
     if !report.missing_runs.is_empty() {
         let _ = writeln!(md, "**Not finished ({}):** {}\n", report.missing_runs.len(), report.missing_runs.join(", "));

@@ -302,13 +302,9 @@ impl TrainingLoop {
             }
         }
         self.shared.updates.store(self.agent.counters().updates, Ordering::Relaxed);
-        // DDPG publishes every `publish_every` updates, so the agent may be
-        // ahead of the last published version: publish where training
-        // ended, so that the final checkpoint, the last validation and the
-        // served policy (without validation, the newest) are one version.
-        if self.agent.counters().updates != self.last_published {
-            self.publish(self.agent.exploration(self.episodes() as usize))?;
-        }
+        // The final checkpoint publishes where training ended (see
+        // publish_pending), so the served policy without validation, the
+        // newest, is the one training ended with.
         self.checkpoint()?;
         // The last policy is validated too, then the choice is final.
         self.validate_if_due()?;
@@ -390,6 +386,19 @@ impl TrainingLoop {
         self.publish(exploration)
     }
 
+    /// Publishes the actor when it has changed since the last version.
+    /// DDPG publishes every `publish_every` updates, so the agent is
+    /// usually ahead of the published version; a checkpoint or a
+    /// validation records a version number with the agent's weights, and
+    /// that version must be the one actors and Policy.Act got with those
+    /// weights.
+    fn publish_pending(&mut self) -> Result<(), LearnerError> {
+        if self.agent.counters().updates == self.last_published {
+            return Ok(());
+        }
+        self.publish(self.agent.exploration(self.episodes() as usize))
+    }
+
     /// Publishes the agent's actor as the next policy version.
     fn publish(&mut self, exploration: Option<(bool, f64)>) -> Result<(), LearnerError> {
         let updates = self.agent.counters().updates;
@@ -437,6 +446,7 @@ impl TrainingLoop {
     /// checkpoint's is the run's error, an interval's is retried.
     fn checkpoint(&mut self) -> Result<(), LearnerError> {
         self.last_checkpoint = Instant::now();
+        self.publish_pending()?;
         let mut meta = self.schedule.meta.clone();
         {
             let flow = self.shared.flow_mut();
@@ -459,7 +469,11 @@ impl TrainingLoop {
     fn validate_if_due(&mut self) -> Result<(), LearnerError> {
         let done = self.episodes() as usize;
         let last = self.schedule.budget_episodes.map_or(usize::MAX, |b| b as usize);
-        let Some(validator) = self.schedule.validator.as_mut().filter(|v| v.due(done, last)) else { return Ok(()) };
+        if !self.schedule.validator.as_ref().is_some_and(|v| v.due(done, last)) {
+            return Ok(());
+        }
+        self.publish_pending()?;
+        let Some(validator) = self.schedule.validator.as_mut() else { return Ok(()) };
         let version = self.shared.policy_version();
         let snapshot = Arc::new(snapshot(self.agent.as_ref(), &self.shared.architecture, version)?);
         let meta = CheckpointMeta { episode: done, policy_version: version, ..self.schedule.meta.clone() };

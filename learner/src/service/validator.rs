@@ -166,9 +166,10 @@ mod tests {
     use crate::service::shared::{Command, Shared};
 
     /// The same 60 batches (2 episodes of 10 steps each) through the
-    /// training thread, with or without validation every 2 episodes; the
-    /// final actor's weights and, with validation, the selection.
-    fn train(dir: &Path, validate: bool) -> (Vec<u8>, Option<SelectionRecord>, u64) {
+    /// training thread, with or without validation every 2 episodes,
+    /// publishing every `publish_every` updates; the final actor's weights
+    /// and, with validation, the selection.
+    fn train(dir: &Path, validate: bool, publish_every: u64) -> (Vec<u8>, Option<SelectionRecord>, u64) {
         tch::set_num_threads(1);
         let mut cfg = TrainConfig::for_env("lti-paper").0;
         cfg.network.global_hidden = vec![16];
@@ -179,6 +180,9 @@ mod tests {
         cfg.ddpg.gradient_steps = 25;
         cfg.run.validation_episodes = if validate { 4 } else { 0 };
         cfg.run.validate_every = 2;
+        // A constant noise: exploration changes (and publishes) only when
+        // the warm-up ends, so `publish_every` alone says when the rest do.
+        cfg.ddpg.noise_end = cfg.ddpg.noise_start;
         let mask = vec![vec![1u8; 3]; 3];
         let agent = crate::algo::algorithms::make_agent(Algo::Ddpg, Connection::Global, &cfg, &mask, 3, 3).unwrap();
         let meta = CheckpointMeta::start("lti-paper", Algo::Ddpg, Connection::Global, 3, 3, mask, cfg.clone());
@@ -200,7 +204,7 @@ mod tests {
         }
         commands.try_send(Command::Stop).unwrap();
         let schedule = Schedule {
-            publish_every: 5,
+            publish_every,
             checkpoint_interval: Duration::from_secs(3600),
             run_dir: dir.to_path_buf(),
             meta,
@@ -223,8 +227,8 @@ mod tests {
     #[test]
     fn validation_does_not_change_what_is_trained() {
         let (with, without) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
-        let (validated_weights, record, updates) = train(with.path(), true);
-        let (plain_weights, none, plain_updates) = train(without.path(), false);
+        let (validated_weights, record, updates) = train(with.path(), true, 5);
+        let (plain_weights, none, plain_updates) = train(without.path(), false, 5);
         assert!(updates >= 50, "training trained: {updates} updates");
         assert_eq!(updates, plain_updates);
         assert_eq!(validated_weights, plain_weights, "the same updates with and without validation");
@@ -237,5 +241,23 @@ mod tests {
         assert_eq!((episodes.first(), episodes.last()), (Some(&0), Some(&120)), "{episodes:?}");
         assert!(episodes.len() >= 4 && episodes.windows(2).all(|w| w[0] < w[1]), "{episodes:?}");
         assert!(selected_dir(with.path()).join("actor.safetensors").is_file());
+    }
+
+    /// DDPG publishes every `publish_every` updates, so training can end
+    /// between two versions (here it publishes only when the exploration
+    /// changes): the learner publishes where training ended, and without
+    /// validation serves that policy, whose version the final checkpoint
+    /// records. Served any earlier version, summary.json would evaluate
+    /// it apart from the last policy (`last_eval_return`).
+    #[test]
+    fn the_served_policy_is_the_one_training_ended_with() {
+        let dir = tempfile::tempdir().unwrap();
+        let (_, none, updates) = train(dir.path(), false, u64::MAX / 2);
+        assert!(none.is_none() && updates >= 50, "{updates} updates");
+        let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("summary.json")).unwrap()).unwrap();
+        let meta = crate::policy::checkpoint::read_meta(&latest_checkpoint(dir.path()).unwrap()).unwrap();
+        assert_eq!(summary["served_version"].as_u64(), Some(meta.policy_version), "{summary}");
+        assert_eq!(summary["policy_version"], summary["served_version"], "{summary}");
+        assert!(summary.get("last_eval_return").is_none_or(serde_json::Value::is_null), "the served policy is not the last: {summary}");
     }
 }
