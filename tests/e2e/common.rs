@@ -26,8 +26,15 @@ pub fn spawn_listening(command: &mut Command) -> (Child, String) {
     let mut child = command.stdout(Stdio::piped()).stderr(Stdio::null()).spawn().unwrap();
     let mut line = String::new();
     BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    let addr = line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("the server said {line:?}, not \"listening on ADDR\""));
-    (child, addr.to_string())
+    match line.trim().strip_prefix("listening on ") {
+        Some(addr) => (child, addr.to_string()),
+        None => {
+            // Not left running behind the failed test.
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("the server said {line:?}, not \"listening on ADDR\"")
+        }
+    }
 }
 
 pub fn stdout(out: &Output) -> String {
