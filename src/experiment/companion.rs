@@ -16,22 +16,10 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::{bail, ensure};
-use serde::Serialize;
 use serde_json::Value;
 
 use super::config::algo_name;
-use super::report::Study;
-
-/// A companion study in a report: its name, its folder, and every setting
-/// of its study file that is not this study's (besides the cells it runs:
-/// name, environments, algorithms, connections, seeds, primary), so that
-/// a reader sees what changed.
-#[derive(Debug, Clone, Serialize)]
-pub struct Companion {
-    pub name: String,
-    pub dir: String,
-    pub differs: Vec<String>,
-}
+use super::report::{Companion, Study};
 
 /// Adds `companion`'s cells (its study read from `dir`) to `study`, each
 /// marked with its study's name.

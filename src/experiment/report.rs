@@ -59,6 +59,18 @@ impl CellRuns {
     }
 }
 
+/// A companion study in a report (`--with`, src/experiment/companion.rs):
+/// its name, its folder, and every setting of its study file that is not
+/// this study's (besides the cells it runs: name, environments,
+/// algorithms, connections, seeds, primary), so that a reader sees what
+/// changed.
+#[derive(Debug, Clone, Serialize)]
+pub struct Companion {
+    pub name: String,
+    pub dir: String,
+    pub differs: Vec<String>,
+}
+
 /// Everything a report and its figures are drawn from.
 pub struct Study {
     pub experiment: Experiment,
@@ -69,7 +81,7 @@ pub struct Study {
     pub best_policy: BTreeMap<String, BestConstant>,
     pub missing: Vec<String>,
     /// The companion studies whose cells joined (`--with`).
-    pub companions: Vec<super::companion::Companion>,
+    pub companions: Vec<Companion>,
 }
 
 /// Reads every finished run, graph and best constant under `out`.
@@ -141,7 +153,7 @@ pub struct Report {
     /// Companion studies whose cells this report holds (`--with`), with
     /// their folders and the settings in which they differ.
     #[serde(skip_serializing_if = "Vec::is_empty")]
-    pub companions: Vec<super::companion::Companion>,
+    pub companions: Vec<Companion>,
 }
 
 #[derive(Debug, Serialize)]
