@@ -142,17 +142,17 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
         // With markers, series at the same x stand a little apart, so that
         // their error bars do not hide each other.
         let dodge = |k: usize| if panel.markers { (k as f64 - (panel.series.len() as f64 - 1.0) / 2.0) * 0.012 * (x1 - x0) } else { 0.0 };
-        for (k, lo, hi) in panel.bands.iter().filter(|_| panel.markers) {
+        for (k, lo, hi) in &panel.bands {
             let color = COLORS[k % COLORS.len()];
-            let bars = x.iter().zip(lo.iter().zip(hi)).filter(|(_, (l, h))| l.is_finite() && h.is_finite());
-            let bars = bars.map(|(x, (l, h))| PathElement::new(vec![(x + dodge(*k), l.clamp(y0, y1)), (x + dodge(*k), h.clamp(y0, y1))], color.stroke_width(2)));
-            chart.draw_series(bars).map_err(|e| draw_err(&e))?;
-        }
-        for (k, lo, hi) in panel.bands.iter().filter(|_| !panel.markers) {
-            let clamp = |v: &[f64]| -> Vec<(f64, f64)> { x.iter().copied().zip(v.iter().map(|y| y.clamp(y0, y1))).collect() };
-            let polygon: Vec<(f64, f64)> = clamp(hi).into_iter().chain(clamp(lo).into_iter().rev()).collect();
-            let color = COLORS[k % COLORS.len()];
-            chart.draw_series(std::iter::once(Polygon::new(polygon, color.mix(0.18).filled()))).map_err(|e| draw_err(&e))?;
+            if panel.markers {
+                let bars = x.iter().zip(lo.iter().zip(hi)).filter(|(_, (l, h))| l.is_finite() && h.is_finite());
+                let bars = bars.map(|(x, (l, h))| PathElement::new(vec![(x + dodge(*k), l.clamp(y0, y1)), (x + dodge(*k), h.clamp(y0, y1))], color.stroke_width(2)));
+                chart.draw_series(bars).map_err(|e| draw_err(&e))?;
+            } else {
+                let clamp = |v: &[f64]| -> Vec<(f64, f64)> { x.iter().copied().zip(v.iter().map(|y| y.clamp(y0, y1))).collect() };
+                let polygon: Vec<(f64, f64)> = clamp(hi).into_iter().chain(clamp(lo).into_iter().rev()).collect();
+                chart.draw_series(std::iter::once(Polygon::new(polygon, color.mix(0.18).filled()))).map_err(|e| draw_err(&e))?;
+            }
         }
         for (k, (name, values)) in panel.series.iter().enumerate() {
             let color = COLORS[k % COLORS.len()];

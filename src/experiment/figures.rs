@@ -176,53 +176,51 @@ pub fn advantage(study: &Study, path: &Path) -> anyhow::Result<bool> {
     use crate::connection::ConnectionSpec as C;
     let sizes: Option<Vec<usize>> = study.experiment.file.environments.iter().map(|e| lcrl_sim::lti::LtiConfig::blocks_size(e)).collect();
     let Some(sizes) = sizes else { return Ok(false) };
-    let is_baseline = |c: &C| matches!(c, C::Global | C::FullSubnets | C::MatchedGlobal { .. });
+    // Every connection, the study's and its companions', has a cell.
     let mut baselines: Vec<&C> = Vec::new();
-    for c in study.experiment.connections.iter().chain(study.cells.iter().map(|c| &c.cell.connection)).filter(|c| is_baseline(c)) {
+    for c in study.cells.iter().map(|c| &c.cell.connection).filter(|c| matches!(c, C::Global | C::FullSubnets | C::MatchedGlobal { .. })) {
         if !baselines.contains(&c) {
             baselines.push(c);
         }
     }
-    let mut companions: Vec<Option<&str>> = vec![None];
-    for c in &study.cells {
-        if let Some(name) = c.from.as_deref().filter(|n| !companions.contains(&Some(*n))) {
-            companions.push(Some(name));
-        }
-    }
+    let studies: Vec<Option<&str>> = std::iter::once(None).chain(study.companions.iter().map(|c| Some(c.name.as_str()))).collect();
     let mut panels = Vec::new();
     for &algo in &study.experiment.file.algorithms {
         for &baseline in &baselines {
             let (mut series, mut bands) = (Vec::new(), Vec::new());
-            let mut local_label = String::from("local");
-            for &from in &companions {
-                let (mut mean, mut low, mut high) = (Vec::new(), Vec::new(), Vec::new());
-                for env in &study.experiment.file.environments {
-                    let find = |from: Option<&str>, pick: &dyn Fn(&C) -> bool| {
-                        study.cells.iter().find(|c| &c.cell.env == env && c.cell.algo == algo && c.from.as_deref() == from && pick(&c.cell.connection))
-                    };
-                    // The local cell (the study's own): the one a matched
-                    // global matches, else the first measured graph
-                    // without modifiers.
-                    let is_local = |c: &C| match baseline {
-                        C::MatchedGlobal { to } => c == to.as_ref(),
-                        _ => c.threshold().is_some() && !c.has_modifiers(),
-                    };
-                    let pair = find(None, &is_local).zip(find(from, &|c| c == baseline));
-                    let difference = pair.and_then(|(local, other)| {
+            for &from in &studies {
+                // Per N: the local cell (the study's own: the one a matched
+                // global matches, else the first measured graph without
+                // modifiers) against the baseline cell of `from`.
+                let pairs: Vec<Option<(&CellRuns, &CellRuns)>> = study
+                    .experiment
+                    .file
+                    .environments
+                    .iter()
+                    .map(|env| {
+                        let find = |from: Option<&str>, pick: &dyn Fn(&C) -> bool| {
+                            study.cells.iter().find(|c| &c.cell.env == env && c.cell.algo == algo && c.from.as_deref() == from && pick(&c.cell.connection))
+                        };
+                        let is_local = |c: &C| match baseline {
+                            C::MatchedGlobal { to } => c == to.as_ref(),
+                            _ => c.threshold().is_some() && !c.has_modifiers(),
+                        };
+                        find(None, &is_local).zip(find(from, &|c| c == baseline))
+                    })
+                    .collect();
+                let differences: Vec<Option<super::stats::Welch>> = pairs
+                    .iter()
+                    .map(|pair| {
+                        let (local, other) = (*pair)?;
                         let optimum = local.runs.iter().find_map(|r| r.summary.evaluation.masked_lqr_return).unwrap_or(1.0).abs().max(1e-9);
                         let eval = |c: &CellRuns| c.runs.iter().map(|r| r.summary.evaluation.eval_return / optimum).collect::<Vec<f64>>();
-                        local_label = local.cell.connection.label();
                         super::stats::welch(&eval(local), &eval(other))
-                    });
-                    mean.push(difference.as_ref().map_or(f64::NAN, |w| w.difference));
-                    low.push(difference.as_ref().map_or(f64::NAN, |w| w.ci95[0]));
-                    high.push(difference.as_ref().map_or(f64::NAN, |w| w.ci95[1]));
-                }
-                if mean.iter().any(|m| m.is_finite()) {
-                    let other = from.map_or(baseline.label(), |name| format!("{} [{name}]", baseline.label()));
-                    bands.push((series.len(), low, high));
-                    series.push((format!("{local_label} − {other}"), mean));
-                }
+                    })
+                    .collect();
+                let Some((local, other)) = pairs.iter().zip(&differences).find_map(|(pair, w)| w.as_ref().and(*pair)) else { continue };
+                let column = |f: fn(&super::stats::Welch) -> f64| differences.iter().map(|w| w.as_ref().map_or(f64::NAN, f)).collect::<Vec<f64>>();
+                bands.push((series.len(), column(|w| w.ci95[0]), column(|w| w.ci95[1])));
+                series.push((format!("{} − {}", local.cell.connection.label(), other.label()), column(|w| w.difference)));
             }
             if series.is_empty() {
                 continue;
