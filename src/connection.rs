@@ -6,6 +6,11 @@
 //! - `graph:PATH`: a graph file, e.g. references/peg-eq21/graph.json;
 //! - `random@K`: K edges drawn at random (`lcrl graph --random K`), the
 //!   control for "does the structure matter, or only the input count?";
+//! - `random-rows@CONNECTION` (studies): for each of 10 draws (or N with
+//!   `+draws=N`), every action keeps the number of inputs CONNECTION's
+//!   measured graph gives it, the states drawn at random; run seed s trains
+//!   on draw s mod N, and each draw's seed comes from the environment and
+//!   the draw index, never from the run (docs/experiment.md);
 //! - `global`, `full-subnets`: no graph;
 //! - `global+match=CONNECTION` (studies): a global actor with as many
 //!   parameters as the local actor of CONNECTION on the same environment
@@ -34,6 +39,9 @@ pub enum ConnectionSpec {
     Local { threshold: f64, rows: Vec<RowRule>, per_seed: bool },
     Graph { path: PathBuf },
     Random { edges: usize, per_seed: bool },
+    /// Degree-matched random rows of a measured graph (`local@T`, row
+    /// rules allowed, no +per-seed), in `draws` draws.
+    RandomRows { of: Box<ConnectionSpec>, draws: u64 },
     Global,
     FullSubnets,
     /// A global actor sized to the local actor of `to` (`global+match=…`).
@@ -46,6 +54,9 @@ pub enum ConnectionSpec {
 pub enum MadeGraph {
     Measured { threshold: f64, rows: Vec<RowRule> },
     Drawn { edges: usize },
+    /// Degree-matched rows drawn from the graph measured at T with `rows`
+    /// (one graph per draw index).
+    RowsDrawn { threshold: f64, rows: Vec<RowRule> },
 }
 
 impl MadeGraph {
@@ -54,16 +65,36 @@ impl MadeGraph {
         match self {
             MadeGraph::Measured { threshold, rows } => format!("T{threshold}{}", rows.iter().map(|r| format!("+{}", r.text())).collect::<String>()),
             MadeGraph::Drawn { edges } => format!("random@{edges}"),
+            MadeGraph::RowsDrawn { threshold, rows } => format!("random-rows@{}", MadeGraph::Measured { threshold: *threshold, rows: rows.clone() }.folder()),
+        }
+    }
+
+    /// The folder of one instance: a run's own graph (seedK), or a draw (drawK).
+    pub fn instance(&self, k: u64) -> String {
+        match self {
+            MadeGraph::RowsDrawn { .. } => format!("draw{k}"),
+            _ => format!("seed{k}"),
+        }
+    }
+
+    /// The measured graph a drawn one is made from (random rows).
+    pub fn source(&self) -> Option<MadeGraph> {
+        match self {
+            MadeGraph::RowsDrawn { threshold, rows } => Some(MadeGraph::Measured { threshold: *threshold, rows: rows.clone() }),
+            _ => None,
         }
     }
 }
+
+/// Draws of a `random-rows@…` connection without `+draws=N`.
+pub const DEFAULT_DRAWS: u64 = 10;
 
 impl ConnectionSpec {
     pub fn parse(text: &str) -> anyhow::Result<Self> {
         let unknown = || {
             format!(
                 "unknown connection \"{text}\"; use local (T = {DEFAULT_THRESHOLD}), local@T such as local@0.25, \
-                 graph:PATH (a graph.json), random@K (K random edges), global, full-subnets or global+match=CONNECTION"
+                 graph:PATH (a graph.json), random@K (K random edges), random-rows@CONNECTION, global, full-subnets or global+match=CONNECTION"
             )
         };
         match text {
@@ -78,6 +109,20 @@ impl ConnectionSpec {
                 bail!("connection \"{text}\": match a local actor (local@T, graph:PATH, random@K), e.g. global+match=local@0.1");
             }
             return Ok(ConnectionSpec::MatchedGlobal { to: Box::new(to) });
+        }
+        if let Some(rest) = text.strip_prefix("random-rows@") {
+            let (of_text, draws) = match rest.rsplit_once("+draws=") {
+                Some((of, n)) => (of, n.parse::<u64>().map_err(|_| anyhow::anyhow!("connection \"{text}\": \"{n}\" is not a draw count"))?),
+                None => (rest, DEFAULT_DRAWS),
+            };
+            if draws < 2 {
+                bail!("connection \"{text}\": random rows need at least 2 draws");
+            }
+            let of = Self::parse(of_text).with_context(|| format!("connection \"{text}\""))?;
+            if !matches!(of, ConnectionSpec::Local { per_seed: false, .. }) {
+                bail!("connection \"{text}\": random rows match a measured graph, local@T (with any +ACTION=T rows, without +per-seed), e.g. random-rows@local@0.5");
+            }
+            return Ok(ConnectionSpec::RandomRows { of: Box::new(of), draws });
         }
         if let Some(path) = text.strip_prefix("graph:") {
             if path.is_empty() {
@@ -133,6 +178,9 @@ impl ConnectionSpec {
             ConnectionSpec::Local { threshold, rows, per_seed } => format!("local@{threshold}{}", modifiers(rows, *per_seed)),
             ConnectionSpec::Graph { path } => format!("graph:{}", path.display()),
             ConnectionSpec::Random { edges, per_seed } => format!("random@{edges}{}", modifiers(&[], *per_seed)),
+            ConnectionSpec::RandomRows { of, draws } => {
+                format!("random-rows@{}{}", of.label(), if *draws == DEFAULT_DRAWS { String::new() } else { format!("+draws={draws}") })
+            }
             ConnectionSpec::Global => "global".into(),
             ConnectionSpec::FullSubnets => "full-subnets".into(),
             ConnectionSpec::MatchedGlobal { to } => format!("global+match={}", to.label()),
@@ -155,7 +203,7 @@ impl ConnectionSpec {
     /// The actor this connection trains.
     pub fn connection(&self) -> Connection {
         match self {
-            ConnectionSpec::Local { .. } | ConnectionSpec::Graph { .. } | ConnectionSpec::Random { .. } => Connection::Local,
+            ConnectionSpec::Local { .. } | ConnectionSpec::Graph { .. } | ConnectionSpec::Random { .. } | ConnectionSpec::RandomRows { .. } => Connection::Local,
             ConnectionSpec::Global | ConnectionSpec::MatchedGlobal { .. } => Connection::Global,
             ConnectionSpec::FullSubnets => Connection::FullSubnets,
         }
@@ -179,7 +227,7 @@ impl ConnectionSpec {
     /// graph it matches).
     pub fn has_modifiers(&self) -> bool {
         matches!(self, ConnectionSpec::Local { rows, per_seed, .. } if !rows.is_empty() || *per_seed)
-            || matches!(self, ConnectionSpec::Random { per_seed: true, .. } | ConnectionSpec::MatchedGlobal { .. })
+            || matches!(self, ConnectionSpec::Random { per_seed: true, .. } | ConnectionSpec::MatchedGlobal { .. } | ConnectionSpec::RandomRows { .. })
     }
 
     /// The graph a study makes for this connection (none for a given file
@@ -189,7 +237,19 @@ impl ConnectionSpec {
         match self {
             ConnectionSpec::Local { threshold, rows, per_seed } => Some((MadeGraph::Measured { threshold: *threshold, rows: rows.clone() }, *per_seed)),
             ConnectionSpec::Random { edges, per_seed } => Some((MadeGraph::Drawn { edges: *edges }, *per_seed)),
+            ConnectionSpec::RandomRows { of, .. } => match of.made_graph()? {
+                (MadeGraph::Measured { threshold, rows }, _) => Some((MadeGraph::RowsDrawn { threshold, rows }, true)),
+                _ => None,
+            },
             ConnectionSpec::MatchedGlobal { to } => to.made_graph(),
+            _ => None,
+        }
+    }
+
+    /// Random rows: the draw a run with `seed` trains on (seed mod draws).
+    pub fn draw_of(&self, seed: u64) -> Option<u64> {
+        match self {
+            ConnectionSpec::RandomRows { draws, .. } => Some(seed % draws),
             _ => None,
         }
     }
@@ -232,6 +292,7 @@ mod tests {
             "local@0.1", "local@0.5", "global", "full-subnets", "random@23", "graph:references/peg-eq21/graph.json",
             "local@1+per-seed", "random@23+per-seed", "local@1+dz=0.1", "local@0.1+dz=none", "local@1+dz=0.1+dx=none+per-seed",
             "global+match=local@0.1", "global+match=local@1+per-seed", "global+match=graph:g.json",
+            "random-rows@local@0.5", "random-rows@local@1+dz=0.1", "random-rows@local@0.5+draws=4",
         ] {
             let spec = ConnectionSpec::parse(text).unwrap();
             assert_eq!(spec.label(), text);
@@ -264,6 +325,15 @@ mod tests {
         assert!(err("global+match=full-subnets").contains("match a local actor"));
         assert!(err("global+match=locl").contains("unknown connection \"locl\""));
         assert!(!ConnectionSpec::parse("local@1").unwrap().has_modifiers() && ConnectionSpec::parse("random@9+per-seed").unwrap().has_modifiers());
+        assert!(err("random-rows@global").contains("match a measured graph"));
+        assert!(err("random-rows@local@1+per-seed").contains("without +per-seed"));
+        assert!(err("random-rows@local@1+draws=x").contains("\"x\" is not a draw count"));
+        assert!(err("random-rows@local@1+draws=1").contains("at least 2 draws"));
+        let rows = ConnectionSpec::parse("random-rows@local@0.5+draws=4").unwrap();
+        assert_eq!((rows.connection(), rows.draw_of(9), rows.threshold()), (Connection::Local, Some(1), None));
+        assert_eq!(rows.made_graph(), Some((MadeGraph::RowsDrawn { threshold: 0.5, rows: Vec::new() }, true)));
+        assert_eq!(rows.made_graph().unwrap().0.folder(), "random-rows@T0.5");
+        assert_eq!(rows.made_graph().unwrap().0.source(), Some(MadeGraph::Measured { threshold: 0.5, rows: Vec::new() }));
     }
 
     #[test]

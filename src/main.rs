@@ -101,6 +101,14 @@ fn run_graph(args: &GraphArgs) -> anyhow::Result<()> {
         print!("{}", args.run_explain(pair)?.text());
         return Ok(());
     }
+    if args.choose_t {
+        let choice = args.run_choose_t()?;
+        print!("{}", choice.text(&args.env, args.samples));
+        if let Some(path) = &args.out {
+            println!("\nwrote {}", path.display());
+        }
+        return Ok(());
+    }
     let report = args.run()?;
     print!("{}", report.table());
     print!("{}", report.sweep_table());

@@ -41,6 +41,46 @@ pub fn random(spec: &EnvSpec, edges: usize, seed: u64) -> Result<GraphReport, Gr
     Err(GraphError::RandomEdges { edges, actions: n, entries: n * m })
 }
 
+/// The degree-matched random control of `random-rows@CONNECTION`: every
+/// action row keeps as many inputs as `of` gives it (a row with none stays
+/// empty), the states of the row drawn uniformly without replacement. So a
+/// draw differs from `of` in which states each action sees, never in how
+/// many: the control for "the measured edges matter, not only the count
+/// per action" (docs/lcrl-value.md).
+pub fn random_rows(spec: &EnvSpec, of: &GraphReport, seed: u64) -> Result<GraphReport, GraphError> {
+    let (n, m) = (spec.action_dim(), spec.state_dim());
+    if (of.actions(), of.states()) != (n, m) {
+        return Err(GraphError::Row(format!("random rows: the graph is {}×{} but environment {} has {n} actions and {m} states", of.actions(), of.states(), spec.name)));
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let g: Vec<Vec<u8>> = of
+        .g
+        .iter()
+        .map(|row| {
+            let degree = row.iter().filter(|&&e| e == 1).count();
+            let mut drawn = vec![0u8; m];
+            for j in sample(&mut rng, m, degree) {
+                drawn[j] = 1;
+            }
+            drawn
+        })
+        .collect();
+    let degrees: Vec<String> = of.g.iter().map(|row| row.iter().filter(|&&e| e == 1).count().to_string()).collect();
+    Ok(from_matrix(spec, g, format!("random rows of degrees [{}], draw seed {seed}", degrees.join(", ")), seed))
+}
+
+/// The draw seed of draw `draw` of a `random-rows` cell on environment
+/// `env`: FNV-1a of both, so draws are independent per environment and
+/// never the run's seed (runs of one draw share it; docs/experiment.md).
+pub fn draw_seed(env: &str, draw: u64) -> u64 {
+    let mut hash: u64 = 0xcbf2_9ce4_8422_2325;
+    for byte in format!("random-rows/{env}/{draw}").bytes() {
+        hash ^= u64::from(byte);
+        hash = hash.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    hash
+}
+
 /// A graph file for the environment `spec` describes: the shape and 0/1
 /// checks of [`GraphReport::load`], then the names (a graph written in
 /// another state order would feed every subnetwork the wrong inputs) and
@@ -168,6 +208,34 @@ mod tests {
             // Binomial standard error √(0.4·0.6/4000) ≈ 0.008: 5 of them.
             assert!((share - 0.4).abs() < 0.04, "entry kept in {share} of draws");
         }
+    }
+
+    #[test]
+    fn random_rows_keep_every_row_degree_and_vary_the_states() {
+        let (spec, other) = (spec(3, 6), spec(2, 6));
+        let of = from_matrix(&spec, vec![vec![1, 1, 0, 0, 0, 0], vec![0; 6], vec![1, 1, 1, 1, 0, 1]], "measured".into(), 0);
+        let mut first_rows = std::collections::BTreeSet::new();
+        for seed in 0..40 {
+            let draw = random_rows(&spec, &of, seed).unwrap();
+            let degrees: Vec<usize> = draw.g.iter().map(|row| row.iter().filter(|&&e| e == 1).count()).collect();
+            assert_eq!(degrees, [2, 0, 5], "seed {seed}");
+            assert_eq!(draw, random_rows(&spec, &of, seed).unwrap(), "seed {seed} is not reproducible");
+            first_rows.insert(draw.g[0].clone());
+        }
+        // C(6, 2) = 15 possible first rows: 40 draws see most of them.
+        assert!(first_rows.len() >= 10, "only {} distinct rows", first_rows.len());
+        let wrong = from_matrix(&other, vec![vec![1; 6]; 2], "other".into(), 0);
+        assert!(random_rows(&spec, &wrong, 0).unwrap_err().to_string().contains("3 actions"));
+    }
+
+    #[test]
+    fn draw_seeds_differ_by_environment_and_draw() {
+        let seeds: std::collections::BTreeSet<u64> = ["peg-group1", "peg-group2"].iter().flat_map(|env| (0..10).map(move |d| draw_seed(env, d))).collect();
+        assert_eq!(seeds.len(), 20);
+        assert_eq!(draw_seed("peg-group1", 3), draw_seed("peg-group1", 3));
+        // Pinned: a change of the hash would change every archived draw
+        // (FNV-1a 64 of "random-rows/peg-group1/0", computed independently).
+        assert_eq!(draw_seed("peg-group1", 0), 9_611_119_715_683_273_235);
     }
 
     #[test]

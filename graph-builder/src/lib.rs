@@ -1,5 +1,6 @@
 //! CS3 and the LCRL connection graph (docs/method.md §2–4).
 //!
+//! - [`choose_t`]: eq. 7's T chosen from CS3 reproducibility alone.
 //! - [`cs3`]: Algorithm 1's paired rollouts, in parallel and deterministic.
 //! - [`given`]: graphs given, not measured (a file, or K random edges).
 //! - [`explain`]: one action's paired-rollout effect on one state, by phase.
@@ -10,6 +11,7 @@
 //! - [`cli`]: the arguments shared by `lcrl graph` and `lcrl-graph-builder`.
 //! - [`service`]: the `lcrl.v1.Graph` gRPC service.
 
+pub mod choose_t;
 pub mod cli;
 pub mod cs3;
 pub mod explain;

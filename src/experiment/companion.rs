@@ -104,7 +104,7 @@ fn check_starts(study: &Study, companion: &Study, name: &str) -> anyhow::Result<
 /// The settings in which two study files differ, as `key: here X, there
 /// Y`, leaving out what says which cells a study runs.
 fn differences(own: &Value, other: &Value) -> Vec<String> {
-    const CELLS: [&str; 7] = ["name", "environments", "algorithms", "connections", "seeds", "seeds_of", "primary"];
+    const CELLS: [&str; 9] = ["name", "environments", "algorithms", "connections", "seeds", "seeds_of", "primary", "equivalence", "factorial"];
     let (mut mine, mut theirs) = (BTreeMap::new(), BTreeMap::new());
     flatten("", own, &mut mine);
     flatten("", other, &mut theirs);

@@ -12,6 +12,8 @@ use serde::{Deserialize, Serialize};
 pub(crate) use crate::preset::algo_name;
 
 pub use crate::connection::ConnectionSpec;
+pub use super::hypotheses::{Equivalence, Factorial, Primary};
+use super::hypotheses::METRICS;
 
 /// One experiment file, as written.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -54,7 +56,13 @@ pub struct ExperimentFile {
     /// The one comparison named before any run ([`PrimaryContrast`]):
     /// reported first, on its own; every other comparison is Holm-adjusted.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub primary: Option<PrimaryContrast>,
+    pub primary: Option<Primary>,
+    /// Equivalence tests with their margins, named before the runs.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub equivalence: Vec<Equivalence>,
+    /// 2 × 2 factorial designs over the study's cells.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub factorial: Vec<Factorial>,
 }
 
 /// A study's primary contrast: the one comparison its file names before
@@ -76,9 +84,6 @@ pub struct PrimaryContrast {
     #[serde(default)]
     pub environments: Vec<String>,
 }
-
-/// The metrics a contrast may name.
-const METRICS: [&str; 2] = ["eval_return", "final_return"];
 
 impl PrimaryContrast {
     /// Checked with the file, before a single run.
@@ -236,6 +241,7 @@ impl Experiment {
         if let Some(primary) = &file.primary {
             primary.check(&file)?;
         }
+        super::hypotheses::check_designs(&file)?;
         let algos: Vec<&str> = file.algorithms.iter().map(|a| algo_name(*a)).collect();
         for algo in &algos {
             match file.episodes.get(*algo) {
@@ -296,6 +302,7 @@ impl Experiment {
                 // A matched global needs the graph of the actor it matches.
                 let graph_of = match connection {
                     ConnectionSpec::MatchedGlobal { to } => to.as_ref(),
+                    ConnectionSpec::RandomRows { of, .. } => of.as_ref(),
                     other => other,
                 };
                 graph_of.given_graph(made.spec(), file.graph.seed).with_context(|| format!("connection \"{}\" on {env}", connection.label()))?;
@@ -307,6 +314,15 @@ impl Experiment {
             }
         }
         let experiment = Experiment { file, connections, seeds, study_seeds, seeds_of };
+        // Random rows: every draw is trained (run seed s trains draw s mod N).
+        for connection in &experiment.connections {
+            if let ConnectionSpec::RandomRows { draws, .. } = connection {
+                let seeds = experiment.seeds_for(connection);
+                if let Some(missing) = (0..*draws).find(|d| !seeds.iter().any(|s| s % draws == *d)) {
+                    bail!("connection \"{}\": no seed trains draw {missing} (run seed s trains draw s mod {draws}); give it consecutive seeds, e.g. [seeds_of] \"{}\" = [100, …, {}]", connection.label(), connection.label(), 100 + 2 * draws - 1);
+                }
+            }
+        }
         for env in &experiment.file.environments {
             experiment.train_config(env)?;
         }

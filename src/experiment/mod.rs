@@ -11,10 +11,14 @@ mod draws;
 mod figures;
 mod k8s;
 mod plan;
+mod hypotheses;
+mod inference;
+mod named;
 mod primary;
 mod report;
 mod runner;
 mod safety;
+mod speed;
 pub mod stats;
 
 use std::path::{Path, PathBuf};
@@ -250,7 +254,12 @@ fn run_task(args: &TaskArgs) -> anyhow::Result<()> {
     let Some(task) = tasks.get(index) else {
         bail!("task index {index} is out of range: experiment {} has {} tasks (0–{})", e.file.name, tasks.len(), tasks.len() - 1);
     };
-    let steps: Vec<Task> = task.dependency().into_iter().chain([task.clone()]).collect();
+    // The task after what it needs, and what that needs (a random-rows
+    // draw needs its measured graph), first things first.
+    let mut steps: Vec<Task> = vec![task.clone()];
+    while let Some(before) = steps.first().and_then(Task::dependency) {
+        steps.insert(0, before);
+    }
     if args.dry_run {
         for t in &steps {
             println!("lcrl {}", t.args(&e, &args.out).join(" "));

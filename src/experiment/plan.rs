@@ -58,7 +58,18 @@ pub fn tasks(e: &Experiment) -> Vec<Task> {
     for env in &e.file.environments {
         for connection in &e.connections {
             let Some((made, per_seed)) = connection.made_graph() else { continue };
-            let seeds: Vec<Option<u64>> = if per_seed { e.seeds_for(connection).into_iter().map(Some).collect() } else { vec![None] };
+            // Random rows are drawn from a measured graph: that one first.
+            if let Some(source) = made.source() {
+                let task = Task::Graph { env: env.clone(), made: source, seed: None };
+                if !tasks.contains(&task) {
+                    tasks.push(task);
+                }
+            }
+            let seeds: Vec<Option<u64>> = if per_seed {
+                e.seeds_for(connection).into_iter().map(|s| Some(connection.draw_of(s).unwrap_or(s))).collect()
+            } else {
+                vec![None]
+            };
             for seed in seeds {
                 let task = Task::Graph { env: env.clone(), made: made.clone(), seed };
                 if !tasks.contains(&task) {
@@ -97,7 +108,12 @@ pub fn only(e: &Experiment, tasks: Vec<Task>, patterns: &[String]) -> anyhow::Re
         globs.push(pattern);
     }
     let chosen: Vec<Cell> = cells(e).into_iter().filter(|c| globs.iter().any(|g| g.matches(&c.label()))).collect();
-    let needed: Vec<Task> = tasks.iter().filter(|t| matches!(t, Task::Train { cell, .. } if chosen.contains(cell))).filter_map(Task::dependency).collect();
+    // What the chosen runs need, and what that needs (a random-rows draw
+    // needs its measured graph).
+    let mut needed: Vec<Task> = tasks.iter().filter(|t| matches!(t, Task::Train { cell, .. } if chosen.contains(cell))).filter_map(Task::dependency).collect();
+    while let Some(more) = needed.iter().filter_map(Task::dependency).find(|d| !needed.contains(d)) {
+        needed.push(more);
+    }
     Ok(tasks
         .into_iter()
         .filter(|t| match t {
@@ -134,7 +150,7 @@ pub fn best_constant_path(out: &Path, env: &str) -> PathBuf {
 pub fn graph_path(out: &Path, env: &str, made: &MadeGraph, seed: Option<u64>) -> PathBuf {
     let dir = out.join("graphs").join(env_slug(env)).join(made.folder());
     match seed {
-        Some(seed) => dir.join(format!("seed{seed}")),
+        Some(seed) => dir.join(made.instance(seed)),
         None => dir,
     }
     .join("graph.json")
@@ -143,7 +159,8 @@ pub fn graph_path(out: &Path, env: &str, made: &MadeGraph, seed: Option<u64>) ->
 /// The graph task a cell's run with `seed` needs, if the study makes one.
 pub fn graph_task(cell: &Cell, seed: u64) -> Option<Task> {
     let (made, per_seed) = cell.connection.made_graph()?;
-    Some(Task::Graph { env: cell.env.clone(), made, seed: per_seed.then_some(seed) })
+    let instance = cell.connection.draw_of(seed).unwrap_or(seed);
+    Some(Task::Graph { env: cell.env.clone(), made, seed: per_seed.then_some(instance) })
 }
 
 /// The graph file a cell's run with `seed` trains with, if it has one.
@@ -171,7 +188,7 @@ impl Task {
         match self {
             Task::Tune { env } => format!("tune-{}", env_slug(env)),
             Task::Graph { env, made, seed } => {
-                format!("graph-{}-{}{}", env_slug(env), made.folder(), seed.map(|s| format!("-seed{s}")).unwrap_or_default())
+                format!("graph-{}-{}{}", env_slug(env), made.folder(), seed.map(|s| format!("-{}", made.instance(s))).unwrap_or_default())
             }
             Task::Train { cell, seed } => {
                 format!("train-{}-{}-{}-seed{seed}", env_slug(&cell.env), algo_name(cell.algo), cell.connection.slug())
@@ -183,7 +200,8 @@ impl Task {
     pub fn dependency(&self) -> Option<Task> {
         match self {
             Task::Train { cell, seed } => graph_task(cell, *seed),
-            _ => None,
+            Task::Graph { env, made, .. } => made.source().map(|source| Task::Graph { env: env.clone(), made: source, seed: None }),
+            Task::Tune { .. } => None,
         }
     }
 
@@ -239,6 +257,17 @@ impl Task {
                         "graph".into(), "--env".into(), env.clone(), "--random".into(), edges.to_string(),
                         "--seed".into(), draw_seed, "--out".into(), s(&path),
                     ],
+                    // Draw k of random rows: its seed from the environment
+                    // and k (never a run's seed), its degrees from the
+                    // measured graph.
+                    MadeGraph::RowsDrawn { .. } => {
+                        let source = made.source().map(|m| graph_path(out, env, &m, None)).unwrap_or_default();
+                        let draw_seed = lcrl_graph_builder::given::draw_seed(env, seed.unwrap_or(0)).to_string();
+                        vec![
+                            "graph".into(), "--env".into(), env.clone(), "--random-rows".into(), s(&source),
+                            "--seed".into(), draw_seed, "--out".into(), s(&path),
+                        ]
+                    }
                 }
             }
             Task::Train { cell, seed } => {
@@ -361,6 +390,39 @@ mod tests {
         assert_eq!(tasks[1].dependency(), Some(tasks[0].clone()));
         assert!(!tasks[2].args(&e, out).contains(&"--graph".to_string()));
         assert_eq!(tasks[2].dependency(), None);
+    }
+
+    /// random-rows: the measured graph first, then one draw task per draw
+    /// index (seed mod draws) seeded by environment and draw, never by the
+    /// run; each run trains on its draw; --only keeps the whole chain.
+    #[test]
+    fn random_rows_draw_from_the_measured_graph_by_draw_index() {
+        let text = "name = \"t\"\nenvironments = [\"peg-group1\", \"peg-group2\"]\nalgorithms = [\"ddpg\"]\n\
+                    connections = [\"global\", \"random-rows@local@0.5+draws=2\"]\n\
+                    seeds = [4, 5, 6, 7]\nepisodes = { ddpg = 7 }\n[best_constant]\nenabled = false\n";
+        let e = Experiment::parse(text).unwrap();
+        let tasks = tasks(&e);
+        let ids: Vec<String> = tasks.iter().map(Task::id).collect();
+        assert_eq!(ids[..6], [
+            "graph-peg-group1-T0.5",
+            "graph-peg-group1-random-rows@T0.5-draw0",
+            "graph-peg-group1-random-rows@T0.5-draw1",
+            "graph-peg-group2-T0.5",
+            "graph-peg-group2-random-rows@T0.5-draw0",
+            "graph-peg-group2-random-rows@T0.5-draw1",
+        ]);
+        let out = Path::new("/study");
+        let draw = &tasks[2];
+        assert_eq!(draw.dependency(), Some(tasks[0].clone()));
+        let args = draw.args(&e, out).join(" ");
+        let seed = lcrl_graph_builder::given::draw_seed("peg-group1", 1);
+        assert!(args.contains(&format!("--random-rows /study/graphs/peg-group1/T0.5/graph.json --seed {seed} --out /study/graphs/peg-group1/random-rows@T0.5/draw1/graph.json")), "{args}");
+        assert_ne!(tasks[5].args(&e, out).join(" ").split("--seed ").nth(1), args.split("--seed ").nth(1), "draws differ by environment");
+        let run = tasks.iter().find(|t| t.id() == "train-peg-group2-ddpg-random-rows@local@0.5+draws=2-seed7").unwrap();
+        assert_eq!(run.dependency().map(|t| t.id()), Some("graph-peg-group2-random-rows@T0.5-draw1".to_string()));
+        assert!(run.args(&e, out).join(" ").contains("--graph /study/graphs/peg-group2/random-rows@T0.5/draw1/graph.json"));
+        let chosen: Vec<String> = only(&e, tasks.clone(), &["peg-group1/ddpg/random*".to_string()]).unwrap().iter().map(Task::id).collect();
+        assert_eq!(chosen.iter().filter(|id| id.starts_with("graph-")).collect::<Vec<_>>(), ["graph-peg-group1-T0.5", "graph-peg-group1-random-rows@T0.5-draw0", "graph-peg-group1-random-rows@T0.5-draw1"]);
     }
 
     /// `+per-seed` gives each run its own graph task (CS3 or draw seeded by

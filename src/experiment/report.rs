@@ -143,8 +143,14 @@ pub struct Report {
     pub best_policy: BTreeMap<String, BestConstant>,
     pub cells: Vec<CellReport>,
     pub comparisons: Vec<Comparison>,
-    /// The study file's `[primary]` contrast, tested on its own.
+    /// The study file's `[primary]` contrasts, tested on their own.
     pub primary: Option<super::primary::PrimaryResult>,
+    /// The file's `[[equivalence]]` tests.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub equivalence: Vec<super::named::EquivalenceResult>,
+    /// The file's `[[factorial]]` designs.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub factorials: Vec<super::named::FactorialResult>,
     /// Graph cells placed among a `+per-seed` random cell's draws.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub random_draws: Vec<super::draws::Placement>,
@@ -210,6 +216,9 @@ pub struct CellReport {
     /// Runs whose eval return is below a = 0's on the same starts.
     pub diverged: usize,
     pub episodes_to_threshold: Option<ThresholdEstimate>,
+    /// The speed measures: area under the first 100 episodes' curve and
+    /// episodes to the best constant (crate::experiment::speed).
+    pub speed: super::speed::CellSpeed,
     pub graph_seconds: f64,
     pub optimization_seconds: Option<Estimate>,
     pub total_seconds: Option<Estimate>,
@@ -282,6 +291,7 @@ impl Study {
                 beat_best_constant: beats.iter().map(|b| b.map(usize::from)).sum(),
                 diverged: diverged.iter().filter(|d| **d).count(),
                 episodes_to_threshold: threshold.and_then(|t| censored_estimate(&reached, t, budget)),
+                speed: self.cell_speed(c),
                 graph_seconds: c.graph_seconds,
                 optimization_seconds: of(&|r| r.summary.optimization_seconds),
                 total_seconds: of(&|r| c.graph_seconds + r.summary.total_seconds),
@@ -312,17 +322,9 @@ impl Study {
             best_constant: self.best_constant.clone(),
             best_policy: self.best_policy.clone(),
             comparisons: self.comparisons(),
-            primary: e.file.primary.as_ref().map(|contrast| {
-                let values = |env: &str, connection: &str| -> Vec<f64> {
-                    self.cells
-                        .iter()
-                        .filter(|c| c.from.is_none() && c.cell.env == env && c.cell.algo == contrast.algorithm && c.cell.connection.label() == connection)
-                        .flat_map(|c| &c.runs)
-                        .map(|r| if contrast.metric == "final_return" { r.summary.final_return } else { r.summary.evaluation.eval_return })
-                        .collect()
-                };
-                super::primary::evaluate(contrast, &e.file.environments, values)
-            }),
+            primary: e.file.primary.as_ref().map(|p| super::primary::evaluate(p, self)),
+            equivalence: super::named::equivalence(self),
+            factorials: super::named::factorials(self),
             random_draws: super::draws::placements(&self.cells.iter().filter(|c| c.from.is_none()).map(|c| (&c.cell, c.runs.iter().map(|r| r.summary.evaluation.eval_return).collect())).collect::<Vec<_>>()),
             cells,
             missing_runs: self.missing.clone(),
@@ -346,6 +348,8 @@ impl Study {
             // A matched global is sized to one local cell: compared with it.
             (a, C::MatchedGlobal { to }) => a == to.as_ref(),
             (C::Graph { .. } | C::Local { .. }, C::Random { .. }) => true,
+            // Random rows meet their own measured graph draw by draw (below).
+            (a, C::RandomRows { of, .. }) => a == of.as_ref(),
             _ => false,
         };
         // pairs_with(x, x) is false for every connection, so the same-
@@ -358,6 +362,10 @@ impl Study {
         let mut out = Vec::new();
         for a in &self.cells {
             for b in self.cells.iter().filter(|b| b.cell.env == a.cell.env && b.cell.algo == a.cell.algo && paired(a, b)) {
+                if matches!(b.cell.connection, C::RandomRows { .. }) {
+                    out.extend(self.draw_comparisons(a, b));
+                    continue;
+                }
                 let metrics: [(&'static str, fn(&Run) -> f64); 2] = [("final_return", |r| r.summary.final_return), ("eval_return", |r| r.summary.evaluation.eval_return)];
                 for (metric, f) in metrics {
                     let (xa, xb): (Vec<f64>, Vec<f64>) = (a.runs.iter().map(f).collect(), b.runs.iter().map(f).collect());
@@ -379,6 +387,7 @@ impl Study {
                         });
                     }
                 }
+                out.extend(self.speed_comparisons(a, b));
             }
         }
         // One family: every comparison the report prints.
@@ -424,6 +433,7 @@ pub fn markdown(report: &Report) -> String {
     if let Some(p) = &report.primary {
         md.push_str(&super::primary::markdown(p));
     }
+    md.push_str(&super::named::markdown(&report.equivalence, &report.factorials));
     if !report.companions.is_empty() {
         let _ = writeln!(md, "**Companion studies** (`--with`; their cells are labelled `CONNECTION [NAME]`):\n");
         for c in &report.companions {
@@ -446,8 +456,8 @@ pub fn markdown(report: &Report) -> String {
         let threshold = rows.iter().find_map(|c| c.episodes_to_threshold.as_ref().map(|t| t.threshold));
         let _ = writeln!(md, "## {env}, {} ({} episodes)\n", algo.to_uppercase(), rows[0].episodes);
         let to = threshold.map_or("episodes to threshold".to_string(), |t| format!("episodes to {}", num(t)));
-        let _ = writeln!(md, "| connection | seeds | final return | eval return | success | beat best constant | diverged | {to} | graph s | optimization s | total s |");
-        let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|");
+        let _ = writeln!(md, "| connection | seeds | final return | eval return | success | beat best constant | diverged | {to} | AUC, first 100 | median episodes to best constant | graph s | optimization s | total s |");
+        let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
         for c in &rows {
             let success = c.eval_success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
             let reach = c.episodes_to_threshold.as_ref().map_or("—".into(), |t| {
@@ -456,9 +466,10 @@ pub fn markdown(report: &Report) -> String {
             });
             let n = c.seeds.len();
             let beat = c.beat_best_constant.map_or("—".into(), |k| format!("{k} of {n}"));
+            let (auc, to_bar) = super::speed::columns(&c.speed);
             let _ = writeln!(
                 md,
-                "| {} | {n} | {} | {} | {success} | {beat} | {} of {n} | {reach} | {} | {} | {} |",
+                "| {} | {n} | {} | {} | {success} | {beat} | {} of {n} | {reach} | {auc} | {to_bar} | {} | {} | {} |",
                 c.connection,
                 estimate(&c.final_return),
                 estimate(&c.eval_return),
@@ -470,12 +481,12 @@ pub fn markdown(report: &Report) -> String {
         }
         if let Some(b) = report.best_constant.get(env) {
             let success = b.success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
-            let _ = writeln!(md, "| best constant | — | — | {} | {success} | — | — | — | — | — | — |", num(b.mean_return));
-            let _ = writeln!(md, "| a = 0 | — | — | {} | — | — | — | — | — | — | — |", num(b.zero_action_return));
+            let _ = writeln!(md, "| best constant | — | — | {} | {success} | — | — | — | — | — | — | — | — |", num(b.mean_return));
+            let _ = writeln!(md, "| a = 0 | — | — | {} | — | — | — | — | {} | — | — | — | — |", num(b.zero_action_return), num(b.zero_action_return));
         }
         if let Some(p) = report.best_policy.get(env) {
             let success = p.success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
-            let _ = writeln!(md, "| best feedback policy (headroom) | — | — | {} | {success} | — | — | — | — | — | — |", num(p.mean_return));
+            let _ = writeln!(md, "| best feedback policy (headroom) | — | — | {} | {success} | — | — | — | — | — | — | — | — |", num(p.mean_return));
         }
         let _ = writeln!(md);
         for c in &rows {
@@ -507,18 +518,19 @@ pub fn markdown(report: &Report) -> String {
         let comparisons: Vec<&Comparison> = report.comparisons.iter().filter(|c| c.env == env && c.algo == algo).collect();
         if !comparisons.is_empty() {
             let family = report.comparisons.len();
-            let _ = writeln!(md, "\n| comparison | metric | difference | 95% CI | p (Welch) | p (Holm, {family} comparisons) | reading |");
-            let _ = writeln!(md, "|---|---|---|---|---|---|---|");
+            let _ = writeln!(md, "\n| comparison | metric | difference | 95% CI | test | p | p (Holm, {family} comparisons) | reading |");
+            let _ = writeln!(md, "|---|---|---|---|---|---|---|---|");
             for c in comparisons {
                 let _ = writeln!(
                     md,
-                    "| {} − {} | {} | {} | [{}, {}] | {} | {} | {} |",
+                    "| {} − {} | {} | {} | [{}, {}] | {} | {} | {} | {} |",
                     c.a,
                     c.b,
                     c.metric,
                     num(c.difference),
                     num(c.ci95[0]),
                     num(c.ci95[1]),
+                    c.test,
                     format_p(c.p_value),
                     format_p(c.p_holm),
                     c.reading

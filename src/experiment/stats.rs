@@ -155,6 +155,8 @@ pub fn reading_adjusted(a: &str, b: &str, ci95: [f64; 2], p_holm: f64) -> String
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Stratified {
     pub difference: f64,
+    /// Standard error of the combined difference.
+    pub se: f64,
     pub ci95: [f64; 2],
     /// Two-sided.
     pub p_value: f64,
@@ -177,7 +179,7 @@ pub fn stratified(strata: &[(f64, f64)]) -> Option<Stratified> {
     let normal = statrs::distribution::Normal::new(0.0, 1.0).ok()?;
     let p_value = 2.0 * normal.cdf(-(difference / se).abs());
     let half = normal.inverse_cdf(0.975) * se;
-    Some(Stratified { difference, ci95: [difference - half, difference + half], p_value, strata: kept.len() })
+    Some(Stratified { difference, se, ci95: [difference - half, difference + half], p_value, strata: kept.len() })
 }
 
 /// Episodes until the average return reaches a threshold, over seeds.
