@@ -119,3 +119,46 @@ pub fn markdown(equivalence: &[EquivalenceResult], factorials: &[FactorialResult
     }
     md
 }
+
+#[cfg(test)]
+mod tests {
+    use super::super::config::Experiment;
+    use super::super::inference::{factorial, tost};
+    use super::super::plan::{cells, run_dir};
+    use super::super::report::fixtures::write_run;
+    use super::super::report::{gather, markdown};
+    use super::super::stats::welch;
+
+    /// A study naming one equivalence test and one 2 × 2: the report
+    /// carries exactly what the inference functions give on its runs.
+    #[test]
+    fn named_tests_reach_the_report() {
+        let text = "name = \"n\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\n\
+                    connections = [\"global\", \"full-subnets\", \"local@0.25\", \"local\"]\nseeds = 3\nepisodes = { ppo = 2 }\n\
+                    [[equivalence]]\nmetric = \"eval_return\"\na = \"full-subnets\"\nb = \"global\"\nalgorithm = \"ppo\"\nmargin = 0.5\n\
+                    [[factorial]]\nname = \"mask × T\"\nmetric = \"eval_return\"\nalgorithm = \"ppo\"\nfactors = [\"mask\", \"T\"]\n\
+                    cells = [[\"lti-paper/global\", \"lti-paper/full-subnets\"], [\"lti-paper/local@0.25\", \"lti-paper/local\"]]\n";
+        let e = Experiment::parse(text).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path();
+        let returns = [[-3.0, -3.1, -2.9], [-3.05, -2.95, -3.1], [-2.0, -2.2, -1.9], [-1.0, -1.3, -1.1]];
+        for (cell, values) in cells(&e).iter().zip(returns) {
+            for (seed, r) in values.iter().enumerate() {
+                write_run(&run_dir(out, cell, seed as u64), "local", seed as u64, *r, Some(0), None);
+            }
+        }
+        let report = gather(&e, out).unwrap().report();
+        let eq = &report.equivalence[0];
+        let w = welch(&returns[1], &returns[0]).unwrap();
+        let expected = tost(w.difference, w.se, Some(w.df), 0.5).unwrap();
+        assert_eq!(eq.tost.as_ref().unwrap(), &expected);
+        assert!(eq.p_holm < 0.05 && eq.reading.starts_with("equivalent within ±0.5"), "{}", eq.reading);
+        let f = &report.factorials[0];
+        let expected = factorial(&[[&returns[0], &returns[1]], [&returns[2], &returns[3]]], &["mask".into(), "T".into()]).unwrap();
+        assert_eq!(f.effects, expected.to_vec());
+        assert_eq!(f.runs, [[3, 3], [3, 3]]);
+        let md = markdown(&report);
+        assert!(md.contains("## Equivalence (margins named in the study file)") && md.contains("## Factorial: mask × T (eval_return, PPO)"), "{md}");
+        assert!(md.contains("| mask × T (interaction) |"), "{md}");
+    }
+}

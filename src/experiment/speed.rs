@@ -160,3 +160,75 @@ pub fn columns(s: &CellSpeed) -> (String, String) {
     };
     (auc, to)
 }
+
+#[cfg(test)]
+mod tests {
+    use serde_json::json;
+
+    use super::super::config::Experiment;
+    use super::super::plan::{best_constant_path, cells, run_dir};
+    use super::super::report::fixtures::write_run;
+    use super::super::report::{gather, markdown};
+
+    /// A run's metrics.csv with these episode returns.
+    fn write_returns(dir: &std::path::Path, returns: &[f64]) {
+        let mut csv = String::from("episode,return,length,success,peak_force_n,peak_moment_nm,wall_s,optimization_s\n");
+        for (k, r) in returns.iter().enumerate() {
+            csv.push_str(&format!("{},{r},10,,,,,\n", k + 1));
+        }
+        std::fs::write(dir.join("metrics.csv"), csv).unwrap();
+    }
+
+    /// local gets to the best constant (−5) by episode 10 in every run,
+    /// global never does; random rows run two draws on two seeds each and
+    /// meet local@0.5 with the draw as the unit.
+    #[test]
+    fn speed_and_draw_level_comparisons_on_a_hand_made_study() {
+        let text = "name = \"s\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\n\
+                    connections = [\"local@0.5\", \"global\", \"random-rows@local@0.5+draws=2\"]\nseeds = [0, 1, 2, 3]\nepisodes = { ppo = 20 }\n";
+        let e = Experiment::parse(text).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path();
+        let bar = json!({ "action": [0.0], "mean_return": -5.0, "success_rate": null, "eval_episodes": 100, "eval_seed": 0,
+                          "zero_action": { "eval": { "mean_return": -8.0 } } });
+        let bar_path = best_constant_path(out, "lti-paper");
+        std::fs::create_dir_all(bar_path.parent().unwrap()).unwrap();
+        std::fs::write(&bar_path, bar.to_string()).unwrap();
+        let [local, global, rows] = [0, 1, 2].map(|i| cells(&e)[i].clone());
+        let local_eval = [-3.0, -3.2, -2.8, -3.1];
+        // Draw 0 (seeds 0, 2) ends at −4 and −4.2, draw 1 (seeds 1, 3) at −5 and −5.4.
+        let rows_eval = [-4.0, -5.0, -4.2, -5.4];
+        for seed in 0..4u64 {
+            let s = seed as usize;
+            for (cell, eval, returns) in [
+                (&local, local_eval[s], [-4.0; 20].to_vec()),
+                (&global, -6.0 - 0.1 * seed as f64, [vec![-20.0; 5], vec![-7.0; 15]].concat()),
+                (&rows, rows_eval[s], [-6.0; 20].to_vec()),
+            ] {
+                let dir = run_dir(out, cell, seed);
+                write_run(&dir, "local", seed, eval, Some(0), Some(-8.0));
+                write_returns(&dir, &returns);
+            }
+        }
+        let report = gather(&e, out).unwrap().report();
+        let speed = |i: usize| report.cells[i].speed.clone();
+        assert_eq!((speed(0).median_to_best_constant, speed(0).reached_best_constant), (Some(10), 4));
+        assert_eq!((speed(1).median_to_best_constant, speed(1).censored), (None, 4));
+        // global's first 100 (here 20) floored at a = 0's −8: 5 × −8 + 15 × −7.
+        assert!((speed(1).auc_100.unwrap().mean - (5.0 * -8.0 + 15.0 * -7.0) / 20.0).abs() < 1e-12);
+        let find = |a: &str, b: &str, metric: &str| report.comparisons.iter().find(|c| c.a == a && c.b == b && c.metric == metric).unwrap_or_else(|| panic!("no {a} − {b} on {metric}"));
+        let timed = find("local@0.5", "global", "episodes_to_best_constant");
+        assert_eq!((timed.test, timed.difference), ("log_rank", 10.0 - 20.0));
+        assert!(timed.p_value < 0.01, "{}", timed.p_value);
+        assert_eq!(find("local@0.5", "global", "auc_100").test, "welch_t");
+        // Draw level: two draw means (−4.1, −5.2) against four local runs.
+        let draws = find("local@0.5", "random-rows@local@0.5+draws=2 (draw means)", "eval_return");
+        assert_eq!((draws.test, draws.n_a, draws.n_b), ("welch_t_draw_means", 4, 2));
+        assert!((draws.difference - (-3.025 - -4.65)).abs() < 1e-12, "{}", draws.difference);
+        // Random rows are not compared with their graph run by run.
+        assert!(!report.comparisons.iter().any(|c| c.a == "local@0.5" && c.b == "random-rows@local@0.5+draws=2"));
+        let md = markdown(&report);
+        assert!(md.contains("| 10 (4 of 4 reached) |") && md.contains("| not reached (0 of 4 reached) |"), "{md}");
+        assert!(md.contains("welch_t_draw_means") && md.contains("log_rank"), "{md}");
+    }
+}

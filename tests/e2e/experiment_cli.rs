@@ -156,18 +156,28 @@ fn smoke_study_survives_sigkill_resumes_and_reports_consistently() {
         assert_eq!(cell["graph_seconds"].as_f64().unwrap() > 0.0, local, "graph time belongs to local cells only");
     }
     let comparisons = report["comparisons"].as_array().unwrap();
-    assert_eq!(comparisons.len(), 2, "local − global on final and eval return");
+    // local − global on final and eval return and the area under the
+    // curve, and on the episodes to the best constant (log-rank) when a
+    // run got there.
+    let reached: u64 = report["cells"].as_array().unwrap().iter().map(|c| c["speed"]["reached_best_constant"].as_u64().unwrap()).sum();
+    let metrics: Vec<&str> = comparisons.iter().map(|c| c["metric"].as_str().unwrap()).collect();
+    let mut expected = vec!["final_return", "eval_return", "auc_100"];
+    if reached > 0 {
+        expected.push("episodes_to_best_constant");
+    }
+    assert_eq!(metrics, expected, "local − global");
     for c in comparisons {
         let (p, holm) = (c["p_value"].as_f64().unwrap(), c["p_holm"].as_f64().unwrap());
         assert!((0.0..=1.0).contains(&p) && (p..=1.0).contains(&holm), "p {p}, Holm {holm}");
         let row = format!(
-            "| {} − {} | {} | {} | [{}, {}] | {} | {} | {} |",
+            "| {} − {} | {} | {} | [{}, {}] | {} | {} | {} | {} |",
             c["a"].as_str().unwrap(),
             c["b"].as_str().unwrap(),
             c["metric"].as_str().unwrap(),
             num(&c["difference"]),
             num(&c["ci95"][0]),
             num(&c["ci95"][1]),
+            c["test"].as_str().unwrap(),
             lcrl::experiment::stats::format_p(p),
             lcrl::experiment::stats::format_p(holm),
             c["reading"].as_str().unwrap()

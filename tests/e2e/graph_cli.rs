@@ -164,3 +164,49 @@ fn trajectory_start_on_a_linear_system_keeps_lemma1_and_bad_sweeps_fail() {
     let out = lcrl().args(["graph", "--env", "lti-paper", "--thresholds", "0.1,-1"]).output().unwrap();
     assert_clean_failure(&out, "--threshold must be a finite number above 0");
 }
+
+/// `--choose-t` prints the grid and T* with its rule, writes the same
+/// choice as JSON, and refuses a threshold beside it.
+#[test]
+fn choose_t_prints_t_star_and_why() {
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("choice.json");
+    let out = lcrl().args(["graph", "--env", "lti-paper", "--samples", "32", "--choose-t", "--choose-seeds", "3", "--out"]).arg(&json).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = stdout(&out);
+    let v: Value = serde_json::from_str(&fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(v["seeds"], serde_json::json!([0, 1, 2]));
+    assert_eq!(v["candidates"].as_array().unwrap().len(), 20);
+    let chosen = v["chosen"].as_f64().expect("lti-paper's graph is reproducible at T = 0.1");
+    assert!(text.contains(&format!("T* = {chosen} (the publication's T = 0.1)")) && text.contains("differ in at most 2.0%"), "{text}");
+    // Every T up to T* is reproducible, and the next one is not.
+    let candidates = v["candidates"].as_array().unwrap();
+    let upto: Vec<&Value> = candidates.iter().take_while(|c| c["threshold"].as_f64().unwrap() <= chosen).collect();
+    assert!(upto.iter().all(|c| c["reproducible"] == true));
+    if let Some(next) = candidates.get(upto.len()) {
+        assert_eq!(next["reproducible"], false, "{text}");
+    }
+    let both = lcrl().args(["graph", "--env", "lti-paper", "--choose-t", "--threshold", "1"]).output().unwrap();
+    assert_clean_failure(&both, "cannot be used with");
+}
+
+/// `--random-rows GRAPH` keeps every action's number of inputs and draws
+/// which states, by --seed.
+#[test]
+fn random_rows_keep_the_degrees_of_the_graph_they_come_from() {
+    let dir = tempfile::tempdir().unwrap();
+    let source = graph_json(&dir, "measured.json", &["--threshold", "0.5"]);
+    let degrees = |g: &Value| g["g"].as_array().unwrap().iter().map(|row| row.as_array().unwrap().iter().filter(|e| e.as_u64() == Some(1)).count()).collect::<Vec<_>>();
+    let draw = |seed: &str, name: &str| {
+        let path = dir.path().join(name);
+        let out = lcrl().args(["graph", "--env", "lti-paper", "--random-rows"]).arg(dir.path().join("measured.json")).args(["--seed", seed, "--out"]).arg(&path).output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        serde_json::from_str::<Value>(&fs::read_to_string(&path).unwrap()).unwrap()
+    };
+    let (a, again) = (draw("11", "a.json"), draw("11", "again.json"));
+    assert_eq!(degrees(&a), degrees(&source));
+    assert_eq!(a["g"], again["g"], "the same draw seed gives the same draw");
+    assert!(a["origin"].as_str().unwrap().starts_with("random rows of degrees"), "{}", a["origin"]);
+    let missing = lcrl().args(["graph", "--env", "lti-paper", "--random-rows"]).arg(dir.path().join("none.json")).output().unwrap();
+    assert_clean_failure(&missing, "none.json");
+}
