@@ -2,7 +2,8 @@
 //! primary contrasts and the family-wise rule over them, equivalence
 //! margins, and 2 × 2 factorial designs (docs/experiment.md, "What a study
 //! names before its runs"). Checked on load like the rest of the file; the
-//! tests themselves are in crate::experiment::stats and ::confirm.
+//! tests themselves are in crate::experiment::inference, ::primary and
+//! ::named.
 
 use anyhow::bail;
 use serde::{Deserialize, Serialize};

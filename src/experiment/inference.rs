@@ -170,7 +170,14 @@ pub fn factorial(cells: &[[&[f64]; 2]; 2], factors: &[String; 2]) -> Option<[Eff
         let df = var * var / w.iter().zip(&stats).map(|(w, s)| (w * w * s.1).powi(2) / (s.2 - 1.0)).sum::<f64>();
         let se = var.sqrt();
         let t = StudentsT::new(0.0, 1.0, df).ok();
-        let p_value = if se > 0.0 { t.as_ref().map_or(f64::NAN, |t| 2.0 * t.cdf(-(estimate / se).abs())) } else if estimate == 0.0 { 1.0 } else { 0.0 };
+        let p_value = if se > 0.0 {
+            t.as_ref().map_or(f64::NAN, |t| 2.0 * t.cdf(-(estimate / se).abs()))
+        } else if se == 0.0 && estimate.is_finite() {
+            // No spread in any cell: equal means are no evidence, unequal certain.
+            if estimate == 0.0 { 1.0 } else { 0.0 }
+        } else {
+            f64::NAN
+        };
         let half = t.map_or(f64::NAN, |t| t.inverse_cdf(0.975)) * se;
         Effect { name, estimate, se, df, ci95: [estimate - half, estimate + half], p_value }
     };
@@ -222,6 +229,22 @@ mod tests {
         assert!(factorial(&[[&a, &b], [&c, &[1.0]]], &["x".into(), "y".into()]).is_none());
     }
 
+    /// Unbalanced cells with unequal spreads, against an independent
+    /// computation (numpy and scipy): 11 = 1, 2, 4; 12 = 2, 3;
+    /// 21 = 5, 5.5, 7, 8; 22 = 6, 9, 10.
+    #[test]
+    fn factorial_welch_contrasts_on_an_unbalanced_example() {
+        let (a, b, c, d) = ([1.0, 2.0, 4.0], [2.0, 3.0], [5.0, 5.5, 7.0, 8.0], [6.0, 9.0, 10.0]);
+        let [row, _, interaction] = factorial(&[[&a, &b], [&c, &d]], &["r".into(), "c".into()]).unwrap();
+        assert!(close(row.estimate, 4.9375, 1e-12) && close(row.se, 0.858222, 1e-6), "{row:?}");
+        assert!(close(row.df, 5.852759, 1e-6) && close(row.p_value, 0.0013088, 1e-6), "{row:?}");
+        assert!(close(interaction.estimate, 1.791667, 1e-6) && close(interaction.p_value, 0.337750, 1e-6), "{interaction:?}");
+        // Values that are not numbers give no verdict, never p = 0.
+        let nan = [f64::NAN, 1.0];
+        let [row, ..] = factorial(&[[&nan, &b], [&c, &d]], &["r".into(), "c".into()]).unwrap();
+        assert!(row.p_value.is_nan(), "{row:?}");
+    }
+
     /// By hand: a reaches at 1 and 2, b at 3 and is censored at 4. At t = 1:
     /// 2 of 4 at risk in a, 1 event: E = 0.5, V = 0.25. At t = 2: 1 of 3,
     /// E = 1/3, V = 2/9. At t = 3: a has none at risk: E = 0, V = 0. O − E =
@@ -237,6 +260,12 @@ mod tests {
         // Two identical strata: O − E and V double, χ² doubles.
         let two = log_rank(&[(a.clone(), b.clone()), (a, b)]).unwrap();
         assert!(close(two.chi_square, 2.0 * 49.0 / 17.0, 1e-12));
+        // Ties and censoring at an event time (checked against scipy's
+        // logrank): a = 1, 1, 2, 3, 3+; b = 1, 2, 2, 3+, 3+.
+        let a = vec![t(1, true), t(1, true), t(2, true), t(3, true), t(3, false)];
+        let b = vec![t(1, true), t(2, true), t(2, true), t(3, false), t(3, false)];
+        let tied = log_rank(&[(a, b)]).unwrap();
+        assert!(close(tied.chi_square, 0.385604, 1e-6) && close(tied.p_value, 0.534619, 1e-6), "{tied:?}");
         // Nobody gets there: no test.
         assert!(log_rank(&[(vec![t(5, false)], vec![t(5, false)])]).is_none());
     }

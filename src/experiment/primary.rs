@@ -64,6 +64,7 @@ pub fn evaluate(primary: &Primary, study: &Study) -> PrimaryResult {
         c.rejected = adjusted < alpha;
         let (a, b) = (label(&c.contrast.a), label(&c.contrast.b));
         c.reading = match (&c.log_rank, &c.combined) {
+            (None, None) if c.contrast.metric == "episodes_to_best_constant" => "no result: too few finished runs, no run reached the best constant, or no best constant yet".into(),
             (None, None) => "no result: too few finished runs".into(),
             (Some(lr), _) if c.rejected => format!("{a} reaches the best constant {} than {b}", if lr.observed_minus_expected > 0.0 { "sooner" } else { "later" }),
             (Some(_), _) => format!("{a} and {b} not distinguishable in time to the best constant"),
@@ -151,7 +152,7 @@ pub fn markdown(p: &PrimaryResult) -> String {
             }
         }
         for (env, w) in &c.per_environment {
-            let _ = writeln!(md, "- {env}: {} [{}, {}], p {} (Welch)", num(w.difference), num(w.ci95[0]), num(w.ci95[1]), format_p(w.p_value));
+            let _ = writeln!(md, "- {env}: {} [{}, {}], p {} (Welch, this environment alone: raw, descriptive)", num(w.difference), num(w.ci95[0]), num(w.ci95[1]), format_p(w.p_value));
         }
         for (env, ma, mb) in &c.medians {
             let m = |x: &Option<usize>| x.map_or("not reached".into(), |k| k.to_string());
@@ -193,18 +194,23 @@ mod tests {
         assert_eq!((combined.difference, combined.p_value, combined.strata), (w.difference, w.p_value, 1));
         assert!(primary.rejected && primary.p_adjusted == primary.p_value);
         assert!(primary.reading.starts_with("local@0.1 higher than global"), "{}", primary.reading);
-        // Secondary: local − global and local − full-subnets, on two metrics
-        // (no best constant here, so no speed comparison but the AUC, which
-        // needs a = 0's return: absent too).
+        // local − global and local − full-subnets, on two metrics (no best
+        // constant here, so no speed comparison; the AUC needs a = 0's
+        // return: absent too). local − global's eval return is the primary
+        // contrast's own row: shown, but outside the secondary family.
         assert_eq!(report.comparisons.len(), 4);
-        let adjusted = holm(&report.comparisons.iter().map(|c| c.p_value).collect::<Vec<_>>());
-        for (c, p) in report.comparisons.iter().zip(adjusted) {
+        let (primary_rows, secondary): (Vec<_>, Vec<_>) = report.comparisons.iter().partition(|c| c.primary);
+        assert_eq!(primary_rows.len(), 1);
+        assert_eq!((primary_rows[0].a.as_str(), primary_rows[0].b.as_str(), primary_rows[0].metric), ("local@0.1", "global", "eval_return"));
+        assert!(primary_rows[0].p_holm.is_nan() && primary_rows[0].reading.starts_with("primary contrast"));
+        let adjusted = holm(&secondary.iter().map(|c| c.p_value).collect::<Vec<_>>());
+        for (c, p) in secondary.iter().zip(adjusted) {
             assert_eq!(c.p_holm, p);
             assert!(c.p_holm >= c.p_value);
         }
         let md = markdown(&report);
         assert!(md.contains("## Primary contrast") && md.contains("eval_return, local − global, PPO, stratified by environment over lti-paper"), "{md}");
-        assert!(md.contains("p (Holm, 4 comparisons)") && md.contains("not distinguishable, CI ["), "{md}");
+        assert!(md.contains("p (Holm, 3 comparisons)") && md.contains("not distinguishable, CI ["), "{md}");
         assert!(w.p_value < 0.001 && md.contains(&format!("p < 0.001 (1 environment(s)")), "p values print as < 0.001, never 0.000:\n{md}");
         // Named before the runs: a contrast of connections the study lacks is refused.
         let wrong = text.replace("b = \"global\"", "b = \"random@3\"");

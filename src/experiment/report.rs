@@ -255,9 +255,18 @@ pub struct Comparison {
     pub p_value: f64,
     /// Holm-adjusted over every comparison of the report.
     pub p_holm: f64,
-    /// The interval in words (stats::reading).
+    /// The interval in words (stats::reading); for a log-rank row, the
+    /// test's verdict in words (its interval is descriptive).
     pub reading: String,
     pub test: &'static str,
+    /// Log-rank rows: a's events minus their expectation (positive: a
+    /// gets there sooner).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub observed_minus_expected: Option<f64>,
+    /// A primary contrast's own pair and metric in one environment: shown
+    /// for the record, left out of the secondary family (tested above).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub primary: bool,
 }
 
 impl Study {
@@ -362,7 +371,10 @@ impl Study {
         let mut out = Vec::new();
         for a in &self.cells {
             for b in self.cells.iter().filter(|b| b.cell.env == a.cell.env && b.cell.algo == a.cell.algo && paired(a, b)) {
-                if matches!(b.cell.connection, C::RandomRows { .. }) {
+                // A random-rows cell's unit is the draw (its runs of one
+                // draw share a graph): every pair with it is tested on
+                // draw means.
+                if matches!(a.cell.connection, C::RandomRows { .. }) || matches!(b.cell.connection, C::RandomRows { .. }) {
                     out.extend(self.draw_comparisons(a, b));
                     continue;
                 }
@@ -384,19 +396,52 @@ impl Study {
                             p_holm: f64::NAN,
                             reading: String::new(),
                             test: "welch_t",
+                            observed_minus_expected: None,
+                            primary: false,
                         });
                     }
                 }
                 out.extend(self.speed_comparisons(a, b));
             }
         }
-        // One family: every comparison the report prints.
-        let adjusted = holm(&out.iter().map(|c| c.p_value).collect::<Vec<_>>());
-        for (c, adjusted) in out.iter_mut().zip(adjusted) {
-            c.p_holm = adjusted;
-            c.reading = reading_adjusted(&c.a, &c.b, c.ci95, adjusted);
+        // The primary contrasts' own rows (their pair and metric in each
+        // stratum) are tested above, in the primary family: shown here
+        // raw, outside the secondary family.
+        for c in out.iter_mut() {
+            c.primary = self.is_primary(c);
+        }
+        // One secondary family: every other comparison the report prints.
+        let secondary: Vec<usize> = (0..out.len()).filter(|&i| !out[i].primary).collect();
+        let adjusted = holm(&secondary.iter().map(|&i| out[i].p_value).collect::<Vec<_>>());
+        for (&i, adjusted) in secondary.iter().zip(adjusted) {
+            out[i].p_holm = adjusted;
+        }
+        for c in out.iter_mut() {
+            c.reading = match (c.primary, c.observed_minus_expected) {
+                (true, _) => "primary contrast, tested above in its family (this row: one environment, raw p)".into(),
+                (false, Some(o_minus_e)) if c.p_holm < 0.05 => {
+                    format!("{} reaches the best constant {} than {} (log-rank; the interval is descriptive)", c.a, if o_minus_e > 0.0 { "sooner" } else { "later" }, c.b)
+                }
+                (false, Some(_)) => "not distinguishable in time to the best constant (log-rank, Holm)".into(),
+                (false, None) => reading_adjusted(&c.a, &c.b, c.ci95, c.p_holm),
+            };
         }
         out
+    }
+}
+
+impl Study {
+    /// Whether a comparison row is a primary contrast's pair and metric in
+    /// one of its strata.
+    fn is_primary(&self, c: &Comparison) -> bool {
+        let label = |text: &str| crate::connection::ConnectionSpec::parse(text).map(|c| c.label()).unwrap_or_default();
+        let e = &self.experiment;
+        e.file.primary.as_ref().is_some_and(|p| {
+            p.contrasts().iter().any(|k| {
+                let strata = if k.environments.is_empty() { &e.file.environments } else { &k.environments };
+                label(&k.a) == c.a && label(&k.b) == c.b && k.metric == c.metric && algo_name(k.algorithm) == c.algo && strata.contains(&c.env)
+            })
+        })
     }
 }
 
@@ -517,7 +562,7 @@ pub fn markdown(report: &Report) -> String {
         }
         let comparisons: Vec<&Comparison> = report.comparisons.iter().filter(|c| c.env == env && c.algo == algo).collect();
         if !comparisons.is_empty() {
-            let family = report.comparisons.len();
+            let family = report.comparisons.iter().filter(|c| !c.primary).count();
             let _ = writeln!(md, "\n| comparison | metric | difference | 95% CI | test | p | p (Holm, {family} comparisons) | reading |");
             let _ = writeln!(md, "|---|---|---|---|---|---|---|---|");
             for c in comparisons {

@@ -51,9 +51,20 @@ impl Study {
         self.cells.iter().find(|c| c.from.is_none() && c.cell.env == env && c.cell.algo == algo && c.cell.connection.label() == label)
     }
 
-    /// Every finished run's value of `metric` in that cell.
+    /// The values of `metric` in that cell, one per unit: a run, or for a
+    /// random-rows cell a draw (the mean of its runs), since runs of one
+    /// draw share a graph.
     pub fn values(&self, env: &str, algo: lcrl_learner::Algo, label: &str, metric: &str) -> Vec<f64> {
-        self.own_cell(env, algo, label).map_or_else(Vec::new, |c| c.runs.iter().filter_map(|r| self.value(env, r, metric)).collect())
+        self.own_cell(env, algo, label).map_or_else(Vec::new, |c| self.unit_values(c, metric))
+    }
+
+    /// [`Study::values`] of a cell.
+    pub fn unit_values(&self, c: &CellRuns, metric: &str) -> Vec<f64> {
+        let of = |runs: &[&Run]| runs.iter().filter_map(|r| self.value(&c.cell.env, r, metric)).collect::<Vec<f64>>();
+        match draws(c) {
+            Some(draws) => draws.iter().filter_map(|runs| mean(&of(runs))).collect(),
+            None => of(&c.runs.iter().collect::<Vec<_>>()),
+        }
     }
 
     /// Every finished run's time to the best constant in that cell.
@@ -89,23 +100,26 @@ impl Study {
         let (ta, tb): (Vec<Time>, Vec<Time>) = (a.runs.iter().filter_map(|r| self.time(env, budget, r)).collect(), b.runs.iter().filter_map(|r| self.time(env, budget, r)).collect());
         let episodes = |t: &[Time]| t.iter().map(|t| t.episodes as f64).collect::<Vec<f64>>();
         if let (Some(lr), Some(w)) = (log_rank(&[(ta.clone(), tb.clone())]), welch(&episodes(&ta), &episodes(&tb))) {
-            out.push(comparison(a, b, "episodes_to_best_constant", "log_rank", (ta.len(), tb.len()), (w.difference, w.ci95, lr.p_value)));
+            let mut c = comparison(a, b, "episodes_to_best_constant", "log_rank", (ta.len(), tb.len()), (w.difference, w.ci95, lr.p_value));
+            c.observed_minus_expected = Some(lr.observed_minus_expected);
+            out.push(c);
         }
         out
     }
 
-    /// Random rows with the draw as the unit: a graph cell's runs against
-    /// the means of the random-rows cell's draws (runs of one draw share
-    /// its graph, so they are not independent evidence about graphs).
-    pub fn draw_comparisons(&self, a: &CellRuns, rows: &CellRuns) -> Vec<Comparison> {
-        let Some(draw_means) = draw_means(rows) else { return Vec::new() };
+    /// A pair with a random-rows cell, with the draw as that cell's unit
+    /// (the means of its draws' runs; runs of one draw share a graph, so
+    /// they are not independent evidence about graphs): final and eval
+    /// return and the area under the curve, by Welch. No log-rank: a
+    /// draw's runs have no one time to the best constant.
+    pub fn draw_comparisons(&self, a: &CellRuns, b: &CellRuns) -> Vec<Comparison> {
         let mut out = Vec::new();
-        for metric in ["eval_return", "auc_100"] {
-            let xa: Vec<f64> = a.runs.iter().filter_map(|r| self.value(&a.cell.env, r, metric)).collect();
-            let xb: Vec<f64> = draw_means.iter().filter_map(|runs| mean(&runs.iter().filter_map(|r| self.value(&a.cell.env, r, metric)).collect::<Vec<_>>())).collect();
+        for metric in ["final_return", "eval_return", "auc_100"] {
+            let (xa, xb) = (self.unit_values(a, metric), self.unit_values(b, metric));
             if let Some(w) = welch(&xa, &xb) {
-                let mut c = comparison(a, rows, metric, "welch_t_draw_means", (xa.len(), xb.len()), (w.difference, w.ci95, w.p_value));
-                c.b = format!("{} (draw means)", rows.label());
+                let mut c = comparison(a, b, metric, "welch_t_draw_means", (xa.len(), xb.len()), (w.difference, w.ci95, w.p_value));
+                let side = |cell: &CellRuns| if draws(cell).is_some() { format!("{} (draw means)", cell.label()) } else { cell.label() };
+                (c.a, c.b) = (side(a), side(b));
                 out.push(c);
             }
         }
@@ -117,8 +131,9 @@ fn mean(x: &[f64]) -> Option<f64> {
     (!x.is_empty()).then(|| x.iter().sum::<f64>() / x.len() as f64)
 }
 
-/// The runs of a random-rows cell grouped by draw (run seed mod draws).
-fn draw_means(rows: &CellRuns) -> Option<Vec<Vec<&Run>>> {
+/// The runs of a random-rows cell grouped by draw (run seed mod draws);
+/// None for any other cell.
+fn draws(rows: &CellRuns) -> Option<Vec<Vec<&Run>>> {
     let crate::connection::ConnectionSpec::RandomRows { draws, .. } = &rows.cell.connection else { return None };
     let groups: Vec<Vec<&Run>> = (0..*draws).map(|d| rows.runs.iter().filter(|r| r.seed % draws == d).collect::<Vec<_>>()).filter(|g| !g.is_empty()).collect();
     Some(groups)
@@ -142,6 +157,8 @@ fn comparison(a: &CellRuns, b: &CellRuns, metric: &'static str, test: &'static s
         p_holm: f64::NAN,
         reading: String::new(),
         test,
+        observed_minus_expected: None,
+        primary: false,
     }
 }
 

@@ -101,6 +101,9 @@ pub fn welch(a: &[f64], b: &[f64]) -> Option<Welch> {
 /// family-wise error rate over all m comparisons without assuming they are
 /// independent, and is never less powerful than Bonferroni.
 pub fn holm(p: &[f64]) -> Vec<f64> {
+    // A p that is not a number (no test) counts as 1: it never makes
+    // another comparison look stronger, and it still counts in m.
+    let p: Vec<f64> = p.iter().map(|&x| if x.is_nan() { 1.0 } else { x }).collect();
     let m = p.len();
     let mut order: Vec<usize> = (0..m).collect();
     order.sort_by(|&i, &j| p[i].total_cmp(&p[j]));

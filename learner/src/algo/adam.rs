@@ -60,6 +60,12 @@ impl Adam {
         &self.params
     }
 
+    /// Everything an update changes: the parameters and both moments
+    /// (for undoing an update that left a non-finite number).
+    pub fn buffers(&self) -> [&Tensor; 3] {
+        [self.params.flat(), &self.m, &self.v]
+    }
+
     pub fn set_lr(&mut self, lr: f64) {
         self.lr = lr;
     }

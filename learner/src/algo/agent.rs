@@ -57,6 +57,10 @@ pub struct Counters {
     pub cuts: u64,
     #[serde(default)]
     pub cuts_joined: u64,
+    /// Updates undone because they left a NaN or ∞ in the networks or
+    /// their optimizers (a divergent batch): the weights before them stay.
+    #[serde(default)]
+    pub skipped_updates: u64,
 }
 
 /// A training algorithm over a normalized action space [−1, 1]^n.

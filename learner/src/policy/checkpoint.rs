@@ -2,7 +2,8 @@
 //! the agent's tensors (weights, optimizer state, replay) beside
 //! `checkpoint.json` (this [`CheckpointMeta`] and a manifest of the files),
 //! written atomically and durably ([`write_folder`]), the newest
-//! [`KEEP_CHECKPOINTS`] kept. Resume takes the newest intact one
+//! [`KEEP_CHECKPOINTS`] kept. A checkpoint whose weights are not all
+//! finite is never written, and never counts as intact. Resume takes the newest intact one
 //! ([`latest_checkpoint`]). `lcrl train` and the distributed
 //! learner both write and resume from it.
 
@@ -166,6 +167,12 @@ pub fn check_intact(dir: &Path) -> Result<(), LearnerError> {
         let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         if name.ends_with(".safetensors") {
             check_safetensors(&file)?;
+            // Weights and optimizer state: a NaN or ∞ in them would make
+            // every policy after a resume NaN (issue 71). The replay
+            // buffer is data, checked at the door, and can be large.
+            if name != "replay.safetensors" {
+                check_finite(&file)?;
+            }
         } else if name == "agent.json" {
             let reader = std::io::BufReader::new(std::fs::File::open(&file).map_err(io(&file))?);
             serde_json::from_reader::<_, serde::de::IgnoredAny>(reader).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", file.display())))?;
@@ -217,6 +224,30 @@ fn check_safetensors(path: &Path) -> Result<(), LearnerError> {
     Ok(())
 }
 
+/// Whether every floating-point value of the safetensors file `path` is
+/// finite ([`crate::policy::snapshot::all_finite`]).
+fn check_finite(path: &Path) -> Result<(), LearnerError> {
+    let bytes = std::fs::read(path).map_err(io(path))?;
+    match crate::policy::snapshot::all_finite(&bytes) {
+        Ok(true) => Ok(()),
+        Ok(false) => Err(LearnerError::Checkpoint(format!("{} holds a non-finite weight (NaN or ∞)", path.display()))),
+        Err(e) => Err(LearnerError::Checkpoint(format!("{}: {e}", path.display()))),
+    }
+}
+
+/// Every weight file of a staged checkpoint is finite; else the
+/// checkpoint is not written (the earlier ones stay the newest).
+fn check_staged_finite(dir: &Path) -> Result<(), LearnerError> {
+    for entry in std::fs::read_dir(dir).map_err(io(dir))? {
+        let file = entry.map_err(io(dir))?.path();
+        let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        if name.ends_with(".safetensors") && name != "replay.safetensors" {
+            check_finite(&file).map_err(|e| LearnerError::Checkpoint(format!("not written: {e}; training has diverged, the last finite checkpoint stays the newest")))?;
+        }
+    }
+    Ok(())
+}
+
 pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, LearnerError> {
     let path = dir.join("checkpoint.json");
     let text = std::fs::read_to_string(&path).map_err(io(&path))?;
@@ -230,7 +261,10 @@ pub fn write_checkpoint(run_dir: &Path, agent: &dyn Agent, meta: &CheckpointMeta
     let root = run_dir.join("checkpoints");
     std::fs::create_dir_all(&root).map_err(io(&root))?;
     let target = root.join(format!("ep{:06}", meta.episode));
-    write_folder(&target, meta, |staging| agent.save(staging, meta.config.run.save_replay))?;
+    write_folder(&target, meta, |staging| {
+        agent.save(staging, meta.config.run.save_replay)?;
+        check_staged_finite(staging)
+    })?;
     prune_checkpoints(&root, KEEP_CHECKPOINTS);
     Ok(target)
 }
@@ -410,11 +444,46 @@ mod tests {
 
     /// A whole safetensors file of one f32 tensor.
     fn tensors() -> Vec<u8> {
+        tensor_of(1.5)
+    }
+
+    /// A whole safetensors file of one f32 tensor holding `value`.
+    fn tensor_of(value: f32) -> Vec<u8> {
         let header = br#"{"w":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}}"#;
         let mut bytes = (header.len() as u64).to_le_bytes().to_vec();
         bytes.extend_from_slice(header);
-        bytes.extend_from_slice(&1.5f32.to_le_bytes());
+        bytes.extend_from_slice(&value.to_le_bytes());
         bytes
+    }
+
+    /// Issue 71: a checkpoint whose weights hold a NaN is not intact, so
+    /// resume skips it for the newest finite one and pruning does not
+    /// count it; one written with non-finite weights never lands.
+    #[test]
+    fn a_checkpoint_with_a_non_finite_weight_is_never_resumed_from() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("checkpoints");
+        let ten = write(&root, 10);
+        let twenty = root.join("ep000020");
+        write_folder(&twenty, &meta(20), |staging| {
+            std::fs::write(staging.join("actor.safetensors"), tensor_of(f32::NAN)).map_err(io(staging))?;
+            std::fs::write(staging.join("critic_adam.safetensors"), tensor_of(1.0)).map_err(io(staging))
+        })
+        .unwrap();
+        let err = check_intact(&twenty).unwrap_err().to_string();
+        assert!(err.contains("actor.safetensors holds a non-finite weight"), "{err}");
+        assert_eq!(latest_checkpoint(dir.path()), Some(ten.clone()));
+        // The staged check refuses the same folder before it is sealed.
+        let thirty = root.join("ep000030");
+        let refused = write_folder(&thirty, &meta(30), |staging| {
+            std::fs::write(staging.join("actor.safetensors"), tensor_of(f32::INFINITY)).map_err(io(staging))?;
+            check_staged_finite(staging)
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(refused.contains("not written") && refused.contains("last finite checkpoint"), "{refused}");
+        assert!(!thirty.exists());
+        assert_eq!(latest_checkpoint(dir.path()), Some(ten));
     }
 
     /// What an agent writes, with `tag` to tell two writes apart.

@@ -43,6 +43,10 @@ pub struct RunSummary {
     pub total_seconds: f64,
     pub env_steps: u64,
     pub updates: u64,
+    /// Updates undone because they left a NaN or ∞ in the networks
+    /// (learner/src/algo/ddpg: the weights before them stay).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub skipped_updates: u64,
     /// Transitions drawn from the replay buffer (DDPG: batch_size per critic
     /// update); against env_steps, the replay ratio the run kept.
     #[serde(default)]
@@ -227,6 +231,7 @@ mod tests {
             total_seconds: 2.0,
             env_steps: 250,
             updates: 200,
+            skipped_updates: 0,
             samples_drawn: 51_200,
             actor_params: 40,
             critic_params: 90,
@@ -267,4 +272,8 @@ mod tests {
         assert_eq!((json["replay_ratio"].as_f64(), json["served_version"].as_u64(), json["actors"].as_u64()), (Some(2.0), Some(9), Some(2)));
         assert_eq!(serde_json::from_str::<RunSummary>(&text).unwrap(), distributed);
     }
+}
+
+fn is_zero(n: &u64) -> bool {
+    *n == 0
 }

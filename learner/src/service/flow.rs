@@ -56,6 +56,9 @@ pub struct FlowStats {
     pub finished: bool,
     /// Checkpoints that failed (a full disk, say): training went on.
     pub checkpoint_failures: u64,
+    /// Policies not published because a weight was not finite (issue 71):
+    /// actors keep the last finite one.
+    pub non_finite_policies: u64,
 }
 
 impl FlowStats {

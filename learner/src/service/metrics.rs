@@ -70,6 +70,7 @@ impl Collector for LearnerCollector {
         counter(&mut encoder, "replay_sampled", "Transitions sampled by updates (DDPG minibatches)", flow.sampled())?;
         counter(&mut encoder, "replay_inserted", "Transitions inserted into the replay buffer or rollout", flow.inserted())?;
         counter(&mut encoder, "checkpoint_failures", "Checkpoints that failed to write (a full disk, say); training goes on and retries", flow.checkpoint_failures)?;
+        counter(&mut encoder, "non_finite_policies", "Policies not published because a weight was NaN or infinite; actors keep the last finite one", flow.non_finite_policies)?;
         gauge(&mut encoder, "policy_lag_min", "Smallest policy lag of the last 1000 stored transitions (versions)", lag_min as i64)?;
         gauge(&mut encoder, "policy_lag_mean_milli", "Mean policy lag of the last 1000 stored transitions, in thousandths of a version", (lag_mean * 1000.0) as i64)?;
         gauge(&mut encoder, "policy_lag_max", "Largest policy lag of the last 1000 stored transitions (versions)", lag_max as i64)?;

@@ -406,6 +406,13 @@ impl TrainingLoop {
         self.published_exploration = exploration;
         let version = self.shared.policy_version() + 1;
         let mut next = snapshot(self.agent.as_ref(), &self.shared.architecture, version)?;
+        // A diverged actor is never served: actors and validation keep the
+        // last finite version (issue 71).
+        if !crate::policy::snapshot::all_finite(&next.weights)? {
+            self.shared.flow_mut().non_finite_policies += 1;
+            tracing::error!(version, updates, "policy not published: a weight is NaN or infinite");
+            return Ok(());
+        }
         next.incarnation = self.shared.incarnation;
         // A version published after the budget (a change of exploration)
         // still says so: actors that join late stop too.
@@ -518,6 +525,7 @@ impl TrainingLoop {
             total_seconds: meta.elapsed_seconds + self.started.elapsed().as_secs_f64(),
             env_steps: counters.env_steps,
             updates: counters.updates,
+            skipped_updates: counters.skipped_updates,
             samples_drawn: flow.sampled(),
             actor_params,
             critic_params,

@@ -266,12 +266,48 @@ impl Ddpg {
                 let values = self.target_noise_values(self.cfg.batch_size);
                 let noise = (!values.is_empty())
                     .then(|| crate::device::torch::to_device_async(Tensor::from_slice(&values), self.device).view([self.cfg.batch_size as i64, self.action_dim as i64]));
+                let before = self.copy_of_buffers();
                 self.apply_update(&b, noise.as_ref(), kind, &numbers.coefficients());
+                if !self.buffers_finite() {
+                    self.restore_buffers(&before);
+                    self.counters.skipped_updates += 1;
+                    tracing::warn!(skipped = self.counters.skipped_updates, "update undone: it left a NaN or infinite number in the networks");
+                    return;
+                }
             }
         }
         if kind != UpdateKind::Critics {
             self.counters.updates += 1;
         }
+    }
+
+    /// Every buffer an update writes: each network's parameters with its
+    /// Adam moments, and the target copies.
+    fn buffers(&self) -> Vec<Tensor> {
+        let mut out: Vec<Tensor> = self.actor_opt.buffers().iter().map(|t| t.shallow_clone()).collect();
+        for critic in &self.critics {
+            out.extend(critic.opt.buffers().iter().map(|t| t.shallow_clone()));
+        }
+        out.extend(self.soft_pairs.iter().map(|(target, _)| target.flat().shallow_clone()));
+        out
+    }
+
+    fn copy_of_buffers(&self) -> Vec<Tensor> {
+        tch::no_grad(|| self.buffers().iter().map(Tensor::copy).collect())
+    }
+
+    /// One device sync: whether no buffer holds a NaN or ∞.
+    fn buffers_finite(&self) -> bool {
+        let bad = tch::no_grad(|| self.buffers().iter().map(|t| t.isfinite().logical_not().sum(Kind::Int64)).fold(Tensor::from(0i64), |a, b| a + b.to_device(Device::Cpu)));
+        i64::try_from(bad).map_or(false, |n| n == 0)
+    }
+
+    fn restore_buffers(&self, saved: &[Tensor]) {
+        tch::no_grad(|| {
+            for (mut buffer, saved) in self.buffers().into_iter().zip(saved) {
+                buffer.copy_(saved);
+            }
+        });
     }
 
     /// The update from a graph: the minibatch, noise and numbers staged

@@ -243,3 +243,35 @@ fn update_rule_finds_the_optimal_gain_on_exploratory_data() {
         }
     }
 }
+
+/// Issue 71: a buffer holding states of 3e38 (finite, but their squares
+/// are not) makes an update's numbers infinite. Such an update is undone
+/// and counted, every weight stays finite and as it was, and updates on a
+/// clean buffer go on.
+#[test]
+fn an_update_that_leaves_a_non_finite_number_is_undone_and_counted() {
+    tch::set_num_threads(1);
+    let cfg = small_nets();
+    let ddpg = DdpgConfig { batch_size: 8, warmup_steps: 0, policy_delay: 1, ..cfg.ddpg };
+    let mut agent = agent(&ddpg, &cfg);
+    for _ in 0..16 {
+        agent.replay.push(&[3e38, -3e38], &[0.5], 1.0, &[3e38, 3e38], false).unwrap();
+    }
+    let (actor0, buffers0) = (actor_weights(&agent), agent.copy_of_buffers());
+    agent.update();
+    assert_eq!(agent.counters().skipped_updates, 1);
+    assert_eq!(agent.counters().updates, 0, "an undone update is not counted as run");
+    assert_eq!(actor_weights(&agent), actor0);
+    for (now, before) in agent.buffers().iter().zip(&buffers0) {
+        assert!(now.equal(before), "a buffer changed");
+    }
+    assert!(agent.buffers_finite());
+    // A clean buffer trains again.
+    let mut clean = self::agent(&ddpg, &cfg);
+    for k in 0..16 {
+        clean.replay.push(&[k as f32 / 16.0, 0.5], &[0.1], -1.0, &[0.5, 0.5], false).unwrap();
+    }
+    clean.update();
+    assert_eq!((clean.counters().skipped_updates, clean.counters().updates), (0, 1));
+    assert_ne!(actor_weights(&clean), actor_weights(&self::agent(&ddpg, &cfg)));
+}
