@@ -81,7 +81,8 @@ struct Args {
     /// update between two versions is policy lag for the actors, and lag
     /// is what kept the distributed DDPG behind `lcrl train`
     /// (docs/scaling.md, "Policy lag"): 10 holds it near 40 updates.
-    #[arg(long, default_value_t = 10)]
+    /// 1 to 1000000.
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u64).range(1..=1_000_000))]
     publish_every: u64,
     /// PPO: discard batches more than this many versions older than the
     /// newest. 0 (default): strictly on-policy, as `lcrl train`'s PPO; the
@@ -114,8 +115,8 @@ struct Args {
     /// transitions (Reverb's error buffer divided by SPI). How far the
     /// actors may run ahead of the updates, so policy lag; the learner
     /// refuses a slack below half a shared-memory batch (33 at Algorithm
-    /// 2's ratio), where inserts could stall.
-    #[arg(long, default_value_t = 40)]
+    /// 2's ratio), where inserts could stall. At most 1000000.
+    #[arg(long, default_value_t = 40, value_parser = clap::value_parser!(u64).range(0..=1_000_000))]
     replay_slack: u64,
     /// Batches that may wait in the learner's queue before actors' sends
     /// block (over shared memory also in the subscriber's buffer, up to

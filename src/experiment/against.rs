@@ -241,7 +241,7 @@ mod tests {
     use super::*;
     use crate::experiment::config::Experiment;
     use crate::experiment::plan::{cells, run_dir};
-    use crate::experiment::report::{fixtures::write_run, gather};
+    use crate::experiment::study::{fixtures::write_run, gather};
 
     /// A study of one cell; per run its seed, eval return, training returns
     /// (episode k at returns[k − 1]) and the episode that failed, if any.

@@ -137,8 +137,8 @@ mod tests {
     use super::*;
     use crate::experiment::config::Experiment;
     use crate::experiment::plan::{cells, run_dir};
-    use crate::experiment::report::fixtures::write_run;
-    use crate::experiment::report::gather;
+    use crate::experiment::study::fixtures::write_run;
+    use crate::experiment::study::gather;
 
     const STUDY: &str = "environments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nseeds = 3\nepisodes = { ppo = 2 }\n";
 

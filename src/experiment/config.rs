@@ -12,8 +12,7 @@ use serde::{Deserialize, Serialize};
 pub(crate) use crate::preset::algo_name;
 
 pub use crate::connection::ConnectionSpec;
-pub use super::hypotheses::{Equivalence, Factorial, Primary};
-use super::hypotheses::METRICS;
+pub use super::hypotheses::{Equivalence, Factorial, Primary, PrimaryContrast};
 
 /// One experiment file, as written.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -64,58 +63,6 @@ pub struct ExperimentFile {
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub factorial: Vec<Factorial>,
 }
-
-/// A study's primary contrast: the one comparison its file names before
-/// any run, so that the result it reports first was not picked after
-/// seeing the data (tested by crate::experiment::primary).
-/// Written as `[primary]`, e.g.
-/// `metric = "eval_return"`, `a = "local@1"`, `b = "global"`,
-/// `algorithm = "ddpg"` (strata: every environment, or `environments`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct PrimaryContrast {
-    /// `eval_return` or `final_return`.
-    pub metric: String,
-    /// The connections compared, a − b, as `connections` writes them.
-    pub a: String,
-    pub b: String,
-    pub algorithm: Algo,
-    /// The strata; every environment of the study when left out.
-    #[serde(default)]
-    pub environments: Vec<String>,
-}
-
-impl PrimaryContrast {
-    /// Checked with the file, before a single run.
-    pub fn check(&self, file: &ExperimentFile) -> anyhow::Result<()> {
-        if !METRICS.contains(&self.metric.as_str()) {
-            bail!("`primary.metric` \"{}\" must be one of {}", self.metric, METRICS.join(", "));
-        }
-        let labels: Vec<String> = file.connections.iter().filter_map(|c| ConnectionSpec::parse(c).ok()).map(|c| c.label()).collect();
-        for (key, connection) in [("a", &self.a), ("b", &self.b)] {
-            let label = ConnectionSpec::parse(connection)?.label();
-            if !labels.contains(&label) {
-                bail!("`primary.{key}` \"{connection}\" is not one of `connections` ({})", labels.join(", "));
-            }
-        }
-        if self.a == self.b {
-            bail!("`primary.a` and `primary.b` are the same connection");
-        }
-        if !file.algorithms.contains(&self.algorithm) {
-            bail!("`primary.algorithm` {} is not one of `algorithms`", algo_name(self.algorithm));
-        }
-        if let Some(env) = self.environments.iter().find(|e| !file.environments.contains(e)) {
-            bail!("`primary.environments`: {env} is not one of `environments`");
-        }
-        Ok(())
-    }
-
-    /// In words, as a report's heading gives it.
-    pub fn describe(&self, environments: &[String]) -> String {
-        format!("{}, {} − {}, {}, stratified by environment over {}", self.metric, self.a, self.b, algo_name(self.algorithm).to_uppercase(), environments.join(", "))
-    }
-}
-
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(untagged)]
@@ -238,10 +185,11 @@ impl Experiment {
         if file.eval_episodes == 0 {
             bail!("`eval_episodes` must be at least 1");
         }
+        let names = super::hypotheses::Names { environments: &file.environments, algorithms: &file.algorithms, connections: &file.connections };
         if let Some(primary) = &file.primary {
-            primary.check(&file)?;
+            primary.check(&names)?;
         }
-        super::hypotheses::check_designs(&file)?;
+        super::hypotheses::check_designs(&names, &file.equivalence, &file.factorial)?;
         let algos: Vec<&str> = file.algorithms.iter().map(|a| algo_name(*a)).collect();
         for algo in &algos {
             match file.episodes.get(*algo) {

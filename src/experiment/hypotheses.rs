@@ -6,10 +6,20 @@
 //! ::named.
 
 use anyhow::bail;
+use lcrl_learner::Algo;
 use serde::{Deserialize, Serialize};
 
-use super::config::{algo_name, ConnectionSpec, ExperimentFile, PrimaryContrast};
-use lcrl_learner::Algo;
+use crate::connection::ConnectionSpec;
+use crate::preset::algo_name;
+
+/// What the checks need of a study file: its environments, algorithms
+/// and connections as written.
+pub struct Names<'a> {
+    pub environments: &'a [String],
+    pub algorithms: &'a [Algo],
+    pub connections: &'a [String],
+}
+
 
 /// `[primary]`: one contrast (`metric`, `a`, `b`, `algorithm`), or a
 /// family of them under a stated rule:
@@ -57,7 +67,7 @@ impl Primary {
         }
     }
 
-    pub fn check(&self, file: &ExperimentFile) -> anyhow::Result<()> {
+    pub fn check(&self, file: &Names) -> anyhow::Result<()> {
         if let Primary::Family(f) = self {
             if !FAMILY_RULES.contains(&f.family.as_str()) {
                 bail!("`primary.family` \"{}\" must be one of {}", f.family, FAMILY_RULES.join(", "));
@@ -73,6 +83,57 @@ impl Primary {
             c.check(file).map_err(|e| anyhow::anyhow!("primary contrast {}: {e:#}", k + 1))?;
         }
         Ok(())
+    }
+}
+
+/// A study's primary contrast: the one comparison its file names before
+/// any run, so that the result it reports first was not picked after
+/// seeing the data (tested by crate::experiment::primary).
+/// Written as `[primary]`, e.g.
+/// `metric = "eval_return"`, `a = "local@1"`, `b = "global"`,
+/// `algorithm = "ddpg"` (strata: every environment, or `environments`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PrimaryContrast {
+    /// One of [`METRICS`].
+    pub metric: String,
+    /// The connections compared, a − b, as `connections` writes them.
+    pub a: String,
+    pub b: String,
+    pub algorithm: Algo,
+    /// The strata; every environment of the study when left out.
+    #[serde(default)]
+    pub environments: Vec<String>,
+}
+
+impl PrimaryContrast {
+    /// Checked with the file, before a single run.
+    pub fn check(&self, file: &Names) -> anyhow::Result<()> {
+        if !METRICS.contains(&self.metric.as_str()) {
+            bail!("`primary.metric` \"{}\" must be one of {}", self.metric, METRICS.join(", "));
+        }
+        let labels: Vec<String> = file.connections.iter().filter_map(|c| ConnectionSpec::parse(c).ok()).map(|c| c.label()).collect();
+        for (key, connection) in [("a", &self.a), ("b", &self.b)] {
+            let label = ConnectionSpec::parse(connection)?.label();
+            if !labels.contains(&label) {
+                bail!("`primary.{key}` \"{connection}\" is not one of `connections` ({})", labels.join(", "));
+            }
+        }
+        if self.a == self.b {
+            bail!("`primary.a` and `primary.b` are the same connection");
+        }
+        if !file.algorithms.contains(&self.algorithm) {
+            bail!("`primary.algorithm` {} is not one of `algorithms`", algo_name(self.algorithm));
+        }
+        if let Some(env) = self.environments.iter().find(|e| !file.environments.contains(e)) {
+            bail!("`primary.environments`: {env} is not one of `environments`");
+        }
+        Ok(())
+    }
+
+    /// In words, as a report's heading gives it.
+    pub fn describe(&self, environments: &[String]) -> String {
+        format!("{}, {} − {}, {}, stratified by environment over {}", self.metric, self.a, self.b, algo_name(self.algorithm).to_uppercase(), environments.join(", "))
     }
 }
 
@@ -93,7 +154,7 @@ pub struct Equivalence {
 }
 
 impl Equivalence {
-    pub fn check(&self, file: &ExperimentFile) -> anyhow::Result<()> {
+    pub fn check(&self, file: &Names) -> anyhow::Result<()> {
         PrimaryContrast { metric: self.metric.clone(), a: self.a.clone(), b: self.b.clone(), algorithm: self.algorithm, environments: self.environments.clone() }
             .check(file)?;
         if !WELCH_METRICS.contains(&self.metric.as_str()) {
@@ -122,7 +183,7 @@ pub struct Factorial {
 }
 
 impl Factorial {
-    pub fn check(&self, file: &ExperimentFile) -> anyhow::Result<()> {
+    pub fn check(&self, file: &Names) -> anyhow::Result<()> {
         if !WELCH_METRICS.contains(&self.metric.as_str()) {
             bail!("factorial \"{}\": metric must be one of {}", self.name, WELCH_METRICS.join(", "));
         }
@@ -167,11 +228,11 @@ pub const WELCH_METRICS: [&str; 3] = ["eval_return", "final_return", "auc_100"];
 pub const METRICS: [&str; 4] = ["eval_return", "final_return", "auc_100", "episodes_to_best_constant"];
 
 /// Checks `[[equivalence]]` and `[[factorial]]` entries of a file.
-pub fn check_designs(file: &ExperimentFile) -> anyhow::Result<()> {
-    for (k, e) in file.equivalence.iter().enumerate() {
+pub fn check_designs(file: &Names, equivalence: &[Equivalence], factorial: &[Factorial]) -> anyhow::Result<()> {
+    for (k, e) in equivalence.iter().enumerate() {
         e.check(file).map_err(|err| anyhow::anyhow!("equivalence {}: {err:#}", k + 1))?;
     }
-    for f in &file.factorial {
+    for f in factorial {
         f.check(file)?;
     }
     Ok(())

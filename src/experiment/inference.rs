@@ -91,7 +91,7 @@ pub fn log_rank(strata: &[(Vec<Time>, Vec<Time>)]) -> Option<LogRank> {
             }
         }
     }
-    if !(variance > 0.0) {
+    if variance.is_nan() || variance <= 0.0 {
         return None;
     }
     let chi_square = o_minus_e * o_minus_e / variance;

@@ -19,6 +19,7 @@ mod report;
 mod runner;
 mod safety;
 mod speed;
+mod study;
 pub mod stats;
 
 use std::path::{Path, PathBuf};

@@ -10,7 +10,7 @@ use serde::Serialize;
 use super::config::{ConnectionSpec, Equivalence, Factorial};
 use super::hypotheses::split_cell;
 use super::inference::{factorial, tost, Effect, Tost};
-use super::report::Study;
+use super::study::Study;
 use super::stats::{format_p, holm, stratified, welch, Welch};
 
 #[derive(Debug, Serialize)]
@@ -125,8 +125,9 @@ mod tests {
     use super::super::config::Experiment;
     use super::super::inference::{factorial, tost};
     use super::super::plan::{cells, run_dir};
-    use super::super::report::fixtures::write_run;
-    use super::super::report::{gather, markdown};
+    use super::super::report::markdown;
+    use super::super::study::fixtures::write_run;
+    use super::super::study::gather;
     use super::super::stats::welch;
 
     /// A study naming one equivalence test and one 2 × 2: the report

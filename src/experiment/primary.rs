@@ -13,7 +13,7 @@ use serde::Serialize;
 
 use super::config::{ConnectionSpec, Primary, PrimaryContrast};
 use super::inference::{km_median, log_rank, LogRank};
-use super::report::Study;
+use super::study::Study;
 use super::stats::{format_p, holm, reading, stratified, welch, Stratified, Welch};
 
 /// One primary contrast's result.
@@ -167,8 +167,9 @@ pub fn markdown(p: &PrimaryResult) -> String {
 mod tests {
     use super::super::config::Experiment;
     use super::super::plan::{cells, run_dir};
-    use super::super::report::fixtures::write_run;
-    use super::super::report::{gather, markdown};
+    use super::super::report::markdown;
+    use super::super::study::fixtures::write_run;
+    use super::super::study::gather;
     use super::super::stats::{holm, welch};
 
     /// The file's primary contrast is reported first, on its own (here one

@@ -9,7 +9,7 @@ use serde::Serialize;
 
 use super::config::algo_name;
 use super::inference::{auc, episodes_to_bar, km_median, log_rank, Time};
-use super::report::{CellRuns, Comparison, Run, Study};
+use super::study::{CellRuns, Comparison, Run, Study};
 use super::stats::{mean_ci, welch, Estimate};
 
 /// A cell's two speed measures.
@@ -184,8 +184,9 @@ mod tests {
 
     use super::super::config::Experiment;
     use super::super::plan::{best_constant_path, cells, run_dir};
-    use super::super::report::fixtures::write_run;
-    use super::super::report::{gather, markdown};
+    use super::super::report::markdown;
+    use super::super::study::fixtures::write_run;
+    use super::super::study::gather;
 
     /// A run's metrics.csv with these episode returns.
     fn write_returns(dir: &std::path::Path, returns: &[f64]) {

@@ -25,6 +25,11 @@
 
 use serde::{Deserialize, Serialize};
 
+/// The most samples per insert a limiter takes: far above any useful
+/// ratio (Algorithm 2's is one batch of 256 per step), short of values
+/// whose products overflow the counters' arithmetic.
+pub const MAX_SAMPLES_PER_INSERT: f64 = 1e6;
+
 /// The limiter's settings and counters (saved in checkpoints, so a
 /// restarted learner keeps the ratio instead of bursting updates).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -54,8 +59,8 @@ impl RateLimiter {
     /// `largest_sample` through, or the learner and its actors would wait
     /// on each other forever.
     pub fn new(samples_per_insert: f64, min_size_to_sample: u64, error_buffer: f64) -> Result<Self, String> {
-        if !(samples_per_insert.is_finite() && samples_per_insert > 0.0) {
-            return Err(format!("samples per insert must be a finite number > 0, got {samples_per_insert}"));
+        if !(samples_per_insert.is_finite() && samples_per_insert > 0.0 && samples_per_insert <= MAX_SAMPLES_PER_INSERT) {
+            return Err(format!("samples per insert must be a number above 0 and at most {MAX_SAMPLES_PER_INSERT:e}, got {samples_per_insert}"));
         }
         if !(error_buffer.is_finite() && error_buffer > 0.0) {
             return Err(format!("the error buffer must be a finite number > 0, got {error_buffer}"));
@@ -159,6 +164,16 @@ mod tests {
     /// SPI 2, min size 3, error 4: centre 6, window [2, 10].
     fn limiter() -> RateLimiter {
         RateLimiter::new(2.0, 3, 4.0).unwrap()
+    }
+
+    /// Issue 71: `--replay-ratio 1e300` was accepted.
+    #[test]
+    fn absurd_ratios_are_refused_with_the_range() {
+        for spi in [1e300, f64::INFINITY, 0.0, -1.0, f64::NAN] {
+            let err = RateLimiter::new(spi, 3, 4.0).unwrap_err();
+            assert!(err.contains("at most 1e6"), "{spi}: {err}");
+        }
+        assert!(RateLimiter::new(MAX_SAMPLES_PER_INSERT, 3, 4.0).is_ok());
     }
 
     #[test]

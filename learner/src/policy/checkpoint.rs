@@ -225,10 +225,10 @@ fn check_safetensors(path: &Path) -> Result<(), LearnerError> {
 }
 
 /// Whether every floating-point value of the safetensors file `path` is
-/// finite ([`crate::policy::snapshot::all_finite`]).
+/// finite ([`crate::policy::finite::all_finite`]).
 fn check_finite(path: &Path) -> Result<(), LearnerError> {
     let bytes = std::fs::read(path).map_err(io(path))?;
-    match crate::policy::snapshot::all_finite(&bytes) {
+    match crate::policy::finite::all_finite(&bytes) {
         Ok(true) => Ok(()),
         Ok(false) => Err(LearnerError::Checkpoint(format!("{} holds a non-finite weight (NaN or ∞)", path.display()))),
         Err(e) => Err(LearnerError::Checkpoint(format!("{}: {e}", path.display()))),

@@ -9,6 +9,7 @@
 //! - [`architecture`]: what identifies an actor, held by snapshots and checkpoints alike.
 //! - [`action`]: normalized actions to the environment's box, around an optional base controller (residual RL).
 //! - [`checkpoint`]: the checkpoint store (atomic writes, newest kept, resume).
+//! - [`finite`]: whether weights hold only finite numbers (never served, written or resumed otherwise).
 //! - [`snapshot`]: a policy on the wire (architecture + safetensors weights).
 //! - [`trained`]: a trained actor ([`trained::Policy`]) loaded from a checkpoint or a snapshot, and its evaluation.
 //! - [`fallback`]: falling back to the run's selected policy after an episode below the margin.
@@ -17,5 +18,6 @@ pub mod action;
 pub mod architecture;
 pub mod checkpoint;
 pub mod fallback;
+pub mod finite;
 pub mod snapshot;
 pub mod trained;

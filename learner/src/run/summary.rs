@@ -200,6 +200,10 @@ pub fn read_summary(path: &Path) -> Result<RunSummary, LearnerError> {
     serde_json::from_str(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
 }
 
+fn is_zero(n: &u64) -> bool {
+    *n == 0
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -272,8 +276,4 @@ mod tests {
         assert_eq!((json["replay_ratio"].as_f64(), json["served_version"].as_u64(), json["actors"].as_u64()), (Some(2.0), Some(9), Some(2)));
         assert_eq!(serde_json::from_str::<RunSummary>(&text).unwrap(), distributed);
     }
-}
-
-fn is_zero(n: &u64) -> bool {
-    *n == 0
 }

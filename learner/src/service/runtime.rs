@@ -408,7 +408,7 @@ impl TrainingLoop {
         let mut next = snapshot(self.agent.as_ref(), &self.shared.architecture, version)?;
         // A diverged actor is never served: actors and validation keep the
         // last finite version (issue 71).
-        if !crate::policy::snapshot::all_finite(&next.weights)? {
+        if !crate::policy::finite::all_finite(&next.weights)? {
             self.shared.flow_mut().non_finite_policies += 1;
             tracing::error!(version, updates, "policy not published: a weight is NaN or infinite");
             return Ok(());

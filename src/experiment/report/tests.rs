@@ -1,6 +1,8 @@
 //! The report's cells, bars and comparisons on hand-made study folders.
 
-use super::fixtures::write_run;
+use super::super::config::Experiment;
+use super::super::plan::{best_constant_path, cells, run_dir};
+use super::super::study::fixtures::write_run;
 use super::*;
 use serde_json::json;
 

@@ -299,7 +299,7 @@ impl Ddpg {
     /// One device sync: whether no buffer holds a NaN or ∞.
     fn buffers_finite(&self) -> bool {
         let bad = tch::no_grad(|| self.buffers().iter().map(|t| t.isfinite().logical_not().sum(Kind::Int64)).fold(Tensor::from(0i64), |a, b| a + b.to_device(Device::Cpu)));
-        i64::try_from(bad).map_or(false, |n| n == 0)
+        i64::try_from(bad).is_ok_and(|n| n == 0)
     }
 
     fn restore_buffers(&self, saved: &[Tensor]) {
