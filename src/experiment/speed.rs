@@ -180,12 +180,10 @@ pub fn columns(s: &CellSpeed) -> (String, String) {
 
 #[cfg(test)]
 mod tests {
-    use serde_json::json;
-
     use super::super::config::Experiment;
-    use super::super::plan::{best_constant_path, cells, run_dir};
+    use super::super::plan::{cells, run_dir};
     use super::super::report::markdown;
-    use super::super::study::fixtures::write_run;
+    use super::super::study::fixtures::{write_best_constant, write_run};
     use super::super::study::gather;
 
     /// A run's metrics.csv with these episode returns.
@@ -207,11 +205,7 @@ mod tests {
         let e = Experiment::parse(text).unwrap();
         let tmp = tempfile::tempdir().unwrap();
         let out = tmp.path();
-        let bar = json!({ "action": [0.0], "mean_return": -5.0, "success_rate": null, "eval_episodes": 100, "eval_seed": 0,
-                          "zero_action": { "eval": { "mean_return": -8.0 } } });
-        let bar_path = best_constant_path(out, "lti-paper");
-        std::fs::create_dir_all(bar_path.parent().unwrap()).unwrap();
-        std::fs::write(&bar_path, bar.to_string()).unwrap();
+        write_best_constant(out, "lti-paper", -5.0, -8.0);
         let [local, global, rows] = [0, 1, 2].map(|i| cells(&e)[i].clone());
         let local_eval = [-3.0, -3.2, -2.8, -3.1];
         // Draw 0 (seeds 0, 2) ends at −4 and −4.2, draw 1 (seeds 1, 3) at −5 and −5.4.

@@ -168,6 +168,16 @@ pub(super) mod fixtures {
 
     use serde_json::json;
 
+    /// A best_constant.json of `env` under `out`: the best constant's and
+    /// a = 0's mean returns on 100 evaluation starts from seed 0.
+    pub fn write_best_constant(out: &Path, env: &str, mean_return: f64, zero: f64) {
+        let bar = json!({ "action": [0.0], "mean_return": mean_return, "success_rate": null, "eval_episodes": 100, "eval_seed": 0,
+                          "zero_action": { "eval": { "mean_return": zero } } });
+        let path = crate::experiment::plan::best_constant_path(out, env);
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(&path, bar.to_string()).unwrap();
+    }
+
     /// A finished run written by hand: summary.json and a two-row metrics.csv.
     pub fn write_run(dir: &Path, connection: &str, seed: u64, eval_return: f64, eval_seed: Option<u64>, zero: Option<f64>) {
         std::fs::create_dir_all(dir).unwrap();

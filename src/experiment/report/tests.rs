@@ -1,10 +1,9 @@
 //! The report's cells, bars and comparisons on hand-made study folders.
 
 use super::super::config::Experiment;
-use super::super::plan::{best_constant_path, cells, run_dir};
-use super::super::study::fixtures::write_run;
+use super::super::plan::{cells, run_dir};
+use super::super::study::fixtures::{write_best_constant, write_run};
 use super::*;
-use serde_json::json;
 
 /// The bar counts of a hand-made study: a run beats the best constant
 /// only when strictly above it on the same starts, diverges when below
@@ -16,11 +15,7 @@ fn bar_counts_follow_the_runs_on_the_same_starts() {
     let e = Experiment::parse(text).unwrap();
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path();
-    let bar = json!({ "action": [0.0], "mean_return": -5.0, "success_rate": null, "eval_episodes": 100, "eval_seed": 0,
-                      "zero_action": { "eval": { "mean_return": -8.0 } } });
-    let bar_path = best_constant_path(out, "lti-paper");
-    std::fs::create_dir_all(bar_path.parent().unwrap()).unwrap();
-    std::fs::write(&bar_path, bar.to_string()).unwrap();
+    write_best_constant(out, "lti-paper", -5.0, -8.0);
     let cell = |i: usize| cells(&e)[i].clone();
     let (local, global) = (cell(0), cell(1));
     write_run(&run_dir(out, &local, 0), "local", 0, -4.0, Some(0), Some(-8.0)); // beats
