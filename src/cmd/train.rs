@@ -140,6 +140,13 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         }
         match_global_to_local(&mut config, &args.env, path)?;
     }
+    if let ConnectionSpec::RandomRows { .. } = &args.connection {
+        anyhow::bail!(
+            "--connection {}: random rows are a study's control (lcrl experiment: draws by environment and draw index); for one run, \
+             draw the graph with `lcrl graph --env ENV --random-rows GRAPH.json --seed N --out rows.json` and pass `--connection local --graph rows.json`",
+            args.connection.label()
+        );
+    }
     if args.connection.has_modifiers() {
         anyhow::bail!(
             "--connection {}: +per-seed and row rules (+ACTION=T) are for studies (lcrl experiment); for one run, build the graph with \
