@@ -30,6 +30,14 @@ pub struct RunArgs {
     /// Episode budget (overrides job.episodes).
     #[arg(long)]
     pub episodes: Option<u64>,
+    /// Episodes of the final policy's evaluation (overrides the preset's
+    /// run.eval_episodes; 1 to 100000).
+    #[arg(long, value_parser = lcrl_proto::process::count_in::<1, 100_000>)]
+    pub eval_episodes: Option<usize>,
+    /// First seed of the evaluation starts (overrides run.eval_seed); 0 is
+    /// `lcrl tune`'s, the starts of the best constant and a = 0.
+    #[arg(long)]
+    pub eval_seed: Option<u64>,
     /// Transport between actors and learner (all on this machine).
     #[arg(long, value_enum, default_value_t = TransportArg::Shm)]
     pub transport: TransportArg,
@@ -60,6 +68,12 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     }
     if let Some(episodes) = args.episodes {
         preset.job.episodes = episodes;
+    }
+    if let Some(episodes) = args.eval_episodes {
+        preset.train.run.eval_episodes = episodes;
+    }
+    if let Some(seed) = args.eval_seed {
+        preset.train.run.eval_seed = Some(seed);
     }
     preset.set_compute(&args.compute)?;
     preset.check()?;

@@ -49,6 +49,16 @@ pub struct TrainArgs {
     /// Seed of networks, exploration and episodes (overrides run.seed).
     #[arg(long)]
     pub seed: Option<u64>,
+    /// Episodes of the deterministic policy evaluated after training
+    /// (overrides run.eval_episodes; 1 to 100000).
+    #[arg(long, value_parser = lcrl_proto::process::count_in::<1, 100_000>)]
+    pub eval_episodes: Option<usize>,
+    /// First seed of the evaluation starts (overrides run.eval_seed; by
+    /// default the run's own held-out range). `lcrl tune`'s are 0 on: with
+    /// --eval-seed 0 the run is evaluated on the starts the best constant
+    /// and a = 0 are, start for start.
+    #[arg(long)]
+    pub eval_seed: Option<u64>,
     /// libtorch intra-op threads (overrides run.threads; 0: the cores, at
     /// most 4).
     #[arg(long)]
@@ -120,6 +130,12 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     }
     if let Some(threads) = args.threads {
         config.run.threads = threads;
+    }
+    if let Some(episodes) = args.eval_episodes {
+        config.run.eval_episodes = episodes;
+    }
+    if let Some(seed) = args.eval_seed {
+        config.run.eval_seed = Some(seed);
     }
     if let Some(device) = &args.device {
         config.run.device = device.clone();

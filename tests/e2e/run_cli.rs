@@ -136,10 +136,13 @@ fn run_with_a_given_graph_starts_no_graph_builder() {
     let preset = dir.path().join("p.toml");
     let job = "[job]\nenv = \"lti-paper\"\nalgo = \"ppo\"\nconnection = \"local\"\nepisodes = 20\n";
     fs::write(&preset, format!("{job}graph = \"random@4\"\n[run]\neval_episodes = 5\n")).unwrap();
-    let out = lcrl().args(["run", "--config"]).arg(&preset).arg("--run-dir").arg(&run).output().unwrap();
+    // --eval-episodes and --eval-seed override the preset's evaluation.
+    let out = lcrl().args(["run", "--eval-episodes", "4", "--eval-seed", "7", "--config"]).arg(&preset).arg("--run-dir").arg(&run).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let graph: serde_json::Value = serde_json::from_str(&fs::read_to_string(run.join("graph.json")).unwrap()).unwrap();
     assert_eq!(graph["origin"], "random@4, draw seed 0");
+    let summary: serde_json::Value = serde_json::from_str(&fs::read_to_string(run.join("summary.json")).unwrap()).unwrap();
+    assert_eq!((summary["eval_episodes"].as_u64(), summary["eval_seed"].as_u64()), (Some(4), Some(7)), "{summary}");
     assert!(!run.join("logs/graph-builder.log").exists(), "a graph builder was started");
     fs::write(&preset, format!("{job}graph = \"graph:missing.json\"\n")).unwrap();
     assert_clean_failure(&lcrl().args(["run", "--config"]).arg(&preset).output().unwrap(), "job.graph");
