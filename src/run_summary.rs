@@ -92,6 +92,7 @@ fn interrupted_run_summary(preset: &Preset, learner_dir: &Path, status: &Learner
         total_seconds: 0.0,
         env_steps: status.env_steps,
         updates: status.updates,
+        critic_updates: 0,
         skipped_updates: 0,
         samples_drawn: status.sampled,
         actor_params: 0,

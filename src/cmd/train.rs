@@ -224,7 +224,10 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     plot_rewards(&outcome.rows, &outcome.summary, args)?;
     let s = &outcome.summary;
     let global_equivalent = lcrl_learner::algo::nets::global_actor_params(&config.network, args.env_state_dims(s)?);
-    println!("{:?} / {:?} on {} — {} episodes, {} env steps, {} updates", s.algo, s.connection, s.env, s.episodes, s.env_steps, s.updates);
+    println!(
+        "{:?} / {:?} on {} — {} episodes, {} env steps, {} actor updates, {} critic updates",
+        s.algo, s.connection, s.env, s.episodes, s.env_steps, s.updates, s.critic_updates
+    );
     println!("  actor parameters      {} (a global actor of the configured size: {})", s.actor_params, global_equivalent);
     println!("  final return          {:.3} (mean of the last 10 episodes)", s.final_return);
     match (&s.selection, s.evaluation.last_eval_return) {

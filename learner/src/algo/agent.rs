@@ -51,6 +51,11 @@ pub struct Counters {
     pub env_steps: u64,
     /// Gradient steps of the actor.
     pub updates: u64,
+    /// Gradient steps of the critic(s) that ran: DDPG's every update (the
+    /// actor's one in `policy_delay`, none during a critic head start);
+    /// PPO's, one with each actor step.
+    #[serde(default)]
+    pub critic_updates: u64,
     /// Steps stored marked `cut` (an actor's batch end mid-episode), and
     /// how many of them PPO joined to their stream's next step.
     #[serde(default)]

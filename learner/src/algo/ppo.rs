@@ -278,7 +278,8 @@ impl Agent for Ppo {
     }
 
     fn counters(&self) -> Counters {
-        self.counters
+        // Each PPO gradient step moves the actor and the critic together.
+        Counters { critic_updates: self.counters.updates, ..self.counters }
     }
 
     fn param_counts(&self) -> (usize, usize) {

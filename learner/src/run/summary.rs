@@ -42,7 +42,12 @@ pub struct RunSummary {
     pub optimization_seconds: f64,
     pub total_seconds: f64,
     pub env_steps: u64,
+    /// Gradient steps of the actor (DDPG with `policy_delay` d: one in d
+    /// updates of the critics).
     pub updates: u64,
+    /// Gradient steps of the critics (absent: not known, e.g. `lcrl run`).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub critic_updates: u64,
     /// Updates undone because they left a NaN or ∞ in the networks
     /// (learner/src/algo/ddpg: the weights before them stay).
     #[serde(default, skip_serializing_if = "is_zero")]
@@ -235,6 +240,7 @@ mod tests {
             total_seconds: 2.0,
             env_steps: 250,
             updates: 200,
+            critic_updates: 400,
             skipped_updates: 0,
             samples_drawn: 51_200,
             actor_params: 40,

@@ -252,6 +252,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         total_seconds: prior_elapsed + started.elapsed().as_secs_f64(),
         env_steps: counters.env_steps,
         updates: counters.updates,
+        critic_updates: counters.critic_updates,
         skipped_updates: counters.skipped_updates,
         samples_drawn: agent.samples_drawn(),
         actor_params,

@@ -525,6 +525,7 @@ impl TrainingLoop {
             total_seconds: meta.elapsed_seconds + self.started.elapsed().as_secs_f64(),
             env_steps: counters.env_steps,
             updates: counters.updates,
+            critic_updates: counters.critic_updates,
             skipped_updates: counters.skipped_updates,
             samples_drawn: flow.sampled(),
             actor_params,

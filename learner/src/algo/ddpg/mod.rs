@@ -483,7 +483,8 @@ impl Agent for Ddpg {
     }
 
     fn counters(&self) -> Counters {
-        self.counters
+        // critic_updates counts attempts; undone ones did not run.
+        Counters { critic_updates: self.critic_updates.saturating_sub(self.counters.skipped_updates), ..self.counters }
     }
 
     fn param_counts(&self) -> (usize, usize) {

@@ -275,3 +275,21 @@ fn an_update_that_leaves_a_non_finite_number_is_undone_and_counted() {
     assert_eq!((clean.counters().skipped_updates, clean.counters().updates), (0, 1));
     assert_ne!(actor_weights(&clean), actor_weights(&self::agent(&ddpg, &cfg)));
 }
+
+/// Issue 72: with `policy_delay` 2, six updates are six critic steps and
+/// three actor steps, and the counters name them apart.
+#[test]
+fn critic_and_actor_updates_are_counted_apart() {
+    tch::set_num_threads(1);
+    let cfg = small_nets();
+    let ddpg = DdpgConfig { batch_size: 8, warmup_steps: 0, critic_warmup_updates: 0, policy_delay: 2, ..cfg.ddpg };
+    let mut agent = agent(&ddpg, &cfg);
+    for k in 0..16 {
+        agent.replay.push(&[k as f32 / 16.0, 0.5], &[0.1], -1.0, &[0.5, 0.5], false).unwrap();
+    }
+    for _ in 0..6 {
+        agent.update();
+    }
+    let c = agent.counters();
+    assert_eq!((c.critic_updates, c.updates, c.skipped_updates), (6, 3, 0));
+}
