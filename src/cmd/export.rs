@@ -41,17 +41,24 @@ pub fn run(args: &ExportArgs) -> anyhow::Result<()> {
     let outcome = export(&request)?;
     let source = &outcome.manifest.source;
     let m = &outcome.manifest;
+    // What the policy is: the training behind it, and the version a
+    // distributed learner served it as (lcrl train's runs have none).
+    let mut what = format!("after episode {}", source.episode);
+    if let Some(updates) = source.updates {
+        what.push_str(&format!(", {updates} actor updates"));
+    }
+    if source.policy_version > 0 {
+        what.push_str(&format!(", served as policy version {}", source.policy_version));
+    }
     println!(
-        "{:?}/{:?} policy on {} ({} states -> {} actions), {}: {} (episode {}, policy version {})",
+        "{:?}/{:?} policy on {} ({} states -> {} actions), {}: {} ({what})",
         m.algo,
         m.graph.connection,
         m.env,
         m.state.len(),
         m.action.len(),
         source.chosen,
-        source.checkpoint.display(),
-        source.episode,
-        source.policy_version
+        source.checkpoint.display()
     );
     println!(
         "checked on {} states against the served policy: largest action difference {:.1e}",

@@ -104,6 +104,10 @@ pub struct Source {
     /// The policy version a distributed learner published it as (0 for
     /// `lcrl train`'s runs).
     pub policy_version: u64,
+    /// The actor's gradient steps behind the policy, from the folder's
+    /// agent.json (absent in folders without one).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub updates: Option<u64>,
     /// For a selected policy: how selection chose it (its selection.json).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub selection: Option<serde_json::Value>,

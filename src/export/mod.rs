@@ -172,16 +172,24 @@ pub fn prepare(request: &Request) -> anyhow::Result<Prepared> {
     let selection = (chosen == "selected")
         .then(|| std::fs::read_to_string(folder.join("selection.json")).ok().and_then(|t| serde_json::from_str(&t).ok()))
         .flatten();
+    let updates = actor_updates(&folder);
     let source = Source {
         run: run.map(|r| std::fs::canonicalize(&r).unwrap_or(r)),
         checkpoint: std::fs::canonicalize(&folder).unwrap_or(folder),
         chosen,
         episode: meta.episode,
         policy_version: meta.policy_version,
+        updates,
         selection,
     };
     let manifest = describe(env.as_ref(), &architecture, &pipeline, source);
     Ok(Prepared { pipeline, manifest, state_dim: m, action_dim: n, probes, served })
+}
+
+/// The actor's gradient steps a checkpoint folder's agent.json records.
+fn actor_updates(folder: &std::path::Path) -> Option<u64> {
+    let text = std::fs::read_to_string(folder.join("agent.json")).ok()?;
+    serde_json::from_str::<serde_json::Value>(&text).ok()?["counters"]["updates"].as_u64()
 }
 
 /// policy.json's content, without its files.

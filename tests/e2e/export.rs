@@ -379,3 +379,17 @@ fn export_says_what_is_wrong_and_takes_another_checkpoint() {
     assert!(stderr(&failed).contains("scripts/setup.sh"), "{}", stderr(&failed));
     assert!(!dir.path().join("p.onnx").exists() && !dir.path().join("p.json").exists(), "nothing is left of a failed export");
 }
+
+/// Issue 72: an `lcrl train` run's policy is named by the training behind
+/// it, not as "policy version 0", in the output and in policy.json.
+#[test]
+fn a_trained_policy_is_named_by_its_training() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = quick_run(dir.path(), "lti-paper", "local", "");
+    let out = lcrl().current_dir(root()).arg("export").arg(&run).arg("--out").arg(dir.path().join("p.onnx")).args(["--format", "onnx"]).output().unwrap();
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = stdout(&out);
+    assert!(text.contains("after episode 10, ") && text.contains(" actor updates") && !text.contains("policy version"), "{text}");
+    let manifest: Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("p.json")).unwrap()).unwrap();
+    assert!(manifest["source"]["updates"].as_u64().is_some_and(|u| u > 0), "{manifest}");
+}
