@@ -27,7 +27,7 @@ pub struct TrainArgs {
     /// global: the GCRL baseline; full-subnets: the ablation. (Studies
     /// also take global+match=CONNECTION: here --connection global
     /// --match-params GRAPH.)
-    #[arg(long, value_name = "CONNECTION")]
+    #[arg(long, value_name = "CONNECTION", default_value = "local")]
     pub connection: ConnectionSpec,
     /// Use this graph.json instead of building the graph first (local
     /// kinds only; the same as --connection graph:PATH).
