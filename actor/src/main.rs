@@ -14,10 +14,10 @@ use anyhow::{bail, Context};
 use clap::Parser;
 use lcrl_proto::process::shutdown_signal;
 use lcrl_actor::metrics::ActorMetrics;
-use lcrl_actor::transport::{connect, open_feed, refused, send_batches, watch_policy, PolicySource, Progress, Sink};
+use lcrl_actor::transport::{connect, first_policy, open_feed, send_batches, watch_policy, PolicySource, Progress, Sink};
 use lcrl_actor::worker::{RolloutSettings, Rollout};
 use lcrl_proto::security::{ClientSecurity, ClientSecurityArgs};
-use lcrl_proto::v1::{GetPolicyRequest, TransitionBatch};
+use lcrl_proto::v1::TransitionBatch;
 use tokio::sync::{mpsc, watch};
 
 #[derive(Debug, Clone, Copy, clap::ValueEnum)]
@@ -141,7 +141,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let (client, policy_source) = match args.transport {
         Transport::Grpc => {
             let mut client = connect(&args.learner, &security, deadline).await?;
-            let first = client.get_policy(GetPolicyRequest {}).await.map_err(refused).context("asking the learner for its policy")?.into_inner();
+            let first = first_policy(&mut client, &args.learner, deadline).await?;
             tracing::info!(version = first.version, learner = %args.learner, "connected");
             let (policy_tx, policy_rx) = watch::channel(Arc::new(first));
             tokio::spawn(watch_policy(args.learner.clone(), security.clone(), policy_tx, progress.clone()));

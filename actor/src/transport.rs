@@ -7,12 +7,12 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::bail;
+use anyhow::{bail, Context};
 use lcrl_learner::policy::trained::Policy;
 use lcrl_proto::limits::Backoff;
 use lcrl_proto::security::{AuthChannel, ClientSecurity};
 use lcrl_proto::v1::learner_client::LearnerClient;
-use lcrl_proto::v1::{PolicySnapshot, TransitionBatch, WatchPolicyRequest};
+use lcrl_proto::v1::{GetPolicyRequest, PolicySnapshot, TransitionBatch, WatchPolicyRequest};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::StreamExt;
@@ -43,6 +43,30 @@ pub async fn connect(url: &str, security: &ClientSecurity, deadline: Duration) -
                 tokio::time::sleep(delay).await;
             }
             Err(e) => bail!("the learner at {url} stayed unreachable for {} s ({e}); is lcrl-learner running?", deadline.as_secs()),
+        }
+    }
+}
+
+/// The learner's current policy, asked for until `deadline` (issue 71): a
+/// learner that is still loading its checkpoint, or busy, answers
+/// UNAVAILABLE or not in time, which is retried with backoff; a refusal
+/// (token, certificate, run id) ends the actor at once, as it says what to
+/// fix.
+pub async fn first_policy(client: &mut LearnerClient<AuthChannel>, url: &str, deadline: Duration) -> anyhow::Result<PolicySnapshot> {
+    let give_up = Instant::now().checked_add(deadline).unwrap_or_else(|| Instant::now() + Duration::from_secs(86_400));
+    let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
+    loop {
+        match client.get_policy(GetPolicyRequest {}).await {
+            Ok(response) => return Ok(response.into_inner()),
+            Err(status) if is_fatal(&status) => return Err(refused(status)).context("asking the learner for its policy"),
+            Err(status) if Instant::now() < give_up => {
+                let delay = backoff.next_delay();
+                tracing::warn!("the learner at {url} gave no policy yet ({}: {}); asking again in {:.1} s", status.code(), status.message(), delay.as_secs_f64());
+                tokio::time::sleep(delay).await;
+            }
+            Err(status) => {
+                return Err(refused(status)).with_context(|| format!("the learner at {url} gave no policy within --connect-deadline {} s", deadline.as_secs()));
+            }
         }
     }
 }
