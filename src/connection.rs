@@ -88,6 +88,8 @@ impl MadeGraph {
 
 /// Draws of a `random-rows@…` connection without `+draws=N`.
 pub const DEFAULT_DRAWS: u64 = 10;
+/// The most draws `+draws=N` takes (each is a graph task and needs seeds).
+pub const MAX_DRAWS: u64 = 1000;
 
 impl ConnectionSpec {
     pub fn parse(text: &str) -> anyhow::Result<Self> {
@@ -105,7 +107,7 @@ impl ConnectionSpec {
         }
         if let Some(to) = text.strip_prefix("global+match=") {
             let to = Self::parse(to).with_context(|| format!("connection \"{text}\""))?;
-            if !to.has_graph() {
+            if !to.has_graph() || matches!(to, ConnectionSpec::RandomRows { .. }) {
                 bail!("connection \"{text}\": match a local actor (local@T, graph:PATH, random@K), e.g. global+match=local@0.1");
             }
             return Ok(ConnectionSpec::MatchedGlobal { to: Box::new(to) });
@@ -115,8 +117,8 @@ impl ConnectionSpec {
                 Some((of, n)) => (of, n.parse::<u64>().map_err(|_| anyhow::anyhow!("connection \"{text}\": \"{n}\" is not a draw count"))?),
                 None => (rest, DEFAULT_DRAWS),
             };
-            if draws < 2 {
-                bail!("connection \"{text}\": random rows need at least 2 draws");
+            if !(2..=MAX_DRAWS).contains(&draws) {
+                bail!("connection \"{text}\": random rows need from 2 to {MAX_DRAWS} draws");
             }
             let of = Self::parse(of_text).with_context(|| format!("connection \"{text}\""))?;
             if !matches!(of, ConnectionSpec::Local { per_seed: false, .. }) {
@@ -328,7 +330,9 @@ mod tests {
         assert!(err("random-rows@global").contains("match a measured graph"));
         assert!(err("random-rows@local@1+per-seed").contains("without +per-seed"));
         assert!(err("random-rows@local@1+draws=x").contains("\"x\" is not a draw count"));
-        assert!(err("random-rows@local@1+draws=1").contains("at least 2 draws"));
+        assert!(err("random-rows@local@1+draws=1").contains("from 2 to 1000 draws"));
+        assert!(err("random-rows@local@1+draws=18446744073709551615").contains("from 2 to 1000 draws"));
+        assert!(err("global+match=random-rows@local@1").contains("match a local actor"));
         let rows = ConnectionSpec::parse("random-rows@local@0.5+draws=4").unwrap();
         assert_eq!((rows.connection(), rows.draw_of(9), rows.threshold()), (Connection::Local, Some(1), None));
         assert_eq!(rows.made_graph(), Some((MadeGraph::RowsDrawn { threshold: 0.5, rows: Vec::new() }, true)));

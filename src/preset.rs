@@ -199,11 +199,24 @@ impl Preset {
         }
         // The learner and the actors would refuse these too, but only once
         // the run has started; a preset check should say so first.
-        for (key, value, most) in [("publish_every", job.publish_every, u64::MAX), ("queued_batches", job.queued_batches, 1024), ("actor_batch", job.actor_batch, 4096)] {
+        for (key, value, most) in [("publish_every", job.publish_every, 1_000_000), ("queued_batches", job.queued_batches, 1024), ("actor_batch", job.actor_batch, 4096)] {
             match value {
                 Some(0) => bail!("job.{key} must be at least 1, not 0"),
                 Some(v) if v > most => bail!("job.{key} must be at most {most}, not {v}"),
                 _ => {}
+            }
+        }
+        if let Some(slack) = job.replay_slack.filter(|s| *s > 1_000_000) {
+            bail!("job.replay_slack must be at most 1000000, not {slack}");
+        }
+        match job.replay_ratio.as_deref() {
+            None | Some("unlimited") => {}
+            Some(text) => {
+                let most = lcrl_learner::algo::rate_limiter::MAX_SAMPLES_PER_INSERT;
+                match text.parse::<f64>() {
+                    Ok(v) if v > 0.0 && v <= most => {}
+                    _ => bail!("job.replay_ratio must be `unlimited` or a number of samples per insert above 0 and at most {most:e}, not {text:?}"),
+                }
             }
         }
         if self.train.run.fallback_margin.is_some() {
@@ -475,8 +488,13 @@ mod tests {
     fn lag_settings_out_of_range_fail_the_check() {
         preset("publish_every = 1\nqueued_batches = 1024\nactor_batch = 1\n").check().unwrap();
         let mut good = preset("");
-        let edits: [(fn(&mut Preset), &str); 7] = [
+        let edits: [(fn(&mut Preset), &str); 11] = [
             (|p| p.job.publish_every = Some(0), "job.publish_every"),
+            // The learner's own bounds (issue 71), said before the run.
+            (|p| p.job.publish_every = Some(u64::MAX), "job.publish_every"),
+            (|p| p.job.replay_slack = Some(1_000_001), "job.replay_slack"),
+            (|p| p.job.replay_ratio = Some("1e300".into()), "job.replay_ratio"),
+            (|p| p.job.replay_ratio = Some("often".into()), "job.replay_ratio"),
             (|p| p.job.queued_batches = Some(0), "job.queued_batches"),
             (|p| p.job.queued_batches = Some(1025), "job.queued_batches"),
             (|p| p.job.actor_batch = Some(0), "job.actor_batch"),

@@ -140,8 +140,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
     // actors from the run's broadcast, without any network.
     let (client, policy_source) = match args.transport {
         Transport::Grpc => {
+            let started = Instant::now();
             let mut client = connect(&args.learner, &security, deadline).await?;
-            let first = first_policy(&mut client, &args.learner, deadline).await?;
+            // One deadline for connecting and the first policy together.
+            let first = first_policy(&mut client, &args.learner, deadline.saturating_sub(started.elapsed())).await?;
             tracing::info!(version = first.version, learner = %args.learner, "connected");
             let (policy_tx, policy_rx) = watch::channel(Arc::new(first));
             tokio::spawn(watch_policy(args.learner.clone(), security.clone(), policy_tx, progress.clone()));

@@ -36,6 +36,11 @@ pub enum LearnerError {
     Io { path: PathBuf, source: std::io::Error },
     #[error("checkpoint: {0}")]
     Checkpoint(String),
+    /// A checkpoint not written because a weight is NaN or ∞: training
+    /// diverged where no update guard runs (PPO, captured CUDA graphs).
+    /// The run goes on to its summary; the last finite checkpoint stays.
+    #[error("checkpoint not written: {0}")]
+    Diverged(String),
     #[error("{0}")]
     Mismatch(String),
 }

@@ -26,9 +26,10 @@ pub struct TrainArgs {
     /// random@K: with K edges drawn at random (--graph-seed picks the draw);
     /// global: the GCRL baseline; full-subnets: the ablation. (Studies
     /// also take global+match=CONNECTION: here --connection global
-    /// --match-params GRAPH.)
-    #[arg(long, value_name = "CONNECTION", default_value = "local")]
-    pub connection: ConnectionSpec,
+    /// --match-params GRAPH.) Default: local at the config's
+    /// run.graph_threshold (0.1 unless the config says otherwise).
+    #[arg(long, value_name = "CONNECTION")]
+    pub connection: Option<ConnectionSpec>,
     /// Use this graph.json instead of building the graph first (local
     /// kinds only; the same as --connection graph:PATH).
     #[arg(long, value_name = "graph.json")]
@@ -107,11 +108,11 @@ fn match_global_to_local(config: &mut TrainConfig, env: &str, path: &std::path::
 }
 
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
-    if let ConnectionSpec::MatchedGlobal { to } = &args.connection {
+    if let Some(ConnectionSpec::MatchedGlobal { to }) = &args.connection {
         anyhow::bail!(
-            "--connection {}: for one run, give the graph of the actor it matches: `--connection global --match-params graph.json` \
+            "--connection global+match={}: for one run, give the graph of the actor it matches: `--connection global --match-params graph.json` \
              (the graph of {} from `lcrl graph`)",
-            args.connection.label(),
+            to.label(),
             to.label()
         );
     }
@@ -146,38 +147,40 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
         config.base.action = lcrl_learner::config::BaseController::BestConstant;
         config.base.best_constant_file = Some(path.clone());
     }
-    if let Some(t) = args.connection.threshold() {
+    // Without --connection: the local actor at the config's threshold.
+    let connection = args.connection.clone().unwrap_or(ConnectionSpec::Local { threshold: config.run.graph_threshold, rows: Vec::new(), per_seed: false });
+    if let Some(t) = connection.threshold() {
         config.run.graph_threshold = t;
     }
     config.validate()?;
     if let Some(path) = &args.match_params {
-        if args.connection != ConnectionSpec::Global {
-            anyhow::bail!("--match-params sizes a global actor: use it with --connection global (it has --connection {})", args.connection.label());
+        if connection != ConnectionSpec::Global {
+            anyhow::bail!("--match-params sizes a global actor: use it with --connection global (it has --connection {})", connection.label());
         }
         match_global_to_local(&mut config, &args.env, path)?;
     }
-    if let ConnectionSpec::RandomRows { .. } = &args.connection {
+    if let ConnectionSpec::RandomRows { .. } = &connection {
         anyhow::bail!(
             "--connection {}: random rows are a study's control (lcrl experiment: draws by environment and draw index); for one run, \
              draw the graph with `lcrl graph --env ENV --random-rows GRAPH.json --seed N --out rows.json` and pass `--connection local --graph rows.json`",
-            args.connection.label()
+            connection.label()
         );
     }
-    if args.connection.has_modifiers() {
+    if connection.has_modifiers() {
         anyhow::bail!(
             "--connection {}: +per-seed and row rules (+ACTION=T) are for studies (lcrl experiment); for one run, build the graph with \
              `lcrl graph --threshold T --row ACTION=T --seed N --out graph.json` and pass `--connection local --graph graph.json`",
-            args.connection.label()
+            connection.label()
         );
     }
-    if args.graph.is_some() && !matches!(args.connection, ConnectionSpec::Local { .. }) {
+    if args.graph.is_some() && !matches!(connection, ConnectionSpec::Local { .. }) {
         anyhow::bail!("--graph only applies to --connection local or local@T (graph:PATH names the file itself)");
     }
     // A given graph (graph:PATH, random@K) reaches the trainer as a file,
     // checked against the environment first; the run records it as its
     // graph.json, with `origin` saying where it came from.
-    let given = match &args.connection {
-        ConnectionSpec::Graph { .. } | ConnectionSpec::Random { .. } => args.connection.given_graph(lcrl_sim::make_env(&args.env)?.spec(), args.graph_seed)?,
+    let given = match &connection {
+        ConnectionSpec::Graph { .. } | ConnectionSpec::Random { .. } => connection.given_graph(lcrl_sim::make_env(&args.env)?.spec(), args.graph_seed)?,
         _ => None,
     };
     let given_file = match &given {
@@ -199,7 +202,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     let request = TrainRequest {
         env: args.env.clone(),
         algo: args.algo,
-        connection: args.connection.connection(),
+        connection: connection.connection(),
         graph,
         config: config.clone(),
         settings_source: source,
@@ -221,7 +224,7 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
     });
     bar.finish_and_clear();
     let outcome = outcome?;
-    plot_rewards(&outcome.rows, &outcome.summary, args)?;
+    plot_rewards(&outcome.rows, &outcome.summary, args, &connection)?;
     let s = &outcome.summary;
     let global_equivalent = lcrl_learner::algo::nets::global_actor_params(&config.network, args.env_state_dims(s)?);
     println!(
@@ -266,7 +269,7 @@ impl TrainArgs {
 
 /// Returns per episode with a 10-episode moving average, and the run's
 /// references as horizontal lines.
-fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::run::summary::RunSummary, args: &TrainArgs) -> anyhow::Result<()> {
+fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::run::summary::RunSummary, args: &TrainArgs, connection: &ConnectionSpec) -> anyhow::Result<()> {
     let env = &summary.env;
     let x: Vec<f64> = rows.iter().map(|r| r.episode as f64).collect();
     let returns: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();
@@ -276,7 +279,7 @@ fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::run::summary::RunSu
             window.iter().sum::<f64>() / window.len() as f64
         })
         .collect();
-    let title = format!("{env} — {:?} with {} connection", args.algo, args.connection.label());
+    let title = format!("{env} — {:?} with {} connection", args.algo, connection.label());
     let panel = Panel::rewards(
         "episode return",
         vec![("return".into(), returns), ("moving average (10)".into(), average)],

@@ -119,7 +119,11 @@ impl PrimaryContrast {
                 bail!("`primary.{key}` \"{connection}\" is not one of `connections` ({})", labels.join(", "));
             }
         }
-        if self.a == self.b {
+        let rows = |c: &str| matches!(ConnectionSpec::parse(c), Ok(ConnectionSpec::RandomRows { .. }));
+        if self.metric == "episodes_to_best_constant" && (rows(&self.a) || rows(&self.b)) {
+            bail!("`primary`: a random-rows cell's unit is the draw, which has no one time to the best constant; compare it on a mean (eval_return, final_return, auc_100)");
+        }
+        if ConnectionSpec::parse(&self.a)?.label() == ConnectionSpec::parse(&self.b)?.label() {
             bail!("`primary.a` and `primary.b` are the same connection");
         }
         if !file.algorithms.contains(&self.algorithm) {

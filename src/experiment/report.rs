@@ -293,7 +293,11 @@ impl Study {
         e.file.primary.as_ref().is_some_and(|p| {
             p.contrasts().iter().any(|k| {
                 let strata = if k.environments.is_empty() { &e.file.environments } else { &k.environments };
-                label(&k.a) == c.a && label(&k.b) == c.b && k.metric == c.metric && algo_name(k.algorithm) == c.algo && strata.contains(&c.env)
+                // Either order, and a random-rows side by its draw means.
+                let side = |s: &str| s.strip_suffix(" (draw means)").unwrap_or(s).to_string();
+                let (a, b) = (side(&c.a), side(&c.b));
+                let pair = (label(&k.a), label(&k.b));
+                (pair == (a.clone(), b.clone()) || pair == (b, a)) && k.metric == c.metric && algo_name(k.algorithm) == c.algo && strata.contains(&c.env)
             })
         })
     }

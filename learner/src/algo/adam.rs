@@ -104,6 +104,12 @@ impl Adam {
         [self.lr / bias1, bias2]
     }
 
+    /// Takes back one [`Adam::advance`], for an update that was undone:
+    /// the bias corrections then count only the steps that ran.
+    pub fn undo_advance(&mut self) {
+        self.step = (self.step - 1).max(0);
+    }
+
     /// The step's arithmetic, with the numbers [`Adam::advance`] gave (as
     /// host numbers, or read from the device in a captured update). With
     /// every variable's gradient at hand, on the whole buffer at once;

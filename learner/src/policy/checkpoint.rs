@@ -242,7 +242,7 @@ fn check_staged_finite(dir: &Path) -> Result<(), LearnerError> {
         let file = entry.map_err(io(dir))?.path();
         let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         if name.ends_with(".safetensors") && name != "replay.safetensors" {
-            check_finite(&file).map_err(|e| LearnerError::Checkpoint(format!("not written: {e}; training has diverged, the last finite checkpoint stays the newest")))?;
+            check_finite(&file).map_err(|e| LearnerError::Diverged(format!("{e}; training has diverged, the last finite checkpoint stays the newest")))?;
         }
     }
     Ok(())
@@ -481,7 +481,7 @@ mod tests {
         })
         .unwrap_err()
         .to_string();
-        assert!(refused.contains("not written") && refused.contains("last finite checkpoint"), "{refused}");
+        assert!(refused.contains("checkpoint not written") && refused.contains("last finite checkpoint"), "{refused}");
         assert!(!thirty.exists());
         assert_eq!(latest_checkpoint(dir.path()), Some(ten));
     }

@@ -203,7 +203,14 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         let done = episode + 1;
         if done % cfg.run.checkpoint_every == 0 || done == last_episode {
             let elapsed = prior_elapsed + started.elapsed().as_secs_f64();
-            write_checkpoint(&req.run_dir, agent.as_ref(), &meta_for(done, optimization, elapsed))?;
+            match write_checkpoint(&req.run_dir, agent.as_ref(), &meta_for(done, optimization, elapsed)) {
+                // Diverged weights are never written; the run still ends
+                // with its summary (issue 71).
+                Err(crate::LearnerError::Diverged(why)) => tracing::error!(episode = done, "{why}"),
+                other => {
+                    other?;
+                }
+            }
         }
         if let Some(selection) = selection.as_mut().filter(|s| s.due(done, last_episode)) {
             let elapsed = prior_elapsed + started.elapsed().as_secs_f64();

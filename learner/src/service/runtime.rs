@@ -305,7 +305,12 @@ impl TrainingLoop {
         // The final checkpoint publishes where training ended (see
         // publish_pending), so the served policy without validation, the
         // newest, is the one training ended with.
-        self.checkpoint()?;
+        match self.checkpoint() {
+            // Diverged weights are never written; the run still ends with
+            // its summary, serving the last finite policy (issue 71).
+            Err(LearnerError::Diverged(_)) => {}
+            other => other?,
+        }
         // The last policy is validated too, then the choice is final.
         self.validate_if_due()?;
         let chosen = self.schedule.validator.as_mut().map(Validator::finish).transpose()?;
@@ -403,16 +408,24 @@ impl TrainingLoop {
     fn publish(&mut self, exploration: Option<(bool, f64)>) -> Result<(), LearnerError> {
         let updates = self.agent.counters().updates;
         self.last_published = updates;
-        self.published_exploration = exploration;
         let version = self.shared.policy_version() + 1;
         let mut next = snapshot(self.agent.as_ref(), &self.shared.architecture, version)?;
         // A diverged actor is never served: actors and validation keep the
         // last finite version (issue 71).
         if !crate::policy::finite::all_finite(&next.weights)? {
-            self.shared.flow_mut().non_finite_policies += 1;
-            tracing::error!(version, updates, "policy not published: a weight is NaN or infinite");
+            let refused = {
+                let mut flow = self.shared.flow_mut();
+                flow.non_finite_policies += 1;
+                flow.non_finite_policies
+            };
+            // Logged at 1, 2, 4, 8, … refusals: a diverged run would
+            // otherwise log every turn.
+            if refused.is_power_of_two() {
+                tracing::error!(version, updates, refused, "policy not published: a weight is NaN or infinite");
+            }
             return Ok(());
         }
+        self.published_exploration = exploration;
         next.incarnation = self.shared.incarnation;
         // A version published after the budget (a change of exploration)
         // still says so: actors that join late stop too.
@@ -483,6 +496,10 @@ impl TrainingLoop {
         let Some(validator) = self.schedule.validator.as_mut() else { return Ok(()) };
         let version = self.shared.policy_version();
         let snapshot = Arc::new(snapshot(self.agent.as_ref(), &self.shared.architecture, version)?);
+        if !crate::policy::finite::all_finite(&snapshot.weights)? {
+            tracing::error!(episodes = done, "validation skipped: a weight is NaN or infinite");
+            return Ok(());
+        }
         let meta = CheckpointMeta { episode: done, policy_version: version, ..self.schedule.meta.clone() };
         validator.submit(snapshot, meta);
         Ok(())

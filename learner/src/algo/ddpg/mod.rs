@@ -270,8 +270,20 @@ impl Ddpg {
                 self.apply_update(&b, noise.as_ref(), kind, &numbers.coefficients());
                 if !self.buffers_finite() {
                     self.restore_buffers(&before);
+                    for critic in &mut self.critics {
+                        critic.opt.undo_advance();
+                    }
+                    if kind == UpdateKind::Full {
+                        self.actor_opt.undo_advance();
+                    }
+                    // Counted as not run: the policy delay's phase repeats.
+                    self.critic_updates -= 1;
                     self.counters.skipped_updates += 1;
-                    tracing::warn!(skipped = self.counters.skipped_updates, "update undone: it left a NaN or infinite number in the networks");
+                    // Logged at 1, 2, 4, 8, … undone updates: a poisoned
+                    // replay buffer would otherwise log every update.
+                    if self.counters.skipped_updates.is_power_of_two() {
+                        tracing::warn!(skipped = self.counters.skipped_updates, "update undone: it left a NaN or infinite number in the networks");
+                    }
                     return;
                 }
             }
@@ -298,8 +310,9 @@ impl Ddpg {
 
     /// One device sync: whether no buffer holds a NaN or ∞.
     fn buffers_finite(&self) -> bool {
-        let bad = tch::no_grad(|| self.buffers().iter().map(|t| t.isfinite().logical_not().sum(Kind::Int64)).fold(Tensor::from(0i64), |a, b| a + b.to_device(Device::Cpu)));
-        i64::try_from(bad).is_ok_and(|n| n == 0)
+        // Summed where the buffers live, read back once.
+        let bad = tch::no_grad(|| self.buffers().iter().map(|t| t.isfinite().logical_not().sum(Kind::Int64)).reduce(|a, b| a + b));
+        bad.is_none_or(|bad| i64::try_from(bad).is_ok_and(|n| n == 0))
     }
 
     fn restore_buffers(&self, saved: &[Tensor]) {
@@ -483,8 +496,7 @@ impl Agent for Ddpg {
     }
 
     fn counters(&self) -> Counters {
-        // critic_updates counts attempts; undone ones did not run.
-        Counters { critic_updates: self.critic_updates.saturating_sub(self.counters.skipped_updates), ..self.counters }
+        Counters { critic_updates: self.critic_updates, ..self.counters }
     }
 
     fn param_counts(&self) -> (usize, usize) {
