@@ -104,10 +104,14 @@ impl Adam {
         [self.lr / bias1, bias2]
     }
 
-    /// Takes back one [`Adam::advance`], for an update that was undone:
-    /// the bias corrections then count only the steps that ran.
-    pub fn undo_advance(&mut self) {
-        self.step = (self.step - 1).max(0);
+    /// Steps taken, for rewinding to an earlier state: the bias
+    /// corrections then count only the steps that stand.
+    pub fn steps_taken(&self) -> i64 {
+        self.step
+    }
+
+    pub fn set_steps_taken(&mut self, step: i64) {
+        self.step = step;
     }
 
     /// The step's arithmetic, with the numbers [`Adam::advance`] gave (as

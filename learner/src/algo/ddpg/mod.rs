@@ -76,6 +76,27 @@ pub struct Ddpg {
     progress: f64,
     /// With `run.cuda_graphs` on a GPU: updates replayed from CUDA graphs.
     captured: Option<CapturedUpdates>,
+    /// Where an update that leaves a NaN or ∞ rewinds to (issue 71).
+    rewind: Option<RewindPoint>,
+}
+
+/// Updates between two checks for a NaN or ∞ in the buffers, and between
+/// two rewind points (a multiple of it, so a point is always taken right
+/// after a passed check). A check and a copy at every update cost about a
+/// sixth of a small network's update (lti-paper, measured); these cost
+/// little. A failed check undoes every update since the last point, at
+/// most REWIND_EVERY + CHECK_EVERY; until then a non-finite policy is
+/// neither published nor checkpointed (crate::policy::finite).
+const CHECK_EVERY: u64 = 8;
+const REWIND_EVERY: u64 = 32;
+
+/// Every buffer an update writes, with the counts that go with them.
+struct RewindPoint {
+    buffers: Tensor,
+    critic_updates: u64,
+    updates: u64,
+    /// Adam's steps: the actor's, then each critic's.
+    steps: Vec<i64>,
 }
 
 /// A global critic Q(s, a) with its target network and optimizer, saved as
@@ -168,6 +189,7 @@ impl Ddpg {
             critic_updates: 0,
             progress: 0.0,
             captured: None,
+            rewind: None,
         }
     }
 
@@ -240,6 +262,9 @@ impl Ddpg {
     /// One DDPG update on a minibatch from the replay buffer: eager, or
     /// replayed from a CUDA graph (graphs.rs).
     fn update(&mut self) {
+        if self.captured.is_none() && (self.rewind.is_none() || self.critic_updates % REWIND_EVERY == 0) {
+            self.rewind = Some(self.rewind_point());
+        }
         self.critic_updates += 1;
         let kind = self.kind_of(self.critic_updates);
         // The numbers that change between updates, counted here on the
@@ -266,19 +291,10 @@ impl Ddpg {
                 let values = self.target_noise_values(self.cfg.batch_size);
                 let noise = (!values.is_empty())
                     .then(|| crate::device::torch::to_device_async(Tensor::from_slice(&values), self.device).view([self.cfg.batch_size as i64, self.action_dim as i64]));
-                let before = self.copy_of_buffers();
                 self.apply_update(&b, noise.as_ref(), kind, &numbers.coefficients());
-                if !self.buffers_finite() {
-                    self.restore_buffers(&before);
-                    for critic in &mut self.critics {
-                        critic.opt.undo_advance();
-                    }
-                    if kind == UpdateKind::Full {
-                        self.actor_opt.undo_advance();
-                    }
-                    // Counted as not run: the policy delay's phase repeats.
-                    self.critic_updates -= 1;
-                    self.counters.skipped_updates += 1;
+                if self.critic_updates % CHECK_EVERY == 0 && !self.buffers_finite() {
+                    let undone = self.rewind_to_point();
+                    self.counters.skipped_updates += undone;
                     // Logged at 1, 2, 4, 8, … undone updates: a poisoned
                     // replay buffer would otherwise log every update.
                     if self.counters.skipped_updates.is_power_of_two() {
@@ -304,23 +320,45 @@ impl Ddpg {
         out
     }
 
-    fn copy_of_buffers(&self) -> Vec<Tensor> {
-        tch::no_grad(|| self.buffers().iter().map(Tensor::copy).collect())
+    /// All buffers in one copy (one operation: on small networks the
+    /// guard's cost is the number of operations, not the bytes).
+    fn copy_of_buffers(&self) -> Tensor {
+        tch::no_grad(|| Tensor::cat(&self.buffers(), 0))
     }
 
-    /// One device sync: whether no buffer holds a NaN or ∞.
+    /// Whether no buffer holds a NaN or ∞: their sum in f64 (which no sum
+    /// of f32 values overflows) is finite exactly then. Two operations and
+    /// one read back.
     fn buffers_finite(&self) -> bool {
-        // Summed where the buffers live, read back once.
-        let bad = tch::no_grad(|| self.buffers().iter().map(|t| t.isfinite().logical_not().sum(Kind::Int64)).reduce(|a, b| a + b));
-        bad.is_none_or(|bad| i64::try_from(bad).is_ok_and(|n| n == 0))
+        let sum = tch::no_grad(|| Tensor::cat(&self.buffers(), 0).sum(Kind::Double));
+        f64::try_from(sum).is_ok_and(f64::is_finite)
     }
 
-    fn restore_buffers(&self, saved: &[Tensor]) {
+    fn rewind_point(&self) -> RewindPoint {
+        let mut steps = vec![self.actor_opt.steps_taken()];
+        steps.extend(self.critics.iter().map(|c| c.opt.steps_taken()));
+        RewindPoint { buffers: self.copy_of_buffers(), critic_updates: self.critic_updates, updates: self.counters.updates, steps }
+    }
+
+    /// Back to the rewind point: buffers, Adam's steps and the update
+    /// counts as they were there. Returns the updates undone (this one and
+    /// those since the point).
+    fn rewind_to_point(&mut self) -> u64 {
+        let Some(point) = self.rewind.as_ref() else { return 0 };
         tch::no_grad(|| {
-            for (mut buffer, saved) in self.buffers().into_iter().zip(saved) {
-                buffer.copy_(saved);
+            let buffers = self.buffers();
+            let sizes: Vec<i64> = buffers.iter().map(|t| t.numel() as i64).collect();
+            for (mut buffer, saved) in buffers.into_iter().zip(point.buffers.split_with_sizes(sizes.as_slice(), 0)) {
+                buffer.copy_(&saved);
             }
         });
+        self.actor_opt.set_steps_taken(point.steps[0]);
+        for (critic, step) in self.critics.iter_mut().zip(&point.steps[1..]) {
+            critic.opt.set_steps_taken(*step);
+        }
+        let undone = self.critic_updates - point.critic_updates;
+        (self.critic_updates, self.counters.updates) = (point.critic_updates, point.updates);
+        undone
     }
 
     /// The update from a graph: the minibatch, noise and numbers staged

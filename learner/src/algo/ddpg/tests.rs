@@ -245,9 +245,9 @@ fn update_rule_finds_the_optimal_gain_on_exploratory_data() {
 }
 
 /// Issue 71: a buffer holding states of 3e38 (finite, but their squares
-/// are not) makes an update's numbers infinite. Such an update is undone
-/// and counted, every weight stays finite and as it was, and updates on a
-/// clean buffer go on.
+/// are not) makes an update's numbers infinite. The check after the 8th
+/// update finds it; all 8 are undone and counted, every weight is finite
+/// and as it was, and updates on a clean buffer go on.
 #[test]
 fn an_update_that_leaves_a_non_finite_number_is_undone_and_counted() {
     tch::set_num_threads(1);
@@ -258,13 +258,13 @@ fn an_update_that_leaves_a_non_finite_number_is_undone_and_counted() {
         agent.replay.push(&[3e38, -3e38], &[0.5], 1.0, &[3e38, 3e38], false).unwrap();
     }
     let (actor0, buffers0) = (actor_weights(&agent), agent.copy_of_buffers());
-    agent.update();
-    assert_eq!(agent.counters().skipped_updates, 1);
+    for _ in 0..8 {
+        agent.update();
+    }
+    assert_eq!(agent.counters().skipped_updates, 8);
     assert_eq!((agent.counters().updates, agent.counters().critic_updates), (0, 0), "an undone update is not counted as run");
     assert_eq!(actor_weights(&agent), actor0);
-    for (now, before) in agent.buffers().iter().zip(&buffers0) {
-        assert!(now.equal(before), "a buffer changed");
-    }
+    assert!(agent.copy_of_buffers().equal(&buffers0), "a buffer changed");
     assert!(agent.buffers_finite());
     // A clean buffer trains again.
     let mut clean = self::agent(&ddpg, &cfg);
@@ -292,4 +292,38 @@ fn critic_and_actor_updates_are_counted_apart() {
     }
     let c = agent.counters();
     assert_eq!((c.critic_updates, c.updates, c.skipped_updates), (6, 3, 0));
+}
+
+/// A rewind goes back to the last rewind point (every 32 updates): the
+/// updates since then are undone with the one that failed, and the counts
+/// say so.
+#[test]
+fn a_failed_update_rewinds_to_the_last_rewind_point() {
+    tch::set_num_threads(1);
+    let cfg = small_nets();
+    let ddpg = DdpgConfig { batch_size: 8, warmup_steps: 0, critic_warmup_updates: 0, policy_delay: 1, ..cfg.ddpg };
+    let mut agent = agent(&ddpg, &cfg);
+    for k in 0..16 {
+        agent.replay.push(&[k as f32 / 16.0, 0.5], &[0.1], -1.0, &[0.5, 0.5], false).unwrap();
+    }
+    for _ in 0..32 {
+        agent.update();
+    }
+    let at_point = agent.copy_of_buffers();
+    for _ in 0..8 {
+        agent.update();
+    }
+    // An infinity in the actor's weights: no update after it is finite.
+    // The check after update 48 finds it and undoes the 16 since 32.
+    tch::no_grad(|| {
+        let _ = agent.actor_opt.buffers()[0].get(0).fill_(f64::INFINITY);
+    });
+    for _ in 0..8 {
+        agent.update();
+    }
+    let c = agent.counters();
+    assert_eq!((c.updates, c.critic_updates, c.skipped_updates), (32, 32, 16));
+    assert!(agent.copy_of_buffers().equal(&at_point));
+    agent.update();
+    assert_eq!(agent.counters().updates, 33, "training goes on from the rewind point");
 }
