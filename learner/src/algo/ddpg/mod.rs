@@ -262,7 +262,7 @@ impl Ddpg {
     /// One DDPG update on a minibatch from the replay buffer: eager, or
     /// replayed from a CUDA graph (graphs.rs).
     fn update(&mut self) {
-        if self.captured.is_none() && (self.rewind.is_none() || self.critic_updates % REWIND_EVERY == 0) {
+        if self.captured.is_none() && (self.rewind.is_none() || self.critic_updates.is_multiple_of(REWIND_EVERY)) {
             self.rewind = Some(self.rewind_point());
         }
         self.critic_updates += 1;
@@ -292,7 +292,7 @@ impl Ddpg {
                 let noise = (!values.is_empty())
                     .then(|| crate::device::torch::to_device_async(Tensor::from_slice(&values), self.device).view([self.cfg.batch_size as i64, self.action_dim as i64]));
                 self.apply_update(&b, noise.as_ref(), kind, &numbers.coefficients());
-                if self.critic_updates % CHECK_EVERY == 0 && !self.buffers_finite() {
+                if self.critic_updates.is_multiple_of(CHECK_EVERY) && !self.buffers_finite() {
                     let undone = self.rewind_to_point();
                     self.counters.skipped_updates += undone;
                     // Logged at 1, 2, 4, 8, … undone updates: a poisoned
