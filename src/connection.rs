@@ -65,7 +65,7 @@ impl MadeGraph {
         match self {
             MadeGraph::Measured { threshold, rows } => format!("T{threshold}{}", rows.iter().map(|r| format!("+{}", r.text())).collect::<String>()),
             MadeGraph::Drawn { edges } => format!("random@{edges}"),
-            MadeGraph::RowsDrawn { threshold, rows } => format!("random-rows@{}", MadeGraph::Measured { threshold: *threshold, rows: rows.clone() }.folder()),
+            MadeGraph::RowsDrawn { .. } => format!("random-rows@{}", self.source().map(|m| m.folder()).unwrap_or_default()),
         }
     }
 
