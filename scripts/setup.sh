@@ -78,6 +78,13 @@ if ! "$VENV/bin/python" -c 'import importlib.metadata as m; m.version("lcrl-env"
   echo "setup: installing lcrl_env (clients/python) into $VENV"
   "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check --no-build-isolation --no-deps -e clients/python
 fi
+# Stable-Baselines3: the peer learners of docs/peers.md, and the test that
+# trains SB3's SAC on the peg task through lcrl_env's Gymnasium face.
+SB3_VERSION=2.9.2
+if ! "$VENV/bin/python" -c "import importlib.metadata as m, sys; sys.exit(m.version('stable-baselines3') != '$SB3_VERSION')" 2>/dev/null; then
+  echo "setup: installing stable-baselines3==$SB3_VERSION into $VENV"
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check "stable-baselines3==$SB3_VERSION"
+fi
 stubs=clients/python/lcrl_stubs
 if [ ! -f "$stubs/lcrl_pb2.py" ] || [ proto/lcrl.proto -nt "$stubs/lcrl_pb2.py" ]; then
   mkdir -p "$stubs"

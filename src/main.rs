@@ -37,6 +37,9 @@ enum Command {
     Status(cmd::probe::StatusArgs),
     /// Build the connection graph G of an environment with CS3 and print it.
     Graph(GraphArgs),
+    /// Serve one of lcrl's environments over gRPC (lcrl.v1.Environment), for
+    /// Python's Gymnasium (`lcrl_env.make`) or any other client.
+    ServeEnv(cmd::serve_env::ServeEnvArgs),
     /// Run a controller on an environment: summary.json, trace.csv, trace.png.
     Sim(cmd::sim::SimArgs),
     /// Find the best constant action (CMA-ES): the bar a trained agent must beat.
@@ -78,6 +81,7 @@ fn main() -> ExitCode {
         Command::Health(args) => cmd::probe::health(&args),
         Command::Status(args) => cmd::probe::status(&args),
         Command::Sim(args) => cmd::sim::run(&args),
+        Command::ServeEnv(args) => cmd::serve_env::run(&args),
         Command::Tune(args) => cmd::tune::run(&args),
         Command::Train(args) => cmd::train::run(&args),
         Command::Compare(args) => cmd::compare::run(&args),

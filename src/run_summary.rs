@@ -94,6 +94,7 @@ fn interrupted_run_summary(preset: &Preset, learner_dir: &Path, status: &Learner
         updates: status.updates,
         critic_updates: 0,
         skipped_updates: 0,
+        diverged_env: 0,
         samples_drawn: status.sampled,
         actor_params: 0,
         critic_params: 0,

@@ -18,5 +18,6 @@ mod e2e {
     mod hostile;
     mod faults;
     mod served_env;
+    mod gymnasium_face;
     mod export;
 }

@@ -13,6 +13,9 @@ pub struct ActorMetrics {
     pub batches_sent: Counter,
     pub transitions_sent: Counter,
     pub reconnects: Counter,
+    /// Episodes ended because the environment diverged (a non-finite or
+    /// out-of-bounds state or reward, `lcrl_sim::diverged`): not sent.
+    pub diverged_env: Counter,
     pub policy_version: Gauge,
     /// Batches handed to the sender and not yet acknowledged (gRPC).
     pub pending_batches: Gauge,
@@ -26,6 +29,7 @@ impl ActorMetrics {
         registry.register("batches_sent", "Transition batches handed to the transport", self.batches_sent.clone());
         registry.register("transitions_sent", "Transitions handed to the transport", self.transitions_sent.clone());
         registry.register("reconnects", "Reconnections to the learner after losing it", self.reconnects.clone());
+        registry.register("diverged_env", "Episodes ended unsent because the environment diverged (non-finite or out-of-bounds state or reward)", self.diverged_env.clone());
         registry.register("policy_version", "Version of the policy acting now", self.policy_version.clone());
         registry.register("pending_batches", "Batches sent but not yet acknowledged by the learner (gRPC)", self.pending_batches.clone());
         registry

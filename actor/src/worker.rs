@@ -230,6 +230,10 @@ impl Rollout {
         // All K environments at once: one call when a server serves them.
         let steps = lcrl_sim::step_all(&mut self.envs, &actions)?;
         for (k, ((step, action), (u, log_prob))) in steps.into_iter().zip(&actions).zip(sampled).enumerate() {
+            if let Some(why) = lcrl_sim::diverged(self.envs[k].as_ref(), &step) {
+                self.end_diverged(k, &why, metrics)?;
+                continue;
+            }
             self.returns[k] += step.reward;
             self.lengths[k] += 1;
             metrics.env_steps.inc();
@@ -269,6 +273,25 @@ impl Rollout {
             return Ok(None);
         }
         Ok(self.take_batch(policy.version))
+    }
+
+    /// Ends environment k's episode after a step that diverged: the step
+    /// is not sent (the learner would refuse it: "bounds"), the steps
+    /// before it end in a cut, so the agent bootstraps from the last sound
+    /// state, and no summary is sent: the learner counts sound episodes
+    /// only. The episode counts against this actor's own budget, so a
+    /// simulator that always diverges cannot keep it running forever.
+    fn end_diverged(&mut self, k: usize, why: &str, metrics: &ActorMetrics) -> anyhow::Result<()> {
+        tracing::warn!(episode_seed = self.episode_seed, steps = self.lengths[k], "the environment diverged ({why}): its episode ends here, unsent (diverged_env)");
+        if let Some(last) = self.segments[k].last_mut().filter(|t| !(t.terminated || t.truncated)) {
+            last.cut = true;
+        }
+        metrics.diverged_env.inc();
+        self.episodes_done += 1;
+        (self.returns[k], self.lengths[k]) = (0.0, 0);
+        self.episode_seed += 1;
+        self.states[k] = self.envs[k].reset(self.episode_seed)?;
+        Ok(())
     }
 
     /// The transitions collected so far as a batch of `version` (None when
@@ -328,6 +351,37 @@ mod tests {
 
     fn settings(episodes: u64) -> RolloutSettings {
         RolloutSettings { envs: 3, batch: Some(50), noise: 0.1, seed: 4, episodes: Some(episodes), run_id: "r".into(), actor_id: "a".into() }
+    }
+
+    /// A simulator that blows up (x ← 30x + u): each episode ends at its first
+    /// step beyond the bounds, unsent and counted as diverged_env; the steps
+    /// before it go out, ending in a cut, and the actor keeps going.
+    #[test]
+    fn a_diverging_environment_ends_its_episodes_unsent() {
+        let path = std::env::temp_dir().join(format!("lcrl-diverging-{}.toml", std::process::id()));
+        std::fs::write(&path, "kind = \"lti\"\ne = [[30.0]]\nf = [[1.0]]\ninitial_state_low = [1.0]\ninitial_state_high = [1.0]\nepisode_steps = 20\n").unwrap();
+        let env = path.to_string_lossy().to_string();
+        let policy = untrained_policy(&env, Algo::Ddpg, None, None, 1);
+        let settings = RolloutSettings { envs: 2, batch: Some(5), episodes: Some(6), ..settings(6) };
+        let mut rollout = Rollout::new(settings, &policy, Exploration { uniform: false, noise: 0.1 }).unwrap();
+        let metrics = ActorMetrics::default();
+        let mut batches = Vec::new();
+        while !rollout.finished() {
+            batches.extend(rollout.step(&policy, &metrics).unwrap());
+        }
+        batches.extend(rollout.take_batch(1));
+        std::fs::remove_file(&path).ok();
+        assert_eq!((metrics.diverged_env.get(), metrics.episodes.get()), (6, 0));
+        let sent: Vec<&Transition> = batches.iter().flat_map(|b| &b.transitions).collect();
+        assert!(batches.iter().all(|b| b.episodes.is_empty()));
+        // From x = 1: x ≈ 30, then ≈ 900 (x² < 10⁶, sound), then ≈ 27,000,
+        // beyond 10⁴: two steps sent per episode, and both environments
+        // diverge at the same step.
+        assert_eq!(sent.len(), 12);
+        assert!(sent.iter().all(|t| f64::from(t.reward).abs() <= lcrl_sim::REWARD_LIMIT && t.next_state[0].abs() < 1e4));
+        // Every episode's last sent step ends in a cut, never an end.
+        assert!(sent.iter().all(|t| !t.terminated && !t.truncated));
+        assert_eq!(sent.iter().filter(|t| t.cut && t.next_state[0].abs() > 100.0).count(), 6, "one cut per diverged episode");
     }
 
     /// Without `--batch`, DDPG sends short batches (policy lag) and PPO

@@ -137,6 +137,11 @@ struct Args {
     /// The most states one `Policy.ActBatch` call may hold.
     #[arg(long, default_value_t = 4096, value_parser = clap::value_parser!(u64).range(1..=1_000_000))]
     max_act_batch: u64,
+    /// The share of one core's time that Act and ActBatch may compute
+    /// (training has priority): after a query of d seconds the next waits
+    /// d·(1 − s)/s; more than 64 waiting get RESOURCE_EXHAUSTED. 1: no pauses.
+    #[arg(long, default_value_t = 0.25, value_parser = share_in_range)]
+    serving_share: f64,
     /// Serve Prometheus metrics on http://ADDR/metrics (port 0: any free
     /// port, logged as "metrics on").
     #[arg(long, value_name = "ADDR")]
@@ -390,7 +395,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         serving: Mutex::new(None),
         act_latency,
         max_act_batch: args.max_act_batch as usize,
-        compute_slots: tokio::sync::Semaphore::new(lcrl_learner::service::server::POLICY_CONCURRENCY),
+        share: lcrl_learner::service::serving_share::ServingShare::new(args.serving_share),
     };
     // Its largest request: --max-act-batch states of f32, and some framing.
     let act_batch_bytes = (args.max_act_batch as usize * m * 4 + 1024).max(64 << 10);
@@ -435,4 +440,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
     drop(commands);
     trainer.join().map_err(|_| anyhow::anyhow!("the training thread panicked"))??;
     Ok(())
+}
+
+/// `--serving-share`: a number in [0.01, 1].
+fn share_in_range(text: &str) -> Result<f64, String> {
+    let share: f64 = text.parse().map_err(|_| format!("{text:?} is not a number"))?;
+    if (0.01..=1.0).contains(&share) { Ok(share) } else { Err(format!("{share} is outside [0.01, 1]")) }
 }

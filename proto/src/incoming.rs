@@ -10,11 +10,16 @@
 //! TCP and TLS) or have been quiet for [`QUIET_TO_EVICT`]: a flood of
 //! sockets, silent or only answering pings, cannot keep a health check or
 //! an actor out, while connections in use are never closed for it.
+//! A connection that completes no authenticated call within
+//! [`CALL_DEADLINE`] is closed whatever it sends (the token check marks
+//! its connection, [`Connections::mark_called`]), and one peer address
+//! beyond loopback holds at most `--max-connections-per-peer`.
 
 use std::future::Future;
 use std::io;
 use std::pin::Pin;
-use std::collections::VecDeque;
+use std::collections::{HashMap, VecDeque};
+use std::net::{IpAddr, SocketAddr};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll, Waker};
@@ -30,7 +35,7 @@ use tokio_rustls::TlsAcceptor;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::server::{Connected, TcpConnectInfo};
 
-use crate::limits::{ConnectionRefusals, ServerLimitsArgs, FIRST_BYTE_TIMEOUT};
+use crate::limits::{ConnectionRefusals, ServerLimitsArgs, CALL_DEADLINE, FIRST_BYTE_TIMEOUT};
 
 /// How long a client may take to finish its TLS handshake.
 const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
@@ -53,6 +58,9 @@ pub const QUIET_TO_EVICT: Duration = Duration::from_secs(5);
 #[derive(Default)]
 struct Hush {
     spoken: AtomicBool,
+    /// A call passed the token check on this connection.
+    called: AtomicBool,
+    peer: Option<SocketAddr>,
     /// Milliseconds from the registry's epoch to the last byte read (or
     /// to the accept).
     heard_ms: std::sync::atomic::AtomicU64,
@@ -92,20 +100,57 @@ impl Hush {
 struct Registry {
     epoch: std::time::Instant,
     open: Mutex<VecDeque<Arc<Hush>>>,
+    /// Open connections by peer address, for the token check to mark and
+    /// for the per-peer cap.
+    by_peer: Mutex<HashMap<SocketAddr, std::sync::Weak<Hush>>>,
+}
+
+/// A server's connections as its token check sees them: the handle that
+/// marks a connection as having completed an authenticated call.
+#[derive(Clone)]
+pub struct Connections(Arc<Registry>);
+
+impl Default for Connections {
+    fn default() -> Self {
+        Connections(Arc::new(Registry::new()))
+    }
+}
+
+impl Connections {
+    /// The connection from `peer` completed a call that passed the token
+    /// check: it is kept past [`CALL_DEADLINE`].
+    pub fn mark_called(&self, peer: SocketAddr) {
+        let by_peer = self.0.by_peer.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(hush) = by_peer.get(&peer).and_then(std::sync::Weak::upgrade) {
+            hush.called.store(true, Ordering::Relaxed);
+        }
+    }
 }
 
 impl Registry {
     fn new() -> Self {
-        Registry { epoch: std::time::Instant::now(), open: Mutex::new(VecDeque::new()) }
+        Registry { epoch: std::time::Instant::now(), open: Mutex::new(VecDeque::new()), by_peer: Mutex::new(HashMap::new()) }
+    }
+
+    /// Whether `ip` (not loopback) holds `cap` open connections already.
+    fn peer_full(&self, ip: IpAddr, cap: usize) -> bool {
+        if ip.is_loopback() {
+            return false;
+        }
+        let mut by_peer = self.by_peer.lock().unwrap_or_else(|p| p.into_inner());
+        // The open list holds one reference; the connection, the other.
+        by_peer.retain(|_, hush| hush.strong_count() > 1);
+        by_peer.keys().filter(|addr| addr.ip() == ip).count() >= cap
     }
 
     fn now_ms(&self) -> u64 {
         self.epoch.elapsed().as_millis() as u64
     }
 
-    fn admit(&self, max_connections: usize) -> Arc<Hush> {
-        let hush = Arc::new(Hush::default());
+    fn admit(&self, max_connections: usize, peer: SocketAddr) -> Arc<Hush> {
+        let hush = Arc::new(Hush { peer: Some(peer), ..Hush::default() });
         hush.heard_ms.store(self.now_ms(), Ordering::Relaxed);
+        self.by_peer.lock().unwrap_or_else(|p| p.into_inner()).insert(peer, Arc::downgrade(&hush));
         let mut open = self.open.lock().unwrap_or_else(|p| p.into_inner());
         if open.len() >= 2 * max_connections {
             open.retain(|h| Arc::strong_count(h) > 1);
@@ -122,7 +167,9 @@ impl Registry {
         let quiet = QUIET_TO_EVICT.as_millis() as u64;
         let mut open = self.open.lock().unwrap_or_else(|p| p.into_inner());
         open.retain(|h| Arc::strong_count(h) > 1 && !h.evicted.load(Ordering::Acquire));
-        let evictable = |h: &&Arc<Hush>| !h.spoken.load(Ordering::Acquire) || now.saturating_sub(h.heard_ms.load(Ordering::Relaxed)) >= quiet;
+        let evictable = |h: &&Arc<Hush>| {
+            !h.spoken.load(Ordering::Acquire) || !h.called.load(Ordering::Relaxed) || now.saturating_sub(h.heard_ms.load(Ordering::Relaxed)) >= quiet
+        };
         let Some(oldest) = open.iter().filter(evictable).min_by_key(|h| h.heard_ms.load(Ordering::Relaxed)) else { return false };
         oldest.evict();
         true
@@ -143,6 +190,8 @@ pub struct Conn {
     idle: Pin<Box<Sleep>>,
     first_byte_timeout: Duration,
     idle_timeout: Duration,
+    /// When the connection must have completed an authenticated call.
+    call_deadline: Instant,
     refusals: Arc<ConnectionRefusals>,
 }
 
@@ -150,23 +199,30 @@ impl Conn {
     fn new(stream: Stream, permit: OwnedSemaphorePermit, hush: Arc<Hush>, registry: Arc<Registry>, limits: &Limits) -> Conn {
         // Until the peer's first byte the shorter of the two timeouts.
         let first_byte_timeout = limits.idle_timeout.min(FIRST_BYTE_TIMEOUT);
-        let idle = Box::pin(tokio::time::sleep(first_byte_timeout));
-        Conn { stream, _permit: permit, hush, registry, idle, first_byte_timeout, idle_timeout: limits.idle_timeout, refusals: limits.refusals.clone() }
+        let idle = Box::pin(tokio::time::sleep(first_byte_timeout.min(limits.call_deadline)));
+        let call_deadline = Instant::now() + limits.call_deadline;
+        Conn { stream, _permit: permit, hush, registry, idle, first_byte_timeout, idle_timeout: limits.idle_timeout, call_deadline, refusals: limits.refusals.clone() }
     }
 
-    /// Whether the peer has been silent past its timeout (registering the
-    /// task to be woken at the deadline otherwise).
-    fn silent_too_long(&mut self, cx: &mut Context<'_>) -> bool {
+    /// Why the connection is to be closed: silent past its timeout, or no
+    /// authenticated call by its deadline (registering the task to be
+    /// woken at the next deadline otherwise).
+    fn overdue(&mut self, cx: &mut Context<'_>) -> Option<Overdue> {
         while self.idle.as_mut().poll(cx).is_ready() {
+            let now = Instant::now();
+            let called = self.hush.called.load(Ordering::Relaxed);
+            if !called && self.call_deadline <= now {
+                return Some(Overdue::NoCall);
+            }
             let timeout = if self.hush.spoken.load(Ordering::Relaxed) { self.idle_timeout } else { self.first_byte_timeout };
             let heard = self.registry.epoch + Duration::from_millis(self.hush.heard_ms.load(Ordering::Relaxed));
             let deadline = Instant::from_std(heard + timeout);
-            if deadline <= Instant::now() {
-                return true;
+            if deadline <= now {
+                return Some(Overdue::Silent);
             }
-            self.idle.as_mut().reset(deadline);
+            self.idle.as_mut().reset(if called { deadline } else { deadline.min(self.call_deadline) });
         }
-        false
+        None
     }
 }
 
@@ -205,11 +261,19 @@ impl AsyncRead for Conn {
             // Waiting for the peer: woken by its bytes, an eviction or the
             // idle deadline.
             Poll::Pending if this.hush.poll_evicted(cx).is_ready() => evicted(),
-            Poll::Pending if this.silent_too_long(cx) => {
-                this.refusals.idle.fetch_add(1, Ordering::Relaxed);
-                tracing::debug!("closing a connection silent for its idle timeout");
-                Poll::Ready(Err(io::Error::new(io::ErrorKind::TimedOut, "the peer sent nothing within the idle timeout")))
-            }
+            Poll::Pending => match this.overdue(cx) {
+                Some(Overdue::Silent) => {
+                    this.refusals.idle.fetch_add(1, Ordering::Relaxed);
+                    tracing::debug!("closing a connection silent for its idle timeout");
+                    Poll::Ready(Err(io::Error::new(io::ErrorKind::TimedOut, "the peer sent nothing within the idle timeout")))
+                }
+                Some(Overdue::NoCall) => {
+                    this.refusals.no_call.fetch_add(1, Ordering::Relaxed);
+                    tracing::debug!(peer = ?this.hush.peer, "closing a connection that made no authenticated call within {} s", CALL_DEADLINE.as_secs());
+                    Poll::Ready(Err(io::Error::new(io::ErrorKind::TimedOut, "no authenticated call within the deadline")))
+                }
+                None => Poll::Pending,
+            },
             other => other,
         }
     }
@@ -238,17 +302,32 @@ impl AsyncWrite for Conn {
     }
 }
 
+/// Why [`Conn::overdue`] closes a connection.
+enum Overdue {
+    Silent,
+    NoCall,
+}
+
 /// What [`incoming`] holds a server's connections to.
 #[derive(Clone)]
 pub struct Limits {
     pub max_connections: usize,
+    pub max_connections_per_peer: usize,
     pub idle_timeout: Duration,
+    /// [`CALL_DEADLINE`] (shorter in tests).
+    pub call_deadline: Duration,
     pub refusals: Arc<ConnectionRefusals>,
 }
 
 impl Limits {
     pub fn new(args: &ServerLimitsArgs, refusals: Arc<ConnectionRefusals>) -> Limits {
-        Limits { max_connections: args.max_connections as usize, idle_timeout: args.idle_timeout(), refusals }
+        Limits {
+            max_connections: args.max_connections as usize,
+            max_connections_per_peer: args.max_connections_per_peer as usize,
+            idle_timeout: args.idle_timeout(),
+            call_deadline: CALL_DEADLINE,
+            refusals,
+        }
     }
 }
 
@@ -258,11 +337,11 @@ pub type OnRefusedHandshake = Arc<dyn Fn() + Send + Sync>;
 /// Accepts connections on `listener` (TCP_NODELAY: small request and
 /// response messages), completing TLS handshakes where `tls` is set and
 /// reporting each failed one to `refused`, within `limits`.
-pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, refused: OnRefusedHandshake, limits: Limits) -> ReceiverStream<io::Result<Conn>> {
+pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, refused: OnRefusedHandshake, limits: Limits, connections: Connections) -> ReceiverStream<io::Result<Conn>> {
     let (tx, rx) = tokio::sync::mpsc::channel(64);
     let acceptor = tls.map(TlsAcceptor::from);
     let places = Arc::new(Semaphore::new(limits.max_connections));
-    let registry = Arc::new(Registry::new());
+    let registry = connections.0;
     tokio::spawn(async move {
         loop {
             let (stream, peer) = match listener.accept().await {
@@ -278,6 +357,11 @@ pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, r
                     continue;
                 }
             };
+            if registry.peer_full(peer.ip(), limits.max_connections_per_peer) {
+                limits.refusals.per_peer.fetch_add(1, Ordering::Relaxed);
+                tracing::debug!(%peer, "connection refused: --max-connections-per-peer reached");
+                continue;
+            }
             // Full: the least recently heard quiet connection makes room
             // (its reader fails and tonic drops it, giving its place back
             // at once); with none quiet the newcomer is closed, so a flood of
@@ -300,7 +384,7 @@ pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, r
                     continue;
                 }
             };
-            let hush = registry.admit(limits.max_connections);
+            let hush = registry.admit(limits.max_connections, peer);
             let _ = stream.set_nodelay(true);
             match &acceptor {
                 None => {
@@ -337,4 +421,81 @@ pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, r
         }
     });
     ReceiverStream::new(rx)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    use tokio_stream::StreamExt;
+
+    fn limits(call_deadline: Duration) -> Limits {
+        Limits { max_connections: 8, max_connections_per_peer: 8, idle_timeout: Duration::from_secs(60), call_deadline, refusals: Arc::default() }
+    }
+
+    /// A peer that keeps sending bytes (as pings do) but completes no
+    /// authenticated call is closed at the call deadline; one whose call
+    /// passed the token check is kept.
+    #[tokio::test]
+    async fn a_connection_without_an_authenticated_call_is_closed_whatever_it_sends() {
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let connections = Connections::default();
+        let limits = limits(Duration::from_millis(400));
+        let mut accepted = incoming(listener, None, Arc::new(|| {}), limits.clone(), connections.clone());
+        let chatter = |mut client: TcpStream| async move {
+            // A byte every 50 ms for 1.2 s, far past the deadline.
+            for _ in 0..24 {
+                if client.write_all(b"x").await.is_err() {
+                    return;
+                }
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        };
+        let read_until_closed = |mut conn: Conn| async move {
+            let started = std::time::Instant::now();
+            let mut buf = [0u8; 16];
+            loop {
+                match conn.read(&mut buf).await {
+                    Ok(0) => return (started.elapsed(), None),
+                    Ok(_) => {}
+                    Err(e) => return (started.elapsed(), Some(e.kind())),
+                }
+            }
+        };
+        // Never called: closed after about 400 ms.
+        let client = TcpStream::connect(addr).await.unwrap();
+        let talker = tokio::spawn(chatter(client));
+        let conn = accepted.next().await.unwrap().unwrap();
+        let (lived, error) = read_until_closed(conn).await;
+        assert_eq!(error, Some(io::ErrorKind::TimedOut));
+        assert!(lived >= Duration::from_millis(350) && lived < Duration::from_millis(1100), "{lived:?}");
+        assert_eq!(limits.refusals.no_call.load(Ordering::Relaxed), 1);
+        talker.abort();
+        // Called: kept until the peer hangs up.
+        let client = TcpStream::connect(addr).await.unwrap();
+        let peer = client.local_addr().unwrap();
+        let talker = tokio::spawn(chatter(client));
+        let conn = accepted.next().await.unwrap().unwrap();
+        connections.mark_called(peer);
+        let (lived, error) = read_until_closed(conn).await;
+        talker.await.unwrap();
+        assert_eq!(error, None, "closed by the peer, not the server");
+        assert!(lived >= Duration::from_millis(1000), "{lived:?}");
+        assert_eq!(limits.refusals.no_call.load(Ordering::Relaxed), 1);
+    }
+
+    /// One address beyond loopback holds at most its cap; others and
+    /// loopback are not held by it, and a closed connection frees its place.
+    #[test]
+    fn one_peer_address_holds_at_most_its_cap() {
+        let registry = Registry::new();
+        let peer = |ip: &str, port: u16| SocketAddr::new(ip.parse().unwrap(), port);
+        let held: Vec<_> = (1..=3).map(|port| registry.admit(8, peer("10.0.0.1", port))).collect();
+        assert!(registry.peer_full("10.0.0.1".parse().unwrap(), 3));
+        assert!(!registry.peer_full("10.0.0.2".parse().unwrap(), 3));
+        assert!(!registry.peer_full("127.0.0.1".parse().unwrap(), 0), "loopback is every local process");
+        drop(held);
+        assert!(!registry.peer_full("10.0.0.1".parse().unwrap(), 3), "closed connections give their places back");
+    }
 }

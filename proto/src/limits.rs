@@ -56,6 +56,19 @@ pub const KEEPALIVE_TIMEOUT: Duration = Duration::from_secs(10);
 /// timeout, if shorter): sockets opened and left silent are closed soon.
 pub const FIRST_BYTE_TIMEOUT: Duration = Duration::from_secs(10);
 
+/// A connection must complete a call that passed the token check (any
+/// call but a health check, where no token is set) within this long of
+/// its accept, or it is closed, whatever else it sends: 520 connections
+/// answering HTTP/2 pings were never idle and locked every client out
+/// (issue 71). Health probes connect, ask and leave well within it.
+pub const CALL_DEADLINE: Duration = Duration::from_secs(10);
+
+/// Connections one peer address may hold at once, beyond loopback
+/// (`--max-connections-per-peer`): one host cannot take every place.
+/// Loopback peers share 127.0.0.1 (every actor of `lcrl run`), so they
+/// are held by `--max-connections` alone.
+pub const DEFAULT_MAX_CONNECTIONS_PER_PEER: u32 = 64;
+
 /// `--max-connections` and `--idle-timeout-secs` when not given.
 pub const DEFAULT_MAX_CONNECTIONS: u32 = 512;
 pub const DEFAULT_IDLE_TIMEOUT_SECS: u64 = 300;
@@ -75,11 +88,16 @@ pub struct ServerLimitsArgs {
     /// at most 10 s.
     #[arg(long, default_value_t = DEFAULT_IDLE_TIMEOUT_SECS, value_parser = clap::value_parser!(u64).range(1..=86_400))]
     pub idle_timeout_secs: u64,
+    /// Connections one peer address may hold at once (loopback peers
+    /// excepted: they are every local process); more are refused on accept
+    /// (`connections_refused{reason="per_peer"}`).
+    #[arg(long, default_value_t = DEFAULT_MAX_CONNECTIONS_PER_PEER, value_parser = clap::value_parser!(u32).range(1..=65_536))]
+    pub max_connections_per_peer: u32,
 }
 
 impl Default for ServerLimitsArgs {
     fn default() -> Self {
-        ServerLimitsArgs { max_connections: DEFAULT_MAX_CONNECTIONS, idle_timeout_secs: DEFAULT_IDLE_TIMEOUT_SECS }
+        ServerLimitsArgs { max_connections: DEFAULT_MAX_CONNECTIONS, idle_timeout_secs: DEFAULT_IDLE_TIMEOUT_SECS, max_connections_per_peer: DEFAULT_MAX_CONNECTIONS_PER_PEER }
     }
 }
 
@@ -114,14 +132,21 @@ pub struct ConnectionRefusals {
     /// the least recently heard of those silent since accepted or quiet
     /// for 5 s (crate::incoming).
     pub evicted: AtomicU64,
+    /// Closed for completing no authenticated call within [`CALL_DEADLINE`].
+    pub no_call: AtomicU64,
+    /// Refused on accept: the peer address held
+    /// `--max-connections-per-peer` already.
+    pub per_peer: AtomicU64,
 }
 
 impl ConnectionRefusals {
-    pub fn counts(&self) -> [(&'static str, u64); 3] {
+    pub fn counts(&self) -> [(&'static str, u64); 5] {
         [
             ("connections", self.over_limit.load(Ordering::Relaxed)),
             ("idle", self.idle.load(Ordering::Relaxed)),
             ("evicted", self.evicted.load(Ordering::Relaxed)),
+            ("no_call", self.no_call.load(Ordering::Relaxed)),
+            ("per_peer", self.per_peer.load(Ordering::Relaxed)),
         ]
     }
 }
@@ -189,8 +214,39 @@ mod tests {
 
     #[test]
     fn the_ping_interval_stays_below_the_idle_timeout() {
-        let short = ServerLimitsArgs { max_connections: 1, idle_timeout_secs: 2 };
+        let short = ServerLimitsArgs { max_connections: 1, idle_timeout_secs: 2, ..Default::default() };
         assert_eq!(short.keepalive_interval(), Duration::from_secs(1));
         assert_eq!(ServerLimitsArgs::default().keepalive_interval(), KEEPALIVE_INTERVAL);
     }
+}
+
+/// Files a server keeps beyond its connections: checkpoints, logs,
+/// shared memory, the /metrics server's connections (64).
+pub const RESERVED_FILES: u64 = 256;
+
+/// Raises this process's open-file limit (the soft one, up to the hard
+/// one) so that `max_connections` connections leave [`RESERVED_FILES`]
+/// for the rest: full of connections, a server still writes its
+/// checkpoints. Returns the limit, or why it stays too low.
+pub fn reserve_files(max_connections: u32) -> Result<u64, String> {
+    let needed = u64::from(max_connections) + RESERVED_FILES;
+    let mut limit = libc::rlimit { rlim_cur: 0, rlim_max: 0 };
+    // SAFETY: getrlimit and setrlimit read and write the one struct given.
+    if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut limit) } != 0 {
+        return Err(format!("cannot read the open-file limit: {}", std::io::Error::last_os_error()));
+    }
+    if limit.rlim_cur >= needed {
+        return Ok(limit.rlim_cur);
+    }
+    let raised = libc::rlimit { rlim_cur: needed.min(limit.rlim_max), rlim_max: limit.rlim_max };
+    // SAFETY: as above.
+    if unsafe { libc::setrlimit(libc::RLIMIT_NOFILE, &raised) } != 0 || raised.rlim_cur < needed {
+        return Err(format!(
+            "the open-file limit is {} (hard {}), below --max-connections {max_connections} + {RESERVED_FILES} for checkpoints and logs; \
+             raise it (ulimit -n) or lower --max-connections",
+            raised.rlim_cur.max(limit.rlim_cur),
+            limit.rlim_max
+        ));
+    }
+    Ok(raised.rlim_cur)
 }

@@ -52,6 +52,16 @@ pub fn error_chain(e: &anyhow::Error) -> String {
             line.push_str(&text);
         }
     }
+    let lower = line.to_lowercase();
+    if lower.contains("broken pipe") || lower.contains("connection reset") {
+        // Under TLS 1.3 a server that refuses the client's certificate does
+        // so after the client's handshake ended: the client sees only the
+        // closed connection (issue 71).
+        line.push_str(
+            " (the server closed the connection; under mutual TLS it does so when it refuses this client's certificate: \
+             is --tls-client-cert signed by the CA the server trusts, its --tls-client-ca?)",
+        );
+    }
     line
 }
 
@@ -129,6 +139,17 @@ pub fn add_reflection<L>(router: tonic::transport::server::Router<L>, check: &To
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A closed connection names the TLS refusal it may be; other errors
+    /// read as they are.
+    #[test]
+    fn a_closed_connection_names_the_tls_refusal() {
+        let closed = anyhow::Error::new(std::io::Error::from(std::io::ErrorKind::BrokenPipe)).context("GetStatus");
+        let line = error_chain(&closed);
+        assert!(line.starts_with("GetStatus: broken pipe") && line.contains("--tls-client-ca"), "{line}");
+        let other = anyhow::anyhow!("no such file");
+        assert_eq!(error_chain(&other), "no such file");
+    }
 
     /// An I/O error whose message embeds its source (thiserror's
     /// `#[error("{path}: {source}")]`) is printed once, not twice; other

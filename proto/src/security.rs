@@ -109,11 +109,24 @@ impl AuthRefusals {
 pub struct TokenCheck {
     token: Option<Token>,
     refusals: Arc<AuthRefusals>,
+    /// The server's connections: a call that passes marks its own
+    /// (crate::incoming: one that never completes such a call is closed).
+    connections: crate::incoming::Connections,
 }
 
 impl Interceptor for TokenCheck {
     fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
-        let Some(token) = &self.token else { return Ok(request) };
+        let passed = self.check(&request);
+        if let (Ok(()), Some(peer)) = (&passed, request.remote_addr()) {
+            self.connections.mark_called(peer);
+        }
+        passed.map(|()| request)
+    }
+}
+
+impl TokenCheck {
+    fn check(&self, request: &Request<()>) -> Result<(), Status> {
+        let Some(token) = &self.token else { return Ok(()) };
         let refuse = |counter: &AtomicU64, why: &str| {
             counter.fetch_add(1, Ordering::Relaxed);
             Err(Status::unauthenticated(why.to_string()))
@@ -122,7 +135,7 @@ impl Interceptor for TokenCheck {
             None => refuse(&self.refusals.missing, "this server needs `authorization: Bearer <token>` (clients: --token-file)"),
             Some(value) => match value.as_bytes().strip_prefix(b"Bearer ") {
                 None => refuse(&self.refusals.malformed, "the authorization header must be `Bearer <token>`"),
-                Some(presented) if token.matches(presented) => Ok(request),
+                Some(presented) if token.matches(presented) => Ok(()),
                 Some(_) => refuse(&self.refusals.wrong, "the bearer token is not this server's"),
             },
         }
@@ -227,7 +240,7 @@ impl ServerSecurity {
         Ok(ServerSecurity {
             tls,
             mutual,
-            check: TokenCheck { token, refusals: Arc::default() },
+            check: TokenCheck { token, refusals: Arc::default(), connections: Default::default() },
             limits: args.limits.clone(),
             connection_refusals: Arc::default(),
         })
@@ -246,10 +259,14 @@ impl ServerSecurity {
     /// handshakes counted), for `serve_with_incoming`.
     pub fn incoming(&self, listener: tokio::net::TcpListener) -> tokio_stream::wrappers::ReceiverStream<std::io::Result<crate::incoming::Conn>> {
         let refusals = self.check.refusals.clone();
+        if let Err(why) = crate::limits::reserve_files(self.limits.max_connections) {
+            tracing::warn!("{why}");
+        }
         let limits = crate::incoming::Limits::new(&self.limits, self.connection_refusals.clone());
+        let connections = self.check.connections.clone();
         crate::incoming::incoming(listener, self.tls.clone(), Arc::new(move || {
             refusals.tls_handshake.fetch_add(1, Ordering::Relaxed);
-        }), limits)
+        }), limits, connections)
     }
 
     /// A tonic server with this server's limits (streams per connection,
@@ -370,7 +387,7 @@ mod tests {
 
     fn check_with(token: &str) -> TokenCheck {
         let file = token_file(token);
-        TokenCheck { token: Token::load(Some(file.path())).unwrap(), refusals: Arc::default() }
+        TokenCheck { token: Token::load(Some(file.path())).unwrap(), refusals: Arc::default(), connections: Default::default() }
     }
 
     fn call(check: &mut TokenCheck, header: Option<&str>) -> Result<(), tonic::Code> {
@@ -392,7 +409,7 @@ mod tests {
         let counts: Vec<u64> = check.refusals.counts().iter().map(|(_, n)| *n).collect();
         assert_eq!(counts, [1, 1, 2, 0], "missing, malformed, wrong, TLS handshake");
         // Without a token, everything passes.
-        let mut open = TokenCheck { token: None, refusals: Arc::default() };
+        let mut open = TokenCheck { token: None, refusals: Arc::default(), connections: Default::default() };
         assert_eq!(call(&mut open, None), Ok(()));
     }
 

@@ -66,6 +66,39 @@ pub fn u_of(spec: &EnvSpec, action: &[f64]) -> Vec<f64> {
         .collect()
 }
 
+/// How far a sound state may lie from its scale: every component of
+/// `normalize_state` (order 1 by construction) stays within ±this. Beyond
+/// it the simulation has diverged (docs/reliability.md, "Finite weights
+/// only"): actors and `lcrl train` end the episode as `diverged_env`, and
+/// the learner refuses such a transition at its door ("bounds").
+pub const STATE_LIMIT: f64 = 1e4;
+/// The largest magnitude of one step's reward a sound episode gives. The
+/// peg task's largest single charge is its failure charge (100 × the
+/// largest step cost, docs/peg.md), far below; a linear system's quadratic
+/// cost reaches it near |x| ≈ 10³, long after it diverged.
+pub const REWARD_LIMIT: f64 = 1e6;
+/// How far beyond [−1, 1] the agent's own sampled u may lie (PPO samples
+/// an unclipped Gaussian; DDPG clips into [−1, 1]).
+pub const SAMPLED_ACTION_LIMIT: f64 = 1e3;
+
+/// Why a step's outcome cannot be a sound continuation of an episode: a
+/// non-finite or out-of-bounds state, or a reward beyond
+/// [`REWARD_LIMIT`]. None when it is sound.
+pub fn diverged(env: &dyn Env, step: &Step) -> Option<String> {
+    if !step.reward.is_finite() || step.reward.abs() > REWARD_LIMIT {
+        return Some(format!("reward {} is beyond ±{REWARD_LIMIT:e}", step.reward));
+    }
+    state_out_of_bounds(env, &step.state)
+}
+
+/// Why `state` lies beyond the environment's scale by more than
+/// [`STATE_LIMIT`] (or is not finite); None when it lies within.
+pub fn state_out_of_bounds(env: &dyn Env, state: &[f64]) -> Option<String> {
+    let scaled = env.normalize_state(state);
+    let k = scaled.iter().position(|v| !v.is_finite() || v.abs() > STATE_LIMIT)?;
+    Some(format!("state component {k} ({}) is {}, {} times its scale; at most {STATE_LIMIT:e}", env.spec().state_names.get(k).map_or("?", String::as_str), state[k], scaled[k]))
+}
+
 /// The outcome of one control step.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Step {
@@ -118,10 +151,15 @@ pub trait Env: Send + Sync {
     fn is_stochastic(&self) -> bool {
         false
     }
-    /// The state scaled for learning (components of order 1). Identity
-    /// unless the environment knows better.
+    /// Divisors that bring each state component to order 1 for learning
+    /// (length m). Ones unless the environment knows better.
+    fn state_scale(&self) -> Vec<f64> {
+        vec![1.0; self.spec().state_dim()]
+    }
+    /// The state scaled for learning: each component over its
+    /// [`Env::state_scale`].
     fn normalize_state(&self, state: &[f64]) -> Vec<f64> {
-        state.to_vec()
+        state.iter().zip(self.state_scale()).map(|(v, s)| v / s).collect()
     }
     /// Seconds of simulated time per step (for traces).
     fn control_period_s(&self) -> f64 {

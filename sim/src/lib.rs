@@ -11,6 +11,8 @@
 //! - [`registry`]: environments by name, TOML file or server URL.
 //! - [`remote`]: environments served by another process (`grpc://HOST:PORT`,
 //!   e.g. any Gymnasium environment behind `python -m lcrl_env serve`).
+//! - [`serve`]: the other direction: these environments served over
+//!   `lcrl.v1.Environment` (`lcrl serve-env`), for any language.
 //! - [`seeds`]: which episode starts training, validation and evaluation use (disjoint ranges).
 //! - [`tune`]: the best constant action (CMA-ES), the bar for learned agents.
 
@@ -22,9 +24,10 @@ pub mod peg;
 pub mod registry;
 pub mod remote;
 pub mod seeds;
+pub mod serve;
 pub mod tune;
 
-pub use env::{Env, EnvError, EnvSpec, EpisodeMetrics, ReturnColumns, ReturnTerms, Step};
+pub use env::{diverged, state_out_of_bounds, Env, EnvError, EnvSpec, EpisodeMetrics, ReturnColumns, ReturnTerms, Step, REWARD_LIMIT, SAMPLED_ACTION_LIMIT, STATE_LIMIT};
 pub use remote::step_all;
 pub use overlay::overlay;
 pub use registry::{env_from_toml, known_env_names, make_env};

@@ -196,7 +196,10 @@ impl RemoteEnv {
         if let Some(i) = (0..n).find(|&i| !(spec.action_low[i].is_finite() && spec.action_high[i].is_finite() && spec.action_low[i] < spec.action_high[i])) {
             return Err(connection.error(format!("action {i} has bounds [{}, {}]; they must be finite and increasing", spec.action_low[i], spec.action_high[i])));
         }
-        let state_scale = spec
+        if !spec.state_scale.is_empty() && (spec.state_scale.len() != m || spec.state_scale.iter().any(|s| !(s.is_finite() && *s > 0.0))) {
+            return Err(connection.error("the spec's state_scale must hold one finite, positive divisor per state"));
+        }
+        let derived: Vec<f64> = spec
             .state_low
             .iter()
             .zip(&spec.state_high)
@@ -205,6 +208,7 @@ impl RemoteEnv {
                 if lo.is_finite() && hi.is_finite() && bound > 0.0 { bound } else { 1.0 }
             })
             .collect();
+        let state_scale = if spec.state_scale.is_empty() { derived } else { spec.state_scale };
         Ok(Server {
             connection,
             spec: EnvSpec { name: url.to_string(), state_names: spec.state_names, action_names: spec.action_names, action_low: spec.action_low, action_high: spec.action_high },
@@ -358,8 +362,8 @@ impl Env for RemoteEnv {
         }
     }
 
-    fn normalize_state(&self, state: &[f64]) -> Vec<f64> {
-        state.iter().zip(&self.server.state_scale).map(|(s, k)| s / k).collect()
+    fn state_scale(&self) -> Vec<f64> {
+        self.server.state_scale.clone()
     }
 
     fn control_period_s(&self) -> f64 {
@@ -397,7 +401,7 @@ mod tests {
     }
 
     fn result(state: Vec<f64>, reward: f64) -> StepResult {
-        StepResult { state, reward, terminated: true, truncated: false }
+        StepResult { state, reward, terminated: true, truncated: false, so_far: None }
     }
 
     #[test]

@@ -83,17 +83,21 @@ pub fn write_set(out: &Path, hosts: &[String], days: u32) -> anyhow::Result<()> 
     (client.not_before, client.not_after) = (now, until);
     let client_cert = client.signed_by(&client_key, &issuer)?;
 
-    let mut secret = [0u8; 32];
-    rand::rng().fill_bytes(&mut secret);
-    let token: String = secret.iter().map(|b| format!("{b:02x}")).collect();
-
     write(&out.join("ca.pem"), &ca_cert.pem(), false)?;
     write(&out.join(CA_KEY), &ca_key.serialize_pem(), true)?;
     write(&out.join("server.pem"), &server_cert.pem(), false)?;
     write(&out.join("server.key"), &server_key.serialize_pem(), true)?;
     write(&out.join("client.pem"), &client_cert.pem(), false)?;
     write(&out.join("client.key"), &client_key.serialize_pem(), true)?;
-    write(&out.join("token"), &(token + "\n"), true)
+    write_token(&out.join("token"))
+}
+
+/// Writes a new random token (32 bytes, hex), readable by its owner only.
+pub fn write_token(path: &Path) -> anyhow::Result<()> {
+    let mut secret = [0u8; 32];
+    rand::rng().fill_bytes(&mut secret);
+    let token: String = secret.iter().map(|b| format!("{b:02x}")).collect();
+    write(path, &(token + "\n"), true)
 }
 
 /// Writes a file; secrets (keys, the token) only readable by their owner.

@@ -11,6 +11,7 @@ pub mod doctor;
 pub mod export;
 pub mod launch;
 pub mod probe;
+pub mod serve_env;
 pub mod run;
 pub mod scale;
 pub mod sim;

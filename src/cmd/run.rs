@@ -92,10 +92,11 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let logs = run_dir.join("logs");
     fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
     lcrl::output::write_atomic(&run_dir.join("config.toml"), &preset.text)?;
+    let security = with_own_token(&args.security, &run_dir)?;
     // A served environment lives until the run's end: the final evaluation
     // steps it too. Dropped last, it is stopped after everything else.
     let _env_server = match preset.env_server.clone() {
-        Some(server) => Some(start_env_server(&mut preset, &server, &args.config, &logs, &args.security)?),
+        Some(server) => Some(start_env_server(&mut preset, &server, &args.config, &logs, &security)?),
         None => None,
     };
     let train_path = run_dir.join("train.toml");
@@ -109,9 +110,24 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         TransportArg::Grpc => "grpc",
         TransportArg::Shm => "shm",
     };
-    let summary = runtime.block_on(orchestrate(&preset, &train_path, &run_dir, &logs, transport, &args.security))?;
+    let summary = runtime.block_on(orchestrate(&preset, &train_path, &run_dir, &logs, transport, &security))?;
     println!("{summary}");
     Ok(())
+}
+
+/// The run's security: as given, or, with no token given (--token-file or
+/// $LCRL_TOKEN_FILE), a new token in RUN/token (owner-only) that every
+/// server of the run requires, as compose does: without one, any local
+/// user could act as a peer of the run (issue 71).
+fn with_own_token(given: &RunSecurity, run_dir: &Path) -> anyhow::Result<RunSecurity> {
+    let mut security = given.clone();
+    if security.token_file.is_none() && std::env::var_os(lcrl_proto::security::TOKEN_FILE_ENV).is_none() {
+        let path = run_dir.join("token");
+        crate::cmd::certs::write_token(&path)?;
+        eprintln!("this run's servers require the token in {} (clients: --token-file {})", path.display(), path.display());
+        security.token_file = Some(path);
+    }
+    Ok(security)
 }
 
 /// Starts `python -m lcrl_env serve` for the preset's `[env_server]` and

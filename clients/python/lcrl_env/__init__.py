@@ -1,4 +1,12 @@
-"""lcrl_env: any Gymnasium environment as an `lcrl.v1.Environment` gRPC service.
+"""lcrl_env: Gymnasium and lcrl, both ways, over `lcrl.v1.Environment`.
+
+lcrl's own environments as Gymnasium environments (they start `lcrl
+serve-env` themselves; docs/environments.md):
+
+    env = lcrl_env.make("peg-group1")          # or gymnasium.make("lcrl/peg-group1")
+    envs = lcrl_env.make_vec("peg-group1", num_envs=8)
+
+Any Gymnasium environment as a gRPC service lcrl trains on:
 
     python -m lcrl_env serve --env HalfCheetah-v5 --listen 127.0.0.1:50070
     python -m lcrl_env serve --entry-point my_module:MyEnv --listen 127.0.0.1:50070
@@ -20,4 +28,8 @@ if str(_STUBS) not in sys.path:
 import lcrl_pb2  # noqa: E402
 import lcrl_pb2_grpc  # noqa: E402
 
-__all__ = ["lcrl_pb2", "lcrl_pb2_grpc"]
+from .gymnasium_env import LcrlEnv, LcrlVectorEnv, make, make_vec, register  # noqa: E402
+
+register()
+
+__all__ = ["lcrl_pb2", "lcrl_pb2_grpc", "LcrlEnv", "LcrlVectorEnv", "make", "make_vec", "register"]

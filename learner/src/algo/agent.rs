@@ -66,6 +66,10 @@ pub struct Counters {
     /// their optimizers (a divergent batch): the weights before them stay.
     #[serde(default)]
     pub skipped_updates: u64,
+    /// Episodes `lcrl train` ended because the environment diverged
+    /// ([`Agent::end_stream`]); actors count theirs themselves.
+    #[serde(default)]
+    pub diverged_env: u64,
 }
 
 /// A training algorithm over a normalized action space [−1, 1]^n.
@@ -84,6 +88,11 @@ pub trait Agent: Send {
         self.store(transition);
         self.train_step()
     }
+    /// Ends `lcrl train`'s stream without an episode end: its environment
+    /// diverged (`lcrl_sim::diverged`), so the step that did is not stored
+    /// and the last stored one bootstraps from its sound next state, as at
+    /// a cut nothing continues. Counted as `diverged_env`.
+    fn end_stream(&mut self);
     /// Transitions held (replay size, or the current rollout's length).
     fn stored(&self) -> usize;
     /// Tells the agent how far training is (0 at the start, 1 at the end),

@@ -277,6 +277,15 @@ impl Agent for Ppo {
         }
     }
 
+    /// The rollout's last row, if the stream's, ends there (`lcrl train`
+    /// has one stream; a rollout just used for an update holds none).
+    fn end_stream(&mut self) {
+        self.counters.diverged_env += 1;
+        if let Some(ended) = self.rollout.ended.last_mut() {
+            *ended = true;
+        }
+    }
+
     fn counters(&self) -> Counters {
         // Each PPO gradient step moves the actor and the critic together.
         Counters { critic_updates: self.counters.updates, ..self.counters }

@@ -86,7 +86,13 @@ pub fn selected_dir(run_dir: &Path) -> PathBuf {
 /// truncated file, a disk error) must not stop a resume when an older one
 /// is whole, so those are skipped, each logged with the reason.
 pub fn latest_checkpoint(run_dir: &Path) -> Option<PathBuf> {
-    checkpoint_folders(&run_dir.join("checkpoints")).into_iter().rev().find(|dir| match check_intact(dir) {
+    intact_checkpoints(run_dir).next()
+}
+
+/// The intact checkpoints of `run_dir`, newest first (checked as they are
+/// asked for; damaged ones skipped and logged).
+pub fn intact_checkpoints(run_dir: &Path) -> impl Iterator<Item = PathBuf> {
+    checkpoint_folders(&run_dir.join("checkpoints")).into_iter().rev().filter(|dir| match check_intact(dir) {
         Ok(()) => true,
         Err(e) => {
             tracing::warn!(checkpoint = %dir.display(), "skipping a checkpoint that is not intact: {e}");

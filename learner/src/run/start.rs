@@ -11,7 +11,7 @@ use lcrl_sim::Env;
 
 use crate::policy::action::ActionMap;
 use crate::algo::agent::Agent;
-use crate::policy::checkpoint::{latest_checkpoint, read_meta, recover_folders, CheckpointMeta};
+use crate::policy::checkpoint::{intact_checkpoints, latest_checkpoint, read_meta, recover_folders, CheckpointMeta};
 use crate::config::{Algo, BaseController, Connection, TrainConfig};
 use crate::LearnerError;
 
@@ -84,27 +84,50 @@ pub fn prepare(start: RunStart, env: &dyn Env) -> Result<Prepared, LearnerError>
             start.run_dir.display()
         )));
     }
-    let resumed = if start.resume { checkpoint_to_resume(start.run_dir, start.env, start.algo, start.connection)? } else { None };
-    let (mut config, checkpoint, mut meta, graph) = match resumed {
-        Some((dir, meta)) => {
-            let mut config = meta.config.clone();
-            config.run.episodes = start.config.run.episodes.max(meta.episode);
-            (config, Some(dir), meta, None)
+    if start.resume {
+        if let Some(prepared) = resume(&start, env)? {
+            return Ok(prepared);
         }
-        None => {
-            let measured_here = matches!(start.graph, GraphSource::Measure);
-            let (mask, graph) = match start.graph {
-                GraphSource::Mask(mask) if start.connection == Connection::Local => (mask, None),
-                GraphSource::File(path) => resolve_mask(start.connection, Some(path), env, &start.config)?,
-                _ => resolve_mask(start.connection, None, env, &start.config)?,
-            };
-            // Time spent building G here (none when it was given).
-            let graph_seconds = graph.as_ref().filter(|_| measured_here).map_or(0.0, |r| r.elapsed_s);
-            let meta = CheckpointMeta { graph_seconds, ..CheckpointMeta::start(start.env, start.algo, start.connection, m, n, mask, start.config.clone()) };
-            (start.config, None, meta, graph)
-        }
+    }
+    let measured_here = matches!(start.graph, GraphSource::Measure);
+    let (mask, graph) = match start.graph {
+        GraphSource::Mask(ref mask) if start.connection == Connection::Local => (mask.clone(), None),
+        GraphSource::File(path) => resolve_mask(start.connection, Some(path), env, &start.config)?,
+        _ => resolve_mask(start.connection, None, env, &start.config)?,
     };
-    if let Some(device) = start.device {
+    // Time spent building G here (none when it was given).
+    let graph_seconds = graph.as_ref().filter(|_| measured_here).map_or(0.0, |r| r.elapsed_s);
+    let meta = CheckpointMeta { graph_seconds, ..CheckpointMeta::start(start.env, start.algo, start.connection, m, n, mask, start.config.clone()) };
+    let config = start.config.clone();
+    build_agent(&start, env, config, None, meta, graph)
+}
+
+/// Resumes from the newest intact checkpoint whose agent loads; one whose
+/// files are whole but whose contents cannot be loaded (a damaged replay
+/// buffer consistent with its manifest) is skipped for the one before it,
+/// with the reason logged (issue 71). None when there is no checkpoint.
+fn resume(start: &RunStart, env: &dyn Env) -> Result<Option<Prepared>, LearnerError> {
+    let candidates = checkpoints_to_resume(start.run_dir, start.env, start.algo, start.connection)?;
+    let count = candidates.len();
+    for (k, (dir, meta)) in candidates.into_iter().enumerate() {
+        let mut config = meta.config.clone();
+        config.run.episodes = start.config.run.episodes.max(meta.episode);
+        match build_agent(start, env, config, Some(dir.clone()), meta, None) {
+            Ok(prepared) => return Ok(Some(prepared)),
+            Err(e @ (LearnerError::Io { .. } | LearnerError::Checkpoint(_))) if k + 1 < count => {
+                tracing::warn!(checkpoint = %dir.display(), "cannot load this checkpoint ({e}); resuming from the one before it");
+            }
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(None)
+}
+
+/// The rest of the start-up: the device, threads and base controller, and
+/// the agent (loaded from `checkpoint` when resuming).
+fn build_agent(start: &RunStart, env: &dyn Env, mut config: TrainConfig, checkpoint: Option<PathBuf>, mut meta: CheckpointMeta, graph: Option<GraphReport>) -> Result<Prepared, LearnerError> {
+    let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
+    if let Some(device) = start.device.clone() {
         config.run.device = device;
     }
     if let Some(threads) = start.threads {
@@ -129,18 +152,27 @@ pub fn prepare(start: RunStart, env: &dyn Env) -> Result<Prepared, LearnerError>
 /// A checkpoint of another environment, algorithm or connection is an
 /// error: resuming it as this run would mix two runs.
 pub fn checkpoint_to_resume(run_dir: &Path, env: &str, algo: Algo, connection: Connection) -> Result<Option<(PathBuf, CheckpointMeta)>, LearnerError> {
-    let Some(dir) = latest_checkpoint(run_dir) else { return Ok(None) };
-    let meta = read_meta(&dir)?;
-    if meta.shape.env != env || meta.shape.algo != algo || meta.shape.connection != connection {
-        return Err(LearnerError::Mismatch(format!(
-            "{} holds a run of {} with {:?}/{:?}; continue it with the same --env, --algo and --connection, or choose another --run-dir",
-            dir.display(),
-            meta.shape.env,
-            meta.shape.algo,
-            meta.shape.connection
-        )));
+    Ok(checkpoints_to_resume(run_dir, env, algo, connection)?.into_iter().next())
+}
+
+/// Every intact checkpoint of `run_dir`, newest first, with its metadata;
+/// the same check of the run's shape as [`checkpoint_to_resume`].
+fn checkpoints_to_resume(run_dir: &Path, env: &str, algo: Algo, connection: Connection) -> Result<Vec<(PathBuf, CheckpointMeta)>, LearnerError> {
+    let mut found = Vec::new();
+    for dir in intact_checkpoints(run_dir) {
+        let meta = read_meta(&dir)?;
+        if meta.shape.env != env || meta.shape.algo != algo || meta.shape.connection != connection {
+            return Err(LearnerError::Mismatch(format!(
+                "{} holds a run of {} with {:?}/{:?}; continue it with the same --env, --algo and --connection, or choose another --run-dir",
+                dir.display(),
+                meta.shape.env,
+                meta.shape.algo,
+                meta.shape.connection
+            )));
+        }
+        found.push((dir, meta));
     }
-    Ok(Some((dir, meta)))
+    Ok(found)
 }
 
 /// Replaces `config`'s base controller by the numbers it stands for

@@ -52,6 +52,11 @@ pub struct RunSummary {
     /// (learner/src/algo/ddpg: the weights before them stay).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub skipped_updates: u64,
+    /// Episodes ended because the environment diverged (a non-finite or
+    /// out-of-bounds state or reward); `lcrl train` only: actors count
+    /// theirs in `lcrl_actor_diverged_env`.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub diverged_env: u64,
     /// Transitions drawn from the replay buffer (DDPG: batch_size per critic
     /// update); against env_steps, the replay ratio the run kept.
     #[serde(default)]
@@ -242,6 +247,7 @@ mod tests {
             updates: 200,
             critic_updates: 400,
             skipped_updates: 0,
+            diverged_env: 0,
             samples_drawn: 51_200,
             actor_params: 40,
             critic_params: 90,

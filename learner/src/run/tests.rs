@@ -630,3 +630,54 @@ fn cuda_graph_updates_equal_eager_updates() {
     assert_close("graphs against eager CUDA", &eager, &replayed);
     assert_close("graphs against the CPU", &cpu, &replayed);
 }
+
+/// A simulator that blows up (x ← 30x + u, from x = 1): every episode of
+/// `lcrl train` ends at its first step beyond the bounds, counted as
+/// diverged_env, and training goes on with finite weights (issue 71).
+#[test]
+fn a_diverging_environment_ends_episodes_and_training_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let env = dir.path().join("diverging.toml");
+    std::fs::write(&env, "kind = \"lti\"\ne = [[30.0]]\nf = [[1.0]]\ninitial_state_low = [1.0]\ninitial_state_high = [1.0]\nepisode_steps = 20\n").unwrap();
+    for algo in [Algo::Ddpg, Algo::Ppo] {
+        let mut cfg = tiny_with_episodes(30);
+        cfg.ddpg.warmup_steps = 8;
+        cfg.ddpg.batch_size = 4;
+        cfg.ppo.rollout_steps = 8;
+        cfg.ppo.minibatch_size = 4;
+        let run_dir = dir.path().join(format!("{algo:?}"));
+        let request = TrainRequest { env: env.to_string_lossy().into(), algo, connection: Connection::Global, graph: None, config: cfg, settings_source: "test".into(), run_dir: run_dir.clone(), resume: false, stop_after: None };
+        let outcome = train(&request, &mut |_| {}).unwrap();
+        assert_eq!(outcome.summary.diverged_env, 30, "{algo:?}");
+        // Two sound steps an episode (x ≈ 30, then ≈ 900), all stored.
+        assert!(outcome.rows.iter().all(|r| r.length == 2 && r.episode_return > -1e6), "{algo:?}");
+        assert_eq!(outcome.summary.env_steps, 60, "{algo:?}");
+        assert!(outcome.summary.updates > 0, "{algo:?}: training went on");
+        let last = crate::policy::checkpoint::latest_checkpoint(&run_dir).unwrap();
+        let tensors = tch::Tensor::read_safetensors(last.join("actor.safetensors")).unwrap();
+        assert!(tensors.iter().all(|(_, t)| t.isfinite().all().int64_value(&[]) == 1), "{algo:?}: finite weights");
+    }
+}
+
+/// A replay buffer damaged so that its file still matches the manifest
+/// (a tensor renamed in place: same size, valid header) cannot be loaded:
+/// the resume falls back to the checkpoint before it, instead of stopping
+/// (issue 71).
+#[test]
+fn a_resume_falls_back_past_a_checkpoint_whose_replay_cannot_load() {
+    let dir = tempfile::tempdir().unwrap();
+    run_until(Algo::Ddpg, Connection::Global, tiny(), dir.path(), false, Some(4));
+    let newest = crate::policy::checkpoint::latest_checkpoint(dir.path()).unwrap();
+    assert!(newest.ends_with("ep000004"), "{}", newest.display());
+    let replay = newest.join("replay.safetensors");
+    let bytes = std::fs::read(&replay).unwrap();
+    let at = bytes.windows(9).position(|w| w == b"\"next_obs").expect("the header names next_obs");
+    let mut damaged = bytes.clone();
+    damaged[at + 1..at + 9].copy_from_slice(b"next_obz");
+    std::fs::write(&replay, &damaged).unwrap();
+    crate::policy::checkpoint::check_intact(&newest).expect("still consistent with its manifest");
+    let resumed = run_until(Algo::Ddpg, Connection::Global, tiny_with_episodes(6), dir.path(), true, None);
+    // Episodes 3 and 4 trained again from ep000002, then 5 and 6.
+    assert_eq!(resumed.rows.len(), 6);
+    assert_eq!(resumed.summary.episodes, 6);
+}

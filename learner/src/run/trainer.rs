@@ -148,6 +148,12 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
                 None => agent.explore(&obs, episode),
             };
             let (step, next_obs) = step_env(env.as_mut(), &actions, &u)?;
+            if let Some(why) = lcrl_sim::diverged(env.as_ref(), &step) {
+                // The episode ends at its last sound state; training goes on.
+                tracing::warn!(steps = length, "the environment diverged ({why}): the episode ends here (diverged_env)");
+                agent.end_stream();
+                break;
+            }
             opt_seconds += agent.observe(crate::algo::agent::Transition {
                 obs: &obs,
                 action: &u,
@@ -261,6 +267,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         updates: counters.updates,
         critic_updates: counters.critic_updates,
         skipped_updates: counters.skipped_updates,
+        diverged_env: counters.diverged_env,
         samples_drawn: agent.samples_drawn(),
         actor_params,
         critic_params,

@@ -229,6 +229,13 @@ impl Ingest {
                 return Verdict::Reject { reason: "non_finite", message: format!("transition {k} holds a non-finite number") };
             }
         }
+        // Finite is not enough: one batch of 3e38 states turned every
+        // weight to NaN within 1.5 s (issue 71). Values are refused beyond
+        // the environment's scale by the stated factors (lcrl_sim::STATE_LIMIT, ...).
+        if let Some((k, why)) = batch.transitions.iter().enumerate().find_map(|(k, t)| self.out_of_bounds(t).map(|why| (k, why))) {
+            self.count("bounds", count);
+            return Verdict::Reject { reason: "bounds", message: format!("transition {k}: {why}") };
+        }
         // An episode's return feeds the training curve, its statistics and
         // selection's record: a NaN there poisons every mean after it.
         if let Some(k) = batch.episodes.iter().position(|e| !e.episode_return.is_finite()) {
@@ -258,6 +265,20 @@ impl Ingest {
                      the order of the ends (a batch end inside an episode is `cut`, not an end)",
                     batch.episodes.len()
                 ),
+            };
+        }
+        if let Err(message) = returns_agree(batch) {
+            self.count("returns", count);
+            return Verdict::Reject { reason: "returns", message };
+        }
+        // Actors number batches from the clock (µs); a sequence far ahead
+        // of it would make every later batch of that actor a "duplicate".
+        let ahead = now_micros().saturating_add(SEQUENCE_AHEAD.as_micros() as u64);
+        if batch.sequence > ahead {
+            self.count("sequence", count);
+            return Verdict::Reject {
+                reason: "sequence",
+                message: format!("sequence {} is more than {} s ahead of this learner's clock in µs ({ahead}); number batches from 0 or from the clock", batch.sequence, SEQUENCE_AHEAD.as_secs()),
             };
         }
         if self.last_sequence.get(&batch.actor_id).is_some_and(|&last| batch.sequence <= last) {
@@ -310,174 +331,73 @@ impl Ingest {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use lcrl_proto::v1::Transition;
-
-    fn batch(actor: &str, sequence: u64, state: Vec<f32>) -> TransitionBatch {
-        TransitionBatch {
-            run_id: "run-a".into(),
-            actor_id: actor.into(),
-            sequence,
-            episode_id: 1,
-            policy_version: 3,
-            transitions: vec![Transition { state: state.clone(), action: vec![0.5, -1.0, 1.0], reward: -1.0, next_state: state, terminated: false, truncated: false, policy_version: 0, ..Default::default() }],
-            ..Default::default()
+impl Ingest {
+    /// Why a transition lies beyond the environment's bounds (state, next
+    /// state, reward, the action as the agent's u), if it does.
+    fn out_of_bounds(&self, t: &lcrl_proto::v1::Transition) -> Option<String> {
+        let wide = |v: &[f32]| v.iter().map(|&x| f64::from(x)).collect::<Vec<_>>();
+        if f64::from(t.reward).abs() > lcrl_sim::REWARD_LIMIT {
+            return Some(format!("reward {} is beyond ±{:e}", t.reward, lcrl_sim::REWARD_LIMIT));
         }
-    }
-
-    fn ingest(staleness: Option<u64>) -> Ingest {
-        Ingest::new("run-a", lcrl_sim::make_env("lti-paper").unwrap(), staleness)
-    }
-
-    #[test]
-    fn a_batch_is_cut_after_the_last_episode_the_budget_allows() {
-        let t = |end: bool| AgentTransition { obs: vec![], action: vec![], log_prob: None, reward: 0.0, next_obs: vec![], terminated: end, truncated: false, cut: false, policy_version: 0 };
-        let e = || EpisodeSummary { episode_return: -1.0, length: 2, ..Default::default() };
-        // Two episode ends (after transitions 2 and 4) and a started third.
-        let batch = || Accepted { transitions: vec![t(false), t(true), t(false), t(true), t(false)], episodes: vec![e(), e()], policy_version: 1, stream: 0 };
-        let mut one = batch();
-        assert_eq!(one.keep_episodes(1), 3);
-        assert_eq!((one.transitions.len(), one.episodes.len()), (2, 1));
-        let mut all = batch();
-        assert_eq!(all.keep_episodes(2), 0);
-        assert_eq!(all.transitions.len(), 5, "within the budget nothing is cut");
-        // A cut (the actor's batch end, mid-episode) is not an end.
-        let mut cut = batch();
-        cut.transitions[0].cut = true;
-        assert_eq!(cut.keep_episodes(1), 3);
-        let mut none = batch();
-        assert_eq!(none.keep_episodes(0), 5);
-        assert!(none.transitions.is_empty() && none.episodes.is_empty());
-    }
-
-    #[test]
-    fn accepts_and_normalizes() {
-        let mut ingest = ingest(None);
-        match ingest.check(&batch("a1", 1, vec![0.1, 0.2, 0.3]), 3) {
-            Verdict::Accept(accepted) => {
-                assert_eq!(accepted.transitions[0].action, vec![0.5, -1.0, 1.0]); // bounds are ±1
-                assert_eq!(accepted.transitions[0].obs, vec![0.1, 0.2, 0.3]);
+        for (name, state) in [("state", &t.state), ("next_state", &t.next_state)] {
+            if let Some(why) = lcrl_sim::state_out_of_bounds(self.env.as_ref(), &wide(state)) {
+                return Some(format!("{name}: {why}"));
             }
-            other => panic!("{other:?}"),
         }
-        assert!(ingest.rejected.is_empty());
-    }
-
-    #[test]
-    fn the_sampled_action_is_stored_as_sent_and_the_applied_one_only_without_it() {
-        let mut ingest = ingest(None);
-        // u outside [−1, 1] (a PPO sample) whose applied action the box clipped.
-        let mut sent = batch("a1", 1, vec![0.1, 0.2, 0.3]);
-        sent.transitions[0].sampled_action = vec![1.7, -1.0, 0.25];
-        sent.transitions[0].log_prob = Some(-2.5);
-        match ingest.check(&sent, 3) {
-            Verdict::Accept(accepted) => {
-                assert_eq!(accepted.transitions[0].action, vec![1.7, -1.0, 0.25]);
-                assert_eq!(accepted.transitions[0].log_prob, Some(-2.5));
-            }
-            other => panic!("{other:?}"),
-        }
-        let mut short = batch("a1", 2, vec![0.0; 3]);
-        short.transitions[0].sampled_action = vec![0.5];
-        assert!(matches!(ingest.check(&short, 3), Verdict::Reject { reason: "dimensions", .. }));
-        let mut nan = batch("a1", 3, vec![0.0; 3]);
-        nan.transitions[0].log_prob = Some(f32::NAN);
-        assert!(matches!(ingest.check(&nan, 3), Verdict::Reject { reason: "non_finite", .. }));
-    }
-
-    #[test]
-    fn rejects_bad_batches_and_counts_them() {
-        let mut ingest = ingest(None);
-        let mut wrong_run = batch("a1", 1, vec![0.0; 3]);
-        wrong_run.run_id = "run-b".into();
-        assert!(matches!(ingest.check(&wrong_run, 3), Verdict::Reject { reason: "unknown_run", .. }));
-        assert!(matches!(ingest.check(&batch("a1", 2, vec![0.0; 4]), 3), Verdict::Reject { reason: "dimensions", .. }));
-        assert!(matches!(ingest.check(&batch("a1", 3, vec![0.0, f32::NAN, 0.0]), 3), Verdict::Reject { reason: "non_finite", .. }));
-        let mut nan_return = batch("a1", 4, vec![0.0; 3]);
-        nan_return.transitions[0].terminated = true;
-        nan_return.episodes.push(EpisodeSummary { episode_return: f64::NAN, length: 1, ..Default::default() });
-        assert!(matches!(ingest.check(&nan_return, 3), Verdict::Reject { reason: "non_finite", .. }));
-        let mut nan_force = batch("a1", 4, vec![0.0; 3]);
-        nan_force.transitions[0].terminated = true;
-        nan_force.episodes.push(EpisodeSummary { episode_return: -1.0, length: 1, peak_force_n: Some(f64::INFINITY), ..Default::default() });
-        assert!(matches!(ingest.check(&nan_force, 3), Verdict::Reject { reason: "non_finite", .. }));
-        let mut nan_term = batch("a1", 4, vec![0.0; 3]);
-        nan_term.transitions[0].terminated = true;
-        let terms = lcrl_proto::v1::ReturnTerms { failure: f64::NAN, ..Default::default() };
-        nan_term.episodes.push(EpisodeSummary { episode_return: -1.0, length: 1, return_terms: Some(terms), ..Default::default() });
-        assert!(matches!(ingest.check(&nan_term, 3), Verdict::Reject { reason: "non_finite", .. }));
-        // Summaries and ends must pair up: a summary without an end, an end
-        // without a summary (a cut is not an end and needs none).
-        let mut no_end = batch("a1", 5, vec![0.0; 3]);
-        no_end.episodes.push(EpisodeSummary { episode_return: -1.0, length: 1, ..Default::default() });
-        assert!(matches!(ingest.check(&no_end, 3), Verdict::Reject { reason: "episodes", .. }));
-        let mut no_summary = batch("a1", 6, vec![0.0; 3]);
-        no_summary.transitions[0].truncated = true;
-        assert!(matches!(ingest.check(&no_summary, 3), Verdict::Reject { reason: "episodes", .. }));
-        assert_eq!(ingest.rejected.values().sum::<u64>(), 8);
-        assert_eq!(ingest.rejected["episodes"], 2);
-        // A rejected batch does not consume its sequence number.
-        assert!(matches!(ingest.check(&batch("a1", 1, vec![0.0; 3]), 3), Verdict::Accept(_)));
-        let mut cut = batch("a1", 2, vec![0.0; 3]);
-        cut.transitions[0].cut = true;
-        assert!(matches!(ingest.check(&cut, 3), Verdict::Accept(_)), "a cut needs no summary");
-    }
-
-    /// A restarted learner's versions count from its checkpoint again:
-    /// an on-policy learner drops a batch of its previous process however
-    /// new its version looks; an off-policy one stores it; a client that
-    /// names no incarnation is not checked.
-    #[test]
-    fn batches_of_another_incarnation_are_stale_for_an_on_policy_learner() {
-        let mut ppo = ingest(Some(0)).with_incarnation(77);
-        let mut old = batch("a1", 1, vec![0.0; 3]);
-        old.incarnation = 76;
-        old.policy_version = 9;
-        assert_eq!(ppo.check(&old, 3), Verdict::Stale);
-        assert_eq!(ppo.rejected.get("stale_incarnation"), Some(&1));
-        let mut own = batch("a1", 2, vec![0.0; 3]);
-        own.incarnation = 77;
-        assert!(matches!(ppo.check(&own, 3), Verdict::Accept(_)));
-        assert!(matches!(ppo.check(&batch("a2", 1, vec![0.0; 3]), 3), Verdict::Accept(_)), "0: not said, not checked");
-        let mut ddpg = ingest(None).with_incarnation(77);
-        old.sequence = 3;
-        assert!(matches!(ddpg.check(&old, 3), Verdict::Accept(_)));
-    }
-
-    /// Actor ids are kept: one too long is refused, and beyond MAX_ACTORS
-    /// a new one is refused until an old one has been silent long enough.
-    #[test]
-    fn actor_ids_are_bounded_in_length_and_number() {
-        let mut ingest = ingest(None);
-        let long = "x".repeat(lcrl_proto::limits::MAX_ACTOR_ID_BYTES + 1);
-        assert!(matches!(ingest.check(&batch(&long, 1, vec![0.0; 3]), 3), Verdict::Reject { reason: "actor_id", .. }));
-        assert!(matches!(ingest.check(&batch(&long[1..], 1, vec![0.0; 3]), 3), Verdict::Accept(_)));
-        for k in 1..MAX_ACTORS {
-            assert!(matches!(ingest.check(&batch(&format!("a{k}"), 1, vec![0.0; 3]), 3), Verdict::Accept(_)));
-        }
-        assert!(matches!(ingest.check(&batch("one-too-many", 1, vec![0.0; 3]), 3), Verdict::Reject { reason: "actors", .. }));
-        assert!(matches!(ingest.check(&batch("a7", 2, vec![0.0; 3]), 3), Verdict::Accept(_)), "known actors go on");
-        // An actor silent past the limit gives its place up.
-        let forgotten = ingest.last_seen.get_mut("a1").unwrap();
-        *forgotten = forgotten.checked_sub(ACTOR_SILENCE_TO_FORGET).expect("a machine up for ten minutes");
-        assert!(matches!(ingest.check(&batch("one-too-many", 1, vec![0.0; 3]), 3), Verdict::Accept(_)));
-        assert!(!ingest.sequences().contains_key("a1"));
-        assert_eq!(ingest.sequences().len(), MAX_ACTORS);
-        assert_eq!(ingest.rejected.get("actors"), Some(&1));
-    }
-
-    #[test]
-    fn duplicates_and_stale_batches_are_not_stored() {
-        let mut ingest = ingest(Some(1));
-        assert!(matches!(ingest.check(&batch("a1", 5, vec![0.0; 3]), 3), Verdict::Accept(_)));
-        assert_eq!(ingest.check(&batch("a1", 5, vec![0.0; 3]), 3), Verdict::Duplicate);
-        assert_eq!(ingest.check(&batch("a1", 4, vec![0.0; 3]), 3), Verdict::Duplicate);
-        assert!(matches!(ingest.check(&batch("a2", 5, vec![0.0; 3]), 3), Verdict::Accept(_)));
-        // Version 3 batches are two versions old at version 5: beyond the bound.
-        assert_eq!(ingest.check(&batch("a1", 6, vec![0.0; 3]), 5), Verdict::Stale);
-        assert_eq!(ingest.rejected.get("duplicate"), Some(&2));
-        assert_eq!(ingest.rejected.get("stale"), Some(&1));
+        let u = if t.sampled_action.is_empty() { self.actions.to_normalized(&wide(&t.action)) } else { t.sampled_action.clone() };
+        let limit = 1.0 + lcrl_sim::SAMPLED_ACTION_LIMIT;
+        u.iter().position(|v| f64::from(v.abs()) > limit).map(|k| format!("action component {k} is {} in the agent's units [−1, 1]; at most ±{limit}", u[k]))
     }
 }
+
+/// How far ahead of the learner's clock (in µs, where actors start their
+/// sequences) a batch's sequence may be: room for clocks that disagree.
+pub const SEQUENCE_AHEAD: std::time::Duration = std::time::Duration::from_secs(3600);
+
+/// The longest episode a summary may claim (steps).
+pub const MAX_EPISODE_STEPS: u32 = 1_000_000;
+
+fn now_micros() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64)
+}
+
+/// Checks each episode summary against the rewards the batch holds for
+/// it. An episode that lies wholly in the batch must claim exactly its
+/// steps and their sum; one that began in an earlier batch (after a cut,
+/// or at the batch's start) may claim more steps, each at most
+/// [`lcrl_sim::REWARD_LIMIT`] more. The budget counts these episodes and
+/// the training curve shows their returns: one batch of 1,000 one-step
+/// episodes claiming 1e30 each ended a run and its summary (issue 71).
+fn returns_agree(batch: &TransitionBatch) -> Result<(), String> {
+    let mut summaries = batch.episodes.iter().enumerate();
+    let (mut sum, mut sum_abs, mut steps) = (0.0f64, 0.0f64, 0u32);
+    for t in &batch.transitions {
+        sum += f64::from(t.reward);
+        sum_abs += f64::from(t.reward.abs());
+        steps = steps.saturating_add(1);
+        if t.terminated || t.truncated {
+            // Counts agree (checked before): one summary per end.
+            let Some((k, e)) = summaries.next() else { break };
+            // Rewards travel as f32, returns as f64 sums of the f64 rewards.
+            let tolerance = 1e-5 * (sum_abs + 1.0);
+            let unseen = f64::from(e.length.saturating_sub(steps));
+            if e.length < steps || e.length > MAX_EPISODE_STEPS || (e.episode_return - sum).abs() > unseen * lcrl_sim::REWARD_LIMIT + tolerance {
+                return Err(format!(
+                    "episode {k} claims return {} over {} steps; this batch holds {steps} of its steps with rewards summing to {sum} \
+                     (each step not in the batch adds at most ±{:e}, and an episode has at most {MAX_EPISODE_STEPS} steps)",
+                    e.episode_return,
+                    e.length,
+                    lcrl_sim::REWARD_LIMIT
+                ));
+            }
+        }
+        if t.terminated || t.truncated || t.cut {
+            (sum, sum_abs, steps) = (0.0, 0.0, 0);
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+#[path = "ingest_tests.rs"]
+mod tests;

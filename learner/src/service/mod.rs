@@ -12,6 +12,7 @@
 //! - [`episodes`]: metrics.csv and TensorBoard records of actors' episodes.
 //! - [`flow`]: replay ratio, waits, policy lag and the budget, as reported.
 //! - [`server`]: the `lcrl.v1.Learner` and `lcrl.v1.Policy` gRPC handlers.
+//! - [`serving_share`]: policy queries within their share of the time.
 //! - [`metrics`]: Prometheus `/metrics` for learner and actors.
 //! - [`shm`]: the same-host transport over iceoryx2 shared memory.
 //! - [`validator`]: the run's policy chosen on held-out starts, on a thread of its own.
@@ -23,6 +24,7 @@ pub mod ingest;
 pub mod metrics;
 pub mod runtime;
 pub mod server;
+pub mod serving_share;
 pub mod shared;
 pub mod shm;
 pub mod validator;

@@ -220,8 +220,9 @@ pub struct PolicyService {
     pub act_latency: prometheus_client::metrics::histogram::Histogram,
     /// States one ActBatch call may hold (`--max-act-batch`).
     pub max_act_batch: usize,
-    /// Places for Act and ActBatch computations ([`POLICY_CONCURRENCY`]).
-    pub compute_slots: tokio::sync::Semaphore,
+    /// Turns for Act and ActBatch computations ([`POLICY_CONCURRENCY`]
+    /// at once, within their share of the time).
+    pub share: super::serving_share::ServingShare,
 }
 
 impl PolicyService {
@@ -263,8 +264,10 @@ impl PolicyApi for PolicyService {
         let raw: Vec<f64> = state.iter().map(|&v| f64::from(v)).collect();
         // Waits for its turn without a thread, then computes off the event
         // loop (an ActBatch may be computing).
-        let _slot = self.compute_slots.acquire().await.map_err(|_| Status::unavailable("the learner is shutting down"))?;
-        let (action, version) = tokio::task::block_in_place(|| self.with_policy(|policy, env| policy.act(env, &raw)))?;
+        let turn = self.share.turn().await?;
+        let computed = tokio::task::block_in_place(|| self.with_policy(|policy, env| policy.act(env, &raw)));
+        self.share.done(turn);
+        let (action, version) = computed?;
         self.act_latency.observe(started.elapsed().as_secs_f64());
         Ok(Response::new(ActResponse { action: action.iter().map(|&a| a as f32).collect(), policy_version: version }))
     }
@@ -277,17 +280,19 @@ impl PolicyApi for PolicyService {
             return Err(Status::invalid_argument(format!("{} states in one ActBatch; this learner takes at most {} (--max-act-batch): split the call", request.count, self.max_act_batch)));
         }
         let m = self.check_states(&request.states, request.count as usize)?;
-        let _slot = self.compute_slots.acquire().await.map_err(|_| Status::unavailable("the learner is shutting down"))?;
+        let turn = self.share.turn().await?;
         // Off the event loop: health checks and GetStatus stay answered
         // while a large batch computes.
-        let (actions, version) = tokio::task::block_in_place(|| {
+        let computed = tokio::task::block_in_place(|| {
             self.with_policy(|policy, env| {
                 request.states.chunks(m).flat_map(|row| {
                     let raw: Vec<f64> = row.iter().map(|&v| f64::from(v)).collect();
                     policy.act(env, &raw)
                 }).map(|a| a as f32).collect::<Vec<f32>>()
             })
-        })?;
+        });
+        self.share.done(turn);
+        let (actions, version) = computed?;
         self.act_latency.observe(started.elapsed().as_secs_f64());
         Ok(Response::new(ActBatchResponse { actions, policy_version: version }))
     }

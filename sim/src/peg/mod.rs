@@ -342,8 +342,8 @@ impl Env for PegEnv {
 
     /// Divides each component by its typical size (`observation.scale`,
     /// measured on real episodes), so inputs are of order 1.
-    fn normalize_state(&self, state: &[f64]) -> Vec<f64> {
-        state.iter().zip(self.cfg.observation.scale).map(|(v, s)| v / s).collect()
+    fn state_scale(&self) -> Vec<f64> {
+        self.cfg.observation.scale.to_vec()
     }
 
     fn control_period_s(&self) -> f64 {

@@ -537,6 +537,12 @@ impl Agent for Ddpg {
         Counters { critic_updates: self.critic_updates, ..self.counters }
     }
 
+    /// Replay keeps transitions apart: nothing links the last one to a
+    /// next step, so only the count changes.
+    fn end_stream(&mut self) {
+        self.counters.diverged_env += 1;
+    }
+
     fn param_counts(&self) -> (usize, usize) {
         (self.actor.param_count(), self.critics[0].net.param_count())
     }

@@ -1,0 +1,115 @@
+//! Policy queries within a stated share of the time: training has
+//! priority over serving. Four Act and four ActBatch(4,096) clients once
+//! cut DDPG's updates by 82–98% (issue 71). Act and ActBatch compute one
+//! at a time ([`super::server::POLICY_CONCURRENCY`]); after a computation
+//! of d seconds the next may start only d·(1 − s)/s later, so over any
+//! stretch of queries they compute at most a share s of the time. Calls
+//! wait their turn holding no thread, and beyond a bounded queue are
+//! refused with RESOURCE_EXHAUSTED.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use tonic::Status;
+
+/// Calls that may wait for their turn; the next is refused.
+pub const MAX_QUEUED_QUERIES: usize = 64;
+
+/// The share of one core's time policy queries may take, and whose turn
+/// it is.
+#[derive(Debug)]
+pub struct ServingShare {
+    share: f64,
+    slot: tokio::sync::Semaphore,
+    /// The earliest start of the next computation.
+    next_start: Mutex<Instant>,
+    waiting: AtomicUsize,
+}
+
+/// A turn to compute: hand it back with [`ServingShare::done`].
+#[derive(Debug)]
+pub struct Turn<'a> {
+    _slot: tokio::sync::SemaphorePermit<'a>,
+    started: Instant,
+}
+
+impl ServingShare {
+    /// `share` in (0, 1]: 1 serves without pauses.
+    pub fn new(share: f64) -> Self {
+        ServingShare { share: share.clamp(0.01, 1.0), slot: tokio::sync::Semaphore::new(super::server::POLICY_CONCURRENCY), next_start: Mutex::new(Instant::now()), waiting: AtomicUsize::new(0) }
+    }
+
+    /// Waits for a turn (refused when [`MAX_QUEUED_QUERIES`] wait already).
+    pub async fn turn(&self) -> Result<Turn<'_>, Status> {
+        if self.waiting.fetch_add(1, Ordering::AcqRel) >= MAX_QUEUED_QUERIES {
+            self.waiting.fetch_sub(1, Ordering::AcqRel);
+            return Err(Status::resource_exhausted(format!(
+                "{MAX_QUEUED_QUERIES} policy queries are waiting; training has priority (--serving-share {}): retry later",
+                self.share
+            )));
+        }
+        let slot = self.slot.acquire().await;
+        self.waiting.fetch_sub(1, Ordering::AcqRel);
+        let slot = slot.map_err(|_| Status::unavailable("the learner is shutting down"))?;
+        let start = *self.next_start.lock().unwrap_or_else(|p| p.into_inner());
+        tokio::time::sleep_until(start.into()).await;
+        Ok(Turn { _slot: slot, started: Instant::now() })
+    }
+
+    /// Ends a turn: the next starts after the pause its length asks.
+    pub fn done(&self, turn: Turn<'_>) {
+        let took = turn.started.elapsed();
+        let pause = took.mul_f64((1.0 - self.share) / self.share);
+        *self.next_start.lock().unwrap_or_else(|p| p.into_inner()) = Instant::now() + pause.min(Duration::from_secs(10));
+    }
+
+    pub fn share(&self) -> f64 {
+        self.share
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Computations of 20 ms at a share of 0.25 take at least 4 × their
+    /// time end to end; at a share of 1, about their time.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn queries_take_at_most_their_share_of_the_time() {
+        for (share, least, most) in [(0.25, 4.0, 6.0), (1.0, 1.0, 1.8)] {
+            let limiter = ServingShare::new(share);
+            let started = Instant::now();
+            for _ in 0..10 {
+                let turn = limiter.turn().await.unwrap();
+                std::thread::sleep(Duration::from_millis(20));
+                limiter.done(turn);
+            }
+            // The last pause is owed by the next query: count it too.
+            let _ = limiter.turn().await.unwrap();
+            let ratio = started.elapsed().as_secs_f64() / 0.2;
+            assert!(ratio >= least * 0.95 && ratio <= most, "share {share}: {ratio:.2} × the computing time");
+        }
+    }
+
+    /// Beyond the queue, calls are refused at once with RESOURCE_EXHAUSTED.
+    #[tokio::test]
+    async fn a_full_queue_refuses() {
+        let limiter = std::sync::Arc::new(ServingShare::new(1.0));
+        let held = limiter.turn().await.unwrap();
+        let mut waiting = Vec::new();
+        for _ in 0..MAX_QUEUED_QUERIES {
+            let limiter = limiter.clone();
+            waiting.push(tokio::spawn(async move { limiter.turn().await.map(|_| ()) }));
+        }
+        while limiter.waiting.load(Ordering::Acquire) < MAX_QUEUED_QUERIES {
+            tokio::task::yield_now().await;
+        }
+        let refused = limiter.turn().await.unwrap_err();
+        assert_eq!(refused.code(), tonic::Code::ResourceExhausted);
+        limiter.done(held);
+        for w in waiting {
+            w.await.unwrap().unwrap();
+        }
+    }
+}
