@@ -219,9 +219,6 @@ impl Preset {
                 }
             }
         }
-        if self.train.run.fallback_margin.is_some() {
-            bail!("run.fallback_margin is for `lcrl train` only: a distributed run's actors act with the newest policy; remove it from the preset");
-        }
         if let Some(t) = job.graph_threshold {
             if !(t.is_finite() && t > 0.0) {
                 bail!("job.graph_threshold must be a positive number (T of eq. 7), not {t}");

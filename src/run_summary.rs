@@ -99,6 +99,5 @@ fn interrupted_run_summary(preset: &Preset, learner_dir: &Path, status: &Learner
         actor_params: 0,
         critic_params: 0,
         service: Some(service_figures(status)),
-        fallback_episodes: None,
     })
 }

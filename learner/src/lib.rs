@@ -8,7 +8,7 @@
 //!
 //! - [`service`]: the distributed learner (`lcrl-learner`): ingestion, training thread, gRPC, shared memory.
 //! - [`run`]: a training run and its records: how it starts, the single-process loop, metrics.csv, summary.json, TensorBoard, the policy chosen on held-out starts.
-//! - [`policy`]: a trained actor stored, sent and served: architecture, action map, checkpoints, snapshots, the loaded policy, the fallback.
+//! - [`policy`]: a trained actor stored, sent and served: architecture, action map, checkpoints, snapshots, the loaded policy.
 //! - [`algo`]: networks, the algorithm interface, DDPG and PPO, Adam, the replay buffer and its rate limiter, exploration, the LQR ceiling.
 //! - [`device`]: the libtorch device (CUDA loaded at run time), intra-op threads, CUDA graphs.
 //! - [`config`]: every hyperparameter, from one TOML file; imports no other room.

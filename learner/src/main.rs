@@ -219,11 +219,6 @@ async fn run(args: Args) -> anyhow::Result<()> {
         Some(path) => TrainConfig::load_for_env(path, &args.env)?,
         None => TrainConfig::for_env(&args.env).0,
     };
-    if config.run.fallback_margin.is_some() {
-        bail!(
-            "`run.fallback_margin` is for `lcrl train` only: a distributed learner's actors act with the newest policy; remove it from the config"
-        );
-    }
     let start = RunStart {
         env: &args.env,
         algo: args.algo,

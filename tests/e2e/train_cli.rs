@@ -199,16 +199,14 @@ fn bad_input_fails_cleanly() {
         .unwrap();
     assert_clean_failure(&out, "--graph only applies");
 
-    // The fallback to the selected policy: DDPG with validation only.
-    let fallback = work.path().join("fallback.toml");
-    fs::write(&fallback, "[run]\nfallback_margin = 2.0\n").unwrap();
-    assert_clean_failure(&train(&work.path().join("r3"), &fallback, &[]), "needs validation");
-    fs::write(&fallback, "[run]\nfallback_gate = true\nvalidation_episodes = 3\n").unwrap();
-    assert_clean_failure(&train(&work.path().join("r3"), &fallback, &[]), "needs run.fallback_margin");
-    fs::write(&fallback, "[run]\nfallback_margin = 2.0\nvalidation_episodes = 3\n").unwrap();
-    let out = lcrl().args(["train", "--env", "lti-paper", "--algo", "ppo", "--connection", "global", "--config"]).arg(&fallback).arg("--run-dir").arg(work.path().join("r4")).output().unwrap();
-    assert_clean_failure(&out, "is for DDPG");
-    assert!(!work.path().join("r4").exists(), "a refused run leaves no folder");
+    // Options measured not to help were removed (docs/peg.md, "Measured
+    // and removed"): a config naming one is refused before anything runs.
+    let removed = work.path().join("removed.toml");
+    for (text, key) in [("[run]\nfallback_margin = 2.0\n", "fallback_margin"), ("[ddpg]\nwarmup_actions = \"policy\"\n", "warmup_actions"), ("[ddpg]\ncritic_disagreement = 1.0\n", "critic_disagreement"), ("[ddpg]\nactor_lr_warmup_updates = 10\n", "actor_lr_warmup_updates")] {
+        fs::write(&removed, text).unwrap();
+        assert_clean_failure(&train(&work.path().join("r4"), &removed, &[]), key);
+        assert!(!work.path().join("r4").exists(), "a refused run leaves no folder");
+    }
 }
 
 /// `--match-params`: a global actor sized to the local actor of a graph

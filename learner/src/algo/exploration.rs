@@ -4,8 +4,8 @@
 //! and random draws give the same u, and the same u is stored
 //! (docs/architecture.md, "One transition, one meaning").
 //!
-//! - DDPG: uniform in [−1, 1]ⁿ while the replay buffer warms up (unless
-//!   `warmup_actions = "policy"`), then μ(s) + N(0, σ²) clipped to
+//! - DDPG: uniform in [−1, 1]ⁿ while the replay buffer warms up, then
+//!   μ(s) + N(0, σ²) clipped to
 //!   [−1, 1] (σ from the noise schedule).
 //! - PPO: u ~ N(μ(s), diag σ²), not clipped: the Gaussian's own sample, so
 //!   that log π(u|s) is the density the ratio needs. The action map

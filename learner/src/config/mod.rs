@@ -233,21 +233,6 @@ pub enum Activation {
     Elu,
 }
 
-/// How DDPG acts while its replay buffer warms up (`warmup_steps`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum WarmupActions {
-    /// Uniform over the whole normalized box: the usual random start, which
-    /// shows the critic every action but drives a robot with them.
-    Uniform,
-    /// The initial policy plus the exploration noise (`noise_start`), as
-    /// after the warm-up, only without updates. The last layer's init makes
-    /// the initial residual ≈ 0, so under a base controller this explores
-    /// around the base (the second round,
-    /// docs/research/2026-11-25-peg-safety-02-trust-region.md).
-    Policy,
-}
-
 /// DDPG (Algorithm 2). Defaults from docs/method.md Table I where it gives them.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -259,11 +244,8 @@ pub struct DdpgConfig {
     pub gamma: f64,
     pub batch_size: usize,
     pub buffer_capacity: usize,
-    /// Environment steps before updates start, acted as `warmup_actions` says.
+    /// Environment steps before updates start, acted uniformly at random.
     pub warmup_steps: usize,
-    /// What the agent does during those steps: uniformly random actions
-    /// (the default), or its initial policy with the exploration noise.
-    pub warmup_actions: WarmupActions,
     /// Gaussian exploration noise (normalized action units), decaying
     /// linearly from start to end over `noise_decay_episodes`.
     pub noise_start: f64,
@@ -298,25 +280,6 @@ pub struct DdpgConfig {
     /// limits how fast the actor moves, not where it settles, unlike the
     /// residual penalty, which pulls toward the base all run.
     pub proximal_l2: f64,
-    /// Weight λ_T of mean‖μ(s) − μ(s′)‖² in the actor's loss, s′ the
-    /// transition's next state: CAPS's temporal smoothness (Mysore et al.,
-    /// "Regularizing Action Policies for Smooth Control", 2021), squared as
-    /// the other terms here. It penalizes policies whose action jumps
-    /// between consecutive states, the bang-bang switching between the
-    /// reach's edges that wedges the peg
-    /// (docs/research/2026-11-27-peg-rare-handover-failures.md); unlike a
-    /// rate limit on the applied action it leaves the process Markov in s.
-    /// 0 (the default) is off.
-    pub temporal_smoothness: f64,
-    /// Weight κ of the twin critics' disagreement in the actor's objective:
-    /// the actor maximizes mean(Q₁, Q₂) − κ·|Q₁ − Q₂| instead of Q₁ (κ = 0.5
-    /// is min(Q₁, Q₂)). Two critics fitted to the same targets agree where
-    /// the buffer has data and drift apart where they extrapolate, so the
-    /// actor is held back from actions only an extrapolating critic
-    /// praises (the fifth round,
-    /// docs/research/2026-11-26-peg-safety-05-critic-disagreement.md). Needs
-    /// `twin_critics`; 0 (the default) follows the first critic alone.
-    pub critic_disagreement: f64,
     /// Std of clipped Gaussian noise on the target action (TD3's target
     /// policy smoothing); 0 is plain DDPG.
     pub target_noise: f64,
@@ -335,14 +298,6 @@ pub struct DdpgConfig {
     /// round: docs/research/2026-11-25-peg-safety-02-trust-region.md). The
     /// critic's target still follows it meanwhile.
     pub critic_warmup_updates: usize,
-    /// Raise the actor's learning rate linearly from 0 to `actor_lr` over
-    /// its first this many updates (0: full rate from the first). Adam's
-    /// step is about lr per weight however weak ∂Q/∂a is, so an actor at
-    /// full rate leaves its base at full speed on an untrained critic (the
-    /// third round, docs/research/2026-11-25-peg-safety-03-actor-lr-ramp.md);
-    /// the ramp slows only the start, where the trust region (`proximal_l2`)
-    /// brakes all run.
-    pub actor_lr_warmup_updates: usize,
     /// DDPG's own reach around the base, in place of `[base]
     /// residual_scale` (same meaning, (0, 1], needs a base); PPO ignores
     /// it. A preset sets it where the reach that keeps DDPG's exploration
@@ -432,24 +387,6 @@ pub struct RunConfig {
     /// few hundred starts do. 0: the best validation is handed over.
     pub confirm_candidates: usize,
     pub confirm_episodes: usize,
-    /// Falling back to the run's selected policy (learner/src/policy/fallback.rs):
-    /// a training episode of the current policy that returns less than the
-    /// base's validation return minus this margin hands the next
-    /// `fallback_episodes` training episodes to the selected policy. Unset
-    /// (the default): off. `lcrl train` with DDPG and validation only.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub fallback_margin: Option<f64>,
-    /// Episodes the selected policy acts after each such episode; unset: 5.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub fallback_episodes: Option<usize>,
-    /// The fallback's gate: the current policy also acts only while its
-    /// latest validation scored within the margin.
-    #[serde(skip_serializing_if = "std::ops::Not::not")]
-    pub fallback_gate: bool,
-    /// The selected policy acts in fallback episodes with the run's
-    /// exploration noise around it (off: deterministic).
-    #[serde(skip_serializing_if = "std::ops::Not::not")]
-    pub fallback_explore: bool,
 }
 
 impl Default for TrainConfig {
@@ -493,7 +430,6 @@ impl Default for DdpgConfig {
             batch_size: 256,
             buffer_capacity: 1_000_000,
             warmup_steps: 1000,
-            warmup_actions: WarmupActions::Uniform,
             noise_start: 0.3,
             noise_end: 0.05,
             noise_decay_episodes: 150,
@@ -502,12 +438,9 @@ impl Default for DdpgConfig {
             preactivation_l2: 0.0,
             preactivation_anneal: false,
             proximal_l2: 0.0,
-            temporal_smoothness: 0.0,
-            critic_disagreement: 0.0,
             twin_critics: false,
             anneal_lr: false,
             critic_warmup_updates: 0,
-            actor_lr_warmup_updates: 0,
             huber_delta: 0.0,
             update_every: 1,
             gradient_steps: 1,
@@ -569,10 +502,6 @@ impl Default for RunConfig {
             validate_every: 20,
             confirm_candidates: 0,
             confirm_episodes: 300,
-            fallback_margin: None,
-            fallback_episodes: None,
-            fallback_gate: false,
-            fallback_explore: false,
         }
     }
 }

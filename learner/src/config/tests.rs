@@ -113,8 +113,6 @@ fn bad_values_name_the_field() {
     assert!(err("[network]\nsubnet_hidden = []\n").contains("network.subnet_hidden"));
     assert!(err("[run]\ndevice = \"tpu\"\n").contains("run.device"));
     assert!(err("[ddpg]\nactor_rate = 0.1\n").contains("actor_rate"));
-    assert!(err("[ddpg]\ncritic_disagreement = 1.0\n").contains("needs ddpg.twin_critics"));
-    assert!(err("[ddpg]\ntwin_critics = true\ncritic_disagreement = -1.0\n").contains("ddpg.critic_disagreement"));
     assert!(err("[run]\nconfirm_candidates = 3\n").contains("`run.confirm_candidates` needs validation"));
     assert!(err("[run]\nvalidation_episodes = 30\nconfirm_candidates = 3\nconfirm_episodes = 0\n").contains("run.confirm_episodes"));
     assert!(err("[base]\naction = \"best-constant\"\nresidual_scale = 0.0\n").contains("base.residual_scale"));

@@ -28,7 +28,7 @@ impl TrainConfig {
                 return bad(field, &format!("must be within [0, 1], got {v}"));
             }
         }
-        for (field, v) in [("ddpg.noise_start", self.ddpg.noise_start), ("ddpg.noise_end", self.ddpg.noise_end), ("ddpg.target_noise", self.ddpg.target_noise), ("ddpg.preactivation_l2", self.ddpg.preactivation_l2), ("ddpg.proximal_l2", self.ddpg.proximal_l2), ("ddpg.temporal_smoothness", self.ddpg.temporal_smoothness), ("ddpg.critic_disagreement", self.ddpg.critic_disagreement), ("ddpg.huber_delta", self.ddpg.huber_delta), ("ppo.entropy_coef", self.ppo.entropy_coef)] {
+        for (field, v) in [("ddpg.noise_start", self.ddpg.noise_start), ("ddpg.noise_end", self.ddpg.noise_end), ("ddpg.target_noise", self.ddpg.target_noise), ("ddpg.preactivation_l2", self.ddpg.preactivation_l2), ("ddpg.proximal_l2", self.ddpg.proximal_l2), ("ddpg.huber_delta", self.ddpg.huber_delta), ("ppo.entropy_coef", self.ppo.entropy_coef)] {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(field, &format!("must be a finite number ≥ 0, got {v}"));
             }
@@ -43,22 +43,6 @@ impl TrainConfig {
                 return bad(field, "needs a base controller (base.action): without one there is no residual to scale");
             }
         }
-        if self.ddpg.critic_disagreement > 0.0 && !self.ddpg.twin_critics {
-            return bad("ddpg.critic_disagreement", "needs ddpg.twin_critics = true (the disagreement is between the two critics)");
-        }
-        if let Some(margin) = self.run.fallback_margin {
-            if !(margin.is_finite() && margin >= 0.0) {
-                return bad("run.fallback_margin", &format!("must be a finite number ≥ 0 (a return below the base's by more hands over), got {margin}"));
-            }
-            if self.run.validation_episodes == 0 {
-                return bad("run.fallback_margin", "needs validation (run.validation_episodes ≥ 1): the fallback acts with the run's selected policy");
-            }
-        }
-        for (field, set) in [("run.fallback_gate", self.run.fallback_gate), ("run.fallback_explore", self.run.fallback_explore)] {
-            if set && self.run.fallback_margin.is_none() {
-                return bad(field, "needs run.fallback_margin (the fallback's threshold is the base's validation return minus it)");
-            }
-        }
         if self.run.confirm_candidates > 0 {
             if self.run.validation_episodes == 0 {
                 return bad("run.confirm_candidates", "needs validation (run.validation_episodes ≥ 1): it confirms the best validated policies");
@@ -66,9 +50,6 @@ impl TrainConfig {
             if self.run.confirm_episodes == 0 {
                 return bad("run.confirm_episodes", "must be at least 1 when run.confirm_candidates is set (0 candidates turns the confirmation off)");
             }
-        }
-        if self.run.fallback_episodes == Some(0) {
-            return bad("run.fallback_episodes", "must be at least 1");
         }
         if !self.ppo.log_std_init.is_finite() {
             return bad("ppo.log_std_init", "must be finite");

@@ -1,7 +1,6 @@
 //! The policy room: a trained actor as it is stored, sent and served. What
 //! identifies an actor, the map from its outputs to the environment's box,
-//! the checkpoint store, the snapshot on the wire, the loaded policy, and the
-//! fallback to the run's selected policy.
+//! the checkpoint store, the snapshot on the wire, and the loaded policy.
 //!
 //! May import: [`crate::algo`], [`crate::device`], [`crate::config`].
 //! Nothing here knows of runs or the service.
@@ -12,12 +11,10 @@
 //! - [`finite`]: whether weights hold only finite numbers (never served, written or resumed otherwise).
 //! - [`snapshot`]: a policy on the wire (architecture + safetensors weights).
 //! - [`trained`]: a trained actor ([`trained::Policy`]) loaded from a checkpoint or a snapshot, and its evaluation.
-//! - [`fallback`]: falling back to the run's selected policy after an episode below the margin.
 
 pub mod action;
 pub mod architecture;
 pub mod checkpoint;
-pub mod fallback;
 pub mod finite;
 pub mod snapshot;
 pub mod trained;

@@ -68,10 +68,6 @@ pub struct RunSummary {
     /// The distributed service's figures (`lcrl-learner`, `lcrl run`).
     #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
     pub service: Option<ServiceFigures>,
-    /// Training episodes the run's selected policy acted in
-    /// (`run.fallback_margin`, learner/src/policy/fallback.rs); absent when off.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub fallback_episodes: Option<usize>,
 }
 
 /// The handed-over policy, evaluated deterministically on `eval_episodes`
@@ -252,7 +248,6 @@ mod tests {
             actor_params: 40,
             critic_params: 90,
             service,
-            fallback_episodes: None,
         }
     }
 

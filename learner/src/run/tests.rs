@@ -315,98 +315,6 @@ fn confirmation_hands_over_the_best_candidate_on_more_starts() {
     assert_eq!(resumed.summary.evaluation.eval_return, straight.summary.evaluation.eval_return);
 }
 
-/// `run.fallback_margin`: a training episode below the base's validation
-/// return minus the margin hands the next episodes to the selected policy,
-/// which acts deterministically (an episode it acted replays as its
-/// deterministic episode from the same start); training is the plain run's
-/// until the first such episode; the rule's state resumes exactly; a
-/// margin nothing falls below changes nothing; PPO and a run without
-/// validation are refused.
-#[test]
-fn the_selected_policy_acts_after_an_episode_below_the_margin() {
-    let mut cfg = tiny_with_episodes(8);
-    cfg.run.validation_episodes = 3;
-    cfg.run.validate_every = 2;
-    let plain = run(Algo::Ddpg, Connection::Local, cfg.clone(), tempfile::tempdir().unwrap().path(), false);
-    let mut guarded = cfg.clone();
-    (guarded.run.fallback_margin, guarded.run.fallback_episodes) = (Some(0.0), Some(2));
-    let dir = tempfile::tempdir().unwrap();
-    let straight = run(Algo::Ddpg, Connection::Local, guarded.clone(), dir.path(), false);
-
-    // Who acted, by the rule, from the returns.
-    let chosen = straight.summary.selection.clone().unwrap();
-    let mut rule = crate::policy::fallback::Fallback::new(chosen.history[0].mean_return, 0.0, 2);
-    let acting: Vec<_> = straight.rows.iter().map(|r| { let who = rule.next(); rule.record(who, r.episode_return); who }).collect();
-    let first_selected = acting.iter().position(|&a| a == crate::policy::fallback::Acting::Selected).expect("some episode falls below the base's return");
-    assert_eq!(straight.summary.fallback_episodes, Some(rule.selected_episodes()));
-    assert_eq!(timeless(&plain.rows[..first_selected]), timeless(&straight.rows[..first_selected]), "the same run until the fallback acts");
-    assert_ne!(timeless(&plain.rows), timeless(&straight.rows));
-    // An episode after the final choice's validation was acted by that policy.
-    let policy = Policy::load(dir.path()).unwrap();
-    let mut env = make_env("lti-paper").unwrap();
-    let probe = env.fresh();
-    let mut checked = 0;
-    for (k, row) in straight.rows.iter().enumerate().filter(|(k, _)| acting[*k] == crate::policy::fallback::Acting::Selected && *k >= chosen.episode) {
-        let start = lcrl_sim::seeds::training(guarded.run.seed, k);
-        let (replayed, _) = lcrl_sim::evaluate::evaluate(env.as_mut(), "selected", 1, start, &mut |s| policy.act(probe.as_ref(), s), &mut |_| {}).unwrap();
-        assert!((replayed.mean_return - row.episode_return).abs() <= 1e-6 * row.episode_return.abs().max(1.0), "episode {}: {} against {}", k + 1, row.episode_return, replayed.mean_return);
-        checked += 1;
-    }
-    assert!(checked > 0, "no episode of the final selected policy to replay");
-
-    let resumed_dir = tempfile::tempdir().unwrap();
-    run_until(Algo::Ddpg, Connection::Local, guarded.clone(), resumed_dir.path(), false, Some(first_selected + 1));
-    let resumed = run(Algo::Ddpg, Connection::Local, guarded.clone(), resumed_dir.path(), true);
-    assert_eq!(timeless(&resumed.rows), timeless(&straight.rows), "the rule resumes where it stood");
-    assert_eq!(resumed.summary.fallback_episodes, straight.summary.fallback_episodes);
-
-    // The gate: the rule replayed from the run's returns and validations
-    // counts the run's fallback episodes, and the run resumes exactly.
-    let mut gated = guarded.clone();
-    gated.run.fallback_gate = true;
-    let gated_straight = run(Algo::Ddpg, Connection::Local, gated.clone(), tempfile::tempdir().unwrap().path(), false);
-    let history = gated_straight.summary.selection.clone().unwrap().history;
-    let validations: Vec<(usize, f64)> = history.iter().map(|v| (v.episode, v.mean_return)).collect();
-    let returns: Vec<f64> = gated_straight.rows.iter().map(|r| r.episode_return).collect();
-    let replayed = crate::policy::fallback::Fallback::new(history[0].mean_return, 0.0, 2).gated().replayed(&returns, &validations);
-    assert_eq!(gated_straight.summary.fallback_episodes, Some(replayed.selected_episodes()));
-    assert!(history.iter().skip(1).any(|v| v.mean_return < history[0].mean_return), "a validation below the base's, for the gate to act on");
-    assert_ne!(timeless(&gated_straight.rows), timeless(&straight.rows), "the gate held a policy back that the plain rule let act");
-    let gated_dir = tempfile::tempdir().unwrap();
-    run_until(Algo::Ddpg, Connection::Local, gated.clone(), gated_dir.path(), false, Some(3));
-    let gated_resumed = run(Algo::Ddpg, Connection::Local, gated, gated_dir.path(), true);
-    assert_eq!(timeless(&gated_resumed.rows), timeless(&gated_straight.rows), "the gate resumes where it stood");
-
-    // Exploring fallback episodes: the same run until the first of them,
-    // which the noise changes; resumed, the same noise again.
-    let mut exploring = guarded.clone();
-    exploring.run.fallback_explore = true;
-    let explored = run(Algo::Ddpg, Connection::Local, exploring.clone(), tempfile::tempdir().unwrap().path(), false);
-    assert_eq!(timeless(&explored.rows[..first_selected]), timeless(&straight.rows[..first_selected]));
-    assert_ne!(explored.rows[first_selected].episode_return, straight.rows[first_selected].episode_return, "the noise changes the fallback's episode");
-    let explored_dir = tempfile::tempdir().unwrap();
-    run_until(Algo::Ddpg, Connection::Local, exploring.clone(), explored_dir.path(), false, Some(first_selected + 1));
-    let explored_resumed = run(Algo::Ddpg, Connection::Local, exploring, explored_dir.path(), true);
-    assert_eq!(timeless(&explored_resumed.rows), timeless(&explored.rows), "the fallback's noise resumes exactly");
-
-    let mut never = cfg.clone();
-    never.run.fallback_margin = Some(1e9);
-    let unguarded = run(Algo::Ddpg, Connection::Local, never, tempfile::tempdir().unwrap().path(), false);
-    assert_eq!(timeless(&unguarded.rows), timeless(&plain.rows));
-    assert_eq!(unguarded.summary.fallback_episodes, Some(0));
-
-    let refused = |algo: Algo, cfg: TrainConfig, run_dir: &Path| {
-        let request = TrainRequest { env: "lti-paper".into(), algo, connection: Connection::Local, graph: None, config: cfg, settings_source: "test".into(), run_dir: run_dir.join("run"), resume: false, stop_after: None };
-        train(&request, &mut |_| {}).err().map(|e| e.to_string()).unwrap_or_default()
-    };
-    let ppo_dir = tempfile::tempdir().unwrap();
-    assert!(refused(Algo::Ppo, guarded.clone(), ppo_dir.path()).contains("for DDPG"));
-    assert!(std::fs::read_dir(ppo_dir.path()).unwrap().next().is_none(), "refused before anything is written");
-    let mut unvalidated = guarded;
-    unvalidated.run.validation_episodes = 0;
-    assert!(unvalidated.validate().unwrap_err().to_string().contains("needs validation"));
-}
-
 /// The final evaluation runs on the run's own starts by default, and on
 /// the given ones with `run.eval_seed` (a study's: the best constant's),
 /// and says which: a = 0 on those starts matches a direct evaluation.
@@ -618,7 +526,7 @@ fn cuda_graph_updates_equal_eager_updates() {
     let mut cfg = TrainConfig::default();
     (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size) = (32, 32);
     (cfg.ddpg.twin_critics, cfg.ddpg.policy_delay, cfg.ddpg.target_noise) = (true, 2, 0.2);
-    (cfg.ddpg.critic_warmup_updates, cfg.ddpg.actor_lr_warmup_updates) = (10, 20);
+    cfg.ddpg.critic_warmup_updates = 10;
     (cfg.ddpg.anneal_lr, cfg.ddpg.preactivation_l2, cfg.ddpg.preactivation_anneal) = (true, 0.05, true);
     let ddpg = |device: tch::Device| crate::algo::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, Connection::Local, &mask, 3, 3, 7, device);
     let cpu = fed_actor_weights(&mut ddpg(tch::Device::Cpu));

@@ -22,7 +22,6 @@ use crate::run::summary::{evaluate_hand_over, write_summary, EvaluationPlan, Run
 use crate::policy::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::run::start::{prepare, GraphSource, Prepared, RunStart};
 use crate::config::{Algo, Connection, TrainConfig};
-use crate::policy::fallback::{Acting, Fallback, FallbackPolicy};
 use crate::run::selection::{selected_dir, Selection};
 use crate::{io, LearnerError};
 
@@ -74,11 +73,6 @@ pub fn step_env(env: &mut dyn Env, actions: &ActionMap, u: &[f32]) -> Result<(lc
 /// ones), writing the run directory as it goes.
 pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Result<TrainOutcome, LearnerError> {
     let started = Instant::now();
-    if req.config.run.fallback_margin.is_some() && req.algo != Algo::Ddpg {
-        return Err(LearnerError::Config(
-            "`run.fallback_margin` is for DDPG: the selected policy's episodes are off-policy data, which PPO cannot learn from; remove it".into(),
-        ));
-    }
     let mut env = make_env(&req.env)?;
     let prepared = prepare(
         RunStart {
@@ -125,28 +119,16 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         let elapsed = prior_elapsed + started.elapsed().as_secs_f64();
         selection.validate(env.as_ref(), agent.as_ref(), &req.run_dir, &meta_for(rows.len(), optimization, elapsed))?;
     }
-    let mut fallback = fallback_rule(&cfg, selection.as_ref(), &rows)?;
     for episode in rows.len()..last_episode {
         let episode_started = Instant::now();
-        let acting = fallback.as_ref().map_or(Acting::Current, Fallback::next);
-        let _span = tracing::info_span!("episode", episode = episode + 1, acting = ?acting).entered();
-        let mut selected = match acting {
-            Acting::Selected => {
-                let noise = cfg.run.fallback_explore.then(|| agent.exploration(episode).map_or(0.0, |(_, std)| std));
-                Some(FallbackPolicy::load(&req.run_dir, noise, lcrl_sim::seeds::training(cfg.run.seed, episode))?)
-            }
-            Acting::Current => None,
-        };
+        let _span = tracing::info_span!("episode", episode = episode + 1).entered();
         agent.set_progress(episode as f64 / cfg.run.episodes as f64);
         let steps_before = agent.counters().env_steps;
         let mut state = env.reset(lcrl_sim::seeds::training(cfg.run.seed, episode))?;
         let (mut total, mut length, mut opt_seconds) = (0.0, 0, 0.0);
         loop {
             let obs = observe(env.as_ref(), &state);
-            let u = match selected.as_mut() {
-                Some(policy) => policy.act(&obs),
-                None => agent.explore(&obs, episode),
-            };
+            let u = agent.explore(&obs, episode);
             let (step, next_obs) = step_env(env.as_mut(), &actions, &u)?;
             if let Some(why) = lcrl_sim::diverged(env.as_ref(), &step) {
                 // The episode ends at its last sound state; training goes on.
@@ -173,12 +155,6 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
             }
         }
         optimization += opt_seconds;
-        if let Some(rule) = fallback.as_mut() {
-            rule.record(acting, total);
-            if acting == Acting::Current && rule.next() == Acting::Selected {
-                tracing::info!(episode_return = total, threshold = rule.threshold(), "below the fallback threshold: the selected policy acts next");
-            }
-        }
         let metrics_now = env.episode_metrics();
         let row = EpisodeRow {
             episode: episode + 1,
@@ -220,10 +196,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         }
         if let Some(selection) = selection.as_mut().filter(|s| s.due(done, last_episode)) {
             let elapsed = prior_elapsed + started.elapsed().as_secs_f64();
-            let validation = selection.validate(env.as_ref(), agent.as_ref(), &req.run_dir, &meta_for(done, optimization, elapsed))?;
-            if let Some(rule) = fallback.as_mut() {
-                rule.validated(validation.mean_return);
-            }
+            selection.validate(env.as_ref(), agent.as_ref(), &req.run_dir, &meta_for(done, optimization, elapsed))?;
         }
     }
     prior_opt = optimization;
@@ -272,23 +245,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         actor_params,
         critic_params,
         service: None,
-        fallback_episodes: fallback.as_ref().map(Fallback::selected_episodes),
     };
     write_summary(&req.run_dir, &summary)?;
     Ok(TrainOutcome { summary, rows })
-}
-
-/// The fallback rule a run asks for (`run.fallback_margin`), standing where
-/// the run's metrics so far leave it. Its reference is the first
-/// validation's return: the starting policy's, the base's.
-fn fallback_rule(cfg: &TrainConfig, selection: Option<&Selection>, rows: &[EpisodeRow]) -> Result<Option<Fallback>, LearnerError> {
-    if cfg.run.fallback_margin.is_none() {
-        return Ok(None);
-    }
-    let base_return = selection
-        .and_then(Selection::first_return)
-        .ok_or_else(|| LearnerError::Config("`run.fallback_margin` needs validation (run.validation_episodes ≥ 1)".into()))?;
-    let returns: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();
-    let validations = selection.map(Selection::validations).unwrap_or_default();
-    Ok(cfg.run.fallback(base_return).map(|rule| rule.replayed(&returns, &validations)))
 }

@@ -563,7 +563,6 @@ impl TrainingLoop {
                 actors: None,
                 transport: None,
             }),
-            fallback_episodes: None,
         };
         drop(flow);
         crate::run::summary::write_summary(&self.shared.run_dir, &summary)

@@ -1,7 +1,7 @@
 //! DDPG with the LCRL actor (docs/method.md §5, Algorithm 2).
 //!
 //! Per environment step: act with μ(s) + Gaussian noise (uniform random
-//! during warm-up, unless `warmup_actions = "policy"`), store the
+//! during warm-up), store the
 //! transition, and once warm do one update:
 //!   y      = r + γ (1 − done) Q'(s', μ'(s'))
 //!   L_Q    = mean (Q(s, a) − y)²
@@ -14,12 +14,12 @@
 //! (y uses min(Q₁', Q₂'), against the overestimation that drives the actor
 //! to saturated actions). `anneal_lr` lowers both learning rates to 0 over
 //! the run. `critic_warmup_updates` holds the actor still while the critic
-//! learns from the first transitions, `actor_lr_warmup_updates` ramps the
-//! actor's learning rate up from 0. `preactivation_l2` pulls the actor
+//! learns from the first transitions. `preactivation_l2` pulls the actor
 //! toward a zero residual (the base), `proximal_l2` toward its own target
-//! (a trust region around the recent policy), `temporal_smoothness` toward
-//! its own action on the next state (CAPS); `critic_disagreement` makes
-//! it pessimistic where the twin critics disagree.
+//! (a trust region around the recent policy). (An actor learning-rate
+//! ramp, pessimism toward the twin critics' disagreement, CAPS's temporal
+//! smoothness and warm-up with the policy were measured not to help and
+//! removed: docs/peg.md, "Measured and removed".)
 //!
 //! On a GPU each kind of update is captured once as a CUDA graph and
 //! replayed (`run.cuda_graphs`; graphs.rs): the same arithmetic, its
@@ -42,7 +42,7 @@ use crate::algo::agent::{
     build_actor, build_critic, load_optimizer, load_vs, read_agent_state, read_tensors, save_optimizer, save_vs, write_agent_state, write_tensors, Agent,
     Counters, RngState, Transition,
 };
-use crate::config::{Connection, DdpgConfig, NetworkConfig, WarmupActions};
+use crate::config::{Connection, DdpgConfig, NetworkConfig};
 use crate::algo::exploration;
 use crate::algo::flat::FlatParams;
 use crate::algo::nets::{batch, ActorNet, Mlp};
@@ -199,25 +199,9 @@ impl Ddpg {
         self.cfg.noise_start + (self.cfg.noise_end - self.cfg.noise_start) * progress
     }
 
-    /// Still in the warm-up, and it acts uniformly there (`warmup_actions`).
+    /// Still in the warm-up: it acts uniformly there.
     fn warming_up_uniformly(&self) -> bool {
-        self.replay.len() < self.cfg.warmup_steps && self.cfg.warmup_actions == WarmupActions::Uniform
-    }
-
-    /// The actor's learning rate for its next step: `actor_lr`, lowered
-    /// over the run by `anneal_lr` and ramped up over the actor's first
-    /// `actor_lr_warmup_updates` steps. The count of actor steps follows
-    /// from the critic's (one per `policy_delay`, none in the critic's head
-    /// start), so a resumed run ramps where it left off.
-    fn actor_lr(&self) -> f64 {
-        let d = self.cfg.policy_delay.max(1) as u64;
-        let actor_steps = (self.critic_updates / d).saturating_sub(self.cfg.critic_warmup_updates as u64 / d);
-        let ramp = match self.cfg.actor_lr_warmup_updates {
-            0 => 1.0,
-            n => (actor_steps as f64 / n as f64).min(1.0),
-        };
-        let anneal = if self.cfg.anneal_lr { 1.0 - self.progress } else { 1.0 };
-        self.cfg.actor_lr * anneal * ramp
+        self.replay.len() < self.cfg.warmup_steps
     }
 
     /// What the `critic_updates`-th update does besides the critics' step.
@@ -270,12 +254,7 @@ impl Ddpg {
         // The numbers that change between updates, counted here on the
         // host whether the update runs eagerly or from a graph.
         let critics = self.critics.iter_mut().map(|c| c.opt.advance()).collect();
-        let actor = (kind == UpdateKind::Full).then(|| {
-            if self.cfg.actor_lr_warmup_updates > 0 {
-                self.actor_opt.set_lr(self.actor_lr());
-            }
-            self.actor_opt.advance()
-        });
+        let actor = (kind == UpdateKind::Full).then(|| self.actor_opt.advance());
         let l2 = if self.cfg.preactivation_anneal { self.cfg.preactivation_l2 * (1.0 - self.progress) } else { self.cfg.preactivation_l2 };
         let numbers = HostNumbers { critics, actor, preactivation_l2: l2 };
         match self.captured.take() {
@@ -415,15 +394,7 @@ impl Ddpg {
         if let Some([step_size, bias2]) = &numbers.actor {
             let raw = self.actor.forward_raw(&b.obs);
             let input = Tensor::cat(&[&b.obs, &raw.tanh()], 1);
-            let kappa = self.cfg.critic_disagreement;
-            let q = if kappa > 0.0 {
-                // Pessimism toward the critics' disagreement
-                // (`critic_disagreement`): mean(Q₁, Q₂) − κ·|Q₁ − Q₂|.
-                let (q1, q2) = (self.critics[0].net.forward(&input), self.critics[1].net.forward(&input));
-                (&q1 + &q2) * 0.5 - (q1 - q2).abs() * kappa
-            } else {
-                self.critics[0].net.forward(&input)
-            };
+            let q = self.critics[0].net.forward(&input);
             let mut actor_loss = -q.mean(Kind::Float) + numbers.preactivation_l2.scale(&raw.square().mean(Kind::Float));
             if self.cfg.proximal_l2 > 0.0 {
                 // The trust region toward the target actor (`proximal_l2`).
@@ -432,12 +403,6 @@ impl Ddpg {
                 // were measured with, so they replay bit for bit.)
                 let anchor = tch::no_grad(|| self.actor_target.forward(&b.obs));
                 actor_loss = actor_loss + self.cfg.proximal_l2 * (raw.tanh() - anchor).square().mean(Kind::Float);
-            }
-            if self.cfg.temporal_smoothness > 0.0 {
-                // CAPS's temporal smoothness (`temporal_smoothness`): the
-                // gradient flows through both μ(s) and μ(s′), as published.
-                let next = self.actor.forward(&b.next_obs);
-                actor_loss = actor_loss + self.cfg.temporal_smoothness * (raw.tanh() - next).square().mean(Kind::Float);
             }
             self.actor_opt.zero_grad();
             actor_loss.backward();
@@ -510,7 +475,7 @@ impl Agent for Ddpg {
         self.progress = fraction.clamp(0.0, 1.0);
         if self.cfg.anneal_lr {
             let left = 1.0 - self.progress;
-            self.actor_opt.set_lr(self.actor_lr());
+            self.actor_opt.set_lr(self.cfg.actor_lr * left);
             for critic in &mut self.critics {
                 critic.opt.set_lr(self.cfg.critic_lr * left);
             }

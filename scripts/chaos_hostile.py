@@ -1,0 +1,188 @@
+"""The chaos faults of issue 71: hostile but well-formed peers. Each is a
+short real run of lcrl-learner (lti-paper, DDPG, small networks) with an
+honest actor, and one attack; the row says what the service did and
+what was lost. Run through scripts/chaos.sh (`--only huge-values`, ...).
+"""
+
+import math
+import socket
+import subprocess
+import threading
+import time
+
+import grpc
+
+from chaoslib import free_port, sample, scrape, status, stub, wait
+import lcrl_pb2
+import lcrl_pb2_grpc
+
+
+def _send(port, batches):
+    try:
+        for _ in stub(port).StreamTransitions(iter(batches), timeout=30):
+            pass
+        return "ok"
+    except grpc.RpcError as e:
+        return e.code().name
+
+
+def _step(state, reward=-1.0, end=False):
+    return lcrl_pb2.Transition(state=state, action=[0.0, 0.0, 0.0], reward=reward, next_state=state, terminated=end)
+
+
+def _finite_action(port):
+    action = lcrl_pb2_grpc.PolicyStub(grpc.insecure_channel(f"127.0.0.1:{port}")).Act(lcrl_pb2.ActRequest(state=[0.1, 0.2, 0.3]), timeout=10).action
+    return all(math.isfinite(a) for a in action)
+
+
+def _training(port, seconds=3.0):
+    """Updates the learner made over `seconds`."""
+    before = status(port).updates
+    time.sleep(seconds)
+    return status(port).updates - before
+
+
+def huge_values(c):
+    """One batch of 25 transitions with states of 3e38 beside an honest actor."""
+    port = free_port()
+    c.learner(c.work / "huge", port)
+    c.actor(port, "--actor-id", "honest")
+    wait("updates", lambda: status(port).updates > 50)
+    code = _send(port, [lcrl_pb2.TransitionBatch(run_id="chaos", actor_id="evil", sequence=1, transitions=[_step([3e38, 3e38, 3e38])] * 25)])
+    later = _training(port, 5.0)
+    finite = _finite_action(port)
+    st = status(port)
+    return {"fault": "one batch of 25 transitions with states of 3e38 beside an honest actor",
+            "did": f"batch {code}, refused as {dict(st.rejected)}; {later} updates in the next 5 s; Policy.Act finite: {finite}",
+            "lost": "nothing of the honest actor", "updates_after": later, "finite": finite}
+
+
+def forged_returns(c):
+    """1,000 one-step episodes claiming a return of 1e30, against a
+    1,000-episode budget."""
+    port = free_port()
+    c.learner(c.work / "forged", port, "--episodes", "1000")
+    c.actor(port, "--actor-id", "honest")
+    wait("episodes", lambda: status(port).episodes > 5)
+    batch = lcrl_pb2.TransitionBatch(run_id="chaos", actor_id="evil", sequence=1, transitions=[_step([0.1, 0.1, 0.1], end=True)] * 1000,
+                                     episodes=[lcrl_pb2.EpisodeSummary(episode_return=1e30, length=1)] * 1000)
+    code = _send(port, [batch])
+    st = status(port)
+    return {"fault": "1,000 one-step episodes claiming return 1e30, 1,000-episode budget",
+            "did": f"batch {code}; episodes stored {st.episodes} of 1,000, refused as {dict(st.rejected)}",
+            "lost": "nothing", "episodes": st.episodes}
+
+
+def sequence_hijack(c):
+    """A batch under the honest actor's id with sequence 2^64 - 1."""
+    port = free_port()
+    c.learner(c.work / "hijack", port)
+    c.actor(port, "--actor-id", "honest")
+    wait("steps", lambda: status(port).env_steps > 500)
+    code = _send(port, [lcrl_pb2.TransitionBatch(run_id="chaos", actor_id="honest", sequence=2**64 - 1, transitions=[_step([0.1, 0.1, 0.1])])])
+    before = status(port)
+    time.sleep(5)
+    after = status(port)
+    stored = after.env_steps - before.env_steps
+    return {"fault": "one batch under the honest actor's id with sequence 2^64 - 1",
+            "did": f"batch {code}; the honest actor's transitions stored in the next 5 s: {stored}; refused as {dict(after.rejected)}",
+            "lost": "nothing" if stored > 0 else "every later batch of the honest actor", "stored_after": stored}
+
+
+def _health_seconds(c, port, tries=5):
+    """The slowest of `tries` `lcrl health` calls (None: one failed)."""
+    worst = 0.0
+    for _ in range(tries):
+        t0 = time.monotonic()
+        ok = subprocess.run([str(c.bins / "lcrl"), "health", f"http://127.0.0.1:{port}"], capture_output=True).returncode == 0
+        if not ok:
+            return None
+        worst = max(worst, time.monotonic() - t0)
+        time.sleep(1)
+    return worst
+
+
+def ping_flood(c):
+    """520 connections that only answer and send HTTP/2 pings (every 2 s)."""
+    port = free_port()
+    c.learner(c.work / "pings", port)
+    c.actor(port, "--actor-id", "honest")
+    wait("updates", lambda: status(port).updates > 10)
+    options = [("grpc.keepalive_time_ms", 2000), ("grpc.keepalive_permit_without_calls", 1), ("grpc.http2.max_pings_without_data", 0), ("grpc.use_local_subchannel_pool", 1)]
+    channels = [grpc.insecure_channel(f"127.0.0.1:{port}", options=options) for _ in range(520)]
+    for ch in channels:
+        ch.subscribe(lambda _: None, try_to_connect=True)
+    time.sleep(15)
+    worst = _health_seconds(c, port)
+    training = _training(port, 3.0)
+    st = status(port)
+    for ch in channels:
+        ch.close()
+    return {"fault": "520 connections answering and sending HTTP/2 pings every 2 s, no calls",
+            "did": f"slowest of 5 health checks 15 s in: {'%.2f s' % worst if worst is not None else 'FAILED'}; {training} updates in 3 s; connections closed {dict(st.connections_refused)}",
+            "lost": "nothing", "health_worst_s": worst}
+
+
+def slowloris_metrics(c):
+    """1,100 unfinished GETs on /metrics."""
+    port, metrics = free_port(), free_port()
+    c.learner(c.work / "slowloris", port, "--metrics-listen", f"127.0.0.1:{metrics}", "--checkpoint-secs", "1")
+    c.actor(port, "--actor-id", "honest")
+    wait("updates", lambda: status(port).updates > 10)
+    socks = []
+    for _ in range(1100):
+        try:
+            s = socket.create_connection(("127.0.0.1", metrics), timeout=2)
+            s.sendall(b"GET /metrics HTTP/1.1\r\nHost: x\r\n")
+            socks.append(s)
+        except OSError:
+            break
+    worst = _health_seconds(c, port)
+    for s in socks:
+        s.close()
+    time.sleep(1)
+    _, text = scrape(metrics)
+    failures = sample(text, "lcrl_learner_checkpoint_failures_total") or 0
+    return {"fault": "1,100 unfinished GETs on /metrics (its connections held open)",
+            "did": f"slowest of 5 health checks: {'%.2f s' % worst if worst is not None else 'FAILED'}; checkpoint failures {failures:.0f}; {len(socks)} sockets opened",
+            "lost": "nothing" if not failures else f"{failures:.0f} checkpoints", "health_worst_s": worst, "checkpoint_failures": failures}
+
+
+def query_storm(c):
+    """4 Act and 4 ActBatch(4,096) clients: updates per second against a
+    quiet stretch of the same run."""
+    port = free_port()
+    c.learner(c.work / "storm", port)
+    c.actor(port, "--actor-id", "honest")
+    wait("updates", lambda: status(port).updates > 200)
+    quiet = _training(port, 10.0) / 10.0
+    policy = lcrl_pb2_grpc.PolicyStub(grpc.insecure_channel(f"127.0.0.1:{port}"))
+    stop, codes = threading.Event(), {}
+
+    def client(batch):
+        while not stop.is_set():
+            try:
+                if batch:
+                    policy.ActBatch(lcrl_pb2.ActBatchRequest(count=4096, states=[0.1] * (4096 * 3)), timeout=60)
+                else:
+                    policy.Act(lcrl_pb2.ActRequest(state=[0.1, 0.2, 0.3]), timeout=60)
+                codes["OK"] = codes.get("OK", 0) + 1
+            except grpc.RpcError as e:
+                codes[e.code().name] = codes.get(e.code().name, 0) + 1
+
+    workers = [threading.Thread(target=client, args=(k >= 4,)) for k in range(8)]
+    for w in workers:
+        w.start()
+    time.sleep(2)
+    storm = _training(port, 10.0) / 10.0
+    stop.set()
+    for w in workers:
+        w.join()
+    ratio = storm / quiet if quiet else float("nan")
+    return {"fault": "4 Act and 4 ActBatch(4,096) clients for 10 s",
+            "did": f"updates/s {storm:.0f} under the storm against {quiet:.0f} quiet ({ratio:.2f}); queries {codes}",
+            "lost": "nothing", "updates_ratio": ratio}
+
+
+FAULTS = {"huge-values": huge_values, "forged-returns": forged_returns, "sequence-hijack": sequence_hijack, "ping-flood": ping_flood,
+          "slowloris-metrics": slowloris_metrics, "query-storm": query_storm}

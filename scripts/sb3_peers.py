@@ -1,0 +1,110 @@
+#!/usr/bin/env python3
+"""One Stable-Baselines3 run on one of lcrl's environments, through
+lcrl_env's Gymnasium face (`lcrl serve-env`), recorded as lcrl records its
+own runs: metrics.csv (one row per training episode) and summary.json
+(the final policy evaluated on the best constant's 100 evaluation starts,
+seeds 0-99, deterministic actions). The peer cells of
+experiments/peers.md's study (docs/peers.md).
+
+    .venv/bin/python scripts/sb3_peers.py --env peg-group1 --algo sac --seed 0 --episodes 200 --out runs/peers/peg-group1/sac/seed0
+
+Settings: SB3's defaults for the algorithm, with the overrides of
+--settings (a JSON object of keyword arguments), all written to
+summary.json. A finished run (summary.json present) is skipped.
+"""
+
+import argparse
+import csv
+import json
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "clients/python"))
+
+import lcrl_env  # noqa: E402
+from stable_baselines3 import PPO, SAC, TD3  # noqa: E402
+from stable_baselines3.common.callbacks import BaseCallback  # noqa: E402
+
+ALGOS = {"sac": SAC, "td3": TD3, "ppo": PPO}
+
+
+class Episodes(BaseCallback):
+    """Records each finished training episode and stops at the budget."""
+
+    def __init__(self, budget: int, rows: list):
+        super().__init__()
+        self.budget, self.rows = budget, rows
+        self.ret, self.length, self.started = 0.0, 0, time.monotonic()
+
+    def _on_step(self) -> bool:
+        self.ret += float(self.locals["rewards"][0])
+        self.length += 1
+        if self.locals["dones"][0]:
+            self.rows.append({"episode": len(self.rows) + 1, "return": self.ret, "length": self.length, "wall_s": round(time.monotonic() - self.started, 3)})
+            self.ret, self.length = 0.0, 0
+        return len(self.rows) < self.budget
+
+
+def evaluate(model, env, episodes: int = 100) -> list[float]:
+    """Deterministic returns on evaluation starts 0..episodes-1 (lcrl
+    tune's, the best constant's)."""
+    returns = []
+    for seed in range(episodes):
+        obs, _ = env.reset(seed=seed)
+        total, done = 0.0, False
+        while not done:
+            action, _ = model.predict(obs, deterministic=True)
+            obs, reward, term, trunc, _ = env.step(action)
+            total, done = total + reward, term or trunc
+        returns.append(total)
+    return returns
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", required=True, help="an lcrl environment (peg-group1, peg-group2, ...)")
+    parser.add_argument("--algo", required=True, choices=sorted(ALGOS))
+    parser.add_argument("--seed", type=int, required=True)
+    parser.add_argument("--episodes", type=int, required=True, help="training episodes (the publication's budgets: 200 off-policy, 900 PPO)")
+    parser.add_argument("--settings", default="{}", help="keyword arguments for the SB3 algorithm, as JSON")
+    parser.add_argument("--eval-episodes", type=int, default=100)
+    parser.add_argument("--out", required=True, type=pathlib.Path)
+    args = parser.parse_args()
+    if (args.out / "summary.json").is_file():
+        print(f"{args.out}: finished before", file=sys.stderr)
+        return 0
+    settings = json.loads(args.settings)
+    if not isinstance(settings, dict):
+        parser.error("--settings must be a JSON object")
+    args.out.mkdir(parents=True, exist_ok=True)
+    env = lcrl_env.make(args.env)
+    rows: list = []
+    started = time.monotonic()
+    model = ALGOS[args.algo]("MlpPolicy", env, seed=args.seed, device="cpu", verbose=0, **settings)
+    # SB3 counts steps; the budget is in episodes (at most 100 steps each
+    # on the peg presets), so the step cap is never what stops it.
+    model.learn(total_timesteps=10**9, callback=Episodes(args.episodes, rows))
+    train_s = time.monotonic() - started
+    returns = evaluate(model, env, args.eval_episodes)
+    env.close()
+    with open(args.out / "metrics.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=["episode", "return", "length", "wall_s"])
+        writer.writeheader()
+        writer.writerows(rows)
+    summary = {
+        "env": args.env, "algo": f"sb3-{args.algo}", "seed": args.seed, "episodes": len(rows), "env_steps": int(model.num_timesteps),
+        "eval_return": float(np.mean(returns)), "eval_returns": returns, "eval_seed": 0,
+        "train_seconds": round(train_s, 2), "total_seconds": round(time.monotonic() - started, 2),
+        "settings": settings, "sb3": __import__("stable_baselines3").__version__,
+    }
+    (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(f"{args.env} {args.algo} seed {args.seed}: {len(rows)} episodes, eval {summary['eval_return']:.3f}, {train_s:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
