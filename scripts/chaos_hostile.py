@@ -50,11 +50,14 @@ def huge_values(c):
     wait("updates", lambda: status(port).updates > 50)
     code = _send(port, [lcrl_pb2.TransitionBatch(run_id="chaos", actor_id="evil", sequence=1, transitions=[_step([3e38, 3e38, 3e38])] * 25)])
     later = _training(port, 5.0)
-    finite = _finite_action(port)
+    try:
+        finite = _finite_action(port)
+    except grpc.RpcError as e:
+        finite = f"no ({e.code().name}: {e.details()})"
     st = status(port)
     return {"fault": "one batch of 25 transitions with states of 3e38 beside an honest actor",
             "did": f"batch {code}, refused as {dict(st.rejected)}; {later} updates in the next 5 s; Policy.Act finite: {finite}",
-            "lost": "nothing of the honest actor", "updates_after": later, "finite": finite}
+            "lost": "nothing of the honest actor" if finite is True else "the run: every weight NaN", "updates_after": later, "finite": finite}
 
 
 def forged_returns(c):
@@ -67,10 +70,11 @@ def forged_returns(c):
     batch = lcrl_pb2.TransitionBatch(run_id="chaos", actor_id="evil", sequence=1, transitions=[_step([0.1, 0.1, 0.1], end=True)] * 1000,
                                      episodes=[lcrl_pb2.EpisodeSummary(episode_return=1e30, length=1)] * 1000)
     code = _send(port, [batch])
+    time.sleep(3)
     st = status(port)
     return {"fault": "1,000 one-step episodes claiming return 1e30, 1,000-episode budget",
-            "did": f"batch {code}; episodes stored {st.episodes} of 1,000, refused as {dict(st.rejected)}",
-            "lost": "nothing", "episodes": st.episodes}
+            "did": f"batch {code}; 3 s later: {st.episodes} of 1,000 episodes counted, training finished: {st.finished}, recent return {st.recent_return:.3g}; refused as {dict(st.rejected)}",
+            "lost": "the run (ended by the forged episodes)" if st.finished else "nothing", "episodes": st.episodes, "finished": st.finished}
 
 
 def sequence_hijack(c):
@@ -114,13 +118,15 @@ def ping_flood(c):
         ch.subscribe(lambda _: None, try_to_connect=True)
     time.sleep(15)
     worst = _health_seconds(c, port)
-    training = _training(port, 3.0)
-    st = status(port)
+    try:
+        training = f"{_training(port, 3.0)} updates in 3 s; connections closed {dict(status(port).connections_refused)}"
+    except grpc.RpcError as e:
+        training = f"GetStatus failed ({e.code().name})"
     for ch in channels:
         ch.close()
     return {"fault": "520 connections answering and sending HTTP/2 pings every 2 s, no calls",
-            "did": f"slowest of 5 health checks 15 s in: {'%.2f s' % worst if worst is not None else 'FAILED'}; {training} updates in 3 s; connections closed {dict(st.connections_refused)}",
-            "lost": "nothing", "health_worst_s": worst}
+            "did": f"slowest of 5 health checks 15 s in: {'%.2f s' % worst if worst is not None else 'FAILED'}; {training}",
+            "lost": "nothing" if worst is not None else "health and status while it lasts", "health_worst_s": worst}
 
 
 def slowloris_metrics(c):
