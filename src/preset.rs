@@ -91,12 +91,13 @@ pub struct EnvServer {
 }
 
 impl EnvServer {
-    fn check(&self, env: &str) -> anyhow::Result<()> {
+    /// One of `gym` and `entry_point`, and an `env` where it listens.
+    pub fn check(&self, env: &str) -> anyhow::Result<()> {
         if self.gym.is_some() == self.entry_point.is_some() {
             bail!("[env_server] needs exactly one of gym = \"ID\" (a Gymnasium id) and entry_point = \"module:Class\"");
         }
         if !lcrl_sim::remote::is_served(env) {
-            bail!("with [env_server], job.env is where it listens: grpc://HOST:PORT (e.g. grpc://127.0.0.1:0 for any free port), not {env:?}");
+            bail!("with [env_server], the environment (job.env, or lcrl train's --env) is where it listens: grpc://HOST:PORT (e.g. grpc://127.0.0.1:0 for any free port), not {env:?}");
         }
         Ok(())
     }

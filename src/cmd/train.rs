@@ -12,10 +12,12 @@ use lcrl::connection::ConnectionSpec;
 use lcrl::plots::{line_panels, Panel};
 
 /// Train an actor with DDPG or PPO; the environment runs in this process.
-#[derive(Debug, clap::Args)]
+#[derive(Debug, Clone, clap::Args)]
 pub struct TrainArgs {
     /// Environment: a registered name, a path to a .toml file, or
-    /// grpc://HOST:PORT for a served one (`python -m lcrl_env serve`).
+    /// grpc://HOST:PORT for a served one (`python -m lcrl_env serve`; with
+    /// `[env_server]` in --config, where the server it starts listens,
+    /// e.g. grpc://127.0.0.1:0).
     #[arg(long)]
     pub env: String,
     #[arg(long, value_enum)]
@@ -108,6 +110,42 @@ fn match_global_to_local(config: &mut TrainConfig, env: &str, path: &std::path::
 }
 
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
+    match serve_configured_env(args)? {
+        // The server lives until training and the final evaluation end.
+        Some((served_args, _server, _config)) => train_here(&served_args),
+        None => train_here(args),
+    }
+}
+
+/// `[env_server]` in the training config: `lcrl train` starts the Python
+/// environment server itself, as `lcrl run` does, and stops it at the end.
+/// Returns the arguments pointing at it (`--env` its address, `--config`
+/// the rest of the file), the server, and that file.
+fn serve_configured_env(args: &TrainArgs) -> anyhow::Result<Option<(TrainArgs, lcrl::supervise::Managed, tempfile::NamedTempFile)>> {
+    let Some(path) = &args.config else { return Ok(None) };
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut table: toml::Table = toml::from_str(&text).with_context(|| format!("{}", path.display()))?;
+    let Some(section) = table.remove("env_server") else { return Ok(None) };
+    let server: lcrl::preset::EnvServer = section.try_into().with_context(|| format!("{}: [env_server]", path.display()))?;
+    server.check(&args.env)?;
+    let listen = lcrl_sim::remote::address(&args.env).unwrap_or(&args.env).to_string();
+    let logs = args.run_dir.join("logs");
+    std::fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
+    // The run's environment, plus the evaluation's and a validation's.
+    let mut cmd = server.command(&listen, 3, path.parent().unwrap_or(std::path::Path::new(".")))?;
+    lcrl::supervise::die_with_parent(&mut cmd);
+    let (process, address) = lcrl::supervise::Managed::spawn("env-server", cmd, &logs, true)?;
+    let address = address.with_context(|| format!("the environment server did not start; see {}", logs.join("env-server.log").display()))?;
+    let rest = tempfile::NamedTempFile::new().context("a temporary file for the training settings")?;
+    std::fs::write(rest.path(), toml::to_string(&table)?)?;
+    let mut served = args.clone();
+    served.env = format!("{}{address}", lcrl_sim::remote::SCHEME);
+    served.config = Some(rest.path().to_path_buf());
+    eprintln!("environment server at {}: {}", served.env, server.gym.as_deref().or(server.entry_point.as_deref()).unwrap_or(""));
+    Ok(Some((served, process, rest)))
+}
+
+fn train_here(args: &TrainArgs) -> anyhow::Result<()> {
     if let Some(ConnectionSpec::MatchedGlobal { to }) = &args.connection {
         anyhow::bail!(
             "--connection global+match={}: for one run, give the graph of the actor it matches: `--connection global --match-params graph.json` \

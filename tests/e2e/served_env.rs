@@ -420,3 +420,33 @@ fn lcrl_run_secures_the_environment_server_it_starts() {
     assert!(run.join("summary.json").is_file());
     assert_eq!(super::run_cli::processes_mentioning(&module), Vec::<String>::new(), "Python processes left behind");
 }
+
+/// `lcrl train` with `[env_server]` in its config starts the environment
+/// server itself, as `lcrl run` does, trains on it, and leaves no Python
+/// process behind; without a served `--env` it says where it must listen.
+#[test]
+fn lcrl_train_serves_the_configured_environment_itself() {
+    let dir = tempfile::tempdir().unwrap();
+    let module = unique_module("train");
+    write_envs(dir.path(), &module);
+    let config = dir.path().join("served.toml");
+    std::fs::write(&config, format!("[env_server]\nentry_point = \"{module}:Linear\"\npythonpath = \".\"\n\n[ddpg]\nwarmup_steps = 40\nbatch_size = 16\n")).unwrap();
+    let run = dir.path().join("run");
+    let train = |env: &str, run: &Path| {
+        lcrl()
+            .args(["train", "--env", env, "--algo", "ddpg", "--connection", "global", "--episodes", "3", "--eval-episodes", "2", "--config"])
+            .arg(&config)
+            .arg("--run-dir")
+            .arg(run)
+            .output()
+            .unwrap()
+    };
+    let out = train("grpc://127.0.0.1:0", &run);
+    assert!(out.status.success(), "{}\n{}", stdout(&out), stderr(&out));
+    assert!(stderr(&out).contains("environment server at grpc://127.0.0.1:"), "{}", stderr(&out));
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["episodes"], 3, "{summary}");
+    assert!(run.join("logs/env-server.log").is_file());
+    assert_eq!(super::run_cli::processes_mentioning(&module), Vec::<String>::new(), "Python processes left behind");
+    assert_clean_failure(&train("lti-paper", &dir.path().join("r2")), "is where it listens");
+}

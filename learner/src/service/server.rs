@@ -205,11 +205,6 @@ fn rejection(reason: &str, message: String) -> Status {
     }
 }
 
-/// Act and ActBatch calls computed at once (the served policy is one, and
-/// each computation holds a thread off the event loop). More wait their
-/// turn on the event loop, holding no thread.
-pub const POLICY_CONCURRENCY: usize = 1;
-
 /// `lcrl.v1.Policy`: the served policy (the newest during training, the
 /// selected one after), rebuilt when another version is served.
 pub struct PolicyService {
@@ -220,8 +215,8 @@ pub struct PolicyService {
     pub act_latency: prometheus_client::metrics::histogram::Histogram,
     /// States one ActBatch call may hold (`--max-act-batch`).
     pub max_act_batch: usize,
-    /// Turns for Act and ActBatch computations ([`POLICY_CONCURRENCY`]
-    /// at once, within their share of the time).
+    /// Turns for Act and ActBatch computations (one at a time, within
+    /// their share of the time).
     pub share: super::serving_share::ServingShare,
 }
 

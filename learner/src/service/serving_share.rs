@@ -1,7 +1,7 @@
 //! Policy queries within a stated share of the time: training has
 //! priority over serving. Four Act and four ActBatch(4,096) clients once
 //! cut DDPG's updates by 82–98% (issue 71). Act and ActBatch compute one
-//! at a time ([`super::server::POLICY_CONCURRENCY`]); after a computation
+//! at a time ([`POLICY_CONCURRENCY`]); after a computation
 //! of d seconds the next may start only d·(1 − s)/s later, so over any
 //! stretch of queries they compute at most a share s of the time. Calls
 //! wait their turn holding no thread, and beyond a bounded queue are
@@ -12,6 +12,11 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use tonic::Status;
+
+/// Act and ActBatch calls computed at once (the served policy is one, and
+/// each computation holds a thread off the event loop). More wait their
+/// turn on the event loop, holding no thread.
+pub const POLICY_CONCURRENCY: usize = 1;
 
 /// Calls that may wait for their turn; the next is refused.
 pub const MAX_QUEUED_QUERIES: usize = 64;
@@ -37,7 +42,7 @@ pub struct Turn<'a> {
 impl ServingShare {
     /// `share` in (0, 1]: 1 serves without pauses.
     pub fn new(share: f64) -> Self {
-        ServingShare { share: share.clamp(0.01, 1.0), slot: tokio::sync::Semaphore::new(super::server::POLICY_CONCURRENCY), next_start: Mutex::new(Instant::now()), waiting: AtomicUsize::new(0) }
+        ServingShare { share: share.clamp(0.01, 1.0), slot: tokio::sync::Semaphore::new(POLICY_CONCURRENCY), next_start: Mutex::new(Instant::now()), waiting: AtomicUsize::new(0) }
     }
 
     /// Waits for a turn (refused when [`MAX_QUEUED_QUERIES`] wait already).
