@@ -9,6 +9,7 @@
 //! - [`incarnation`]: the learner process's id, so restarts are noticed.
 //! - [`shared`]: what the threads share (counters, the newest policy, ingestion, flow).
 //! - [`runtime`]: the training thread ([`runtime::TrainingLoop`]: admit, train, publish).
+//! - [`disk_full`]: the end of a run waits out a full disk.
 //! - [`episodes`]: metrics.csv and TensorBoard records of actors' episodes.
 //! - [`flow`]: replay ratio, waits, policy lag and the budget, as reported.
 //! - [`server`]: the `lcrl.v1.Learner` and `lcrl.v1.Policy` gRPC handlers.
@@ -17,6 +18,7 @@
 //! - [`shm`]: the same-host transport over iceoryx2 shared memory.
 //! - [`validator`]: the run's policy chosen on held-out starts, on a thread of its own.
 
+pub mod disk_full;
 pub mod episodes;
 pub mod flow;
 pub mod incarnation;

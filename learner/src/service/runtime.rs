@@ -305,7 +305,10 @@ impl TrainingLoop {
         // The final checkpoint publishes where training ended (see
         // publish_pending), so the served policy without validation, the
         // newest, is the one training ended with.
-        match self.checkpoint() {
+        // A full disk here is waited out (disk_full.rs): the final
+        // checkpoint and summary.json are the run's result.
+        let (wait, every) = (super::disk_full::WAIT_FOR_SPACE, super::disk_full::RETRY_EVERY);
+        match super::disk_full::retry_while_full("the final checkpoint", wait, every, || self.checkpoint()) {
             // Diverged weights are never written; the run still ends with
             // its summary, serving the last finite policy (issue 71).
             Err(LearnerError::Diverged(_)) => {}
@@ -323,7 +326,8 @@ impl TrainingLoop {
         };
         let snapshot = served.snapshot.clone();
         self.shared.serve(served);
-        self.write_summary(&snapshot, chosen.and_then(|c| c.record))?;
+        let record = chosen.and_then(|c| c.record);
+        super::disk_full::retry_while_full("summary.json", wait, every, || self.write_summary(&snapshot, record.clone()))?;
         self.shared.flow_mut().finished = true;
         tracing::info!(episodes = self.episodes(), "episode budget reached: training ends");
         Ok(())
