@@ -134,13 +134,15 @@ impl Registry {
 
     /// Whether `ip` (not loopback) holds `cap` open connections already.
     fn peer_full(&self, ip: IpAddr, cap: usize) -> bool {
+        // ::ffff:127.0.0.1 (IPv4 on an IPv6 listener) is loopback too.
+        let ip = ip.to_canonical();
         if ip.is_loopback() {
             return false;
         }
         let mut by_peer = self.by_peer.lock().unwrap_or_else(|p| p.into_inner());
         // The open list holds one reference; the connection, the other.
         by_peer.retain(|_, hush| hush.strong_count() > 1);
-        by_peer.keys().filter(|addr| addr.ip() == ip).count() >= cap
+        by_peer.keys().filter(|addr| addr.ip().to_canonical() == ip).count() >= cap
     }
 
     fn now_ms(&self) -> u64 {
@@ -495,6 +497,7 @@ mod tests {
         assert!(registry.peer_full("10.0.0.1".parse().unwrap(), 3));
         assert!(!registry.peer_full("10.0.0.2".parse().unwrap(), 3));
         assert!(!registry.peer_full("127.0.0.1".parse().unwrap(), 0), "loopback is every local process");
+        assert!(!registry.peer_full("::ffff:127.0.0.1".parse().unwrap(), 0), "also on an IPv6 listener");
         drop(held);
         assert!(!registry.peer_full("10.0.0.1".parse().unwrap(), 3), "closed connections give their places back");
     }

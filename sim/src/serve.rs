@@ -88,8 +88,7 @@ impl Sessions {
     /// longer than the idle timeout.
     fn add(&self, env: Box<dyn Env>, reset: bool, ended: bool) -> Result<u64, Status> {
         let mut table = self.table();
-        let timeout = Duration::from_secs(self.settings.idle_timeout_secs);
-        table.retain(|_, s| s.lock().map(|s| s.last_used.elapsed() < timeout).unwrap_or(false));
+        self.close_idle(&mut table);
         if table.len() >= self.settings.max_sessions as usize {
             return Err(Status::resource_exhausted(format!(
                 "{} sessions are open, the server's limit (--max-sessions {}); close some",
@@ -102,6 +101,17 @@ impl Sessions {
         Ok(id)
     }
 
+    /// Closes sessions unused for the idle timeout; a session in use now
+    /// (its lock held by a step) is not idle.
+    fn close_idle(&self, table: &mut HashMap<u64, Shared>) {
+        let timeout = Duration::from_secs(self.settings.idle_timeout_secs);
+        table.retain(|_, s| match s.try_lock() {
+            Ok(session) => session.last_used.elapsed() < timeout,
+            Err(std::sync::TryLockError::WouldBlock) => true,
+            Err(std::sync::TryLockError::Poisoned(_)) => false,
+        });
+    }
+
     fn get(&self, id: u64) -> Result<Shared, Status> {
         self.table().get(&id).cloned().ok_or_else(|| {
             Status::not_found(format!("no session {id} on this server (closed, or idle for over {} s)", self.settings.idle_timeout_secs))
@@ -111,6 +121,18 @@ impl Sessions {
     pub fn open(&self, count: u32) -> Result<Vec<u64>, Status> {
         if count < 1 {
             return Err(Status::invalid_argument("Open needs count >= 1"));
+        }
+        // All or none: sessions opened before a refusal would be orphans.
+        {
+            let mut table = self.table();
+            self.close_idle(&mut table);
+            let free = (self.settings.max_sessions as usize).saturating_sub(table.len());
+            if count as usize > free {
+                return Err(Status::resource_exhausted(format!(
+                    "{count} sessions asked for, {free} free of the server's {} (--max-sessions); close some",
+                    self.settings.max_sessions
+                )));
+            }
         }
         (0..count).map(|_| self.add(self.prototype.fresh(), false, false)).collect()
     }

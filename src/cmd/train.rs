@@ -133,6 +133,13 @@ fn serve_configured_env(args: &TrainArgs) -> anyhow::Result<Option<(TrainArgs, l
     std::fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
     // The run's environment, plus the evaluation's and a validation's.
     let mut cmd = server.command(&listen, 3, path.parent().unwrap_or(std::path::Path::new(".")))?;
+    // Its own token, as `lcrl run` gives its servers (unless one is set):
+    // this process, its only client, reads it from $LCRL_TOKEN_FILE.
+    if std::env::var_os(lcrl_proto::security::TOKEN_FILE_ENV).is_none() {
+        let token = args.run_dir.join("token");
+        crate::cmd::certs::write_token(&token)?;
+        std::env::set_var(lcrl_proto::security::TOKEN_FILE_ENV, &token);
+    }
     lcrl::supervise::die_with_parent(&mut cmd);
     let (process, address) = lcrl::supervise::Managed::spawn("env-server", cmd, &logs, true)?;
     let address = address.with_context(|| format!("the environment server did not start; see {}", logs.join("env-server.log").display()))?;

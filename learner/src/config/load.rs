@@ -3,6 +3,8 @@
 
 use std::path::Path;
 
+use serde::Deserialize;
+
 use super::{migrate_legacy_tables, TrainConfig};
 use crate::LearnerError;
 
@@ -90,8 +92,9 @@ impl TrainConfig {
     /// Reads a TOML file (missing keys keep their defaults).
     pub fn load(path: &Path) -> Result<Self, LearnerError> {
         let text = std::fs::read_to_string(path).map_err(|source| LearnerError::Io { path: path.into(), source })?;
-        let cfg: TrainConfig =
-            toml::from_str(&text).map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))?;
+        let mut table: toml::Table = toml::from_str(&text).map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))?;
+        migrate_legacy_tables(&mut table);
+        let cfg = TrainConfig::deserialize(toml::Value::Table(table)).map_err(|e| LearnerError::Config(format!("{}: {e}", path.display())))?;
         cfg.validate()?;
         Ok(cfg)
     }

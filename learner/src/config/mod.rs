@@ -99,10 +99,73 @@ impl TryFrom<TrainConfigFile> for TrainConfig {
     }
 }
 
+/// `[ddpg]` keys of options measured not to help and removed (docs/peg.md,
+/// "Measured and removed"), each with the value every file written before
+/// its removal holds where the option was off. A file holding one at that
+/// value (a checkpoint's recorded config, a study's resolved config) reads
+/// as before; any other value is an unknown key, refused.
+pub const REMOVED_DDPG_KEYS_AT_OFF: [(&str, RemovedOff); 4] = [
+    ("warmup_actions", RemovedOff::Text("uniform")),
+    ("actor_lr_warmup_updates", RemovedOff::Number),
+    ("critic_disagreement", RemovedOff::Number),
+    ("temporal_smoothness", RemovedOff::Number),
+];
+
+/// The "off" value of a removed key: this text, or the number 0.
+#[derive(Debug, Clone, Copy)]
+pub enum RemovedOff {
+    Text(&'static str),
+    Number,
+}
+
+impl RemovedOff {
+    fn is_toml(self, value: &toml::Value) -> bool {
+        match (self, value) {
+            (RemovedOff::Text(off), toml::Value::String(s)) => s == off,
+            (RemovedOff::Number, toml::Value::Integer(0)) => true,
+            (RemovedOff::Number, toml::Value::Float(v)) => *v == 0.0,
+            _ => false,
+        }
+    }
+
+    fn is_json(self, value: &serde_json::Value) -> bool {
+        match (self, value) {
+            (RemovedOff::Text(off), serde_json::Value::String(s)) => s == off,
+            (RemovedOff::Number, serde_json::Value::Number(n)) => n.as_f64() == Some(0.0),
+            _ => false,
+        }
+    }
+}
+
+/// Drops the removed `[ddpg]` keys that hold their "off" value from a
+/// config as a TOML table ([`REMOVED_DDPG_KEYS_AT_OFF`]).
+pub fn drop_removed_keys_at_off(table: &mut toml::Table) {
+    if let Some(toml::Value::Table(ddpg)) = table.get_mut("ddpg") {
+        for (key, off) in REMOVED_DDPG_KEYS_AT_OFF {
+            if ddpg.get(key).is_some_and(|v| off.is_toml(v)) {
+                ddpg.remove(key);
+            }
+        }
+    }
+}
+
+/// The same for a config as JSON (a checkpoint's `config`).
+pub fn drop_removed_json_keys_at_off(config: &mut serde_json::Value) {
+    if let Some(serde_json::Value::Object(ddpg)) = config.get_mut("ddpg") {
+        for (key, off) in REMOVED_DDPG_KEYS_AT_OFF {
+            if ddpg.get(key).is_some_and(|v| off.is_json(v)) {
+                ddpg.remove(key);
+            }
+        }
+    }
+}
+
 /// Renames a deprecated `[controller]` table of a config (as a TOML table)
 /// to `[base]`, warning once, so that overrides laid over defaults mean
-/// what they meant.
+/// what they meant; drops removed keys at their "off" value
+/// ([`drop_removed_keys_at_off`]).
 pub fn migrate_legacy_tables(table: &mut toml::Table) {
+    drop_removed_keys_at_off(table);
     if let Some(toml::Value::Table(mut legacy)) = table.remove("controller") {
         tracing::warn!("{CONTROLLER_DEPRECATED}");
         if let Some(action) = legacy.remove("base") {

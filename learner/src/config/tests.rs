@@ -151,3 +151,28 @@ fn ddpg_reach_is_ddpg_alone_and_a_users_base_replaces_it() {
     let group1 = TrainConfig::for_env("peg-group1").0;
     assert_eq!((group1.residual_scale(Algo::Ddpg), group1.residual_scale(Algo::Ppo)), (1.0, 1.0));
 }
+
+/// Files written before an option was removed (a checkpoint's config, a
+/// study's resolved config) hold it at its "off" value: they read as
+/// before. Any other value is refused as the unknown key it now is.
+#[test]
+fn removed_options_read_at_their_off_value_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("old.toml");
+    std::fs::write(&file, "[ddpg]\nwarmup_actions = \"uniform\"\nactor_lr_warmup_updates = 0\ncritic_disagreement = 0.0\ntemporal_smoothness = 0.0\nbatch_size = 32\n").unwrap();
+    assert_eq!(TrainConfig::load(&file).unwrap().ddpg.batch_size, 32);
+    for (text, key) in [("warmup_actions = \"policy\"", "warmup_actions"), ("temporal_smoothness = 1.0", "temporal_smoothness"), ("actor_lr_warmup_updates = 5", "actor_lr_warmup_updates")] {
+        std::fs::write(&file, format!("[ddpg]\n{text}\n")).unwrap();
+        let err = TrainConfig::load(&file).unwrap_err().to_string();
+        assert!(err.contains(key), "{err}");
+    }
+    let mut json = serde_json::to_value(TrainConfig::default()).unwrap();
+    json["ddpg"]["warmup_actions"] = "uniform".into();
+    json["ddpg"]["critic_disagreement"] = 0.0.into();
+    let mut kept = json.clone();
+    crate::config::drop_removed_json_keys_at_off(&mut kept);
+    assert_eq!(serde_json::from_value::<TrainConfig>(kept).unwrap(), TrainConfig::default());
+    json["ddpg"]["critic_disagreement"] = 1.0.into();
+    crate::config::drop_removed_json_keys_at_off(&mut json);
+    assert!(serde_json::from_value::<TrainConfig>(json).unwrap_err().to_string().contains("critic_disagreement"));
+}

@@ -151,7 +151,7 @@ pub fn check_intact(dir: &Path) -> Result<(), LearnerError> {
     let path = dir.join("checkpoint.json");
     let text = std::fs::read_to_string(&path).map_err(io(&path))?;
     let bad = |what: String| LearnerError::Checkpoint(format!("{}: {what}", path.display()));
-    serde_json::from_str::<CheckpointMeta>(&text).map_err(|e| bad(e.to_string()))?;
+    parse_meta(&text).map_err(|e| bad(e.to_string()))?;
     let manifest: Manifest = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
     for (name, size) in manifest.files.unwrap_or_default() {
         // A manifest names files in this folder, never a path elsewhere.
@@ -257,7 +257,18 @@ fn check_staged_finite(dir: &Path) -> Result<(), LearnerError> {
 pub fn read_meta(dir: &Path) -> Result<CheckpointMeta, LearnerError> {
     let path = dir.join("checkpoint.json");
     let text = std::fs::read_to_string(&path).map_err(io(&path))?;
-    serde_json::from_str(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+    parse_meta(&text).map_err(|e| LearnerError::Checkpoint(format!("{}: {e}", path.display())))
+}
+
+/// checkpoint.json's metadata. A checkpoint written before an option was
+/// removed records it at its "off" value: read as it was
+/// (crate::config::REMOVED_DDPG_KEYS_AT_OFF).
+fn parse_meta(text: &str) -> Result<CheckpointMeta, serde_json::Error> {
+    let mut json: serde_json::Value = serde_json::from_str(text)?;
+    if let Some(config) = json.get_mut("config") {
+        crate::config::drop_removed_json_keys_at_off(config);
+    }
+    serde_json::from_value(json)
 }
 
 /// Writes a checkpoint durably ([`write_folder`]), then keeps only the

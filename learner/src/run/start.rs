@@ -107,20 +107,43 @@ pub fn prepare(start: RunStart, env: &dyn Env) -> Result<Prepared, LearnerError>
 /// buffer consistent with its manifest) is skipped for the one before it,
 /// with the reason logged (issue 71). None when there is no checkpoint.
 fn resume(start: &RunStart, env: &dyn Env) -> Result<Option<Prepared>, LearnerError> {
-    let candidates = checkpoints_to_resume(start.run_dir, start.env, start.algo, start.connection)?;
-    let count = candidates.len();
-    for (k, (dir, meta)) in candidates.into_iter().enumerate() {
+    let mut unloadable: Vec<(PathBuf, LearnerError)> = Vec::new();
+    for dir in intact_checkpoints(start.run_dir) {
+        let meta = checked_meta(&dir, start.env, start.algo, start.connection)?;
         let mut config = meta.config.clone();
         config.run.episodes = start.config.run.episodes.max(meta.episode);
         match build_agent(start, env, config, Some(dir.clone()), meta, None) {
-            Ok(prepared) => return Ok(Some(prepared)),
-            Err(e @ (LearnerError::Io { .. } | LearnerError::Checkpoint(_))) if k + 1 < count => {
-                tracing::warn!(checkpoint = %dir.display(), "cannot load this checkpoint ({e}); resuming from the one before it");
+            Ok(prepared) => {
+                // Set aside, so that no later resume takes them for the
+                // newest (metrics.csv is cut back to this one).
+                for (skipped, why) in &unloadable {
+                    set_aside(skipped, why);
+                }
+                return Ok(Some(prepared));
+            }
+            Err(e @ (LearnerError::Io { .. } | LearnerError::Checkpoint(_))) => {
+                tracing::warn!(checkpoint = %dir.display(), "cannot load this checkpoint ({e}); trying the one before it");
+                unloadable.push((dir, e));
             }
             Err(e) => return Err(e),
         }
     }
-    Ok(None)
+    // None loads: the newest one's reason (never a fresh start over them).
+    match unloadable.into_iter().next() {
+        Some((_, why)) => Err(why),
+        None => Ok(None),
+    }
+}
+
+/// Renames an unloadable checkpoint folder to `.NAME.unloadable` beside
+/// it: kept for a post-mortem, never listed again.
+fn set_aside(dir: &Path, why: &LearnerError) {
+    let Some(name) = dir.file_name().map(|n| n.to_string_lossy().into_owned()) else { return };
+    let aside = dir.with_file_name(format!(".{name}.unloadable"));
+    match std::fs::rename(dir, &aside) {
+        Ok(()) => tracing::warn!(checkpoint = %dir.display(), "set aside as {} ({why})", aside.display()),
+        Err(e) => tracing::warn!(checkpoint = %dir.display(), "cannot set it aside: {e}"),
+    }
 }
 
 /// The rest of the start-up: the device, threads and base controller, and
@@ -152,27 +175,28 @@ fn build_agent(start: &RunStart, env: &dyn Env, mut config: TrainConfig, checkpo
 /// A checkpoint of another environment, algorithm or connection is an
 /// error: resuming it as this run would mix two runs.
 pub fn checkpoint_to_resume(run_dir: &Path, env: &str, algo: Algo, connection: Connection) -> Result<Option<(PathBuf, CheckpointMeta)>, LearnerError> {
-    Ok(checkpoints_to_resume(run_dir, env, algo, connection)?.into_iter().next())
+    let Some(dir) = latest_checkpoint(run_dir) else { return Ok(None) };
+    let meta = checked_meta(&dir, env, algo, connection)?;
+    Ok(Some((dir, meta)))
 }
 
-/// Every intact checkpoint of `run_dir`, newest first, with its metadata;
-/// the same check of the run's shape as [`checkpoint_to_resume`].
-fn checkpoints_to_resume(run_dir: &Path, env: &str, algo: Algo, connection: Connection) -> Result<Vec<(PathBuf, CheckpointMeta)>, LearnerError> {
-    let mut found = Vec::new();
-    for dir in intact_checkpoints(run_dir) {
-        let meta = read_meta(&dir)?;
-        if meta.shape.env != env || meta.shape.algo != algo || meta.shape.connection != connection {
-            return Err(LearnerError::Mismatch(format!(
-                "{} holds a run of {} with {:?}/{:?}; continue it with the same --env, --algo and --connection, or choose another --run-dir",
-                dir.display(),
-                meta.shape.env,
-                meta.shape.algo,
-                meta.shape.connection
-            )));
-        }
-        found.push((dir, meta));
+/// A checkpoint's metadata, checked to be a run of this environment,
+/// algorithm and connection. Two served environments (grpc://) count as
+/// the same: a server started for the run (`[env_server]`) listens on
+/// another port each time.
+fn checked_meta(dir: &Path, env: &str, algo: Algo, connection: Connection) -> Result<CheckpointMeta, LearnerError> {
+    let meta = read_meta(dir)?;
+    let same_env = meta.shape.env == env || (lcrl_sim::remote::is_served(&meta.shape.env) && lcrl_sim::remote::is_served(env));
+    if !same_env || meta.shape.algo != algo || meta.shape.connection != connection {
+        return Err(LearnerError::Mismatch(format!(
+            "{} holds a run of {} with {:?}/{:?}; continue it with the same --env, --algo and --connection, or choose another --run-dir",
+            dir.display(),
+            meta.shape.env,
+            meta.shape.algo,
+            meta.shape.connection
+        )));
     }
-    Ok(found)
+    Ok(meta)
 }
 
 /// Replaces `config`'s base controller by the numbers it stands for

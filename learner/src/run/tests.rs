@@ -585,7 +585,9 @@ fn a_resume_falls_back_past_a_checkpoint_whose_replay_cannot_load() {
     std::fs::write(&replay, &damaged).unwrap();
     crate::policy::checkpoint::check_intact(&newest).expect("still consistent with its manifest");
     let resumed = run_until(Algo::Ddpg, Connection::Global, tiny_with_episodes(6), dir.path(), true, None);
-    // Episodes 3 and 4 trained again from ep000002, then 5 and 6.
+    // Episodes 3 and 4 trained again from ep000002, then 5 and 6; the
+    // unloadable one was set aside, never to be taken for the newest.
     assert_eq!(resumed.rows.len(), 6);
     assert_eq!(resumed.summary.episodes, 6);
+    assert!(dir.path().join("checkpoints/.ep000004.unloadable").is_dir());
 }

@@ -362,10 +362,12 @@ fn now_micros() -> u64 {
 }
 
 /// Checks each episode summary against the rewards the batch holds for
-/// it. An episode that lies wholly in the batch must claim exactly its
-/// steps and their sum; one that began in an earlier batch (after a cut,
-/// or at the batch's start) may claim more steps, each at most
-/// [`lcrl_sim::REWARD_LIMIT`] more. The budget counts these episodes and
+/// it (its steps since the previous end or cut): it claims at least those
+/// steps, and a return within [`lcrl_sim::REWARD_LIMIT`] per step it
+/// claims beyond them of their sum (exactly their sum when it claims no
+/// more). The learner cannot tell an episode that began in this batch from
+/// one that continues (an actor's K segments follow each other, and one
+/// that ended on an end leaves no cut), so the bound is all it can check. The budget counts these episodes and
 /// the training curve shows their returns: one batch of 1,000 one-step
 /// episodes claiming 1e30 each ended a run and its summary (issue 71).
 fn returns_agree(batch: &TransitionBatch) -> Result<(), String> {

@@ -47,16 +47,18 @@ impl ServingShare {
 
     /// Waits for a turn (refused when [`MAX_QUEUED_QUERIES`] wait already).
     pub async fn turn(&self) -> Result<Turn<'_>, Status> {
-        if self.waiting.fetch_add(1, Ordering::AcqRel) >= MAX_QUEUED_QUERIES {
-            self.waiting.fetch_sub(1, Ordering::AcqRel);
+        // Counted while waiting, and uncounted however the wait ends: a
+        // caller that gives up (a deadline, a reset stream) drops this
+        // future mid-wait, and a count left behind would refuse everyone.
+        let waiting = Waiting::enter(&self.waiting);
+        if waiting.ahead >= MAX_QUEUED_QUERIES {
             return Err(Status::resource_exhausted(format!(
                 "{MAX_QUEUED_QUERIES} policy queries are waiting; training has priority (--serving-share {}): retry later",
                 self.share
             )));
         }
-        let slot = self.slot.acquire().await;
-        self.waiting.fetch_sub(1, Ordering::AcqRel);
-        let slot = slot.map_err(|_| Status::unavailable("the learner is shutting down"))?;
+        let slot = self.slot.acquire().await.map_err(|_| Status::unavailable("the learner is shutting down"))?;
+        drop(waiting);
         let start = *self.next_start.lock().unwrap_or_else(|p| p.into_inner());
         tokio::time::sleep_until(start.into()).await;
         Ok(Turn { _slot: slot, started: Instant::now() })
@@ -71,6 +73,25 @@ impl ServingShare {
 
     pub fn share(&self) -> f64 {
         self.share
+    }
+}
+
+/// One caller counted among those waiting, until dropped.
+struct Waiting<'a> {
+    count: &'a AtomicUsize,
+    /// Callers waiting before this one.
+    ahead: usize,
+}
+
+impl<'a> Waiting<'a> {
+    fn enter(count: &'a AtomicUsize) -> Self {
+        Waiting { ahead: count.fetch_add(1, Ordering::AcqRel), count }
+    }
+}
+
+impl Drop for Waiting<'_> {
+    fn drop(&mut self) {
+        self.count.fetch_sub(1, Ordering::AcqRel);
     }
 }
 
@@ -112,9 +133,15 @@ mod tests {
         }
         let refused = limiter.turn().await.unwrap_err();
         assert_eq!(refused.code(), tonic::Code::ResourceExhausted);
-        limiter.done(held);
-        for w in waiting {
-            w.await.unwrap().unwrap();
+        // Callers that give up while waiting leave no count behind.
+        for w in &waiting {
+            w.abort();
         }
+        for w in waiting {
+            let _ = w.await;
+        }
+        assert_eq!(limiter.waiting.load(Ordering::Acquire), 0);
+        limiter.done(held);
+        limiter.turn().await.unwrap();
     }
 }
