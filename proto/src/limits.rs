@@ -193,33 +193,6 @@ impl Backoff {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn backoff_doubles_to_its_cap_with_jitter_in_the_upper_half() {
-        let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
-        let delays: Vec<Duration> = (0..8).map(|_| backoff.next_delay()).collect();
-        let bounds = [100u64, 200, 400, 800, 1600, 2000, 2000, 2000];
-        for (delay, bound) in delays.iter().zip(bounds) {
-            let bound = Duration::from_millis(bound);
-            assert!(*delay <= bound && *delay >= bound / 2, "{delay:?} outside [{:?}, {bound:?}]", bound / 2);
-        }
-        // Two actors that start together do not retry in lockstep.
-        let mut other = Backoff { state: 0x9e37_79b9_7f4a_7c15, ..Backoff::new(Duration::from_millis(100), Duration::from_secs(2)) };
-        let theirs: Vec<Duration> = (0..8).map(|_| other.next_delay()).collect();
-        assert_ne!(delays, theirs);
-    }
-
-    #[test]
-    fn the_ping_interval_stays_below_the_idle_timeout() {
-        let short = ServerLimitsArgs { max_connections: 1, idle_timeout_secs: 2, ..Default::default() };
-        assert_eq!(short.keepalive_interval(), Duration::from_secs(1));
-        assert_eq!(ServerLimitsArgs::default().keepalive_interval(), KEEPALIVE_INTERVAL);
-    }
-}
-
 /// Files a server keeps beyond its connections: checkpoints, logs,
 /// shared memory, the /metrics server's connections (64).
 pub const RESERVED_FILES: u64 = 256;
@@ -249,4 +222,31 @@ pub fn reserve_files(max_connections: u32) -> Result<u64, String> {
         ));
     }
     Ok(raised.rlim_cur)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backoff_doubles_to_its_cap_with_jitter_in_the_upper_half() {
+        let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
+        let delays: Vec<Duration> = (0..8).map(|_| backoff.next_delay()).collect();
+        let bounds = [100u64, 200, 400, 800, 1600, 2000, 2000, 2000];
+        for (delay, bound) in delays.iter().zip(bounds) {
+            let bound = Duration::from_millis(bound);
+            assert!(*delay <= bound && *delay >= bound / 2, "{delay:?} outside [{:?}, {bound:?}]", bound / 2);
+        }
+        // Two actors that start together do not retry in lockstep.
+        let mut other = Backoff { state: 0x9e37_79b9_7f4a_7c15, ..Backoff::new(Duration::from_millis(100), Duration::from_secs(2)) };
+        let theirs: Vec<Duration> = (0..8).map(|_| other.next_delay()).collect();
+        assert_ne!(delays, theirs);
+    }
+
+    #[test]
+    fn the_ping_interval_stays_below_the_idle_timeout() {
+        let short = ServerLimitsArgs { max_connections: 1, idle_timeout_secs: 2, ..Default::default() };
+        assert_eq!(short.keepalive_interval(), Duration::from_secs(1));
+        assert_eq!(ServerLimitsArgs::default().keepalive_interval(), KEEPALIVE_INTERVAL);
+    }
 }
