@@ -94,9 +94,15 @@ pub fn diverged(env: &dyn Env, step: &Step) -> Option<String> {
 /// Why `state` lies beyond the environment's scale by more than
 /// [`STATE_LIMIT`] (or is not finite); None when it lies within.
 pub fn state_out_of_bounds(env: &dyn Env, state: &[f64]) -> Option<String> {
-    let scaled = env.normalize_state(state);
-    let k = scaled.iter().position(|v| !v.is_finite() || v.abs() > STATE_LIMIT)?;
-    Some(format!("state component {k} ({}) is {}, {} times its scale; at most {STATE_LIMIT:e}", env.spec().state_names.get(k).map_or("?", String::as_str), state[k], scaled[k]))
+    // On every actor step and ingested transition: no allocation.
+    let scale = |k: usize| env.state_scale().and_then(|s| s.get(k)).copied().unwrap_or(1.0);
+    let k = state.iter().enumerate().position(|(k, v)| !v.is_finite() || (v / scale(k)).abs() > STATE_LIMIT)?;
+    Some(format!(
+        "state component {k} ({}) is {}, {} times its scale; at most {STATE_LIMIT:e}",
+        env.spec().state_names.get(k).map_or("?", String::as_str),
+        state[k],
+        state[k] / scale(k)
+    ))
 }
 
 /// The outcome of one control step.
@@ -152,14 +158,17 @@ pub trait Env: Send + Sync {
         false
     }
     /// Divisors that bring each state component to order 1 for learning
-    /// (length m). Ones unless the environment knows better.
-    fn state_scale(&self) -> Vec<f64> {
-        vec![1.0; self.spec().state_dim()]
+    /// (length m); None: all ones (the state is used as it is).
+    fn state_scale(&self) -> Option<&[f64]> {
+        None
     }
     /// The state scaled for learning: each component over its
-    /// [`Env::state_scale`].
+    /// [`Env::state_scale`]. Called every step: borrows the scales.
     fn normalize_state(&self, state: &[f64]) -> Vec<f64> {
-        state.iter().zip(self.state_scale()).map(|(v, s)| v / s).collect()
+        match self.state_scale() {
+            Some(scale) => state.iter().zip(scale).map(|(v, s)| v / s).collect(),
+            None => state.to_vec(),
+        }
     }
     /// Seconds of simulated time per step (for traces).
     fn control_period_s(&self) -> f64 {

@@ -362,8 +362,8 @@ impl Env for RemoteEnv {
         }
     }
 
-    fn state_scale(&self) -> Vec<f64> {
-        self.server.state_scale.clone()
+    fn state_scale(&self) -> Option<&[f64]> {
+        Some(&self.server.state_scale)
     }
 
     fn control_period_s(&self) -> f64 {

@@ -80,7 +80,7 @@ impl Sessions {
             dt: env.control_period_s(),
             max_sessions: self.settings.max_sessions,
             open_sessions: self.table().len() as u32,
-            state_scale: env.state_scale(),
+            state_scale: env.state_scale().map_or_else(|| vec![1.0; m], <[f64]>::to_vec),
         }
     }
 

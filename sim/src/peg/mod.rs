@@ -342,8 +342,8 @@ impl Env for PegEnv {
 
     /// Divides each component by its typical size (`observation.scale`,
     /// measured on real episodes), so inputs are of order 1.
-    fn state_scale(&self) -> Vec<f64> {
-        self.cfg.observation.scale.to_vec()
+    fn state_scale(&self) -> Option<&[f64]> {
+        Some(&self.cfg.observation.scale)
     }
 
     fn control_period_s(&self) -> f64 {
