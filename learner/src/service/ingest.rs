@@ -367,9 +367,10 @@ fn now_micros() -> u64 {
 /// claims beyond them of their sum (exactly their sum when it claims no
 /// more). The learner cannot tell an episode that began in this batch from
 /// one that continues (an actor's K segments follow each other, and one
-/// that ended on an end leaves no cut), so the bound is all it can check. The budget counts these episodes and
-/// the training curve shows their returns: one batch of 1,000 one-step
-/// episodes claiming 1e30 each ended a run and its summary (issue 71).
+/// that ended on an end leaves no cut), so the bound is all it can check.
+/// The budget counts these episodes and the training curve shows their
+/// returns: one batch of 1,000 one-step episodes claiming 1e30 each ended
+/// a run and its summary (issue 71).
 fn returns_agree(batch: &TransitionBatch) -> Result<(), String> {
     let mut summaries = batch.episodes.iter().enumerate();
     let (mut sum, mut sum_abs, mut steps) = (0.0f64, 0.0f64, 0u32);
