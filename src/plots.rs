@@ -104,10 +104,24 @@ enum Sample {
 /// ticks; values a reward panel clips sit on its bottom edge, each marked
 /// with a small triangle.
 pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &[Panel]) -> anyhow::Result<()> {
-    lcrl_graph_builder::plot::register_fonts();
-    let height = 60 + 260 * panels.len() as u32;
-    let root = BitMapBackend::new(path, (PLOT_WIDTH + LEGEND_WIDTH, height)).into_drawing_area();
+    let root = BitMapBackend::new(path, figure_size(panels)).into_drawing_area();
     let draw_err = |e: &dyn std::fmt::Display| anyhow::anyhow!("cannot draw {}: {e}", path.display());
+    draw_panels(&root, title, x, x_label, panels).map_err(|e| draw_err(&e))?;
+    root.present().map_err(|e| draw_err(&e)).with_context(|| format!("writing {}", path.display()))
+}
+
+/// The figure's size in pixels: one 260-pixel row per panel under the title.
+fn figure_size(panels: &[Panel]) -> (u32, u32) {
+    (PLOT_WIDTH + LEGEND_WIDTH, 60 + 260 * panels.len() as u32)
+}
+
+/// [`line_panels`] on any drawing backend (a file, or memory in the tests).
+fn draw_panels<DB: DrawingBackend>(root: &DrawingArea<DB, plotters::coord::Shift>, title: &str, x: &[f64], x_label: &str, panels: &[Panel]) -> anyhow::Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    lcrl_graph_builder::plot::register_fonts();
+    let draw_err = |e: &dyn std::fmt::Display| anyhow::anyhow!("{e}");
     root.fill(&WHITE).map_err(|e| draw_err(&e))?;
     let root = root.titled(title, ("sans-serif", 20)).map_err(|e| draw_err(&e))?;
     let areas = root.split_evenly((panels.len(), 1));
@@ -157,15 +171,20 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
         for (k, (name, values)) in panel.series.iter().enumerate() {
             let color = COLORS[k % COLORS.len()];
             let stretches = stretches(x, values, dodge(k), y0);
+            // Segment by segment: plotters joins a wide polyline's segments
+            // with unlimited miters, and a sharp zigzag (noisy returns)
+            // turns them into spikes that leave the frame.
             for stretch in &stretches {
-                chart.draw_series(LineSeries::new(stretch.iter().copied(), color.stroke_width(2))).map_err(|e| draw_err(&e))?;
+                let segments = stretch.windows(2).map(|pair| PathElement::new(pair.to_vec(), color.stroke_width(2)));
+                chart.draw_series(segments).map_err(|e| draw_err(&e))?;
             }
             if panel.markers {
                 let dots = stretches.iter().flatten().map(|p| Circle::new(*p, 4, color.filled()));
                 chart.draw_series(dots).map_err(|e| draw_err(&e))?;
             }
-            // Clipped values: a triangle on the bottom edge for each.
-            let clipped = x.iter().zip(values).filter(|(_, y)| **y < y0).map(|(x, _)| TriangleMarker::new((*x, y0), 4, color.filled()));
+            // Clipped values: a triangle standing on the bottom edge for each.
+            let clipped = x.iter().zip(values).filter(|(_, y)| **y < y0);
+            let clipped = clipped.map(|(x, _)| EmptyElement::at((*x, y0)) + TriangleMarker::new((0, -4), 4, color.filled()));
             chart.draw_series(clipped).map_err(|e| draw_err(&e))?;
             legend.push(LegendRow { name: name.clone(), color, sample: Sample::Line });
         }
@@ -179,7 +198,7 @@ pub fn line_panels(path: &Path, title: &str, x: &[f64], x_label: &str, panels: &
         }
         draw_legend(&legend_area, &legend).map_err(|e| draw_err(&e))?;
     }
-    root.present().map_err(|e| draw_err(&e)).with_context(|| format!("writing {}", path.display()))
+    Ok(())
 }
 
 /// A series' points as the stretches its line is drawn in: a NaN value is
@@ -227,7 +246,9 @@ fn range(values: impl Iterator<Item = f64>) -> (f64, f64) {
 
 #[cfg(test)]
 mod tests {
-    use super::{robust_low, stretches};
+    use plotters::prelude::*;
+
+    use super::{draw_panels, figure_size, robust_low, stretches, Panel, COLORS, PLOT_WIDTH};
 
     /// NaN splits a line (a companion that did not run at some N), a
     /// single point is a stretch of its own, and −∞ sits on the bottom.
@@ -250,5 +271,67 @@ mod tests {
         let calm: Vec<f64> = (0..150).map(|k| -5.0 + k as f64 * 0.01).collect();
         assert_eq!(robust_low(&[&calm]), None);
         assert_eq!(robust_low(&[&returns[..10]]), None);
+    }
+
+    /// The longest run of black pixels along rows (`horizontal`) or
+    /// columns of the plot area: (the line's index, its first, its last).
+    fn longest_black_run(pixels: &[u8], (width, height): (u32, u32), horizontal: bool) -> (usize, usize, usize) {
+        let black = |x: usize, y: usize| pixels[3 * (y * width as usize + x)..][..3] == [0, 0, 0];
+        let (lines, along) = if horizontal { (height as usize, PLOT_WIDTH as usize) } else { (PLOT_WIDTH as usize, height as usize) };
+        let mut best = (0, 0, 0);
+        for line in 0..lines {
+            let mut start = None;
+            for k in 0..=along {
+                let on = k < along && if horizontal { black(k, line) } else { black(line, k) };
+                match (on, start) {
+                    (true, None) => start = Some(k),
+                    (false, Some(s)) => {
+                        if k - s > best.2 - best.1 + 1 || best == (0, 0, 0) {
+                            best = (line, s, k - 1);
+                        }
+                        start = None;
+                    }
+                    _ => {}
+                }
+            }
+        }
+        best
+    }
+
+    /// A noisy reward curve (sharp dips, early disasters below the axis)
+    /// is drawn inside the frame the axes make: no pixel of its colour lies
+    /// left of the y axis, below the x axis or above the y axis's top.
+    /// (Drawn as one wide polyline, its sharp corners became spikes far
+    /// outside it: 680 pixels of this curve.)
+    #[test]
+    fn a_noisy_curve_stays_inside_its_frame() {
+        // Noisy returns over 1,000 episodes (a fixed LCG): every few a
+        // sharp dip, and the first 100 far below the rest.
+        let mut state = 12345u64;
+        let mut noise = || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let returns: Vec<f64> = (0..1000).map(|k| if k < 100 { -600.0 * noise() } else { -1.0 - 3.0 * noise() - if noise() < 0.1 { 30.0 * noise() } else { 0.0 } }).collect();
+        let x: Vec<f64> = (1..=returns.len()).map(|e| e as f64).collect();
+        let panels = [Panel::rewards("return", vec![("return".into(), returns)], Vec::new())];
+        let size = figure_size(&panels);
+        let mut pixels = vec![0u8; 3 * (size.0 * size.1) as usize];
+        {
+            let root = BitMapBackend::with_buffer(&mut pixels, size).into_drawing_area();
+            draw_panels(&root, "noisy", &x, "episode", &panels).unwrap();
+            root.present().unwrap();
+        }
+        let (axis_row, _, _) = longest_black_run(&pixels, size, true);
+        let (axis_column, top, _) = longest_black_run(&pixels, size, false);
+        let color = COLORS[0];
+        let drawn: Vec<(usize, usize)> = (0..size.1 as usize)
+            .flat_map(|y| (0..PLOT_WIDTH as usize).map(move |x| (x, y)))
+            .filter(|&(x, y)| pixels[3 * (y * size.0 as usize + x)..][..3] == [color.0, color.1, color.2])
+            .collect();
+        assert!(drawn.len() > 1000, "the curve is drawn ({} pixels)", drawn.len());
+        // The line is 2 pixels wide: it may lie on an axis, not beyond it.
+        let outside: Vec<&(usize, usize)> = drawn.iter().filter(|&&(x, y)| y > axis_row + 1 || y + 1 < top || x + 1 < axis_column).collect();
+        assert!(outside.is_empty(), "{} pixels outside the frame (rows {top}..={axis_row}, from column {axis_column}), e.g. {:?}", outside.len(), &outside[..outside.len().min(5)]);
     }
 }

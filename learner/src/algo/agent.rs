@@ -12,6 +12,20 @@ use crate::config::{Connection, NetworkConfig};
 use crate::algo::nets::{ActorNet, Mlp, SubnetActor};
 use crate::LearnerError;
 
+/// What an agent is built for, besides its algorithm's settings: the
+/// actor's connection and graph G (docs/method.md eq. 7: row i lists the
+/// states action i sees), the dimensions m (states) and n (actions), the
+/// seed of its initial weights and exploration, and the device.
+#[derive(Clone, Copy, Debug)]
+pub struct AgentSetup<'a> {
+    pub connection: Connection,
+    pub mask: &'a [Vec<u8>],
+    pub state_dim: usize,
+    pub action_dim: usize,
+    pub seed: u64,
+    pub device: tch::Device,
+}
+
 /// One environment step as the learner sees it (normalized units).
 #[derive(Default)]
 pub struct Transition<'a> {

@@ -2,7 +2,7 @@
 //! place that knows both DDPG and PPO, so that neither they nor agent.rs
 //! import each other in a circle.
 
-use crate::algo::agent::Agent;
+use crate::algo::agent::{Agent, AgentSetup};
 use crate::config::Connection;
 use crate::LearnerError;
 
@@ -17,9 +17,10 @@ pub fn make_agent(
 ) -> Result<Box<dyn Agent>, LearnerError> {
     use crate::config::Algo;
     let device = crate::device::torch::resolve_device(&cfg.run.device)?;
+    let setup = AgentSetup { connection, mask, state_dim: m, action_dim: n, seed: cfg.run.seed, device };
     Ok(match algo {
         Algo::Ddpg => {
-            let mut ddpg = crate::algo::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, connection, mask, m, n, cfg.run.seed, device);
+            let mut ddpg = crate::algo::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, setup);
             if device.is_cuda() && cfg.run.cuda_graphs {
                 match ddpg.use_cuda_graphs() {
                     Ok(()) => tracing::info!("DDPG updates run as CUDA graphs"),
@@ -28,6 +29,6 @@ pub fn make_agent(
             }
             Box::new(ddpg)
         }
-        Algo::Ppo => Box::new(crate::algo::ppo::Ppo::new(&cfg.ppo, &cfg.network, connection, mask, m, n, cfg.run.seed, device)),
+        Algo::Ppo => Box::new(crate::algo::ppo::Ppo::new(&cfg.ppo, &cfg.network, setup)),
     })
 }

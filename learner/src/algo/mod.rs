@@ -24,3 +24,6 @@ pub mod nets;
 pub mod ppo;
 pub mod rate_limiter;
 pub mod replay;
+
+#[cfg(test)]
+mod cuda_tests;

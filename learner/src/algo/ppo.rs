@@ -27,10 +27,10 @@ use tch::{nn, Device, Kind, Tensor};
 
 use crate::algo::adam::Adam;
 use crate::algo::agent::{
-    build_actor, build_critic, load_optimizers, load_vs, read_agent_state, save_optimizers, save_vs, write_agent_state, Agent,
+    build_actor, build_critic, load_optimizers, load_vs, read_agent_state, save_optimizers, save_vs, write_agent_state, Agent, AgentSetup,
     Counters, RngState, Transition,
 };
-use crate::config::{Connection, NetworkConfig, PpoConfig};
+use crate::config::{NetworkConfig, PpoConfig};
 use crate::algo::exploration;
 use crate::algo::nets::{batch, ActorNet, Mlp};
 use crate::LearnerError;
@@ -118,8 +118,8 @@ struct PpoState {
 }
 
 impl Ppo {
-    #[allow(clippy::too_many_arguments)]
-    pub fn new(cfg: &PpoConfig, net: &NetworkConfig, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, seed: u64, device: Device) -> Self {
+    pub fn new(cfg: &PpoConfig, net: &NetworkConfig, setup: AgentSetup) -> Self {
+        let AgentSetup { connection, mask, state_dim: m, action_dim: n, seed, device } = setup;
         let actor_vs = nn::VarStore::new(device);
         let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
         let log_std = actor_vs.root().var("log_std", &[n as i64], nn::Init::Const(cfg.log_std_init));
@@ -323,6 +323,7 @@ impl Agent for Ppo {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::Connection;
 
     /// The log-probability an actor sends (plain Rust, exploration.rs) is
     /// the one PPO computes on tensors for its ratio, and a stored
@@ -332,7 +333,7 @@ mod tests {
         let cfg = PpoConfig { log_std_init: -0.7, ..PpoConfig::default() };
         let (m, n) = (4, 3);
         let mask = vec![vec![1, 1, 0, 0], vec![0, 1, 1, 0], vec![0, 0, 1, 1]];
-        let mut ppo = Ppo::new(&cfg, &NetworkConfig::default(), Connection::Local, &mask, m, n, 3, Device::Cpu);
+        let mut ppo = Ppo::new(&cfg, &NetworkConfig::default(), AgentSetup { connection: Connection::Local, mask: &mask, state_dim: m, action_dim: n, seed: 3, device: Device::Cpu });
         let obs = [0.3f32, -0.2, 0.9, 0.1];
         let std: Vec<f64> = Vec::<f32>::try_from(ppo.log_std.exp()).unwrap().iter().map(|&s| f64::from(s)).collect();
         for u in [[0.0f32, 0.0, 0.0], [1.7, -1.3, 0.2], [-3.0, 2.5, 0.9]] {
@@ -356,7 +357,7 @@ mod tests {
     fn advantages_run_on_across_an_actors_batch_ends() {
         let (m, n) = (3, 2);
         let mask = vec![vec![1; m]; n];
-        let ppo = || Ppo::new(&PpoConfig::default(), &NetworkConfig::default(), Connection::Local, &mask, m, n, 5, Device::Cpu);
+        let ppo = || Ppo::new(&PpoConfig::default(), &NetworkConfig::default(), AgentSetup { connection: Connection::Local, mask: &mask, state_dim: m, action_dim: n, seed: 5, device: Device::Cpu });
         // Stream s, step k: distinct states; the episode ends at its last step.
         let len = 12;
         let state = |s: usize, k: usize| vec![(s * 31 + k) as f32 * 0.07 - 1.0, ((s + 2) * k) as f32 * 0.05, (k as f32).sin()];

@@ -574,3 +574,5 @@ mod validate;
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod usage_table;

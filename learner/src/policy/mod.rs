@@ -18,3 +18,6 @@ pub mod checkpoint;
 pub mod finite;
 pub mod snapshot;
 pub mod trained;
+
+#[cfg(test)]
+mod tests;

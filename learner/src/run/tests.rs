@@ -1,5 +1,5 @@
-//! Training-level tests: learning quality against the LQR ceilings,
-//! checkpoint round trips, exact resume, determinism.
+//! Training-level tests: learning quality against the LQR ceilings, exact
+//! resume, determinism, validation and selection, what a run records.
 
 use std::path::Path;
 
@@ -7,9 +7,7 @@ use lcrl_sim::make_env;
 
 use crate::config::{Algo, Connection, TrainConfig};
 use crate::policy::trained::Policy;
-use crate::policy::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::run::files::EpisodeRow;
-use crate::algo::algorithms::make_agent;
 use crate::run::trainer::{train, TrainOutcome, TrainRequest};
 
 fn lti_fast() -> TrainConfig {
@@ -109,36 +107,6 @@ fn ddpg_local_reaches_the_g_structured_optimum() {
     assert!(within(s.evaluation.eval_return, masked, 0.10), "eval {} vs masked LQR {masked}", s.evaluation.eval_return);
 }
 
-#[test]
-fn checkpoint_round_trip_gives_identical_actions() {
-    for algo in [Algo::Ddpg, Algo::Ppo] {
-        let dir = tempfile::tempdir().unwrap();
-        let cfg = tiny();
-        let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
-        let mut agent = make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
-        // Some training so the weights are not the initial ones.
-        let obs = [0.3f32, -0.2, 0.5];
-        for k in 0..80 {
-            let u = agent.explore(&obs, k);
-            let next = [obs[0] * 0.9, obs[1] + 0.01 * k as f32, -obs[2]];
-            agent.observe(crate::algo::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &next, terminated: false, truncated: k % 50 == 49, log_prob: None, ..Default::default() });
-        }
-        let meta = CheckpointMeta { episode: 1, ..CheckpointMeta::start("lti-paper", algo, Connection::Local, 3, 3, mask.clone(), cfg.clone()) };
-        let saved = write_checkpoint(dir.path(), agent.as_ref(), &meta).unwrap();
-        let policy = Policy::load(&saved).unwrap();
-        let mut restored = make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap();
-        restored.load(&saved).unwrap();
-        let env = make_env("lti-paper").unwrap();
-        for probe in [[0.1f32, 0.2, 0.3], [-1.0, 0.5, 0.0]] {
-            assert_eq!(agent.act(&probe), restored.act(&probe), "{algo:?}");
-            let state: Vec<f64> = probe.iter().map(|&v| f64::from(v)).collect();
-            let expected: Vec<f64> = agent.act(&probe).iter().map(|&u| f64::from(u)).collect();
-            assert_eq!(policy.act(env.as_ref(), &state), expected, "{algo:?}");
-        }
-        assert_eq!(agent.counters(), restored.counters());
-    }
-}
-
 /// 4 episodes straight, or interrupted after 2 then --resume: the same rows,
 /// counters and final policy (one thread, same seed). DDPG also with twin
 /// critics and annealed learning rates, whose second critic, its optimizer
@@ -160,47 +128,6 @@ fn resumed_run_continues_exactly() {
         assert_eq!(timeless(&straight.rows), timeless(&resumed.rows), "{algo:?}");
         assert_eq!((straight.summary.env_steps, straight.summary.updates), (resumed.summary.env_steps, resumed.summary.updates));
         assert_eq!(straight.summary.evaluation.eval_return, resumed.summary.evaluation.eval_return, "{algo:?}: final policies differ");
-    }
-}
-
-/// The evaluation of a trained policy on every core (each thread with its
-/// own copy of the network, built from the snapshot's bytes) gives the
-/// records of one thread, and those of the agent itself stepping the
-/// episodes in order: on the real peg simulator, with a base controller,
-/// for the global actor and for LCRL's local one (a sparse graph).
-#[test]
-fn parallel_policy_evaluation_equals_one_thread() {
-    let env = make_env("peg-group1").unwrap();
-    let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
-    let mut cfg = tiny();
-    cfg.base.action = crate::config::BaseController::Action(vec![1.0; n]);
-    for connection in [Connection::Global, Connection::Local] {
-        let mask: Vec<Vec<u8>> = match connection {
-            Connection::Global => vec![vec![1; m]; n],
-            _ => (0..n).map(|i| (0..m).map(|j| u8::from(j % n == i || j == 0)).collect()).collect(),
-        };
-        let mut agent = make_agent(Algo::Ddpg, connection, &cfg, &mask, m, n).unwrap();
-        // Some training so the weights are not the initial ones.
-        let obs = vec![0.1f32; m];
-        for k in 0..80 {
-            let u = agent.explore(&obs, k);
-            agent.observe(crate::algo::agent::Transition { obs: &obs, action: &u, reward: -1.0, next_obs: &obs, terminated: false, truncated: k % 40 == 39, log_prob: None, ..Default::default() });
-        }
-        let meta = CheckpointMeta::start("peg-group1", Algo::Ddpg, connection, m, n, mask, cfg.clone());
-        let snapshot = crate::policy::snapshot::snapshot(agent.as_ref(), &meta.architecture(), 0).unwrap();
-        let actions = crate::policy::action::ActionMap::new(env.spec(), meta.architecture().base.as_deref()).unwrap();
-        let (episodes, first) = (6, 40);
-        let mut stepped = env.fresh();
-        let probe = env.fresh();
-        let mut own = |s: &[f64]| actions.to_env(&agent.act(&crate::algo::agent::observe(probe.as_ref(), s)));
-        let (_, in_order) = lcrl_sim::evaluate::evaluate(stepped.as_mut(), "policy", episodes, first, &mut own, &mut |_| {}).unwrap();
-        for threads in [1, 3] {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-            let (summary, records) = pool.install(|| crate::policy::trained::evaluate_snapshot(env.as_ref(), "policy", &snapshot, episodes, first, &|_| {})).unwrap();
-            assert_eq!(records, in_order, "{connection:?}, {threads} threads");
-            assert_eq!(summary.mean_return, in_order.iter().map(|r| r.episode_return).sum::<f64>() / episodes as f64);
-        }
-        assert!(in_order.windows(2).any(|w| w[0].episode_return != w[1].episode_return), "the starts must differ");
     }
 }
 
@@ -455,88 +382,6 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
         assert_eq!((selection.history.len(), selection.confirmation), (2, None), "{algo:?}");
         assert!(run_dir.join("candidates").is_dir(), "{algo:?}: the candidates are kept");
     }
-}
-
-/// Feeds `agent` 160 steps of a fixed 3-state system (the run's progress
-/// moving with them) and returns its actor's weights.
-fn fed_actor_weights(agent: &mut dyn crate::algo::agent::Agent) -> Vec<(String, Vec<f32>)> {
-    for k in 0..160 {
-        agent.set_progress(k as f64 / 160.0);
-        let obs: Vec<f32> = (0..3).map(|j| ((k * 3 + j) as f32 * 0.37).sin()).collect();
-        let action = agent.explore(&obs, 0);
-        let next: Vec<f32> = obs.iter().zip(action.iter().cycle()).map(|(s, a)| 0.9 * s + 0.1 * a).collect();
-        let reward = -obs.iter().map(|v| v * v).sum::<f32>();
-        agent.observe(crate::algo::agent::Transition { obs: &obs, action: &action, reward, next_obs: &next, terminated: false, truncated: k % 40 == 39, log_prob: None, ..Default::default() });
-    }
-    agent.actor_variables().into_iter().map(|(name, t)| (name, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect()
-}
-
-fn assert_close(what: &str, a: &[(String, Vec<f32>)], b: &[(String, Vec<f32>)]) {
-    assert_eq!(a.len(), b.len());
-    for ((name, a), (_, b)) in a.iter().zip(b) {
-        let worst = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
-        assert!(worst < 1e-3, "{what} {name}: weights differ by {worst}");
-    }
-}
-
-/// The same updates on CUDA as on the CPU: DDPG and PPO agents built with
-/// one seed, fed the same transitions, end with the same actor weights
-/// within float tolerance (DDPG as `make_agent` builds it, so with CUDA
-/// graphs where the build has them). Needs a GPU: skipped with a printed
-/// reason otherwise (`lcrl doctor` says what libtorch sees).
-#[test]
-fn cuda_updates_equal_cpu_updates() {
-    if !crate::device::torch::cuda_available() {
-        eprintln!("skipped: no CUDA device here (libtorch_cuda: {}); run on a GPU machine to check CUDA updates", crate::device::torch::load_cuda());
-        return;
-    }
-    tch::set_num_threads(1);
-    let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
-    for algo in [Algo::Ddpg, Algo::Ppo] {
-        let weights = |device: &str| {
-            let mut cfg = TrainConfig::default();
-            cfg.run.device = device.into();
-            (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size) = (32, 32);
-            (cfg.ppo.rollout_steps, cfg.ppo.minibatch_size, cfg.ppo.epochs) = (64, 16, 2);
-            fed_actor_weights(crate::algo::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap().as_mut())
-        };
-        assert_close(&format!("{algo:?} CUDA against CPU"), &weights("cpu"), &weights("cuda"));
-    }
-}
-
-/// DDPG updates replayed from CUDA graphs equal eager ones, on the CPU and
-/// on the GPU, with every number that changes between updates in play:
-/// twin critics and a policy delay (all three kinds of update, each its
-/// own graph), target noise, the critic's head start, the actor's
-/// learning-rate ramp, annealed learning rates and preactivation weight.
-/// Needs a GPU and a build with the graph shim: skipped with the reason
-/// otherwise.
-#[test]
-fn cuda_graph_updates_equal_eager_updates() {
-    if !crate::device::torch::cuda_available() {
-        eprintln!("skipped: no CUDA device here; run on a GPU machine to check CUDA graphs");
-        return;
-    }
-    if let Err(why) = crate::device::cuda_graph::availability() {
-        eprintln!("skipped: {why}");
-        return;
-    }
-    tch::set_num_threads(1);
-    let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
-    let mut cfg = TrainConfig::default();
-    (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size) = (32, 32);
-    (cfg.ddpg.twin_critics, cfg.ddpg.policy_delay, cfg.ddpg.target_noise) = (true, 2, 0.2);
-    cfg.ddpg.critic_warmup_updates = 10;
-    (cfg.ddpg.anneal_lr, cfg.ddpg.preactivation_l2, cfg.ddpg.preactivation_anneal) = (true, 0.05, true);
-    let ddpg = |device: tch::Device| crate::algo::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, Connection::Local, &mask, 3, 3, 7, device);
-    let cpu = fed_actor_weights(&mut ddpg(tch::Device::Cpu));
-    let eager = fed_actor_weights(&mut ddpg(tch::Device::Cuda(0)));
-    let mut graphed = ddpg(tch::Device::Cuda(0));
-    graphed.use_cuda_graphs().expect("CUDA graphs on a GPU with the shim");
-    let replayed = fed_actor_weights(&mut graphed);
-    assert_eq!(graphed.captured_graphs(), 3, "one graph per kind of update, none dropped");
-    assert_close("graphs against eager CUDA", &eager, &replayed);
-    assert_close("graphs against the CPU", &cpu, &replayed);
 }
 
 /// A simulator that blows up (x ← 30x + u, from x = 1): every episode of

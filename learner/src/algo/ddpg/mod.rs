@@ -39,10 +39,10 @@ use tch::{nn, Device, Kind, Tensor};
 use crate::algo::adam::Adam;
 use crate::device::cuda_graph::CudaGraph;
 use crate::algo::agent::{
-    build_actor, build_critic, load_optimizer, load_vs, read_agent_state, read_tensors, save_optimizer, save_vs, write_agent_state, write_tensors, Agent,
+    build_actor, build_critic, load_optimizer, load_vs, read_agent_state, read_tensors, save_optimizer, save_vs, write_agent_state, write_tensors, Agent, AgentSetup,
     Counters, RngState, Transition,
 };
-use crate::config::{Connection, DdpgConfig, NetworkConfig};
+use crate::config::{DdpgConfig, NetworkConfig};
 use crate::algo::exploration;
 use crate::algo::flat::FlatParams;
 use crate::algo::nets::{batch, ActorNet, Mlp};
@@ -144,8 +144,8 @@ struct DdpgState {
 }
 
 impl Ddpg {
-    #[allow(clippy::too_many_arguments)]
-    pub fn new(cfg: &DdpgConfig, net: &NetworkConfig, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, seed: u64, device: Device) -> Self {
+    pub fn new(cfg: &DdpgConfig, net: &NetworkConfig, setup: AgentSetup) -> Self {
+        let AgentSetup { connection, mask, state_dim: m, action_dim: n, seed, device } = setup;
         let actor_vs = nn::VarStore::new(device);
         let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
         let mut actor_target_vs = nn::VarStore::new(device);

@@ -1,7 +1,7 @@
 //! The DDPG update rule and its stabilizers, on small networks.
 
 use super::*;
-use crate::config::TrainConfig;
+use crate::config::{Connection, TrainConfig};
 use rand::Rng;
 
 /// Table I's settings with 16-unit networks, for the update-rule tests.
@@ -19,7 +19,7 @@ fn actor_weights(agent: &Ddpg) -> Vec<f32> {
 
 /// A global agent on 2 states and 1 action.
 fn agent(ddpg: &DdpgConfig, cfg: &TrainConfig) -> Ddpg {
-    Ddpg::new(ddpg, &cfg.network, Connection::Global, &[vec![1, 1]], 2, 1, 5, Device::Cpu)
+    Ddpg::new(ddpg, &cfg.network, AgentSetup { connection: Connection::Global, mask: &[vec![1, 1]], state_dim: 2, action_dim: 1, seed: 5, device: Device::Cpu })
 }
 
 /// Fills `agent`'s buffer with `data.0` one-step episodes (s uniform in
@@ -118,7 +118,7 @@ fn update_rule_finds_the_optimal_gain_on_exploratory_data() {
         cfg.network.global_hidden = vec![64, 64];
         cfg.network.critic_hidden = vec![64, 64];
         let ddpg = DdpgConfig { actor_lr: 1e-3, critic_lr: 1e-3, tau: 0.01, gamma: 0.95, batch_size: 128, warmup_steps: 0, twin_critics, ..cfg.ddpg };
-        let mut agent = Ddpg::new(&ddpg, &cfg.network, Connection::Global, &[vec![1]], 1, 1, 3, Device::Cpu);
+        let mut agent = Ddpg::new(&ddpg, &cfg.network, AgentSetup { connection: Connection::Global, mask: &[vec![1]], state_dim: 1, action_dim: 1, seed: 3, device: Device::Cpu });
         assert_eq!(agent.critics.len(), if twin_critics { 2 } else { 1 });
         let mut rng = ChaCha8Rng::seed_from_u64(4);
         for _ in 0..5000 {

@@ -1,0 +1,88 @@
+//! The algorithms on a GPU: CUDA updates against CPU ones, CUDA graphs
+//! against eager updates. Skipped, with the reason printed, where no CUDA
+//! device is (`lcrl doctor` says what libtorch sees).
+
+use crate::algo::agent::AgentSetup;
+use crate::config::{Algo, Connection, TrainConfig};
+
+/// Feeds `agent` 160 steps of a fixed 3-state system (the run's progress
+/// moving with them) and returns its actor's weights.
+fn fed_actor_weights(agent: &mut dyn crate::algo::agent::Agent) -> Vec<(String, Vec<f32>)> {
+    for k in 0..160 {
+        agent.set_progress(k as f64 / 160.0);
+        let obs: Vec<f32> = (0..3).map(|j| ((k * 3 + j) as f32 * 0.37).sin()).collect();
+        let action = agent.explore(&obs, 0);
+        let next: Vec<f32> = obs.iter().zip(action.iter().cycle()).map(|(s, a)| 0.9 * s + 0.1 * a).collect();
+        let reward = -obs.iter().map(|v| v * v).sum::<f32>();
+        agent.observe(crate::algo::agent::Transition { obs: &obs, action: &action, reward, next_obs: &next, terminated: false, truncated: k % 40 == 39, log_prob: None, ..Default::default() });
+    }
+    agent.actor_variables().into_iter().map(|(name, t)| (name, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect()
+}
+
+fn assert_close(what: &str, a: &[(String, Vec<f32>)], b: &[(String, Vec<f32>)]) {
+    assert_eq!(a.len(), b.len());
+    for ((name, a), (_, b)) in a.iter().zip(b) {
+        let worst = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+        assert!(worst < 1e-3, "{what} {name}: weights differ by {worst}");
+    }
+}
+
+/// The same updates on CUDA as on the CPU: DDPG and PPO agents built with
+/// one seed, fed the same transitions, end with the same actor weights
+/// within float tolerance (DDPG as `make_agent` builds it, so with CUDA
+/// graphs where the build has them). Needs a GPU: skipped with a printed
+/// reason otherwise (`lcrl doctor` says what libtorch sees).
+#[test]
+fn cuda_updates_equal_cpu_updates() {
+    if !crate::device::torch::cuda_available() {
+        eprintln!("skipped: no CUDA device here (libtorch_cuda: {}); run on a GPU machine to check CUDA updates", crate::device::torch::load_cuda());
+        return;
+    }
+    tch::set_num_threads(1);
+    let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
+    for algo in [Algo::Ddpg, Algo::Ppo] {
+        let weights = |device: &str| {
+            let mut cfg = TrainConfig::default();
+            cfg.run.device = device.into();
+            (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size) = (32, 32);
+            (cfg.ppo.rollout_steps, cfg.ppo.minibatch_size, cfg.ppo.epochs) = (64, 16, 2);
+            fed_actor_weights(crate::algo::algorithms::make_agent(algo, Connection::Local, &cfg, &mask, 3, 3).unwrap().as_mut())
+        };
+        assert_close(&format!("{algo:?} CUDA against CPU"), &weights("cpu"), &weights("cuda"));
+    }
+}
+
+/// DDPG updates replayed from CUDA graphs equal eager ones, on the CPU and
+/// on the GPU, with every number that changes between updates in play:
+/// twin critics and a policy delay (all three kinds of update, each its
+/// own graph), target noise, the critic's head start, the actor's
+/// learning-rate ramp, annealed learning rates and preactivation weight.
+/// Needs a GPU and a build with the graph shim: skipped with the reason
+/// otherwise.
+#[test]
+fn cuda_graph_updates_equal_eager_updates() {
+    if !crate::device::torch::cuda_available() {
+        eprintln!("skipped: no CUDA device here; run on a GPU machine to check CUDA graphs");
+        return;
+    }
+    if let Err(why) = crate::device::cuda_graph::availability() {
+        eprintln!("skipped: {why}");
+        return;
+    }
+    tch::set_num_threads(1);
+    let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
+    let mut cfg = TrainConfig::default();
+    (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size) = (32, 32);
+    (cfg.ddpg.twin_critics, cfg.ddpg.policy_delay, cfg.ddpg.target_noise) = (true, 2, 0.2);
+    cfg.ddpg.critic_warmup_updates = 10;
+    (cfg.ddpg.anneal_lr, cfg.ddpg.preactivation_l2, cfg.ddpg.preactivation_anneal) = (true, 0.05, true);
+    let ddpg = |device: tch::Device| crate::algo::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, AgentSetup { connection: Connection::Local, mask: &mask, state_dim: 3, action_dim: 3, seed: 7, device });
+    let cpu = fed_actor_weights(&mut ddpg(tch::Device::Cpu));
+    let eager = fed_actor_weights(&mut ddpg(tch::Device::Cuda(0)));
+    let mut graphed = ddpg(tch::Device::Cuda(0));
+    graphed.use_cuda_graphs().expect("CUDA graphs on a GPU with the shim");
+    let replayed = fed_actor_weights(&mut graphed);
+    assert_eq!(graphed.captured_graphs(), 3, "one graph per kind of update, none dropped");
+    assert_close("graphs against eager CUDA", &eager, &replayed);
+    assert_close("graphs against the CPU", &cpu, &replayed);
+}
