@@ -95,7 +95,16 @@ fn expected_row(section: &str, key: &str) -> [String; 4] {
             None => changes.push((value, vec![preset])),
         }
     }
-    let set_by = changes.iter().map(|(v, presets)| format!("`{v}` ({})", presets.join(", "))).collect::<Vec<_>>().join("; ");
+    let named = |presets: &[&str]| {
+        let pegs: Vec<&str> = PRESETS.iter().copied().filter(|p| p.starts_with("peg-")).collect();
+        let mut names: Vec<&str> = presets.iter().copied().filter(|p| !pegs.contains(p)).collect();
+        match pegs.iter().all(|p| presets.contains(p)) {
+            true => names.push("every peg preset"),
+            false => names.extend(presets.iter().copied().filter(|p| pegs.contains(p))),
+        }
+        names.join(", ")
+    };
+    let set_by = changes.iter().map(|(v, presets)| format!("`{v}` ({})", named(presets))).collect::<Vec<_>>().join("; ");
     let set_by = if set_by.is_empty() { "—".to_string() } else { set_by };
     [section.to_string(), format!("`{key}`"), format!("`{default_value}`"), set_by]
 }
