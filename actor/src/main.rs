@@ -110,8 +110,8 @@ async fn run(args: Args) -> anyhow::Result<()> {
     if args.envs == 0 || args.batch == Some(0) {
         bail!("--envs and --batch must be at least 1");
     }
-    if matches!(args.transport, Transport::Shm) && args.batch.is_some_and(|b| b > lcrl_learner::service::shm::MAX_TRANSITIONS) {
-        bail!("--transport shm carries at most {} transitions per batch; lower --batch", lcrl_learner::service::shm::MAX_TRANSITIONS);
+    if matches!(args.transport, Transport::Shm) && args.batch.is_some_and(|b| b > lcrl_proto::shm::MAX_TRANSITIONS) {
+        bail!("--transport shm carries at most {} transitions per batch; lower --batch", lcrl_proto::shm::MAX_TRANSITIONS);
     }
     let deadline = Duration::from_secs(args.connect_deadline);
     let security = ClientSecurity::from_args(&args.security)?;
@@ -119,7 +119,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let progress = Progress::default();
     if let Some(addr) = args.metrics_listen {
         let registry = Arc::new(metrics.registry());
-        let (listener, bound) = lcrl_learner::service::metrics::bind(addr).await.with_context(|| format!("cannot serve metrics on {addr}; is another process using it?"))?;
+        let (listener, bound) = lcrl_proto::metrics_http::bind(addr).await.with_context(|| format!("cannot serve metrics on {addr}; is another process using it?"))?;
         // Not println!: a launcher may have stopped reading stdout.
         let _ = std::io::Write::write_fmt(&mut std::io::stdout(), format_args!("metrics on {bound}\n"));
         // Live while the learner answers: a batch acknowledged or a policy
@@ -131,7 +131,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
             _ => Ok(()),
         };
         tokio::spawn(async move {
-            if let Err(e) = lcrl_learner::service::metrics::serve(listener, registry, std::future::pending(), live).await {
+            if let Err(e) = lcrl_proto::metrics_http::serve(listener, registry, std::future::pending(), live).await {
                 tracing::warn!("metrics endpoint stopped: {e}");
             }
         });

@@ -255,7 +255,7 @@ pub enum PolicySource {
 pub enum Feed {
     Grpc { rx: watch::Receiver<Arc<PolicySnapshot>>, current: Arc<PolicySnapshot> },
     /// The broadcast, and the snapshot acted with now.
-    Shm { subscriber: lcrl_learner::service::shm::PolicySubscriber, current: PolicySnapshot },
+    Shm { subscriber: lcrl_proto::shm::PolicySubscriber, current: PolicySnapshot },
 }
 
 /// Opens the source and returns it with the first policy.
@@ -268,7 +268,7 @@ pub fn open_feed(source: PolicySource, stop: &AtomicBool) -> anyhow::Result<(Fee
             Ok((Feed::Grpc { rx, current: snapshot }, policy, explore))
         }
         PolicySource::Shm(run_id, deadline) => {
-            let subscriber = lcrl_learner::service::shm::PolicySubscriber::open(&run_id).map_err(anyhow::Error::msg)?;
+            let subscriber = lcrl_proto::shm::PolicySubscriber::open(&run_id).map_err(anyhow::Error::msg)?;
             let started = Instant::now();
             let mut last_log = Instant::now() - Duration::from_secs(10);
             loop {
@@ -305,7 +305,7 @@ pub enum Sink {
 /// The worker thread's open end of its sink.
 pub enum Out {
     Grpc(mpsc::Sender<TransitionBatch>),
-    Shm(lcrl_learner::service::shm::ShmPublisher),
+    Shm(lcrl_proto::shm::ShmPublisher),
 }
 
 impl Feed {
@@ -360,7 +360,7 @@ impl Sink {
     pub fn open(self) -> anyhow::Result<Out> {
         Ok(match self {
             Sink::Grpc(batches) => Out::Grpc(batches),
-            Sink::Shm(run_id) => Out::Shm(lcrl_learner::service::shm::ShmPublisher::open(&run_id).map_err(anyhow::Error::msg)?),
+            Sink::Shm(run_id) => Out::Shm(lcrl_proto::shm::ShmPublisher::open(&run_id).map_err(anyhow::Error::msg)?),
         })
     }
 }

@@ -402,7 +402,7 @@ mod tests {
             // first whole round at or past the size.
             assert_eq!(first.transitions.len(), expected.div_ceil(3) * 3, "{algo:?}");
         }
-        assert!(DDPG_BATCH < PPO_BATCH && PPO_BATCH <= lcrl_learner::service::shm::MAX_TRANSITIONS);
+        assert!(DDPG_BATCH < PPO_BATCH && PPO_BATCH <= lcrl_proto::shm::MAX_TRANSITIONS);
     }
 
     fn run(algo: Algo, episodes: u64) -> Vec<TransitionBatch> {

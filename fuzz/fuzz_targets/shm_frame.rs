@@ -6,7 +6,7 @@
 
 use libfuzzer_sys::fuzz_target;
 use lcrl_learner::service::ingest::{Ingest, Verdict};
-use lcrl_learner::service::shm::{TransitionSample, MAX_ACTION, MAX_EPISODES, MAX_STATE, MAX_TRANSITIONS};
+use lcrl_proto::shm::{TransitionSample, MAX_ACTION, MAX_EPISODES, MAX_STATE, MAX_TRANSITIONS};
 
 fuzz_target!(|data: &[u8]| {
     // A frame is the sample's bytes as iceoryx2 delivers them: whatever

@@ -272,7 +272,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 Some(text) => text.parse::<f64>().map_err(|_| anyhow::anyhow!("--replay-ratio must be a number of samples per insert or `unlimited`, got {text}"))?,
             };
             let fresh = lcrl_learner::algo::rate_limiter::RateLimiter::new(spi, agent.min_size_to_sample() as u64, spi * args.replay_slack as f64).map_err(|e| anyhow::anyhow!("--replay-ratio: {e}"))?;
-            fresh.check_steps(lcrl_learner::service::shm::MAX_TRANSITIONS as u64, agent.samples_per_update() as u64).map_err(|e| anyhow::anyhow!("{e}; raise --replay-slack"))?;
+            fresh.check_steps(lcrl_proto::shm::MAX_TRANSITIONS as u64, agent.samples_per_update() as u64).map_err(|e| anyhow::anyhow!("{e}; raise --replay-slack"))?;
             // A resumed run keeps its counters (no burst of updates on a
             // buffer that the checkpoint restored).
             match checkpoint.as_ref().and_then(|_| meta.rate_limiter.clone()) {
@@ -373,13 +373,13 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let act_latency = lcrl_learner::service::metrics::act_latency_histogram();
     if let Some(addr) = args.metrics_listen {
         let registry = Arc::new(lcrl_learner::service::metrics::learner_registry(shared.clone(), commands.clone(), act_latency.clone()));
-        let (listener, bound) = lcrl_learner::service::metrics::bind(addr).await.with_context(|| format!("cannot serve metrics on {addr}; is another process using it?"))?;
+        let (listener, bound) = lcrl_proto::metrics_http::bind(addr).await.with_context(|| format!("cannot serve metrics on {addr}; is another process using it?"))?;
         // Second line of stdout, after "listening on", for launchers and tests.
         // Not println!: a launcher may have stopped reading stdout.
         let _ = std::io::Write::write_fmt(&mut std::io::stdout(), format_args!("metrics on {bound}\n"));
         let stopping = shared.stopping();
         tokio::spawn(async move {
-            if let Err(e) = lcrl_learner::service::metrics::serve(listener, registry, stopping, || Ok(())).await {
+            if let Err(e) = lcrl_proto::metrics_http::serve(listener, registry, stopping, || Ok(())).await {
                 tracing::warn!("metrics endpoint stopped: {e}");
             }
         });

@@ -8,13 +8,18 @@
 //! service process shares, and [`files`]: the one atomic writer of the files
 //! those processes hand on, and [`limits`] and [`codec`]: the bounds every
 //! server keeps against its peers and the deadlines every client keeps.
+//! The two other wire formats live here too: [`shm`], transitions and
+//! policies in iceoryx2 shared memory on one host, and [`metrics_http`],
+//! Prometheus `/metrics` and `/healthz` over HTTP.
 
 pub mod codec;
 pub mod files;
 pub mod incoming;
 pub mod limits;
+pub mod metrics_http;
 pub mod process;
 pub mod security;
+pub mod shm;
 
 /// Generated types and stubs of package `lcrl.v1`.
 pub mod v1 {

@@ -147,7 +147,7 @@ async fn ingest_shm(dir: &std::path::Path, seconds: f64) -> anyhow::Result<()> {
         .map(|p| {
             let (run_id, transition) = (run_id.clone(), transition.clone());
             std::thread::spawn(move || -> Result<(), String> {
-                let publisher = lcrl_learner::service::shm::ShmPublisher::open(&run_id)?;
+                let publisher = lcrl_proto::shm::ShmPublisher::open(&run_id)?;
                 let mut sequence = 0;
                 while started.elapsed().as_secs_f64() < seconds {
                     sequence += 1;

@@ -8,7 +8,7 @@ use proptest::prelude::*;
 
 use crate::policy::trained::Policy;
 use crate::service::ingest::{Ingest, Verdict};
-use crate::service::shm::{TransitionSample, MAX_EPISODES, MAX_TRANSITIONS};
+use lcrl_proto::shm::{TransitionSample, MAX_EPISODES, MAX_TRANSITIONS};
 use lcrl_proto::v1::{EpisodeSummary, Transition, TransitionBatch};
 
 fn value() -> impl Strategy<Value = f32> {

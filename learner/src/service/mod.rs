@@ -14,8 +14,8 @@
 //! - [`flow`]: replay ratio, waits, policy lag and the budget, as reported.
 //! - [`server`]: the `lcrl.v1.Learner` and `lcrl.v1.Policy` gRPC handlers.
 //! - [`serving_share`]: policy queries within their share of the time.
-//! - [`metrics`]: Prometheus `/metrics` for learner and actors.
-//! - [`shm`]: the same-host transport over iceoryx2 shared memory.
+//! - [`metrics`]: the learner's Prometheus metrics (served by `lcrl_proto::metrics_http`).
+//! - [`shm`]: the learner's ends of the same-host transport (its format: `lcrl_proto::shm`).
 //! - [`validator`]: the run's policy chosen on held-out starts, on a thread of its own.
 
 pub mod disk_full;
