@@ -10,6 +10,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         // prost's codec with a check of repeated entries before decoding
         // (src/codec.rs): what a peer sends cannot decode to 60× its size.
         .codec_path("crate::codec::BoundedCodec")
+        // A policy's weights are shared, not copied, by every WatchPolicy
+        // stream, GetPolicy reply and queued version: a clone is a count.
+        .bytes(".lcrl.v1.PolicySnapshot.weights")
         .compile_protos(&["lcrl.proto"], &["."])?;
     println!("cargo:rerun-if-changed=lcrl.proto");
     Ok(())

@@ -12,7 +12,7 @@ import time
 
 import grpc
 
-from chaoslib import free_port, sample, scrape, status, stub, wait
+from chaoslib import free_port, sample, scrape, status, stub, vm, wait
 import lcrl_pb2
 import lcrl_pb2_grpc
 
@@ -190,5 +190,66 @@ def query_storm(c):
             "lost": "nothing", "updates_ratio": ratio}
 
 
+def _hpack(name, value):
+    """One header as an HPACK literal without indexing (no Huffman)."""
+    def length(n):
+        if n < 127:
+            return bytes([n])
+        out, n = bytearray([127]), n - 127
+        while n >= 128:
+            out.append(n % 128 + 128)
+            n //= 128
+        return bytes(out + bytearray([n]))
+    return b"\x00" + length(len(name)) + name + length(len(value)) + value
+
+
+def _frame(kind, flags, stream, payload=b""):
+    return len(payload).to_bytes(3, "big") + bytes([kind, flags]) + stream.to_bytes(4, "big") + payload
+
+
+def _slow_watcher(port):
+    """A raw HTTP/2 connection that opens one WatchPolicy stream, takes the
+    first 64 KiB window's worth, and never reads or widens it again."""
+    s = socket.create_connection(("127.0.0.1", port), timeout=5)
+    headers = b"".join(_hpack(n, v) for n, v in [(b":method", b"POST"), (b":scheme", b"http"), (b":path", b"/lcrl.v1.Learner/WatchPolicy"),
+                                                  (b":authority", b"x"), (b"content-type", b"application/grpc"), (b"te", b"trailers")])
+    s.sendall(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + _frame(4, 0, 0) + _frame(1, 4, 1, headers) + _frame(0, 1, 1, b"\x00" + bytes(4)))
+    s.recv(4096)  # the server's settings
+    s.sendall(_frame(4, 1, 0))  # acknowledged; nothing is read from here on
+    return s
+
+
+def slow_watchers(c):
+    """8 rounds of 64 slow WatchPolicy readers against a 4.2 MB policy: the
+    learner's memory while they hold on and after they leave."""
+    port = free_port()
+    big = c.work / "big.toml"
+    big.write_text(c.work.joinpath("small.toml").read_text().replace("global_hidden = [32, 32]", "global_hidden = [1024, 1024]"))
+    learner = c.learner(c.work / "watchers", port, config=big)
+    c.actor(port, "--actor-id", "honest")
+    wait("updates", lambda: status(port).updates > 10, limit=120)
+    start, held, after, refused, worst = vm(learner.pid, "VmRSS"), [], [], 0, 0.0
+    for _ in range(8):
+        socks = []
+        for _ in range(64):
+            socks.append(_slow_watcher(port))
+        time.sleep(3)
+        held.append(vm(learner.pid, "VmRSS"))
+        health = _health_seconds(c, port, tries=1)
+        worst = max(worst, health) if health is not None and worst is not None else None
+        for s in socks:
+            s.close()
+        time.sleep(3)
+        after.append(vm(learner.pid, "VmRSS"))
+    rejected = dict(status(port).rejected)
+    training = _training(port, 3.0)
+    return {"fault": "8 rounds of 64 WatchPolicy streams that stop reading, 4.2 MB policy",
+            "did": f"learner RSS {start:.0f} MiB at the start, {max(held):.0f} MiB at most while held, {after[-1]:.0f} MiB after the 8th round "
+                   f"(after each: {', '.join('%.0f' % a for a in after)}); health {'%.2f s' % worst if worst is not None else 'FAILED'}; "
+                   f"{training} updates in 3 s after; rejected {rejected}",
+            "lost": "nothing" if training > 0 else "training",
+            "rss_start_mib": start, "rss_held_max_mib": max(held), "rss_after_mib": after[-1], "health_worst_s": worst}
+
+
 FAULTS = {"huge-values": huge_values, "forged-returns": forged_returns, "sequence-hijack": sequence_hijack, "ping-flood": ping_flood,
-          "slowloris-metrics": slowloris_metrics, "query-storm": query_storm}
+          "slowloris-metrics": slowloris_metrics, "query-storm": query_storm, "slow-watchers": slow_watchers}

@@ -39,8 +39,9 @@ class Cluster:
         self.bins, self.work, self.procs = bins, pathlib.Path(work), []
         (self.work / "small.toml").write_text(SMALL)
 
-    def learner(self, run_dir, port, *extra, run_id="chaos"):
-        cmd = [str(self.bins / "lcrl-learner"), "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--config", str(self.work / "small.toml"),
+    def learner(self, run_dir, port, *extra, run_id="chaos", config=None):
+        config = config or self.work / "small.toml"
+        cmd = [str(self.bins / "lcrl-learner"), "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--config", str(config),
                "--run-dir", str(run_dir), "--listen", f"127.0.0.1:{port}", "--run-id", run_id, "--publish-every", "20", *extra]
         log = open(self.work / f"learner-{len(self.procs)}.log", "w")
         # The usual soft limit of open files (a shell's `ulimit -n`), as a

@@ -142,6 +142,13 @@ struct Args {
     /// d·(1 − s)/s; more than 64 waiting get RESOURCE_EXHAUSTED. 1: no pauses.
     #[arg(long, default_value_t = 0.25, value_parser = share_in_range)]
     serving_share: f64,
+    /// Memory all WatchPolicy streams may hold together, MiB. Each is
+    /// charged twice its policy and 64 KiB (a reader that stops reading was
+    /// measured to hold 7.8 MiB of a 4.2 MB policy), so the default takes
+    /// about 800 streams of the peg actor (0.26 MB) and 60 of a 4.2 MB
+    /// policy; a stream beyond it gets RESOURCE_EXHAUSTED.
+    #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u64).range(1..=1 << 20))]
+    watch_budget_mib: u64,
     /// Serve Prometheus metrics on http://ADDR/metrics (port 0: any free
     /// port, logged as "metrics on").
     #[arg(long, value_name = "ADDR")]
@@ -367,7 +374,8 @@ async fn run(args: Args) -> anyhow::Result<()> {
     health.set_serving::<PolicyServer<PolicyService>>().await;
     let check = security.token_check();
     let stopper = shared.clone();
-    let learner = LearnerServer::new(LearnerService { shared: shared.clone(), commands: commands.clone() })
+    let watch_budget = lcrl_learner::service::watch_budget::WatchBudget::new(args.watch_budget_mib << 20);
+    let learner = LearnerServer::new(LearnerService { shared: shared.clone(), commands: commands.clone(), watch_budget })
         .max_decoding_message_size(args.max_batch_bytes as usize)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let act_latency = lcrl_learner::service::metrics::act_latency_histogram();

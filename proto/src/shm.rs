@@ -400,7 +400,7 @@ impl PolicySubscriber {
             let p = sample.payload();
             newest = Some(crate::v1::PolicySnapshot {
                 version: p.version,
-                weights: p.weights[..(p.weights_len as usize).min(MAX_POLICY_BYTES)].to_vec(),
+                weights: p.weights[..(p.weights_len as usize).min(MAX_POLICY_BYTES)].to_vec().into(),
                 architecture: String::from_utf8_lossy(&p.architecture[..(p.architecture_len as usize).min(MAX_ARCHITECTURE_BYTES)]).into_owned(),
                 explore_uniform: p.explore_uniform != 0,
                 exploration_noise: p.exploration_noise,

@@ -9,7 +9,7 @@ use std::time::Duration;
 use bytes::{Buf, BufMut};
 use lcrl_proto::security::ClientSecurity;
 use lcrl_proto::v1::learner_client::LearnerClient;
-use lcrl_proto::v1::{GetStatusRequest, LearnerStatus, Transition, TransitionBatch};
+use lcrl_proto::v1::{GetPolicyRequest, GetStatusRequest, LearnerStatus, Transition, TransitionBatch, WatchPolicyRequest};
 use tonic::codec::{Codec, DecodeBuf, Decoder, EncodeBuf, Encoder};
 use tonic::Status;
 
@@ -213,6 +213,47 @@ impl lcrl_proto::v1::graph_server::Graph for ShortGraph {
 /// The learner refuses a malformed graph from a hostile graph builder with
 /// a clear error and a non-zero exit, instead of reshaping it into a
 /// network (a panic in `Tensor::view`) or retrying forever.
+/// WatchPolicy streams share one memory budget (issue 71): with
+/// `--watch-budget-mib 1`, the learner serves as many streams as the budget
+/// holds at twice the policy and 64 KiB each, refuses the next with
+/// RESOURCE_EXHAUSTED naming the flag, and an ended stream frees its place.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn watch_policy_streams_share_one_memory_budget() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_learner, url) = learner_with_args(&dir.path().join("run"), "budget", free_port(), "ddpg", &["--watch-budget-mib", "1"]);
+    let mut client = LearnerClient::connect(url).await.unwrap();
+    let policy_bytes = client.get_policy(GetPolicyRequest {}).await.unwrap().into_inner().weights.len();
+    let holds = 1024 / lcrl_learner::service::watch_budget::WatchBudget::cost_kib(policy_bytes) as usize;
+    assert!(holds >= 2, "a {policy_bytes}-byte policy: the test needs room for two streams");
+    let mut streams = Vec::new();
+    let refused = loop {
+        match client.watch_policy(WatchPolicyRequest::default()).await {
+            Ok(response) => {
+                let mut stream = response.into_inner();
+                assert!(stream.message().await.unwrap().is_some(), "an admitted stream gets the policy");
+                streams.push(stream);
+            }
+            Err(status) => break status,
+        }
+        assert!(streams.len() <= holds, "more streams than the budget holds");
+    };
+    assert_eq!(streams.len(), holds);
+    assert_eq!(refused.code(), tonic::Code::ResourceExhausted, "{refused:?}");
+    assert!(refused.message().contains("--watch-budget-mib"), "{}", refused.message());
+    // The client's reset reaches the server's stream soon after: polled,
+    // with a bound.
+    drop(streams.pop());
+    let mut admitted = false;
+    for _ in 0..100 {
+        if client.watch_policy(WatchPolicyRequest::default()).await.is_ok() {
+            admitted = true;
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert!(admitted, "an ended stream's place is free again");
+}
+
 #[tokio::test]
 async fn a_malformed_graph_from_a_graph_builder_is_refused() {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();

@@ -75,7 +75,7 @@ pub fn read_snapshot(dir: &Path) -> Result<PolicySnapshot, LearnerError> {
 /// safetensors bytes; exploration is set by the publisher.
 fn policy_snapshot(architecture: &Architecture, weights: Vec<u8>, version: u64) -> Result<PolicySnapshot, LearnerError> {
     let architecture = serde_json::to_string(architecture).map_err(|e| LearnerError::Checkpoint(e.to_string()))?;
-    Ok(PolicySnapshot { version, weights, architecture, ..Default::default() })
+    Ok(PolicySnapshot { version, weights: weights.into(), architecture, ..Default::default() })
 }
 
 #[cfg(test)]

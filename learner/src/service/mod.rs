@@ -17,6 +17,7 @@
 //! - [`metrics`]: the learner's Prometheus metrics (served by `lcrl_proto::metrics_http`).
 //! - [`shm`]: the learner's ends of the same-host transport (its format: `lcrl_proto::shm`).
 //! - [`validator`]: the run's policy chosen on held-out starts, on a thread of its own.
+//! - [`watch_budget`]: the memory all `WatchPolicy` streams may hold together.
 
 pub mod disk_full;
 pub mod episodes;
@@ -30,6 +31,7 @@ pub mod serving_share;
 pub mod shared;
 pub mod shm;
 pub mod validator;
+pub mod watch_budget;
 
 // Hostile input, property-tested: batches, shared-memory samples, snapshots.
 #[cfg(test)]

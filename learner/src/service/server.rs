@@ -19,6 +19,7 @@ use tonic::{Request, Response, Status, Streaming};
 use crate::policy::trained::Policy;
 use crate::service::ingest::Verdict;
 use crate::service::shared::{Command, Shared};
+use crate::service::watch_budget::WatchBudget;
 
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
 
@@ -26,6 +27,7 @@ type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>;
 pub struct LearnerService {
     pub shared: Arc<Shared>,
     pub commands: mpsc::Sender<Command>,
+    pub watch_budget: WatchBudget,
 }
 
 /// Counts a connected actor for as long as its stream lives.
@@ -136,25 +138,23 @@ impl Learner for LearnerService {
         // restarted) gets the newest version whatever its number: versions
         // count from the checkpoint again.
         let other_incarnation = request.incarnation != 0 && request.incarnation != self.shared.incarnation;
-        let mut versions = WatchStream::new(self.shared.policy.subscribe()).filter(move |snapshot| {
+        let place = self.watch_budget.admit(self.shared.policy.borrow().weights.len())?;
+        let versions = WatchStream::new(self.shared.policy.subscribe()).filter(move |snapshot| {
             other_incarnation || snapshot.version > after || (after == 0 && snapshot.version == 0) || snapshot.training_finished
         });
-        // Forwarded by a task that ends at shutdown, so the stream ends too.
-        let (out, stream) = mpsc::channel(2);
-        let stopping = self.shared.stopping();
-        tokio::spawn(async move {
-            tokio::pin!(stopping);
-            loop {
-                tokio::select! {
-                    next = versions.next() => match next {
-                        Some(snapshot) if out.send(Ok((*snapshot).clone())).await.is_ok() => {}
-                        _ => break,
-                    },
-                    _ = &mut stopping => break,
-                }
-            }
+        // Pulled, not pushed: the connection asks for the next message only
+        // once it has room, so a reader that does not read holds the one
+        // version it was sent, never a queue of them, and gets the newest
+        // when it reads again. The weights are shared (a clone is a
+        // count); the stream's place in the budget ends with it, and the
+        // stream ends at shutdown.
+        let versions = versions.map(move |snapshot| {
+            let _place = &place;
+            Some(Ok((*snapshot).clone()))
         });
-        Ok(Response::new(Box::pin(ReceiverStream::new(stream))))
+        let stop = WatchStream::new(self.shared.shutdown.subscribe()).filter(|stopping| *stopping).map(|_| None);
+        let stream = versions.merge(stop).take_while(Option::is_some).filter_map(|next| next);
+        Ok(Response::new(Box::pin(stream)))
     }
 
     async fn get_status(&self, _request: Request<GetStatusRequest>) -> Result<Response<LearnerStatus>, Status> {
