@@ -91,6 +91,30 @@ pub enum Verdict {
 /// many; thousands at once are a flood.
 pub const MAX_ACTORS: usize = 4096;
 
+/// Actor ids one peer address may hold in the table (loopback, where
+/// `lcrl run` starts its actors, is exempt): one host cannot lock out the
+/// others by filling it (issue 71).
+pub const MAX_ACTORS_PER_PEER: usize = MAX_ACTORS / 8;
+
+/// Where a batch came from: the gRPC stream that carries it (0: none, as
+/// on shared memory, which only processes of this host can reach) and
+/// the peer's address.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Origin {
+    pub stream: u64,
+    pub peer: Option<std::net::IpAddr>,
+}
+
+impl Origin {
+    /// The peer whose ids count against [`MAX_ACTORS_PER_PEER`].
+    fn counted_peer(&self) -> Option<std::net::IpAddr> {
+        self.peer.map(|ip| match ip {
+            std::net::IpAddr::V6(v6) => v6.to_ipv4_mapped().map_or(ip, std::net::IpAddr::V4),
+            v4 => v4,
+        }).filter(|ip| !ip.is_loopback())
+    }
+}
+
 /// How long an actor must have sent nothing before a new one may take its
 /// place among [`MAX_ACTORS`] (its replayed batches would then count as
 /// new: it is long gone).
@@ -108,6 +132,14 @@ pub struct Ingest {
     last_sequence: HashMap<String, u64>,
     /// When each actor was last heard from (since this process started).
     last_seen: HashMap<String, std::time::Instant>,
+    /// The live gRPC stream each actor id is bound to: while it lives, no
+    /// other stream may send under that id (a hijacker's sequence would
+    /// otherwise decide what the honest actor's batches are).
+    holders: HashMap<String, u64>,
+    /// The peer that brought each id into the table, and how many each
+    /// peer holds there (loopback and shared memory uncounted).
+    brought_by: HashMap<String, std::net::IpAddr>,
+    ids_of_peer: HashMap<std::net::IpAddr, usize>,
     /// Maximum accepted age (in policy versions) of a batch; None: any.
     max_staleness: Option<u64>,
     /// Transitions rejected or dropped, by reason.
@@ -126,6 +158,9 @@ impl Ingest {
             actions,
             last_sequence: HashMap::new(),
             last_seen: HashMap::new(),
+            holders: HashMap::new(),
+            brought_by: HashMap::new(),
+            ids_of_peer: HashMap::new(),
             max_staleness,
             rejected: BTreeMap::new(),
             accepted: 0,
@@ -166,6 +201,12 @@ impl Ingest {
             Some((id, silent)) if silent >= ACTOR_SILENCE_TO_FORGET => {
                 self.last_sequence.remove(&id);
                 self.last_seen.remove(&id);
+                self.holders.remove(&id);
+                if let Some(peer) = self.brought_by.remove(&id) {
+                    if let Some(n) = self.ids_of_peer.get_mut(&peer) {
+                        *n = n.saturating_sub(1);
+                    }
+                }
                 true
             }
             _ => false,
@@ -186,8 +227,22 @@ impl Ingest {
         self.count(reason, 1);
     }
 
-    /// Checks `batch` against the run and the current policy version.
+    /// Frees the ids a gRPC stream held: they may come back on another
+    /// (an actor that reconnects), and their sequences stay.
+    pub fn release_stream(&mut self, stream: u64) {
+        self.holders.retain(|_, holder| *holder != stream);
+    }
+
+    /// Checks `batch` against the run and the current policy version, as
+    /// from no stream (shared memory).
     pub fn check(&mut self, batch: &TransitionBatch, policy_version: u64) -> Verdict {
+        self.check_from(batch, policy_version, Origin::default())
+    }
+
+    /// Checks `batch` from `origin`: an id is bound to the first live
+    /// stream that sent it, and one peer holds at most
+    /// [`MAX_ACTORS_PER_PEER`] ids.
+    pub fn check_from(&mut self, batch: &TransitionBatch, policy_version: u64, origin: Origin) -> Verdict {
         let count = batch.transitions.len();
         if batch.run_id != self.run_id {
             self.count("unknown_run", count);
@@ -281,9 +336,25 @@ impl Ingest {
                 message: format!("sequence {} is more than {} s ahead of this learner's clock in µs ({ahead}); number batches from 0 or from the clock", batch.sequence, SEQUENCE_AHEAD.as_secs()),
             };
         }
+        if self.holders.get(&batch.actor_id).is_some_and(|&holder| holder != origin.stream) {
+            self.count("actor_id_bound", count);
+            return Verdict::Reject {
+                reason: "actor_id_bound",
+                message: "this actor id is in use by another live stream of this learner; give each actor its own --actor-id".into(),
+            };
+        }
         if self.last_sequence.get(&batch.actor_id).is_some_and(|&last| batch.sequence <= last) {
             self.count("duplicate", count);
             return Verdict::Duplicate;
+        }
+        let new_id = !self.last_sequence.contains_key(&batch.actor_id);
+        let peer = origin.counted_peer();
+        if let Some(peer) = peer.filter(|p| new_id && self.ids_of_peer.get(p).copied().unwrap_or(0) >= MAX_ACTORS_PER_PEER) {
+            self.count("actors_per_peer", count);
+            return Verdict::Reject {
+                reason: "actors_per_peer",
+                message: format!("{peer} holds {MAX_ACTORS_PER_PEER} actor ids of this learner, its most; reuse ids or wait for silent ones to be forgotten ({} s)", ACTOR_SILENCE_TO_FORGET.as_secs()),
+            };
         }
         if !self.place_for(&batch.actor_id) {
             self.count("actors", count);
@@ -294,6 +365,13 @@ impl Ingest {
         }
         self.last_sequence.insert(batch.actor_id.clone(), batch.sequence);
         self.last_seen.insert(batch.actor_id.clone(), std::time::Instant::now());
+        if origin.stream != 0 {
+            self.holders.insert(batch.actor_id.clone(), origin.stream);
+        }
+        if let Some(peer) = peer.filter(|_| new_id) {
+            self.brought_by.insert(batch.actor_id.clone(), peer);
+            *self.ids_of_peer.entry(peer).or_insert(0) += 1;
+        }
         // On-policy: versions of another learner process are not this
         // one's (after a restart they count from the checkpoint again), so
         // its data is stale whatever its number says.

@@ -240,3 +240,47 @@ fn duplicates_and_stale_batches_are_not_stored() {
     assert_eq!(ingest.rejected.get("duplicate"), Some(&2));
     assert_eq!(ingest.rejected.get("stale"), Some(&1));
 }
+
+/// An actor id belongs to the live stream that first sent it (issue 71:
+/// a hijacker's batch under an honest actor's id). Another stream's batch
+/// under it is refused and counted, the holder goes on, and once the
+/// holder's stream ends the id may come back on a new one (an actor that
+/// reconnected); shared memory (no stream) cannot take a held id either.
+#[test]
+fn an_actor_id_is_bound_to_the_stream_that_holds_it() {
+    let mut ingest = ingest(None);
+    let (honest, hijacker) = (Origin { stream: 7, peer: None }, Origin { stream: 8, peer: None });
+    assert!(matches!(ingest.check_from(&batch("a1", 1, vec![0.0; 3]), 3, honest), Verdict::Accept(_)));
+    match ingest.check_from(&batch("a1", 1_000, vec![0.0; 3]), 3, hijacker) {
+        Verdict::Reject { reason: "actor_id_bound", message } => assert!(message.contains("--actor-id"), "{message}"),
+        other => panic!("{other:?}"),
+    }
+    assert!(matches!(ingest.check(&batch("a1", 2_000, vec![0.0; 3]), 3), Verdict::Reject { reason: "actor_id_bound", .. }));
+    assert!(matches!(ingest.check_from(&batch("a1", 2, vec![0.0; 3]), 3, honest), Verdict::Accept(_)), "the holder's next batch is stored");
+    assert_eq!(ingest.rejected.get("actor_id_bound"), Some(&2));
+    ingest.release_stream(7);
+    assert!(matches!(ingest.check_from(&batch("a1", 3, vec![0.0; 3]), 3, hijacker), Verdict::Accept(_)), "a released id binds anew");
+    assert!(matches!(ingest.check_from(&batch("a1", 2, vec![0.0; 3]), 3, hijacker), Verdict::Duplicate), "its sequences stay");
+}
+
+/// One peer address brings at most MAX_ACTORS_PER_PEER ids into the
+/// table; its known ids go on, other peers still get places, and loopback
+/// (IPv4-mapped included) is not counted.
+#[test]
+fn one_peer_cannot_fill_the_actor_table() {
+    let mut ingest = ingest(None);
+    let peer = |ip: &str| Origin { stream: 1, peer: Some(ip.parse().unwrap()) };
+    for k in 0..MAX_ACTORS_PER_PEER {
+        assert!(matches!(ingest.check_from(&batch(&format!("f{k}"), 1, vec![0.0; 3]), 3, peer("203.0.113.9")), Verdict::Accept(_)), "id {k}");
+    }
+    match ingest.check_from(&batch("one-more", 1, vec![0.0; 3]), 3, peer("203.0.113.9")) {
+        Verdict::Reject { reason: "actors_per_peer", message } => assert!(message.contains("203.0.113.9"), "{message}"),
+        other => panic!("{other:?}"),
+    }
+    assert!(matches!(ingest.check_from(&batch("f0", 2, vec![0.0; 3]), 3, peer("203.0.113.9")), Verdict::Accept(_)), "a known id goes on");
+    assert!(matches!(ingest.check_from(&batch("other", 1, vec![0.0; 3]), 3, Origin { stream: 2, ..peer("198.51.100.4") }), Verdict::Accept(_)));
+    for (k, ip) in ["127.0.0.1", "::1", "::ffff:127.0.0.1"].into_iter().cycle().take(MAX_ACTORS_PER_PEER + 3).enumerate() {
+        let origin = Origin { stream: 3, ..peer(ip) };
+        assert!(matches!(ingest.check_from(&batch(&format!("local{k}"), 1, vec![0.0; 3]), 3, origin), Verdict::Accept(_)), "loopback id {k}");
+    }
+}

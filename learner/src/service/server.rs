@@ -17,7 +17,7 @@ use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::policy::trained::Policy;
-use crate::service::ingest::Verdict;
+use crate::service::ingest::{Origin, Verdict};
 use crate::service::shared::{Command, Shared};
 use crate::service::watch_budget::WatchBudget;
 
@@ -30,14 +30,19 @@ pub struct LearnerService {
     pub watch_budget: WatchBudget,
 }
 
-/// Counts a connected actor for as long as its stream lives.
-struct Connected(Arc<Shared>);
+/// Counts a connected actor for as long as its stream lives, and frees
+/// the actor ids its stream held when it ends.
+struct Connected(Arc<Shared>, u64);
 
 impl Drop for Connected {
     fn drop(&mut self) {
         self.0.connected_actors.fetch_sub(1, Ordering::Relaxed);
+        self.0.ingest().release_stream(self.1);
     }
 }
+
+/// Numbers the learner's transition streams (0 is no stream).
+static NEXT_STREAM: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
 
 #[tonic::async_trait]
 impl Learner for LearnerService {
@@ -45,13 +50,14 @@ impl Learner for LearnerService {
     type WatchPolicyStream = BoxStream<PolicySnapshot>;
 
     async fn stream_transitions(&self, request: Request<Streaming<TransitionBatch>>) -> Result<Response<Self::StreamTransitionsStream>, Status> {
+        let origin = Origin { stream: NEXT_STREAM.fetch_add(1, Ordering::Relaxed), peer: request.remote_addr().map(|addr| addr.ip()) };
         let mut inbound = request.into_inner();
         let (acks, out) = mpsc::channel(16);
         let shared = self.shared.clone();
         let commands = self.commands.clone();
         shared.connected_actors.fetch_add(1, Ordering::Relaxed);
         tokio::spawn(async move {
-            let _connected = Connected(shared.clone());
+            let _connected = Connected(shared.clone(), origin.stream);
             let stopping = shared.stopping();
             tokio::pin!(stopping);
             loop {
@@ -100,7 +106,7 @@ impl Learner for LearnerService {
                 let span = tracing::debug_span!("batch", actor = %batch.actor_id, sequence = batch.sequence);
                 let _entered = span.enter();
                 let version = shared.policy_version();
-                let verdict = shared.ingest().check(&batch, version);
+                let verdict = shared.ingest().check_from(&batch, version, origin);
                 let (stored, outcome) = match verdict {
                     Verdict::Accept(accepted) => {
                         let stored = accepted.transitions.len() as u32;
@@ -200,7 +206,10 @@ impl Learner for LearnerService {
 fn rejection(reason: &str, message: String) -> Status {
     match reason {
         "unknown_run" => Status::failed_precondition(message),
-        "actors" => Status::resource_exhausted(message),
+        "actors" | "actors_per_peer" => Status::resource_exhausted(message),
+        // The id's stream may be one that died without a word: the actor
+        // retries, and gets its id back once that stream is gone.
+        "actor_id_bound" => Status::aborted(message),
         _ => Status::invalid_argument(message),
     }
 }
