@@ -8,6 +8,7 @@
 //! - [`ingest`]: checks, deduplicates and normalizes batches (plain Rust).
 //! - [`incarnation`]: the learner process's id, so restarts are noticed.
 //! - [`shared`]: what the threads share (counters, the newest policy, ingestion, flow).
+//! - [`launch`]: the learner process as a library function (`lcrl-learner` parses its arguments and calls it).
 //! - [`runtime`]: the training thread ([`runtime::TrainingLoop`]: admit, train, publish).
 //! - [`disk_full`]: the end of a run waits out a full disk.
 //! - [`episodes`]: metrics.csv and TensorBoard records of actors' episodes.
@@ -24,6 +25,7 @@ pub mod episodes;
 pub mod flow;
 pub mod incarnation;
 pub mod ingest;
+pub mod launch;
 pub mod metrics;
 pub mod runtime;
 pub mod server;
