@@ -157,11 +157,70 @@ fn start_env_server(preset: &mut Preset, server: &lcrl::preset::EnvServer, confi
 }
 
 async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &Path, transport: &str, security: &RunSecurity) -> anyhow::Result<String> {
-    let job = &preset.job;
     // Certificates and the token are checked before anything starts.
     let client_security = security.client()?;
     let started = Instant::now();
     let run_id = format!("{}-{}", std::process::id(), started.elapsed().as_nanos() % 1_000_000);
+    let processes = start_processes(preset, train_path, run_dir, logs, transport, security, &client_security, &run_id).await?;
+    let mut client = LearnerClient::new(client_security.connect(&processes.learner_url).await?);
+    // Ctrl-C and SIGTERM stop the run in order from here on (before, they
+    // end this process and every child follows by its parent-death signal).
+    // Listening once, not per loop turn, so no signal falls between turns.
+    let mut stop_signals = StopSignals::new()?;
+    let (interrupted, last_status) = watch_progress(&mut client, &mut stop_signals, preset.job.episodes, logs).await?;
+    // Stopping (up to 30 s for the learner's checkpoint) and the final
+    // evaluation run on; a further Ctrl-C or SIGTERM ends this process at
+    // once, and the children follow by their parent-death signal.
+    tokio::spawn(async move {
+        stop_signals.recv().await;
+        eprintln!("lcrl run: interrupted again; stopping now");
+        std::process::exit(130);
+    });
+    if interrupted {
+        eprintln!("interrupted: stopping the actors, then the learner (it writes a final checkpoint)");
+    }
+    let final_status = client.get_status(GetStatusRequest {}).await.map(|s| s.into_inner()).ok().or(last_status);
+    processes.stop();
+    report(preset, run_dir, &final_status.unwrap_or_default(), started.elapsed().as_secs_f64(), transport, &run_id, interrupted)
+}
+
+/// The processes of a local run.
+struct Processes {
+    graph_builder: Option<Managed>,
+    learner: Managed,
+    learner_url: String,
+    actors: Vec<Managed>,
+}
+
+impl Processes {
+    /// Actors first (they would only reconnect), then the learner (it
+    /// checkpoints on SIGTERM), then the graph builder.
+    fn stop(mut self) {
+        for actor in self.actors.iter_mut() {
+            actor.stop(Duration::from_secs(10));
+        }
+        self.learner.stop(Duration::from_secs(30));
+        if let Some(mut g) = self.graph_builder {
+            g.stop(Duration::from_secs(5));
+        }
+    }
+}
+
+/// Starts the graph builder (for a local actor without a given graph), the
+/// learner, and the actors, each once the one before answers its health
+/// check.
+#[allow(clippy::too_many_arguments)]
+async fn start_processes(
+    preset: &Preset,
+    train_path: &Path,
+    run_dir: &Path,
+    logs: &Path,
+    transport: &str,
+    security: &RunSecurity,
+    client_security: &lcrl_proto::security::ClientSecurity,
+    run_id: &str,
+) -> anyhow::Result<Processes> {
+    let job = &preset.job;
     let mut graph_builder = None;
     let mut graph_url = None;
     // A given graph (job.graph) is written as the run's graph.json and
@@ -181,41 +240,47 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
         let (process, address) = Managed::spawn("graph-builder", cmd, logs, true)?;
         let url = security.url(&format!("http://{}", address.context("the graph builder did not start; see logs/graph-builder.log")?));
         eprintln!("graph builder at {url}: building the connection graph");
-        wait_healthy(&url, "lcrl.v1.Graph", "the graph builder", Duration::from_secs(600), &client_security).await?;
+        wait_healthy(&url, "lcrl.v1.Graph", "the graph builder", Duration::from_secs(600), client_security).await?;
         graph_url = Some(url);
         graph_builder = Some(process);
     }
     let mut learner_cmd = Command::new(sibling("lcrl-learner")?);
     match &given_graph {
-        Some(_) => learner_cmd.args(preset.learner_args_with_graph_file("127.0.0.1:0", &run_id, train_path, &run_dir.join("learner"), &run_dir.join("graph.json"))),
-        None => learner_cmd.args(preset.learner_args("127.0.0.1:0", &run_id, train_path, &run_dir.join("learner"), graph_url.as_deref())?),
+        Some(_) => learner_cmd.args(preset.learner_args_with_graph_file("127.0.0.1:0", run_id, train_path, &run_dir.join("learner"), &run_dir.join("graph.json"))),
+        None => learner_cmd.args(preset.learner_args("127.0.0.1:0", run_id, train_path, &run_dir.join("learner"), graph_url.as_deref())?),
     };
     learner_cmd.args(security.server_args(graph_url.is_some())?);
     // Whatever ends this process (kill -9 included), the learner gets
     // SIGTERM and writes its final checkpoint.
     stop_with_parent(&mut learner_cmd);
-    let (mut learner, address) = Managed::spawn("learner", learner_cmd, logs, true)?;
+    let (learner, address) = Managed::spawn("learner", learner_cmd, logs, true)?;
     let url = security.url(&format!("http://{}", address.context("the learner did not start; see logs/learner.log")?));
-    wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120), &client_security).await?;
+    wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120), client_security).await?;
     eprintln!("learner at {url}; starting {} actor(s) over {transport}", job.actors);
     let mut actors = Vec::new();
     for k in 0..job.actors {
         let mut cmd = Command::new(sibling("lcrl-actor")?);
-        cmd.args(preset.actor_args(&url, &run_id, transport, Some(&format!("actor-{k}")), k as u64)).args(security.client_args()?);
+        cmd.args(preset.actor_args(&url, run_id, transport, Some(&format!("actor-{k}")), k as u64)).args(security.client_args()?);
         stop_with_parent(&mut cmd);
         actors.push(Managed::spawn(&format!("actor-{k}"), cmd, logs, false)?.0);
     }
 
-    let bar = ProgressBar::new(job.episodes);
+    Ok(Processes { graph_builder, learner, learner_url: url, actors })
+}
+
+/// Shows the learner's progress until it reports the budget spent (false)
+/// or a stop signal arrives (true); with the last status read.
+async fn watch_progress(
+    client: &mut LearnerClient<tonic::service::interceptor::InterceptedService<tonic::transport::Channel, lcrl_proto::security::Bearer>>,
+    stop_signals: &mut StopSignals,
+    episodes: u64,
+    logs: &Path,
+) -> anyhow::Result<(bool, Option<lcrl_proto::v1::LearnerStatus>)> {
+    let bar = ProgressBar::new(episodes);
     if let Ok(style) = ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})") {
         bar.set_style(style.progress_chars("=> "));
     }
-    let mut client = LearnerClient::new(client_security.connect(&url).await?);
     let (mut last_steps, mut last_updates, mut last_time) = (0u64, 0u64, Instant::now());
-    // Ctrl-C and SIGTERM stop the run in order from here on (before, they
-    // end this process and every child follows by its parent-death signal).
-    // Listening once, not per loop turn, so no signal falls between turns.
-    let mut stop_signals = StopSignals::new()?;
     let mut last_status = None;
     let interrupted = loop {
         tokio::select! {
@@ -236,7 +301,7 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
         };
         last_status = Some(status.clone());
         let dt = last_time.elapsed().as_secs_f64().max(1e-9);
-        bar.set_position(status.episodes.min(job.episodes));
+        bar.set_position(status.episodes.min(episodes));
         bar.set_message(format!(
             "avg return {:.2}, {:.0} steps/s, {:.0} updates/s, policy v{}",
             status.recent_return,
@@ -252,30 +317,14 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
         }
     };
     bar.finish_and_clear();
-    // Stopping (up to 30 s for the learner's checkpoint) and the final
-    // evaluation run on; a further Ctrl-C or SIGTERM ends this process at
-    // once, and the children follow by their parent-death signal.
-    tokio::spawn(async move {
-        stop_signals.recv().await;
-        eprintln!("lcrl run: interrupted again; stopping now");
-        std::process::exit(130);
-    });
-    if interrupted {
-        eprintln!("interrupted: stopping the actors, then the learner (it writes a final checkpoint)");
-    }
-    let final_status = client.get_status(GetStatusRequest {}).await.map(|s| s.into_inner()).ok().or(last_status);
-    // Actors first (they would only reconnect), then the learner (it
-    // checkpoints on SIGTERM), then the graph builder.
-    for actor in actors.iter_mut() {
-        actor.stop(Duration::from_secs(10));
-    }
-    learner.stop(Duration::from_secs(30));
-    if let Some(mut g) = graph_builder {
-        g.stop(Duration::from_secs(5));
-    }
-    let s = final_status.unwrap_or_default();
-    let wall = started.elapsed().as_secs_f64();
-    let summary = lcrl::run_summary::write_run_summary(preset, run_dir, &s, wall, job.actors, transport)?;
+    Ok((interrupted, last_status))
+}
+
+/// Writes the run's summary and reward curve, and says what the run did
+/// beside its reference.
+fn report(preset: &Preset, run_dir: &Path, s: &lcrl_proto::v1::LearnerStatus, wall: f64, transport: &str, run_id: &str, interrupted: bool) -> anyhow::Result<String> {
+    let job = &preset.job;
+    let summary = lcrl::run_summary::write_run_summary(preset, run_dir, s, wall, job.actors, transport)?;
     let evaluation = &summary.evaluation;
     let service = summary.service.as_ref().context("the run's summary has no service figures")?;
     let curve = run_dir.join("reward_curve.png");

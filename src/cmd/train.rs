@@ -161,6 +161,34 @@ fn train_here(args: &TrainArgs) -> anyhow::Result<()> {
             to.label()
         );
     }
+    let (mut config, source) = settings(args)?;
+    let connection = connection_for(args, &mut config)?;
+    let (given_file, graph) = given_graph(args, &connection)?;
+    eprintln!("training settings: {source}");
+    if let Some(checkpoint) = args.resume.then(|| lcrl_learner::policy::checkpoint::latest_checkpoint(&args.run_dir)).flatten() {
+        eprintln!("resuming from checkpoint {}", checkpoint.display());
+    }
+    let request = TrainRequest {
+        env: args.env.clone(),
+        algo: args.algo,
+        connection: connection.connection(),
+        graph,
+        config: config.clone(),
+        settings_source: source,
+        run_dir: args.run_dir.clone(),
+        resume: args.resume,
+        stop_after: None,
+    };
+    let outcome = train_with_progress(&request)?;
+    drop(given_file);
+    plot_rewards(&outcome.rows, &outcome.summary, args, &connection)?;
+    print_summary(&outcome.summary, &config, args)
+}
+
+/// The run's settings: the config file over the environment's (or the
+/// environment's alone), then the command line's overrides; and where they
+/// came from.
+fn settings(args: &TrainArgs) -> anyhow::Result<(TrainConfig, String)> {
     let (mut config, source) = match &args.config {
         Some(path) => (TrainConfig::load_for_env(path, &args.env)?, format!("{} (missing keys: the environment's settings)", path.display())),
         None => {
@@ -192,6 +220,12 @@ fn train_here(args: &TrainArgs) -> anyhow::Result<()> {
         config.base.action = lcrl_learner::config::BaseController::BestConstant;
         config.base.best_constant_file = Some(path.clone());
     }
+    Ok((config, source))
+}
+
+/// The actor's connection (the local actor at the config's threshold
+/// without --connection), checked against what one run can do.
+fn connection_for(args: &TrainArgs, config: &mut TrainConfig) -> anyhow::Result<ConnectionSpec> {
     // Without --connection: the local actor at the config's threshold.
     let connection = args.connection.clone().unwrap_or(ConnectionSpec::Local { threshold: config.run.graph_threshold, rows: Vec::new(), per_seed: false });
     if let Some(t) = connection.threshold() {
@@ -202,7 +236,7 @@ fn train_here(args: &TrainArgs) -> anyhow::Result<()> {
         if connection != ConnectionSpec::Global {
             anyhow::bail!("--match-params sizes a global actor: use it with --connection global (it has --connection {})", connection.label());
         }
-        match_global_to_local(&mut config, &args.env, path)?;
+        match_global_to_local(config, &args.env, path)?;
     }
     if let ConnectionSpec::RandomRows { .. } = &connection {
         anyhow::bail!(
@@ -221,10 +255,15 @@ fn train_here(args: &TrainArgs) -> anyhow::Result<()> {
     if args.graph.is_some() && !matches!(connection, ConnectionSpec::Local { .. }) {
         anyhow::bail!("--graph only applies to --connection local or local@T (graph:PATH names the file itself)");
     }
-    // A given graph (graph:PATH, random@K) reaches the trainer as a file,
-    // checked against the environment first; the run records it as its
-    // graph.json, with `origin` saying where it came from.
-    let given = match &connection {
+    Ok(connection)
+}
+
+/// A given graph (graph:PATH, random@K) reaches the trainer as a file,
+/// checked against the environment first; the run records it as its
+/// graph.json, with `origin` saying where it came from. Returns the file
+/// (kept until training ends) and the graph path to train with.
+fn given_graph(args: &TrainArgs, connection: &ConnectionSpec) -> anyhow::Result<(Option<tempfile::NamedTempFile>, Option<std::path::PathBuf>)> {
+    let given = match connection {
         ConnectionSpec::Graph { .. } | ConnectionSpec::Random { .. } => connection.given_graph(lcrl_sim::make_env(&args.env)?.spec(), args.graph_seed)?,
         _ => None,
     };
@@ -240,26 +279,17 @@ fn train_here(args: &TrainArgs) -> anyhow::Result<()> {
     if let Some(report) = &given {
         eprintln!("{}", report.origin_line());
     }
-    eprintln!("training settings: {source}");
-    if let Some(checkpoint) = args.resume.then(|| lcrl_learner::policy::checkpoint::latest_checkpoint(&args.run_dir)).flatten() {
-        eprintln!("resuming from checkpoint {}", checkpoint.display());
-    }
-    let request = TrainRequest {
-        env: args.env.clone(),
-        algo: args.algo,
-        connection: connection.connection(),
-        graph,
-        config: config.clone(),
-        settings_source: source,
-        run_dir: args.run_dir.clone(),
-        resume: args.resume,
-        stop_after: None,
-    };
-    let bar = ProgressBar::new(config.run.episodes as u64);
+    Ok((given_file, graph))
+}
+
+/// Trains with a progress bar (episode, return, its 10-episode average,
+/// steps per second).
+fn train_with_progress(request: &TrainRequest) -> anyhow::Result<lcrl_learner::run::trainer::TrainOutcome> {
+    let bar = ProgressBar::new(request.config.run.episodes as u64);
     if let Ok(style) = ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})") {
         bar.set_style(style.progress_chars("=> "));
     }
-    let outcome = train(&request, &mut |p| {
+    let outcome = train(request, &mut |p| {
         bar.set_length(p.episodes as u64);
         bar.set_position(p.row.episode as u64);
         bar.set_message(format!(
@@ -268,9 +298,11 @@ fn train_here(args: &TrainArgs) -> anyhow::Result<()> {
         ));
     });
     bar.finish_and_clear();
-    let outcome = outcome?;
-    plot_rewards(&outcome.rows, &outcome.summary, args, &connection)?;
-    let s = &outcome.summary;
+    Ok(outcome?)
+}
+
+/// The run's figures on stdout, beside its references.
+fn print_summary(s: &lcrl_learner::run::summary::RunSummary, config: &TrainConfig, args: &TrainArgs) -> anyhow::Result<()> {
     let global_equivalent = lcrl_learner::algo::nets::global_actor_params(&config.network, args.env_state_dims(s)?);
     println!(
         "{:?} / {:?} on {} — {} episodes, {} env steps, {} actor updates, {} critic updates",
