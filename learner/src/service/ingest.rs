@@ -244,134 +244,19 @@ impl Ingest {
     /// [`MAX_ACTORS_PER_PEER`] ids.
     pub fn check_from(&mut self, batch: &TransitionBatch, policy_version: u64, origin: Origin) -> Verdict {
         let count = batch.transitions.len();
-        if batch.run_id != self.run_id {
-            self.count("unknown_run", count);
-            return Verdict::Reject {
-                reason: "unknown_run",
-                // A peer's string in the log: at most 64 characters of it.
-                message: format!("run id '{}' is not this learner's run ('{}')", batch.run_id.chars().take(64).collect::<String>(), self.run_id),
-            };
-        }
-        // Names are kept (sequences, checkpoint.json): bounded in length
-        // and number.
-        if batch.actor_id.len() > lcrl_proto::limits::MAX_ACTOR_ID_BYTES {
-            self.count("actor_id", count);
-            return Verdict::Reject {
-                reason: "actor_id",
-                message: format!("actor_id is {} bytes; at most {} are kept", batch.actor_id.len(), lcrl_proto::limits::MAX_ACTOR_ID_BYTES),
-            };
-        }
-        let (m, n) = (self.env.spec().state_dim(), self.env.spec().action_dim());
-        for (k, t) in batch.transitions.iter().enumerate() {
-            let sampled_ok = t.sampled_action.is_empty() || t.sampled_action.len() == n;
-            if t.state.len() != m || t.next_state.len() != m || t.action.len() != n || !sampled_ok {
-                self.count("dimensions", count);
-                return Verdict::Reject {
-                    reason: "dimensions",
-                    message: format!(
-                        "transition {k}: state {}, next_state {}, action {}, sampled_action {}; this run needs states of {m} and actions \
-                         of {n} (sampled_action: {n} or none)",
-                        t.state.len(),
-                        t.next_state.len(),
-                        t.action.len(),
-                        t.sampled_action.len()
-                    ),
-                };
+        let door = self.check_names(batch).and_then(|()| self.check_values(batch)).and_then(|()| check_episodes(batch)).and_then(|()| self.check_sender(batch, origin));
+        match door {
+            Err(Door::Reject(reason, message)) => {
+                self.count(reason, count);
+                return Verdict::Reject { reason, message };
             }
-            let all = t.state.iter().chain(&t.next_state).chain(&t.action).chain(&t.sampled_action).chain(std::iter::once(&t.reward)).chain(&t.log_prob);
-            if all.clone().any(|v| !v.is_finite()) {
-                self.count("non_finite", count);
-                return Verdict::Reject { reason: "non_finite", message: format!("transition {k} holds a non-finite number") };
+            Err(Door::Duplicate) => {
+                self.count("duplicate", count);
+                return Verdict::Duplicate;
             }
+            Ok(()) => {}
         }
-        // Finite is not enough: one batch of 3e38 states turned every
-        // weight to NaN within 1.5 s (issue 71). Values are refused beyond
-        // the environment's scale by the stated factors (lcrl_sim::STATE_LIMIT, ...).
-        if let Some((k, why)) = batch.transitions.iter().enumerate().find_map(|(k, t)| self.out_of_bounds(t).map(|why| (k, why))) {
-            self.count("bounds", count);
-            return Verdict::Reject { reason: "bounds", message: format!("transition {k}: {why}") };
-        }
-        // An episode's return feeds the training curve, its statistics and
-        // selection's record: a NaN there poisons every mean after it.
-        if let Some(k) = batch.episodes.iter().position(|e| !e.episode_return.is_finite()) {
-            self.count("non_finite", count);
-            return Verdict::Reject { reason: "non_finite", message: format!("episode {k} has a non-finite return") };
-        }
-        // Likewise its measurements, which feed the safety figures.
-        let measured = |e: &EpisodeSummary| {
-            let terms = e.return_terms.iter().flat_map(|t| [t.depth, t.force, t.moment, t.bonus, t.failure]);
-            e.peak_force_n.into_iter().chain(e.peak_moment_nm).chain(terms).all(f64::is_finite)
-        };
-        if let Some(k) = batch.episodes.iter().position(|e| !measured(e)) {
-            self.count("non_finite", count);
-            return Verdict::Reject { reason: "non_finite", message: format!("episode {k} has a non-finite peak force, moment or return term") };
-        }
-        // One summary per episode end, in the order of the ends (the
-        // contract, proto/lcrl.proto): the budget counts summaries and
-        // `keep_episodes` cuts at ends, so a batch whose two counts differ
-        // would end the run early or run past its budget.
-        let ends = batch.transitions.iter().filter(|t| t.terminated || t.truncated).count();
-        if ends != batch.episodes.len() {
-            self.count("episodes", count);
-            return Verdict::Reject {
-                reason: "episodes",
-                message: format!(
-                    "{} episode summaries for {ends} episode ends (transitions terminated or truncated); send one summary per end, in \
-                     the order of the ends (a batch end inside an episode is `cut`, not an end)",
-                    batch.episodes.len()
-                ),
-            };
-        }
-        if let Err(message) = returns_agree(batch) {
-            self.count("returns", count);
-            return Verdict::Reject { reason: "returns", message };
-        }
-        // Actors number batches from the clock (µs); a sequence far ahead
-        // of it would make every later batch of that actor a "duplicate".
-        let ahead = now_micros().saturating_add(SEQUENCE_AHEAD.as_micros() as u64);
-        if batch.sequence > ahead {
-            self.count("sequence", count);
-            return Verdict::Reject {
-                reason: "sequence",
-                message: format!("sequence {} is more than {} s ahead of this learner's clock in µs ({ahead}); number batches from 0 or from the clock", batch.sequence, SEQUENCE_AHEAD.as_secs()),
-            };
-        }
-        if self.holders.get(&batch.actor_id).is_some_and(|&holder| holder != origin.stream) {
-            self.count("actor_id_bound", count);
-            return Verdict::Reject {
-                reason: "actor_id_bound",
-                message: "this actor id is in use by another live stream of this learner; give each actor its own --actor-id".into(),
-            };
-        }
-        if self.last_sequence.get(&batch.actor_id).is_some_and(|&last| batch.sequence <= last) {
-            self.count("duplicate", count);
-            return Verdict::Duplicate;
-        }
-        let new_id = !self.last_sequence.contains_key(&batch.actor_id);
-        let peer = origin.counted_peer();
-        if let Some(peer) = peer.filter(|p| new_id && self.ids_of_peer.get(p).copied().unwrap_or(0) >= MAX_ACTORS_PER_PEER) {
-            self.count("actors_per_peer", count);
-            return Verdict::Reject {
-                reason: "actors_per_peer",
-                message: format!("{peer} holds {MAX_ACTORS_PER_PEER} actor ids of this learner, its most; reuse ids or wait for silent ones to be forgotten ({} s)", ACTOR_SILENCE_TO_FORGET.as_secs()),
-            };
-        }
-        if !self.place_for(&batch.actor_id) {
-            self.count("actors", count);
-            return Verdict::Reject {
-                reason: "actors",
-                message: format!("this learner keeps {MAX_ACTORS} actor ids and none has been silent for {} s; try again later", ACTOR_SILENCE_TO_FORGET.as_secs()),
-            };
-        }
-        self.last_sequence.insert(batch.actor_id.clone(), batch.sequence);
-        self.last_seen.insert(batch.actor_id.clone(), std::time::Instant::now());
-        if origin.stream != 0 {
-            self.holders.insert(batch.actor_id.clone(), origin.stream);
-        }
-        if let Some(peer) = peer.filter(|_| new_id) {
-            self.brought_by.insert(batch.actor_id.clone(), peer);
-            *self.ids_of_peer.entry(peer).or_insert(0) += 1;
-        }
+        self.admit_sender(batch, origin);
         // On-policy: versions of another learner process are not this
         // one's (after a restart they count from the checkpoint again), so
         // its data is stale whatever its number says.
@@ -384,9 +269,100 @@ impl Ingest {
             self.count("stale", count);
             return Verdict::Stale;
         }
+        let transitions = self.normalize(batch);
+        self.accepted += transitions.len() as u64;
+        Verdict::Accept(Accepted { transitions, episodes: batch.episodes.clone(), policy_version: batch.policy_version, stream: stream_of(&batch.actor_id) })
+    }
+
+    /// The run id, and the actor id's length (names are kept: sequences,
+    /// checkpoint.json).
+    fn check_names(&self, batch: &TransitionBatch) -> Result<(), Door> {
+        if batch.run_id != self.run_id {
+            return Err(Door::Reject("unknown_run", // A peer's string in the log: at most 64 characters of it.
+                format!("run id '{}' is not this learner's run ('{}')", batch.run_id.chars().take(64).collect::<String>(), self.run_id)));
+        }
+        if batch.actor_id.len() > lcrl_proto::limits::MAX_ACTOR_ID_BYTES {
+            return Err(Door::Reject("actor_id", format!("actor_id is {} bytes; at most {} are kept", batch.actor_id.len(), lcrl_proto::limits::MAX_ACTOR_ID_BYTES)));
+        }
+        Ok(())
+    }
+
+    /// Every transition's dimensions, finite values and bounds.
+    fn check_values(&self, batch: &TransitionBatch) -> Result<(), Door> {
+        let (m, n) = (self.env.spec().state_dim(), self.env.spec().action_dim());
+        for (k, t) in batch.transitions.iter().enumerate() {
+            let sampled_ok = t.sampled_action.is_empty() || t.sampled_action.len() == n;
+            if t.state.len() != m || t.next_state.len() != m || t.action.len() != n || !sampled_ok {
+                return Err(Door::Reject("dimensions", format!(
+                        "transition {k}: state {}, next_state {}, action {}, sampled_action {}; this run needs states of {m} and actions \
+                         of {n} (sampled_action: {n} or none)",
+                        t.state.len(),
+                        t.next_state.len(),
+                        t.action.len(),
+                        t.sampled_action.len()
+                    )));
+            }
+            let all = t.state.iter().chain(&t.next_state).chain(&t.action).chain(&t.sampled_action).chain(std::iter::once(&t.reward)).chain(&t.log_prob);
+            if all.clone().any(|v| !v.is_finite()) {
+                return Err(Door::Reject("non_finite", format!("transition {k} holds a non-finite number")));
+            }
+        }
+        // Finite is not enough: one batch of 3e38 states turned every
+        // weight to NaN within 1.5 s (issue 71). Values are refused beyond
+        // the environment's scale by the stated factors (lcrl_sim::STATE_LIMIT, ...).
+        if let Some((k, why)) = batch.transitions.iter().enumerate().find_map(|(k, t)| self.out_of_bounds(t).map(|why| (k, why))) {
+            return Err(Door::Reject("bounds", format!("transition {k}: {why}")));
+        }
+        Ok(())
+    }
+
+    /// Who sends: a sequence not far ahead of the clock, an id not bound to
+    /// another live stream, not a duplicate, and a place in the id table
+    /// (within the peer's share).
+    fn check_sender(&mut self, batch: &TransitionBatch, origin: Origin) -> Result<(), Door> {
+        // Actors number batches from the clock (µs); a sequence far ahead
+        // of it would make every later batch of that actor a "duplicate".
+        let ahead = now_micros().saturating_add(SEQUENCE_AHEAD.as_micros() as u64);
+        if batch.sequence > ahead {
+            return Err(Door::Reject("sequence", format!("sequence {} is more than {} s ahead of this learner's clock in µs ({ahead}); number batches from 0 or from the clock", batch.sequence, SEQUENCE_AHEAD.as_secs())));
+        }
+        if self.holders.get(&batch.actor_id).is_some_and(|&holder| holder != origin.stream) {
+            return Err(Door::Reject("actor_id_bound", "this actor id is in use by another live stream of this learner; give each actor its own --actor-id".into()));
+        }
+        if self.last_sequence.get(&batch.actor_id).is_some_and(|&last| batch.sequence <= last) {
+            return Err(Door::Duplicate);
+        }
+        let new_id = !self.last_sequence.contains_key(&batch.actor_id);
+        if let Some(peer) = origin.counted_peer().filter(|p| new_id && self.ids_of_peer.get(p).copied().unwrap_or(0) >= MAX_ACTORS_PER_PEER) {
+            return Err(Door::Reject("actors_per_peer", format!("{peer} holds {MAX_ACTORS_PER_PEER} actor ids of this learner, its most; reuse ids or wait for silent ones to be forgotten ({} s)", ACTOR_SILENCE_TO_FORGET.as_secs())));
+        }
+        if !self.place_for(&batch.actor_id) {
+            return Err(Door::Reject("actors", format!("this learner keeps {MAX_ACTORS} actor ids and none has been silent for {} s; try again later", ACTOR_SILENCE_TO_FORGET.as_secs())));
+        }
+        Ok(())
+    }
+
+    /// Records the accepted sender: its sequence, when it was heard, its
+    /// stream's binding and its peer's share.
+    fn admit_sender(&mut self, batch: &TransitionBatch, origin: Origin) {
+        let new_id = !self.last_sequence.contains_key(&batch.actor_id);
+        let peer = origin.counted_peer();
+        self.last_sequence.insert(batch.actor_id.clone(), batch.sequence);
+        self.last_seen.insert(batch.actor_id.clone(), std::time::Instant::now());
+        if origin.stream != 0 {
+            self.holders.insert(batch.actor_id.clone(), origin.stream);
+        }
+        if let Some(peer) = peer.filter(|_| new_id) {
+            self.brought_by.insert(batch.actor_id.clone(), peer);
+            *self.ids_of_peer.entry(peer).or_insert(0) += 1;
+        }
+    }
+
+    /// The batch as the agent stores it: observations, normalized actions.
+    fn normalize(&self, batch: &TransitionBatch) -> Vec<AgentTransition> {
         let to_action = |a: &[f32]| -> Vec<f32> { self.actions.to_normalized(&a.iter().map(|&v| f64::from(v)).collect::<Vec<_>>()) };
         let to_obs = |s: &[f32]| crate::algo::agent::observe(self.env.as_ref(), &s.iter().map(|&v| f64::from(v)).collect::<Vec<_>>());
-        let transitions = batch
+        batch
             .transitions
             .iter()
             .map(|t| AgentTransition {
@@ -403,9 +379,7 @@ impl Ingest {
                 cut: t.cut,
                 policy_version: if t.policy_version > 0 { t.policy_version } else { batch.policy_version },
             })
-            .collect::<Vec<_>>();
-        self.accepted += transitions.len() as u64;
-        Verdict::Accept(Accepted { transitions, episodes: batch.episodes.clone(), policy_version: batch.policy_version, stream: stream_of(&batch.actor_id) })
+            .collect::<Vec<_>>()
     }
 }
 
@@ -426,6 +400,48 @@ impl Ingest {
         let limit = 1.0 + lcrl_sim::SAMPLED_ACTION_LIMIT;
         u.iter().position(|v| f64::from(v.abs()) > limit).map(|k| format!("action component {k} is {} in the agent's units [−1, 1]; at most ±{limit}", u[k]))
     }
+}
+
+/// Why a batch does not pass the door.
+enum Door {
+    /// Malformed or not this sender's: refused, with the status key.
+    Reject(&'static str, String),
+    /// Already stored (a batch sent again after a reconnect).
+    Duplicate,
+}
+
+/// The batch's episode summaries: finite, one per episode end, their
+/// returns those of the rewards.
+fn check_episodes(batch: &TransitionBatch) -> Result<(), Door> {
+        // An episode's return feeds the training curve, its statistics and
+        // selection's record: a NaN there poisons every mean after it.
+        if let Some(k) = batch.episodes.iter().position(|e| !e.episode_return.is_finite()) {
+            return Err(Door::Reject("non_finite", format!("episode {k} has a non-finite return")));
+        }
+        // Likewise its measurements, which feed the safety figures.
+        let measured = |e: &EpisodeSummary| {
+            let terms = e.return_terms.iter().flat_map(|t| [t.depth, t.force, t.moment, t.bonus, t.failure]);
+            e.peak_force_n.into_iter().chain(e.peak_moment_nm).chain(terms).all(f64::is_finite)
+        };
+        if let Some(k) = batch.episodes.iter().position(|e| !measured(e)) {
+            return Err(Door::Reject("non_finite", format!("episode {k} has a non-finite peak force, moment or return term")));
+        }
+        // One summary per episode end, in the order of the ends (the
+        // contract, proto/lcrl.proto): the budget counts summaries and
+        // `keep_episodes` cuts at ends, so a batch whose two counts differ
+        // would end the run early or run past its budget.
+        let ends = batch.transitions.iter().filter(|t| t.terminated || t.truncated).count();
+        if ends != batch.episodes.len() {
+            return Err(Door::Reject("episodes", format!(
+                    "{} episode summaries for {ends} episode ends (transitions terminated or truncated); send one summary per end, in \
+                     the order of the ends (a batch end inside an episode is `cut`, not an end)",
+                    batch.episodes.len()
+                )));
+        }
+        if let Err(message) = returns_agree(batch) {
+            return Err(Door::Reject("returns", message));
+        }
+    Ok(())
 }
 
 /// How far ahead of the learner's clock (in µs, where actors start their
