@@ -70,69 +70,97 @@ pub fn reference_lines(lqr: Option<f64>, masked_lqr: Option<f64>, zero_action: O
 }
 
 pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
-    let read = |path: &Option<PathBuf>, what: &str| -> anyhow::Result<Option<BestConstant>> {
-        match path {
-            Some(path) => {
-                let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-                Ok(Some(serde_json::from_str(&text).with_context(|| format!("{} is not a {what} written by `lcrl tune`", path.display()))?))
-            }
-            None => Ok(None),
-        }
-    };
-    let bar = read(&args.best_constant, "best_constant.json")?;
-    let headroom = read(&args.best_policy, "best_policy.json")?;
+    let bar = read_reference(&args.best_constant, "best_constant.json")?;
+    let headroom = read_reference(&args.best_policy, "best_policy.json")?;
     let mut series = Vec::new();
     let mut longest: Vec<f64> = Vec::new();
     let mut lines = Vec::new();
     println!("{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11} {:>8}", "run", "episodes", "graph s", "optimization s", "total s", "final return", "eval return", "success");
     for dir in &args.runs {
-        let path = dir.join("summary.json");
-        let text = std::fs::read_to_string(&path).with_context(|| format!("{} is not a finished run (no summary.json)", dir.display()))?;
-        let s: RunSummary = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
-        for (reference, what) in [(&bar, "best constant"), (&headroom, "best policy")] {
-            if let Some(r) = reference {
-                if r.env != s.env {
-                    anyhow::bail!("{} was trained on {} but the {what} is for {}; compare runs of one environment", dir.display(), s.env, r.env);
-                }
-            }
-        }
-        let metrics = dir.join("metrics.csv");
-        let rows: Vec<EpisodeRow> = csv::Reader::from_path(&metrics)
-            .with_context(|| format!("reading {}", metrics.display()))?
-            .deserialize()
-            .collect::<Result<_, _>>()
-            .with_context(|| format!("reading {}", metrics.display()))?;
-        let label = format!("{:?}/{:?}", s.algo, s.connection).to_lowercase();
-        println!(
-            "{:<34} {:>8} {:>10.2} {:>14.2} {:>10.2} {:>13.3} {:>11.3} {:>8}",
-            format!("{label} ({})", dir.display()),
-            s.episodes,
-            s.graph_seconds,
-            s.optimization_seconds,
-            s.total_seconds,
-            s.final_return,
-            s.evaluation.eval_return,
-            s.evaluation.eval_success_rate.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r)),
-        );
+        let (label, s, rows) = read_run(dir, [(&bar, "best constant"), (&headroom, "best policy")])?;
         for line in references(&s) {
             if !lines.iter().any(|(name, _): &(String, f64)| *name == line.0) {
                 lines.push(line);
             }
         }
-        let returns: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();
-        let window = args.window.max(1);
-        let smooth: Vec<f64> = (0..returns.len())
-            .map(|k| {
-                let w = &returns[k.saturating_sub(window - 1)..=k];
-                w.iter().sum::<f64>() / w.len() as f64
-            })
-            .collect();
+        let smooth = moving_average(&rows, args.window.max(1));
         if smooth.len() > longest.len() {
             longest = (1..=smooth.len()).map(|e| e as f64).collect();
         }
         series.push((label, smooth));
     }
-    if let Some(bar) = &bar {
+    lines.extend(print_references(bar.as_ref(), headroom.as_ref()));
+    // Shorter runs are padded with NaN, which the plot leaves out.
+    for (_, values) in series.iter_mut() {
+        values.resize(longest.len(), f64::NAN);
+    }
+    let panel = Panel::rewards(format!("return, moving average ({})", args.window), series, lines);
+    line_panels(&args.out, "reward curves", &longest, "episode", &[panel])?;
+    println!("wrote {}", args.out.display());
+    Ok(())
+}
+
+/// A reference `lcrl tune` wrote (`what` names the file), if given.
+fn read_reference(path: &Option<PathBuf>, what: &str) -> anyhow::Result<Option<BestConstant>> {
+    match path {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+            Ok(Some(serde_json::from_str(&text).with_context(|| format!("{} is not a {what} written by `lcrl tune`", path.display()))?))
+        }
+        None => Ok(None),
+    }
+}
+
+/// A finished run's label, summary and episodes, checked against the
+/// references' environment; its row of the table is printed.
+fn read_run(dir: &std::path::Path, references: [(&Option<BestConstant>, &str); 2]) -> anyhow::Result<(String, RunSummary, Vec<EpisodeRow>)> {
+    let path = dir.join("summary.json");
+    let text = std::fs::read_to_string(&path).with_context(|| format!("{} is not a finished run (no summary.json)", dir.display()))?;
+    let s: RunSummary = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
+    for (reference, what) in references {
+        if let Some(r) = reference {
+            if r.env != s.env {
+                anyhow::bail!("{} was trained on {} but the {what} is for {}; compare runs of one environment", dir.display(), s.env, r.env);
+            }
+        }
+    }
+    let metrics = dir.join("metrics.csv");
+    let rows: Vec<EpisodeRow> = csv::Reader::from_path(&metrics)
+        .with_context(|| format!("reading {}", metrics.display()))?
+        .deserialize()
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("reading {}", metrics.display()))?;
+    let label = format!("{:?}/{:?}", s.algo, s.connection).to_lowercase();
+    println!(
+        "{:<34} {:>8} {:>10.2} {:>14.2} {:>10.2} {:>13.3} {:>11.3} {:>8}",
+        format!("{label} ({})", dir.display()),
+        s.episodes,
+        s.graph_seconds,
+        s.optimization_seconds,
+        s.total_seconds,
+        s.final_return,
+        s.evaluation.eval_return,
+        s.evaluation.eval_success_rate.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r)),
+    );
+    Ok((label, s, rows))
+}
+
+/// Returns averaged over the last `window` episodes (fewer at the start).
+fn moving_average(rows: &[EpisodeRow], window: usize) -> Vec<f64> {
+    let returns: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();
+    (0..returns.len())
+        .map(|k| {
+            let w = &returns[k.saturating_sub(window - 1)..=k];
+            w.iter().sum::<f64>() / w.len() as f64
+        })
+        .collect()
+}
+
+/// The best constant, a = 0 and the best feedback policy as rows of the
+/// table; the plot's lines for them.
+fn print_references(bar: Option<&BestConstant>, headroom: Option<&BestConstant>) -> Vec<(String, f64)> {
+    let mut lines = Vec::new();
+    if let Some(bar) = bar {
         let pct = bar.success_rate.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
         println!(
             "{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11.3} {:>8}",
@@ -149,7 +177,7 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
         );
         lines.push(("best constant".to_string(), bar.mean_return));
     }
-    if let Some(policy) = &headroom {
+    if let Some(policy) = headroom {
         let pct = policy.success_rate.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r));
         println!(
             "{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11.3} {:>8}",
@@ -158,12 +186,5 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
         println!("(the headroom: the best state-feedback controller `lcrl tune --policy` found, mean of {} evaluation episodes.)", policy.eval_episodes);
         lines.push(("best feedback policy".to_string(), policy.mean_return));
     }
-    // Shorter runs are padded with NaN, which the plot leaves out.
-    for (_, values) in series.iter_mut() {
-        values.resize(longest.len(), f64::NAN);
-    }
-    let panel = Panel::rewards(format!("return, moving average ({})", args.window), series, lines);
-    line_panels(&args.out, "reward curves", &longest, "episode", &[panel])?;
-    println!("wrote {}", args.out.display());
-    Ok(())
+    lines
 }
