@@ -252,6 +252,35 @@ fn cpu_seconds(pid: u32) -> f64 {
     (ticks(11) + ticks(12)) / 100.0
 }
 
+/// Seconds from `started` until the learner's recent return (over at
+/// least 10 episodes) reaches `threshold`; None after `timeout` seconds.
+async fn seconds_to(client: &mut LearnerClient<tonic::transport::Channel>, threshold: f64, started: Instant, timeout: f64) -> anyhow::Result<Option<f64>> {
+    loop {
+        let s = client.get_status(GetStatusRequest {}).await.map_err(|e| anyhow::anyhow!("lost the learner: {e}"))?.into_inner();
+        if s.episodes >= 10 && s.recent_return >= threshold {
+            return Ok(Some(started.elapsed().as_secs_f64()));
+        }
+        if started.elapsed().as_secs_f64() > timeout {
+            return Ok(None);
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+/// `Policy.Act` latencies (ms) of one query every 20 ms until `seconds`
+/// after `window` began.
+async fn act_latencies(policy: &mut PolicyClient<tonic::transport::Channel>, m: usize, window: Instant, seconds: f64) -> Vec<f64> {
+    let mut latencies = Vec::new();
+    while window.elapsed().as_secs_f64() < seconds {
+        let t = Instant::now();
+        if policy.act(ActRequest { state: vec![0.0; m] }).await.is_ok() {
+            latencies.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    latencies
+}
+
 async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize, envs: usize, transport: &str) -> anyhow::Result<ScalePoint> {
     let mut preset = preset.clone();
     preset.job.envs_per_actor = envs;
@@ -290,31 +319,14 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
     let (learner_cpu0, actors_cpu0) = (cpu(&[learner.pid()]), cpu(&actor_pids));
     let window = Instant::now();
     let m = lcrl_sim::make_env(&preset.job.env)?.spec().state_dim();
-    let mut latencies = Vec::new();
-    while window.elapsed().as_secs_f64() < args.seconds {
-        let t = Instant::now();
-        if policy.act(ActRequest { state: vec![0.0; m] }).await.is_ok() {
-            latencies.push(t.elapsed().as_secs_f64() * 1e3);
-        }
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    let mut latencies = act_latencies(&mut policy, m, window, args.seconds).await;
     let seconds = window.elapsed().as_secs_f64();
     let last = status(client.get_status(GetStatusRequest {}).await)?;
     let (learner_cpu, actors_cpu) = ((cpu(&[learner.pid()]) - learner_cpu0) / seconds, (cpu(&actor_pids) - actors_cpu0) / seconds);
-    let mut seconds_to_threshold = None;
-    if let Some(threshold) = args.to_threshold {
-        loop {
-            let s = status(client.get_status(GetStatusRequest {}).await)?;
-            if s.episodes >= 10 && s.recent_return >= threshold {
-                seconds_to_threshold = Some(started.elapsed().as_secs_f64());
-                break;
-            }
-            if started.elapsed().as_secs_f64() > args.threshold_timeout {
-                break;
-            }
-            tokio::time::sleep(Duration::from_millis(200)).await;
-        }
-    }
+    let seconds_to_threshold = match args.to_threshold {
+        Some(threshold) => seconds_to(&mut client, threshold, started, args.threshold_timeout).await?,
+        None => None,
+    };
     for worker in workers.iter_mut() {
         worker.stop(Duration::from_secs(10));
     }
