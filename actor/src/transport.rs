@@ -102,6 +102,9 @@ pub async fn watch_policy(url: String, security: ClientSecurity, policy: watch::
                     }
                 }
             }
+            // A learner whose WatchPolicy budget is spent: the actor acts
+            // on its last policy meanwhile, which its operator should see.
+            Err(e) if e.downcast_ref::<tonic::Status>().is_some_and(|s| s.code() == tonic::Code::ResourceExhausted) => tracing::warn!("policy watch refused, acting on policy v{} meanwhile: {e}", policy.borrow().version),
             Err(e) => tracing::debug!("policy watch: {e}"),
         }
         tokio::time::sleep(backoff.next_delay()).await;

@@ -37,7 +37,8 @@ where
     }
 }
 
-/// Large blocks (policies, encoded replies, batches) come straight from
+/// Large blocks (2 MiB and up: big policies and their encoded replies)
+/// come straight from
 /// the kernel and go back to it when freed. Otherwise glibc raises its
 /// mmap threshold to the largest block freed so far, and blocks of that
 /// size then live in its heaps, which it keeps: 8 rounds of 64 slow
@@ -48,7 +49,7 @@ fn return_large_allocations() {
     // SAFETY: mallopt only sets a number in glibc's allocator; it is
     // called before any thread of ours starts.
     unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 256 << 10);
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 2 << 20);
     }
 }
 

@@ -220,7 +220,7 @@ impl lcrl_proto::v1::graph_server::Graph for ShortGraph {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn watch_policy_streams_share_one_memory_budget() {
     let dir = tempfile::tempdir().unwrap();
-    let (_learner, url) = learner_with_args(&dir.path().join("run"), "budget", free_port(), "ddpg", &["--watch-budget-mib", "1"]);
+    let (_learner, url) = learner_with_args(&dir.path().join("run"), "watch-budget", free_port(), "ddpg", &["--watch-budget-mib", "1"]);
     let mut client = LearnerClient::connect(url).await.unwrap();
     let policy_bytes = client.get_policy(GetPolicyRequest {}).await.unwrap().into_inner().weights.len();
     let holds = 1024 / lcrl_learner::service::watch_budget::WatchBudget::cost_kib(policy_bytes) as usize;

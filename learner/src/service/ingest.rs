@@ -213,6 +213,26 @@ impl Ingest {
         }
     }
 
+    /// Forgets the ids `peer` brought that have been silent for
+    /// [`ACTOR_SILENCE_TO_FORGET`].
+    fn forget_silent_ids_of(&mut self, peer: std::net::IpAddr) {
+        let silent: Vec<String> = self
+            .brought_by
+            .iter()
+            .filter(|(id, by)| **by == peer && self.last_seen.get(*id).is_none_or(|seen| seen.elapsed() >= ACTOR_SILENCE_TO_FORGET))
+            .map(|(id, _)| id.clone())
+            .collect();
+        for id in silent {
+            self.last_sequence.remove(&id);
+            self.last_seen.remove(&id);
+            self.holders.remove(&id);
+            self.brought_by.remove(&id);
+            if let Some(n) = self.ids_of_peer.get_mut(&peer) {
+                *n = n.saturating_sub(1);
+            }
+        }
+    }
+
     pub fn sequences(&self) -> &HashMap<String, u64> {
         &self.last_sequence
     }
@@ -333,7 +353,13 @@ impl Ingest {
             return Err(Door::Duplicate);
         }
         let new_id = !self.last_sequence.contains_key(&batch.actor_id);
-        if let Some(peer) = origin.counted_peer().filter(|p| new_id && self.ids_of_peer.get(p).copied().unwrap_or(0) >= MAX_ACTORS_PER_PEER) {
+        let at_cap = |ingest: &Self, p: &std::net::IpAddr| ingest.ids_of_peer.get(p).copied().unwrap_or(0) >= MAX_ACTORS_PER_PEER;
+        if let Some(peer) = origin.counted_peer().filter(|p| new_id && at_cap(self, p)) {
+            // Restarted actors come back under new ids: the peer's silent
+            // ones make room, whether or not the whole table is full.
+            self.forget_silent_ids_of(peer);
+        }
+        if let Some(peer) = origin.counted_peer().filter(|p| new_id && at_cap(self, p)) {
             return Err(Door::Reject("actors_per_peer", format!("{peer} holds {MAX_ACTORS_PER_PEER} actor ids of this learner, its most; reuse ids or wait for silent ones to be forgotten ({} s)", ACTOR_SILENCE_TO_FORGET.as_secs())));
         }
         if !self.place_for(&batch.actor_id) {

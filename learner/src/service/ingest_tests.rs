@@ -264,8 +264,9 @@ fn an_actor_id_is_bound_to_the_stream_that_holds_it() {
 }
 
 /// One peer address brings at most MAX_ACTORS_PER_PEER ids into the
-/// table; its known ids go on, other peers still get places, and loopback
-/// (IPv4-mapped included) is not counted.
+/// table; its known ids go on, its silent ids make room for new ones,
+/// other peers still get places, and loopback (IPv4-mapped included) is
+/// not counted.
 #[test]
 fn one_peer_cannot_fill_the_actor_table() {
     let mut ingest = ingest(None);
@@ -278,6 +279,12 @@ fn one_peer_cannot_fill_the_actor_table() {
         other => panic!("{other:?}"),
     }
     assert!(matches!(ingest.check_from(&batch("f0", 2, vec![0.0; 3]), 3, peer("203.0.113.9")), Verdict::Accept(_)), "a known id goes on");
+    // Ids of restarted actors fall silent: once one has been silent long
+    // enough, the peer's next new id takes its place.
+    let long_ago = std::time::Instant::now().checked_sub(ACTOR_SILENCE_TO_FORGET).unwrap();
+    ingest.last_seen.insert("f1".into(), long_ago);
+    assert!(matches!(ingest.check_from(&batch("restarted", 1, vec![0.0; 3]), 3, peer("203.0.113.9")), Verdict::Accept(_)), "a silent id makes room");
+    assert!(!ingest.sequences().contains_key("f1"));
     assert!(matches!(ingest.check_from(&batch("other", 1, vec![0.0; 3]), 3, Origin { stream: 2, ..peer("198.51.100.4") }), Verdict::Accept(_)));
     for (k, ip) in ["127.0.0.1", "::1", "::ffff:127.0.0.1"].into_iter().cycle().take(MAX_ACTORS_PER_PEER + 3).enumerate() {
         let origin = Origin { stream: 3, ..peer(ip) };

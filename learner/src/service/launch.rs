@@ -212,6 +212,9 @@ pub async fn run(args: LearnerArgs, shutdown: impl Future<Output = ()>, listenin
     }
     let Begun { training, commands, shared, state_dim } = begin(&args, &security).await?;
     let threads = start_threads(&args, training, &shared, &commands)?;
+    // From here an error return stops the threads too (a library caller's
+    // process lives on): shared memory stops polling, training ends.
+    let _stop_threads = StopOnDrop(shared.clone());
     let listener = tokio::net::TcpListener::bind(args.listen).await.with_context(|| format!("cannot listen on {}; is another process using it?", args.listen))?;
     let addr = listener.local_addr()?;
     listening(addr);
@@ -240,6 +243,15 @@ pub async fn run(args: LearnerArgs, shutdown: impl Future<Output = ()>, listenin
     drop(commands);
     trainer.join().map_err(|_| anyhow::anyhow!("the training thread panicked"))??;
     Ok(())
+}
+
+/// Tells every thread of the learner to stop when dropped.
+struct StopOnDrop(Arc<Shared>);
+
+impl Drop for StopOnDrop {
+    fn drop(&mut self) {
+        self.0.shutdown.send_replace(true);
+    }
 }
 
 /// What [`begin`] hands on: the training loop not yet started, the queue

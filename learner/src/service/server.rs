@@ -138,13 +138,14 @@ impl Learner for LearnerService {
     }
 
     async fn watch_policy(&self, request: Request<WatchPolicyRequest>) -> Result<Response<Self::WatchPolicyStream>, Status> {
+        let peer = request.remote_addr().map(|addr| addr.ip());
         let request = request.into_inner();
         let after = request.after_version;
         // A client that knew another process of this learner (it
         // restarted) gets the newest version whatever its number: versions
         // count from the checkpoint again.
         let other_incarnation = request.incarnation != 0 && request.incarnation != self.shared.incarnation;
-        let place = self.watch_budget.admit(self.shared.policy.borrow().weights.len())?;
+        let place = self.watch_budget.admit(self.shared.policy.borrow().weights.len(), peer)?;
         let versions = WatchStream::new(self.shared.policy.subscribe()).filter(move |snapshot| {
             other_incarnation || snapshot.version > after || (after == 0 && snapshot.version == 0) || snapshot.training_finished
         });
