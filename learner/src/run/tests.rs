@@ -83,20 +83,12 @@ fn ppo_local_reaches_the_g_structured_optimum() {
     assert!(masked < s.evaluation.lqr_return.unwrap());
 }
 
-/// DDPG, same budget as PPO: 1000 episodes (50k steps, ≈35 s each). Held
-/// to the same bars: the global actor within 10% of lqr_return, the local
-/// one within 10% of its G-structured optimum. Seeds 0–4 with
-/// configs/lti-fast.toml end within 3.6% (global) and 2.9% (local).
-#[test]
-fn ddpg_global_reaches_lqr() {
-    let dir = tempfile::tempdir().unwrap();
-    let mut cfg = lti_fast();
-    cfg.run.episodes = 1000;
-    let s = run(Algo::Ddpg, Connection::Global, cfg, dir.path(), false).summary;
-    let lqr = s.evaluation.lqr_return.unwrap();
-    assert!(within(s.evaluation.eval_return, lqr, 0.10), "eval {} vs LQR {lqr}", s.evaluation.eval_return);
-}
-
+/// DDPG, same budget as PPO: 1000 episodes (50k steps, ≈35 s), held to
+/// the same bar: the local actor within 10% of its G-structured optimum
+/// (seeds 0–4 with configs/lti-fast.toml end within 2.9%). The global
+/// actor's run to LQR (seeds 0–4: within 3.6%) is the distributed
+/// learner's test (e2e::distributed_learning::run_ddpg_global_one_actor_reaches_lqr),
+/// and DDPG's update rule has its own (algo::ddpg::tests).
 #[test]
 fn ddpg_local_reaches_the_g_structured_optimum() {
     let dir = tempfile::tempdir().unwrap();
