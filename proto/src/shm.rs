@@ -338,7 +338,9 @@ pub struct PolicyPublisher {
 
 impl PolicyPublisher {
     pub fn open(run_id: &str) -> Result<Self, String> {
-        quiet_iceoryx2();
+        // What a crashed process left half-made would otherwise hang this
+        // service's opening for good (HangsInCreation).
+        remove_dead_nodes();
         let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
         let service = open_policy_service(&node, run_id)?;
         let publisher = service.publisher_builder().create().map_err(|e| format!("iceoryx2 publisher: {e:?}"))?;
@@ -385,7 +387,9 @@ pub struct PolicySubscriber {
 
 impl PolicySubscriber {
     pub fn open(run_id: &str) -> Result<Self, String> {
-        quiet_iceoryx2();
+        // What a crashed process left half-made would otherwise hang this
+        // service's opening for good (HangsInCreation).
+        remove_dead_nodes();
         let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
         let service = open_policy_service(&node, run_id)?;
         let subscriber = service.subscriber_builder().create().map_err(|e| format!("iceoryx2 subscriber: {e:?}"))?;
