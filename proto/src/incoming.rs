@@ -134,11 +134,7 @@ impl Registry {
 
     /// Whether `ip` (not loopback) holds `cap` open connections already.
     fn peer_full(&self, ip: IpAddr, cap: usize) -> bool {
-        // ::ffff:127.0.0.1 (IPv4 on an IPv6 listener) is loopback too.
-        let ip = ip.to_canonical();
-        if ip.is_loopback() {
-            return false;
-        }
+        let Some(ip) = crate::limits::counted_peer(ip) else { return false };
         let mut by_peer = self.by_peer.lock().unwrap_or_else(|p| p.into_inner());
         // The open list holds one reference; the connection, the other.
         by_peer.retain(|_, hush| hush.strong_count() > 1);

@@ -63,6 +63,13 @@ pub const FIRST_BYTE_TIMEOUT: Duration = Duration::from_secs(10);
 /// (issue 71). Health probes connect, ask and leave well within it.
 pub const CALL_DEADLINE: Duration = Duration::from_secs(10);
 
+/// The address a per-peer share counts `ip` under: IPv4 on an IPv6
+/// listener (::ffff:a.b.c.d) as itself; None for loopback, where `lcrl run`
+/// starts its own processes and no share applies.
+pub fn counted_peer(ip: std::net::IpAddr) -> Option<std::net::IpAddr> {
+    Some(ip.to_canonical()).filter(|ip| !ip.is_loopback())
+}
+
 /// Connections one peer address may hold at once, beyond loopback
 /// (`--max-connections-per-peer`): one host cannot take every place.
 /// Loopback peers share 127.0.0.1 (every actor of `lcrl run`), so they

@@ -233,6 +233,16 @@ fn open_service(node: &Node<ipc::Service>, run_id: &str) -> Result<Service, Stri
         .map_err(|e| format!("cannot open the shared-memory service {}: {e:?}", service_name(run_id)))
 }
 
+/// A node of this process and `run_id`'s service opened on it, after
+/// removing what crashed processes left (a half-made service would
+/// otherwise hang its opening for good: HangsInCreation).
+fn node_and<S>(run_id: &str, open: impl Fn(&Node<ipc::Service>, &str) -> Result<S, String>) -> Result<(Node<ipc::Service>, S), String> {
+    remove_dead_nodes();
+    let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
+    let service = open(&node, run_id)?;
+    Ok((node, service))
+}
+
 /// An actor's end: publishes batches, blocking while the learner is behind.
 pub struct ShmPublisher {
     publisher: iceoryx2::port::publisher::Publisher<ipc::Service, TransitionSample, ()>,
@@ -242,9 +252,7 @@ pub struct ShmPublisher {
 
 impl ShmPublisher {
     pub fn open(run_id: &str) -> Result<Self, String> {
-        remove_dead_nodes();
-        let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
-        let service = open_service(&node, run_id)?;
+        let (node, service) = node_and(run_id, open_service)?;
         let publisher = service
             .publisher_builder()
             .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
@@ -272,8 +280,7 @@ impl TransitionSubscriber {
     /// `buffer`: samples that may wait in shared memory (1 to
     /// [`SUBSCRIBER_MAX_BUFFER`]); each is policy lag.
     pub fn open(run_id: &str, buffer: usize) -> Result<Self, String> {
-        let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
-        let service = open_service(&node, run_id)?;
+        let (node, service) = node_and(run_id, open_service)?;
         let subscriber = service
             .subscriber_builder()
             .buffer_size(buffer.clamp(1, SUBSCRIBER_MAX_BUFFER))
@@ -338,11 +345,7 @@ pub struct PolicyPublisher {
 
 impl PolicyPublisher {
     pub fn open(run_id: &str) -> Result<Self, String> {
-        // What a crashed process left half-made would otherwise hang this
-        // service's opening for good (HangsInCreation).
-        remove_dead_nodes();
-        let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
-        let service = open_policy_service(&node, run_id)?;
+        let (node, service) = node_and(run_id, open_policy_service)?;
         let publisher = service.publisher_builder().create().map_err(|e| format!("iceoryx2 publisher: {e:?}"))?;
         Ok(PolicyPublisher { publisher, _service: service, _node: node })
     }
@@ -387,11 +390,7 @@ pub struct PolicySubscriber {
 
 impl PolicySubscriber {
     pub fn open(run_id: &str) -> Result<Self, String> {
-        // What a crashed process left half-made would otherwise hang this
-        // service's opening for good (HangsInCreation).
-        remove_dead_nodes();
-        let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
-        let service = open_policy_service(&node, run_id)?;
+        let (node, service) = node_and(run_id, open_policy_service)?;
         let subscriber = service.subscriber_builder().create().map_err(|e| format!("iceoryx2 subscriber: {e:?}"))?;
         Ok(PolicySubscriber { subscriber, _service: service, _node: node })
     }

@@ -108,10 +108,7 @@ pub struct Origin {
 impl Origin {
     /// The peer whose ids count against [`MAX_ACTORS_PER_PEER`].
     fn counted_peer(&self) -> Option<std::net::IpAddr> {
-        self.peer.map(|ip| match ip {
-            std::net::IpAddr::V6(v6) => v6.to_ipv4_mapped().map_or(ip, std::net::IpAddr::V4),
-            v4 => v4,
-        }).filter(|ip| !ip.is_loopback())
+        self.peer.and_then(lcrl_proto::limits::counted_peer)
     }
 }
 

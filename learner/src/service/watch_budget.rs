@@ -76,11 +76,7 @@ impl WatchBudget {
     /// waits for one: its reader retries).
     pub fn admit(&self, policy_bytes: usize, peer: Option<IpAddr>) -> Result<WatchPlace, Status> {
         let cost = Self::cost_kib(policy_bytes);
-        let counted = peer.map(|ip| match ip {
-            IpAddr::V6(v6) => v6.to_ipv4_mapped().map_or(ip, IpAddr::V4),
-            v4 => v4,
-        });
-        let counted = counted.filter(|ip| !ip.is_loopback());
+        let counted = peer.and_then(lcrl_proto::limits::counted_peer);
         let mut by_peer = self.by_peer.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
         if let Some(ip) = counted {
             let share = self.total_kib / PEER_SHARE;
