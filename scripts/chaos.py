@@ -301,6 +301,42 @@ def full_disk(c):
         subprocess.run(["umount", "-l", str(mount)])
 
 
+def full_disk_at_end(c):
+    """The run directory's disk fills up just before the episode budget is
+    spent: the final checkpoint and summary.json wait for space."""
+    if os.geteuid() != 0:
+        return {"fault": "a full disk at the end of the budget", "did": "skipped: mounting a small tmpfs needs root", "lost": "-"}
+    mount = c.work / "disk"
+    mount.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64m", "tmpfs", str(mount)], check=True)
+    try:
+        port, budget = free_port(), 120
+        run = mount / "run"
+        learner = c.learner(run, port, "--episodes", str(budget), "--checkpoint-secs", "1")
+        actor = c.actor(port)
+        wait("the budget nearly spent", lambda: status(port).episodes >= budget - 30, limit=180)
+        filler = mount / "filler"
+        subprocess.run(["dd", "if=/dev/zero", f"of={filler}", "bs=1M", "count=64"], capture_output=True)
+        wait("the budget spent", lambda: status(port).episodes >= budget, limit=120)
+        time.sleep(12)
+        waiting = learner.poll() is None and not status(port).finished and not (run / "summary.json").exists()
+        actor_gone = actor.poll() is not None
+        filler.unlink()
+        freed = time.monotonic()
+        wait("the run finished", lambda: status(port).finished, limit=30)
+        written_s = time.monotonic() - freed
+        newest = max((int(p.name[2:]) for p in (run / "checkpoints").glob("ep*") if p.name[2:].isdigit()), default=0)
+        summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").exists() else {}
+        return {"fault": f"the disk under the run directory filled before the end of a {budget}-episode budget, freed 12 s after it",
+                "did": f"while full: learner waiting (alive, no summary.json): {waiting}; actor stopped: {actor_gone}; "
+                       f"once freed: summary.json and the final checkpoint (episode {newest}) written {written_s:.1f} s later, summary episodes {summary.get('episodes')}",
+                "lost": "nothing" if summary and waiting else "the run's result",
+                "waited": waiting, "written_after_s": written_s, "final_checkpoint": newest}
+    finally:
+        c.close()
+        subprocess.run(["umount", "-l", str(mount)])
+
+
 def truncated_checkpoint(c):
     port, run = free_port(), c.work / "truncated"
     learner = c.learner(run, port, "--checkpoint-secs", "1")
@@ -322,7 +358,7 @@ def truncated_checkpoint(c):
 
 
 FAULTS = {"actor-kill": actor_kill, "learner-kill": learner_kills, "restart-followed": learner_restart_followed, "run-kill": run_kill, "flood": flood,
-          "silent-learner": silent_learner, "full-disk": full_disk, "truncated-checkpoint": truncated_checkpoint, **chaos_hostile.FAULTS}
+          "silent-learner": silent_learner, "full-disk": full_disk, "full-disk-at-end": full_disk_at_end, "truncated-checkpoint": truncated_checkpoint, **chaos_hostile.FAULTS}
 
 
 def main():

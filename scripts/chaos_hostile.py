@@ -4,7 +4,10 @@ honest actor, and one attack; the row says what the service did and
 what was lost. Run through scripts/chaos.sh (`--only huge-values`, ...).
 """
 
+import json
 import math
+import os
+import sys
 import socket
 import subprocess
 import threading
@@ -94,16 +97,31 @@ def sequence_hijack(c):
 
 
 def _health_seconds(c, port, tries=5):
-    """The slowest of `tries` `lcrl health` calls (None: one failed)."""
-    worst = 0.0
+    """The slowest of `tries` health checks, each on a new connection: the
+    learner's answer (a gRPC health Check from this process) and a whole
+    `lcrl health` process (which also loads the lcrl binary and libtorch).
+    Returns (answer_s, process_s); None where a check failed."""
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+    answer, process = 0.0, 0.0
     for _ in range(tries):
         t0 = time.monotonic()
+        try:
+            with grpc.insecure_channel(f"127.0.0.1:{port}", options=[("grpc.use_local_subchannel_pool", 1)]) as channel:
+                health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(service=""), timeout=30)
+            answer = max(answer, time.monotonic() - t0) if answer is not None else None
+        except grpc.RpcError:
+            answer = None
+        t0 = time.monotonic()
         ok = subprocess.run([str(c.bins / "lcrl"), "health", f"http://127.0.0.1:{port}"], capture_output=True).returncode == 0
-        if not ok:
-            return None
-        worst = max(worst, time.monotonic() - t0)
+        process = max(process, time.monotonic() - t0) if ok and process is not None else None
         time.sleep(1)
-    return worst
+    return answer, process
+
+
+def _health_words(health):
+    answer, process = health
+    said = lambda t: "FAILED" if t is None else "%.2f s" % t  # noqa: E731
+    return f"health answered in {said(answer)} at worst (a whole `lcrl health` process: {said(process)})"
 
 
 def ping_flood(c):
@@ -117,7 +135,7 @@ def ping_flood(c):
     for ch in channels:
         ch.subscribe(lambda _: None, try_to_connect=True)
     time.sleep(15)
-    worst = _health_seconds(c, port)
+    health = _health_seconds(c, port)
     try:
         training = f"{_training(port, 3.0)} updates in 3 s; connections closed {dict(status(port).connections_refused)}"
     except grpc.RpcError as e:
@@ -125,8 +143,8 @@ def ping_flood(c):
     for ch in channels:
         ch.close()
     return {"fault": "520 connections answering and sending HTTP/2 pings every 2 s, no calls",
-            "did": f"slowest of 5 health checks 15 s in: {'%.2f s' % worst if worst is not None else 'FAILED'}; {training}",
-            "lost": "nothing" if worst is not None else "health and status while it lasts", "health_worst_s": worst}
+            "did": f"5 checks 15 s in: {_health_words(health)}; {training}",
+            "lost": "nothing" if None not in health else "health and status while it lasts", "health_answer_worst_s": health[0], "health_process_worst_s": health[1]}
 
 
 def slowloris_metrics(c):
@@ -143,25 +161,20 @@ def slowloris_metrics(c):
             socks.append(s)
         except OSError:
             break
-    worst = _health_seconds(c, port)
+    health = _health_seconds(c, port)
     for s in socks:
         s.close()
     time.sleep(1)
     _, text = scrape(metrics)
     failures = sample(text, "lcrl_learner_checkpoint_failures_total") or 0
     return {"fault": "1,100 unfinished GETs on /metrics (its connections held open)",
-            "did": f"slowest of 5 health checks: {'%.2f s' % worst if worst is not None else 'FAILED'}; checkpoint failures {failures:.0f}; {len(socks)} sockets opened",
-            "lost": "nothing" if not failures else f"{failures:.0f} checkpoints", "health_worst_s": worst, "checkpoint_failures": failures}
+            "did": f"5 checks: {_health_words(health)}; checkpoint failures {failures:.0f}; {len(socks)} sockets opened",
+            "lost": "nothing" if not failures else f"{failures:.0f} checkpoints", "health_answer_worst_s": health[0], "health_process_worst_s": health[1],
+            "checkpoint_failures": failures}
 
 
-def query_storm(c):
-    """4 Act and 4 ActBatch(4,096) clients: updates per second against a
-    quiet stretch of the same run."""
-    port = free_port()
-    c.learner(c.work / "storm", port)
-    c.actor(port, "--actor-id", "honest")
-    wait("updates", lambda: status(port).updates > 200)
-    quiet = _training(port, 10.0) / 10.0
+def _storm_clients(port, seconds):
+    """4 Act and 4 ActBatch(4,096) clients for `seconds`; the answers by code."""
     policy = lcrl_pb2_grpc.PolicyStub(grpc.insecure_channel(f"127.0.0.1:{port}"))
     stop, codes = threading.Event(), {}
 
@@ -179,15 +192,42 @@ def query_storm(c):
     workers = [threading.Thread(target=client, args=(k >= 4,)) for k in range(8)]
     for w in workers:
         w.start()
-    time.sleep(2)
-    storm = _training(port, 10.0) / 10.0
+    time.sleep(seconds)
     stop.set()
     for w in workers:
         w.join()
-    ratio = storm / quiet if quiet else float("nan")
+    return codes
+
+
+def _storm(port, niceness):
+    """Updates per second while the storm's clients run in their own
+    process at `niceness`."""
+    clients = subprocess.Popen([sys.executable, __file__, "--storm-clients", str(port), "14"], stdout=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: os.nice(niceness))
+    time.sleep(2)
+    rate = _training(port, 10.0) / 10.0
+    codes = json.loads(clients.communicate(timeout=120)[0])
+    return rate, codes
+
+
+def query_storm(c):
+    """4 Act and 4 ActBatch(4,096) clients: updates per second against a
+    quiet stretch of the same run, with the clients at normal priority
+    (their own CPU taken from the learner on a small machine) and at the
+    lowest (as clients on other machines would be)."""
+    port = free_port()
+    c.learner(c.work / "storm", port)
+    c.actor(port, "--actor-id", "honest")
+    wait("updates", lambda: status(port).updates > 200)
+    quiet = _training(port, 10.0) / 10.0
+    beside, beside_codes = _storm(port, 0)
+    time.sleep(3)
+    niced, niced_codes = _storm(port, 19)
+    ratio = lambda r: r / quiet if quiet else float("nan")  # noqa: E731
     return {"fault": "4 Act and 4 ActBatch(4,096) clients for 10 s",
-            "did": f"updates/s {storm:.0f} under the storm against {quiet:.0f} quiet ({ratio:.2f}); queries {codes}",
-            "lost": "nothing", "updates_ratio": ratio}
+            "did": f"updates/s {quiet:.0f} quiet; {beside:.0f} ({ratio(beside):.2f}) with the clients beside the learner at normal priority, queries {beside_codes}; "
+                   f"{niced:.0f} ({ratio(niced):.2f}) with the clients at nice 19, queries {niced_codes}",
+            "lost": "nothing", "updates_ratio": ratio(beside), "updates_ratio_clients_niced": ratio(niced)}
 
 
 def _hpack(name, value):
@@ -228,7 +268,7 @@ def slow_watchers(c):
     learner = c.learner(c.work / "watchers", port, config=big)
     c.actor(port, "--actor-id", "honest")
     wait("updates", lambda: status(port).updates > 10, limit=120)
-    start, held, after, refused, worst = vm(learner.pid, "VmRSS"), [], [], 0, 0.0
+    start, held, after, worst = vm(learner.pid, "VmRSS"), [], [], (0.0, 0.0)
     for _ in range(8):
         socks = []
         for _ in range(64):
@@ -236,7 +276,7 @@ def slow_watchers(c):
         time.sleep(3)
         held.append(vm(learner.pid, "VmRSS"))
         health = _health_seconds(c, port, tries=1)
-        worst = max(worst, health) if health is not None and worst is not None else None
+        worst = tuple(None if w is None or h is None else max(w, h) for w, h in zip(worst, health))
         for s in socks:
             s.close()
         time.sleep(3)
@@ -245,11 +285,93 @@ def slow_watchers(c):
     training = _training(port, 3.0)
     return {"fault": "8 rounds of 64 WatchPolicy streams that stop reading, 4.2 MB policy",
             "did": f"learner RSS {start:.0f} MiB at the start, {max(held):.0f} MiB at most while held, {after[-1]:.0f} MiB after the 8th round "
-                   f"(after each: {', '.join('%.0f' % a for a in after)}); health {'%.2f s' % worst if worst is not None else 'FAILED'}; "
+                   f"(after each: {', '.join('%.0f' % a for a in after)}); {_health_words(worst)}; "
                    f"{training} updates in 3 s after; rejected {rejected}",
             "lost": "nothing" if training > 0 else "training",
-            "rss_start_mib": start, "rss_held_max_mib": max(held), "rss_after_mib": after[-1], "health_worst_s": worst}
+            "rss_start_mib": start, "rss_held_max_mib": max(held), "rss_after_mib": after[-1], "health_answer_worst_s": worst[0], "health_process_worst_s": worst[1]}
 
+
+def _stored_of(port, seconds):
+    """Transitions the learner stored over `seconds`."""
+    before = status(port).env_steps
+    time.sleep(seconds)
+    return status(port).env_steps - before
+
+
+def id_hijack(c):
+    """Batches under a live honest actor's id, from another stream, with
+    the sequences it is about to send."""
+    port = free_port()
+    c.learner(c.work / "bound", port)
+    c.actor(port, "--actor-id", "honest")
+    wait("steps", lambda: status(port).env_steps > 500)
+    # The honest actor's next sequences: a hijacker that got them first
+    # would make the honest batches "duplicates".
+    codes = {}
+    for k in range(20):
+        seq = status(port).env_steps // 25 + k
+        code = _send(port, [lcrl_pb2.TransitionBatch(run_id="chaos", actor_id="honest", sequence=seq, transitions=[_step([0.1, 0.1, 0.1])] * 25)])
+        codes[code] = codes.get(code, 0) + 1
+    stored = _stored_of(port, 5.0)
+    st = status(port)
+    return {"fault": "20 batches under a live honest actor's id, from another stream, with its coming sequences",
+            "did": f"batches {codes}; refused as {dict(st.rejected)}; the honest actor's transitions stored in the next 5 s: {stored}",
+            "lost": "nothing" if stored > 0 and "OK" not in codes else "the honest actor's batches", "codes": codes, "stored_after": stored}
+
+
+def _own_addresses():
+    """This machine's non-loopback IPv4 addresses (peers the learner counts)."""
+    out = subprocess.run(["hostname", "-I"], capture_output=True, text=True).stdout.split()
+    return [a for a in out if ":" not in a and not a.startswith("127.")]
+
+
+def id_table(c):
+    """One peer address asks for 4,096 actor ids (the whole table), then a
+    new actor joins from another address."""
+    addresses = _own_addresses()
+    if len(addresses) < 2:
+        return {"fault": "one peer filling the actor-id table", "did": "skipped: needs two non-loopback addresses on this machine", "lost": "-"}
+    attacker_at, newcomer_at = addresses[:2]
+    port = free_port()
+    c.learner(c.work / "table", port, listen_host="0.0.0.0")
+    honest = c.actor(port, "--actor-id", "honest")
+    wait("steps", lambda: status(port).env_steps > 200)
+    channel = grpc.insecure_channel(f"{attacker_at}:{port}")
+    attacker = lcrl_pb2_grpc.LearnerStub(channel)
+    codes = {}
+    t0 = time.monotonic()
+    for k in range(4096):
+        batch = lcrl_pb2.TransitionBatch(run_id="chaos", actor_id=f"filler-{k}", sequence=1, transitions=[_step([0.1, 0.1, 0.1])])
+        try:
+            for _ in attacker.StreamTransitions(iter([batch]), timeout=10):
+                pass
+            code = "OK"
+        except grpc.RpcError as e:
+            code = e.code().name
+        codes[code] = codes.get(code, 0) + 1
+    fill_s = time.monotonic() - t0
+    channel.close()
+    # Only the newcomer streams from here on: what is stored is its.
+    honest.kill()
+    honest.wait()
+    started = time.monotonic()
+    before = status(port).env_steps
+    c.actor(port, "--actor-id", "newcomer", learner=f"http://{newcomer_at}:{port}")
+    try:
+        wait("the newcomer's transitions", lambda: status(port).env_steps > before, limit=30)
+        join = f"its transitions stored {time.monotonic() - started:.1f} s after it started"
+    except RuntimeError:
+        join = "none of its transitions stored within 30 s"
+    st = status(port)
+    return {"fault": f"4,096 actor ids asked for from one peer address ({attacker_at}), then a new actor joins from {newcomer_at}",
+            "did": f"ids {codes} in {fill_s:.0f} s; refused as {dict(st.rejected)}; the new actor: {join}",
+            "lost": "nothing" if "stored" in join and "none" not in join else "new actors", "codes": codes}
 
 FAULTS = {"huge-values": huge_values, "forged-returns": forged_returns, "sequence-hijack": sequence_hijack, "ping-flood": ping_flood,
-          "slowloris-metrics": slowloris_metrics, "query-storm": query_storm, "slow-watchers": slow_watchers}
+          "slowloris-metrics": slowloris_metrics, "query-storm": query_storm, "slow-watchers": slow_watchers, "id-hijack": id_hijack,
+          "id-table": id_table}
+
+
+if __name__ == "__main__" and sys.argv[1:2] == ["--storm-clients"]:
+    # The storm's clients in a process of their own (query_storm).
+    print(json.dumps(_storm_clients(int(sys.argv[2]), float(sys.argv[3]))))

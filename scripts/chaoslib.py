@@ -39,10 +39,10 @@ class Cluster:
         self.bins, self.work, self.procs = bins, pathlib.Path(work), []
         (self.work / "small.toml").write_text(SMALL)
 
-    def learner(self, run_dir, port, *extra, run_id="chaos", config=None):
+    def learner(self, run_dir, port, *extra, run_id="chaos", config=None, listen_host="127.0.0.1"):
         config = config or self.work / "small.toml"
         cmd = [str(self.bins / "lcrl-learner"), "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--config", str(config),
-               "--run-dir", str(run_dir), "--listen", f"127.0.0.1:{port}", "--run-id", run_id, "--publish-every", "20", *extra]
+               "--run-dir", str(run_dir), "--listen", f"{listen_host}:{port}", "--run-id", run_id, "--publish-every", "20", *extra]
         log = open(self.work / f"learner-{len(self.procs)}.log", "w")
         # The usual soft limit of open files (a shell's `ulimit -n`), as a
         # learner started by hand or by systemd has it.
@@ -54,8 +54,8 @@ class Cluster:
         self.procs.append(p)
         return p
 
-    def actor(self, port, *extra, run_id="chaos", stderr=None):
-        cmd = [str(self.bins / "lcrl-actor"), "--learner", f"http://127.0.0.1:{port}", "--run-id", run_id, "--envs", "2", "--batch", "25",
+    def actor(self, port, *extra, run_id="chaos", stderr=None, learner=None):
+        cmd = [str(self.bins / "lcrl-actor"), "--learner", learner or f"http://127.0.0.1:{port}", "--run-id", run_id, "--envs", "2", "--batch", "25",
                "--connect-deadline", "60", *extra]
         p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=stderr or subprocess.DEVNULL, text=True)
         self.procs.append(p)

@@ -12,14 +12,18 @@
 //! - [`experiment`]: `lcrl experiment`, a study of many runs.
 //! - [`export`]: `lcrl export`, a trained policy as one TorchScript or ONNX file.
 //! - [`output`]: writing result files.
+//! - [`local_run`]: `lcrl run`, graph builder, learner and actors as child processes.
+//! - [`train`]: `lcrl train`, a run in this process.
 
 pub mod binaries;
 pub mod connection;
 pub mod experiment;
 pub mod export;
+pub mod local_run;
 pub mod output;
 pub mod plots;
 pub mod preset;
 pub mod run_security;
 pub mod run_summary;
 pub mod supervise;
+pub mod train;

@@ -26,7 +26,7 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Run graph builder, learner and actors from one preset (configs/).
-    Run(cmd::run::RunArgs),
+    Run(lcrl::local_run::RunArgs),
     /// Measure throughput against actor processes (scale.json/csv/png).
     Scale(cmd::scale::ScaleArgs),
     /// Start one role of a run from a preset (for containers and pods).
@@ -45,7 +45,7 @@ enum Command {
     /// Find the best constant action (CMA-ES): the bar a trained agent must beat.
     Tune(cmd::tune::TuneArgs),
     /// Train an actor (LCRL local, GCRL global, or full-subnets) with DDPG or PPO.
-    Train(cmd::train::TrainArgs),
+    Train(lcrl::train::TrainArgs),
     /// Compare training runs: time split, final returns, reward curves.
     Compare(cmd::compare::CompareArgs),
     /// Write a trained policy as one TorchScript (or ONNX) file for a
@@ -75,7 +75,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Graph(args) => run_graph(&args),
-        Command::Run(args) => cmd::run::run(&args),
+        Command::Run(args) => lcrl::local_run::run(&args),
         Command::Launch(args) => cmd::launch::run(&args),
         Command::Scale(args) => cmd::scale::run(&args),
         Command::Health(args) => cmd::probe::health(&args),
@@ -83,7 +83,7 @@ fn main() -> ExitCode {
         Command::Sim(args) => cmd::sim::run(&args),
         Command::ServeEnv(args) => cmd::serve_env::run(&args),
         Command::Tune(args) => cmd::tune::run(&args),
-        Command::Train(args) => cmd::train::run(&args),
+        Command::Train(args) => lcrl::train::run(&args),
         Command::Compare(args) => cmd::compare::run(&args),
         Command::Export(args) => cmd::export::run(&args),
         Command::Experiment(command) => lcrl::experiment::run(&command),

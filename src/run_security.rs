@@ -6,7 +6,7 @@
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 
-use anyhow::bail;
+use anyhow::{bail, Context};
 
 /// TLS and the token for every process of a run: a folder `lcrl certs`
 /// wrote and a token file. Shared by `lcrl run` (one machine) and
@@ -101,4 +101,24 @@ impl RunSecurity {
         let identity = cert.as_deref().zip(key.as_deref());
         Ok(lcrl_proto::security::ClientSecurity::new(ca.as_deref(), identity, self.token_file.as_deref())?)
     }
+}
+
+/// Writes a new random token (32 bytes, hex), readable by its owner only.
+pub fn write_token(path: &Path) -> anyhow::Result<()> {
+    let mut secret = [0u8; 32];
+    rand::RngCore::fill_bytes(&mut rand::rng(), &mut secret);
+    let token: String = secret.iter().map(|b| format!("{b:02x}")).collect();
+    write_file(path, &(token + "\n"), true)
+}
+
+/// Writes a file; secrets (keys, the token) only readable by their owner.
+pub fn write_file(path: &Path, text: &str, secret: bool) -> anyhow::Result<()> {
+    let mut options = std::fs::OpenOptions::new();
+    options.write(true).create(true).truncate(true);
+    #[cfg(unix)]
+    if secret {
+        std::os::unix::fs::OpenOptionsExt::mode(&mut options, 0o600);
+    }
+    let mut file = options.open(path).with_context(|| format!("writing {}", path.display()))?;
+    std::io::Write::write_all(&mut file, text.as_bytes()).with_context(|| format!("writing {}", path.display()))
 }

@@ -218,7 +218,13 @@ impl Rollout {
                 let mean = policy.act_normalized(&obs);
                 // PPO samples its own Gaussian, unclipped, and sends log π(u|s)
                 // of this version; DDPG's noise is clipped to [−1, 1].
-                let u = exploration::gaussian(&mean, &self.std, !self.own_distribution, &mut self.rng);
+                let mut u = exploration::gaussian(&mean, &self.std, !self.own_distribution, &mut self.rng);
+                // The learner refuses a batch with a u beyond its door's
+                // bound ("bounds", issue 71): a policy whose mean has run
+                // far off would have every batch refused. Such a u acts
+                // as ±1 all the same; log π is taken of the u sent.
+                let limit = (1.0 + lcrl_sim::SAMPLED_ACTION_LIMIT) as f32;
+                u.iter_mut().for_each(|x| *x = x.clamp(-limit, limit));
                 // (None where a degenerate std makes it non-finite: the learner
                 // then evaluates it itself.)
                 let log_prob = self.own_distribution.then(|| exploration::gaussian_log_prob(&mean, &self.std, &u)).filter(|lp| lp.is_finite());

@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
-use rand::RngCore;
+use lcrl::run_security::{write_file, write_token};
 use rcgen::{BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, Issuer, KeyPair, KeyUsagePurpose};
 
 /// Make a CA, a server and a client certificate, and a token.
@@ -83,33 +83,13 @@ pub fn write_set(out: &Path, hosts: &[String], days: u32) -> anyhow::Result<()> 
     (client.not_before, client.not_after) = (now, until);
     let client_cert = client.signed_by(&client_key, &issuer)?;
 
-    write(&out.join("ca.pem"), &ca_cert.pem(), false)?;
-    write(&out.join(CA_KEY), &ca_key.serialize_pem(), true)?;
-    write(&out.join("server.pem"), &server_cert.pem(), false)?;
-    write(&out.join("server.key"), &server_key.serialize_pem(), true)?;
-    write(&out.join("client.pem"), &client_cert.pem(), false)?;
-    write(&out.join("client.key"), &client_key.serialize_pem(), true)?;
+    write_file(&out.join("ca.pem"), &ca_cert.pem(), false)?;
+    write_file(&out.join(CA_KEY), &ca_key.serialize_pem(), true)?;
+    write_file(&out.join("server.pem"), &server_cert.pem(), false)?;
+    write_file(&out.join("server.key"), &server_key.serialize_pem(), true)?;
+    write_file(&out.join("client.pem"), &client_cert.pem(), false)?;
+    write_file(&out.join("client.key"), &client_key.serialize_pem(), true)?;
     write_token(&out.join("token"))
-}
-
-/// Writes a new random token (32 bytes, hex), readable by its owner only.
-pub fn write_token(path: &Path) -> anyhow::Result<()> {
-    let mut secret = [0u8; 32];
-    rand::rng().fill_bytes(&mut secret);
-    let token: String = secret.iter().map(|b| format!("{b:02x}")).collect();
-    write(path, &(token + "\n"), true)
-}
-
-/// Writes a file; secrets (keys, the token) only readable by their owner.
-fn write(path: &Path, text: &str, secret: bool) -> anyhow::Result<()> {
-    let mut options = std::fs::OpenOptions::new();
-    options.write(true).create(true).truncate(true);
-    #[cfg(unix)]
-    if secret {
-        std::os::unix::fs::OpenOptionsExt::mode(&mut options, 0o600);
-    }
-    let mut file = options.open(path).with_context(|| format!("writing {}", path.display()))?;
-    std::io::Write::write_all(&mut file, text.as_bytes()).with_context(|| format!("writing {}", path.display()))
 }
 
 fn time_now() -> time::OffsetDateTime {

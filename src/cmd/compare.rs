@@ -10,6 +10,7 @@ use lcrl_learner::run::summary::RunSummary;
 use serde::Deserialize;
 
 use lcrl::plots::{line_panels, Panel};
+use lcrl::run_summary::references;
 
 /// Compare training runs: time split (graph, optimization, total), final
 /// and evaluation returns, and their reward curves in one plot, beside the
@@ -51,22 +52,6 @@ struct BestConstant {
 #[derive(Debug, Deserialize)]
 struct ZeroAction {
     eval: lcrl_sim::evaluate::SummaryReturn,
-}
-
-/// A run's reference lines: the LQR optimum and the best controller with
-/// the actor's connection pattern (linear systems), and a = 0.
-pub fn references(s: &RunSummary) -> Vec<(String, f64)> {
-    let masked = if s.connection == lcrl_learner::Connection::Local { s.evaluation.masked_lqr_return } else { None };
-    reference_lines(s.evaluation.lqr_return, masked, s.evaluation.zero_action_return)
-}
-
-/// Reference lines from their values, where a run has them.
-pub fn reference_lines(lqr: Option<f64>, masked_lqr: Option<f64>, zero_action: Option<f64>) -> Vec<(String, f64)> {
-    let mut lines = Vec::new();
-    lines.extend(lqr.map(|v| ("LQR".to_string(), v)));
-    lines.extend(masked_lqr.map(|v| ("masked LQR (best with G)".to_string(), v)));
-    lines.extend(zero_action.map(|v| ("a = 0".to_string(), v)));
-    lines
 }
 
 pub fn run(args: &CompareArgs) -> anyhow::Result<()> {

@@ -1,5 +1,6 @@
 //! One module per `lcrl` subcommand: its arguments and a thin `run` over
-//! the library crates (and this crate's own library, `lcrl::*`).
+//! the library crates (and this crate's own library, `lcrl::*`; `lcrl run`
+//! and `lcrl train` are there whole, as `lcrl::local_run` and `lcrl::train`).
 
 pub mod bench;
 pub mod bench_env;
@@ -12,8 +13,6 @@ pub mod export;
 pub mod launch;
 pub mod probe;
 pub mod serve_env;
-pub mod run;
 pub mod scale;
 pub mod sim;
-pub mod train;
 pub mod tune;

@@ -20,7 +20,7 @@ use serde::Serialize;
 
 use lcrl::binaries::sibling;
 use lcrl::preset::Preset;
-use crate::cmd::run::TransportArg;
+use lcrl::local_run::TransportArg;
 use lcrl::supervise::{stop_with_parent, wait_healthy, Managed};
 
 /// Measure throughput against the number of actor processes.

@@ -216,14 +216,8 @@ fn print_summary(s: &Summary, dir: &Path) {
     println!("  mean peak moment      {}", opt(s.mean_peak_moment_nm, " N·m"));
     println!("  max penetration       {}", opt(s.max_penetration_mm, " mm"));
     println!("  mean return           {:.3} (min {:.3}, max {:.3})", s.mean_return, s.min_return, s.max_return);
-    print_terms(&s.terms);
+    lcrl::output::print_terms(&s.terms);
     println!("  control steps/s       {:.0}", s.control_steps_per_sec);
     println!("wrote {}/summary.json, episodes.csv, trace.csv, trace.png", dir.display());
 }
 
-/// The return split into its terms, where the task has them.
-pub fn print_terms(t: &lcrl_sim::ReturnColumns) {
-    if let (Some(d), Some(f), Some(m), Some(b), Some(x)) = (t.return_depth, t.return_force, t.return_moment, t.return_bonus, t.return_failure) {
-        println!("    = depth {d:.3} + force {f:.3} + moment {m:.3} + bonus {b:.3} + failure {x:.3}");
-    }
-}

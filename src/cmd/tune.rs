@@ -9,7 +9,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use lcrl_sim::tune::feedback::{tune_policy, Family};
 use lcrl_sim::tune::{tune, TuneOptions};
 
-use crate::cmd::sim::{prepare_out_dir, print_terms};
+use crate::cmd::sim::prepare_out_dir;
+use lcrl::output::print_terms;
 
 /// What `--policy` searches.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]

@@ -378,30 +378,3 @@ fn given_graphs_train_and_are_recorded_in_the_run() {
     let too_few = train_connected("random@2", &work.path().join("e"), &config, &[]);
     assert_clean_failure(&too_few, "random@2: K must be between 3 and 9");
 }
-
-/// A study's controls are refused for one run, each with the commands that
-/// do the same by hand, and nothing is written.
-#[test]
-fn study_only_connections_are_refused_with_the_way_to_do_it_by_hand() {
-    let work = tempfile::tempdir().unwrap();
-    let config = tiny_config(work.path());
-    for (connection, needle) in [("random-rows@local@0.5", "lcrl graph --env ENV --random-rows"), ("local@1+per-seed", "lcrl graph --threshold T")] {
-        let dir = work.path().join(connection.replace(['@', '+'], "_"));
-        let out = train_connected(connection, &dir, &config, &["--episodes", "2"]);
-        assert_clean_failure(&out, needle);
-        assert!(!dir.join("summary.json").exists(), "{connection}: a refused run wrote its summary");
-    }
-}
-
-/// --eval-episodes and --eval-seed set the evaluation after training, and
-/// summary.json records them.
-#[test]
-fn evaluation_episodes_and_starts_come_from_the_command_line() {
-    let work = tempfile::tempdir().unwrap();
-    let (config, dir) = (tiny_config(work.path()), work.path().join("run"));
-    let out = train(&dir, &config, &["--episodes", "2", "--eval-episodes", "3", "--eval-seed", "11"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let summary = json(&dir.join("summary.json"));
-    assert_eq!((summary["eval_episodes"].as_u64(), summary["eval_seed"].as_u64()), (Some(3), Some(11)), "{summary}");
-    assert_clean_failure(&train(&work.path().join("zero"), &config, &["--eval-episodes", "0"]), "--eval-episodes");
-}

@@ -1,15 +1,25 @@
 //! `lcrl train`: LCRL or the GCRL baseline, trained in one process.
+//!
+//! The wiring of `lcrl train`, as named steps: [`run`] starts a served
+//! environment where the config names one, then trains here: the settings
+//! (config over the environment's, then the command line's overrides), the
+//! connection checked against what one run can do, a given graph written
+//! as a file, training with a progress bar, and the figures and reward
+//! curve of report.rs. The binary only parses arguments.
+
+mod report;
+#[cfg(test)]
+mod tests;
 
 use std::path::PathBuf;
 
 use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
-use lcrl_learner::run::files::EpisodeRow;
 use lcrl_learner::run::trainer::{train, TrainRequest};
-use lcrl_learner::{Algo, Connection, TrainConfig};
+use lcrl_learner::{Algo, TrainConfig};
 
-use lcrl::connection::ConnectionSpec;
-use lcrl::plots::{line_panels, Panel};
+use crate::connection::ConnectionSpec;
+use report::{plot_rewards, print_summary};
 
 /// Train an actor with DDPG or PPO; the environment runs in this process.
 #[derive(Debug, Clone, clap::Args)]
@@ -121,12 +131,12 @@ pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
 /// environment server itself, as `lcrl run` does, and stops it at the end.
 /// Returns the arguments pointing at it (`--env` its address, `--config`
 /// the rest of the file), the server, and that file.
-fn serve_configured_env(args: &TrainArgs) -> anyhow::Result<Option<(TrainArgs, lcrl::supervise::Managed, tempfile::NamedTempFile)>> {
+fn serve_configured_env(args: &TrainArgs) -> anyhow::Result<Option<(TrainArgs, crate::supervise::Managed, tempfile::NamedTempFile)>> {
     let Some(path) = &args.config else { return Ok(None) };
     let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let mut table: toml::Table = toml::from_str(&text).with_context(|| format!("{}", path.display()))?;
     let Some(section) = table.remove("env_server") else { return Ok(None) };
-    let server: lcrl::preset::EnvServer = section.try_into().with_context(|| format!("{}: [env_server]", path.display()))?;
+    let server: crate::preset::EnvServer = section.try_into().with_context(|| format!("{}: [env_server]", path.display()))?;
     server.check(&args.env)?;
     let listen = lcrl_sim::remote::address(&args.env).unwrap_or(&args.env).to_string();
     let logs = args.run_dir.join("logs");
@@ -137,11 +147,11 @@ fn serve_configured_env(args: &TrainArgs) -> anyhow::Result<Option<(TrainArgs, l
     // this process, its only client, reads it from $LCRL_TOKEN_FILE.
     if std::env::var_os(lcrl_proto::security::TOKEN_FILE_ENV).is_none() {
         let token = args.run_dir.join("token");
-        crate::cmd::certs::write_token(&token)?;
+        crate::run_security::write_token(&token)?;
         std::env::set_var(lcrl_proto::security::TOKEN_FILE_ENV, &token);
     }
-    lcrl::supervise::die_with_parent(&mut cmd);
-    let (process, address) = lcrl::supervise::Managed::spawn("env-server", cmd, &logs, true)?;
+    crate::supervise::die_with_parent(&mut cmd);
+    let (process, address) = crate::supervise::Managed::spawn("env-server", cmd, &logs, true)?;
     let address = address.with_context(|| format!("the environment server did not start; see {}", logs.join("env-server.log").display()))?;
     let rest = tempfile::NamedTempFile::new().context("a temporary file for the training settings")?;
     std::fs::write(rest.path(), toml::to_string(&table)?)?;
@@ -301,67 +311,3 @@ fn train_with_progress(request: &TrainRequest) -> anyhow::Result<lcrl_learner::r
     Ok(outcome?)
 }
 
-/// The run's figures on stdout, beside its references.
-fn print_summary(s: &lcrl_learner::run::summary::RunSummary, config: &TrainConfig, args: &TrainArgs) -> anyhow::Result<()> {
-    let global_equivalent = lcrl_learner::algo::nets::global_actor_params(&config.network, args.env_state_dims(s)?);
-    println!(
-        "{:?} / {:?} on {} — {} episodes, {} env steps, {} actor updates, {} critic updates",
-        s.algo, s.connection, s.env, s.episodes, s.env_steps, s.updates, s.critic_updates
-    );
-    println!("  actor parameters      {} (a global actor of the configured size: {})", s.actor_params, global_equivalent);
-    println!("  final return          {:.3} (mean of the last 10 episodes)", s.final_return);
-    match (&s.selection, s.evaluation.last_eval_return) {
-        (Some(chosen), Some(last)) => {
-            let which = if chosen.episode == 0 { "the starting policy".to_string() } else { format!("episode {}'s policy", chosen.episode) };
-            println!("  eval return           {:.3} (the selected policy, {} episodes)", s.evaluation.eval_return, config.run.eval_episodes.max(1));
-            println!("  selected              {which}: {}", chosen.how_chosen());
-            println!("  last policy           {last:.3} (same evaluation episodes)");
-        }
-        _ => println!("  eval return           {:.3} (deterministic policy, {} episodes)", s.evaluation.eval_return, config.run.eval_episodes.max(1)),
-    }
-    if let Some(zero) = s.evaluation.zero_action_return {
-        println!("  a = 0 return          {zero:.3} (the neutral constant action, same episodes)");
-    }
-    if let (Some(rate), Some(force)) = (s.evaluation.eval_success_rate, s.evaluation.eval_peak_force_n) {
-        println!("  eval success          {:.0}%, mean peak force {force:.2} N", 100.0 * rate);
-    }
-    crate::cmd::sim::print_terms(&s.evaluation.eval_terms);
-    if let Some(lqr) = s.evaluation.lqr_return {
-        println!("  LQR return            {lqr:.3} (the optimum)");
-    }
-    if let (Some(masked), Connection::Local) = (s.evaluation.masked_lqr_return, s.connection) {
-        println!("  masked LQR return     {masked:.3} (the best controller that sees only G's states)");
-    }
-    println!("  time: graph {:.2} s, optimization {:.2} s, total {:.2} s", s.graph_seconds, s.optimization_seconds, s.total_seconds);
-    println!("wrote {}", args.run_dir.display());
-    Ok(())
-}
-
-impl TrainArgs {
-    fn env_state_dims(&self, _s: &lcrl_learner::run::summary::RunSummary) -> anyhow::Result<(usize, usize)> {
-        let env = lcrl_sim::make_env(&self.env)?;
-        Ok((env.spec().state_dim(), env.spec().action_dim()))
-    }
-}
-
-/// Returns per episode with a 10-episode moving average, and the run's
-/// references as horizontal lines.
-fn plot_rewards(rows: &[EpisodeRow], summary: &lcrl_learner::run::summary::RunSummary, args: &TrainArgs, connection: &ConnectionSpec) -> anyhow::Result<()> {
-    let env = &summary.env;
-    let x: Vec<f64> = rows.iter().map(|r| r.episode as f64).collect();
-    let returns: Vec<f64> = rows.iter().map(|r| r.episode_return).collect();
-    let average: Vec<f64> = (0..returns.len())
-        .map(|k| {
-            let window = &returns[k.saturating_sub(9)..=k];
-            window.iter().sum::<f64>() / window.len() as f64
-        })
-        .collect();
-    let title = format!("{env} — {:?} with {} connection", args.algo, connection.label());
-    let panel = Panel::rewards(
-        "episode return",
-        vec![("return".into(), returns), ("moving average (10)".into(), average)],
-        crate::cmd::compare::references(summary),
-    );
-    let path = args.run_dir.join("reward_curve.png");
-    line_panels(&path, &title, &x, "episode", &[panel]).with_context(|| format!("drawing {}", path.display()))
-}

@@ -1,0 +1,178 @@
+//! The processes of a local run: started in order, each once the one
+//! before answers its health check; followed until the budget is spent or
+//! a stop signal arrives; stopped in order.
+
+use std::path::Path;
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use indicatif::{ProgressBar, ProgressStyle};
+use lcrl_learner::Connection;
+use lcrl_proto::v1::learner_client::LearnerClient;
+use lcrl_proto::v1::GetStatusRequest;
+
+use crate::binaries::sibling;
+use crate::preset::Preset;
+use crate::run_security::RunSecurity;
+use crate::supervise::{stop_with_parent, wait_healthy, Managed};
+
+/// The processes of a local run.
+pub(super) struct Processes {
+    graph_builder: Option<Managed>,
+    learner: Managed,
+    pub(super) learner_url: String,
+    actors: Vec<Managed>,
+}
+
+impl Processes {
+    /// Actors first (they would only reconnect), then the learner (it
+    /// checkpoints on SIGTERM), then the graph builder.
+    pub(super) fn stop(mut self) {
+        for actor in self.actors.iter_mut() {
+            actor.stop(Duration::from_secs(10));
+        }
+        self.learner.stop(Duration::from_secs(30));
+        if let Some(mut g) = self.graph_builder {
+            g.stop(Duration::from_secs(5));
+        }
+    }
+}
+
+/// Starts the graph builder (for a local actor without a given graph), the
+/// learner, and the actors, each once the one before answers its health
+/// check.
+#[allow(clippy::too_many_arguments)]
+pub(super) async fn start_processes(
+    preset: &Preset,
+    train_path: &Path,
+    run_dir: &Path,
+    logs: &Path,
+    transport: &str,
+    security: &RunSecurity,
+    client_security: &lcrl_proto::security::ClientSecurity,
+    run_id: &str,
+) -> anyhow::Result<Processes> {
+    let job = &preset.job;
+    let mut graph_builder = None;
+    let mut graph_url = None;
+    // A given graph (job.graph) is written as the run's graph.json and
+    // handed to the learner as a file: no graph builder to start.
+    let given_graph = match &preset.env_server {
+        None => preset.given_graph(lcrl_sim::make_env(&job.env)?.spec())?,
+        Some(_) => None,
+    };
+    if let Some(report) = &given_graph {
+        report.write_json(&run_dir.join("graph.json"))?;
+        eprintln!("{}, no graph builder", report.origin_line());
+    }
+    if job.connection == Connection::Local && given_graph.is_none() {
+        let mut cmd = Command::new(sibling("lcrl-graph-builder")?);
+        cmd.args(preset.graph_builder_args("127.0.0.1:0", run_dir)).args(security.server_args(false)?);
+        stop_with_parent(&mut cmd);
+        let (process, address) = Managed::spawn("graph-builder", cmd, logs, true)?;
+        let url = security.url(&format!("http://{}", address.context("the graph builder did not start; see logs/graph-builder.log")?));
+        eprintln!("graph builder at {url}: building the connection graph");
+        wait_healthy(&url, "lcrl.v1.Graph", "the graph builder", Duration::from_secs(600), client_security).await?;
+        graph_url = Some(url);
+        graph_builder = Some(process);
+    }
+    let mut learner_cmd = Command::new(sibling("lcrl-learner")?);
+    match &given_graph {
+        Some(_) => learner_cmd.args(preset.learner_args_with_graph_file("127.0.0.1:0", run_id, train_path, &run_dir.join("learner"), &run_dir.join("graph.json"))),
+        None => learner_cmd.args(preset.learner_args("127.0.0.1:0", run_id, train_path, &run_dir.join("learner"), graph_url.as_deref())?),
+    };
+    learner_cmd.args(security.server_args(graph_url.is_some())?);
+    // Whatever ends this process (kill -9 included), the learner gets
+    // SIGTERM and writes its final checkpoint.
+    stop_with_parent(&mut learner_cmd);
+    let (learner, address) = Managed::spawn("learner", learner_cmd, logs, true)?;
+    let url = security.url(&format!("http://{}", address.context("the learner did not start; see logs/learner.log")?));
+    wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120), client_security).await?;
+    eprintln!("learner at {url}; starting {} actor(s) over {transport}", job.actors);
+    let mut actors = Vec::new();
+    for k in 0..job.actors {
+        let mut cmd = Command::new(sibling("lcrl-actor")?);
+        cmd.args(preset.actor_args(&url, run_id, transport, Some(&format!("actor-{k}")), k as u64)).args(security.client_args()?);
+        stop_with_parent(&mut cmd);
+        actors.push(Managed::spawn(&format!("actor-{k}"), cmd, logs, false)?.0);
+    }
+
+    Ok(Processes { graph_builder, learner, learner_url: url, actors })
+}
+
+/// Shows the learner's progress until it reports the budget spent (false)
+/// or a stop signal arrives (true); with the last status read.
+pub(super) async fn watch_progress(
+    client: &mut LearnerClient<tonic::service::interceptor::InterceptedService<tonic::transport::Channel, lcrl_proto::security::Bearer>>,
+    stop_signals: &mut StopSignals,
+    episodes: u64,
+    logs: &Path,
+) -> anyhow::Result<(bool, Option<lcrl_proto::v1::LearnerStatus>)> {
+    let bar = ProgressBar::new(episodes);
+    if let Ok(style) = ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})") {
+        bar.set_style(style.progress_chars("=> "));
+    }
+    let (mut last_steps, mut last_updates, mut last_time) = (0u64, 0u64, Instant::now());
+    let mut last_status = None;
+    let interrupted = loop {
+        tokio::select! {
+            _ = stop_signals.recv() => break true,
+            _ = tokio::time::sleep(Duration::from_millis(500)) => {}
+        }
+        let status = match client.get_status(GetStatusRequest {}).await {
+            Ok(s) => s.into_inner(),
+            // Ctrl-C at a terminal reaches the whole process group: the
+            // learner may stop before this process sees its own SIGINT.
+            Err(e) => {
+                tokio::select! {
+                    _ = stop_signals.recv() => break true,
+                    _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+                }
+                bail!("lost the learner ({e}); see {}/learner.log", logs.display())
+            }
+        };
+        last_status = Some(status.clone());
+        let dt = last_time.elapsed().as_secs_f64().max(1e-9);
+        bar.set_position(status.episodes.min(episodes));
+        bar.set_message(format!(
+            "avg return {:.2}, {:.0} steps/s, {:.0} updates/s, policy v{}",
+            status.recent_return,
+            (status.env_steps - last_steps.min(status.env_steps)) as f64 / dt,
+            (status.updates - last_updates.min(status.updates)) as f64 / dt,
+            status.policy_version
+        ));
+        (last_steps, last_updates, last_time) = (status.env_steps, status.updates, Instant::now());
+        // The learner owns the budget: it stops training, writes its final
+        // checkpoint and summary, then reports `finished`.
+        if status.finished {
+            break false;
+        }
+    };
+    bar.finish_and_clear();
+    Ok((interrupted, last_status))
+}
+
+/// Ctrl-C (SIGINT) and SIGTERM, listened to from creation on.
+pub(super) struct StopSignals {
+    interrupt: tokio::signal::unix::Signal,
+    terminate: tokio::signal::unix::Signal,
+}
+
+impl StopSignals {
+    pub(super) fn new() -> anyhow::Result<Self> {
+        use tokio::signal::unix::{signal, SignalKind};
+        Ok(StopSignals {
+            interrupt: signal(SignalKind::interrupt()).context("listening for Ctrl-C")?,
+            terminate: signal(SignalKind::terminate()).context("listening for SIGTERM")?,
+        })
+    }
+
+    pub(super) async fn recv(&mut self) {
+        tokio::select! {
+            _ = self.interrupt.recv() => {}
+            _ = self.terminate.recv() => {}
+        }
+    }
+}
+
