@@ -153,6 +153,9 @@ async fn run(args: Args) -> anyhow::Result<()> {
     };
     let stop = Arc::new(AtomicBool::new(false));
     let finished = Arc::new(AtomicBool::new(false));
+    // Set when the learner says its budget is spent (as opposed to this
+    // actor's own --episodes): nothing unsent matters any more.
+    let budget_spent = Arc::new(AtomicBool::new(false));
     let actor_id = args.actor_id.clone().unwrap_or_else(|| format!("{}-{}", hostname(), std::process::id()));
     let (sink, sender) = match client {
         Some(client) => {
@@ -162,11 +165,11 @@ async fn run(args: Args) -> anyhow::Result<()> {
         None => (Sink::Shm(args.run_id.clone()), None),
     };
     let worker = {
-        let (stop, finished) = (stop.clone(), finished.clone());
+        let (stop, finished, budget_spent) = (stop.clone(), finished.clone(), budget_spent.clone());
         let settings = RolloutSettings { envs: args.envs, batch: args.batch, noise: args.noise, seed: args.seed, episodes: args.episodes, run_id: args.run_id.clone(), actor_id };
         let metrics = metrics.clone();
         std::thread::Builder::new().name("envs".into()).spawn(move || {
-            let result = work(settings, policy_source, sink, stop, metrics);
+            let result = work(settings, policy_source, sink, stop, &budget_spent, metrics);
             finished.store(true, Ordering::Relaxed);
             result
         })?
@@ -174,6 +177,12 @@ async fn run(args: Args) -> anyhow::Result<()> {
     match sender {
         Some(sender) => tokio::select! {
             result = sender => result.context("the sender task panicked")??,
+            _ = budget_spent_then(&budget_spent, Duration::from_secs(5)) => {
+                // A learner at its budget's end may wait long for its final
+                // checkpoint (a full disk is waited out: issue 71); the
+                // last batches' answers are not worth waiting for.
+                tracing::info!("the learner's budget is spent and it has not answered the last batches within 5 s: stopping");
+            }
             _ = shutdown_signal() => tracing::info!("stopping"),
         },
         None => tokio::select! {
@@ -198,13 +207,21 @@ async fn run(args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Returns `grace` after `budget_spent` is set.
+async fn budget_spent_then(budget_spent: &AtomicBool, grace: Duration) {
+    while !budget_spent.load(Ordering::Relaxed) {
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    tokio::time::sleep(grace).await;
+}
+
 fn hostname() -> String {
     std::fs::read_to_string("/etc/hostname").map(|h| h.trim().to_string()).unwrap_or_else(|_| "actor".into())
 }
 
 /// The environment loop (blocking thread): the newest policy, one step of
 /// every environment, a batch out when one is full.
-fn work(settings: RolloutSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBool>, metrics: ActorMetrics) -> anyhow::Result<()> {
+fn work(settings: RolloutSettings, source: PolicySource, sink: Sink, stop: Arc<AtomicBool>, budget_spent: &AtomicBool, metrics: ActorMetrics) -> anyhow::Result<()> {
     tch::set_num_threads(1);
     let out = sink.open()?;
     let (mut feed, mut policy, explore) = open_feed(source, &stop)?;
@@ -233,6 +250,7 @@ fn work(settings: RolloutSettings, source: PolicySource, sink: Sink, stop: Arc<A
         }
         if feed.training_finished() {
             tracing::info!(episodes = rollout.episodes_done(), "the learner's episode budget is spent: stopping");
+            budget_spent.store(true, Ordering::Relaxed);
             break;
         }
         if let Some(mut batch) = rollout.step(&policy, &metrics)? {

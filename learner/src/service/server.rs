@@ -55,6 +55,7 @@ impl Learner for LearnerService {
         let (acks, out) = mpsc::channel(16);
         let shared = self.shared.clone();
         let commands = self.commands.clone();
+        let mut policy = shared.policy.subscribe();
         shared.connected_actors.fetch_add(1, Ordering::Relaxed);
         tokio::spawn(async move {
             let _connected = Connected(shared.clone(), origin.stream);
@@ -108,14 +109,13 @@ impl Learner for LearnerService {
                 let version = shared.policy_version();
                 let verdict = shared.ingest().check_from(&batch, version, origin);
                 let (stored, outcome) = match verdict {
-                    Verdict::Accept(accepted) => {
-                        let stored = accepted.transitions.len() as u32;
-                        if commands.send(Command::Batch(accepted)).await.is_err() {
+                    Verdict::Accept(accepted) => match forward(&commands, accepted, &mut policy).await {
+                        Some(forwarded) => forwarded,
+                        None => {
                             let _ = acks.send(Err(Status::unavailable("the learner is shutting down"))).await;
                             break;
                         }
-                        (stored, "stored")
-                    }
+                    },
                     Verdict::Duplicate => (0, "duplicate"),
                     Verdict::Stale => (0, "stale"),
                     Verdict::Reject { reason, message } => {
@@ -198,6 +198,19 @@ impl Learner for LearnerService {
             incarnation: s.incarnation,
             connections_refused: s.connection_refusals.counts().into_iter().map(|(reason, n)| (reason.to_string(), n)).collect(),
         }))
+    }
+}
+
+/// Hands an accepted batch to the training loop: (transitions stored,
+/// outcome), or None when the learner is shutting down. Once the budget is
+/// spent the loop may be busy for long (its final checkpoint waits out a
+/// full disk, issue 71): a batch waiting then is answered at once as
+/// `after_budget`, unstored, so that no actor blocks on a finished run.
+async fn forward(commands: &mpsc::Sender<Command>, accepted: crate::service::ingest::Accepted, policy: &mut tokio::sync::watch::Receiver<Arc<PolicySnapshot>>) -> Option<(u32, &'static str)> {
+    let stored = accepted.transitions.len() as u32;
+    tokio::select! {
+        sent = commands.send(Command::Batch(accepted)) => sent.ok().map(|()| (stored, "stored")),
+        Ok(_) = policy.wait_for(|p| p.training_finished) => Some((0, "after_budget")),
     }
 }
 
@@ -300,5 +313,38 @@ impl PolicyApi for PolicyService {
         let (actions, version) = computed?;
         self.act_latency.observe(started.elapsed().as_secs_f64());
         Ok(Response::new(ActBatchResponse { actions, policy_version: version }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::service::ingest::{Accepted, AgentTransition};
+    use std::time::Duration;
+
+    fn accepted(n: usize) -> Accepted {
+        let t = AgentTransition { obs: vec![0.0; 3], action: vec![0.0; 3], log_prob: None, reward: -1.0, next_obs: vec![0.0; 3], terminated: false, truncated: false, cut: false, policy_version: 0 };
+        Accepted { transitions: vec![t; n], episodes: Vec::new(), policy_version: 0, stream: 1 }
+    }
+
+    /// A batch waits for the training loop while the loop is busy; once
+    /// the budget is spent it is answered at once, unstored, so an actor
+    /// never blocks on a finished run (a full disk at the end, issue 71).
+    #[tokio::test]
+    async fn a_waiting_batch_is_answered_as_after_budget_once_the_budget_is_spent() {
+        let (commands, mut loop_side) = mpsc::channel(1);
+        let (policy_tx, mut policy) = tokio::sync::watch::channel(Arc::new(PolicySnapshot::default()));
+        assert_eq!(forward(&commands, accepted(5), &mut policy).await, Some((5, "stored")));
+        // The loop takes nothing more: the next batch waits ...
+        let waiting = forward(&commands, accepted(7), &mut policy);
+        tokio::pin!(waiting);
+        assert!(tokio::time::timeout(Duration::from_millis(50), &mut waiting).await.is_err(), "a batch went past a full loop");
+        // ... until the budget is spent.
+        policy_tx.send_modify(|p| *p = Arc::new(PolicySnapshot { training_finished: true, ..PolicySnapshot::default() }));
+        assert_eq!(waiting.await, Some((0, "after_budget")));
+        assert!(matches!(loop_side.recv().await, Some(Command::Batch(b)) if b.transitions.len() == 5));
+        drop(loop_side);
+        let (_finished_tx, mut running) = tokio::sync::watch::channel(Arc::new(PolicySnapshot::default()));
+        assert_eq!(forward(&commands, accepted(1), &mut running).await, None, "a closed loop is a learner shutting down");
     }
 }
