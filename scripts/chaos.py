@@ -14,6 +14,7 @@ fault mounts a small tmpfs and needs root; elsewhere it is skipped (said so).
 """
 
 import argparse
+import contextlib
 import json
 import os
 import pathlib
@@ -265,14 +266,25 @@ def silent_learner(c):
     return {"fault": fault, "did": f"the actor exited {p.returncode} after {seconds:.1f} s: {last[-160:]}", "lost": "nothing (no batch was sent)", "exit_s": seconds}
 
 
-def full_disk(c):
-    """The run directory's disk fills up between checkpoints."""
-    if os.geteuid() != 0:
-        return {"fault": "a full disk under the run directory", "did": "skipped: mounting a small tmpfs needs root", "lost": "-"}
+@contextlib.contextmanager
+def _small_disk(c):
+    """A 64 MB tmpfs under the work folder (root only); the cluster is
+    stopped and the disk unmounted at the end."""
     mount = c.work / "disk"
     mount.mkdir()
     subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64m", "tmpfs", str(mount)], check=True)
     try:
+        yield mount
+    finally:
+        c.close()
+        subprocess.run(["umount", "-l", str(mount)])
+
+
+def full_disk(c):
+    """The run directory's disk fills up between checkpoints."""
+    if os.geteuid() != 0:
+        return {"fault": "a full disk under the run directory", "did": "skipped: mounting a small tmpfs needs root", "lost": "-"}
+    with _small_disk(c) as mount:
         port, metrics = free_port(), free_port()
         run = mount / "run"
         c.learner(run, port, "--checkpoint-secs", "1", "--metrics-listen", f"127.0.0.1:{metrics}")
@@ -296,9 +308,6 @@ def full_disk(c):
                        f"a checkpoint again at episode {newest()} once freed",
                 "lost": f"metrics.csv rows while full: {episodes - rows} of {episodes} episodes missing; no checkpoint while full",
                 "failures": failures, "partials_left": len(partial), "metrics_rows_missing": episodes - rows}
-    finally:
-        c.close()
-        subprocess.run(["umount", "-l", str(mount)])
 
 
 def full_disk_at_end(c):
@@ -306,10 +315,7 @@ def full_disk_at_end(c):
     spent: the final checkpoint and summary.json wait for space."""
     if os.geteuid() != 0:
         return {"fault": "a full disk at the end of the budget", "did": "skipped: mounting a small tmpfs needs root", "lost": "-"}
-    mount = c.work / "disk"
-    mount.mkdir()
-    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64m", "tmpfs", str(mount)], check=True)
-    try:
+    with _small_disk(c) as mount:
         port, budget = free_port(), 120
         run = mount / "run"
         learner = c.learner(run, port, "--episodes", str(budget), "--checkpoint-secs", "1")
@@ -332,9 +338,6 @@ def full_disk_at_end(c):
                        f"once freed: summary.json and the final checkpoint (episode {newest}) written {written_s:.1f} s later, summary episodes {summary.get('episodes')}",
                 "lost": "nothing" if summary and waiting else "the run's result",
                 "waited": waiting, "written_after_s": written_s, "final_checkpoint": newest}
-    finally:
-        c.close()
-        subprocess.run(["umount", "-l", str(mount)])
 
 
 def truncated_checkpoint(c):
