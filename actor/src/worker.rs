@@ -390,6 +390,26 @@ mod tests {
         assert_eq!(sent.iter().filter(|t| t.cut && t.next_state[0].abs() > 100.0).count(), 6, "one cut per diverged episode");
     }
 
+    /// A PPO policy run far off (here its std) samples u beyond the
+    /// learner's door; the actor sends them within it, so its batches are
+    /// not all refused ("bounds", issue 71), with log π of the u sent.
+    #[test]
+    fn sampled_actions_stay_within_the_learners_bound() {
+        let policy = policy(Algo::Ppo);
+        let mut rollout = Rollout::new(settings(4), &policy, Exploration { uniform: false, noise: 0.0 }).unwrap();
+        rollout.std = vec![1e6; rollout.std.len()];
+        let metrics = ActorMetrics::default();
+        let mut batches = Vec::new();
+        while !rollout.finished() {
+            batches.extend(rollout.step(&policy, &metrics).unwrap());
+        }
+        let limit = (1.0 + lcrl_sim::SAMPLED_ACTION_LIMIT) as f32;
+        let sampled: Vec<f32> = batches.iter().flat_map(|b| &b.transitions).flat_map(|t| t.sampled_action.clone()).collect();
+        assert!(!sampled.is_empty());
+        assert!(sampled.iter().all(|u| u.abs() <= limit), "a u beyond ±{limit} was sent");
+        assert!(sampled.iter().filter(|u| u.abs() == limit).count() > sampled.len() / 2, "the std did not reach the bound: the test tests nothing");
+    }
+
     /// Without `--batch`, DDPG sends short batches (policy lag) and PPO
     /// long ones (fewer cuts in its advantage estimates).
     #[test]
