@@ -320,7 +320,7 @@ def full_disk_at_end(c):
         run = mount / "run"
         learner = c.learner(run, port, "--episodes", str(budget), "--checkpoint-secs", "1")
         actor = c.actor(port)
-        wait("the budget nearly spent", lambda: status(port).episodes >= budget - 30, limit=180)
+        wait("the budget nearly spent", lambda: status(port).episodes >= budget - 40, limit=180)
         filler = mount / "filler"
         subprocess.run(["dd", "if=/dev/zero", f"of={filler}", "bs=1M", "count=64"], capture_output=True)
         wait("the budget spent", lambda: status(port).episodes >= budget, limit=120)
@@ -336,7 +336,7 @@ def full_disk_at_end(c):
         return {"fault": f"the disk under the run directory filled before the end of a {budget}-episode budget, freed 12 s after it",
                 "did": f"while full: learner waiting (alive, no summary.json): {waiting}; actor stopped: {actor_gone}; "
                        f"once freed: summary.json and the final checkpoint (episode {newest}) written {written_s:.1f} s later, summary episodes {summary.get('episodes')}",
-                "lost": "nothing" if summary and waiting else "the run's result",
+                "lost": "nothing" if waiting and actor_gone and summary.get("episodes") == budget else "the run's result, or the actor did not stop",
                 "waited": waiting, "written_after_s": written_s, "final_checkpoint": newest}
 
 

@@ -110,7 +110,13 @@ impl Learner for LearnerService {
                 let verdict = shared.ingest().check_from(&batch, version, origin);
                 let (stored, outcome) = match verdict {
                     Verdict::Accept(accepted) => match forward(&commands, accepted, &mut policy).await {
-                        Some(forwarded) => forwarded,
+                        Some((stored, outcome)) => {
+                            if outcome == "after_budget" {
+                                // Counted as the training loop counts what it drops past the budget.
+                                shared.record_dropped("after_budget", batch.transitions.len() as u64);
+                            }
+                            (stored, outcome)
+                        }
                         None => {
                             let _ = acks.send(Err(Status::unavailable("the learner is shutting down"))).await;
                             break;
@@ -207,10 +213,17 @@ impl Learner for LearnerService {
 /// full disk, issue 71): a batch waiting then is answered at once as
 /// `after_budget`, unstored, so that no actor blocks on a finished run.
 async fn forward(commands: &mpsc::Sender<Command>, accepted: crate::service::ingest::Accepted, policy: &mut tokio::sync::watch::Receiver<Arc<PolicySnapshot>>) -> Option<(u32, &'static str)> {
-    let stored = accepted.transitions.len() as u32;
+    let count = accepted.transitions.len();
+    let after_budget = || Some((0, "after_budget"));
+    if policy.borrow().training_finished {
+        return after_budget();
+    }
     tokio::select! {
-        sent = commands.send(Command::Batch(accepted)) => sent.ok().map(|()| (stored, "stored")),
-        Ok(_) = policy.wait_for(|p| p.training_finished) => Some((0, "after_budget")),
+        // Biased: a batch the loop takes is stored, never also answered
+        // as after_budget (Sender::send is cancel-safe).
+        biased;
+        sent = commands.send(Command::Batch(accepted)) => sent.ok().map(|()| (count as u32, "stored")),
+        Ok(_) = policy.wait_for(|p| p.training_finished) => after_budget(),
     }
 }
 
@@ -342,6 +355,10 @@ mod tests {
         // ... until the budget is spent.
         policy_tx.send_modify(|p| *p = Arc::new(PolicySnapshot { training_finished: true, ..PolicySnapshot::default() }));
         assert_eq!(waiting.await, Some((0, "after_budget")));
+        // Once the budget is spent, a batch is answered so at once, even
+        // with room in the loop's queue.
+        let (room, _loop_with_room) = mpsc::channel(8);
+        assert_eq!(forward(&room, accepted(2), &mut policy_tx.subscribe()).await, Some((0, "after_budget")));
         assert!(matches!(loop_side.recv().await, Some(Command::Batch(b)) if b.transitions.len() == 5));
         drop(loop_side);
         let (_finished_tx, mut running) = tokio::sync::watch::channel(Arc::new(PolicySnapshot::default()));
