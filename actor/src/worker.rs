@@ -223,7 +223,7 @@ impl Rollout {
                 // bound ("bounds", issue 71): a policy whose mean has run
                 // far off would have every batch refused. Such a u acts
                 // as ±1 all the same; log π is taken of the u sent.
-                let limit = (1.0 + lcrl_sim::SAMPLED_ACTION_LIMIT) as f32;
+                let limit = lcrl_sim::SAMPLED_ACTION_BOUND as f32;
                 u.iter_mut().for_each(|x| *x = x.clamp(-limit, limit));
                 // (None where a degenerate std makes it non-finite: the learner
                 // then evaluates it itself.)
@@ -403,7 +403,7 @@ mod tests {
         while !rollout.finished() {
             batches.extend(rollout.step(&policy, &metrics).unwrap());
         }
-        let limit = (1.0 + lcrl_sim::SAMPLED_ACTION_LIMIT) as f32;
+        let limit = lcrl_sim::SAMPLED_ACTION_BOUND as f32;
         let sampled: Vec<f32> = batches.iter().flat_map(|b| &b.transitions).flat_map(|t| t.sampled_action.clone()).collect();
         assert!(!sampled.is_empty());
         assert!(sampled.iter().all(|u| u.abs() <= limit), "a u beyond ±{limit} was sent");

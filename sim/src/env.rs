@@ -80,6 +80,8 @@ pub const REWARD_LIMIT: f64 = 1e6;
 /// How far beyond [−1, 1] the agent's own sampled u may lie (PPO samples
 /// an unclipped Gaussian; DDPG clips into [−1, 1]).
 pub const SAMPLED_ACTION_LIMIT: f64 = 1e3;
+/// The largest |u| the learner takes, and an actor sends: 1 + the limit.
+pub const SAMPLED_ACTION_BOUND: f64 = 1.0 + SAMPLED_ACTION_LIMIT;
 
 /// Why a step's outcome cannot be a sound continuation of an episode: a
 /// non-finite or out-of-bounds state, or a reward beyond

@@ -27,7 +27,7 @@ pub mod seeds;
 pub mod serve;
 pub mod tune;
 
-pub use env::{diverged, state_out_of_bounds, Env, EnvError, EnvSpec, EpisodeMetrics, ReturnColumns, ReturnTerms, Step, REWARD_LIMIT, SAMPLED_ACTION_LIMIT, STATE_LIMIT};
+pub use env::{diverged, state_out_of_bounds, Env, EnvError, EnvSpec, EpisodeMetrics, ReturnColumns, ReturnTerms, Step, REWARD_LIMIT, SAMPLED_ACTION_BOUND, SAMPLED_ACTION_LIMIT, STATE_LIMIT};
 pub use remote::step_all;
 pub use overlay::overlay;
 pub use registry::{env_from_toml, known_env_names, make_env};

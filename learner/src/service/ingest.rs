@@ -420,7 +420,7 @@ impl Ingest {
             }
         }
         let u = if t.sampled_action.is_empty() { self.actions.to_normalized(&wide(&t.action)) } else { t.sampled_action.clone() };
-        let limit = 1.0 + lcrl_sim::SAMPLED_ACTION_LIMIT;
+        let limit = lcrl_sim::SAMPLED_ACTION_BOUND;
         u.iter().position(|v| f64::from(v.abs()) > limit).map(|k| format!("action component {k} is {} in the agent's units [−1, 1]; at most ±{limit}", u[k]))
     }
 }

@@ -214,16 +214,15 @@ impl Learner for LearnerService {
 /// `after_budget`, unstored, so that no actor blocks on a finished run.
 async fn forward(commands: &mpsc::Sender<Command>, accepted: crate::service::ingest::Accepted, policy: &mut tokio::sync::watch::Receiver<Arc<PolicySnapshot>>) -> Option<(u32, &'static str)> {
     let count = accepted.transitions.len();
-    let after_budget = || Some((0, "after_budget"));
     if policy.borrow().training_finished {
-        return after_budget();
+        return Some((0, "after_budget"));
     }
     tokio::select! {
         // Biased: a batch the loop takes is stored, never also answered
         // as after_budget (Sender::send is cancel-safe).
         biased;
         sent = commands.send(Command::Batch(accepted)) => sent.ok().map(|()| (count as u32, "stored")),
-        Ok(_) = policy.wait_for(|p| p.training_finished) => after_budget(),
+        Ok(_) = policy.wait_for(|p| p.training_finished) => Some((0, "after_budget")),
     }
 }
 
