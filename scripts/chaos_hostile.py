@@ -321,6 +321,122 @@ def id_hijack(c):
             "lost": "nothing" if stored > 0 and "ok" not in codes else "the honest actor's batches", "codes": codes, "stored_after": stored}
 
 
+class _FreezableProxy:
+    """A TCP relay to the learner. `freeze()` stops moving bytes on the
+    connections open now, and never closes them (a pulled cable: neither
+    end is told); connections opened later are relayed."""
+
+    def __init__(self, target):
+        self.target, self.generation, self.accepted_after_freeze = target, 0, []
+        self.listener = socket.socket()
+        self.listener.bind(("127.0.0.1", 0))
+        self.listener.listen(64)
+        self.port = self.listener.getsockname()[1]
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self):
+        while True:
+            client, _ = self.listener.accept()
+            if self.generation:
+                self.accepted_after_freeze.append(time.monotonic())
+            upstream = socket.create_connection(("127.0.0.1", self.target))
+            for src, dst in ((client, upstream), (upstream, client)):
+                threading.Thread(target=self._pipe, args=(src, dst, self.generation), daemon=True).start()
+
+    def _pipe(self, src, dst, generation):
+        while True:
+            try:
+                data = src.recv(65536)
+            except OSError:
+                return
+            if generation != self.generation:
+                if not data:
+                    return  # an end that gives up is not passed on
+                continue  # frozen: bytes are lost
+            if not data:
+                dst.close()
+                return
+            dst.sendall(data)
+
+    def freeze(self):
+        self.generation += 1
+
+
+def frozen_connection(c):
+    """The honest actor's connections stop carrying bytes without closing
+    (a cable pulled): how soon are its transitions stored again, on the
+    connection it opens when its keepalive gives up?"""
+    port = free_port()
+    c.learner(c.work / "frozen", port)
+    proxy = _FreezableProxy(port)
+    c.actor(port, "--actor-id", "honest", learner=f"http://127.0.0.1:{proxy.port}")
+    wait("steps", lambda: status(port).env_steps > 500)
+    proxy.freeze()
+    frozen_at = time.monotonic()
+    # Stored again: more steps than when the actor opened its new
+    # connection (batches already inside the learner were stored by then).
+    wait("the actor's new connection", lambda: proxy.accepted_after_freeze, limit=60, every=0.1)
+    reconnect_s, steps = proxy.accepted_after_freeze[0] - frozen_at, status(port).env_steps
+    wait("the honest actor stored again", lambda: status(port).env_steps > steps, limit=120, every=0.1)
+    back_s = time.monotonic() - frozen_at
+    st = status(port)
+    refused = dict(st.rejected).get("actor_id_bound", 0)
+    return {"fault": "the honest actor's connections stop carrying bytes, never closed (a pulled cable)",
+            "did": f"the actor connected anew {reconnect_s:.1f} s after the freeze, its transitions stored again at {back_s:.1f} s; refused meanwhile as {dict(st.rejected)}",
+            "lost": "nothing" if refused == 0 else f"{refused} transitions refused as actor_id_bound (the actor resent them)", "reconnect_s": reconnect_s, "back_s": back_s, "refused": refused}
+
+
+def shm_id_hijack(c):
+    """A second process on the host publishes over shared memory under a
+    live honest actor's id; then the honest actor is killed (-9)."""
+    port = free_port()
+    c.learner(c.work / "shm", port)
+    honest = c.actor(port, "--actor-id", "honest", "--transport", "shm")
+    wait("steps", lambda: status(port).env_steps > 500)
+    c.actor(port, "--actor-id", "honest", "--transport", "shm")
+    time.sleep(2.0)
+    refused_before = dict(status(port).rejected)
+    stored = _stored_of(port, 5.0)
+    refused = dict(status(port).rejected)
+    honest.kill()
+    honest.wait()
+    killed_at, bound = time.monotonic(), refused.get("actor_id_bound", 0)
+    # The id is free once the dead publisher is gone: the second actor's
+    # batches are no longer refused, and are stored.
+    def taken_without_refusals():
+        bound = lambda st: dict(st.rejected).get("actor_id_bound", 0)  # noqa: E731
+        first = status(port)
+        time.sleep(1.0)
+        last = status(port)
+        return last.env_steps > first.env_steps and bound(last) == bound(first)
+    wait("the id freed", taken_without_refusals, limit=60, every=0.0)
+    freed_s = time.monotonic() - killed_at
+    return {"fault": "a second process publishes over shared memory under a live honest actor's id; then the honest actor is killed -9",
+            "did": f"refused while the honest actor lived: {refused.get('actor_id_bound', 0) - refused_before.get('actor_id_bound', 0)} transitions in 5 s ({refused}); "
+                   f"the honest actor's transitions stored in those 5 s: {stored}; after the kill the id was taken by the second actor within {freed_s:.1f} s",
+            "lost": "nothing" if stored > 0 and bound > 0 else "the honest actor's batches", "stored_while_hijacked": stored, "freed_s": freed_s}
+
+
+def shm_fairness(c):
+    """Three actors on shared memory, 30 episodes each, behind one learner
+    (the bottleneck): when does each finish?"""
+    port = free_port()
+    c.learner(c.work / "fair", port)
+    started = time.monotonic()
+    actors = [c.actor(port, "--actor-id", f"a{k}", "--transport", "shm", "--episodes", "30") for k in range(3)]
+    done = {}
+
+    def all_done():
+        done.update({k: round(time.monotonic() - started, 1) for k, a in enumerate(actors) if k not in done and a.poll() is not None})
+        return len(done) == len(actors)
+    wait("every actor done", all_done, limit=180, every=0.1)
+    stored = status(port).env_steps
+    spread = max(done.values()) - min(done.values())
+    return {"fault": "three actors on shared memory, 30 episodes each, one learner",
+            "did": f"done at {sorted(done.values())} s; {stored} transitions stored",
+            "lost": "nothing" if spread < 0.25 * max(done.values()) else "turns: the actors were served one after another", "done_s": done, "stored": stored}
+
+
 def _own_addresses():
     """This machine's non-loopback IPv4 and IPv6 addresses (peers the
     learner counts). Two IPv4 addresses of one machine may reach a server
@@ -378,7 +494,7 @@ def id_table(c):
 
 FAULTS = {"huge-values": huge_values, "forged-returns": forged_returns, "sequence-hijack": sequence_hijack, "ping-flood": ping_flood,
           "slowloris-metrics": slowloris_metrics, "query-storm": query_storm, "slow-watchers": slow_watchers, "id-hijack": id_hijack,
-          "id-table": id_table}
+          "id-table": id_table, "frozen-connection": frozen_connection, "shm-id-hijack": shm_id_hijack, "shm-fairness": shm_fairness}
 
 
 if __name__ == "__main__" and sys.argv[1:2] == ["--storm-clients"]:

@@ -26,6 +26,7 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "clients/python"))
 
 import lcrl_env  # noqa: E402
+import torch  # noqa: E402
 from stable_baselines3 import PPO, SAC, TD3  # noqa: E402
 from stable_baselines3.common.callbacks import BaseCallback  # noqa: E402
 
@@ -45,6 +46,8 @@ class Episodes(BaseCallback):
         self.length += 1
         if self.locals["dones"][0]:
             self.rows.append({"episode": len(self.rows) + 1, "return": self.ret, "length": self.length, "wall_s": round(time.monotonic() - self.started, 3)})
+            if len(self.rows) % 10 == 0:
+                print(f"episode {len(self.rows)}/{self.budget}: return {self.ret:.3f}, {self.rows[-1]['wall_s']:.0f} s", file=sys.stderr, flush=True)
             self.ret, self.length = 0.0, 0
         return len(self.rows) < self.budget
 
@@ -81,6 +84,10 @@ def main() -> int:
     if not isinstance(settings, dict):
         parser.error("--settings must be a JSON object")
     args.out.mkdir(parents=True, exist_ok=True)
+    # One libtorch thread, as lcrl's own runs (`--threads 1`): two runs side
+    # by side on 2 cores with 2 threads each spend their time waiting for
+    # each other.
+    torch.set_num_threads(1)
     env = lcrl_env.make(args.env)
     rows: list = []
     started = time.monotonic()
@@ -99,7 +106,7 @@ def main() -> int:
         "env": args.env, "algo": f"sb3-{args.algo}", "seed": args.seed, "episodes": len(rows), "env_steps": int(model.num_timesteps),
         "eval_return": float(np.mean(returns)), "eval_returns": returns, "eval_seed": 0,
         "train_seconds": round(train_s, 2), "total_seconds": round(time.monotonic() - started, 2),
-        "settings": settings, "sb3": __import__("stable_baselines3").__version__,
+        "settings": settings, "sb3": __import__("stable_baselines3").__version__, "torch_threads": torch.get_num_threads(),
     }
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(f"{args.env} {args.algo} seed {args.seed}: {len(rows)} episodes, eval {summary['eval_return']:.3f}, {train_s:.0f} s")

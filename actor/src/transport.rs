@@ -140,6 +140,9 @@ impl Progress {
 pub async fn send_batches(url: String, security: ClientSecurity, mut client: LearnerClient<AuthChannel>, mut batches: mpsc::Receiver<TransitionBatch>, deadline: Duration, metrics: ActorMetrics, progress: Progress) -> anyhow::Result<()> {
     let mut pending: VecDeque<TransitionBatch> = VecDeque::new();
     let mut worker_done = false;
+    // This process's key (TransitionBatch.actor_key): after a connection
+    // that broke unnoticed, the learner knows the new one for this actor's.
+    let actor_key = rand::random::<u64>().max(1);
     // Batches rejected as malformed since the last one stored: a few is a
     // bad step (a non-finite number); many in a row is an actor that does
     // not fit the run (another environment), which retrying cannot mend.
@@ -167,7 +170,8 @@ pub async fn send_batches(url: String, security: ClientSecurity, mut client: Lea
                 }
                 tokio::select! {
                     batch = batches.recv(), if !worker_done && pending.len() < MAX_PENDING_BATCHES => match batch {
-                        Some(batch) => {
+                        Some(mut batch) => {
+                            batch.actor_key = actor_key;
                             pending.push_back(batch.clone());
                             metrics.pending_batches.set(pending.len() as i64);
                             if requests.send(batch).await.is_err() {

@@ -139,6 +139,8 @@ impl TransitionSample {
             episode_id: self.episode_id,
             policy_version: self.policy_version,
             incarnation: self.incarnation,
+            // Shared memory binds an id to its publisher, not to a key.
+            actor_key: 0,
             transitions: (0..count)
                 .map(|k| Transition {
                     state: self.states[k * m..(k + 1) * m].to_vec(),
@@ -272,7 +274,7 @@ impl ShmPublisher {
 pub struct TransitionSubscriber {
     subscriber: iceoryx2::port::subscriber::Subscriber<ipc::Service, TransitionSample, ()>,
     run_id: String,
-    _service: Service,
+    service: Service,
     _node: Node<ipc::Service>,
 }
 
@@ -286,14 +288,37 @@ impl TransitionSubscriber {
             .buffer_size(buffer.clamp(1, SUBSCRIBER_MAX_BUFFER))
             .create()
             .map_err(|e| format!("iceoryx2 subscriber: {e:?}"))?;
-        Ok(TransitionSubscriber { subscriber, run_id: run_id.into(), _service: service, _node: node })
+        Ok(TransitionSubscriber { subscriber, run_id: run_id.into(), service, _node: node })
     }
 
-    /// The next batch, if one is waiting (its sample is released at once).
-    pub fn receive(&self) -> Result<Option<TransitionBatch>, String> {
+    /// The next batch, if one is waiting (its sample is released at once),
+    /// with the publisher that sent it ([`publisher_stream`]).
+    pub fn receive(&self) -> Result<Option<(TransitionBatch, u64)>, String> {
         let sample = self.subscriber.receive().map_err(|e| format!("receiving from shared memory: {e:?}"))?;
-        Ok(sample.map(|sample| sample.payload().to_batch(&self.run_id)))
+        Ok(sample.map(|sample| (sample.payload().to_batch(&self.run_id), publisher_stream(sample.header().publisher_id().value()))))
     }
+
+    /// The publishers attached now, as [`publisher_stream`] numbers (a
+    /// crashed actor's stays until [`remove_dead_nodes`] removes it).
+    pub fn live_publishers(&self) -> std::collections::HashSet<u64> {
+        let mut live = std::collections::HashSet::new();
+        self.service.dynamic_config().list_publishers(|details| {
+            live.insert(publisher_stream(details.publisher_id.value()));
+            CallbackProgression::Continue
+        });
+        live
+    }
+}
+
+/// Marks the stream numbers of shared-memory publishers, apart from the
+/// learner's gRPC streams (numbered from 1).
+pub const PUBLISHER_STREAM: u64 = 1 << 63;
+
+/// A publisher's stream number: its unique id folded to 63 bits, marked
+/// with [`PUBLISHER_STREAM`]. The learner binds an actor id to it as to a
+/// gRPC stream.
+pub fn publisher_stream(publisher_id: u128) -> u64 {
+    PUBLISHER_STREAM | ((publisher_id as u64) ^ ((publisher_id >> 64) as u64))
 }
 
 /// Largest policy weights (safetensors bytes) and architecture (JSON) a
@@ -419,6 +444,27 @@ impl PolicySubscriber {
 mod tests {
     use super::*;
 
+    /// The subscriber names each batch's publisher, apart from every other
+    /// publisher and from gRPC streams, and stops listing a publisher once
+    /// it is dropped (the learner then frees the ids bound to it).
+    #[test]
+    fn batches_name_their_publisher_until_it_leaves() {
+        let run_id = format!("shm-publishers-{}", std::process::id());
+        let subscriber = TransitionSubscriber::open(&run_id, 4).expect("subscriber");
+        let (first, second) = (ShmPublisher::open(&run_id).expect("publisher"), ShmPublisher::open(&run_id).expect("publisher"));
+        let batch = |actor: &str| TransitionBatch { run_id: run_id.clone(), actor_id: actor.into(), sequence: 1, transitions: vec![Transition { state: vec![0.0; 2], action: vec![0.0], next_state: vec![0.0; 2], ..Default::default() }], ..Default::default() };
+        first.send(&batch("a")).expect("send");
+        second.send(&batch("b")).expect("send");
+        let (a, from_first) = subscriber.receive().expect("receive").expect("a batch waits");
+        let (b, from_second) = subscriber.receive().expect("receive").expect("a batch waits");
+        assert_eq!((a.actor_id.as_str(), b.actor_id.as_str()), ("a", "b"));
+        assert_ne!(from_first, from_second);
+        assert!(from_first & PUBLISHER_STREAM != 0 && from_second & PUBLISHER_STREAM != 0);
+        assert_eq!(subscriber.live_publishers(), [from_first, from_second].into_iter().collect());
+        drop(first);
+        assert_eq!(subscriber.live_publishers(), [from_second].into_iter().collect());
+    }
+
     #[test]
     fn sample_round_trips_a_batch() {
         // With and without the sampled action and the log-probability.
@@ -441,6 +487,7 @@ mod tests {
             episode_id: 3,
             policy_version: 2,
             incarnation: 0x5eed,
+            actor_key: 0,
             transitions: vec![t(0.5), t(1.5), t(2.5)],
             episodes: vec![
                 EpisodeSummary {

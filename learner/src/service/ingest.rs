@@ -112,6 +112,22 @@ impl Origin {
     }
 }
 
+/// The stream an actor id is bound to, and the key its actor drew
+/// (TransitionBatch.actor_key; 0: none).
+#[derive(Debug, Clone, Copy)]
+struct Holder {
+    stream: u64,
+    key: u64,
+}
+
+impl Holder {
+    /// The holder itself, or the same actor on a new stream (its old one
+    /// broke without this learner noticing: it shows the holder's key).
+    fn admits(&self, stream: u64, key: u64) -> bool {
+        self.stream == stream || (self.key != 0 && self.key == key)
+    }
+}
+
 /// How long an actor must have sent nothing before a new one may take its
 /// place among [`MAX_ACTORS`] (its replayed batches would then count as
 /// new: it is long gone).
@@ -129,10 +145,11 @@ pub struct Ingest {
     last_sequence: HashMap<String, u64>,
     /// When each actor was last heard from (since this process started).
     last_seen: HashMap<String, std::time::Instant>,
-    /// The live gRPC stream each actor id is bound to: while it lives, no
-    /// other stream may send under that id (a hijacker's sequence would
-    /// otherwise decide what the honest actor's batches are).
-    holders: HashMap<String, u64>,
+    /// The live stream (gRPC, or a shared-memory publisher) each actor id
+    /// is bound to: while it lives, no other stream may send under that id
+    /// (a hijacker's sequence would otherwise decide what the honest
+    /// actor's batches are), unless it carries the holder's key.
+    holders: HashMap<String, Holder>,
     /// The peer that brought each id into the table, and how many each
     /// peer holds there (loopback and shared memory uncounted).
     brought_by: HashMap<String, std::net::IpAddr>,
@@ -247,11 +264,23 @@ impl Ingest {
     /// Frees the ids a gRPC stream held: they may come back on another
     /// (an actor that reconnects), and their sequences stay.
     pub fn release_stream(&mut self, stream: u64) {
-        self.holders.retain(|_, holder| *holder != stream);
+        self.release_streams(|s| s == stream);
+    }
+
+    /// Frees the ids of every stream that `ended` says is gone (shared
+    /// memory: publishers that left).
+    pub fn release_streams(&mut self, ended: impl Fn(u64) -> bool) {
+        self.holders.retain(|_, holder| !ended(holder.stream));
+    }
+
+    /// Whether any id is bound to a stream `of_kind` accepts (the
+    /// shared-memory thread checks its publishers only then).
+    pub fn holds_streams(&self, of_kind: impl Fn(u64) -> bool) -> bool {
+        self.holders.values().any(|holder| of_kind(holder.stream))
     }
 
     /// Checks `batch` against the run and the current policy version, as
-    /// from no stream (shared memory).
+    /// from no stream (it can take no id another stream holds).
     pub fn check(&mut self, batch: &TransitionBatch, policy_version: u64) -> Verdict {
         self.check_from(batch, policy_version, Origin::default())
     }
@@ -343,7 +372,7 @@ impl Ingest {
         if batch.sequence > ahead {
             return Err(Door::Reject("sequence", format!("sequence {} is more than {} s ahead of this learner's clock in µs ({ahead}); number batches from 0 or from the clock", batch.sequence, SEQUENCE_AHEAD.as_secs())));
         }
-        if self.holders.get(&batch.actor_id).is_some_and(|&holder| holder != origin.stream) {
+        if self.holders.get(&batch.actor_id).is_some_and(|holder| !holder.admits(origin.stream, batch.actor_key)) {
             return Err(Door::Reject("actor_id_bound", "this actor id is in use by another live stream of this learner; give each actor its own --actor-id".into()));
         }
         if self.last_sequence.get(&batch.actor_id).is_some_and(|&last| batch.sequence <= last) {
@@ -373,7 +402,7 @@ impl Ingest {
         self.last_sequence.insert(batch.actor_id.clone(), batch.sequence);
         self.last_seen.insert(batch.actor_id.clone(), std::time::Instant::now());
         if origin.stream != 0 {
-            self.holders.insert(batch.actor_id.clone(), origin.stream);
+            self.holders.insert(batch.actor_id.clone(), Holder { stream: origin.stream, key: batch.actor_key });
         }
         if let Some(peer) = peer.filter(|_| new_id) {
             self.brought_by.insert(batch.actor_id.clone(), peer);

@@ -263,6 +263,27 @@ fn an_actor_id_is_bound_to_the_stream_that_holds_it() {
     assert!(matches!(ingest.check_from(&batch("a1", 2, vec![0.0; 3]), 3, hijacker), Verdict::Duplicate), "its sequences stay");
 }
 
+/// An honest actor whose connection broke without the learner noticing
+/// comes back on a new stream while the old one is still held: with its
+/// key it is taken at once and the binding moves; another key, or none, is
+/// still refused. Streams released by a predicate (shared-memory
+/// publishers that left) free their ids.
+#[test]
+fn the_holders_key_moves_its_binding_to_a_new_stream() {
+    let mut ingest = ingest(None);
+    let keyed = |sequence: u64, key: u64| TransitionBatch { actor_key: key, ..batch("a1", sequence, vec![0.0; 3]) };
+    let on = |stream: u64| Origin { stream, peer: None };
+    assert!(matches!(ingest.check_from(&keyed(1, 0xfeed), 3, on(7)), Verdict::Accept(_)));
+    assert!(matches!(ingest.check_from(&keyed(2, 0xfeed), 3, on(9)), Verdict::Accept(_)), "the same actor on a new stream");
+    for (key, stream) in [(0, 8), (0xbad, 8), (0, 7)] {
+        assert!(matches!(ingest.check_from(&keyed(3, key), 3, on(stream)), Verdict::Reject { reason: "actor_id_bound", .. }), "key {key:x} on stream {stream}");
+    }
+    ingest.release_stream(7);
+    assert!(matches!(ingest.check_from(&keyed(3, 0), 3, on(8)), Verdict::Reject { reason: "actor_id_bound", .. }), "stream 9 holds it now");
+    ingest.release_streams(|stream| stream >= 9);
+    assert!(matches!(ingest.check_from(&keyed(3, 0xbad), 3, on(8)), Verdict::Accept(_)), "released with its publisher");
+}
+
 /// One peer address brings at most MAX_ACTORS_PER_PEER ids into the
 /// table; its known ids go on, its silent ids make room for new ones,
 /// other peers still get places, and loopback (IPv4-mapped included) is

@@ -32,6 +32,7 @@ pub mod server;
 pub mod serving_share;
 pub mod shared;
 pub mod shm;
+pub mod shm_turns;
 pub mod validator;
 pub mod watch_budget;
 

@@ -3,14 +3,16 @@
 //! samples, checks them as gRPC batches are checked and hands them to the
 //! training thread, and a thread that broadcasts every new policy version.
 
+use std::collections::HashSet;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
-use lcrl_proto::shm::{remove_dead_nodes, service_name, PolicyPublisher, TransitionSubscriber};
+use lcrl_proto::shm::{remove_dead_nodes, service_name, PolicyPublisher, TransitionSubscriber, PUBLISHER_STREAM};
 use tokio::sync::mpsc;
 
-use crate::service::ingest::Verdict;
+use crate::service::ingest::{Origin, Verdict};
 use crate::service::shared::{Command, Shared};
+use crate::service::shm_turns::PublisherTurns;
 
 /// The learner's end, on its own thread: receives samples, checks them like
 /// gRPC batches and hands them to the training thread, until shutdown.
@@ -27,15 +29,27 @@ pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>, buff
     // Poll fast while data flows, back off to 2 ms when idle, so an idle
     // learner does not keep a core busy with wake-ups.
     let mut idle = Duration::from_micros(200);
+    let mut turns = PublisherTurns::default();
+    let (mut publishers_checked, mut live) = (Instant::now(), subscriber.live_publishers());
     while !*stop.borrow() {
-        let Some(batch) = subscriber.receive()? else {
+        if publishers_checked.elapsed() >= PUBLISHER_CHECK {
+            publishers_checked = Instant::now();
+            live = publishers_now(&shared, &subscriber);
+            turns.keep_live(&live);
+        }
+        // A round: every waiting actor's slots, served in turn.
+        turns.fill(&subscriber, live.len().max(1) * (buffer + 2))?;
+        let Some((batch, publisher)) = turns.next() else {
             std::thread::sleep(idle);
             idle = (idle * 2).min(Duration::from_millis(2));
             continue;
         };
         idle = Duration::from_micros(200);
         let version = shared.policy_version();
-        let verdict = shared.ingest().check(&batch, version);
+        // An actor id is bound to the publisher that first sent it, as to a
+        // gRPC stream (docs/reliability.md): another process on this host
+        // cannot send under a live actor's id.
+        let verdict = shared.ingest().check_from(&batch, version, Origin { stream: publisher, peer: None });
         match verdict {
             Verdict::Accept(accepted) => {
                 if commands.blocking_send(Command::Batch(accepted)).is_err() {
@@ -47,6 +61,26 @@ pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>, buff
         }
     }
     Ok(())
+}
+
+/// How often the subscriber looks for publishers that left.
+const PUBLISHER_CHECK: Duration = Duration::from_secs(1);
+
+/// The publishers attached now, after freeing the ids bound to those that
+/// are gone (a restarted actor comes back under its id on a new
+/// publisher). A crashed actor's publisher is listed until its dead node
+/// is removed.
+fn publishers_now(shared: &Shared, subscriber: &TransitionSubscriber) -> HashSet<u64> {
+    if shared.ingest().holds_streams(is_publisher) {
+        remove_dead_nodes();
+    }
+    let live = subscriber.live_publishers();
+    shared.ingest().release_streams(|stream| is_publisher(stream) && !live.contains(&stream));
+    live
+}
+
+fn is_publisher(stream: u64) -> bool {
+    stream & PUBLISHER_STREAM != 0
 }
 
 /// The learner's policy broadcaster, on its own thread: publishes every new
