@@ -114,8 +114,10 @@ vector = 8 * 150 / (time.perf_counter() - t0)
 envs.close()
 print(f"steps/s: single {single:.0f}, vector of 8 {vector:.0f}; episodes ended {ends}")
 "#;
-    let out = run_python(CHECK, &["peg-group1", "peg-group2", "peg-group1-noisy", "lti-paper", "lti-blocks-4"]);
-    for name in ["peg-group1", "peg-group2", "peg-group1-noisy", "lti-paper", "lti-blocks-4"] {
+    // Every registered name, so a preset added later is checked too.
+    let names = lcrl_sim::known_env_names();
+    let out = run_python(CHECK, &names);
+    for name in names {
         assert!(out.contains(&format!("checked {name}\n")), "{out}");
     }
     let figures = out.lines().find(|l| l.starts_with("steps/s")).expect("the steps/s line");
