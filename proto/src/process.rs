@@ -70,7 +70,7 @@ pub fn error_chain(e: &anyhow::Error) -> String {
         }
     }
     let lower = line.to_lowercase();
-    if lower.contains("broken pipe") || lower.contains("connection reset") {
+    if ["broken pipe", "connection reset", "connection closed", "received fatal alert"].iter().any(|cut| lower.contains(cut)) {
         // Under TLS 1.3 a server that refuses the client's certificate does
         // so after the client's handshake ended: the client sees only the
         // closed connection (issue 71).

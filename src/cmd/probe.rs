@@ -71,7 +71,7 @@ pub fn status(args: &StatusArgs) -> anyhow::Result<()> {
     let s = runtime.block_on(async {
         let fetch = async {
             let mut client = LearnerClient::new(security.connect(&args.url).await?);
-            let status = client.get_status(GetStatusRequest {}).await.map_err(|s| anyhow::anyhow!("{}: {}", args.url, s.message()))?;
+            let status = client.get_status(GetStatusRequest {}).await.map_err(|s| refused_call(&args.url, &s))?;
             anyhow::Ok(status.into_inner())
         };
         tokio::time::timeout(Duration::from_secs(10), fetch).await.map_err(|_| anyhow::anyhow!("no answer from {} within 10 s", args.url))?
@@ -86,3 +86,20 @@ pub fn status(args: &StatusArgs) -> anyhow::Result<()> {
     println!("{json}");
     Ok(())
 }
+
+/// A failed call as one line with the status's causes: a refused client
+/// certificate shows only as the transport's own error (a broken pipe), which
+/// `error_chain` then names (issue 71).
+fn refused_call(url: &str, status: &tonic::Status) -> anyhow::Error {
+    let mut line = format!("{url}: {}", status.message());
+    let mut cause = std::error::Error::source(status);
+    while let Some(c) = cause {
+        let text = c.to_string();
+        if !line.ends_with(&text) {
+            line.push_str(&format!(": {text}"));
+        }
+        cause = c.source();
+    }
+    anyhow::anyhow!(line)
+}
+

@@ -101,6 +101,10 @@ async fn mutual_tls_and_a_token_guard_the_learner() {
     assert!(stdout(&out).contains("\"unauthenticated\"") && !stdout(&out).contains(&token));
     let refused = lcrl().args(["status", &url, "--tls-ca", &s(c.join("ca.pem")), "--tls-client-cert", &s(identity.0.clone()), "--tls-client-key", &s(identity.1.clone())]).output().unwrap();
     assert!(!refused.status.success() && stderr(&refused).contains("Bearer"), "{}", stderr(&refused));
+    // A foreign client certificate is named as the likely cause, not left as
+    // a bare "broken pipe" (issue 71).
+    let foreign = lcrl().args(["status", &url, "--tls-ca", &s(c.join("ca.pem")), "--tls-client-cert", &s(oc.clone()), "--tls-client-key", &s(ok.clone()), "--token-file", &s(c.join("token"))]).output().unwrap();
+    assert!(!foreign.status.success() && stderr(&foreign).contains("--tls-client-ca"), "{}", stderr(&foreign));
 
     // The Python client with mutual TLS and the token.
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
