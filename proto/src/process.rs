@@ -59,16 +59,9 @@ fn return_large_allocations() {
 /// `source`, e.g. `missing.toml: No such file or directory (os error 2)`,
 /// would otherwise print its cause twice).
 pub fn error_chain(e: &anyhow::Error) -> String {
-    let mut line = String::new();
-    for cause in e.chain() {
-        let text = cause.to_string();
-        if line.is_empty() {
-            line = text;
-        } else if !text.is_empty() && !line.ends_with(&text) {
-            line.push_str(": ");
-            line.push_str(&text);
-        }
-    }
+    let mut chain = e.chain();
+    let first = chain.next().map(ToString::to_string).unwrap_or_default();
+    let mut line = with_causes(first, chain);
     let lower = line.to_lowercase();
     if ["broken pipe", "connection reset", "connection closed", "received fatal alert"].iter().any(|cut| lower.contains(cut)) {
         // Under TLS 1.3 a server that refuses the client's certificate does
@@ -78,6 +71,23 @@ pub fn error_chain(e: &anyhow::Error) -> String {
             " (the server closed the connection; under mutual TLS it does so when it refuses this client's certificate: \
              is --tls-client-cert signed by the CA the server trusts, its --tls-client-ca?)",
         );
+    }
+    line
+}
+
+/// `first: cause: …`, each cause's text once (one the line so far already ends
+/// with is left out): the line of [`error_chain`], and of a failed call's
+/// status with its transport causes.
+pub fn with_causes<'a>(first: String, causes: impl Iterator<Item = &'a (dyn std::error::Error + 'static)>) -> String {
+    let mut line = first;
+    for cause in causes {
+        let text = cause.to_string();
+        if line.is_empty() {
+            line = text;
+        } else if !text.is_empty() && !line.ends_with(&text) {
+            line.push_str(": ");
+            line.push_str(&text);
+        }
     }
     line
 }

@@ -88,18 +88,9 @@ pub fn status(args: &StatusArgs) -> anyhow::Result<()> {
 }
 
 /// A failed call as one line with the status's causes: a refused client
-/// certificate shows only as the transport's own error (a broken pipe), which
-/// `error_chain` then names (issue 71).
+/// certificate shows only as the transport's own error (a closed
+/// connection), which `error_chain` then names (issue 71).
 fn refused_call(url: &str, status: &tonic::Status) -> anyhow::Error {
-    let mut line = format!("{url}: {}", status.message());
-    let mut cause = std::error::Error::source(status);
-    while let Some(c) = cause {
-        let text = c.to_string();
-        if !line.ends_with(&text) {
-            line.push_str(&format!(": {text}"));
-        }
-        cause = c.source();
-    }
-    anyhow::anyhow!(line)
+    let causes = std::iter::successors(std::error::Error::source(status), |c| c.source());
+    anyhow::anyhow!(lcrl_proto::process::with_causes(format!("{url}: {}", status.message()), causes))
 }
-
