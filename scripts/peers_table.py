@@ -4,7 +4,8 @@ docs/research/2026-11-28-peers-design.md): Stable-Baselines3's SAC, TD3
 and PPO beside lcrl's DDPG and PPO on the peg presets, every seed, each
 policy's final return on the best constant's 100 evaluation starts, the
 episodes until the 10-episode training mean reached the best constant,
-and wall time; the best constant and a = 0 as rows. Then the exploratory
+wall time, and the runs that diverged (final eval below a = 0); the
+best constant and a = 0 above each table. Then the exploratory
 comparisons the design names (Welch's t on eval return, log-rank on
 episodes to the best constant), Holm-adjusted over every p printed.
 
@@ -163,14 +164,14 @@ def main():
         bar = refs["best constant"]
         print(f"\n### {env}\n")
         print(f"Best constant {bar:.3f}, a = 0 {refs['a = 0']:.3f} (the same 100 evaluation starts, seeds 0–99).\n")
-        print("| learner | seeds | final eval return, mean [95% CI] | every seed | reached the best constant (10-episode training mean) | episodes to it, median of those that did | wall s, median |")
-        print("|---|---|---|---|---|---|---|")
+        print("| learner | seeds | final eval return, mean [95% CI] | every seed | reached the best constant (10-episode training mean) | episodes to it, median of those that did | wall s, median | diverged (eval below a = 0) |")
+        print("|---|---|---|---|---|---|---|---|")
         cells = {}
         for name, kind, algo, connection in CELLS:
             runs = runs_of(root, kind, env, algo, connection)
             cells[name] = runs
             if not runs:
-                print(f"| {name} | 0 | not run yet | | | | |")
+                print(f"| {name} | 0 | not run yet | | | | | |")
                 continue
             finals = [r["final"] for r in runs]
             mean = statistics.fmean(finals)
@@ -182,7 +183,8 @@ def main():
             every = ", ".join("%d: %.2f" % (r["seed"], r["final"]) for r in runs)
             wall = "%.0f" % statistics.median(walls) if walls else "–"
             to_bar = statistics.median(hit) if hit else "–"
-            print(f"| {name} | {len(runs)} | {mean:.3f}{ci} | {every} | {len(hit)} of {len(runs)} | {to_bar} | {wall} |")
+            diverged = sum(1 for f in finals if f < refs["a = 0"])
+            print(f"| {name} | {len(runs)} | {mean:.3f}{ci} | {every} | {len(hit)} of {len(runs)} | {to_bar} | {wall} | {diverged} of {len(runs)} |")
         for peer, ours in COMPARISONS:
             a, b = cells[peer], cells[ours]
             if len(a) >= 2 and len(b) >= 2:
