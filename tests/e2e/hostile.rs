@@ -359,3 +359,86 @@ fn bad_numbers_on_the_command_line_are_refused_without_a_panic() {
         assert_eq!(err.matches("No such file or directory").count(), 1, "the cause is printed once: {err}");
     }
 }
+
+/// Every number a peer can send that is finite but huge (issue 71: states
+/// of 3e38 once made every weight NaN, and the NaN checkpoints were resumed
+/// from): states of 3e38 and 1e12, sampled actions of 1e12, a reward of
+/// 3e38, a claimed episode return of 1e308 and a sequence of 2⁶⁴ − 1 are
+/// each refused and counted, training goes on beside an honest actor, the
+/// served policy acts finitely, and no checkpoint on disk holds a NaN or ∞.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn huge_but_finite_numbers_are_refused_and_no_checkpoint_holds_a_non_finite_number() {
+    use lcrl_proto::v1::{policy_client::PolicyClient, ActRequest, EpisodeSummary};
+    use super::distributed::{send, wait_for};
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let (_learner, url) = learner_with_args(&run, "huge", free_port(), "ddpg", &[]);
+    let _actor = actor_with_args(&url, "huge", &["--actor-id", "honest"]);
+    wait_for(&url, "updates", |s| s.updates > 20).await;
+    let from = |id: &str, sequence: u64, state: f32| TransitionBatch { actor_id: id.into(), ..batch("huge", sequence, 3, state) };
+    let mut huge_action = from("evil-action", 1, 0.1);
+    // The agent's own sample: an applied action is clipped into the
+    // environment's box as the environment clips it, and stored.
+    huge_action.transitions.iter_mut().for_each(|t| t.sampled_action = vec![1e12; 3]);
+    let mut huge_reward = from("evil-reward", 1, 0.1);
+    huge_reward.transitions.iter_mut().for_each(|t| t.reward = 3e38);
+    let mut huge_return = from("evil-return", 1, 0.1);
+    huge_return.transitions.truncate(1);
+    huge_return.transitions[0].terminated = true;
+    huge_return.episodes = vec![EpisodeSummary { episode_return: 1e308, length: 1, ..Default::default() }];
+    let attacks = [
+        ("states 3e38", from("evil-3e38", 1, 3e38), "bounds"),
+        ("states 1e12", from("evil-1e12", 1, 1e12), "bounds"),
+        ("sampled actions 1e12", huge_action, "bounds"),
+        ("reward 3e38", huge_reward, "bounds"),
+        ("return 1e308", huge_return, "returns"),
+        ("sequence 2^64 - 1", from("evil-sequence", u64::MAX, 0.1), "sequence"),
+    ];
+    let before = status(&url, &ClientSecurity::default()).await;
+    for (what, batch, _) in &attacks {
+        let refused = send(&url, batch.clone()).await.expect_err(what);
+        assert_eq!(refused.code(), tonic::Code::InvalidArgument, "{what}: {refused:?}");
+    }
+    let after = wait_for(&url, "training after the attacks", |s| s.updates > before.updates + 100 && s.env_steps > before.env_steps).await;
+    for reason in ["bounds", "returns", "sequence"] {
+        let expected = attacks.iter().filter(|(_, _, r)| *r == reason).count() as u64;
+        let counted = after.rejected.get(reason).copied().unwrap_or(0) - before.rejected.get(reason).copied().unwrap_or(0);
+        assert!(counted >= expected, "{reason}: {counted} counted, {expected} sent; {:?}", after.rejected);
+    }
+    assert!(after.recent_return.is_finite() && after.recent_return.abs() < 1e6, "recent return {}", after.recent_return);
+    let action = PolicyClient::connect(url.clone()).await.unwrap().act(ActRequest { state: vec![0.1, 0.2, 0.3], ..Default::default() }).await.unwrap().into_inner().action;
+    assert!(action.iter().all(|a| a.is_finite()), "{action:?}");
+    // Checkpoints every half second: the ones written after the attacks are
+    // on disk by now. A folder pruned while it is read is skipped.
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let mut scanned = 0;
+    for file in glob::glob(&format!("{}/**/*.safetensors", run.display())).unwrap().flatten() {
+        let Ok(tensors) = tch::Tensor::read_safetensors(&file) else { continue };
+        for (name, t) in tensors.iter().filter(|(_, t)| t.is_floating_point()) {
+            assert!(bool::try_from(t.isfinite().all()).unwrap(), "{}: {name} holds a non-finite number", file.display());
+        }
+        scanned += 1;
+    }
+    assert!(scanned > 0, "no checkpoint under {}", run.display());
+}
+
+/// Arriving messages share one memory budget (issue 71: unfinished messages
+/// on every stream once could hold 16 GiB): with `--request-budget-mib 1`,
+/// a 1.6 MB batch (within `--max-batch-bytes`) is refused with
+/// RESOURCE_EXHAUSTED naming the flag before it is decoded, counted as
+/// `request_budget`, and a batch that fits is stored after it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn arriving_messages_share_one_memory_budget() {
+    use super::distributed::{send, wait_for};
+    let dir = tempfile::tempdir().unwrap();
+    let (_learner, url) = learner_with_args(&dir.path().join("run"), "budget", free_port(), "ddpg", &["--request-budget-mib", "1", "--max-batch-bytes", "4194304"]);
+    let mut big = batch("budget", 1, 3, 0.5);
+    big.transitions.truncate(1);
+    big.transitions[0].state = vec![0.5; 400_000];
+    let refused = send(&url, big).await.expect_err("a message beyond the budget");
+    assert_eq!(refused.code(), tonic::Code::ResourceExhausted, "{refused:?}");
+    assert!(refused.message().starts_with(lcrl_learner::service::request_budget::BUDGET_SPENT) && refused.message().contains("--request-budget-mib"), "{}", refused.message());
+    send(&url, batch("budget", 2, 3, 0.5)).await.expect("a batch within the budget");
+    let after = wait_for(&url, "the small batch stored", |s| s.env_steps >= 4).await;
+    assert_eq!(after.rejected.get("request_budget"), Some(&1), "{:?}", after.rejected);
+}

@@ -74,11 +74,14 @@ impl Adam {
         self.params.zero_grad();
     }
 
-    /// Scales all gradients so their global L2 norm is at most `max_norm`.
-    pub fn clip_grad_norm(&mut self, max_norm: f64) {
+    /// Scales all gradients so their global L2 norm is at most `max_norm`,
+    /// and returns the norm before scaling: NaN or ∞ when a gradient holds
+    /// a non-finite number (then nothing is scaled; the caller skips the
+    /// step, ppo.rs).
+    pub fn clip_grad_norm(&mut self, max_norm: f64) -> f64 {
         let grads: Vec<Tensor> = self.params.variables().map(Tensor::grad).filter(Tensor::defined).collect();
-        let total: f64 = grads.iter().map(|g| f64::try_from(g.square().sum(tch::Kind::Double)).unwrap_or(0.0)).sum::<f64>().sqrt();
-        if total > max_norm {
+        let total: f64 = grads.iter().map(|g| f64::try_from(g.square().sum(tch::Kind::Double)).unwrap_or(f64::NAN)).sum::<f64>().sqrt();
+        if total.is_finite() && total > max_norm {
             let scale = max_norm / (total + 1e-6);
             tch::no_grad(|| {
                 for mut g in grads {
@@ -86,6 +89,7 @@ impl Adam {
                 }
             });
         }
+        total
     }
 
     /// One Adam step on the accumulated gradients: [`Adam::advance`], then

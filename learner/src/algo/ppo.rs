@@ -197,21 +197,43 @@ impl Ppo {
                 let clipped = ratio.clamp(1.0 - self.cfg.clip, 1.0 + self.cfg.clip);
                 let entropy = (&self.log_std + 0.5 * (2.0 * PI * std::f64::consts::E).ln()).sum(Kind::Float);
                 let policy_loss = -(&ratio * &adv).minimum(&(clipped * &adv)).mean(Kind::Float) - self.cfg.entropy_coef * entropy;
-                self.actor_opt.zero_grad();
-                policy_loss.backward();
-                self.actor_opt.clip_grad_norm(self.cfg.max_grad_norm);
-                self.actor_opt.step();
+                let actor_stepped = guarded_step(&mut self.actor_opt, &policy_loss, self.cfg.max_grad_norm);
 
                 let values = self.critic.forward(&mb_obs).flatten(0, -1);
                 let value_loss = (values - returns.index_select(0, &index)).square().mean(Kind::Float);
-                self.critic_opt.zero_grad();
-                value_loss.backward();
-                self.critic_opt.clip_grad_norm(self.cfg.max_grad_norm);
-                self.critic_opt.step();
-                self.counters.updates += 1;
+                let critic_stepped = guarded_step(&mut self.critic_opt, &value_loss, self.cfg.max_grad_norm);
+                self.counters.updates += u64::from(actor_stepped);
+                self.counters.critic_updates += u64::from(critic_stepped);
+                if !(actor_stepped && critic_stepped) {
+                    self.counters.skipped_updates += 1;
+                    if self.counters.skipped_updates.is_power_of_two() {
+                        tracing::warn!(skipped = self.counters.skipped_updates, "PPO update skipped: its loss or gradients were not finite");
+                    }
+                }
             }
         }
     }
+}
+
+/// One optimizer step on `loss`, taken only when the loss and the global
+/// gradient norm are finite (issue 71: a rollout of states near 3e38 makes
+/// both infinite); otherwise the weights and Adam's moments stay as they
+/// were. With the gradients clipped to `max_norm`, a finite norm keeps the
+/// step finite, so nothing has to be undone (DDPG's guard, ddpg/mod.rs,
+/// checks the networks after its updates and rewinds instead).
+fn guarded_step(opt: &mut Adam, loss: &Tensor, max_norm: f64) -> bool {
+    opt.zero_grad();
+    let loss_finite = f64::try_from(loss.detach()).is_ok_and(f64::is_finite);
+    if !loss_finite {
+        return false;
+    }
+    loss.backward();
+    if !opt.clip_grad_norm(max_norm).is_finite() {
+        opt.zero_grad();
+        return false;
+    }
+    opt.step();
+    true
 }
 
 impl Agent for Ppo {
@@ -287,8 +309,7 @@ impl Agent for Ppo {
     }
 
     fn counters(&self) -> Counters {
-        // Each PPO gradient step moves the actor and the critic together.
-        Counters { critic_updates: self.counters.updates, ..self.counters }
+        self.counters
     }
 
     fn param_counts(&self) -> (usize, usize) {
@@ -311,6 +332,11 @@ impl Agent for Ppo {
         let state: PpoState = read_agent_state(dir)?;
         self.rng = state.rng.restore()?;
         self.counters = state.counters;
+        if self.counters.critic_updates == 0 {
+            // Checkpoints from before PPO counted its critic's steps apart
+            // moved both networks in every update.
+            self.counters.critic_updates = self.counters.updates;
+        }
         self.rollout = state.rollout;
         Ok(())
     }
@@ -420,5 +446,38 @@ mod tests {
         let mut ended = ppo();
         store(&mut ended, 0, len - 1, true, a);
         assert!(ended.rollout.open_cuts.is_empty());
+    }
+
+    /// Issue 71: a rollout of states and rewards of 3e38 (finite, but
+    /// their sums and squares are not) makes every minibatch's loss
+    /// non-finite. Each update is
+    /// skipped and counted, no weight or moment moves, and a clean rollout
+    /// trains again.
+    #[test]
+    fn an_update_with_a_non_finite_loss_is_skipped_and_counted() {
+        tch::set_num_threads(1);
+        let cfg = PpoConfig { rollout_steps: 8, epochs: 2, minibatch_size: 4, ..PpoConfig::default() };
+        let (m, n) = (2, 1);
+        let mask = vec![vec![1; m]; n];
+        let ppo = || Ppo::new(&cfg, &NetworkConfig::default(), AgentSetup { connection: Connection::Global, mask: &mask, state_dim: m, action_dim: n, seed: 9, device: Device::Cpu });
+        let weights = |p: &Ppo| [p.actor_opt.buffers(), p.critic_opt.buffers()].concat().iter().map(|t| t.copy()).collect::<Vec<_>>();
+        let feed = |p: &mut Ppo, value: f32| {
+            for k in 0..8 {
+                let obs = [value, k as f32 / 8.0];
+                p.store(Transition { obs: &obs, action: &[0.1], reward: value, next_obs: &obs, terminated: k == 7, truncated: false, log_prob: Some(-1.0), ..Default::default() });
+            }
+            p.train_step();
+        };
+        let mut huge = ppo();
+        let before = weights(&huge);
+        feed(&mut huge, 3e38);
+        let c = huge.counters();
+        assert_eq!((c.skipped_updates, c.updates, c.critic_updates), (4, 0, 0), "2 epochs of 2 minibatches, all skipped");
+        assert!(weights(&huge).iter().zip(&before).all(|(a, b)| a.equal(b)), "a weight or moment moved");
+        let mut clean = ppo();
+        feed(&mut clean, 0.5);
+        let c = clean.counters();
+        assert_eq!((c.skipped_updates, c.updates, c.critic_updates), (0, 4, 4));
+        assert!(!weights(&clean).iter().zip(&before).all(|(a, b)| a.equal(b)), "a clean rollout trains");
     }
 }

@@ -30,6 +30,7 @@ use crate::service::runtime::{Schedule, TrainingLoop};
 use crate::service::server::{LearnerService, PolicyService};
 use crate::service::shared::{Command, Shared};
 use crate::service::validator::Validator;
+use crate::service::request_budget::{Budgeted, RequestBudget};
 use crate::service::watch_budget::WatchBudget;
 
 /// The largest reply a server encodes.
@@ -150,6 +151,13 @@ pub struct LearnerArgs {
     /// policy; a stream beyond it gets RESOURCE_EXHAUSTED.
     #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u64).range(1..=1 << 20))]
     pub watch_budget_mib: u64,
+    /// MiB that all Learner and Policy requests together may hold while
+    /// their messages arrive (a message is buffered whole before it is
+    /// decoded); one remote peer address at most a quarter of it. A message
+    /// beyond it ends its stream with RESOURCE_EXHAUSTED, which actors
+    /// retry.
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..=1 << 20))]
+    pub request_budget_mib: u64,
     /// Serve Prometheus metrics on http://ADDR/metrics (port 0: any free
     /// port, logged as "metrics on").
     #[arg(long, value_name = "ADDR")]
@@ -455,6 +463,7 @@ async fn serve(args: &LearnerArgs, security: &ServerSecurity, listener: tokio::n
     health.set_serving::<PolicyServer<PolicyService>>().await;
     let check = security.token_check();
     let watch_budget = WatchBudget::new(args.watch_budget_mib << 20);
+    let request_budget = RequestBudget::new(args.request_budget_mib << 20);
     let learner = LearnerServer::new(LearnerService { shared: shared.clone(), commands: commands.clone(), watch_budget })
         .max_decoding_message_size(args.max_batch_bytes as usize)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
@@ -480,8 +489,8 @@ async fn serve(args: &LearnerArgs, security: &ServerSecurity, listener: tokio::n
         .server_builder()
         .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
         .add_service(health_service)
-        .add_service(InterceptedService::new(learner, check.clone()))
-        .add_service(InterceptedService::new(policy, check.clone()));
+        .add_service(InterceptedService::new(Budgeted::new(learner, request_budget.clone()), check.clone()))
+        .add_service(InterceptedService::new(Budgeted::new(policy, request_budget), check.clone()));
     // TLS where configured; TCP_NODELAY on accepted sockets.
     let serving = lcrl_proto::process::add_reflection(router, &check).serve_with_incoming_shutdown(security.incoming(listener), async move {
         let _ = stopped.await;

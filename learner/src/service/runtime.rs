@@ -585,24 +585,8 @@ fn tell_actors_finished(shared: &Shared) {
 }
 
 /// Blocks for the next command up to `timeout`: Some(command or None for
-/// closed), or None when the time ran out. Polls at 250 µs, backing off to
-/// 2 ms while nothing comes: a busy learner answers a batch at once, and
-/// an idle one wakes 500 times a second, not 4,000 (7% of a core, issue 71).
+/// closed), or None when the time ran out. Asleep meanwhile (idle.rs), and
+/// woken at once by a batch.
 fn recv_timeout(commands: &mut mpsc::Receiver<Command>, timeout: Duration) -> Option<Option<Command>> {
-    let deadline = Instant::now() + timeout;
-    let mut pause = Duration::from_micros(250);
-    loop {
-        match commands.try_recv() {
-            Ok(command) => return Some(Some(command)),
-            Err(mpsc::error::TryRecvError::Disconnected) => return Some(None),
-            Err(mpsc::error::TryRecvError::Empty) if Instant::now() >= deadline => return None,
-            Err(mpsc::error::TryRecvError::Empty) => {
-                std::thread::sleep(pause);
-                pause = (pause * 2).min(IDLE_POLL_MAX);
-            }
-        }
-    }
+    crate::service::idle::wait_for(timeout, commands.recv())
 }
-
-/// The longest pause of an idle training thread between looks at its queue.
-const IDLE_POLL_MAX: Duration = Duration::from_millis(2);

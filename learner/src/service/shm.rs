@@ -26,9 +26,12 @@ pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>, buff
     let subscriber = TransitionSubscriber::open(&shared.run_id, buffer)?;
     tracing::info!(service = %service_name(&shared.run_id), "shared-memory transport ready");
     let stop = shared.shutdown.subscribe();
-    // Poll fast while data flows, back off to 2 ms when idle, so an idle
-    // learner does not keep a core busy with wake-ups.
+    // Poll fast while data flows, back off to 2 ms when idle, and to 20 ms
+    // after a second of nothing, so an idle learner does not keep a core
+    // busy with wake-ups (iceoryx2's subscriber has no wake-up of its own;
+    // the first batch after a pause waits at most 20 ms).
     let mut idle = Duration::from_micros(200);
+    let mut last_batch = Instant::now();
     let mut turns = PublisherTurns::default();
     let (mut publishers_checked, mut live) = (Instant::now(), subscriber.live_publishers());
     while !*stop.borrow() {
@@ -41,10 +44,11 @@ pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>, buff
         turns.fill(&subscriber, live.len().max(1) * (buffer + 2))?;
         let Some((batch, publisher)) = turns.next() else {
             std::thread::sleep(idle);
-            idle = (idle * 2).min(Duration::from_millis(2));
+            let longest = if last_batch.elapsed() < Duration::from_secs(1) { Duration::from_millis(2) } else { IDLE_POLL_MAX };
+            idle = (idle * 2).min(longest);
             continue;
         };
-        idle = Duration::from_micros(200);
+        (idle, last_batch) = (Duration::from_micros(200), Instant::now());
         let version = shared.policy_version();
         // An actor id is bound to the publisher that first sent it, as to a
         // gRPC stream (docs/reliability.md): another process on this host
@@ -96,7 +100,11 @@ pub fn run_policy_publisher(shared: Arc<Shared>) -> Result<(), String> {
             if let Err(e) = publisher.update_connections() {
                 tracing::debug!("updating shared-memory connections: {e}");
             }
-            std::thread::sleep(Duration::from_millis(5));
+            // Asleep until the next version, with a look at new
+            // subscribers and the shutdown flag every 100 ms.
+            if let Some(Err(_)) = crate::service::idle::wait_for(Duration::from_millis(100), versions.changed()) {
+                std::thread::sleep(Duration::from_millis(100)); // the policy's sender is gone: shutting down
+            }
             continue;
         }
         first = false;
@@ -106,3 +114,6 @@ pub fn run_policy_publisher(shared: Arc<Shared>) -> Result<(), String> {
     }
     Ok(())
 }
+
+/// The longest pause of an idle shared-memory subscriber between looks.
+const IDLE_POLL_MAX: Duration = Duration::from_millis(20);

@@ -8,102 +8,61 @@
 //! lives: twice its policy and 64 KiB. A stream beyond the budget is
 //! refused with RESOURCE_EXHAUSTED.
 
-use std::collections::HashMap;
 use std::net::IpAddr;
-use std::sync::{Arc, Mutex};
 
-use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use tonic::Status;
+
+use crate::service::memory_budget::{Held, MemoryBudget, Refusal};
 
 /// What a stream costs beside its policy: HTTP/2 stream state and the
 /// encoder's buffer.
 pub const STREAM_OVERHEAD_BYTES: usize = 64 << 10;
 
-/// The share of the budget one peer address may hold (loopback, where
-/// `lcrl run` starts its actors, is not counted): one host that opens
-/// streams and never reads cannot shut out every other actor's.
-pub const PEER_SHARE: u32 = 4;
-
-/// The budget, counted in KiB.
+/// The budget of all `WatchPolicy` streams (`--watch-budget-mib`).
 #[derive(Debug, Clone)]
-pub struct WatchBudget {
-    kib: Arc<Semaphore>,
-    total_kib: u32,
-    /// KiB held by each counted peer.
-    by_peer: Arc<Mutex<HashMap<IpAddr, u32>>>,
-}
+pub struct WatchBudget(MemoryBudget);
 
 /// A stream's share, handed back when the stream ends.
-#[derive(Debug)]
-pub struct WatchPlace {
-    _permit: OwnedSemaphorePermit,
-    peer: Option<(IpAddr, u32, Arc<Mutex<HashMap<IpAddr, u32>>>)>,
-}
-
-impl Drop for WatchPlace {
-    fn drop(&mut self) {
-        if let Some((peer, cost, by_peer)) = &self.peer {
-            let mut by_peer = by_peer.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-            if let Some(held) = by_peer.get_mut(peer) {
-                *held = held.saturating_sub(*cost);
-                if *held == 0 {
-                    by_peer.remove(peer);
-                }
-            }
-        }
-    }
-}
+pub type WatchPlace = Held;
 
 impl WatchBudget {
     /// A budget of `bytes` (at least one stream's worth of a small policy).
     pub fn new(bytes: u64) -> Self {
-        let total_kib = (bytes / 1024).clamp(1, u64::from(u32::MAX >> 3)) as u32;
-        WatchBudget { kib: Arc::new(Semaphore::new(total_kib as usize)), total_kib, by_peer: Arc::default() }
+        WatchBudget(MemoryBudget::new(bytes))
     }
 
-    /// One stream's share for a policy of `policy_bytes` encoded bytes.
+    /// One stream's share for a policy of `policy_bytes` encoded bytes, in
+    /// KiB.
     pub fn cost_kib(policy_bytes: usize) -> u32 {
         (2 * policy_bytes + STREAM_OVERHEAD_BYTES).div_ceil(1024).min(u32::MAX as usize) as u32
     }
 
     /// How many streams of a policy of `policy_bytes` the budget holds.
-    pub fn streams(&self, policy_bytes: usize) -> u32 {
-        self.total_kib / Self::cost_kib(policy_bytes)
+    pub fn streams(&self, policy_bytes: usize) -> usize {
+        self.0.total() / (Self::cost_kib(policy_bytes) as usize * 1024)
     }
 
     /// A place for one more stream of `peer`, or RESOURCE_EXHAUSTED when
     /// the budget, or the peer's share of it, is spent (a stream never
     /// waits for one: its reader retries).
     pub fn admit(&self, policy_bytes: usize, peer: Option<IpAddr>) -> Result<WatchPlace, Status> {
-        let cost = Self::cost_kib(policy_bytes);
-        let counted = peer.and_then(lcrl_proto::limits::counted_peer);
-        let mut by_peer = self.by_peer.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-        if let Some(ip) = counted {
-            let share = self.total_kib / PEER_SHARE;
-            if by_peer.get(&ip).copied().unwrap_or(0).saturating_add(cost) > share {
-                return Err(Status::resource_exhausted(format!(
-                    "{ip} holds its share of the learner's WatchPolicy budget, {} streams of this policy (a quarter of --watch-budget-mib); retry later",
-                    share / cost
-                )));
-            }
-        }
-        let permit = self.kib.clone().try_acquire_many_owned(cost).map_err(|_| {
-            Status::resource_exhausted(format!(
+        let cost = Self::cost_kib(policy_bytes) as usize * 1024;
+        self.0.take(cost, peer).map_err(|refusal| match refusal {
+            Refusal::PeerShare(ip) => Status::resource_exhausted(format!(
+                "{ip} holds its share of the learner's WatchPolicy budget, {} streams of this policy (a quarter of --watch-budget-mib); retry later",
+                self.0.peer_share() / cost
+            )),
+            Refusal::Full => Status::resource_exhausted(format!(
                 "the learner holds {} WatchPolicy streams of this policy ({} KiB each) at most (--watch-budget-mib); retry later",
                 self.streams(policy_bytes),
-                cost
-            ))
-        })?;
-        let peer = counted.map(|ip| {
-            *by_peer.entry(ip).or_insert(0) += cost;
-            (ip, cost, self.by_peer.clone())
-        });
-        Ok(WatchPlace { _permit: permit, peer })
+                cost / 1024
+            )),
+        })
     }
 
     /// KiB in use by live streams.
-    pub fn used_kib(&self) -> u32 {
-        self.total_kib - self.kib.available_permits() as u32
+    pub fn used_kib(&self) -> usize {
+        self.0.used() / 1024
     }
 }
 
@@ -129,20 +88,13 @@ mod tests {
         assert_eq!(budget.used_kib(), 0);
     }
 
-    /// One remote peer holds at most a quarter of the budget; another peer
-    /// and loopback (IPv4-mapped included) still get places, and the
-    /// peer's share comes back as its streams end.
+    /// A peer's refusal names the peer and its share.
     #[test]
-    fn one_peer_holds_at_most_its_share() {
+    fn a_peer_over_its_share_is_told_so() {
         let budget = WatchBudget::new(4 << 20);
-        let peer = |ip: &str| Some(ip.parse::<IpAddr>().unwrap());
-        let mut first: Vec<WatchPlace> = (0..3).map(|_| budget.admit(100 << 10, peer("203.0.113.9")).unwrap()).collect();
-        let refused = budget.admit(100 << 10, peer("203.0.113.9")).unwrap_err();
-        assert!(refused.message().contains("203.0.113.9 holds its share"), "{}", refused.message());
-        assert!(budget.admit(100 << 10, peer("::ffff:203.0.113.9")).is_err(), "IPv4-mapped is the same peer");
-        let _other = budget.admit(100 << 10, peer("198.51.100.4")).unwrap();
-        let _local: Vec<WatchPlace> = (0..4).map(|_| budget.admit(100 << 10, peer("127.0.0.1")).unwrap()).collect();
-        first.pop();
-        assert!(budget.admit(100 << 10, peer("203.0.113.9")).is_ok(), "an ended stream gives the share back");
+        let peer = Some("203.0.113.9".parse::<IpAddr>().unwrap());
+        let _held: Vec<WatchPlace> = (0..3).map(|_| budget.admit(100 << 10, peer).unwrap()).collect();
+        let refused = budget.admit(100 << 10, peer).unwrap_err();
+        assert!(refused.message().contains("203.0.113.9 holds its share") && refused.message().contains("3 streams"), "{}", refused.message());
     }
 }

@@ -1,0 +1,127 @@
+//! A fixed number of bytes that peers may make the learner hold, shared by
+//! all of them: what `WatchPolicy` streams keep for their readers
+//! (watch_budget.rs) and what requests keep while their messages arrive
+//! (request_budget.rs). A share is taken at once or refused, never waited
+//! for (the peer retries), and one peer address holds at most a quarter of
+//! a budget: a host that opens streams and never finishes them cannot shut
+//! out every other. Loopback addresses, where `lcrl run` starts its
+//! actors, are not counted per peer (`lcrl_proto::limits::counted_peer`).
+
+use std::collections::HashMap;
+use std::net::IpAddr;
+use std::sync::{Arc, Mutex};
+
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+
+/// The share of a budget one peer address may hold.
+pub const PEER_SHARE: usize = 4;
+
+/// A budget of bytes.
+#[derive(Debug, Clone)]
+pub struct MemoryBudget {
+    bytes: Arc<Semaphore>,
+    total: usize,
+    /// Bytes held by each counted peer.
+    by_peer: Arc<Mutex<HashMap<IpAddr, usize>>>,
+}
+
+/// Why a share was refused.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Refusal {
+    /// The peer holds its quarter of the budget.
+    PeerShare(IpAddr),
+    /// The budget is spent.
+    Full,
+}
+
+/// A share of a budget, handed back when dropped.
+#[derive(Debug)]
+pub struct Held {
+    permit: OwnedSemaphorePermit,
+    peer: Option<(IpAddr, Arc<Mutex<HashMap<IpAddr, usize>>>)>,
+}
+
+impl Drop for Held {
+    fn drop(&mut self) {
+        if let Some((peer, by_peer)) = &self.peer {
+            let mut by_peer = by_peer.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+            if let Some(held) = by_peer.get_mut(peer) {
+                *held = held.saturating_sub(self.permit.num_permits());
+                if *held == 0 {
+                    by_peer.remove(peer);
+                }
+            }
+        }
+    }
+}
+
+impl Held {
+    pub fn bytes(&self) -> usize {
+        self.permit.num_permits()
+    }
+}
+
+impl MemoryBudget {
+    /// A budget of `bytes` (at least 1).
+    pub fn new(bytes: u64) -> Self {
+        let total = (bytes.max(1) as usize).min(Semaphore::MAX_PERMITS);
+        MemoryBudget { bytes: Arc::new(Semaphore::new(total)), total, by_peer: Arc::default() }
+    }
+
+    pub fn total(&self) -> usize {
+        self.total
+    }
+
+    /// The most one counted peer may hold.
+    pub fn peer_share(&self) -> usize {
+        self.total / PEER_SHARE
+    }
+
+    /// Bytes held now.
+    pub fn used(&self) -> usize {
+        self.total - self.bytes.available_permits()
+    }
+
+    /// `bytes` more for `peer`, or why not.
+    pub fn take(&self, bytes: usize, peer: Option<IpAddr>) -> Result<Held, Refusal> {
+        let counted = peer.and_then(lcrl_proto::limits::counted_peer);
+        let mut by_peer = self.by_peer.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        if let Some(ip) = counted {
+            if by_peer.get(&ip).copied().unwrap_or(0).saturating_add(bytes) > self.peer_share() {
+                return Err(Refusal::PeerShare(ip));
+            }
+        }
+        let permits = u32::try_from(bytes).map_err(|_| Refusal::Full)?;
+        let permit = self.bytes.clone().try_acquire_many_owned(permits).map_err(|_| Refusal::Full)?;
+        let peer = counted.map(|ip| {
+            *by_peer.entry(ip).or_insert(0) += bytes;
+            (ip, self.by_peer.clone())
+        });
+        Ok(Held { permit, peer })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Shares are taken while the budget lasts and given back on drop; one
+    /// remote peer holds at most a quarter, another peer and loopback
+    /// (IPv4-mapped included) still get theirs.
+    #[test]
+    fn shares_are_bounded_in_all_and_per_peer_and_come_back() {
+        let budget = MemoryBudget::new(4000);
+        let peer = |ip: &str| Some(ip.parse::<IpAddr>().unwrap());
+        let first = budget.take(600, peer("203.0.113.9")).unwrap();
+        assert_eq!(budget.take(401, peer("203.0.113.9")).unwrap_err(), Refusal::PeerShare("203.0.113.9".parse().unwrap()));
+        assert!(budget.take(401, peer("::ffff:203.0.113.9")).is_err(), "IPv4-mapped is the same peer");
+        let second = budget.take(400, peer("203.0.113.9")).unwrap();
+        let _other = budget.take(1000, peer("198.51.100.4")).unwrap();
+        let local = budget.take(2000, peer("127.0.0.1")).unwrap();
+        assert_eq!((budget.used(), first.bytes() + second.bytes()), (4000, 1000));
+        assert_eq!(budget.take(1, None).unwrap_err(), Refusal::Full);
+        drop((first, local));
+        assert_eq!(budget.used(), 1400);
+        assert!(budget.take(600, peer("203.0.113.9")).is_ok(), "a dropped share is the peer's again");
+    }
+}
