@@ -168,3 +168,56 @@ print(f"timesteps {model.num_timesteps} updates {model._n_updates} episode {step
     assert!(words[3].parse::<u64>().unwrap() >= 150, "SAC updated after its 100 warm-up steps: {line}");
     assert!(words[8].parse::<f64>().unwrap().is_finite(), "{line}");
 }
+
+/// `lcrl serve-env` is secured like every lcrl service and forks: under
+/// mutual TLS and a token (`grpcs://`), CS3 run against the served
+/// lti-paper (paired rollouts from forks of one state) measures the graph
+/// it measures in process, and a client without its certificate or the
+/// token is refused.
+#[test]
+fn serve_env_takes_mutual_tls_and_a_token_and_forks_for_cs3() {
+    use lcrl_sim::remote::{TLS_CA_ENV, TLS_CLIENT_CERT_ENV, TLS_CLIENT_KEY_ENV};
+    let dir = tempfile::tempdir().unwrap();
+    let token = dir.path().join("token");
+    std::fs::write(&token, "0123456789abcdef0123456789abcdef\n").unwrap();
+    let certs = dir.path().join("certs");
+    let out = lcrl().args(["certs", "--out"]).arg(&certs).output().unwrap();
+    assert!(out.status.success(), "{}", super::common::stderr(&out));
+    let (mut server, addr) = spawn_listening(
+        lcrl()
+            .args(["serve-env", "--env", "lti-paper", "--listen", "127.0.0.1:0", "--token-file"])
+            .arg(&token)
+            .arg("--tls-cert")
+            .arg(certs.join("server.pem"))
+            .arg("--tls-key")
+            .arg(certs.join("server.key"))
+            .arg("--tls-client-ca")
+            .arg(certs.join("ca.pem")),
+    );
+    let graph = |env: &str, vars: &[(&str, PathBuf)]| {
+        let json = dir.path().join(format!("g{}.json", vars.len()));
+        let mut cmd = lcrl();
+        cmd.args(["graph", "--samples", "16", "--seed", "3", "--env", env, "--out"]).arg(&json);
+        for name in ["LCRL_TOKEN_FILE", TLS_CA_ENV, TLS_CLIENT_CERT_ENV, TLS_CLIENT_KEY_ENV] {
+            cmd.env_remove(name);
+        }
+        cmd.envs(vars.iter().cloned());
+        let out = cmd.output().unwrap();
+        (out.status.success().then(|| serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(&json).unwrap()).unwrap()), out)
+    };
+    let url = format!("grpcs://{addr}");
+    let trusted = vec![("LCRL_TOKEN_FILE", token.clone()), (TLS_CA_ENV, certs.join("ca.pem")), (TLS_CLIENT_CERT_ENV, certs.join("client.pem")), (TLS_CLIENT_KEY_ENV, certs.join("client.key"))];
+    let (served, out) = graph(&url, &trusted);
+    let served = served.unwrap_or_else(|| panic!("CS3 against the served environment: {}", super::common::stderr(&out)));
+    let (local, _) = graph("lti-paper", &[]);
+    let local = local.expect("CS3 in process");
+    assert_eq!(served["g"], local["g"], "the served graph is the in-process one");
+    assert_eq!(served["phi"], local["phi"], "the same CS3 values, bit for bit through f64 JSON");
+    let (no_cert, _) = graph(&url, &trusted[..2]);
+    assert!(no_cert.is_none(), "no client certificate: refused by mutual TLS");
+    let (no_token, out) = graph(&url, &trusted[1..]);
+    assert!(no_token.is_none(), "no token: refused");
+    assert!(super::common::stderr(&out).to_lowercase().contains("token"), "{}", super::common::stderr(&out));
+    let _ = server.kill();
+    let _ = server.wait();
+}
