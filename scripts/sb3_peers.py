@@ -10,7 +10,10 @@ experiments/peers.md's study (docs/peers.md).
 
 Settings: SB3's defaults for the algorithm, with the overrides of
 --settings (a JSON object of keyword arguments), all written to
-summary.json. A finished run (summary.json present) is skipped.
+summary.json. Two keys are rl-zoo3's rather than SB3's: "noise_std" (with
+"noise_type": "normal") becomes a NormalActionNoise of that scale on every
+action component, and a list "train_freq" ([1, "episode"]) a tuple. A
+finished run (summary.json present) is skipped.
 """
 
 import argparse
@@ -67,6 +70,22 @@ def evaluate(model, env, episodes: int = 100) -> list[float]:
     return returns
 
 
+def sb3_keywords(settings: dict, env) -> dict:
+    """SB3's keyword arguments for `settings` (rl-zoo3's noise and
+    train_freq spelled as SB3 takes them)."""
+    kw = dict(settings)
+    noise_type, noise_std = kw.pop("noise_type", None), kw.pop("noise_std", None)
+    if noise_std is not None:
+        if noise_type not in (None, "normal"):
+            raise SystemExit(f"--settings: noise_type {noise_type!r} is not supported (normal only)")
+        from stable_baselines3.common.noise import NormalActionNoise
+        n = env.action_space.shape[0]
+        kw["action_noise"] = NormalActionNoise(mean=np.zeros(n), sigma=noise_std * np.ones(n))
+    if isinstance(kw.get("train_freq"), list):
+        kw["train_freq"] = tuple(kw["train_freq"])
+    return kw
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", required=True, help="an lcrl environment (peg-group1, peg-group2, ...)")
@@ -91,7 +110,7 @@ def main() -> int:
     env = lcrl_env.make(args.env)
     rows: list = []
     started = time.monotonic()
-    model = ALGOS[args.algo]("MlpPolicy", env, seed=args.seed, device="cpu", verbose=0, **settings)
+    model = ALGOS[args.algo]("MlpPolicy", env, seed=args.seed, device="cpu", verbose=0, **sb3_keywords(settings, env))
     # SB3 counts steps; the budget is in episodes (at most 100 steps each
     # on the peg presets), so the step cap is never what stops it.
     model.learn(total_timesteps=10**9, callback=Episodes(args.episodes, rows))
