@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# The settings search of docs/research/2026-12-04-peers-search-design.md: each
+# candidate on peg-group1, search seeds 300-301 (resumable: finished runs are skipped).
+#   bash scripts/peers-search.sh
+cd "$(dirname "$0")/.."
+zoo_td3='"gamma": 0.98, "buffer_size": 200000, "noise_type": "normal", "noise_std": 0.1, "gradient_steps": -1, "train_freq": [1, "episode"], "learning_rate": 0.001, "policy_kwargs": {"net_arch": [400, 300]}'
+declare -A S=(
+ [sac-default]='sac|{}'
+ [sac-zoo]='sac|{"learning_rate": 0.001}'
+ [sac-zoo-starts]='sac|{"learning_rate": 0.001, "learning_starts": 1000}'
+ [td3-default]='td3|{}'
+ [td3-noise]='td3|{"noise_type": "normal", "noise_std": 0.1}'
+ [td3-zoo]="td3|{$zoo_td3, \"learning_starts\": 5000}"
+ [td3-zoo-starts]="td3|{$zoo_td3, \"learning_starts\": 1000}"
+)
+for seed in 300 301; do
+  for name in sac-default td3-default sac-zoo td3-noise sac-zoo-starts td3-zoo td3-zoo-starts; do
+    IFS='|' read -r algo settings <<< "${S[$name]}"
+    out=runs/peers/sb3-search/peg-group1/$name/seed$seed
+    [ -f $out/summary.json ] && continue
+    nice -n 19 .venv/bin/python scripts/sb3_peers.py --env peg-group1 --algo $algo --seed $seed --episodes 200 --settings "$settings" --out $out || echo "FAILED $name $seed" >&2
+  done
+done
+
