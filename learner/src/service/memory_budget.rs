@@ -37,16 +37,18 @@ pub enum Refusal {
 /// A share of a budget, handed back when dropped.
 #[derive(Debug)]
 pub struct Held {
-    permit: OwnedSemaphorePermit,
+    /// None once merged into another share.
+    permit: Option<OwnedSemaphorePermit>,
     peer: Option<(IpAddr, Arc<Mutex<HashMap<IpAddr, usize>>>)>,
 }
 
 impl Drop for Held {
     fn drop(&mut self) {
+        let bytes = self.bytes();
         if let Some((peer, by_peer)) = &self.peer {
             let mut by_peer = by_peer.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
             if let Some(held) = by_peer.get_mut(peer) {
-                *held = held.saturating_sub(self.permit.num_permits());
+                *held = held.saturating_sub(bytes);
                 if *held == 0 {
                     by_peer.remove(peer);
                 }
@@ -57,7 +59,23 @@ impl Drop for Held {
 
 impl Held {
     pub fn bytes(&self) -> usize {
-        self.permit.num_permits()
+        self.permit.as_ref().map_or(0, OwnedSemaphorePermit::num_permits)
+    }
+
+    /// Joins `other`, a share of the same budget and peer, into this one.
+    pub fn merge(&mut self, mut other: Held) {
+        match (&mut self.permit, other.permit.take()) {
+            (Some(mine), Some(theirs)) => mine.merge(theirs),
+            (mine @ None, theirs) => *mine = theirs,
+            (Some(_), None) => {}
+        }
+    }
+
+    /// Splits `bytes` of this share off into a share of their own (to hand
+    /// them back by dropping it); None when it holds fewer.
+    pub fn split_off(&mut self, bytes: usize) -> Option<Held> {
+        let part = self.permit.as_mut()?.split(bytes)?;
+        Some(Held { permit: Some(part), peer: self.peer.clone() })
     }
 }
 
@@ -97,7 +115,7 @@ impl MemoryBudget {
             *by_peer.entry(ip).or_insert(0) += bytes;
             (ip, self.by_peer.clone())
         });
-        Ok(Held { permit, peer })
+        Ok(Held { permit: Some(permit), peer })
     }
 }
 
@@ -123,5 +141,21 @@ mod tests {
         drop((first, local));
         assert_eq!(budget.used(), 1400);
         assert!(budget.take(600, peer("203.0.113.9")).is_ok(), "a dropped share is the peer's again");
+    }
+
+    /// Merged shares are one; a split-off part hands back just its bytes,
+    /// to the budget and to the peer's count.
+    #[test]
+    fn shares_merge_and_split() {
+        let budget = MemoryBudget::new(4000);
+        let peer = Some("203.0.113.9".parse::<IpAddr>().unwrap());
+        let mut held = budget.take(300, peer).unwrap();
+        held.merge(budget.take(500, peer).unwrap());
+        assert_eq!((held.bytes(), budget.used()), (800, 800));
+        assert!(held.split_off(801).is_none());
+        drop(held.split_off(600));
+        assert_eq!((held.bytes(), budget.used()), (200, 200));
+        assert!(budget.take(800, peer).is_ok(), "the peer holds 200 of its 1000 after the split");
+        assert!(budget.take(801, peer).is_err());
     }
 }

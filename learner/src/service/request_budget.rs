@@ -3,10 +3,12 @@
 //! messages of up to `--max-batch-bytes` on every stream of every
 //! connection and never finishes them once held 32 × 512 × 1 MiB = 16 GiB
 //! (issue 71). Every request body of the Learner and Policy services now
-//! takes the bytes of its unfinished message from one budget,
-//! `--request-budget-mib`, as they arrive, and gives them back when the
-//! message is complete (it is decoded at once, and what it decodes to waits
-//! in a bounded queue) or the stream ends. A message that would go beyond
+//! takes the bytes it passes on from one budget, `--request-budget-mib`, as
+//! they arrive, and holds them while its reader may still hold them: until
+//! the reader asks for more (then only the unfinished message's bytes stay
+//! held) or the stream ends. So the budget covers unfinished messages and
+//! the decoded batch each stream holds while it waits for room in the
+//! training queue. A message that would go beyond
 //! the budget, or beyond its peer's quarter of it, ends its stream with
 //! RESOURCE_EXHAUSTED ([`BUDGET_SPENT`]); an actor resends it later.
 //!
@@ -86,33 +88,46 @@ where
     fn call(&mut self, request: http::Request<Body>) -> Self::Future {
         let peer = request.extensions().get::<TcpConnectInfo>().and_then(TcpConnectInfo::remote_addr).map(|addr| addr.ip());
         let budget = self.budget.clone();
-        self.inner.call(request.map(|body| Body::new(Counted { inner: body, budget, peer, framing: Framing::default(), held: Vec::new(), held_bytes: 0 })))
+        self.inner.call(request.map(|body| Body::new(Counted::new(body, budget, peer))))
     }
 }
 
-/// A request body holding a share of the budget for its unfinished message.
+/// A request body holding a share of the budget for what it has passed on
+/// and its reader may still hold.
 struct Counted {
     inner: Body,
     budget: RequestBudget,
     peer: Option<IpAddr>,
     framing: Framing,
-    /// The unfinished message's shares, one per chunk that added to it.
-    held: Vec<Held>,
-    held_bytes: usize,
+    held: Option<Held>,
 }
 
 impl Counted {
-    /// Holds exactly the unfinished message's `partial` bytes.
-    fn hold(&mut self, partial: usize) -> Result<(), Status> {
-        if partial < self.held_bytes {
-            // A message was completed (and perhaps the next begun).
-            self.held.clear();
-            self.held_bytes = 0;
+    fn new(inner: Body, budget: RequestBudget, peer: Option<IpAddr>) -> Self {
+        Counted { inner, budget, peer, framing: Framing::default(), held: None }
+    }
+
+    /// The reader asks for more: it is done with every message it was
+    /// handed (tonic decodes a message as soon as its last byte is here and
+    /// asks the body again only on the reader's next call, and the learner
+    /// reads a stream's next batch only once it has queued or refused the
+    /// last), so only the unfinished message's bytes stay held.
+    fn on_poll(&mut self) {
+        let keep = self.framing.partial;
+        if let Some(held) = &mut self.held {
+            if held.bytes() > keep {
+                drop(held.split_off(held.bytes() - keep));
+            }
         }
-        if partial > self.held_bytes {
-            let share = self.budget.0.take(partial - self.held_bytes, self.peer).map_err(|refusal| self.budget.refusal(refusal))?;
-            self.held.push(share);
-            self.held_bytes = partial;
+    }
+
+    /// A chunk passed on: its bytes are held until the next poll.
+    fn on_chunk(&mut self, chunk: &[u8]) -> Result<(), Status> {
+        self.framing.feed(chunk);
+        let share = self.budget.0.take(chunk.len(), self.peer).map_err(|refusal| self.budget.refusal(refusal))?;
+        match &mut self.held {
+            Some(held) => held.merge(share),
+            None => self.held = Some(share),
         }
         Ok(())
     }
@@ -124,13 +139,13 @@ impl http_body::Body for Counted {
 
     fn poll_frame(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Result<Frame<Bytes>, Status>>> {
         let this = &mut *self;
+        this.on_poll();
         let frame = match Pin::new(&mut this.inner).poll_frame(cx) {
             Poll::Pending => return Poll::Pending,
             Poll::Ready(frame) => frame,
         };
-        if let Some(Ok(data)) = frame.as_ref().map(|f| f.as_ref().map(Frame::data_ref)) {
-            let partial = data.map_or(this.framing.partial, |bytes| this.framing.feed(bytes));
-            if let Err(status) = this.hold(partial) {
+        if let Some(Ok(Some(data))) = frame.as_ref().map(|f| f.as_ref().map(Frame::data_ref)) {
+            if let Err(status) = this.on_chunk(data) {
                 tracing::warn!(peer = ?this.peer, %status, "request refused");
                 return Poll::Ready(Some(Err(status)));
             }
@@ -212,28 +227,31 @@ mod tests {
         }
     }
 
-    /// An unfinished message holds its bytes, a finished one gives them
-    /// back, and one beyond the budget is refused with RESOURCE_EXHAUSTED
-    /// naming the flag.
+    /// What a body passed on is held until its reader asks again; then
+    /// only the unfinished message's bytes stay. A chunk beyond the budget
+    /// is refused with RESOURCE_EXHAUSTED naming the flag, and an ended
+    /// stream gives back all it held.
     #[test]
-    fn unfinished_messages_hold_their_bytes_and_the_budget_refuses_beyond_it() {
+    fn passed_bytes_are_held_until_the_reader_asks_again() {
         let budget = RequestBudget::new(1000);
-        let body = |budget: &RequestBudget| Counted { inner: Body::empty(), budget: budget.clone(), peer: None, framing: Framing::default(), held: Vec::new(), held_bytes: 0 };
-        let mut a = body(&budget);
+        let mut a = Counted::new(Body::empty(), budget.clone(), None);
         let big = message(900);
-        let partial = a.framing.feed(&big[..600]);
-        a.hold(partial).unwrap();
-        assert_eq!(budget.used(), 600);
-        let mut b = body(&budget);
-        let partial = b.framing.feed(&big[..500]);
-        let refused = b.hold(partial).unwrap_err();
+        a.on_poll();
+        a.on_chunk(&big[..600]).unwrap();
+        a.on_poll();
+        assert_eq!(budget.used(), 600, "an unfinished message holds its bytes");
+        let mut b = Counted::new(Body::empty(), budget.clone(), None);
+        let refused = b.on_chunk(&big[..500]).unwrap_err();
         assert_eq!(refused.code(), tonic::Code::ResourceExhausted);
         assert!(refused.message().starts_with(BUDGET_SPENT) && refused.message().contains("--request-budget-mib"), "{}", refused.message());
-        let partial = a.framing.feed(&big[600..]);
-        a.hold(partial).unwrap();
-        assert_eq!(budget.used(), 0, "a finished message gives its bytes back");
-        b.hold(500).unwrap();
-        drop(b);
-        assert_eq!(budget.used(), 0, "an ended stream gives its bytes back");
+        // The rest, and 10 bytes of the next message, in one chunk.
+        let next = message(50);
+        a.on_chunk(&[&big[600..], &next[..10]].concat()).unwrap();
+        assert_eq!(budget.used(), 915, "the finished message is held while its reader may hold it");
+        a.on_poll();
+        assert_eq!(budget.used(), 10, "the reader asked again: only the unfinished message's bytes");
+        b.on_chunk(&big[..500]).unwrap();
+        drop((a, b));
+        assert_eq!(budget.used(), 0, "ended streams give back all they held");
     }
 }
