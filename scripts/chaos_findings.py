@@ -217,6 +217,7 @@ def slow_senders(c):
     """The attack below twice: with the request budget at its largest (1 TiB:
     no bound, as before the budget) and at its default."""
     unbounded = _slow_senders_once(c, "--request-budget-mib", str(1 << 20))
+    c.close()  # nothing of the first run left beside the second
     bounded = _slow_senders_once(c)
     return {**bounded, "fault": bounded["fault"], "did": f"budget {bounded['did']}; at 1 TiB (unbounded, as before): {unbounded['did']}", "unbounded": unbounded}
 
