@@ -282,3 +282,44 @@ async fn actors_stop_when_the_budget_is_spent() {
         assert!(stderr(&out).contains("episode budget is spent"), "{transport}: {}", stderr(&out));
     }
 }
+
+/// An actor whose first GetPolicy is answered UNAVAILABLE (a learner still
+/// loading its checkpoint: here a stand-in gRPC server in Python) asks
+/// again with backoff until `--connect-deadline`, instead of exiting on the
+/// first refusal (issue 71), and trains once the learner takes the port.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_actor_asks_again_while_the_learner_answers_no_policy() {
+    const STAND_IN: &str = r#"
+import sys, time, grpc
+from concurrent import futures
+class Unavailable(grpc.GenericRpcHandler):
+    calls = 0
+    def service(self, details):
+        def refuse(request, context):
+            Unavailable.calls += 1
+            context.abort(grpc.StatusCode.UNAVAILABLE, "loading its checkpoint")
+        return grpc.unary_unary_rpc_method_handler(refuse, request_deserializer=lambda b: b, response_serializer=lambda b: b)
+server = grpc.server(futures.ThreadPoolExecutor(max_workers=2), handlers=[Unavailable()])
+server.add_insecure_port("127.0.0.1:" + sys.argv[1])
+server.start()
+deadline = time.monotonic() + 30
+while Unavailable.calls < 3 and time.monotonic() < deadline:
+    time.sleep(0.05)
+server.stop(None).wait()
+print(Unavailable.calls)
+"#;
+    let port = free_port();
+    let python = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python");
+    let stand_in = std::process::Command::new(python).args(["-c", STAND_IN, &port.to_string()]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    // Until the stand-in listens, the actor's connect is what retries.
+    std::thread::sleep(Duration::from_millis(500));
+    let url = format!("http://127.0.0.1:{port}");
+    let mut actor = actor_with_args(&url, "retry", &[]); // --connect-deadline 30
+    let out = tokio::task::spawn_blocking(move || stand_in.wait_with_output().unwrap()).await.unwrap();
+    let refused: u32 = String::from_utf8_lossy(&out.stdout).trim().parse().unwrap_or_else(|_| panic!("the stand-in: {}", String::from_utf8_lossy(&out.stderr)));
+    assert!(refused >= 3, "the actor asked {refused} times");
+    assert!(actor.0.try_wait().unwrap().is_none(), "the actor exited after {refused} refusals");
+    let dir = tempfile::tempdir().unwrap();
+    let (_learner, url) = learner_with_args(&dir.path().join("run"), "retry", port, "ddpg", &[]);
+    wait_for(&url, "the actor's transitions", |s| s.env_steps > 0).await;
+}
