@@ -4,6 +4,7 @@
 //! units. Plain Rust; the gRPC and shared-memory front ends both call it.
 
 use crate::policy::action::ActionMap;
+use crate::service::episode_sums::OpenEpisodes;
 use std::collections::{BTreeMap, HashMap};
 
 use lcrl_proto::v1::{EpisodeSummary, TransitionBatch};
@@ -160,6 +161,9 @@ pub struct Ingest {
     pub rejected: BTreeMap<String, u64>,
     /// Transitions accepted (handed to the training thread).
     pub accepted: u64,
+    /// Every actor's unfinished episodes, so returns are the learner's sums
+    /// (episode_sums.rs).
+    open: OpenEpisodes,
 }
 
 impl Ingest {
@@ -178,6 +182,7 @@ impl Ingest {
             max_staleness,
             rejected: BTreeMap::new(),
             accepted: 0,
+            open: OpenEpisodes::default(),
         }
     }
 
@@ -213,6 +218,7 @@ impl Ingest {
         let oldest = self.last_seen.iter().min_by_key(|(_, seen)| **seen).map(|(id, seen)| (id.clone(), seen.elapsed()));
         match oldest {
             Some((id, silent)) if silent >= ACTOR_SILENCE_TO_FORGET => {
+                self.open.forget(&id);
                 self.last_sequence.remove(&id);
                 self.last_seen.remove(&id);
                 self.holders.remove(&id);
@@ -237,6 +243,7 @@ impl Ingest {
             .map(|(id, _)| id.clone())
             .collect();
         for id in silent {
+            self.open.forget(&id);
             self.last_sequence.remove(&id);
             self.last_seen.remove(&id);
             self.holders.remove(&id);
@@ -317,7 +324,14 @@ impl Ingest {
         }
         let transitions = self.normalize(batch);
         self.accepted += transitions.len() as u64;
-        Verdict::Accept(Accepted { transitions, episodes: batch.episodes.clone(), policy_version: batch.policy_version, stream: stream_of(&batch.actor_id) })
+        // Returns the learner summed itself, over this batch and the
+        // actor's earlier ones (what the budget's episodes and metrics.csv
+        // show), whatever the summaries claim.
+        let (episodes, rewritten) = self.open.settle(batch);
+        if rewritten > 0 {
+            tracing::debug!(actor = %batch.actor_id, rewritten, "episode claims rewritten to the rewards stored for them");
+        }
+        Verdict::Accept(Accepted { transitions, episodes, policy_version: batch.policy_version, stream: stream_of(&batch.actor_id) })
     }
 
     /// The run id, and the actor id's length (names are kept: sequences,

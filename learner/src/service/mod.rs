@@ -6,6 +6,7 @@
 //! [`crate::algo`], [`crate::device`], [`crate::config`]); none imports it.
 //!
 //! - [`ingest`]: checks, deduplicates and normalizes batches (plain Rust).
+//! - [`episode_sums`]: episode returns summed by the learner over an actor's batches.
 //! - [`incarnation`]: the learner process's id, so restarts are noticed.
 //! - [`shared`]: what the threads share (counters, the newest policy, ingestion, flow).
 //! - [`launch`]: the learner process as a library function (`lcrl-learner` parses its arguments and calls it).
@@ -24,6 +25,7 @@
 //! - [`idle`]: the learner's own threads asleep until something happens.
 
 pub mod disk_full;
+pub mod episode_sums;
 pub mod episodes;
 pub mod flow;
 pub mod idle;

@@ -101,11 +101,17 @@ pub fn run_policy_publisher(shared: Arc<Shared>) -> Result<(), String> {
                 tracing::debug!("updating shared-memory connections: {e}");
             }
             // Asleep until the next version, with a look at new
-            // subscribers and the shutdown flag every 100 ms.
-            if let Some(Err(_)) = crate::service::idle::wait_for(Duration::from_millis(100), versions.changed()) {
-                std::thread::sleep(Duration::from_millis(100)); // the policy's sender is gone: shutting down
+            // subscribers and the shutdown flag every 100 ms. `changed`
+            // marks the version seen, so a new one is published at once,
+            // not left to `has_changed` (which would no longer see it).
+            match crate::service::idle::wait_for(Duration::from_millis(100), versions.changed()) {
+                Some(Ok(())) => {}
+                Some(Err(_)) => {
+                    std::thread::sleep(Duration::from_millis(100)); // the policy's sender is gone: shutting down
+                    continue;
+                }
+                None => continue,
             }
-            continue;
         }
         first = false;
         let snapshot = versions.borrow_and_update().clone();

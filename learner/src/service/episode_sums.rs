@@ -1,0 +1,152 @@
+//! Episode returns and lengths from the rewards the learner stored, not
+//! from what an actor claims (issue 71). An actor's episode may span
+//! several of its batches: each batch's part ends in a cut (mid-episode)
+//! and the next part begins, in a later batch of the same actor, at the
+//! state the cut's step led to. The learner keeps every actor's unfinished
+//! parts, keyed by that state (bit for bit, as PPO joins its streams,
+//! ppo.rs), and so sums an episode over all its stored steps.
+//!
+//! A summary whose claim disagrees with the learner's sum is rewritten to
+//! the sum. An episode whose beginning the learner did not store (it began
+//! before this learner process, or in a batch refused or lost) counts with
+//! the return and length of the steps it did store. A claim that agrees is
+//! kept: it sums the environment's f64 rewards, which travel as f32.
+
+use std::collections::HashMap;
+
+use lcrl_proto::v1::{EpisodeSummary, TransitionBatch};
+
+/// Unfinished parts kept per actor (one per environment it steps; an
+/// actor with more loses its oldest, whose episode then counts from its
+/// next stored step).
+pub const OPEN_PER_ACTOR: usize = 64;
+
+/// Every actor's unfinished episode parts.
+#[derive(Debug, Default)]
+pub struct OpenEpisodes {
+    by_actor: HashMap<String, Vec<Open>>,
+}
+
+#[derive(Debug)]
+struct Open {
+    /// The state the part's last step led to, as f32 bits.
+    next_state: Vec<u32>,
+    sum: f64,
+    sum_abs: f64,
+    steps: u32,
+}
+
+/// What a part of an episode adds up to.
+#[derive(Debug, Default, Clone, Copy)]
+struct Part {
+    sum: f64,
+    sum_abs: f64,
+    steps: u32,
+}
+
+fn bits(state: &[f32]) -> Vec<u32> {
+    state.iter().map(|v| v.to_bits()).collect()
+}
+
+impl OpenEpisodes {
+    /// The summaries of an accepted `batch` (one per end, in order, as the
+    /// door checked), each with the learner's return and length; the
+    /// batch's unfinished parts are kept for the actor's next batches.
+    /// Returns the summaries and how many claims were rewritten.
+    pub fn settle(&mut self, batch: &TransitionBatch) -> (Vec<EpisodeSummary>, u64) {
+        let mut summaries = batch.episodes.clone();
+        let mut rewritten = 0;
+        let open = self.by_actor.entry(batch.actor_id.clone()).or_default();
+        let mut ends = summaries.iter_mut();
+        let mut part: Option<Part> = None;
+        for t in &batch.transitions {
+            let p = part.get_or_insert_with(|| {
+                let key = bits(&t.state);
+                open.iter().position(|o| o.next_state == key).map_or_else(Part::default, |k| {
+                    let o = open.swap_remove(k);
+                    Part { sum: o.sum, sum_abs: o.sum_abs, steps: o.steps }
+                })
+            });
+            p.sum += f64::from(t.reward);
+            p.sum_abs += f64::from(t.reward.abs());
+            p.steps = p.steps.saturating_add(1);
+            if t.terminated || t.truncated {
+                let Some(p) = part.take() else { continue };
+                let Some(claim) = ends.next() else { break };
+                let tolerance = 1e-5 * (p.sum_abs + 1.0);
+                if claim.length != p.steps || (claim.episode_return - p.sum).abs() > tolerance {
+                    (claim.episode_return, claim.length) = (p.sum, p.steps);
+                    rewritten += 1;
+                }
+            } else if t.cut {
+                if let Some(p) = part.take() {
+                    keep(open, Open { next_state: bits(&t.next_state), sum: p.sum, sum_abs: p.sum_abs, steps: p.steps });
+                }
+            }
+        }
+        // A last part with neither an end nor a cut goes on in a later
+        // batch all the same.
+        if let (Some(p), Some(last)) = (part, batch.transitions.last()) {
+            keep(open, Open { next_state: bits(&last.next_state), sum: p.sum, sum_abs: p.sum_abs, steps: p.steps });
+        }
+        if open.is_empty() {
+            self.by_actor.remove(&batch.actor_id);
+        }
+        (summaries, rewritten)
+    }
+
+    /// Forgets an actor (its id left the learner's table).
+    pub fn forget(&mut self, actor_id: &str) {
+        self.by_actor.remove(actor_id);
+    }
+}
+
+fn keep(open: &mut Vec<Open>, part: Open) {
+    if open.len() >= OPEN_PER_ACTOR {
+        open.remove(0);
+    }
+    open.push(part);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lcrl_proto::v1::Transition;
+
+    fn step(state: f32, reward: f32, end: bool, cut: bool) -> Transition {
+        Transition { state: vec![state], next_state: vec![state + 1.0], action: vec![0.0], reward, terminated: end, cut, ..Default::default() }
+    }
+
+    fn batch(actor: &str, transitions: Vec<Transition>, claims: &[(f64, u32)]) -> TransitionBatch {
+        let episodes = claims.iter().map(|&(episode_return, length)| EpisodeSummary { episode_return, length, ..Default::default() }).collect();
+        TransitionBatch { actor_id: actor.into(), transitions, episodes, ..Default::default() }
+    }
+
+    /// Two environments' episodes cut across two batches are summed over
+    /// both (an honest claim is kept as it is); a claim beyond the stored
+    /// rewards is rewritten to them; an episode whose start was never
+    /// stored counts its stored steps; another actor's parts are its own.
+    #[test]
+    fn returns_are_summed_over_the_batches_that_hold_them() {
+        let mut open = OpenEpisodes::default();
+        // Env A: states 0, 1 (cut); env B: 10 (cut).
+        let first = batch("a", vec![step(0.0, -1.0, false, false), step(1.0, -1.0, false, true), step(10.0, -0.5, false, true)], &[]);
+        assert_eq!(open.settle(&first), (vec![], 0));
+        // B goes on from 11 and ends; A goes on from 2 and ends claiming a
+        // return of 1e5 it never earned.
+        let second = batch("a", vec![step(11.0, -0.5, true, false), step(2.0, -1.0, true, false)], &[(-1.0, 2), (1e5, 3)]);
+        let (summaries, rewritten) = open.settle(&second);
+        assert_eq!(rewritten, 1);
+        assert_eq!((summaries[0].episode_return, summaries[0].length), (-1.0, 2), "an honest claim is kept");
+        assert_eq!((summaries[1].episode_return, summaries[1].length), (-3.0, 3), "the stored rewards, not the claim");
+        // An episode whose beginning was never stored (state 50 follows no
+        // kept part; another actor's part at 2 is not this one's).
+        let other = batch("b", vec![step(1.0, -1.0, false, true)], &[]);
+        open.settle(&other);
+        let (summaries, rewritten) = open.settle(&batch("a", vec![step(50.0, -2.0, false, false), step(51.0, -2.0, true, false)], &[(-40.0, 20)]));
+        assert_eq!((rewritten, summaries[0].episode_return, summaries[0].length), (1, -4.0, 2));
+        let (summaries, _) = open.settle(&batch("b", vec![step(2.0, -1.0, true, false)], &[(-2.0, 2)]));
+        assert_eq!((summaries[0].episode_return, summaries[0].length), (-2.0, 2));
+        assert!(open.by_actor.is_empty(), "every part was finished");
+    }
+}
