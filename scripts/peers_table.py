@@ -70,6 +70,47 @@ def runs_of(root, kind, env, algo, connection):
     return sorted(runs, key=lambda r: r["seed"])
 
 
+def searched_cells(root, env):
+    """The rows of the settings search's picks (docs/research/
+    2026-12-04-peers-search-design.md): folders sb3/ENV/ALGO-NAME, each
+    row placed after its algorithm's default row."""
+    found = sorted(d.name for d in (root["peers"] / "sb3" / env).glob("*-*") if d.is_dir())
+    return [(f"SB3 {name.split('-')[0].upper()} (searched: {name})", "sb3", name, None) for name in found]
+
+
+def search_table(root):
+    """The search's candidates on their seeds, and each algorithm's pick
+    (the highest mean; a tie within 0.05 goes to the earlier candidate)."""
+    base = root["peers"] / "sb3-search" / "peg-group1"
+    order = ["sac-default", "sac-zoo", "sac-zoo-starts", "td3-default", "td3-noise", "td3-zoo", "td3-zoo-starts"]
+    rows = []
+    for name in order:
+        finals = [json.loads((f / "summary.json").read_text()) for f in sorted((base / name).glob("seed*")) if (f / "summary.json").is_file()]
+        if finals:
+            rows.append((name, finals))
+    if not rows:
+        return
+    print("\n### The settings search (peg-group1, search seeds 300–301)\n")
+    print("| candidate | settings | every seed | mean | pick |")
+    print("|---|---|---|---|---|")
+    picks = {}
+    for algo in ("sac", "td3"):
+        best = None
+        for name, runs in rows:
+            if name.startswith(algo) and len(runs) == 2:
+                mean = statistics.fmean(r["eval_return"] for r in runs)
+                if best is None or mean > best[1] + 0.05:
+                    best = (name, mean)
+        if best:
+            picks[algo] = best[0]
+    for name, runs in rows:
+        settings = json.dumps(runs[0]["settings"]) if runs[0]["settings"] else "SB3's defaults"
+        every = ", ".join("%d: %.2f" % (r["seed"], r["eval_return"]) for r in runs)
+        mean = statistics.fmean(r["eval_return"] for r in runs)
+        pick = "**pick**" if picks.get(name.split("-")[0]) == name else ""
+        print(f"| {name} | `{settings}` | {every} | {mean:.3f} | {pick} |")
+
+
 def references(root, env):
     """The best constant's and a = 0's returns on the 100 evaluation starts."""
     for summary in (root["confirm"] / "runs" / env).rglob("summary.json"):
@@ -159,6 +200,7 @@ def main():
     args = parser.parse_args()
     root = {"peers": args.peers, "confirm": args.confirm}
     tests = []
+    search_table(root)
     for env in ENVS:
         refs = references(root, env)
         bar = refs["best constant"]
@@ -167,7 +209,12 @@ def main():
         print("| learner | seeds | final eval return, mean [95% CI] | every seed | reached the best constant (10-episode training mean) | episodes to it, median of those that did | wall s, median | diverged (eval below a = 0) |")
         print("|---|---|---|---|---|---|---|---|")
         cells = {}
-        for name, kind, algo, connection in CELLS:
+        searched = searched_cells(root, env)
+        rows = []
+        for cell in CELLS:
+            rows.append(cell)
+            rows += [c for c in searched if c[2].split("-")[0] == cell[2] and cell[0].startswith("SB3")]
+        for name, kind, algo, connection in rows:
             runs = runs_of(root, kind, env, algo, connection)
             cells[name] = runs
             if not runs:
@@ -185,7 +232,8 @@ def main():
             to_bar = statistics.median(hit) if hit else "–"
             diverged = sum(1 for f in finals if f < refs["a = 0"])
             print(f"| {name} | {len(runs)} | {mean:.3f}{ci} | {every} | {len(hit)} of {len(runs)} | {to_bar} | {wall} | {diverged} of {len(runs)} |")
-        for peer, ours in COMPARISONS:
+        comparisons = COMPARISONS + [(name, "lcrl DDPG global") for name, *_ in searched]
+        for peer, ours in comparisons:
             a, b = cells[peer], cells[ours]
             if len(a) >= 2 and len(b) >= 2:
                 diff, p = welch([r["final"] for r in a], [r["final"] for r in b])
