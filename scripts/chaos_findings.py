@@ -50,7 +50,11 @@ def out_of_range_options(c):
                         ("--serving-share", "0"), ("--max-connections-per-peer", "0")]:
         cmd = [str(c.bins / "lcrl-learner"), "--env", "lti-paper", "--algo", "ddpg", "--run-dir", str(c.work / "bounds"),
                "--listen", f"127.0.0.1:{free_port()}", flag, value]
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+        try:
+            done = subprocess.run(cmd, capture_output=True, text=True, timeout=20)
+        except subprocess.TimeoutExpired:  # accepted: the learner started and ran
+            rows[f"{flag} {value}"] = {"exit": None, "panicked": False, "said": "accepted (still running after 20 s)"}
+            continue
         said = next((line for line in done.stderr.splitlines() if line.startswith("error")), done.stderr.strip()[:160])
         rows[f"{flag} {value}"] = {"exit": done.returncode, "panicked": "panicked" in done.stderr, "said": said[:160]}
     refused = sum(1 for r in rows.values() if r["exit"] != 0 and not r["panicked"])
@@ -147,7 +151,10 @@ def huge_values_everywhere(c):
     time.sleep(2)  # at least one checkpoint after the attacks
     scanned = tensors = bad = 0
     for path in sorted(run.rglob("*.safetensors")):
-        n, b = _non_finite_in_safetensors(path)
+        try:
+            n, b = _non_finite_in_safetensors(path)
+        except (OSError, ValueError, struct.error):  # pruned or being written (a checkpoint a second)
+            continue
         scanned, tensors, bad = scanned + 1, tensors + n, bad + b
     st = status(port)
     return {"fault": "batches of states 3e38 and 1e12, sampled and applied actions 1e12, rewards 3e38 and an episode return of 1e308 beside an honest actor",

@@ -80,7 +80,9 @@ impl Adam {
     /// step, ppo.rs).
     pub fn clip_grad_norm(&mut self, max_norm: f64) -> f64 {
         let grads: Vec<Tensor> = self.params.variables().map(Tensor::grad).filter(Tensor::defined).collect();
-        let total: f64 = grads.iter().map(|g| f64::try_from(g.square().sum(tch::Kind::Double)).unwrap_or(f64::NAN)).sum::<f64>().sqrt();
+        // Squared in f64: an f32 square overflows for |g| > 1.8e19, a
+        // finite gradient the clip handles.
+        let total: f64 = grads.iter().map(|g| f64::try_from(g.to_kind(tch::Kind::Double).square().sum(tch::Kind::Double)).unwrap_or(f64::NAN)).sum::<f64>().sqrt();
         if total.is_finite() && total > max_norm {
             let scale = max_norm / (total + 1e-6);
             tch::no_grad(|| {

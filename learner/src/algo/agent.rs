@@ -67,7 +67,7 @@ pub struct Counters {
     pub updates: u64,
     /// Gradient steps of the critic(s) that ran: DDPG's every update (the
     /// actor's one in `policy_delay`, none during a critic head start);
-    /// PPO's, one with each actor step.
+    /// PPO's, one with each actor step unless it was skipped.
     #[serde(default)]
     pub critic_updates: u64,
     /// Steps stored marked `cut` (an actor's batch end mid-episode), and

@@ -190,7 +190,9 @@ impl Ppo {
             for chunk in order.chunks(self.cfg.minibatch_size) {
                 let index = Tensor::from_slice(chunk).to_device(self.device);
                 let adv = advantages.index_select(0, &index);
-                let adv = (&adv - adv.mean(Kind::Float)) / (adv.std(true) + 1e-8);
+                // A last minibatch of one has no spread (its unbiased std
+                // is NaN): its advantage normalizes to 0.
+                let adv = if chunk.len() > 1 { (&adv - adv.mean(Kind::Float)) / (adv.std(true) + 1e-8) } else { adv.zeros_like() };
                 let mb_obs = obs.index_select(0, &index);
                 let log_probs = self.log_prob(&self.actor.forward(&mb_obs), &actions.index_select(0, &index));
                 let ratio = (log_probs - old_log_probs.index_select(0, &index)).exp();

@@ -1,25 +1,33 @@
-//! Episode returns and lengths from the rewards the learner stored, not
-//! from what an actor claims (issue 71). An actor's episode may span
-//! several of its batches: each batch's part ends in a cut (mid-episode)
-//! and the next part begins, in a later batch of the same actor, at the
-//! state the cut's step led to. The learner keeps every actor's unfinished
-//! parts, keyed by that state (bit for bit, as PPO joins its streams,
-//! ppo.rs), and so sums an episode over all its stored steps.
+//! Episode returns and lengths checked against every reward the learner
+//! stored for them, not only the batch's (issue 71). An actor's episode may
+//! span several of its batches: each batch's part ends in a cut
+//! (mid-episode) and the next part begins, in a later batch of the same
+//! actor, at the state the cut's step led to. The learner keeps every
+//! actor's unfinished parts, keyed by that state (bit for bit, as PPO joins
+//! its streams, ppo.rs), and so knows an episode's stored steps across its
+//! batches.
 //!
-//! A summary whose claim disagrees with the learner's sum is rewritten to
-//! the sum. An episode whose beginning the learner did not store (it began
-//! before this learner process, or in a batch refused or lost) counts with
-//! the return and length of the steps it did store. A claim that agrees is
-//! kept: it sums the environment's f64 rewards, which travel as f32.
+//! A claim must agree with them as the door's check (ingest.rs,
+//! `returns_agree`) asks of one batch: at least the stored steps, and a
+//! return within [`lcrl_sim::REWARD_LIMIT`] per step it claims beyond them
+//! of their sum (exactly their sum when it claims no more). A claim that
+//! does not is a false one and is rewritten to the stored steps' sum and
+//! count. A claim that agrees is kept: where the learner stored the whole
+//! episode it is that sum to rounding (it sums the environment's f64
+//! rewards, which travel as f32), and where the episode began before what
+//! the learner stored (before this learner process, in a batch refused,
+//! stale or lost, or a part evicted) the learner cannot know more. The
+//! wire does not say where an environment's episode began, so "whole" is
+//! not something the learner can tell.
 
 use std::collections::HashMap;
 
 use lcrl_proto::v1::{EpisodeSummary, TransitionBatch};
 
 /// Unfinished parts kept per actor (one per environment it steps; an
-/// actor with more loses its oldest, whose episode then counts from its
-/// next stored step).
-pub const OPEN_PER_ACTOR: usize = 64;
+/// actor with more loses its oldest, whose episode is then checked on its
+/// later batches alone, as by the door).
+pub const OPEN_PER_ACTOR: usize = 256;
 
 /// Every actor's unfinished episode parts.
 #[derive(Debug, Default)]
@@ -31,9 +39,7 @@ pub struct OpenEpisodes {
 struct Open {
     /// The state the part's last step led to, as f32 bits.
     next_state: Vec<u32>,
-    sum: f64,
-    sum_abs: f64,
-    steps: u32,
+    part: Part,
 }
 
 /// What a part of an episode adds up to.
@@ -62,10 +68,7 @@ impl OpenEpisodes {
         for t in &batch.transitions {
             let p = part.get_or_insert_with(|| {
                 let key = bits(&t.state);
-                open.iter().position(|o| o.next_state == key).map_or_else(Part::default, |k| {
-                    let o = open.swap_remove(k);
-                    Part { sum: o.sum, sum_abs: o.sum_abs, steps: o.steps }
-                })
+                open.iter().position(|o| o.next_state == key).map_or_else(Part::default, |k| open.remove(k).part)
             });
             p.sum += f64::from(t.reward);
             p.sum_abs += f64::from(t.reward.abs());
@@ -74,20 +77,21 @@ impl OpenEpisodes {
                 let Some(p) = part.take() else { continue };
                 let Some(claim) = ends.next() else { break };
                 let tolerance = 1e-5 * (p.sum_abs + 1.0);
-                if claim.length != p.steps || (claim.episode_return - p.sum).abs() > tolerance {
+                let unseen = f64::from(claim.length.saturating_sub(p.steps));
+                if claim.length < p.steps || (claim.episode_return - p.sum).abs() > unseen * lcrl_sim::REWARD_LIMIT + tolerance {
                     (claim.episode_return, claim.length) = (p.sum, p.steps);
                     rewritten += 1;
                 }
             } else if t.cut {
                 if let Some(p) = part.take() {
-                    keep(open, Open { next_state: bits(&t.next_state), sum: p.sum, sum_abs: p.sum_abs, steps: p.steps });
+                    keep(open, Open { next_state: bits(&t.next_state), part: p });
                 }
             }
         }
         // A last part with neither an end nor a cut goes on in a later
         // batch all the same.
         if let (Some(p), Some(last)) = (part, batch.transitions.last()) {
-            keep(open, Open { next_state: bits(&last.next_state), sum: p.sum, sum_abs: p.sum_abs, steps: p.steps });
+            keep(open, Open { next_state: bits(&last.next_state), part: p });
         }
         if open.is_empty() {
             self.by_actor.remove(&batch.actor_id);
@@ -122,31 +126,53 @@ mod tests {
         TransitionBatch { actor_id: actor.into(), transitions, episodes, ..Default::default() }
     }
 
-    /// Two environments' episodes cut across two batches are summed over
-    /// both (an honest claim is kept as it is); a claim beyond the stored
-    /// rewards is rewritten to them; an episode whose start was never
-    /// stored counts its stored steps; another actor's parts are its own.
+    /// Two environments' episodes cut across two batches are checked
+    /// against all their stored steps: an honest claim is kept as it is, a
+    /// false one (a return the stored rewards and its claimed length cannot
+    /// give) rewritten to them; an episode whose start was not stored
+    /// keeps its bounded claim; another actor's parts are its own.
     #[test]
-    fn returns_are_summed_over_the_batches_that_hold_them() {
+    fn returns_are_checked_against_every_batch_that_holds_them() {
         let mut open = OpenEpisodes::default();
         // Env A: states 0, 1 (cut); env B: 10 (cut).
         let first = batch("a", vec![step(0.0, -1.0, false, false), step(1.0, -1.0, false, true), step(10.0, -0.5, false, true)], &[]);
         assert_eq!(open.settle(&first), (vec![], 0));
         // B goes on from 11 and ends; A goes on from 2 and ends claiming a
-        // return of 1e5 it never earned.
+        // return of 1e5 over the 3 steps the learner stored.
         let second = batch("a", vec![step(11.0, -0.5, true, false), step(2.0, -1.0, true, false)], &[(-1.0, 2), (1e5, 3)]);
         let (summaries, rewritten) = open.settle(&second);
         assert_eq!(rewritten, 1);
         assert_eq!((summaries[0].episode_return, summaries[0].length), (-1.0, 2), "an honest claim is kept");
         assert_eq!((summaries[1].episode_return, summaries[1].length), (-3.0, 3), "the stored rewards, not the claim");
+        // The door alone would have taken this claim (1 step in the batch,
+        // 2 claimed beyond it); the stored part says otherwise.
+        open.settle(&batch("a", vec![step(20.0, -1.0, false, true)], &[]));
+        let (summaries, rewritten) = open.settle(&batch("a", vec![step(21.0, -1.0, true, false)], &[(-1.0, 1)]));
+        assert_eq!((rewritten, summaries[0].episode_return, summaries[0].length), (1, -2.0, 2), "fewer steps than stored");
         // An episode whose beginning was never stored (state 50 follows no
-        // kept part; another actor's part at 2 is not this one's).
-        let other = batch("b", vec![step(1.0, -1.0, false, true)], &[]);
-        open.settle(&other);
+        // kept part; another actor's part at 2 is not this one's) keeps
+        // its claim.
+        open.settle(&batch("b", vec![step(1.0, -1.0, false, true)], &[]));
         let (summaries, rewritten) = open.settle(&batch("a", vec![step(50.0, -2.0, false, false), step(51.0, -2.0, true, false)], &[(-40.0, 20)]));
-        assert_eq!((rewritten, summaries[0].episode_return, summaries[0].length), (1, -4.0, 2));
+        assert_eq!((rewritten, summaries[0].episode_return, summaries[0].length), (0, -40.0, 20));
         let (summaries, _) = open.settle(&batch("b", vec![step(2.0, -1.0, true, false)], &[(-2.0, 2)]));
         assert_eq!((summaries[0].episode_return, summaries[0].length), (-2.0, 2));
         assert!(open.by_actor.is_empty(), "every part was finished");
+    }
+
+    /// The oldest part is the one an actor with too many loses.
+    #[test]
+    fn the_oldest_part_is_evicted() {
+        let mut open = OpenEpisodes::default();
+        let parts: Vec<Transition> = (0..=OPEN_PER_ACTOR).map(|k| step(10.0 * k as f32, -1.0, false, true)).collect();
+        // Continue part 1 first (it moves to the end of the list), then
+        // add the one too many.
+        open.settle(&batch("a", parts[..OPEN_PER_ACTOR].to_vec(), &[]));
+        open.settle(&batch("a", vec![step(11.0, -1.0, false, true)], &[]));
+        open.settle(&batch("a", vec![parts[OPEN_PER_ACTOR].clone()], &[]));
+        let kept = &open.by_actor["a"];
+        assert_eq!(kept.len(), OPEN_PER_ACTOR);
+        assert!(!kept.iter().any(|o| o.next_state == bits(&[1.0])), "part 0, the oldest, is gone");
+        assert!(kept.iter().any(|o| o.next_state == bits(&[12.0])), "part 1, continued since, stays");
     }
 }

@@ -23,10 +23,16 @@ thread_local! {
 pub fn wait_for<F: Future>(timeout: Duration, until: F) -> Option<F::Output> {
     // Inside an async context (a test driving the loop from one) a second
     // runtime cannot block; poll there instead.
+    // Where no runtime could be built, poll too (never spin).
+    let until = std::pin::pin!(until);
     if tokio::runtime::Handle::try_current().is_err() {
-        let done = WAITER.with(|waiter| waiter.as_ref().map(|rt| rt.block_on(async { tokio::time::timeout(timeout, until).await.ok() })));
+        let mut until = Some(until);
+        let done = WAITER.with(|waiter| waiter.as_ref().and_then(|rt| until.take().map(|f| rt.block_on(async { tokio::time::timeout(timeout, f).await.ok() }))));
         if let Some(done) = done {
             return done;
+        }
+        if let Some(until) = until {
+            return poll_until(timeout, until);
         }
         return None;
     }

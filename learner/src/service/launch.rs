@@ -218,6 +218,17 @@ pub async fn run(args: LearnerArgs, shutdown: impl Future<Output = ()>, listenin
     if let Some(0) = args.episodes {
         bail!("--episodes must be at least 1");
     }
+    // A remote actor's batch must fit in its peer's quarter, or it could
+    // never be stored and its actor would retry for ever.
+    if (args.request_budget_mib << 20) / crate::service::memory_budget::PEER_SHARE as u64 <= args.max_batch_bytes + 5 {
+        anyhow::bail!(
+            "--request-budget-mib {} leaves one peer address a quarter, {} KiB, which does not hold one batch of --max-batch-bytes {}; raise it to at least {} MiB",
+            args.request_budget_mib,
+            (args.request_budget_mib << 20) / 4096,
+            args.max_batch_bytes,
+            (4 * (args.max_batch_bytes + 5)).div_ceil(1 << 20) + 1
+        );
+    }
     let Begun { training, commands, shared, state_dim } = begin(&args, &security).await?;
     let threads = start_threads(&args, training, &shared, &commands)?;
     // From here an error return stops the threads too (a library caller's
@@ -488,7 +499,7 @@ async fn serve(args: &LearnerArgs, security: &ServerSecurity, listener: tokio::n
     let router = security
         .server_builder()
         .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
-        .add_service(health_service)
+        .add_service(Budgeted::new(health_service, request_budget.clone()))
         .add_service(InterceptedService::new(Budgeted::new(learner, request_budget.clone()), check.clone()))
         .add_service(InterceptedService::new(Budgeted::new(policy, request_budget), check.clone()));
     // TLS where configured; TCP_NODELAY on accepted sockets.

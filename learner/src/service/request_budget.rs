@@ -2,19 +2,16 @@
 //! message is buffered whole before it is decoded, so a peer that starts
 //! messages of up to `--max-batch-bytes` on every stream of every
 //! connection and never finishes them once held 32 × 512 × 1 MiB = 16 GiB
-//! (issue 71). Every request body of the Learner and Policy services now
-//! takes the bytes it passes on from one budget, `--request-budget-mib`, as
-//! they arrive, and holds them while its reader may still hold them: until
-//! the reader asks for more (then only the unfinished message's bytes stay
-//! held) or the stream ends. So the budget covers unfinished messages and
-//! the decoded batch each stream holds while it waits for room in the
-//! training queue. A message that would go beyond
-//! the budget, or beyond its peer's quarter of it, ends its stream with
-//! RESOURCE_EXHAUSTED ([`BUDGET_SPENT`]); an actor resends it later.
-//!
-//! A message's bytes are known from gRPC's framing (a 5-byte prefix: a
-//! compression flag and a big-endian u32 length), read here as the body's
-//! chunks pass, without copying them.
+//! (issue 71). Every request body of the learner's services now takes from
+//! one budget, `--request-budget-mib`, the size of the largest message it
+//! has declared (its 5-byte prefix: a compression flag and a big-endian u32
+//! length), from the moment the prefix arrives until the stream ends:
+//! tonic reserves a message's declared size when its prefix arrives, and a
+//! stream's buffer keeps that capacity once the message is decoded. A
+//! message that would go beyond the budget, or beyond its peer's quarter of
+//! it, ends its stream with RESOURCE_EXHAUSTED ([`BUDGET_SPENT`]); an actor
+//! resends it later. The prefixes are read as the body's chunks pass,
+//! without copying them.
 
 use std::net::IpAddr;
 use std::pin::Pin;
@@ -92,8 +89,8 @@ where
     }
 }
 
-/// A request body holding a share of the budget for what it has passed on
-/// and its reader may still hold.
+/// A request body holding a share of the budget: the largest message its
+/// stream has declared, until it ends.
 struct Counted {
     inner: Body,
     budget: RequestBudget,
@@ -107,27 +104,20 @@ impl Counted {
         Counted { inner, budget, peer, framing: Framing::default(), held: None }
     }
 
-    /// The reader asks for more: it is done with every message it was
-    /// handed (tonic decodes a message as soon as its last byte is here and
-    /// asks the body again only on the reader's next call, and the learner
-    /// reads a stream's next batch only once it has queued or refused the
-    /// last), so only the unfinished message's bytes stay held.
-    fn on_poll(&mut self) {
-        let keep = self.framing.partial;
-        if let Some(held) = &mut self.held {
-            if held.bytes() > keep {
-                drop(held.split_off(held.bytes() - keep));
-            }
-        }
+    fn held_bytes(&self) -> usize {
+        self.held.as_ref().map_or(0, Held::bytes)
     }
 
-    /// A chunk passed on: its bytes are held until the next poll.
+    /// A chunk passed on: the share grows to the largest message declared
+    /// so far (its prefix included), or the stream is refused.
     fn on_chunk(&mut self, chunk: &[u8]) -> Result<(), Status> {
-        self.framing.feed(chunk);
-        let share = self.budget.0.take(chunk.len(), self.peer).map_err(|refusal| self.budget.refusal(refusal))?;
-        match &mut self.held {
-            Some(held) => held.merge(share),
-            None => self.held = Some(share),
+        let need = self.framing.feed(chunk);
+        if need > self.held_bytes() {
+            let more = self.budget.0.take(need - self.held_bytes(), self.peer).map_err(|refusal| self.budget.refusal(refusal))?;
+            match &mut self.held {
+                Some(held) => held.merge(more),
+                None => self.held = Some(more),
+            }
         }
         Ok(())
     }
@@ -139,7 +129,6 @@ impl http_body::Body for Counted {
 
     fn poll_frame(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Result<Frame<Bytes>, Status>>> {
         let this = &mut *self;
-        this.on_poll();
         let frame = match Pin::new(&mut this.inner).poll_frame(cx) {
             Poll::Pending => return Poll::Pending,
             Poll::Ready(frame) => frame,
@@ -169,22 +158,24 @@ struct Framing {
     prefix_seen: usize,
     /// Bytes of the message's body still to come, once its prefix is read.
     body_left: usize,
-    /// Bytes of the unfinished message seen (its prefix included).
-    partial: usize,
+    /// The largest message declared so far, its prefix included (a prefix
+    /// still arriving counts its bytes so far).
+    largest: usize,
 }
 
 impl Framing {
-    /// Reads one chunk; returns the bytes of the message still unfinished
-    /// after it (0 at a message boundary).
+    /// Reads one chunk; returns the largest message declared so far.
     fn feed(&mut self, mut chunk: &[u8]) -> usize {
         while !chunk.is_empty() {
             let take = if self.prefix_seen < 5 {
                 let take = (5 - self.prefix_seen).min(chunk.len());
                 self.prefix[self.prefix_seen..self.prefix_seen + take].copy_from_slice(&chunk[..take]);
                 self.prefix_seen += take;
+                self.largest = self.largest.max(self.prefix_seen);
                 if self.prefix_seen == 5 {
                     let [_, a, b, c, d] = self.prefix;
                     self.body_left = u32::from_be_bytes([a, b, c, d]) as usize;
+                    self.largest = self.largest.max(5 + self.body_left);
                 }
                 take
             } else {
@@ -192,13 +183,12 @@ impl Framing {
                 self.body_left -= take;
                 take
             };
-            self.partial += take;
             chunk = &chunk[take..];
             if self.prefix_seen == 5 && self.body_left == 0 {
-                (self.prefix_seen, self.partial) = (0, 0);
+                self.prefix_seen = 0;
             }
         }
-        self.partial
+        self.largest
     }
 }
 
@@ -214,44 +204,40 @@ mod tests {
     }
 
     /// Messages cut at every place (inside the prefix, inside the body,
-    /// two in one chunk) leave exactly their unfinished bytes counted.
+    /// two in one chunk) are read the same: the largest declared so far is
+    /// known from its prefix on.
     #[test]
-    fn framing_counts_the_unfinished_message_wherever_chunks_are_cut() {
-        let wire: Vec<u8> = [message(10), message(0), message(300)].concat();
+    fn framing_finds_every_prefix_wherever_chunks_are_cut() {
+        let wire: Vec<u8> = [message(10), message(0), message(300), message(20)].concat();
         for cut in 0..wire.len() {
             let mut framing = Framing::default();
             let first = framing.feed(&wire[..cut]);
-            let expected = if cut < 15 { cut } else if cut < 20 { cut - 15 } else { cut - 20 };
+            let expected = if cut < 5 { cut } else if cut < 25 { 15 } else { 305 };
             assert_eq!(first, expected, "cut at {cut}");
-            assert_eq!(framing.feed(&wire[cut..]), 0, "cut at {cut}: all three messages complete");
+            assert_eq!(framing.feed(&wire[cut..]), 305, "cut at {cut}");
+            assert_eq!((framing.prefix_seen, framing.body_left), (0, 0), "cut at {cut}: every message complete");
         }
     }
 
-    /// What a body passed on is held until its reader asks again; then
-    /// only the unfinished message's bytes stay. A chunk beyond the budget
-    /// is refused with RESOURCE_EXHAUSTED naming the flag, and an ended
-    /// stream gives back all it held.
+    /// A stream holds the largest message it has declared from its prefix
+    /// on (before the body arrives) until it ends; one beyond the budget is
+    /// refused with RESOURCE_EXHAUSTED naming the flag.
     #[test]
-    fn passed_bytes_are_held_until_the_reader_asks_again() {
+    fn a_stream_holds_its_largest_declared_message_until_it_ends() {
         let budget = RequestBudget::new(1000);
         let mut a = Counted::new(Body::empty(), budget.clone(), None);
-        let big = message(900);
-        a.on_poll();
-        a.on_chunk(&big[..600]).unwrap();
-        a.on_poll();
-        assert_eq!(budget.used(), 600, "an unfinished message holds its bytes");
+        let big = message(600);
+        a.on_chunk(&big[..5]).unwrap();
+        assert_eq!(budget.used(), 605, "the declared size, from the prefix on");
+        a.on_chunk(&big[5..]).unwrap();
+        a.on_chunk(&message(10)).unwrap();
+        assert_eq!(budget.used(), 605, "a smaller message adds nothing; the stream keeps its largest");
         let mut b = Counted::new(Body::empty(), budget.clone(), None);
-        let refused = b.on_chunk(&big[..500]).unwrap_err();
+        let refused = b.on_chunk(&message(500)[..5]).unwrap_err();
         assert_eq!(refused.code(), tonic::Code::ResourceExhausted);
         assert!(refused.message().starts_with(BUDGET_SPENT) && refused.message().contains("--request-budget-mib"), "{}", refused.message());
-        // The rest, and 10 bytes of the next message, in one chunk.
-        let next = message(50);
-        a.on_chunk(&[&big[600..], &next[..10]].concat()).unwrap();
-        assert_eq!(budget.used(), 915, "the finished message is held while its reader may hold it");
-        a.on_poll();
-        assert_eq!(budget.used(), 10, "the reader asked again: only the unfinished message's bytes");
-        b.on_chunk(&big[..500]).unwrap();
-        drop((a, b));
+        drop(b);
+        drop(a);
         assert_eq!(budget.used(), 0, "ended streams give back all they held");
     }
 }
