@@ -29,8 +29,11 @@ CELLS = [
     ("SB3 PPO", "sb3", "ppo", None),
     ("lcrl PPO global", "lcrl-ppo", "ppo", "global"),
     ("lcrl PPO local@1", "lcrl-ppo", "ppo", "local@1"),
+    # docs/research/2026-12-04-peers-ppo-nobase-design.md: from scratch, as SB3 acts.
+    ("lcrl PPO global, no base", "lcrl-ppo-nobase", "ppo", "global"),
 ]
-COMPARISONS = [("SB3 SAC", "lcrl DDPG global"), ("SB3 TD3", "lcrl DDPG global"), ("SB3 PPO", "lcrl PPO global")]
+COMPARISONS = [("SB3 SAC", "lcrl DDPG global"), ("SB3 TD3", "lcrl DDPG global"), ("SB3 PPO", "lcrl PPO global"),
+               ("lcrl PPO global, no base", "lcrl PPO global"), ("SB3 PPO", "lcrl PPO global, no base")]
 WINDOW = 10
 
 
@@ -52,8 +55,8 @@ def runs_of(root, kind, env, algo, connection):
     """Finished runs of one cell: seed, final eval return, training returns, wall s."""
     if kind == "sb3":
         folders = sorted((root["peers"] / "sb3" / env / algo).glob("seed*"))
-    elif kind == "lcrl-ppo":
-        folders = sorted((root["peers"] / "lcrl-ppo" / "runs" / env / algo / connection).glob("seed*"))
+    elif kind in ("lcrl-ppo", "lcrl-ppo-nobase"):
+        folders = sorted((root["peers"] / kind / "runs" / env / algo / connection).glob("seed*"))
     else:
         folders = sorted((root["confirm"] / "runs" / env / algo / connection).glob("seed*"))
     runs = []
