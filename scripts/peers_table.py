@@ -31,9 +31,12 @@ CELLS = [
     ("lcrl PPO local@1", "lcrl-ppo", "ppo", "local@1"),
     # docs/research/2026-12-04-peers-ppo-nobase-design.md: from scratch, as SB3 acts.
     ("lcrl PPO global, no base", "lcrl-ppo-nobase", "ppo", "global"),
+    # Its follow-up (the same design's last section): SB3's initial σ = 1.
+    ("lcrl PPO global, no base, initial σ = 1", "lcrl-ppo-nobase-std1", "ppo", "global"),
 ]
 COMPARISONS = [("SB3 SAC", "lcrl DDPG global"), ("SB3 TD3", "lcrl DDPG global"), ("SB3 PPO", "lcrl PPO global"),
-               ("lcrl PPO global, no base", "lcrl PPO global"), ("SB3 PPO", "lcrl PPO global, no base")]
+               ("lcrl PPO global, no base", "lcrl PPO global"), ("SB3 PPO", "lcrl PPO global, no base"),
+               ("lcrl PPO global, no base, initial σ = 1", "lcrl PPO global, no base"), ("SB3 PPO", "lcrl PPO global, no base, initial σ = 1")]
 WINDOW = 10
 
 
@@ -55,7 +58,7 @@ def runs_of(root, kind, env, algo, connection):
     """Finished runs of one cell: seed, final eval return, training returns, wall s."""
     if kind == "sb3":
         folders = sorted((root["peers"] / "sb3" / env / algo).glob("seed*"))
-    elif kind in ("lcrl-ppo", "lcrl-ppo-nobase"):
+    elif kind in ("lcrl-ppo", "lcrl-ppo-nobase", "lcrl-ppo-nobase-std1"):
         folders = sorted((root["peers"] / kind / "runs" / env / algo / connection).glob("seed*"))
     else:
         folders = sorted((root["confirm"] / "runs" / env / algo / connection).glob("seed*"))
