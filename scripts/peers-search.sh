@@ -22,3 +22,13 @@ for seed in 300 301; do
   done
 done
 
+# The picks on the table's seeds (the design's step 3): SAC's pick was its
+# defaults (its table row); TD3's, td3-zoo-starts.
+for seed in 200 201 202 203 204; do
+  for env in peg-group1 peg-group2; do
+    out=runs/peers/sb3/$env/td3-zoo-starts/seed$seed
+    [ -f $out/summary.json ] && continue
+    IFS='|' read -r algo settings <<< "${S[td3-zoo-starts]}"
+    nice -n 19 .venv/bin/python scripts/sb3_peers.py --env $env --algo $algo --seed $seed --episodes 200 --settings "$settings" --out $out || echo "FAILED td3-zoo-starts $env $seed" >&2
+  done
+done
