@@ -323,3 +323,77 @@ print(Unavailable.calls)
     let (_learner, url) = learner_with_args(&dir.path().join("run"), "retry", port, "ddpg", &[]);
     wait_for(&url, "the actor's transitions", |s| s.env_steps > 0).await;
 }
+
+/// Connections that keep a learner's places without working (issue 71):
+/// HTTP/2 connections that only answer and send pings are closed once
+/// they have made no authenticated call for `CALL_DEADLINE`, and 70
+/// unfinished GETs on /metrics are held at most its lifetime each; health
+/// checks are answered meanwhile, and /metrics serves again after.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn pinging_connections_and_unfinished_metrics_requests_are_closed() {
+    let dir = tempfile::tempdir().unwrap();
+    let metrics_port = free_port();
+    let metrics_flag = format!("127.0.0.1:{metrics_port}");
+    let (_learner, url) = learner_with_args(&dir.path().join("run"), "pings", free_port(), "ddpg", &["--metrics-listen", &metrics_flag]);
+    let addr = url.trim_start_matches("http://").to_string();
+    let frame = |kind: u8, flags: u8, payload: &[u8]| [&(payload.len() as u32).to_be_bytes()[1..], &[kind, flags], &[0, 0, 0, 0], payload].concat();
+    let started = Instant::now();
+    let limit = lcrl_proto::limits::CALL_DEADLINE + Duration::from_secs(10);
+    let pingers: Vec<_> = (0..3)
+        .map(|_| {
+            let addr = addr.clone();
+            std::thread::spawn(move || -> Option<Duration> {
+                let mut s = std::net::TcpStream::connect(&addr).unwrap();
+                s.write_all(&[b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".as_slice(), &frame(4, 0, &[]), &frame(4, 1, &[])].concat()).unwrap();
+                s.set_read_timeout(Some(Duration::from_millis(500))).unwrap();
+                let mut buffer = [0u8; 4096];
+                while started.elapsed() < limit {
+                    if s.write_all(&frame(6, 0, &[7; 8])).is_err() {
+                        return Some(started.elapsed());
+                    }
+                    match s.read(&mut buffer) {
+                        Ok(0) => return Some(started.elapsed()),
+                        Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset || e.kind() == std::io::ErrorKind::BrokenPipe => return Some(started.elapsed()),
+                        _ => {}
+                    }
+                }
+                None
+            })
+        })
+        .collect();
+    let loris: Vec<std::net::TcpStream> = (0..70)
+        .filter_map(|_| {
+            let mut s = std::net::TcpStream::connect(("127.0.0.1", metrics_port)).ok()?;
+            s.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n").ok()?;
+            Some(s)
+        })
+        .collect();
+    // Meanwhile health checks are answered.
+    let channel = tonic::transport::Endpoint::from_shared(url.clone()).unwrap().connect().await.unwrap();
+    let t0 = Instant::now();
+    let health = tonic_health::pb::health_client::HealthClient::new(channel).check(tonic_health::pb::HealthCheckRequest { service: String::new() }).await;
+    assert!(health.is_ok() && t0.elapsed() < Duration::from_secs(5), "{health:?} after {:?}", t0.elapsed());
+    for pinger in pingers {
+        let closed = tokio::task::spawn_blocking(move || pinger.join().unwrap()).await.unwrap();
+        let at = closed.expect("a connection that only pings was still open");
+        assert!(at >= lcrl_proto::limits::CALL_DEADLINE - Duration::from_secs(1), "closed after {at:?}, before its deadline");
+    }
+    assert!(status(&url).await.connections_refused["no_call"] >= 3);
+    // The unfinished GETs are closed within their lifetime (and /metrics
+    // answers again).
+    let deadline = Instant::now() + lcrl_proto::metrics_http::METRICS_CONNECTION_LIFETIME + Duration::from_secs(10);
+    for mut s in loris {
+        let mut buffer = [0u8; 512];
+        let closed = loop {
+            s.set_read_timeout(Some(deadline.saturating_duration_since(Instant::now()).max(Duration::from_millis(1)))).unwrap();
+            match s.read(&mut buffer) {
+                Ok(0) => break true,
+                Ok(_) => continue,
+                Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => break true,
+                Err(_) => break false,
+            }
+        };
+        assert!(closed, "an unfinished /metrics request was still held past its lifetime");
+    }
+    assert!(sample(&scrape(metrics_port), "lcrl_learner_connections_refused_total{reason=\"no_call\"}").unwrap_or(0.0) >= 3.0);
+}
