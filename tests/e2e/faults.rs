@@ -19,6 +19,21 @@ use super::distributed::{actor_with_args, batch, free_port, learner_with_args, w
 use super::hostile::{rss_kib, send_all};
 use super::observability::{sample, scrape};
 
+/// Whether the server closes `socket` by `deadline` (reading and dropping
+/// whatever it writes before).
+fn closed_by(socket: &mut std::net::TcpStream, deadline: Instant) -> bool {
+    let mut buffer = [0u8; 512];
+    loop {
+        socket.set_read_timeout(Some(deadline.saturating_duration_since(Instant::now()).max(Duration::from_millis(1)))).unwrap();
+        match socket.read(&mut buffer) {
+            Ok(0) => return true,
+            Ok(_) => continue,
+            Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => return true,
+            Err(_) => return false,
+        }
+    }
+}
+
 async fn status(url: &str) -> LearnerStatus {
     let mut client = LearnerClient::connect(url.to_string()).await.unwrap();
     client.get_status(GetStatusRequest {}).await.unwrap().into_inner()
@@ -112,17 +127,7 @@ async fn idle_sockets_are_capped_and_closed_and_health_checks_answer() {
     let deadline = opened + Duration::from_secs(30);
     for socket in &mut sockets {
         // The server may write its HTTP/2 settings first; then it closes.
-        let mut buffer = [0u8; 256];
-        let closed = loop {
-            socket.set_read_timeout(Some(deadline.saturating_duration_since(Instant::now()).max(Duration::from_millis(1)))).unwrap();
-            match socket.read(&mut buffer) {
-                Ok(0) => break true,
-                Ok(_) => continue,
-                Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => break true,
-                Err(_) => break false,
-            }
-        };
-        assert!(closed, "an idle socket was still open 30 s after it was opened");
+        assert!(closed_by(socket, deadline), "an idle socket was still open 30 s after it was opened");
     }
     // Silent for 10 s: closed as idle, or, as it is the same 10 s, as a
     // connection that made no authenticated call.
@@ -383,17 +388,7 @@ async fn pinging_connections_and_unfinished_metrics_requests_are_closed() {
     // answers again).
     let deadline = Instant::now() + lcrl_proto::metrics_http::METRICS_CONNECTION_LIFETIME + Duration::from_secs(10);
     for mut s in loris {
-        let mut buffer = [0u8; 512];
-        let closed = loop {
-            s.set_read_timeout(Some(deadline.saturating_duration_since(Instant::now()).max(Duration::from_millis(1)))).unwrap();
-            match s.read(&mut buffer) {
-                Ok(0) => break true,
-                Ok(_) => continue,
-                Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => break true,
-                Err(_) => break false,
-            }
-        };
-        assert!(closed, "an unfinished /metrics request was still held past its lifetime");
+        assert!(closed_by(&mut s, deadline), "an unfinished /metrics request was still held past its lifetime");
     }
     assert!(sample(&scrape(metrics_port), "lcrl_learner_connections_refused_total{reason=\"no_call\"}").unwrap_or(0.0) >= 3.0);
 }
