@@ -452,9 +452,8 @@ mod tests {
 
     /// Issue 71: a rollout of states and rewards of 3e38 (finite, but
     /// their sums and squares are not) makes every minibatch's loss
-    /// non-finite. Each update is
-    /// skipped and counted, no weight or moment moves, and a clean rollout
-    /// trains again.
+    /// non-finite. Each update is skipped and counted, no weight or moment
+    /// moves, and a clean rollout trains again.
     #[test]
     fn an_update_with_a_non_finite_loss_is_skipped_and_counted() {
         tch::set_num_threads(1);

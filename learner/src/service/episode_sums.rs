@@ -39,15 +39,35 @@ pub struct OpenEpisodes {
 struct Open {
     /// The state the part's last step led to, as f32 bits.
     next_state: Vec<u32>,
-    part: Part,
+    part: Stored,
 }
 
-/// What a part of an episode adds up to.
+/// The stored steps of (a part of) an episode: what its claim is checked
+/// against, here and at the door (ingest.rs, `returns_agree`).
 #[derive(Debug, Default, Clone, Copy)]
-struct Part {
-    sum: f64,
+pub struct Stored {
+    pub sum: f64,
     sum_abs: f64,
-    steps: u32,
+    pub steps: u32,
+}
+
+impl Stored {
+    pub fn add(&mut self, reward: f32) {
+        self.sum += f64::from(reward);
+        self.sum_abs += f64::from(reward.abs());
+        self.steps = self.steps.saturating_add(1);
+    }
+
+    /// Whether a claimed return and length can be those of an episode
+    /// holding these steps: at least their number, and a return within
+    /// [`lcrl_sim::REWARD_LIMIT`] per step claimed beyond them of their sum
+    /// (to rounding: rewards travel as f32, returns as f64 sums of the f64
+    /// rewards).
+    pub fn admits(&self, claimed_return: f64, claimed_length: u32) -> bool {
+        let tolerance = 1e-5 * (self.sum_abs + 1.0);
+        let unseen = f64::from(claimed_length.saturating_sub(self.steps));
+        claimed_length >= self.steps && (claimed_return - self.sum).abs() <= unseen * lcrl_sim::REWARD_LIMIT + tolerance
+    }
 }
 
 fn bits(state: &[f32]) -> Vec<u32> {
@@ -56,29 +76,26 @@ fn bits(state: &[f32]) -> Vec<u32> {
 
 impl OpenEpisodes {
     /// The summaries of an accepted `batch` (one per end, in order, as the
-    /// door checked), each with the learner's return and length; the
-    /// batch's unfinished parts are kept for the actor's next batches.
-    /// Returns the summaries and how many claims were rewritten.
+    /// door checked), each claim that its stored steps do not admit
+    /// rewritten to them; the batch's unfinished parts are kept for the
+    /// actor's next batches. Returns the summaries and how many claims
+    /// were rewritten.
     pub fn settle(&mut self, batch: &TransitionBatch) -> (Vec<EpisodeSummary>, u64) {
         let mut summaries = batch.episodes.clone();
         let mut rewritten = 0;
         let open = self.by_actor.entry(batch.actor_id.clone()).or_default();
         let mut ends = summaries.iter_mut();
-        let mut part: Option<Part> = None;
+        let mut part: Option<Stored> = None;
         for t in &batch.transitions {
             let p = part.get_or_insert_with(|| {
                 let key = bits(&t.state);
-                open.iter().position(|o| o.next_state == key).map_or_else(Part::default, |k| open.remove(k).part)
+                open.iter().position(|o| o.next_state == key).map_or_else(Stored::default, |k| open.remove(k).part)
             });
-            p.sum += f64::from(t.reward);
-            p.sum_abs += f64::from(t.reward.abs());
-            p.steps = p.steps.saturating_add(1);
+            p.add(t.reward);
             if t.terminated || t.truncated {
                 let Some(p) = part.take() else { continue };
                 let Some(claim) = ends.next() else { break };
-                let tolerance = 1e-5 * (p.sum_abs + 1.0);
-                let unseen = f64::from(claim.length.saturating_sub(p.steps));
-                if claim.length < p.steps || (claim.episode_return - p.sum).abs() > unseen * lcrl_sim::REWARD_LIMIT + tolerance {
+                if !p.admits(claim.episode_return, claim.length) {
                     (claim.episode_return, claim.length) = (p.sum, p.steps);
                     rewritten += 1;
                 }

@@ -19,24 +19,15 @@ thread_local! {
 }
 
 /// Runs `until` to its end or for `timeout`, whichever comes first; None
-/// when the time ran out.
+/// when the time ran out. Inside an async context (a test driving the loop
+/// from one) a second runtime cannot block, and where none could be built
+/// there is none: both poll instead.
 pub fn wait_for<F: Future>(timeout: Duration, until: F) -> Option<F::Output> {
-    // Inside an async context (a test driving the loop from one) a second
-    // runtime cannot block; poll there instead.
-    // Where no runtime could be built, poll too (never spin).
-    let until = std::pin::pin!(until);
-    if tokio::runtime::Handle::try_current().is_err() {
-        let mut until = Some(until);
-        let done = WAITER.with(|waiter| waiter.as_ref().and_then(|rt| until.take().map(|f| rt.block_on(async { tokio::time::timeout(timeout, f).await.ok() }))));
-        if let Some(done) = done {
-            return done;
-        }
-        if let Some(until) = until {
-            return poll_until(timeout, until);
-        }
-        return None;
-    }
-    poll_until(timeout, until)
+    let outside_async = tokio::runtime::Handle::try_current().is_err();
+    WAITER.with(|waiter| match waiter {
+        Some(rt) if outside_async => rt.block_on(async { tokio::time::timeout(timeout, until).await.ok() }),
+        _ => poll_until(timeout, until),
+    })
 }
 
 /// The fallback: polls every millisecond until `timeout`.

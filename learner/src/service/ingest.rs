@@ -4,7 +4,7 @@
 //! units. Plain Rust; the gRPC and shared-memory front ends both call it.
 
 use crate::policy::action::ActionMap;
-use crate::service::episode_sums::OpenEpisodes;
+use crate::service::episode_sums::{OpenEpisodes, Stored};
 use std::collections::{BTreeMap, HashMap};
 
 use lcrl_proto::v1::{EpisodeSummary, TransitionBatch};
@@ -161,8 +161,8 @@ pub struct Ingest {
     pub rejected: BTreeMap<String, u64>,
     /// Transitions accepted (handed to the training thread).
     pub accepted: u64,
-    /// Every actor's unfinished episodes, so returns are the learner's sums
-    /// (episode_sums.rs).
+    /// Every actor's unfinished episodes, so claims are checked against all
+    /// their stored steps (episode_sums.rs).
     open: OpenEpisodes,
 }
 
@@ -324,9 +324,9 @@ impl Ingest {
         }
         let transitions = self.normalize(batch);
         self.accepted += transitions.len() as u64;
-        // Returns the learner summed itself, over this batch and the
-        // actor's earlier ones (what the budget's episodes and metrics.csv
-        // show), whatever the summaries claim.
+        // Each claim checked against every step of its episode stored from
+        // this batch and the actor's earlier ones (what metrics.csv and the
+        // summary show); a false one is rewritten to them.
         let (episodes, rewritten) = self.open.settle(batch);
         if rewritten > 0 {
             tracing::debug!(actor = %batch.actor_id, rewritten, "episode claims rewritten to the rewards stored for them");
@@ -533,29 +533,26 @@ fn now_micros() -> u64 {
 /// a run and its summary (issue 71).
 fn returns_agree(batch: &TransitionBatch) -> Result<(), String> {
     let mut summaries = batch.episodes.iter().enumerate();
-    let (mut sum, mut sum_abs, mut steps) = (0.0f64, 0.0f64, 0u32);
+    let mut stored = Stored::default();
     for t in &batch.transitions {
-        sum += f64::from(t.reward);
-        sum_abs += f64::from(t.reward.abs());
-        steps = steps.saturating_add(1);
+        stored.add(t.reward);
         if t.terminated || t.truncated {
             // Counts agree (checked before): one summary per end.
             let Some((k, e)) = summaries.next() else { break };
-            // Rewards travel as f32, returns as f64 sums of the f64 rewards.
-            let tolerance = 1e-5 * (sum_abs + 1.0);
-            let unseen = f64::from(e.length.saturating_sub(steps));
-            if e.length < steps || e.length > MAX_EPISODE_STEPS || (e.episode_return - sum).abs() > unseen * lcrl_sim::REWARD_LIMIT + tolerance {
+            if e.length > MAX_EPISODE_STEPS || !stored.admits(e.episode_return, e.length) {
                 return Err(format!(
-                    "episode {k} claims return {} over {} steps; this batch holds {steps} of its steps with rewards summing to {sum} \
+                    "episode {k} claims return {} over {} steps; this batch holds {} of its steps with rewards summing to {} \
                      (each step not in the batch adds at most ±{:e}, and an episode has at most {MAX_EPISODE_STEPS} steps)",
                     e.episode_return,
                     e.length,
+                    stored.steps,
+                    stored.sum,
                     lcrl_sim::REWARD_LIMIT
                 ));
             }
         }
         if t.terminated || t.truncated || t.cut {
-            (sum, sum_abs, steps) = (0.0, 0.0, 0);
+            stored = Stored::default();
         }
     }
     Ok(())

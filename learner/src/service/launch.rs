@@ -151,11 +151,12 @@ pub struct LearnerArgs {
     /// policy; a stream beyond it gets RESOURCE_EXHAUSTED.
     #[arg(long, default_value_t = 512, value_parser = clap::value_parser!(u64).range(1..=1 << 20))]
     pub watch_budget_mib: u64,
-    /// MiB that all Learner and Policy requests together may hold while
-    /// their messages arrive (a message is buffered whole before it is
-    /// decoded); one remote peer address at most a quarter of it. A message
-    /// beyond it ends its stream with RESOURCE_EXHAUSTED, which actors
-    /// retry.
+    /// MiB that all health, Learner and Policy request streams together may
+    /// hold: each the largest message it has declared, until it ends (a
+    /// message is buffered whole before it is decoded); one remote peer
+    /// address at most a quarter of it, which must hold one
+    /// --max-batch-bytes batch. A stream beyond it ends with
+    /// RESOURCE_EXHAUSTED, which actors retry.
     #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..=1 << 20))]
     pub request_budget_mib: u64,
     /// Serve Prometheus metrics on http://ADDR/metrics (port 0: any free
@@ -218,15 +219,18 @@ pub async fn run(args: LearnerArgs, shutdown: impl Future<Output = ()>, listenin
     if let Some(0) = args.episodes {
         bail!("--episodes must be at least 1");
     }
-    // A remote actor's batch must fit in its peer's quarter, or it could
-    // never be stored and its actor would retry for ever.
-    if (args.request_budget_mib << 20) / crate::service::memory_budget::PEER_SHARE as u64 <= args.max_batch_bytes + 5 {
-        anyhow::bail!(
+    // A remote actor's batch (and its 5-byte prefix) must fit in its
+    // peer's quarter, or it could never be stored and its actor would
+    // retry for ever.
+    let share = (args.request_budget_mib << 20) / crate::service::memory_budget::PEER_SHARE as u64;
+    let batch = args.max_batch_bytes + 5;
+    if share < batch {
+        bail!(
             "--request-budget-mib {} leaves one peer address a quarter, {} KiB, which does not hold one batch of --max-batch-bytes {}; raise it to at least {} MiB",
             args.request_budget_mib,
-            (args.request_budget_mib << 20) / 4096,
+            share >> 10,
             args.max_batch_bytes,
-            (4 * (args.max_batch_bytes + 5)).div_ceil(1 << 20) + 1
+            (crate::service::memory_budget::PEER_SHARE as u64 * batch).div_ceil(1 << 20)
         );
     }
     let Begun { training, commands, shared, state_dim } = begin(&args, &security).await?;

@@ -70,13 +70,6 @@ impl Held {
             (Some(_), None) => {}
         }
     }
-
-    /// Splits `bytes` of this share off into a share of their own (to hand
-    /// them back by dropping it); None when it holds fewer.
-    pub fn split_off(&mut self, bytes: usize) -> Option<Held> {
-        let part = self.permit.as_mut()?.split(bytes)?;
-        Some(Held { permit: Some(part), peer: self.peer.clone() })
-    }
 }
 
 impl MemoryBudget {
@@ -143,19 +136,18 @@ mod tests {
         assert!(budget.take(600, peer("203.0.113.9")).is_ok(), "a dropped share is the peer's again");
     }
 
-    /// Merged shares are one; a split-off part hands back just its bytes,
-    /// to the budget and to the peer's count.
+    /// Merged shares are one, handed back together, to the budget and to
+    /// the peer's count.
     #[test]
-    fn shares_merge_and_split() {
+    fn merged_shares_are_one() {
         let budget = MemoryBudget::new(4000);
         let peer = Some("203.0.113.9".parse::<IpAddr>().unwrap());
         let mut held = budget.take(300, peer).unwrap();
         held.merge(budget.take(500, peer).unwrap());
         assert_eq!((held.bytes(), budget.used()), (800, 800));
-        assert!(held.split_off(801).is_none());
-        drop(held.split_off(600));
-        assert_eq!((held.bytes(), budget.used()), (200, 200));
-        assert!(budget.take(800, peer).is_ok(), "the peer holds 200 of its 1000 after the split");
-        assert!(budget.take(801, peer).is_err());
+        assert!(budget.take(201, peer).is_err(), "the peer holds 800 of its 1000");
+        drop(held);
+        assert_eq!(budget.used(), 0);
+        assert!(budget.take(1000, peer).is_ok(), "all of it came back");
     }
 }

@@ -39,7 +39,7 @@ impl RequestBudget {
         RequestBudget(MemoryBudget::new(bytes))
     }
 
-    /// Bytes of unfinished messages held now.
+    /// Bytes the live streams hold now.
     pub fn used(&self) -> usize {
         self.0.used()
     }
