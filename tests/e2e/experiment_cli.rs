@@ -44,7 +44,14 @@ fn checkpointed_unfinished(out: &Path) -> Vec<PathBuf> {
     for connection in std::fs::read_dir(root).into_iter().flatten().flatten() {
         for run in std::fs::read_dir(connection.path()).into_iter().flatten().flatten() {
             let dir = run.path();
-            let checkpoints = std::fs::read_dir(dir.join("checkpoints")).into_iter().flatten().flatten().any(|c| c.path().join("checkpoint.json").is_file());
+            // A staging folder (`.NAME.partial`) holds checkpoint.json before
+            // its rename; a kill then leaves no checkpoint, so hidden folders
+            // do not count.
+            let checkpoints = std::fs::read_dir(dir.join("checkpoints"))
+                .into_iter()
+                .flatten()
+                .flatten()
+                .any(|c| !c.file_name().to_string_lossy().starts_with('.') && c.path().join("checkpoint.json").is_file());
             if checkpoints && !dir.join("summary.json").exists() {
                 found.push(dir);
             }
