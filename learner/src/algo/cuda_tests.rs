@@ -86,3 +86,53 @@ fn cuda_graph_updates_equal_eager_updates() {
     assert_close("graphs against eager CUDA", &eager, &replayed);
     assert_close("graphs against the CPU", &cpu, &replayed);
 }
+
+/// Issue 71: updates replayed from CUDA graphs are guarded as eager ones.
+/// A replay buffer of states of 3e38 (finite, their squares not) makes
+/// every update's numbers infinite; the check every 8 updates undoes them
+/// all, on the CPU and from graphs alike: the same counts, no update
+/// counted as run, the actor's weights those it started with, every buffer
+/// finite, and the graphs still in use. Needs a GPU and the graph shim.
+#[test]
+fn cuda_graph_updates_that_leave_a_non_finite_number_are_undone() {
+    if !crate::device::torch::cuda_available() {
+        eprintln!("skipped: no CUDA device here; run on a GPU machine to check the guard on CUDA graphs");
+        return;
+    }
+    if let Err(why) = crate::device::cuda_graph::availability() {
+        eprintln!("skipped: {why}");
+        return;
+    }
+    use crate::algo::agent::Agent;
+    tch::set_num_threads(1);
+    let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
+    let mut cfg = TrainConfig::default();
+    (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size, cfg.ddpg.policy_delay, cfg.ddpg.critic_warmup_updates) = (32, 32, 1, 0);
+    let ddpg = |device: tch::Device| crate::algo::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, AgentSetup { connection: Connection::Local, mask: &mask, state_dim: 3, action_dim: 3, seed: 7, device });
+    let poisoned = |agent: &mut crate::algo::ddpg::Ddpg| {
+        let start: Vec<(String, Vec<f32>)> = agent.actor_variables().into_iter().map(|(n, t)| (n, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect();
+        let obs = [3e38f32, -3e38, 3e38];
+        // Until 16 updates are undone, stopping right after a check (every
+        // update since the last one undone, none pending).
+        for k in 0.. {
+            let c = agent.counters();
+            if c.skipped_updates >= 16 && c.critic_updates == 0 {
+                break;
+            }
+            assert!(k < 1000, "no two checks in 1000 steps: {c:?}");
+            agent.observe(crate::algo::agent::Transition { obs: &obs, action: &[0.5, -0.5, 0.1], reward: -1.0, next_obs: &obs, terminated: false, truncated: k % 40 == 39, log_prob: None, ..Default::default() });
+        }
+        let end: Vec<(String, Vec<f32>)> = agent.actor_variables().into_iter().map(|(n, t)| (n, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect();
+        assert_eq!(start, end, "the actor's weights are those it started with");
+        assert!(end.iter().all(|(_, w)| w.iter().all(|v| v.is_finite())));
+        let c = agent.counters();
+        (c.updates, c.critic_updates, c.skipped_updates)
+    };
+    let eager = poisoned(&mut ddpg(tch::Device::Cpu));
+    let mut graphed = ddpg(tch::Device::Cuda(0));
+    graphed.use_cuda_graphs().expect("CUDA graphs on a GPU with the shim");
+    let replayed = poisoned(&mut graphed);
+    assert_eq!((eager.0, eager.1), (0, 0), "eager updates all undone: {eager:?}");
+    assert_eq!(replayed, eager, "(updates, critic updates, undone) from graphs against eager ones");
+    assert!(graphed.captured_graphs() >= 1, "the graphs stay in use");
+}

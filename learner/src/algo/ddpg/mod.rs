@@ -246,7 +246,11 @@ impl Ddpg {
     /// One DDPG update on a minibatch from the replay buffer: eager, or
     /// replayed from a CUDA graph (graphs.rs).
     fn update(&mut self) {
-        if self.captured.is_none() && (self.rewind.is_none() || self.critic_updates.is_multiple_of(REWIND_EVERY)) {
+        // Eager or replayed, an update writes the same buffers in place
+        // (a graph's inputs and outputs are the agent's own tensors), so one
+        // guard covers both: a rewind point copied outside any capture, and
+        // the check after the update.
+        if self.rewind.is_none() || self.critic_updates.is_multiple_of(REWIND_EVERY) {
             self.rewind = Some(self.rewind_point());
         }
         self.critic_updates += 1;
@@ -271,17 +275,17 @@ impl Ddpg {
                 let noise = (!values.is_empty())
                     .then(|| crate::device::torch::to_device_async(Tensor::from_slice(&values), self.device).view([self.cfg.batch_size as i64, self.action_dim as i64]));
                 self.apply_update(&b, noise.as_ref(), kind, &numbers.coefficients());
-                if self.critic_updates.is_multiple_of(CHECK_EVERY) && !self.buffers_finite() {
-                    let undone = self.rewind_to_point();
-                    self.counters.skipped_updates += undone;
-                    // Logged at 1, 2, 4, 8, … undone updates: a poisoned
-                    // replay buffer would otherwise log every update.
-                    if self.counters.skipped_updates.is_power_of_two() {
-                        tracing::warn!(skipped = self.counters.skipped_updates, "update undone: it left a NaN or infinite number in the networks");
-                    }
-                    return;
-                }
             }
+        }
+        if self.critic_updates.is_multiple_of(CHECK_EVERY) && !self.buffers_finite() {
+            let undone = self.rewind_to_point();
+            self.counters.skipped_updates += undone;
+            // Logged at 1, 2, 4, 8, … undone updates: a poisoned replay
+            // buffer would otherwise log every update.
+            if self.counters.skipped_updates.is_power_of_two() {
+                tracing::warn!(skipped = self.counters.skipped_updates, "update undone: it left a NaN or infinite number in the networks");
+            }
+            return;
         }
         if kind != UpdateKind::Critics {
             self.counters.updates += 1;
