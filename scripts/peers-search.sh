@@ -13,6 +13,25 @@ declare -A S=(
  [td3-zoo]="td3|{$zoo_td3, \"learning_starts\": 5000}"
  [td3-zoo-starts]="td3|{$zoo_td3, \"learning_starts\": 1000}"
 )
+# `bash scripts/peers-search.sh ppo`: SB3's PPO search instead
+# (docs/research/2026-12-04-peers-ppo-search-design.md), 900 episodes;
+# SEEDS="300" and SEEDS="301" split it between two workers.
+zoo_ppo='"n_steps": 1024, "gae_lambda": 0.95, "gamma": 0.9, "n_epochs": 10, "ent_coef": 0.0, "learning_rate": 0.001, "clip_range": 0.2'
+S[ppo-default]='ppo|{}'
+S[ppo-zoo]="ppo|{$zoo_ppo, \"use_sde\": true, \"sde_sample_freq\": 4}"
+S[ppo-zoo-nosde]="ppo|{$zoo_ppo}"
+S[ppo-lcrl]='ppo|{"learning_rate": "lin_3e-4", "policy_kwargs": {"net_arch": {"pi": [256, 256], "vf": [256, 256]}, "activation_fn": "elu"}}'
+if [ "${1:-}" = ppo ]; then
+  for seed in ${SEEDS:-300 301}; do
+    for name in ppo-default ppo-zoo ppo-zoo-nosde ppo-lcrl; do
+      IFS='|' read -r algo settings <<< "${S[$name]}"
+      out=runs/peers/sb3-search/peg-group1/$name/seed$seed
+      [ -f $out/summary.json ] && continue
+      nice -n 19 .venv/bin/python scripts/sb3_peers.py --env peg-group1 --algo $algo --seed $seed --episodes 900 --settings "$settings" --out $out || echo "FAILED $name $seed" >&2
+    done
+  done
+  exit 0
+fi
 for seed in 300 301; do
   for name in sac-default td3-default sac-zoo td3-noise sac-zoo-starts td3-zoo td3-zoo-starts; do
     IFS='|' read -r algo settings <<< "${S[$name]}"

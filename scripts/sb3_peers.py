@@ -10,10 +10,12 @@ experiments/peers.md's study (docs/peers.md).
 
 Settings: SB3's defaults for the algorithm, with the overrides of
 --settings (a JSON object of keyword arguments), all written to
-summary.json. Two keys are rl-zoo3's rather than SB3's: "noise_std" (with
-"noise_type": "normal") becomes a NormalActionNoise of that scale on every
-action component, and a list "train_freq" ([1, "episode"]) a tuple. A
-finished run (summary.json present) is skipped.
+summary.json. Some spellings are rl-zoo3's rather than SB3's: "noise_std"
+(with "noise_type": "normal") becomes a NormalActionNoise of that scale on
+every action component, a list "train_freq" ([1, "episode"]) a tuple,
+"learning_rate" or "clip_range" "lin_X" a schedule from X to 0 over the
+episode budget, and policy_kwargs' "activation_fn" a name (tanh, relu,
+elu). A finished run (summary.json present) is skipped.
 """
 
 import argparse
@@ -70,10 +72,33 @@ def evaluate(model, env, episodes: int = 100) -> list[float]:
     return returns
 
 
-def sb3_keywords(settings: dict, env) -> dict:
-    """SB3's keyword arguments for `settings` (rl-zoo3's noise and
-    train_freq spelled as SB3 takes them)."""
+ACTIVATIONS = {"tanh": torch.nn.Tanh, "relu": torch.nn.ReLU, "elu": torch.nn.ELU}
+
+
+def linear_to_zero(value: float, done) -> callable:
+    """rl-zoo3's "lin_X" schedule, over this run's episode budget: X times
+    the share of the budget left. SB3's own progress counts steps against
+    total_timesteps, which an episode budget leaves at 10**9 (see main)."""
+    return lambda _progress_remaining: value * max(0.0, 1.0 - done())
+
+
+def sb3_keywords(settings: dict, env, done=lambda: 0.0) -> dict:
+    """SB3's keyword arguments for `settings` (rl-zoo3's noise, train_freq,
+    "lin_X" schedules and activation names spelled as SB3 takes them;
+    `done` is the share of the episode budget done, for the schedules)."""
     kw = dict(settings)
+    for key in ("learning_rate", "clip_range"):
+        if isinstance(kw.get(key), str):
+            if not kw[key].startswith("lin_"):
+                raise SystemExit(f"--settings: {key} {kw[key]!r}: a number or \"lin_X\" (linear from X to 0 over the episode budget)")
+            kw[key] = linear_to_zero(float(kw[key][4:]), done)
+    policy_kwargs = dict(kw.get("policy_kwargs") or {})
+    if isinstance(policy_kwargs.get("activation_fn"), str):
+        name = policy_kwargs["activation_fn"]
+        if name not in ACTIVATIONS:
+            raise SystemExit(f"--settings: activation_fn {name!r} is not one of {sorted(ACTIVATIONS)}")
+        policy_kwargs["activation_fn"] = ACTIVATIONS[name]
+        kw["policy_kwargs"] = policy_kwargs
     noise_type, noise_std = kw.pop("noise_type", None), kw.pop("noise_std", None)
     if noise_std is not None:
         if noise_type not in (None, "normal"):
@@ -110,7 +135,7 @@ def main() -> int:
     env = lcrl_env.make(args.env)
     rows: list = []
     started = time.monotonic()
-    model = ALGOS[args.algo]("MlpPolicy", env, seed=args.seed, device="cpu", verbose=0, **sb3_keywords(settings, env))
+    model = ALGOS[args.algo]("MlpPolicy", env, seed=args.seed, device="cpu", verbose=0, **sb3_keywords(settings, env, lambda: len(rows) / args.episodes))
     # SB3 counts steps; the budget is in episodes (at most 100 steps each
     # on the peg presets), so the step cap is never what stops it.
     model.learn(total_timesteps=10**9, callback=Episodes(args.episodes, rows))
