@@ -18,6 +18,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::policy::trained::Policy;
 use crate::service::ingest::{Origin, Verdict};
+use crate::service::serving_share::below_training;
 use crate::service::shared::{Command, Shared};
 use crate::service::watch_budget::WatchBudget;
 
@@ -296,7 +297,7 @@ impl PolicyApi for PolicyService {
         // Waits for its turn without a thread, then computes off the event
         // loop (an ActBatch may be computing).
         let turn = self.share.turn().await?;
-        let computed = tokio::task::block_in_place(|| self.with_policy(|policy, env| policy.act(env, &raw)));
+        let computed = tokio::task::block_in_place(|| below_training(|| self.with_policy(|policy, env| policy.act(env, &raw))));
         self.share.done(turn);
         let (action, version) = computed?;
         self.act_latency.observe(started.elapsed().as_secs_f64());
@@ -315,11 +316,13 @@ impl PolicyApi for PolicyService {
         // Off the event loop: health checks and GetStatus stay answered
         // while a large batch computes.
         let computed = tokio::task::block_in_place(|| {
-            self.with_policy(|policy, env| {
-                request.states.chunks(m).flat_map(|row| {
-                    let raw: Vec<f64> = row.iter().map(|&v| f64::from(v)).collect();
-                    policy.act(env, &raw)
-                }).map(|a| a as f32).collect::<Vec<f32>>()
+            below_training(|| {
+                self.with_policy(|policy, env| {
+                    request.states.chunks(m).flat_map(|row| {
+                        let raw: Vec<f64> = row.iter().map(|&v| f64::from(v)).collect();
+                        policy.act(env, &raw)
+                    }).map(|a| a as f32).collect::<Vec<f32>>()
+                })
             })
         });
         self.share.done(turn);
