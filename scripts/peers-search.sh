@@ -32,6 +32,21 @@ if [ "${1:-}" = ppo ]; then
   done
   exit 0
 fi
+# `bash scripts/peers-search.sh ppo-pick NAME`: the PPO search's pick on the
+# table's seeds (the design's step 3; SEEDS splits it as above).
+if [ "${1:-}" = ppo-pick ]; then
+  name=${2:?ppo-pick needs the picked candidate}
+  [ -n "${S[$name]:-}" ] || { echo "peers-search: no candidate $name" >&2; exit 2; }
+  IFS='|' read -r algo settings <<< "${S[$name]}"
+  for seed in ${SEEDS:-200 201 202 203 204}; do
+    for env in peg-group1 peg-group2; do
+      out=runs/peers/sb3/$env/$name/seed$seed
+      [ -f $out/summary.json ] && continue
+      nice -n 19 .venv/bin/python scripts/sb3_peers.py --env $env --algo $algo --seed $seed --episodes 900 --settings "$settings" --out $out || echo "FAILED $name $env $seed" >&2
+    done
+  done
+  exit 0
+fi
 for seed in 300 301; do
   for name in sac-default td3-default sac-zoo td3-noise sac-zoo-starts td3-zoo td3-zoo-starts; do
     IFS='|' read -r algo settings <<< "${S[$name]}"

@@ -88,7 +88,9 @@ def search_table(root):
     """The search's candidates on their seeds, and each algorithm's pick
     (the highest mean; a tie within 0.05 goes to the earlier candidate)."""
     base = root["peers"] / "sb3-search" / "peg-group1"
-    order = ["sac-default", "sac-zoo", "sac-zoo-starts", "td3-default", "td3-noise", "td3-zoo", "td3-zoo-starts"]
+    order = ["sac-default", "sac-zoo", "sac-zoo-starts", "td3-default", "td3-noise", "td3-zoo", "td3-zoo-starts",
+             # docs/research/2026-12-04-peers-ppo-search-design.md
+             "ppo-default", "ppo-zoo", "ppo-zoo-nosde", "ppo-lcrl"]
     rows = []
     for name in order:
         finals = [json.loads((f / "summary.json").read_text()) for f in sorted((base / name).glob("seed*")) if (f / "summary.json").is_file()]
@@ -96,11 +98,11 @@ def search_table(root):
             rows.append((name, finals))
     if not rows:
         return
-    print("\n### The settings search (peg-group1, search seeds 300–301)\n")
+    print("\n### The settings search (peg-group1, search seeds 300–301; SAC and TD3 200 episodes, PPO 900)\n")
     print("| candidate | settings | every seed | mean | pick |")
     print("|---|---|---|---|---|")
     picks = {}
-    for algo in ("sac", "td3"):
+    for algo in ("sac", "td3", "ppo"):
         best = None
         for name, runs in rows:
             if name.startswith(algo) and len(runs) == 2:
@@ -248,7 +250,9 @@ def main():
             to_bar = statistics.median(hit) if hit else "–"
             diverged = sum(1 for f in finals if f < refs["a = 0"])
             print(f"| {name} | {len(runs)} | {mean:.3f}{ci} | {every} | {len(hit)} of {len(runs)} | {to_bar} | {wall} | {diverged} of {len(runs)} |")
-        comparisons = COMPARISONS + [(name, "lcrl DDPG global") for name, *_ in searched]
+        # Each pick beside lcrl's learner of its kind: PPO's beside lcrl's
+        # PPO, the off-policy picks beside lcrl's DDPG.
+        comparisons = COMPARISONS + [(name, "lcrl PPO global" if algo.startswith("ppo") else "lcrl DDPG global") for name, _, algo, _ in searched]
         for peer, ours in comparisons:
             a, b = cells[peer], cells[ours]
             if len(a) >= 2 and len(b) >= 2:
