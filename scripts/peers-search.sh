@@ -36,7 +36,11 @@ fi
 # table's seeds (the design's step 3; SEEDS splits it as above).
 if [ "${1:-}" = ppo-pick ]; then
   name=${2:?ppo-pick needs the picked candidate}
-  [ -n "${S[$name]:-}" ] || { echo "peers-search: no candidate $name" >&2; exit 2; }
+  case $name in
+    ppo-default) echo "peers-search: the pick is SB3's defaults, whose table row has run: nothing to add"; exit 0 ;;
+    ppo-*) [ -n "${S[$name]:-}" ] || { echo "peers-search: no PPO candidate $name" >&2; exit 2; } ;;
+    *) echo "peers-search: ppo-pick takes a PPO candidate (ppo-zoo, ppo-zoo-nosde, ppo-lcrl), not $name" >&2; exit 2 ;;
+  esac
   IFS='|' read -r algo settings <<< "${S[$name]}"
   for seed in ${SEEDS:-200 201 202 203 204}; do
     for env in peg-group1 peg-group2; do

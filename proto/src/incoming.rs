@@ -138,7 +138,7 @@ impl Registry {
         let mut by_peer = self.by_peer.lock().unwrap_or_else(|p| p.into_inner());
         // The open list holds one reference; the connection, the other.
         by_peer.retain(|_, hush| hush.strong_count() > 1);
-        by_peer.keys().filter(|addr| crate::limits::counted_peer(addr.ip()) == Some(ip)).count() >= cap
+        by_peer.keys().filter(|addr| addr.ip().to_canonical() == ip).count() >= cap
     }
 
     fn now_ms(&self) -> u64 {

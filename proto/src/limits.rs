@@ -64,16 +64,14 @@ pub const FIRST_BYTE_TIMEOUT: Duration = Duration::from_secs(10);
 pub const CALL_DEADLINE: Duration = Duration::from_secs(10);
 
 /// The address a per-peer share counts `ip` under: IPv4 on an IPv6
-/// listener (::ffff:a.b.c.d) as itself; IPv6 by its /64 prefix (the rest
-/// zero), since one host is handed a whole /64 and picks any address in
-/// it, so per-address shares would not hold it; None for loopback, where
-/// `lcrl run` starts its own processes and no share applies.
+/// listener (::ffff:a.b.c.d) as itself; None for loopback, where `lcrl run`
+/// starts its own processes and no share applies. IPv6 counts per address,
+/// not per /64, although one host may pick any address of its /64: a
+/// Kubernetes node hands its pods addresses from one /64 (as cloud subnets
+/// and LANs do), and a /64 share would hold every actor of a node as one
+/// peer.
 pub fn counted_peer(ip: std::net::IpAddr) -> Option<std::net::IpAddr> {
-    match ip.to_canonical() {
-        ip if ip.is_loopback() => None,
-        std::net::IpAddr::V6(v6) => Some(std::net::Ipv6Addr::from(u128::from(v6) & !((1u128 << 64) - 1)).into()),
-        v4 => Some(v4),
-    }
+    Some(ip.to_canonical()).filter(|ip| !ip.is_loopback())
 }
 
 /// Connections one peer address may hold at once, beyond loopback
@@ -264,13 +262,10 @@ mod tests {
     }
 
     #[test]
-    fn peers_are_counted_by_ipv4_address_and_ipv6_slash_64() {
+    fn peers_are_counted_per_address() {
         let peer = |s: &str| counted_peer(s.parse().unwrap()).map(|ip| ip.to_string());
-        assert_eq!(peer("2001:db8:1:2::5"), peer("2001:db8:1:2:ffff:1:2:3"), "one /64, one peer");
-        assert_eq!(peer("2001:db8:1:2::5").as_deref(), Some("2001:db8:1:2::"));
-        assert_ne!(peer("2001:db8:1:2::5"), peer("2001:db8:1:3::5"), "another /64, another peer");
+        assert_ne!(peer("2001:db8:1:2::5"), peer("2001:db8:1:2::6"), "two pods of one node's /64 are two peers");
         assert_eq!(peer("::ffff:192.0.2.7").as_deref(), Some("192.0.2.7"), "IPv4 on an IPv6 listener is itself");
-        assert_ne!(peer("192.0.2.7"), peer("192.0.2.8"));
         assert_eq!((peer("127.0.0.1"), peer("::1"), peer("::ffff:127.0.0.1")), (None, None, None), "loopback is not counted");
     }
 }

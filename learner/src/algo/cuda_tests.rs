@@ -5,6 +5,14 @@
 use crate::algo::agent::AgentSetup;
 use crate::config::{Algo, Connection, TrainConfig};
 
+/// One GPU test at a time: graph captures of two tests at once would
+/// share the device's stream synchronization (cuda_graph.rs).
+static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn gpu_turn() -> std::sync::MutexGuard<'static, ()> {
+    ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner())
+}
+
 /// Feeds `agent` 160 steps of a fixed 3-state system (the run's progress
 /// moving with them) and returns its actor's weights.
 fn fed_actor_weights(agent: &mut dyn crate::algo::agent::Agent) -> Vec<(String, Vec<f32>)> {
@@ -38,6 +46,7 @@ fn cuda_updates_equal_cpu_updates() {
         eprintln!("skipped: no CUDA device here (libtorch_cuda: {}); run on a GPU machine to check CUDA updates", crate::device::torch::load_cuda());
         return;
     }
+    let _turn = gpu_turn();
     tch::set_num_threads(1);
     let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
     for algo in [Algo::Ddpg, Algo::Ppo] {
@@ -69,6 +78,7 @@ fn cuda_graph_updates_equal_eager_updates() {
         eprintln!("skipped: {why}");
         return;
     }
+    let _turn = gpu_turn();
     tch::set_num_threads(1);
     let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
     let mut cfg = TrainConfig::default();
@@ -103,11 +113,14 @@ fn cuda_graph_updates_that_leave_a_non_finite_number_are_undone() {
         eprintln!("skipped: {why}");
         return;
     }
+    let _turn = gpu_turn();
     use crate::algo::agent::Agent;
     tch::set_num_threads(1);
     let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
     let mut cfg = TrainConfig::default();
     (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size, cfg.ddpg.policy_delay, cfg.ddpg.critic_warmup_updates) = (32, 32, 1, 0);
+    // One update a step, so a check (every 8 updates) comes every 8 steps.
+    (cfg.ddpg.update_every, cfg.ddpg.gradient_steps) = (1, 1);
     let ddpg = |device: tch::Device| crate::algo::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, AgentSetup { connection: Connection::Local, mask: &mask, state_dim: 3, action_dim: 3, seed: 7, device });
     let poisoned = |agent: &mut crate::algo::ddpg::Ddpg| {
         let start: Vec<(String, Vec<f32>)> = agent.actor_variables().into_iter().map(|(n, t)| (n, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect();
@@ -125,6 +138,7 @@ fn cuda_graph_updates_that_leave_a_non_finite_number_are_undone() {
         let end: Vec<(String, Vec<f32>)> = agent.actor_variables().into_iter().map(|(n, t)| (n, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect();
         assert_eq!(start, end, "the actor's weights are those it started with");
         assert!(end.iter().all(|(_, w)| w.iter().all(|v| v.is_finite())));
+        assert!(agent.buffers_finite(), "every network, target copy and Adam moment finite");
         let c = agent.counters();
         (c.updates, c.critic_updates, c.skipped_updates)
     };

@@ -24,10 +24,10 @@ pub const POLICY_CONCURRENCY: usize = 1;
 /// Calls that may wait for their turn; the next is refused.
 pub const MAX_QUEUED_QUERIES: usize = 64;
 
-/// The nice value policy computations run at (training's threads run at
-/// the process's own, 0 by default): where cores are short, the kernel gives
-/// a thread at nice 0 about 9 times the time of one at nice 10 (CFS weights
-/// 1024 and 110), so queries take mostly what training leaves.
+/// How much nicer than the learner's own threads policy computations run
+/// (at most 19): where cores are short, the kernel gives a thread at nice 0
+/// about 9 times the time of one at nice 10 (CFS weights 1024 and 110), so
+/// queries take mostly what training leaves.
 pub const SERVING_NICE: i32 = 10;
 
 /// Runs `compute` on a thread of its own at [`SERVING_NICE`] and returns
@@ -39,8 +39,10 @@ pub fn below_training<T: Send>(compute: impl FnOnce() -> T + Send) -> T {
     // none could be started.
     let compute = Mutex::new(Some(compute));
     let take = || compute.lock().unwrap_or_else(|p| p.into_inner()).take();
+    let span = tracing::Span::current();
     std::thread::scope(|scope| {
         let started = std::thread::Builder::new().name("lcrl-serving".into()).spawn_scoped(scope, || {
+            let _in_call = span.enter();
             lower_this_thread();
             take().map(|f| f())
         });
@@ -53,15 +55,19 @@ pub fn below_training<T: Send>(compute: impl FnOnce() -> T + Send) -> T {
     })
 }
 
-/// Lowers the calling thread alone to [`SERVING_NICE`] (Linux: a thread id
-/// given to setpriority names that thread). Raising one's own nice needs no
-/// privilege; a failure leaves the thread as it was.
+/// Raises the calling thread's nice value alone by [`SERVING_NICE`], up
+/// to 19 (Linux: a thread id given to setpriority names that thread; a new
+/// thread starts at its creator's value). Raising one's own nice needs no
+/// privilege; never lowering it keeps serving below training even where
+/// the learner was started niced; a failure leaves the thread as it was.
 fn lower_this_thread() {
     #[cfg(target_os = "linux")]
-    // SAFETY: gettid and setpriority take no pointers.
+    // SAFETY: gettid, getpriority and setpriority take no pointers.
     unsafe {
         let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
-        if libc::setpriority(libc::PRIO_PROCESS, tid, SERVING_NICE) != 0 {
+        let own = libc::getpriority(libc::PRIO_PROCESS, tid);
+        let serving = (own + SERVING_NICE).min(19);
+        if serving > own && libc::setpriority(libc::PRIO_PROCESS, tid, serving) != 0 {
             tracing::debug!("policy computations run at the learner's own priority: setpriority failed");
         }
     }
@@ -176,7 +182,7 @@ mod tests {
         let caller = nice_here();
         let (inside, value) = below_training(|| (nice_here(), 6 * 7));
         assert_eq!(value, 42);
-        assert_eq!(inside, SERVING_NICE.max(caller), "the computing thread's nice value");
+        assert_eq!(inside, (caller + SERVING_NICE).min(19).max(caller), "the computing thread's nice value");
         assert_eq!(nice_here(), caller, "the caller's nice value is unchanged");
     }
 

@@ -312,7 +312,7 @@ impl Ddpg {
     /// Whether no buffer holds a NaN or ∞: their sum in f64 (which no sum
     /// of f32 values overflows) is finite exactly then. Two operations and
     /// one read back.
-    fn buffers_finite(&self) -> bool {
+    pub(crate) fn buffers_finite(&self) -> bool {
         let sum = tch::no_grad(|| Tensor::cat(&self.buffers(), 0).sum(Kind::Double));
         f64::try_from(sum).is_ok_and(f64::is_finite)
     }
@@ -552,6 +552,8 @@ impl Agent for Ddpg {
         if let Some(captured) = self.captured.as_mut() {
             captured.clear();
         }
+        // A rewind point from before the load would restore other weights.
+        self.rewind = None;
         Ok(())
     }
 
