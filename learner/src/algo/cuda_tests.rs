@@ -13,6 +13,33 @@ fn gpu_turn() -> std::sync::MutexGuard<'static, ()> {
     ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner())
 }
 
+/// The GPU's turn for a test of CUDA graphs, or None (the reason printed)
+/// where there is no CUDA device or no graph shim.
+fn graphs_turn(checks: &str) -> Option<std::sync::MutexGuard<'static, ()>> {
+    if !crate::device::torch::cuda_available() {
+        eprintln!("skipped: no CUDA device here; run on a GPU machine to check {checks}");
+        return None;
+    }
+    if let Err(why) = crate::device::cuda_graph::availability() {
+        eprintln!("skipped: {why}");
+        return None;
+    }
+    let turn = gpu_turn();
+    tch::set_num_threads(1);
+    Some(turn)
+}
+
+/// The DDPG agent of the graph tests: 3 states, 3 actions, a local mask.
+fn small_ddpg(cfg: &TrainConfig, device: tch::Device) -> crate::algo::ddpg::Ddpg {
+    let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
+    crate::algo::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, AgentSetup { connection: Connection::Local, mask: &mask, state_dim: 3, action_dim: 3, seed: 7, device })
+}
+
+/// The actor's weights, on the host.
+fn actor_weights(agent: &dyn crate::algo::agent::Agent) -> Vec<(String, Vec<f32>)> {
+    agent.actor_variables().into_iter().map(|(name, t)| (name, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect()
+}
+
 /// Feeds `agent` 160 steps of a fixed 3-state system (the run's progress
 /// moving with them) and returns its actor's weights.
 fn fed_actor_weights(agent: &mut dyn crate::algo::agent::Agent) -> Vec<(String, Vec<f32>)> {
@@ -24,7 +51,7 @@ fn fed_actor_weights(agent: &mut dyn crate::algo::agent::Agent) -> Vec<(String, 
         let reward = -obs.iter().map(|v| v * v).sum::<f32>();
         agent.observe(crate::algo::agent::Transition { obs: &obs, action: &action, reward, next_obs: &next, terminated: false, truncated: k % 40 == 39, log_prob: None, ..Default::default() });
     }
-    agent.actor_variables().into_iter().map(|(name, t)| (name, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect()
+    actor_weights(agent)
 }
 
 fn assert_close(what: &str, a: &[(String, Vec<f32>)], b: &[(String, Vec<f32>)]) {
@@ -70,23 +97,13 @@ fn cuda_updates_equal_cpu_updates() {
 /// otherwise.
 #[test]
 fn cuda_graph_updates_equal_eager_updates() {
-    if !crate::device::torch::cuda_available() {
-        eprintln!("skipped: no CUDA device here; run on a GPU machine to check CUDA graphs");
-        return;
-    }
-    if let Err(why) = crate::device::cuda_graph::availability() {
-        eprintln!("skipped: {why}");
-        return;
-    }
-    let _turn = gpu_turn();
-    tch::set_num_threads(1);
-    let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
+    let Some(_turn) = graphs_turn("CUDA graphs") else { return };
     let mut cfg = TrainConfig::default();
     (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size) = (32, 32);
     (cfg.ddpg.twin_critics, cfg.ddpg.policy_delay, cfg.ddpg.target_noise) = (true, 2, 0.2);
     cfg.ddpg.critic_warmup_updates = 10;
     (cfg.ddpg.anneal_lr, cfg.ddpg.preactivation_l2, cfg.ddpg.preactivation_anneal) = (true, 0.05, true);
-    let ddpg = |device: tch::Device| crate::algo::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, AgentSetup { connection: Connection::Local, mask: &mask, state_dim: 3, action_dim: 3, seed: 7, device });
+    let ddpg = |device: tch::Device| small_ddpg(&cfg, device);
     let cpu = fed_actor_weights(&mut ddpg(tch::Device::Cpu));
     let eager = fed_actor_weights(&mut ddpg(tch::Device::Cuda(0)));
     let mut graphed = ddpg(tch::Device::Cuda(0));
@@ -105,25 +122,15 @@ fn cuda_graph_updates_equal_eager_updates() {
 /// finite, and the graphs still in use. Needs a GPU and the graph shim.
 #[test]
 fn cuda_graph_updates_that_leave_a_non_finite_number_are_undone() {
-    if !crate::device::torch::cuda_available() {
-        eprintln!("skipped: no CUDA device here; run on a GPU machine to check the guard on CUDA graphs");
-        return;
-    }
-    if let Err(why) = crate::device::cuda_graph::availability() {
-        eprintln!("skipped: {why}");
-        return;
-    }
-    let _turn = gpu_turn();
+    let Some(_turn) = graphs_turn("the guard on CUDA graphs") else { return };
     use crate::algo::agent::Agent;
-    tch::set_num_threads(1);
-    let mask = vec![vec![1, 0, 0], vec![1, 1, 0], vec![0, 0, 1]];
     let mut cfg = TrainConfig::default();
     (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size, cfg.ddpg.policy_delay, cfg.ddpg.critic_warmup_updates) = (32, 32, 1, 0);
     // One update a step, so a check (every 8 updates) comes every 8 steps.
     (cfg.ddpg.update_every, cfg.ddpg.gradient_steps) = (1, 1);
-    let ddpg = |device: tch::Device| crate::algo::ddpg::Ddpg::new(&cfg.ddpg, &cfg.network, AgentSetup { connection: Connection::Local, mask: &mask, state_dim: 3, action_dim: 3, seed: 7, device });
+    let ddpg = |device: tch::Device| small_ddpg(&cfg, device);
     let poisoned = |agent: &mut crate::algo::ddpg::Ddpg| {
-        let start: Vec<(String, Vec<f32>)> = agent.actor_variables().into_iter().map(|(n, t)| (n, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect();
+        let start = actor_weights(agent);
         let obs = [3e38f32, -3e38, 3e38];
         // Until 16 updates are undone, stopping right after a check (every
         // update since the last one undone, none pending).
@@ -135,7 +142,7 @@ fn cuda_graph_updates_that_leave_a_non_finite_number_are_undone() {
             assert!(k < 1000, "no two checks in 1000 steps: {c:?}");
             agent.observe(crate::algo::agent::Transition { obs: &obs, action: &[0.5, -0.5, 0.1], reward: -1.0, next_obs: &obs, terminated: false, truncated: k % 40 == 39, log_prob: None, ..Default::default() });
         }
-        let end: Vec<(String, Vec<f32>)> = agent.actor_variables().into_iter().map(|(n, t)| (n, Vec::<f32>::try_from(t.to_device(tch::Device::Cpu).flatten(0, -1)).unwrap())).collect();
+        let end = actor_weights(agent);
         assert_eq!(start, end, "the actor's weights are those it started with");
         assert!(end.iter().all(|(_, w)| w.iter().all(|v| v.is_finite())));
         assert!(agent.buffers_finite(), "every network, target copy and Adam moment finite");
