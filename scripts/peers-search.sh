@@ -21,13 +21,18 @@ S[ppo-default]='ppo|{}'
 S[ppo-zoo]="ppo|{$zoo_ppo, \"use_sde\": true, \"sde_sample_freq\": 4}"
 S[ppo-zoo-nosde]="ppo|{$zoo_ppo}"
 S[ppo-lcrl]='ppo|{"learning_rate": "lin_3e-4", "policy_kwargs": {"net_arch": {"pi": [256, 256], "vf": [256, 256]}, "activation_fn": "elu"}}'
+# One SB3 run of candidate NAME: run NAME ENV SEED EPISODES OUT (skipped
+# when OUT holds its summary.json; a failure is reported and the rest go on).
+run() {
+  local name=$1 env=$2 seed=$3 episodes=$4 out=$5 algo settings
+  [ -f "$out/summary.json" ] && return 0
+  IFS='|' read -r algo settings <<< "${S[$name]}"
+  nice -n 19 .venv/bin/python scripts/sb3_peers.py --env "$env" --algo "$algo" --seed "$seed" --episodes "$episodes" --settings "$settings" --out "$out" || echo "FAILED $name $env $seed" >&2
+}
 if [ "${1:-}" = ppo ]; then
   for seed in ${SEEDS:-300 301}; do
     for name in ppo-default ppo-zoo ppo-zoo-nosde ppo-lcrl; do
-      IFS='|' read -r algo settings <<< "${S[$name]}"
-      out=runs/peers/sb3-search/peg-group1/$name/seed$seed
-      [ -f $out/summary.json ] && continue
-      nice -n 19 .venv/bin/python scripts/sb3_peers.py --env peg-group1 --algo $algo --seed $seed --episodes 900 --settings "$settings" --out $out || echo "FAILED $name $seed" >&2
+      run $name peg-group1 $seed 900 runs/peers/sb3-search/peg-group1/$name/seed$seed
     done
   done
   exit 0
@@ -41,22 +46,16 @@ if [ "${1:-}" = ppo-pick ]; then
     ppo-*) [ -n "${S[$name]:-}" ] || { echo "peers-search: no PPO candidate $name" >&2; exit 2; } ;;
     *) echo "peers-search: ppo-pick takes a PPO candidate (ppo-zoo, ppo-zoo-nosde, ppo-lcrl), not $name" >&2; exit 2 ;;
   esac
-  IFS='|' read -r algo settings <<< "${S[$name]}"
   for seed in ${SEEDS:-200 201 202 203 204}; do
     for env in peg-group1 peg-group2; do
-      out=runs/peers/sb3/$env/$name/seed$seed
-      [ -f $out/summary.json ] && continue
-      nice -n 19 .venv/bin/python scripts/sb3_peers.py --env $env --algo $algo --seed $seed --episodes 900 --settings "$settings" --out $out || echo "FAILED $name $env $seed" >&2
+      run $name $env $seed 900 runs/peers/sb3/$env/$name/seed$seed
     done
   done
   exit 0
 fi
 for seed in 300 301; do
   for name in sac-default td3-default sac-zoo td3-noise sac-zoo-starts td3-zoo td3-zoo-starts; do
-    IFS='|' read -r algo settings <<< "${S[$name]}"
-    out=runs/peers/sb3-search/peg-group1/$name/seed$seed
-    [ -f $out/summary.json ] && continue
-    nice -n 19 .venv/bin/python scripts/sb3_peers.py --env peg-group1 --algo $algo --seed $seed --episodes 200 --settings "$settings" --out $out || echo "FAILED $name $seed" >&2
+    run $name peg-group1 $seed 200 runs/peers/sb3-search/peg-group1/$name/seed$seed
   done
 done
 
@@ -64,9 +63,6 @@ done
 # defaults (its table row); TD3's, td3-zoo-starts.
 for seed in 200 201 202 203 204; do
   for env in peg-group1 peg-group2; do
-    out=runs/peers/sb3/$env/td3-zoo-starts/seed$seed
-    [ -f $out/summary.json ] && continue
-    IFS='|' read -r algo settings <<< "${S[td3-zoo-starts]}"
-    nice -n 19 .venv/bin/python scripts/sb3_peers.py --env $env --algo $algo --seed $seed --episodes 200 --settings "$settings" --out $out || echo "FAILED td3-zoo-starts $env $seed" >&2
+    run td3-zoo-starts $env $seed 200 runs/peers/sb3/$env/td3-zoo-starts/seed$seed
   done
 done

@@ -46,11 +46,13 @@ pub fn below_training<T: Send>(compute: impl FnOnce() -> T + Send) -> T {
             lower_this_thread();
             take().map(|f| f())
         });
-        match started.map(|thread| thread.join()) {
-            Ok(Ok(Some(value))) => value,
-            Ok(Err(panic)) => std::panic::resume_unwind(panic),
+        match started {
+            Ok(thread) => match thread.join() {
+                Ok(value) => value.expect("the started thread takes the computation"),
+                Err(panic) => std::panic::resume_unwind(panic),
+            },
             // Not started (no threads left): computed here, at the caller's priority.
-            Ok(Ok(None)) | Err(_) => (take().expect("not run: the thread did not start"))(),
+            Err(_) => (take().expect("not taken: the thread did not start"))(),
         }
     })
 }
