@@ -88,6 +88,7 @@ fn interrupted_run_summary(preset: &Preset, learner_dir: &Path, status: &Learner
         evaluation,
         selection: lcrl_learner::run::selection::read_record(&lcrl_learner::run::selection::selected_dir(learner_dir))?,
         graph_seconds: 0.0,
+        graph: None,
         optimization_seconds: 0.0,
         total_seconds: 0.0,
         env_steps: status.env_steps,

@@ -265,7 +265,7 @@ impl Task {
                         let draw_seed = lcrl_graph_builder::given::draw_seed(env, seed.unwrap_or(0)).to_string();
                         vec![
                             "graph".into(), "--env".into(), env.clone(), "--random-rows".into(), s(&source),
-                            "--seed".into(), draw_seed, "--out".into(), s(&path),
+                            "--seed".into(), draw_seed, "--draw".into(), seed.unwrap_or(0).to_string(), "--out".into(), s(&path),
                         ]
                     }
                 }
@@ -416,7 +416,7 @@ mod tests {
         assert_eq!(draw.dependency(), Some(tasks[0].clone()));
         let args = draw.args(&e, out).join(" ");
         let seed = lcrl_graph_builder::given::draw_seed("peg-group1", 1);
-        assert!(args.contains(&format!("--random-rows /study/graphs/peg-group1/T0.5/graph.json --seed {seed} --out /study/graphs/peg-group1/random-rows@T0.5/draw1/graph.json")), "{args}");
+        assert!(args.contains(&format!("--random-rows /study/graphs/peg-group1/T0.5/graph.json --seed {seed} --draw 1 --out /study/graphs/peg-group1/random-rows@T0.5/draw1/graph.json")), "{args}");
         assert_ne!(tasks[5].args(&e, out).join(" ").split("--seed ").nth(1), args.split("--seed ").nth(1), "draws differ by environment");
         let run = tasks.iter().find(|t| t.id() == "train-peg-group2-ddpg-random-rows@local@0.5+draws=2-seed7").unwrap();
         assert_eq!(run.dependency().map(|t| t.id()), Some("graph-peg-group2-random-rows@T0.5-draw1".to_string()));

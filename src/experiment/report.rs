@@ -393,7 +393,14 @@ pub fn markdown(report: &Report) -> String {
         }
         let _ = writeln!(md);
         for c in &rows {
-            let seeds: Vec<String> = c.per_seed.iter().map(|s| format!("{}: {} / {}", s.seed, num(s.final_return), num(s.eval_return))).collect();
+            // A random-rows run names its draw: index (seed mod draws) and
+            // the draw's seed, as its graph.json and summary.json record.
+            let spec = crate::connection::ConnectionSpec::parse(&c.connection).ok();
+            let draw = |seed: u64| match spec.as_ref().and_then(|spec| spec.draw_of(seed)) {
+                Some(k) => format!(" (draw {k}, draw seed {})", lcrl_graph_builder::given::draw_seed(env, k)),
+                None => String::new(),
+            };
+            let seeds: Vec<String> = c.per_seed.iter().map(|s| format!("{}{}: {} / {}", s.seed, draw(s.seed), num(s.final_return), num(s.eval_return))).collect();
             let _ = writeln!(md, "- {} per seed (final / eval): {}", c.connection, seeds.join("; "));
         }
         if let Some(b) = report.best_constant.get(env) {

@@ -36,6 +36,11 @@ pub struct RunSummary {
     pub selection: Option<SelectionRecord>,
     #[serde(default)]
     pub graph_seconds: f64,
+    /// Which graph a local actor trained on, when it was given as a file
+    /// (`--graph`: a study's draw or graph task): the file and what it
+    /// says of its origin (a random-rows draw names its index and seed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub graph: Option<GraphRecord>,
     /// Time spent in updates (`lcrl train`; 0 where the learner's updates
     /// overlap the actors' stepping and are not timed apart).
     #[serde(default)]
@@ -68,6 +73,14 @@ pub struct RunSummary {
     /// The distributed service's figures (`lcrl-learner`, `lcrl run`).
     #[serde(flatten, default, skip_serializing_if = "Option::is_none")]
     pub service: Option<ServiceFigures>,
+}
+
+/// The graph file a run was given, and its recorded origin.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GraphRecord {
+    pub file: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub origin: Option<String>,
 }
 
 /// The handed-over policy, evaluated deterministically on `eval_episodes`

@@ -18,7 +18,7 @@ use lcrl_sim::{make_env, Env};
 use crate::policy::action::ActionMap;
 use crate::algo::agent::observe;
 use crate::run::files::{read_rows, EpisodeRow, MetricsLog};
-use crate::run::summary::{evaluate_hand_over, write_summary, EvaluationPlan, RunSummary};
+use crate::run::summary::{evaluate_hand_over, write_summary, EvaluationPlan, GraphRecord, RunSummary};
 use crate::policy::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::run::start::{prepare, GraphSource, Prepared, RunStart};
 use crate::config::{Algo, Connection, TrainConfig};
@@ -99,11 +99,20 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         Some(_) => read_rows(&req.run_dir.join("metrics.csv"), start.episode)?,
         None => Vec::new(),
     };
+    // A given graph (a study's draw, a graph file) is named in config.toml
+    // and summary.json, so a run says which graph it trained on.
+    let graph_record = req.graph.as_ref().map(|file| GraphRecord {
+        file: file.display().to_string(),
+        origin: graph.as_ref().and_then(|g| g.origin.clone()),
+    });
     let resolved = toml::to_string_pretty(&cfg).map_err(|e| LearnerError::Config(e.to_string()))?;
-    let header = format!(
+    let mut header = format!(
         "# resolved configuration\n# env = {:?}, algo = {:?}, connection = {:?}\n# settings from: {}\n",
         req.env, req.algo, req.connection, req.settings_source
     );
+    if let Some(record) = &graph_record {
+        header += &format!("# graph file: {}\n# graph origin: {}\n", record.file, record.origin.as_deref().unwrap_or("measured"));
+    }
     let config_path = req.run_dir.join("config.toml");
     crate::run::files::write_atomically(&config_path, (header + &resolved).as_bytes())?;
 
@@ -234,6 +243,7 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         evaluation,
         selection: chosen,
         graph_seconds,
+        graph: graph_record.clone(),
         optimization_seconds: prior_opt,
         total_seconds: prior_elapsed + started.elapsed().as_secs_f64(),
         env_steps: counters.env_steps,

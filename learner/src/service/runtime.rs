@@ -542,6 +542,7 @@ impl TrainingLoop {
             evaluation,
             selection,
             graph_seconds: meta.graph_seconds,
+            graph: None,
             optimization_seconds: 0.0,
             total_seconds: meta.elapsed_seconds + self.started.elapsed().as_secs_f64(),
             env_steps: counters.env_steps,
