@@ -106,8 +106,8 @@ fn run_graph(args: &GraphArgs) -> anyhow::Result<()> {
         return Ok(());
     }
     if args.choose_t {
-        let choice = args.run_choose_t()?;
-        print!("{}", choice.text(&args.env, args.samples));
+        let (choice, actions) = args.run_choose_t()?;
+        print!("{}", choice.text(&args.env, args.samples, &actions));
         if let Some(path) = &args.out {
             println!("\nwrote {}", path.display());
         }

@@ -72,25 +72,26 @@ pub struct GraphArgs {
     /// repeatable. The claim study's dz control (docs/lcrl-value.md).
     #[arg(long = "row", value_name = "ACTION=T|none", value_parser = parse_row, conflicts_with_all = ["exact", "random", "explain"])]
     pub rows: Vec<crate::RowRule>,
-    /// Choose T from CS3 alone (docs/method.md, "Choosing T"): measure phi
-    /// with --choose-seeds seeds (from --seed on) and print, for T = 0.1 to
-    /// 2.0, how often two seeds' graphs differ; T* is the largest T up to
-    /// which they differ in at most --max-disagreement of G's entries. With
-    /// --out, writes the choice as JSON. No training run takes part.
+    /// Choose T from CS3 alone (docs/method.md, "Choosing T"): print T_rule
+    /// (the above-average rule, eq. 7 at T = 1) and why, with a table from
+    /// --choose-seeds CS3 seeds (from --seed on): for T = 0.1 to 2.0 each
+    /// seed's edges, how often two seeds' graphs differ and how many moved
+    /// states no action sees. With --out, writes the choice as JSON. No
+    /// training run takes part.
     #[arg(long, conflicts_with_all = ["threshold", "thresholds", "exact", "random", "random_rows", "explain", "rows", "plot"])]
     pub choose_t: bool,
     /// CS3 seeds of --choose-t (2 to 64).
     #[arg(long, default_value_t = 8, requires = "choose_t", value_parser = lcrl_proto::process::count_in::<2, 64>)]
     pub choose_seeds: usize,
-    /// With --choose-t: the largest mean share of entries in which two
-    /// seeds' graphs may differ at a reproducible T (0 to 1).
-    #[arg(long, default_value_t = crate::choose_t::MAX_DISAGREEMENT, requires = "choose_t", value_parser = share)]
-    pub max_disagreement: f64,
     /// Draw, for every action, as many states as this graph gives it (a
     /// row with none stays empty), uniformly; --seed picks the draw. The
     /// degree-matched control of `random-rows@CONNECTION`. No CS3 runs.
     #[arg(long, value_name = "GRAPH.json", conflicts_with_all = ["thresholds", "exact", "threshold", "random", "rows", "explain"])]
     pub random_rows: Option<PathBuf>,
+    /// With --random-rows: the draw's index in its study, recorded in the
+    /// graph's origin (and so in every run trained on it) beside its seed.
+    #[arg(long, value_name = "K", requires = "random_rows")]
+    pub draw: Option<u64>,
     /// Draw the normalized-CS3 heatmap with G marked here (PNG).
     #[arg(long, value_name = "FILE.png", value_parser = crate::plot::png_path)]
     pub plot: Option<PathBuf>,
@@ -105,12 +106,6 @@ pub const MAX_THREADS: usize = 1024;
 /// The most bootstrap resamples (`--bootstrap`).
 pub const MAX_BOOTSTRAP: usize = 100_000;
 
-fn share(text: &str) -> Result<f64, String> {
-    match text.parse::<f64>() {
-        Ok(v) if (0.0..=1.0).contains(&v) => Ok(v),
-        _ => Err(format!("\"{text}\" is not a share between 0 and 1 (e.g. 0.02)")),
-    }
-}
 
 fn parse_row(text: &str) -> Result<crate::RowRule, String> {
     crate::RowRule::parse(text).map_err(|e| e.to_string())
@@ -149,8 +144,11 @@ impl GraphArgs {
         let json_out = self.out.as_deref().map(|p| PendingFile::new(p, ".json")).transpose()?;
         let plot_out = self.plot.as_deref().map(|p| PendingFile::new(p, ".png")).transpose()?;
         if let Some(of) = &self.random_rows {
+            let source = of.display().to_string();
             let of = crate::given::load_measured_for(of, env.spec())?;
-            let report = crate::given::random_rows(env.spec(), &of, self.seed)?;
+            let mut report = crate::given::random_rows(env.spec(), &of, self.seed)?;
+            let draw = self.draw.map(|k| format!("draw {k}, ")).unwrap_or_default();
+            report.origin = report.origin.map(|o| format!("{draw}{o}, of {source}"));
             if let Some(file) = json_out {
                 report.write_json(file.temp.path())?;
                 file.commit()?;
@@ -188,9 +186,9 @@ impl GraphArgs {
 }
 
 impl GraphArgs {
-    /// `--choose-t`: T* by the reproducibility rule (crate::choose_t), and
-    /// the choice written to --out as JSON.
-    pub fn run_choose_t(&self) -> Result<crate::choose_t::Choice, GraphError> {
+    /// `--choose-t`: T_rule (crate::choose_t) with the table beside it, and
+    /// the choice written to --out as JSON; the action names for its text.
+    pub fn run_choose_t(&self) -> Result<(crate::choose_t::Choice, Vec<String>), GraphError> {
         let options = self.options();
         options.validate()?;
         let env = lcrl_sim::make_env(&self.env)?;
@@ -201,7 +199,7 @@ impl GraphArgs {
         if let Ok(style) = ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} samples, {elapsed} (eta {eta})") {
             bar.set_style(style.progress_chars("=> "));
         }
-        let choice = crate::choose_t::measure_and_choose(env.as_ref(), &options.cs3, &seeds, self.max_disagreement, &|| bar.inc(1));
+        let choice = crate::choose_t::measure_and_choose(env.as_ref(), &options.cs3, &seeds, &|| bar.inc(1));
         bar.finish_and_clear();
         let choice = choice?;
         if let Some(file) = json_out {
@@ -209,7 +207,7 @@ impl GraphArgs {
             std::fs::write(file.temp.path(), text + "\n").map_err(|source| GraphError::Io { path: file.target.clone(), source })?;
             file.commit()?;
         }
-        Ok(choice)
+        Ok((choice, env.spec().action_names.clone()))
     }
 
     /// `--explain ACTION,STATE`: phi(ACTION, STATE) split by phase, from

@@ -202,7 +202,7 @@ fn a_malformed_graph_message_is_refused_with_what_is_wrong() {
 }
 
 /// lti-blocks-N (docs/lcrl-value.md): the sparse family whose G is known.
-/// CS3 (eq. 6 and eq. 7 at T = 0.1) gives Lemma 1's exact G for every
+/// CS3 (eq. 6, eq. 7 at T = 0.1, and at T_rule = 1 from N = 8 on) gives Lemma 1's exact G for every
 /// registered N up to 32, and that G is what the construction says: a_k
 /// sees x_k, y_k and its partner's x (3 edges per action).
 #[test]
@@ -215,7 +215,10 @@ fn lti_blocks_graphs_equal_lemma1_up_to_32_actions() {
             let expected: Vec<u8> = (0..2 * n).map(|j| u8::from(j == 2 * k || j == 2 * k + 1 || j == 2 * (k ^ 1))).collect();
             assert_eq!(row, &expected, "N = {n}: Lemma 1's row of a{}", k + 1);
         }
-        for rule in [Rule::Exact { tolerance: EXACT_TOLERANCE }, Rule::Threshold(0.1)] {
+        // T_rule (the above-average rule) recovers it too on the sizes the
+        // rule is held to (docs/method.md, "Choosing T").
+        let rule_too = (n >= 8).then_some(Rule::Threshold(crate::choose_t::RULE_THRESHOLD));
+        for rule in [Rule::Exact { tolerance: EXACT_TOLERANCE }, Rule::Threshold(0.1)].into_iter().chain(rule_too) {
             let report = build_graph(env.as_ref(), &GraphOptions { bootstrap: 0, ..options(16, rule, 0, 1) }, &|| {}).unwrap();
             assert_eq!(report.g, exact, "N = {n}, rule {rule:?}");
             assert_eq!(report.edges(), 3 * n);

@@ -165,27 +165,26 @@ fn trajectory_start_on_a_linear_system_keeps_lemma1_and_bad_sweeps_fail() {
     assert_clean_failure(&out, "--threshold must be a finite number above 0");
 }
 
-/// `--choose-t` prints the grid and T* with its rule, writes the same
-/// choice as JSON, and refuses a threshold beside it.
+/// `--choose-t` prints T_rule with its reason and the table, writes the
+/// same choice as JSON, and refuses a threshold beside it. On lti-blocks-8
+/// (G known, Lemma 1) the rule's graph is the block graph: 3 inputs an
+/// action, and no T of the table above 1 keeps every moved state seen.
 #[test]
-fn choose_t_prints_t_star_and_why() {
+fn choose_t_prints_t_rule_and_why() {
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("choice.json");
-    let out = lcrl().args(["graph", "--env", "lti-paper", "--samples", "32", "--choose-t", "--choose-seeds", "3", "--out"]).arg(&json).output().unwrap();
+    let out = lcrl().args(["graph", "--env", "lti-blocks-8", "--samples", "16", "--choose-t", "--choose-seeds", "3", "--out"]).arg(&json).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let text = stdout(&out);
     let v: Value = serde_json::from_str(&fs::read_to_string(&json).unwrap()).unwrap();
     assert_eq!(v["seeds"], serde_json::json!([0, 1, 2]));
     assert_eq!(v["candidates"].as_array().unwrap().len(), 20);
-    let chosen = v["chosen"].as_f64().expect("lti-paper's graph is reproducible at T = 0.1");
-    assert!(text.contains(&format!("T* = {chosen} (the publication's T = 0.1)")) && text.contains("differ in at most 2.0%"), "{text}");
-    // Every T up to T* is reproducible, and the next one is not.
-    let candidates = v["candidates"].as_array().unwrap();
-    let upto: Vec<&Value> = candidates.iter().take_while(|c| c["threshold"].as_f64().unwrap() <= chosen).collect();
-    assert!(upto.iter().all(|c| c["reproducible"] == true));
-    if let Some(next) = candidates.get(upto.len()) {
-        assert_eq!(next["reproducible"], false, "{text}");
-    }
+    assert_eq!(v["chosen"].as_f64(), Some(1.0));
+    assert_eq!(v["row_edges"], serde_json::json!([3, 3, 3, 3, 3, 3, 3, 3]));
+    assert!(text.contains("T_rule = 1 (the publication's T = 0.1): the above-average rule"), "{text}");
+    assert!(text.contains("Inputs per action at T_rule (seed 0): a1 3, a2 3"), "{text}");
+    let at_rule = v["candidates"].as_array().unwrap().iter().find(|c| c["threshold"].as_f64() == Some(1.0)).unwrap();
+    assert_eq!((at_rule["edges"].clone(), at_rule["unseen_states"].as_u64()), (serde_json::json!([24, 24, 24]), Some(0)));
     let both = lcrl().args(["graph", "--env", "lti-paper", "--choose-t", "--threshold", "1"]).output().unwrap();
     assert_clean_failure(&both, "cannot be used with");
 }
