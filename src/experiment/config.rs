@@ -152,6 +152,23 @@ impl Experiment {
         Self::check(file)
     }
 
+    /// The study of `path` on `environments` in place of the file's (all
+    /// of them when empty): the same cells, seeds and named contrasts,
+    /// which then stratify over the given environments. How a user asks a
+    /// study's question on a task of their own.
+    pub fn load_on(path: &Path, environments: &[String]) -> anyhow::Result<Self> {
+        if environments.is_empty() {
+            return Self::load(path);
+        }
+        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read experiment file {}", path.display()))?;
+        let mut file: ExperimentFile = toml::from_str(&text).with_context(|| format!("experiment file {}", path.display()))?;
+        file.environments = environments.to_vec();
+        if let Some(primary) = file.primary.as_mut() {
+            primary.stratify_over_all();
+        }
+        Self::check(file).with_context(|| format!("experiment file {} on --env {}", path.display(), environments.join(", ")))
+    }
+
     /// Every check that can run before a single process starts.
     pub fn check(mut file: ExperimentFile) -> anyhow::Result<Self> {
         // `[train.controller]` is the deprecated name of `[train.base]`:

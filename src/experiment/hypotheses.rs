@@ -40,6 +40,11 @@ pub struct PrimaryFamily {
     pub family: String,
     #[serde(default = "default_alpha")]
     pub alpha: f64,
+    /// What the study decides from these contrasts (e.g. which shipped
+    /// default changes), in words: committed with the contrasts, before
+    /// any run, and printed beside them in the report.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub decision: Option<String>,
     pub contrasts: Vec<PrimaryContrast>,
 }
 
@@ -56,6 +61,23 @@ impl Primary {
         match self {
             Primary::One(c) => vec![c],
             Primary::Family(f) => f.contrasts.iter().collect(),
+        }
+    }
+
+    /// Every contrast stratified over all the study's environments (its
+    /// `environments` lists dropped): for a study moved to other tasks.
+    pub fn stratify_over_all(&mut self) {
+        match self {
+            Primary::One(c) => c.environments.clear(),
+            Primary::Family(f) => f.contrasts.iter_mut().for_each(|c| c.environments.clear()),
+        }
+    }
+
+    /// The decision rule the file states, if any.
+    pub fn decision(&self) -> Option<&str> {
+        match self {
+            Primary::One(_) => None,
+            Primary::Family(f) => f.decision.as_deref(),
         }
     }
 

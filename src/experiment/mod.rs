@@ -69,6 +69,13 @@ pub struct RunArgs {
     /// List the tasks and their commands; run nothing.
     #[arg(long)]
     pub dry_run: bool,
+    /// Run the study on this environment in place of the file's (a
+    /// registered name, a TOML file or grpc://HOST:PORT; repeat for
+    /// several): the same cells, seeds and named contrasts, stratified over
+    /// these. E.g. experiments/local-vs-global.toml --env my-task.toml asks
+    /// whether LCRL pays on your task.
+    #[arg(long = "env", value_name = "ENV")]
+    pub environments: Vec<String>,
 }
 
 #[derive(Debug, clap::Args)]
@@ -153,7 +160,7 @@ pub fn run(command: &ExperimentCommand) -> anyhow::Result<()> {
 }
 
 fn run_study(args: &RunArgs) -> anyhow::Result<()> {
-    let e = Experiment::load(&args.file)?;
+    let e = Experiment::load_on(&args.file, &args.environments)?;
     let jobs = args.jobs.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     if jobs == 0 {
         bail!("--jobs must be at least 1");
@@ -166,6 +173,11 @@ fn run_study(args: &RunArgs) -> anyhow::Result<()> {
         return Ok(());
     }
     plan::prepare_out(&e, &args.file, &args.out, false)?;
+    if !args.environments.is_empty() {
+        // The study as run, not the file as written: its environments moved.
+        let text = format!("# {} on --env {}\n{}", args.file.display(), args.environments.join(", "), toml::to_string(&e.file)?);
+        crate::output::write_atomic(&args.out.join("experiment.toml"), &text)?;
+    }
     // One study per directory at a time; the lock goes with the process.
     let lock_path = args.out.join(".lock");
     let lock = std::fs::File::create(&lock_path).with_context(|| format!("creating {}", lock_path.display()))?;

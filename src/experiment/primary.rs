@@ -47,6 +47,9 @@ pub struct PrimaryResult {
     pub rule: String,
     pub alpha: f64,
     pub contrasts: Vec<ContrastResult>,
+    /// The decision the file ties to these contrasts, in its own words.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub decision: Option<String>,
 }
 
 /// The file's primary contrasts on a study's finished runs.
@@ -72,7 +75,7 @@ pub fn evaluate(primary: &Primary, study: &Study) -> PrimaryResult {
             (None, Some(s)) => format!("not distinguishable after the family's {rule} rule (its own CI [{:.3}, {:.3}])", s.ci95[0], s.ci95[1]),
         };
     }
-    PrimaryResult { rule: rule.to_string(), alpha, contrasts }
+    PrimaryResult { rule: rule.to_string(), alpha, contrasts, decision: primary.decision().map(str::to_string) }
 }
 
 fn label(connection: &str) -> String {
@@ -160,6 +163,9 @@ pub fn markdown(p: &PrimaryResult) -> String {
         }
         let _ = writeln!(md);
     }
+    if let Some(decision) = &p.decision {
+        let _ = writeln!(md, "Decision rule, named in the study file before any run (`primary.decision`): {}\n", decision.trim());
+    }
     md
 }
 
@@ -224,7 +230,7 @@ mod tests {
     #[test]
     fn a_primary_family_is_adjusted_by_its_rule() {
         let text = "name = \"p\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"global\"]\nseeds = 3\nepisodes = { ppo = 2 }\n\
-                    [primary]\nfamily = \"holm\"\nalpha = 0.05\n\
+                    [primary]\nfamily = \"holm\"\nalpha = 0.05\ndecision = \"ship local if the first is higher\"\n\
                     [[primary.contrasts]]\nmetric = \"eval_return\"\na = \"local\"\nb = \"global\"\nalgorithm = \"ppo\"\n\
                     [[primary.contrasts]]\nmetric = \"auc_100\"\na = \"local\"\nb = \"global\"\nalgorithm = \"ppo\"\n";
         let e = Experiment::parse(text).unwrap();
@@ -246,5 +252,6 @@ mod tests {
         assert!(p.contrasts[0].rejected && !p.contrasts[1].rejected);
         let md = markdown(&report);
         assert!(md.contains("2 contrasts under holm's rule at α = 0.05"), "{md}");
+        assert!(md.contains("Decision rule, named in the study file before any run (`primary.decision`): ship local if the first is higher"), "{md}");
     }
 }
