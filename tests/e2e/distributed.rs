@@ -168,6 +168,22 @@ async fn actors_train_the_learner_which_serves_the_policy() {
     assert!(lcrl_learner::policy::checkpoint::read_meta(&newest).unwrap().episode >= episodes as usize);
 }
 
+/// run.threads reaches the thread that trains: OpenMP keeps its count per
+/// thread, so a count set only where the learner starts would leave the
+/// training thread with one thread per core (2 on a 2-core machine, where
+/// `threads = 1` tells the two apart). The thread reads OpenMP's own count
+/// (omp_get_max_threads, not libtorch's lazily set one); without the fix
+/// this test read 2 for `threads = 1`.
+#[tokio::test]
+async fn the_training_thread_computes_with_the_configured_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    for threads in [1, 2] {
+        let (_learner, url) = learner_with_run_settings(&dir.path().join(format!("run{threads}")), "r1", free_port(), "ddpg", &format!("threads = {threads}\n"), &[]);
+        let s = wait_for(&url, "the training thread", |s| s.training_threads > 0).await;
+        assert_eq!(s.training_threads, threads, "run.threads = {threads}");
+    }
+}
+
 #[tokio::test]
 async fn bad_batches_are_rejected_counted_and_never_stored() {
     let dir = tempfile::tempdir().unwrap();

@@ -164,6 +164,32 @@ pub fn apply_threads(configured: usize, reserved: usize) -> usize {
     threads
 }
 
+/// Sets `threads` libtorch threads on the calling thread: OpenMP (and
+/// MKL's local count) keep their thread count per thread, so a thread that
+/// computes must set it itself; a new thread starts with OpenMP's default
+/// team, one thread per core. Returns what OpenMP then says.
+pub fn set_threads_here(threads: usize) -> Option<usize> {
+    tch::set_num_threads(threads.max(1) as i32);
+    openmp_threads_here()
+}
+
+/// OpenMP's thread count for the calling thread (`omp_get_max_threads`,
+/// looked up in the process: libtorch loads libgomp), read without
+/// libtorch's lazy per-thread set-up, which would set it as it reads.
+/// None where no OpenMP runtime is loaded.
+pub fn openmp_threads_here() -> Option<usize> {
+    // SAFETY: dlsym with RTLD_DEFAULT and a NUL-terminated name only looks
+    // the symbol up; omp_get_max_threads takes no argument and returns int.
+    unsafe {
+        let symbol = libc::dlsym(libc::RTLD_DEFAULT, c"omp_get_max_threads".as_ptr());
+        if symbol.is_null() {
+            return None;
+        }
+        let get: extern "C" fn() -> libc::c_int = std::mem::transmute(symbol);
+        usize::try_from(get()).ok()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -250,6 +250,7 @@ mod tests {
             },
             selection: None,
             graph_seconds: 0.5,
+            graph: Some(GraphRecord { file: "g.json".into(), origin: Some("draw 3, random rows".into()) }),
             optimization_seconds: 1.0,
             total_seconds: 2.0,
             env_steps: 250,

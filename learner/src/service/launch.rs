@@ -431,9 +431,16 @@ struct Threads {
 
 fn start_threads(args: &LearnerArgs, training: TrainingLoop, shared: &Arc<Shared>, commands: &mpsc::Sender<Command>) -> anyhow::Result<Threads> {
     let (trainer_failed, trainer_failure) = tokio::sync::oneshot::channel::<String>();
+    // OpenMP's thread count is per thread: the count run.threads set on
+    // this thread (crate::device::torch::apply_threads) is not the new
+    // thread's, which would start with one spinning thread per core.
+    let threads = tch::get_num_threads().max(1) as usize;
+    let trainer_shared = shared.clone();
     let trainer = std::thread::Builder::new()
         .name("training".into())
         .spawn(move || {
+            let here = crate::device::torch::set_threads_here(threads).unwrap_or(threads);
+            trainer_shared.training_threads.store(here as u32, std::sync::atomic::Ordering::Relaxed);
             let result = training.run();
             if let Err(e) = &result {
                 tracing::error!("training stopped: {e}");

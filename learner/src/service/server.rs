@@ -204,6 +204,7 @@ impl Learner for LearnerService {
             served_version: served.snapshot.version,
             served_reason: served.reason,
             incarnation: s.incarnation,
+            training_threads: s.training_threads.load(Ordering::Relaxed),
             connections_refused: s.connection_refusals.counts().into_iter().map(|(reason, n)| (reason.to_string(), n)).collect(),
         }))
     }

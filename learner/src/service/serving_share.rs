@@ -44,6 +44,9 @@ pub fn below_training<T: Send>(compute: impl FnOnce() -> T + Send) -> T {
         let started = std::thread::Builder::new().name("lcrl-serving".into()).spawn_scoped(scope, || {
             let _in_call = span.enter();
             lower_this_thread();
+            // A query is one small forward pass: one libtorch thread, not
+            // OpenMP's default team of one per core (a new thread's count).
+            crate::device::torch::set_threads_here(1);
             take().map(|f| f())
         });
         match started {

@@ -61,6 +61,10 @@ pub struct Shared {
     /// This process's incarnation: a random non-zero id drawn at start,
     /// carried by every published policy (0 in tests that need none).
     pub incarnation: u64,
+    /// libtorch's intra-op threads as the training thread itself reads
+    /// them (0 until it starts): OpenMP keeps the count per thread, so the
+    /// count set where the run starts must be set again there (GetStatus).
+    pub training_threads: AtomicU32,
 }
 
 /// Locks `mutex` whatever happened to its last holder. The policy for a
@@ -106,6 +110,7 @@ impl Shared {
             auth_refusals,
             connection_refusals: Default::default(),
             incarnation: first_incarnation,
+            training_threads: AtomicU32::new(0),
         }
     }
 
