@@ -32,6 +32,18 @@ pub const RULE_THRESHOLD: f64 = 1.0;
 pub const RULE_REASON: &str = "the above-average rule: an action sees the states it moves at least as much as the average action does \
      (eq. 7 at T = 1), the largest T at which every state some action moves keeps at least one action (docs/method.md, \"Choosing T\")";
 
+/// Why a graph was cut at `threshold`, in one line: the rule's T, the
+/// publication's, or one a user or study named.
+pub fn threshold_reason(threshold: f64) -> String {
+    if threshold == RULE_THRESHOLD {
+        format!("T_rule, {RULE_REASON}")
+    } else if threshold == crate::PAPER_THRESHOLD {
+        format!("the publication's T, what `connection = \"local\"` trains by default; the rule's T_rule = {RULE_THRESHOLD} (`lcrl graph --choose-t` says why)")
+    } else {
+        format!("named by the user or study (local@T, --threshold, run.graph_threshold); the rule's T_rule = {RULE_THRESHOLD}")
+    }
+}
+
 /// The grid: 0.1 (the publication's T) to 2.0 in steps of 0.1.
 pub fn grid() -> Vec<f64> {
     (1..=20).map(|k| k as f64 / 10.0).collect()

@@ -214,6 +214,9 @@ impl GraphReport {
             let names: Vec<&str> = self.unmoved_states.iter().map(|&j| self.state_names[j].as_str()).collect();
             let _ = writeln!(out, "\nno action moves: {} (their columns are all 0)", names.join(", "));
         }
+        if let (false, Some(t)) = (self.exact, self.threshold) {
+            let _ = writeln!(out, "\nT = {t}: {}.", crate::choose_t::threshold_reason(t));
+        }
         out
     }
 }

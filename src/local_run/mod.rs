@@ -102,7 +102,14 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let run_dir = args.run_dir.clone().unwrap_or_else(|| PathBuf::from("runs").join(name));
     let logs = run_dir.join("logs");
     fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
-    crate::output::write_atomic(&run_dir.join("config.toml"), &preset.text)?;
+    let mut recorded = preset.text.clone();
+    if preset.job.connection == lcrl_learner::Connection::Local && preset.job.graph.is_none() {
+        // The graph's T and why, as `lcrl graph` prints it (docs/method.md, "Choosing T").
+        let t = preset.job.graph_threshold.unwrap_or(lcrl_graph_builder::PAPER_THRESHOLD);
+        println!("graph: eq. 7 at T = {t}: {}", lcrl_graph_builder::choose_t::threshold_reason(t));
+        recorded = format!("# graph: measured, eq. 7 at T = {t}: {}\n{recorded}", lcrl_graph_builder::choose_t::threshold_reason(t));
+    }
+    crate::output::write_atomic(&run_dir.join("config.toml"), &recorded)?;
     let token_in_env = std::env::var_os(lcrl_proto::security::TOKEN_FILE_ENV).is_some();
     let security = with_own_token(&args.security, token_in_env, &run_dir)?;
     // A served environment lives until the run's end: the final evaluation

@@ -110,6 +110,10 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         "# resolved configuration\n# env = {:?}, algo = {:?}, connection = {:?}\n# settings from: {}\n",
         req.env, req.algo, req.connection, req.settings_source
     );
+    if req.connection == Connection::Local && req.graph.is_none() {
+        let t = cfg.run.graph_threshold;
+        header += &format!("# graph: measured, eq. 7 at T = {t}: {}\n", lcrl_graph_builder::choose_t::threshold_reason(t));
+    }
     if let Some(record) = &graph_record {
         header += &format!("# graph file: {}\n# graph origin: {}\n", record.file, record.origin.as_deref().unwrap_or("measured"));
     }
