@@ -15,49 +15,25 @@ Across hosts, with the files `lcrl certs` writes (TLS, mutual TLS, token):
 """
 
 import argparse
-import os
 import pathlib
 import sys
 
 import grpc
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent / "lcrl_stubs"))
+from lcrl_connect import add_connection_args, open_channel  # noqa: E402
 import lcrl_pb2  # noqa: E402  (generated)
 import lcrl_pb2_grpc  # noqa: E402  (generated)
 
 
-def open_channel(args) -> grpc.Channel:
-    """Plain text, or TLS (mutual with a client certificate) with --tls-ca."""
-    if not args.tls_ca:
-        return grpc.insecure_channel(args.target)
-    read = lambda path: pathlib.Path(path).read_bytes() if path else None  # noqa: E731
-    credentials = grpc.ssl_channel_credentials(
-        root_certificates=read(args.tls_ca),
-        private_key=read(args.tls_client_key),
-        certificate_chain=read(args.tls_client_cert),
-    )
-    options = [("grpc.ssl_target_name_override", args.tls_server_name)] if args.tls_server_name else []
-    return grpc.secure_channel(args.target, credentials, options=options)
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--target", default="127.0.0.1:50052", help="learner address host:port")
-    parser.add_argument("--state", type=float, nargs="+", required=True, help="raw environment state")
-    parser.add_argument("--timeout", type=float, default=10.0, help="seconds per call")
-    parser.add_argument("--tls-ca", help="trust this CA (PEM) and speak TLS")
-    parser.add_argument("--tls-client-cert", help="mutual TLS: this client's certificate (PEM)")
-    parser.add_argument("--tls-client-key", help="mutual TLS: its private key (PEM)")
-    parser.add_argument("--tls-server-name", help="the name in the server's certificate, if not the target's host")
-    parser.add_argument("--token-file", default=os.environ.get("LCRL_TOKEN_FILE"),
-                        help="send `authorization: Bearer <token>` from this file (default: $LCRL_TOKEN_FILE)")
+    add_connection_args(parser)
+    parser.add_argument("--state", type=float, nargs="+", required=True,
+                        help="raw environment state, all of its numbers (12 on the peg tasks)")
     args = parser.parse_args()
-
-    metadata = []
-    if args.token_file:
-        token = pathlib.Path(args.token_file).read_text().strip()
-        metadata.append(("authorization", f"Bearer {token}"))
 
     with open_channel(args) as channel:
         try:
@@ -69,7 +45,7 @@ def main() -> int:
             if health.status != health_pb2.HealthCheckResponse.SERVING:
                 return 1
             reply = lcrl_pb2_grpc.PolicyStub(channel).Act(
-                lcrl_pb2.ActRequest(state=args.state), timeout=args.timeout, metadata=metadata
+                lcrl_pb2.ActRequest(state=args.state), timeout=args.timeout
             )
         except grpc.RpcError as error:
             print(f"error: {error.code().name}: {error.details()}", file=sys.stderr)

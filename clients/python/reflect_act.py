@@ -5,25 +5,30 @@ No generated stubs: the service list and every message descriptor come from
 the server's reflection service, through grpcio's own `grpcio-reflection`
 client (which speaks grpc.reflection.v1alpha), as generic tooling does.
 
-    .venv/bin/python clients/python/reflect_act.py --target 127.0.0.1:50052 --state 0.1 0.2 0.3
+    .venv/bin/python clients/python/reflect_act.py --target 127.0.0.1:50052 --token-file RUN/token --state 0.1 0.2 0.3
+
+It takes the same connection flags as lcrl_client.py (lcrl_connect.py).
 """
 
 import argparse
+import pathlib
 import sys
 
 import grpc
 from google.protobuf import descriptor_pool, message_factory
 from grpc_reflection.v1alpha.proto_reflection_descriptor_database import ProtoReflectionDescriptorDatabase
 
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+from lcrl_connect import add_connection_args, open_channel  # noqa: E402
+
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--target", default="127.0.0.1:50052")
-    parser.add_argument("--state", type=float, nargs="+", required=True)
-    parser.add_argument("--timeout", type=float, default=10.0)
+    add_connection_args(parser)
+    parser.add_argument("--state", type=float, nargs="+", required=True, help="raw environment state, all of its numbers")
     args = parser.parse_args()
 
-    with grpc.insecure_channel(args.target) as channel:
+    with open_channel(args) as channel:
         try:
             database = ProtoReflectionDescriptorDatabase(channel)
             services = sorted(database.get_services())

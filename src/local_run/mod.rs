@@ -10,7 +10,7 @@
 //! summary and reward curve (report.rs). The binary only parses arguments.
 
 mod processes;
-mod report;
+pub(crate) mod report;
 #[cfg(test)]
 mod tests;
 

@@ -90,6 +90,7 @@ pub(super) async fn start_processes(
     let url = security.url(&format!("http://{}", address.context("the learner did not start; see logs/learner.log")?));
     wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120), client_security).await?;
     eprintln!("learner at {url}; starting {} actor(s) over {transport}", job.actors);
+    eprintln!("{}", query_hint(&url, &security.client_args()?, lcrl_sim::make_env(&job.env).map(|e| e.spec().state_dim()).unwrap_or(0)));
     let mut actors = Vec::new();
     for k in 0..job.actors {
         let mut cmd = Command::new(sibling("lcrl-actor")?);
@@ -176,3 +177,29 @@ impl StopSignals {
     }
 }
 
+
+/// Ready-to-paste queries of this run's learner, with its TLS files and
+/// token (`lcrl run` always makes a token): the Python client with a state
+/// of the environment's size, and `lcrl status`.
+fn query_hint(url: &str, security_args: &[std::ffi::OsString], state_dim: usize) -> String {
+    let target = url.trim_start_matches("http://").trim_start_matches("https://");
+    let flags: Vec<String> = security_args.iter().map(|a| a.to_string_lossy().into_owned()).collect();
+    let flags = flags.join(" ");
+    let state = vec!["0"; state_dim.max(1)].join(" ");
+    format!(
+        "query it (another shell, while it trains):\n  .venv/bin/python clients/python/lcrl_client.py --target {target} {flags} --state {state}\n  target/debug/lcrl status {url} {flags}"
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_query_hint_carries_the_token_and_a_full_state() {
+        let args: Vec<std::ffi::OsString> = vec!["--token-file".into(), "runs/x/token".into()];
+        let hint = query_hint("http://127.0.0.1:5000", &args, 3);
+        assert!(hint.contains("lcrl_client.py --target 127.0.0.1:5000 --token-file runs/x/token --state 0 0 0"), "{hint}");
+        assert!(hint.contains("lcrl status http://127.0.0.1:5000 --token-file runs/x/token"), "{hint}");
+    }
+}

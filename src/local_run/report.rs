@@ -62,10 +62,20 @@ fn reference_table(job: &crate::preset::Job, evaluation: &lcrl_learner::run::sum
         table.push_str(&format!("\n  {name:<34} {ret:>10.3} {:>8} {:>11}", pct(success), force(peak)));
     }
     if let Some(bar) = evaluation.references.iter().find(|r| r.controller == crate::run_summary::BEST_CONSTANT) {
-        let verdict = if evaluation.eval_return > bar.mean_return { "beats" } else { "does not beat" };
-        table.push_str(&format!("\n  the trained policy {verdict} the best constant by {:+.3}", evaluation.eval_return - bar.mean_return));
+        table.push_str(&format!("\n  {}", verdict_against_best_constant(evaluation.eval_return, bar.mean_return)));
     }
     table
+}
+
+/// "beats the best constant by 0.2" or "trails the best constant by 0.013":
+/// the gap as a positive number, in words that say its sign.
+pub fn verdict_against_best_constant(eval_return: f64, best_constant: f64) -> String {
+    let gap = eval_return - best_constant;
+    if gap > 0.0 {
+        format!("the trained policy beats the best constant by {gap:.3}")
+    } else {
+        format!("the trained policy trails the best constant by {:.3}", -gap)
+    }
 }
 
 fn plot_curve(metrics: &Path, out: &Path, env: &str, evaluation: &lcrl_learner::run::summary::Evaluation) -> anyhow::Result<()> {

@@ -24,11 +24,22 @@ pub(super) fn print_summary(s: &lcrl_learner::run::summary::RunSummary, config: 
             println!("  eval return           {:.3} (the selected policy, {} episodes)", s.evaluation.eval_return, config.run.eval_episodes.max(1));
             println!("  selected              {which}: {}", chosen.how_chosen());
             println!("  last policy           {last:.3} (same evaluation episodes)");
+            if chosen.episode == 0 {
+                println!("  no learned policy beat the starting one on the validation starts; {}", budget_hint(s));
+            }
         }
         _ => println!("  eval return           {:.3} (deterministic policy, {} episodes)", s.evaluation.eval_return, config.run.eval_episodes.max(1)),
     }
     if let Some(zero) = s.evaluation.zero_action_return {
         println!("  a = 0 return          {zero:.3} (the neutral constant action, same episodes)");
+    }
+    // The best constant and the headroom reference, where the environment
+    // has them, evaluated on the run's own starts (never another command's).
+    for r in s.evaluation.references.iter().filter(|r| r.controller != lcrl_sim::evaluate::ZERO_ACTION) {
+        println!("  {:<21} {:.3} (same episodes)", r.controller, r.mean_return);
+    }
+    if let Some(bar) = s.evaluation.references.iter().find(|r| r.controller == crate::run_summary::BEST_CONSTANT) {
+        println!("  {}", crate::local_run::report::verdict_against_best_constant(s.evaluation.eval_return, bar.mean_return));
     }
     if let (Some(rate), Some(force)) = (s.evaluation.eval_success_rate, s.evaluation.eval_peak_force_n) {
         println!("  eval success          {:.0}%, mean peak force {force:.2} N", 100.0 * rate);
@@ -43,6 +54,18 @@ pub(super) fn print_summary(s: &lcrl_learner::run::summary::RunSummary, config: 
     println!("  time: graph {:.2} s, optimization {:.2} s, total {:.2} s", s.graph_seconds, s.optimization_seconds, s.total_seconds);
     println!("wrote {}", args.run_dir.display());
     Ok(())
+}
+
+/// How many episodes the shipped preset of this environment and algorithm
+/// trains (configs/ENV-ALGO-local.toml, read where it is found), else the
+/// environment's default budget.
+fn budget_hint(s: &lcrl_learner::run::summary::RunSummary) -> String {
+    let algo = crate::preset::algo_name(s.algo);
+    let path = std::path::PathBuf::from(format!("configs/{}-{algo}-local.toml", s.env));
+    match crate::preset::Preset::load(&path) {
+        Ok(preset) => format!("this run trained {} episodes; {} trains {} (docs/peg.md)", s.episodes, path.display(), preset.job.episodes),
+        Err(_) => format!("this run trained {} episodes; {}'s default budget is {}", s.episodes, s.env, TrainConfig::for_env(&s.env).0.run.episodes),
+    }
 }
 
 impl TrainArgs {
