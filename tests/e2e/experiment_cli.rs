@@ -383,3 +383,34 @@ fn kubernetes_job_covers_every_task_and_its_commands_are_accepted() {
         }
     }
 }
+
+/// `--env` runs a study on another environment (its named contrast then
+/// stratifies over that one), and every random-rows run records its draw:
+/// index, draw seed and graph file in config.toml and summary.json, and
+/// the report names each run's draw.
+#[test]
+fn a_study_moves_to_another_environment_and_random_rows_record_their_draw() {
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tmp.path().join("rows.toml");
+    let study = TINY.replace("[\"global\"]", "[\"local@0.5\", \"random-rows@local@0.5+draws=2\"]").replace("seeds = 1", "seeds = 2")
+        + "[graph]\nsamples = 8\n[primary]\nmetric = \"eval_return\"\na = \"local@0.5\"\nb = \"random-rows@local@0.5+draws=2\"\nalgorithm = \"ppo\"\nenvironments = [\"lti-paper\"]\n";
+    std::fs::write(&file, study).unwrap();
+    let out = tmp.path().join("out");
+    let run = |env: &str| lcrl().args(["experiment", "run"]).arg(&file).arg("--out").arg(&out).args(["--env", env]).output().unwrap();
+    assert_clean_failure(&run("no-such-env"), "no-such-env");
+    let done = run("lti-blocks-4");
+    assert!(done.status.success(), "{}", stderr(&done));
+    let recorded = std::fs::read_to_string(out.join("experiment.toml")).unwrap();
+    assert!(recorded.contains("on --env lti-blocks-4") && recorded.contains("\"lti-blocks-4\""), "{recorded}");
+    let seed1 = out.join("runs/lti-blocks-4/ppo/random-rows@local@0.5+draws=2/seed1");
+    let summary: Value = serde_json::from_str(&std::fs::read_to_string(seed1.join("summary.json")).unwrap()).unwrap();
+    let origin = summary["graph"]["origin"].as_str().unwrap_or_default().to_string();
+    let seed = lcrl_graph_builder::given::draw_seed("lti-blocks-4", 1);
+    assert!(origin.starts_with(&format!("draw 1, random rows of degrees")) && origin.contains(&format!("draw seed {seed}")), "{origin}");
+    assert!(summary["graph"]["file"].as_str().unwrap_or_default().ends_with("random-rows@T0.5/draw1/graph.json"), "{summary}");
+    let config = std::fs::read_to_string(seed1.join("config.toml")).unwrap();
+    assert!(config.contains(&format!("# graph origin: {origin}")), "{config}");
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(report.contains(&format!("1 (draw 1, draw seed {seed}): ")), "{report}");
+    assert!(report.contains("stratified by environment over lti-blocks-4"), "{report}");
+}
