@@ -20,7 +20,7 @@ pub use lcrl_sim::evaluate::{BEST_CONSTANT, ZERO_ACTION};
 /// returns it. A run interrupted before its budget has no learner summary:
 /// its policy (the selected one, else the newest checkpoint) is evaluated
 /// here, with the same evaluation.
-pub fn write_run_summary(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wall_seconds: f64, actors: usize, transport: &str) -> anyhow::Result<RunSummary> {
+pub fn write_run_summary(preset: &Preset, run_dir: &Path, status: &LearnerStatus, wall_seconds: f64, end: &RunEnd) -> anyhow::Result<RunSummary> {
     let learner_dir = run_dir.join("learner");
     let learner_summary = learner_dir.join("summary.json");
     let mut summary = if learner_summary.is_file() {
@@ -35,10 +35,23 @@ pub fn write_run_summary(preset: &Preset, run_dir: &Path, status: &LearnerStatus
         .unwrap_or(summary.graph_seconds);
     summary.total_seconds = wall_seconds;
     let service = summary.service.get_or_insert_with(|| service_figures(status));
-    service.actors = Some(actors);
-    service.transport = Some(transport.to_string());
+    service.actors = Some(end.actors);
+    service.transport = Some(end.transport.clone());
+    service.actor_restarts = Some(end.actor_restarts);
+    service.ended_early = end.ended_early.clone();
     write_summary(run_dir, &summary).with_context(|| format!("writing {}", run_dir.join("summary.json").display()))?;
     Ok(summary)
+}
+
+/// How a local run's processes ended, for summary.json.
+#[derive(Debug, Clone, Default)]
+pub struct RunEnd {
+    pub actors: usize,
+    pub transport: String,
+    pub actor_restarts: u64,
+    /// Why the run stopped before its budget (None: it spent it, or was
+    /// interrupted).
+    pub ended_early: Option<String>,
 }
 
 /// The service's figures as the learner last reported them.
@@ -57,6 +70,8 @@ fn service_figures(status: &LearnerStatus) -> ServiceFigures {
         cuts_joined: None,
         actors: None,
         transport: None,
+        actor_restarts: None,
+        ended_early: None,
     }
 }
 

@@ -52,6 +52,11 @@ impl Managed {
         self.child.id()
     }
 
+    /// How the process ended, once it has (reaped: no zombie stays).
+    pub fn exited(&mut self) -> Option<std::process::ExitStatus> {
+        self.child.try_wait().ok().flatten()
+    }
+
     pub fn stop(&mut self, grace: Duration) {
         if matches!(self.child.try_wait(), Ok(Some(_))) {
             return;

@@ -25,7 +25,9 @@ use lcrl_proto::v1::GetStatusRequest;
 use crate::preset::{LearnerCompute, Preset};
 use crate::run_security::RunSecurity;
 use crate::supervise::{die_with_parent, Managed};
-use processes::{start_processes, watch_progress, StopSignals};
+use crate::run_summary::RunEnd;
+use processes::{start_processes, watch_progress, StopSignals, Watched};
+pub use processes::MAX_ACTOR_RESTARTS;
 use report::report;
 
 /// Run graph builder, learner and actors on this machine until the episode
@@ -180,13 +182,14 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     let client_security = security.client()?;
     let started = Instant::now();
     let run_id = format!("{}-{}", std::process::id(), started.elapsed().as_nanos() % 1_000_000);
-    let processes = start_processes(preset, train_path, run_dir, logs, transport, security, &client_security, &run_id).await?;
+    let mut processes = start_processes(preset, train_path, run_dir, logs, transport, security, &client_security, &run_id).await?;
     let mut client = LearnerClient::new(client_security.connect(&processes.learner_url).await?);
     // Ctrl-C and SIGTERM stop the run in order from here on (before, they
     // end this process and every child follows by its parent-death signal).
     // Listening once, not per loop turn, so no signal falls between turns.
     let mut stop_signals = StopSignals::new()?;
-    let (interrupted, last_status) = watch_progress(&mut client, &mut stop_signals, preset.job.episodes, logs).await?;
+    let (watched, last_status) = watch_progress(&mut client, &mut stop_signals, processes.actors(), preset.job.episodes, logs).await?;
+    let interrupted = watched == Watched::Interrupted;
     // Stopping (up to 30 s for the learner's checkpoint) and the final
     // evaluation run on; a further Ctrl-C or SIGTERM ends this process at
     // once, and the children follow by their parent-death signal.
@@ -198,8 +201,23 @@ async fn orchestrate(preset: &Preset, train_path: &Path, run_dir: &Path, logs: &
     if interrupted {
         eprintln!("interrupted: stopping the actors, then the learner (it writes a final checkpoint)");
     }
+    let ended_early = match &watched {
+        Watched::ActorsFailed(why) => {
+            eprintln!("lcrl run: {why}\nstopping the learner (it writes a final checkpoint); summary.json records why the run ended");
+            Some(why.clone())
+        }
+        _ => None,
+    };
+    let end = RunEnd { actors: preset.job.actors, transport: transport.to_string(), actor_restarts: processes.actors().restarts, ended_early };
     let final_status = client.get_status(GetStatusRequest {}).await.map(|s| s.into_inner()).ok().or(last_status);
     processes.stop();
-    report(preset, run_dir, &final_status.unwrap_or_default(), started.elapsed().as_secs_f64(), transport, &run_id, interrupted)
+    let text = report(preset, run_dir, &final_status.unwrap_or_default(), started.elapsed().as_secs_f64(), &end, &run_id, interrupted)?;
+    match end.ended_early {
+        Some(why) => {
+            println!("{text}");
+            bail!("the run ended before its budget: {why}")
+        }
+        None => Ok(text),
+    }
 }
 

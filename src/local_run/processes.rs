@@ -22,16 +22,71 @@ pub(super) struct Processes {
     graph_builder: Option<Managed>,
     learner: Managed,
     pub(super) learner_url: String,
-    actors: Vec<Managed>,
+    actors: Actors,
+}
+
+/// Restarts of dead actors a run allows in all, before it ends with an
+/// error: an actor that keeps dying has a cause a restart does not fix.
+pub const MAX_ACTOR_RESTARTS: u64 = 3;
+
+/// The run's actor processes, watched: a dead one (any exit, a signal, an
+/// iceoryx2 node error that ends it) is noticed at the next look, reaped,
+/// and started again after a backoff of 1, 2, 4 s, up to
+/// [`MAX_ACTOR_RESTARTS`] restarts in all.
+pub(super) struct Actors {
+    running: Vec<Option<Managed>>,
+    commands: Vec<Vec<std::ffi::OsString>>,
+    due: Vec<Option<Instant>>,
+    logs: std::path::PathBuf,
+    pub(super) restarts: u64,
+}
+
+impl Actors {
+    fn start(k: usize, args: &[std::ffi::OsString], logs: &Path) -> anyhow::Result<Managed> {
+        let mut cmd = Command::new(sibling("lcrl-actor")?);
+        cmd.args(args);
+        stop_with_parent(&mut cmd);
+        Ok(Managed::spawn(&format!("actor-{k}"), cmd, logs, false)?.0)
+    }
+
+    /// One look: reaps dead actors and starts those whose backoff is over.
+    /// Err says why the run cannot go on (restarts used up).
+    pub(super) fn look(&mut self) -> Result<(), String> {
+        for k in 0..self.running.len() {
+            if let Some(status) = self.running[k].as_mut().and_then(Managed::exited) {
+                self.running[k] = None;
+                let log = self.logs.join(format!("actor-{k}.log"));
+                if self.restarts >= MAX_ACTOR_RESTARTS {
+                    return Err(format!("actor-{k} died ({status}) after {} restarts of the run's actors; see {}", self.restarts, log.display()));
+                }
+                let backoff = Duration::from_secs(1 << self.restarts.min(6));
+                self.restarts += 1;
+                eprintln!("\nlcrl run: actor-{k} died ({status}); restarting it in {} s ({} of {MAX_ACTOR_RESTARTS} restarts; see {})", backoff.as_secs(), self.restarts, log.display());
+                self.due[k] = Some(Instant::now() + backoff);
+            }
+            if self.due[k].is_some_and(|t| Instant::now() >= t) {
+                self.due[k] = None;
+                // Its log is kept beside the new one's.
+                let log = self.logs.join(format!("actor-{k}.log"));
+                let _ = std::fs::rename(&log, self.logs.join(format!("actor-{k}.{}.log", self.restarts)));
+                self.running[k] = Some(Self::start(k, &self.commands[k], &self.logs).map_err(|e| format!("restarting actor-{k}: {e:#}"))?);
+            }
+        }
+        Ok(())
+    }
+
+    fn stop(&mut self) {
+        for actor in self.running.iter_mut().flatten() {
+            actor.stop(Duration::from_secs(10));
+        }
+    }
 }
 
 impl Processes {
     /// Actors first (they would only reconnect), then the learner (it
     /// checkpoints on SIGTERM), then the graph builder.
     pub(super) fn stop(mut self) {
-        for actor in self.actors.iter_mut() {
-            actor.stop(Duration::from_secs(10));
-        }
+        self.actors.stop();
         self.learner.stop(Duration::from_secs(30));
         if let Some(mut g) = self.graph_builder {
             g.stop(Duration::from_secs(5));
@@ -91,15 +146,21 @@ pub(super) async fn start_processes(
     wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120), client_security).await?;
     eprintln!("learner at {url}; starting {} actor(s) over {transport}", job.actors);
     eprintln!("{}", query_hint(&url, &security.client_args()?, lcrl_sim::make_env(&job.env).map(|e| e.spec().state_dim()).unwrap_or(0)));
-    let mut actors = Vec::new();
+    let mut actors = Actors { running: Vec::new(), commands: Vec::new(), due: vec![None; job.actors], logs: logs.to_path_buf(), restarts: 0 };
     for k in 0..job.actors {
-        let mut cmd = Command::new(sibling("lcrl-actor")?);
-        cmd.args(preset.actor_args(&url, run_id, transport, Some(&format!("actor-{k}")), k as u64)).args(security.client_args()?);
-        stop_with_parent(&mut cmd);
-        actors.push(Managed::spawn(&format!("actor-{k}"), cmd, logs, false)?.0);
+        let mut args = preset.actor_args(&url, run_id, transport, Some(&format!("actor-{k}")), k as u64);
+        args.extend(security.client_args()?);
+        actors.running.push(Some(Actors::start(k, &args, logs)?));
+        actors.commands.push(args);
     }
 
     Ok(Processes { graph_builder, learner, learner_url: url, actors })
+}
+
+impl Processes {
+    pub(super) fn actors(&mut self) -> &mut Actors {
+        &mut self.actors
+    }
 }
 
 /// Shows the learner's progress until it reports the budget spent (false)
@@ -107,19 +168,23 @@ pub(super) async fn start_processes(
 pub(super) async fn watch_progress(
     client: &mut LearnerClient<tonic::service::interceptor::InterceptedService<tonic::transport::Channel, lcrl_proto::security::Bearer>>,
     stop_signals: &mut StopSignals,
+    actors: &mut Actors,
     episodes: u64,
     logs: &Path,
-) -> anyhow::Result<(bool, Option<lcrl_proto::v1::LearnerStatus>)> {
+) -> anyhow::Result<(Watched, Option<lcrl_proto::v1::LearnerStatus>)> {
     let bar = ProgressBar::new(episodes);
     if let Ok(style) = ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})") {
         bar.set_style(style.progress_chars("=> "));
     }
     let (mut last_steps, mut last_updates, mut last_time) = (0u64, 0u64, Instant::now());
     let mut last_status = None;
-    let interrupted = loop {
+    let watched = loop {
         tokio::select! {
-            _ = stop_signals.recv() => break true,
+            _ = stop_signals.recv() => break Watched::Interrupted,
             _ = tokio::time::sleep(Duration::from_millis(500)) => {}
+        }
+        if let Err(why) = actors.look() {
+            break Watched::ActorsFailed(why);
         }
         let status = match client.get_status(GetStatusRequest {}).await {
             Ok(s) => s.into_inner(),
@@ -127,7 +192,7 @@ pub(super) async fn watch_progress(
             // learner may stop before this process sees its own SIGINT.
             Err(e) => {
                 tokio::select! {
-                    _ = stop_signals.recv() => break true,
+                    _ = stop_signals.recv() => break Watched::Interrupted,
                     _ = tokio::time::sleep(Duration::from_secs(1)) => {}
                 }
                 bail!("lost the learner ({e}); see {}/learner.log", logs.display())
@@ -147,11 +212,22 @@ pub(super) async fn watch_progress(
         // The learner owns the budget: it stops training, writes its final
         // checkpoint and summary, then reports `finished`.
         if status.finished {
-            break false;
+            break Watched::Finished;
         }
     };
     bar.finish_and_clear();
-    Ok((interrupted, last_status))
+    Ok((watched, last_status))
+}
+
+/// How watching a run ended.
+#[derive(Debug, Clone, PartialEq)]
+pub(super) enum Watched {
+    /// The learner spent its budget.
+    Finished,
+    /// Ctrl-C or SIGTERM.
+    Interrupted,
+    /// Actors kept dying: why.
+    ActorsFailed(String),
 }
 
 /// Ctrl-C (SIGINT) and SIGTERM, listened to from creation on.

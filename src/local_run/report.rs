@@ -10,9 +10,9 @@ use crate::preset::Preset;
 
 /// Writes the run's summary and reward curve, and says what the run did
 /// beside its reference.
-pub(super) fn report(preset: &Preset, run_dir: &Path, s: &lcrl_proto::v1::LearnerStatus, wall: f64, transport: &str, run_id: &str, interrupted: bool) -> anyhow::Result<String> {
+pub(super) fn report(preset: &Preset, run_dir: &Path, s: &lcrl_proto::v1::LearnerStatus, wall: f64, end: &crate::run_summary::RunEnd, run_id: &str, interrupted: bool) -> anyhow::Result<String> {
     let job = &preset.job;
-    let summary = crate::run_summary::write_run_summary(preset, run_dir, s, wall, job.actors, transport)?;
+    let summary = crate::run_summary::write_run_summary(preset, run_dir, s, wall, end)?;
     let evaluation = &summary.evaluation;
     let service = summary.service.as_ref().context("the run's summary has no service figures")?;
     let curve = run_dir.join("reward_curve.png");

@@ -296,3 +296,64 @@ fn ctrl_c_stops_a_run_with_a_final_checkpoint_and_leaves_nothing() {
     let checkpoint = lcrl_learner::policy::checkpoint::latest_checkpoint(&long.run.join("learner")).expect("the learner's final checkpoint");
     assert!(lcrl_learner::policy::checkpoint::read_meta(&checkpoint).unwrap().episode > 0);
 }
+
+/// A dead actor is noticed, reaped (no zombie) and started again with
+/// backoff, and training goes on with it; an actor that keeps dying ends
+/// the run after the stated restarts with a clear message, a non-zero
+/// exit, a final checkpoint holding every stored episode, and summary.json
+/// saying why.
+#[test]
+fn dead_actors_are_restarted_then_end_the_run_with_the_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut long = LongRun::start(dir.path(), |_| {});
+    let actor_of = |long: &LongRun| children_of(long.child.id()).into_iter().find(|c| c.cmdline.contains("lcrl-actor") && c.alive());
+    let mut killed = Vec::new();
+    for death in 0..=lcrl::local_run::MAX_ACTOR_RESTARTS {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let actor = loop {
+            match actor_of(&long) {
+                Some(actor) if !killed.contains(&actor.pid) => break actor,
+                _ => assert!(Instant::now() < deadline, "no new actor within 60 s after death {death}: {}", long.output()),
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        };
+        if death == 1 {
+            // The restarted actor trains: the learner stores new episodes.
+            let rows = || fs::read_to_string(long.run.join("learner/metrics.csv")).map(|t| t.lines().count()).unwrap_or(0);
+            let before = rows();
+            let until = Instant::now() + Duration::from_secs(60);
+            while rows() <= before + 2 {
+                assert!(Instant::now() < until, "no episode stored after the restart: {}", long.output());
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        }
+        assert!(Command::new("kill").args(["-KILL", &actor.pid.to_string()]).status().unwrap().success());
+        killed.push(actor.pid);
+        long.children.push(actor.clone());
+        // Reaped by the run within its next looks: not left a zombie.
+        let until = Instant::now() + Duration::from_secs(5);
+        while std::path::Path::new(&format!("/proc/{}", actor.pid)).exists() {
+            assert!(Instant::now() < until, "actor {} left a zombie: {}", actor.pid, long.output());
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let status = loop {
+        if let Some(status) = long.child.try_wait().unwrap() {
+            break status;
+        }
+        assert!(Instant::now() < deadline, "lcrl run did not end after its actor kept dying: {}", long.output());
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let output = long.output();
+    assert!(!status.success(), "{output}");
+    assert!(output.contains("restarting it in 1 s (1 of 3 restarts") && output.contains("died (signal: 9 (SIGKILL)) after 3 restarts"), "{output}");
+    assert!(output.contains("the run ended before its budget"), "{output}");
+    let summary: serde_json::Value = serde_json::from_str(&fs::read_to_string(long.run.join("summary.json")).expect("summary.json")).unwrap();
+    assert_eq!(summary["actor_restarts"], 3, "{summary}");
+    assert!(summary["ended_early"].as_str().unwrap_or_default().contains("after 3 restarts"), "{summary}");
+    let stored = fs::read_to_string(long.run.join("learner/metrics.csv")).unwrap().lines().count() as u64 - 1;
+    let checkpoint = lcrl_learner::policy::checkpoint::latest_checkpoint(&long.run.join("learner")).expect("the learner's final checkpoint");
+    assert!(lcrl_learner::policy::checkpoint::read_meta(&checkpoint).unwrap().episode as u64 >= stored, "the final checkpoint lost stored episodes");
+    assert!(long.wait_for_children(Duration::from_secs(15)).is_empty(), "children left: {output}");
+}

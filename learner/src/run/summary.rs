@@ -157,6 +157,12 @@ pub struct ServiceFigures {
     pub actors: Option<usize>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub transport: Option<String>,
+    /// `lcrl run`: actor processes restarted after they died.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub actor_restarts: Option<u64>,
+    /// `lcrl run`: why the run ended before its budget, if it did.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ended_early: Option<String>,
 }
 
 /// Policy lag over the window of recently stored transitions.
@@ -290,6 +296,8 @@ mod tests {
             cuts_joined: None,
             actors: Some(2),
             transport: Some("shm".into()),
+            actor_restarts: None,
+            ended_early: None,
         };
         let distributed = summary(Some(service));
         let text = serde_json::to_string(&distributed).unwrap();

@@ -567,6 +567,8 @@ impl TrainingLoop {
                 cuts_joined: ppo.then_some(counters.cuts_joined),
                 actors: None,
                 transport: None,
+                actor_restarts: None,
+                ended_early: None,
             }),
         };
         drop(flow);
