@@ -3,7 +3,7 @@
 # Stable-Baselines3's SAC, TD3 and PPO on peg-group1/2 through lcrl_env's
 # Gymnasium face, 5 seeds a cell, the publication's budgets, each policy
 # evaluated on the best constant's 100 starts; then lcrl's PPO cells
-# (experiments/peers-ppo.toml). Resumable: finished runs are skipped.
+# (experiments/research/peers-ppo.toml). Resumable: finished runs are skipped.
 #
 #   bash scripts/peers-study.sh [OUT] [JOBS]      # default runs/peers, 2 at a time
 set -euo pipefail
@@ -20,4 +20,4 @@ for env in peg-group1 peg-group2; do
 done
 printf '%s\n' "${tasks[@]}" | xargs -P "$jobs" -L 1 bash -c \
   '.venv/bin/python scripts/sb3_peers.py --env "$0" --algo "$1" --seed "$2" --episodes "$3" --out "'"$out"'/sb3/$0/$1/seed$2"'
-target/debug/lcrl experiment run experiments/peers-ppo.toml --out "$out/lcrl-ppo" --jobs "$jobs"
+target/debug/lcrl experiment run experiments/research/peers-ppo.toml --out "$out/lcrl-ppo" --jobs "$jobs"

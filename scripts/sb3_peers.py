@@ -4,7 +4,8 @@ lcrl_env's Gymnasium face (`lcrl serve-env`), recorded as lcrl records its
 own runs: metrics.csv (one row per training episode) and summary.json
 (the final policy evaluated on the best constant's 100 evaluation starts,
 seeds 0-99, deterministic actions). The peer cells of
-experiments/peers.md's study (docs/peers.md).
+the peer study (docs/peers.md; lcrl's own cells are
+experiments/research/peers-ppo.toml).
 
     .venv/bin/python scripts/sb3_peers.py --env peg-group1 --algo sac --seed 0 --episodes 200 --out runs/peers/peg-group1/sac/seed0
 

@@ -113,12 +113,88 @@ pub fn write_token(path: &Path) -> anyhow::Result<()> {
 
 /// Writes a file; secrets (keys, the token) only readable by their owner.
 pub fn write_file(path: &Path, text: &str, secret: bool) -> anyhow::Result<()> {
+    if secret {
+        return write_secret(path, text);
+    }
     let mut options = std::fs::OpenOptions::new();
     options.write(true).create(true).truncate(true);
-    #[cfg(unix)]
-    if secret {
-        std::os::unix::fs::OpenOptionsExt::mode(&mut options, 0o600);
-    }
     let mut file = options.open(path).with_context(|| format!("writing {}", path.display()))?;
     std::io::Write::write_all(&mut file, text.as_bytes()).with_context(|| format!("writing {}", path.display()))
+}
+
+/// A secret written safely (issue 82): never through a symbolic link,
+/// never over a file others could have read (refused, with the command
+/// that fixes it), always owner-only. The text goes to a new file created
+/// beside it with mode 0600 (O_EXCL, O_NOFOLLOW), then renamed over the
+/// path, so no moment exists at which it is readable by others.
+fn write_secret(path: &Path, text: &str) -> anyhow::Result<()> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::{MetadataExt, OpenOptionsExt};
+        match std::fs::symlink_metadata(path) {
+            Ok(meta) if meta.file_type().is_symlink() => {
+                bail!("{} is a symbolic link; a secret is never written through one. Remove it (rm {}) and run again", path.display(), path.display())
+            }
+            Ok(meta) if meta.mode() & 0o077 != 0 => bail!(
+                "{} exists with mode {:o}: others may have read it. Remove it (rm {}) and run again for a new one, or make it owner-only (chmod 600 {}) if nobody else could read it",
+                path.display(),
+                meta.mode() & 0o777,
+                path.display(),
+                path.display()
+            ),
+            _ => {}
+        }
+        let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "secret".into());
+        let staging = dir.join(format!(".{name}.{}.new", std::process::id()));
+        let mut file = std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .mode(0o600)
+            .custom_flags(libc::O_NOFOLLOW)
+            .open(&staging)
+            .with_context(|| format!("writing {}", staging.display()))?;
+        std::io::Write::write_all(&mut file, text.as_bytes()).and_then(|()| file.sync_all()).with_context(|| format!("writing {}", staging.display()))?;
+        std::fs::rename(&staging, path).with_context(|| format!("moving {} to {}", staging.display(), path.display()))
+    }
+    #[cfg(not(unix))]
+    {
+        std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::os::unix::fs::{MetadataExt, PermissionsExt};
+
+    /// A token is owner-only, new or replacing an owner-only one; a link is
+    /// never followed and a file others could read is refused with the fix.
+    #[test]
+    fn tokens_are_written_owner_only_never_through_a_link_nor_over_a_loose_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let token = dir.path().join("token");
+        write_token(&token).unwrap();
+        let first = std::fs::read_to_string(&token).unwrap();
+        assert_eq!(std::fs::metadata(&token).unwrap().mode() & 0o777, 0o600);
+        write_token(&token).unwrap();
+        assert_ne!(std::fs::read_to_string(&token).unwrap(), first, "a new token replaces the old one");
+        assert_eq!(std::fs::metadata(&token).unwrap().mode() & 0o777, 0o600);
+
+        std::fs::set_permissions(&token, std::fs::Permissions::from_mode(0o644)).unwrap();
+        let before = std::fs::read_to_string(&token).unwrap();
+        let err = write_token(&token).unwrap_err().to_string();
+        assert!(err.contains("mode 644") && err.contains(&format!("chmod 600 {}", token.display())), "{err}");
+        assert_eq!(std::fs::read_to_string(&token).unwrap(), before, "a refused write leaves the file as it was");
+
+        let elsewhere = dir.path().join("world-readable");
+        std::fs::write(&elsewhere, "").unwrap();
+        std::fs::set_permissions(&elsewhere, std::fs::Permissions::from_mode(0o666)).unwrap();
+        let link = dir.path().join("linked-token");
+        std::os::unix::fs::symlink(&elsewhere, &link).unwrap();
+        let err = write_token(&link).unwrap_err().to_string();
+        assert!(err.contains("is a symbolic link"), "{err}");
+        assert_eq!(std::fs::read_to_string(&elsewhere).unwrap(), "", "nothing was written through the link");
+        assert!(std::fs::read_dir(dir.path()).unwrap().flatten().all(|e| !e.file_name().to_string_lossy().ends_with(".new")), "no staging file left");
+    }
 }

@@ -3,7 +3,7 @@
 //! (docs/experiment.md, "Against a reference study").
 //!
 //! The reference it was made for is the base held still under the
-//! learner's own exploration (experiments/peg-group2-bar-base-exploring.toml):
+//! learner's own exploration (experiments/research/peg-group2-bar-base-exploring.toml):
 //! no learner that explores can keep its training curve nearer its base
 //! than the base itself exploring does, so a training run is held to that
 //! run's worst 10-episode window on the same seed (the same warm-up and the

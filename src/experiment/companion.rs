@@ -3,7 +3,7 @@
 //!
 //! A companion is a study of the same design that changes one setting,
 //! such as the global actor's learning rate
-//! (experiments/lti-blocks-32-global-lr3e-4.toml beside lti-blocks.toml).
+//! (experiments/research/lti-blocks-32-global-lr3e-4.toml beside experiments/lti-blocks.toml).
 //! Its cells join the report labelled `CONNECTION [NAME]`; the report
 //! compares each with this study's cells by the usual rules and with this
 //! study's cell of the same connection, all in one Holm family, and

@@ -341,7 +341,7 @@ pub fn env_slug(env: &str) -> String {
 mod tests {
     use super::*;
 
-    /// Every study file under experiments/ and every config under configs/
+    /// Every study file under experiments/ (and experiments/research/) and every config under configs/
     /// loads and passes its checks: nothing shipped names a removed key.
     #[test]
     fn every_shipped_study_and_config_loads() {
@@ -351,7 +351,10 @@ mod tests {
             files.sort();
             files
         };
-        let studies = toml_files("experiments");
+        // The studies users start from, and the research ones beside them.
+        let studies = [toml_files("experiments"), toml_files("experiments/research")].concat();
+        let top = toml_files("experiments").len();
+        assert!(top <= 10, "experiments/ holds {top} studies at its top: research studies go to experiments/research/");
         for path in &studies {
             let text = std::fs::read_to_string(path).unwrap();
             if text.contains("grpc://") {

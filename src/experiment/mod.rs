@@ -86,7 +86,7 @@ pub struct ReportArgs {
     /// algorithm in another finished study (its --out directory), and write
     /// DIR/against-NAME.json and .md (NAME: that study's name). Made for
     /// the base held still under the learner's own exploration
-    /// (experiments/peg-group2-bar-base-exploring.toml): a run passes a seed
+    /// (experiments/research/peg-group2-bar-base-exploring.toml): a run passes a seed
     /// when no training episode failed and its worst 10-episode mean is no
     /// lower than the reference's on that seed minus --margin. Against a
     /// study with one setting changed, the same tables are a paired

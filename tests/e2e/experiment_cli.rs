@@ -414,3 +414,12 @@ fn a_study_moves_to_another_environment_and_random_rows_record_their_draw() {
     assert!(report.contains(&format!("1 (draw 1, draw seed {seed}): ")), "{report}");
     assert!(report.contains("stratified by environment over lti-blocks-4"), "{report}");
 }
+
+/// Every path README.md and docs/ cite exists (scripts/check_paths.py):
+/// studies moved to experiments/research/ left no link behind.
+#[test]
+fn every_path_the_pages_cite_exists() {
+    let root = repo();
+    let out = std::process::Command::new("python3").arg(root.join("scripts/check_paths.py")).current_dir(&root).output().unwrap();
+    assert!(out.status.success(), "{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+}
