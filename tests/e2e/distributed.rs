@@ -344,3 +344,31 @@ async fn shared_memory_actor_follows_new_policies() {
     // Four PPO updates, each on a full rollout of 500 stored steps.
     assert!(s.env_steps >= 4 * 500, "{s:?}");
 }
+
+/// One writer per run directory (issue 82): while a learner holds its run,
+/// a second learner and `lcrl train` on the same directory fail at once,
+/// naming the holder, and the first learner goes on with its files intact.
+#[tokio::test]
+async fn a_second_writer_of_a_run_directory_is_refused_naming_the_holder() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let (first, url) = learner(&run, "r1", free_port());
+    let _actor = actor(&url, "r1");
+    wait_for(&url, "stored episodes", |s| s.episodes >= 2).await;
+    let holder = format!("pid {}", first.0.id());
+    let second = workspace_bin("lcrl-learner")
+        .args(["--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--run-id", "r2", "--listen", "127.0.0.1:0", "--run-dir"])
+        .arg(&run)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&second.stderr).to_string();
+    assert!(!second.status.success() && said.contains("is in use by another run") && said.contains(&holder), "{said}");
+    let train = workspace_bin("lcrl").args(["train", "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--episodes", "2", "--resume", "--run-dir"]).arg(&run).output().unwrap();
+    let said = String::from_utf8_lossy(&train.stderr).to_string();
+    assert!(!train.status.success() && said.contains("is in use by another run") && said.contains(&holder), "{said}");
+    // The holder still trains and stores.
+    let before = status(&url).await.unwrap().episodes;
+    wait_for(&url, "more episodes after the refusals", |s| s.episodes > before).await;
+}

@@ -15,6 +15,7 @@
 //! - [`trainer`]: the single-process loop: episodes, metrics.csv, summary.json, resume.
 
 pub mod files;
+pub mod lock;
 pub mod selection;
 pub mod start;
 pub mod summary;

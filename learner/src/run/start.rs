@@ -64,13 +64,24 @@ pub struct Prepared {
     pub actions: ActionMap,
     /// libtorch intra-op threads in use.
     pub threads: usize,
+    /// The run directory, held by this process alone (crate::run::lock).
+    pub lock: Option<crate::run::lock::RunLock>,
 }
 
 /// Starts or resumes a run in `start.run_dir` on `env`: the one start-up
 /// sequence of `lcrl train` and `lcrl-learner`.
 pub fn prepare(start: RunStart, env: &dyn Env) -> Result<Prepared, LearnerError> {
-    let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
     std::fs::create_dir_all(start.run_dir).map_err(crate::io(start.run_dir))?;
+    // Before anything in it is read or tidied: a second writer fails here.
+    let lock = crate::run::lock::RunLock::acquire(start.run_dir)?;
+    let mut prepared = prepare_held(start, env)?;
+    prepared.lock = Some(lock);
+    Ok(prepared)
+}
+
+/// [`prepare`] once the run directory is held.
+fn prepare_held(start: RunStart, env: &dyn Env) -> Result<Prepared, LearnerError> {
+    let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
     // A writer killed mid-checkpoint left a staging folder (space to give
     // back) or the previous checkpoint moved aside (to put back). Should
     // that fail, the listing still takes a folder moved aside for the
@@ -167,7 +178,7 @@ fn build_agent(start: &RunStart, env: &dyn Env, mut config: TrainConfig, checkpo
     if let Some(dir) = &checkpoint {
         agent.load(dir)?;
     }
-    Ok(Prepared { config, checkpoint, meta, graph, agent, actions, threads })
+    Ok(Prepared { config, checkpoint, meta, graph, agent, actions, threads, lock: None })
 }
 
 /// The newest intact checkpoint in `run_dir` with its metadata, if there

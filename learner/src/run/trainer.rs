@@ -89,7 +89,8 @@ pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Resul
         },
         env.as_ref(),
     )?;
-    let Prepared { config: cfg, checkpoint, meta: start, graph, mut agent, actions, .. } = prepared;
+    // `_lock` holds the run directory until training ends.
+    let Prepared { config: cfg, checkpoint, meta: start, graph, mut agent, actions, lock: _lock, .. } = prepared;
     if let Some(report) = &graph {
         report.write_json(&req.run_dir.join("graph.json"))?;
     }

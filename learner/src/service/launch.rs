@@ -289,7 +289,11 @@ struct Begun {
 /// The run as it stands ([`load`]), a new incarnation, the first policy,
 /// ingestion, the shared counters and the training loop.
 async fn begin(args: &LearnerArgs, security: &ServerSecurity) -> anyhow::Result<Begun> {
-    let (Prepared { config, checkpoint, meta, agent, actions, .. }, m) = load(args).await?;
+    let (Prepared { config, checkpoint, meta, agent, actions, lock, .. }, m) = load(args).await?;
+    // A learner's run directory is its own for its whole life.
+    if let Some(lock) = lock {
+        lock.hold_until_exit();
+    }
     let architecture = meta.architecture();
     // A fresh id per start: actors notice a restarted learner by it.
     let incarnation = crate::service::incarnation::begin(&args.run_dir, meta.episode, meta.policy_version)?;
