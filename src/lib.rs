@@ -12,6 +12,7 @@
 //! - [`experiment`]: `lcrl experiment`, a study of many runs.
 //! - [`export`]: `lcrl export`, a trained policy as one TorchScript or ONNX file.
 //! - [`output`]: writing result files.
+//! - [`recorded_env`]: a file's recorded environment, followed only when safe.
 //! - [`local_run`]: `lcrl run`, graph builder, learner and actors as child processes.
 //! - [`train`]: `lcrl train`, a run in this process.
 
@@ -23,6 +24,7 @@ pub mod local_run;
 pub mod output;
 pub mod plots;
 pub mod preset;
+pub mod recorded_env;
 pub mod run_security;
 pub mod run_summary;
 pub mod supervise;

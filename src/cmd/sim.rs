@@ -64,10 +64,10 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
         .as_deref()
         .map(|dir| lcrl_learner::policy::trained::policy_dir(dir).and_then(|dir| lcrl_learner::policy::snapshot::read_snapshot(&dir)))
         .transpose()?;
-    let env_name = match (&args.env, &policy) {
-        (Some(name), _) => name.clone(),
-        (None, Some(policy)) => policy.architecture.shape.env.clone(),
-        (None, None) => bail!("--env is required without --checkpoint"),
+    let env_name = match (&args.env, &policy, &args.checkpoint) {
+        (Some(name), _, _) => name.clone(),
+        (None, Some(policy), Some(dir)) => lcrl::recorded_env::environment_to_build(&policy.architecture.shape.env, None, dir)?,
+        _ => bail!("--env is required without --checkpoint"),
     };
     let env = lcrl_sim::make_env(&env_name)?;
     if let Some(policy) = &policy {

@@ -160,7 +160,7 @@ pub fn prepare(request: &Request) -> anyhow::Result<Prepared> {
     let policy = Policy::from_checkpoint(&meta_text, &weights).with_context(|| format!("loading the policy in {}", folder.display()))?;
     let meta = read_meta(&folder)?;
     let architecture = policy.architecture.clone();
-    let env_name = request.env.clone().unwrap_or_else(|| architecture.shape.env.clone());
+    let env_name = crate::recorded_env::environment_to_build(&architecture.shape.env, request.env.as_deref(), &folder)?;
     let env = lcrl_sim::make_env(&env_name).with_context(|| {
         format!("building {env_name}, the environment the policy acts on (pass --env to name it another way: a TOML file's new path, a served environment's address)")
     })?;

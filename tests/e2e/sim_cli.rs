@@ -166,3 +166,34 @@ fn tune_writes_the_bar_that_sim_reproduces() {
     let out = lcrl().args(["tune", "--env", "lti-paper", "--evaluations", "1", "--out"]).arg(dir.path()).output().unwrap();
     assert_clean_failure(&out, "--evaluations");
 }
+
+/// A checkpoint is data, never an address: one whose checkpoint.json names
+/// a served environment is refused with a clear message, nothing connects
+/// to that address (no token leaves), and the address is not echoed.
+#[test]
+fn a_checkpoint_never_chooses_where_lcrl_connects() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let trained = lcrl().args(["train", "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--episodes", "2", "--run-dir"]).arg(&run).output().unwrap();
+    assert!(trained.status.success(), "{}", String::from_utf8_lossy(&trained.stderr));
+    let trap = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    trap.set_nonblocking(true).unwrap();
+    let address = format!("grpc://{}", trap.local_addr().unwrap());
+    let mut checkpoints: Vec<_> = fs::read_dir(run.join("checkpoints")).unwrap().flatten().map(|e| e.path()).collect();
+    checkpoints.extend(Some(run.join("selected")).filter(|s| s.join("checkpoint.json").is_file()));
+    for folder in &checkpoints {
+        let path = folder.join("checkpoint.json");
+        let mut meta: Value = serde_json::from_str(&fs::read_to_string(&path).unwrap()).unwrap();
+        meta["env"] = Value::String(address.clone());
+        fs::write(&path, serde_json::to_string(&meta).unwrap()).unwrap();
+    }
+    let token = dir.path().join("token");
+    fs::write(&token, "0123456789abcdef0123456789abcdef\n").unwrap();
+    for args in [vec!["sim", "--episodes", "1", "--out", dir.path().join("sim").to_str().unwrap(), "--checkpoint"], vec!["export", "--out", dir.path().join("p.pt").to_str().unwrap()]] {
+        let out = lcrl().args(&args).arg(&run).env("LCRL_TOKEN_FILE", &token).output().unwrap();
+        assert_clean_failure(&out, "a file never chooses where lcrl connects");
+        let said = String::from_utf8_lossy(&out.stderr);
+        assert!(!said.contains(&address[7..]), "the address was echoed: {said}");
+        assert!(trap.accept().is_err(), "{args:?} connected to the address the checkpoint named");
+    }
+}
