@@ -176,6 +176,10 @@ fn bad_input_fails_cleanly() {
 
     let out = lcrl().args(["train", "--env", "lti-paper", "--algo", "sac", "--connection", "local"]).output().unwrap();
     assert_clean_failure(&out, "sac");
+    // The largest u64 seed cannot be recorded in config.toml: said so, before any work.
+    let out = lcrl().args(["train", "--env", "lti-paper", "--algo", "ddpg", "--seed", "18446744073709551615", "--run-dir"]).arg(work.path().join("r0")).output().unwrap();
+    assert_clean_failure(&out, "`run.seed (--seed)` must be at most 9223372036854775807");
+    assert!(!work.path().join("r0").join("metrics.csv").exists());
 
     // A graph of lti-paper (3×3) used for peg-group1 (6 actions × 12 states).
     let graph = work.path().join("graph.json");

@@ -73,6 +73,12 @@ impl TrainConfig {
                 return bad(field, "must be at least 1");
             }
         }
+        // config.toml records every setting, and TOML's integers stop at i64.
+        for (field, seed) in [("run.seed (--seed)", Some(self.run.seed)), ("run.eval_seed (--eval-seed)", self.run.eval_seed)] {
+            if seed.is_some_and(|s| s > i64::MAX as u64) {
+                return bad(field, &format!("must be at most {} (the largest integer config.toml can record), got {}", i64::MAX, seed.unwrap_or(0)));
+            }
+        }
         if !(self.run.graph_threshold.is_finite() && self.run.graph_threshold > 0.0) {
             return bad("run.graph_threshold", &format!("must be a finite number > 0 (the publication uses 0.1), got {}", self.run.graph_threshold));
         }
