@@ -327,6 +327,13 @@ async fn the_learner_selects_resumes_its_selection_and_serves_the_choice() {
         let expected: Vec<f32> = policy.act(probe.as_ref(), &state.map(f64::from)).iter().map(|&a| a as f32).collect();
         assert_eq!((reply.action, reply.policy_version), (expected, policy.version));
     }
+    // After the budget the final checkpoint stands: nothing changes, so it is
+    // not rewritten every --checkpoint-secs (0.5 s here).
+    let newest = lcrl_learner::policy::checkpoint::latest_checkpoint(&run).unwrap();
+    let written = fs::metadata(newest.join("checkpoint.json")).unwrap().modified().unwrap();
+    tokio::time::sleep(Duration::from_millis(1600)).await;
+    assert_eq!(lcrl_learner::policy::checkpoint::latest_checkpoint(&run).unwrap(), newest);
+    assert_eq!(fs::metadata(newest.join("checkpoint.json")).unwrap().modified().unwrap(), written, "the final checkpoint was rewritten after the budget");
     let summary: Value = serde_json::from_str(&fs::read_to_string(run.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["served_version"].as_u64(), Some(policy.version), "{summary}");
     assert_eq!(summary["selection"]["episode"].as_u64(), Some(record.episode as u64), "{summary}");

@@ -159,7 +159,7 @@ impl TrainingLoop {
             // the limiter holds a batch the queue is full, and senders (the
             // Stop among them) would wait on this thread forever.
             if *self.shared.shutdown.borrow() {
-                return self.checkpoint();
+                return self.checkpoint_unless_finished();
             }
             let turn_seconds = self.turn_started.elapsed().as_secs_f64();
             self.turn_started = Instant::now();
@@ -168,21 +168,31 @@ impl TrainingLoop {
             }
             let admitted = self.admit()?;
             if admitted.stop {
-                return self.checkpoint();
+                return self.checkpoint_unless_finished();
             }
             let trained = self.train(turn_seconds);
             self.publish_if_due(trained)?;
             self.validate_if_due()?;
-            if self.last_checkpoint.elapsed() >= self.schedule.checkpoint_interval {
+            if !self.finished && self.last_checkpoint.elapsed() >= self.schedule.checkpoint_interval {
                 // A failed checkpoint (a full disk) does not end training:
                 // checkpoint() counted and logged it, the earlier
                 // checkpoints stand, and the next interval tries again.
                 let _ = self.checkpoint();
             }
             if self.idle(admitted.received, trained) {
-                return self.checkpoint();
+                return self.checkpoint_unless_finished();
             }
         }
+    }
+
+    /// A checkpoint on the way out, unless the budget is spent: the final
+    /// checkpoint already holds the run, and nothing has changed since
+    /// (once finished, no batch is stored and no update made).
+    fn checkpoint_unless_finished(&mut self) -> Result<(), LearnerError> {
+        if self.finished {
+            return Ok(());
+        }
+        self.checkpoint()
     }
 
     fn episodes(&self) -> u64 {
