@@ -12,7 +12,7 @@ use lcrl_learner::policy::trained::Policy;
 use lcrl_proto::limits::Backoff;
 use lcrl_proto::security::{AuthChannel, ClientSecurity};
 use lcrl_proto::v1::learner_client::LearnerClient;
-use lcrl_proto::v1::{GetPolicyRequest, PolicySnapshot, TransitionBatch, WatchPolicyRequest};
+use lcrl_proto::v1::{BatchAck, GetPolicyRequest, PolicySnapshot, TransitionBatch, WatchPolicyRequest};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::StreamExt;
@@ -133,95 +133,136 @@ impl Progress {
     }
 }
 
+/// What a gRPC sender holds: the learner (its URL, to reconnect to) and
+/// how to reach it (credentials, the connection open now, how long a
+/// reconnect may take), and what it reports to (the actor's counters, and
+/// its liveness, marked on every acknowledgement).
+pub struct BatchSender {
+    pub learner: String,
+    pub security: ClientSecurity,
+    pub client: LearnerClient<AuthChannel>,
+    pub deadline: Duration,
+    pub metrics: ActorMetrics,
+    pub progress: Progress,
+}
+
 /// Streams batches to the learner; resends unacknowledged ones after a
 /// reconnect (the learner drops duplicates). Returns when the worker is done
 /// and every batch is acknowledged, or fails after `deadline` without a
 /// learner.
-pub async fn send_batches(url: String, security: ClientSecurity, mut client: LearnerClient<AuthChannel>, mut batches: mpsc::Receiver<TransitionBatch>, deadline: Duration, metrics: ActorMetrics, progress: Progress) -> anyhow::Result<()> {
-    let mut pending: VecDeque<TransitionBatch> = VecDeque::new();
-    let mut worker_done = false;
-    // This process's key (TransitionBatch.actor_key): after a connection
-    // that broke unnoticed, the learner knows the new one for this actor's.
-    let actor_key = rand::random::<u64>().max(1);
-    // Batches rejected as malformed since the last one stored: a few is a
-    // bad step (a non-finite number); many in a row is an actor that does
-    // not fit the run (another environment), which retrying cannot mend.
-    let mut rejected_in_a_row = 0usize;
-    // Between streams: a learner that ends every stream (full, restarting)
-    // is not hammered with reconnects.
-    let mut reconnect = Backoff::new(Duration::from_millis(100), Duration::from_secs(5));
+pub async fn send_batches(sender: BatchSender, mut batches: mpsc::Receiver<TransitionBatch>) -> anyhow::Result<()> {
+    let BatchSender { learner, security, mut client, deadline, metrics, progress } = sender;
+    let mut outbox = Outbox::new();
     loop {
         let (requests, request_rx) = mpsc::channel::<TransitionBatch>(MAX_PENDING_BATCHES);
-        for batch in &pending {
+        for batch in &outbox.pending {
             let _ = requests.try_send(batch.clone());
         }
-        let acks = match client.stream_transitions(ReceiverStream::new(request_rx)).await {
-            Ok(response) => Some(response.into_inner()),
+        match client.stream_transitions(ReceiverStream::new(request_rx)).await {
+            Ok(response) => outbox.stream(&requests, response.into_inner(), &mut batches, &metrics, &progress).await?,
             Err(status) if is_fatal(&status) => return Err(refused(status)),
-            Err(status) => {
-                tracing::warn!("cannot stream to the learner: {status}");
-                None
-            }
-        };
-        if let Some(mut acks) = acks {
-            loop {
-                if worker_done && pending.is_empty() {
-                    return Ok(());
-                }
-                tokio::select! {
-                    batch = batches.recv(), if !worker_done && pending.len() < MAX_PENDING_BATCHES => match batch {
-                        Some(mut batch) => {
-                            batch.actor_key = actor_key;
-                            pending.push_back(batch.clone());
-                            metrics.pending_batches.set(pending.len() as i64);
-                            if requests.send(batch).await.is_err() {
-                                break;
-                            }
-                        }
-                        None => worker_done = true,
-                    },
-                    ack = acks.next() => match ack {
-                        Some(Ok(ack)) => {
-                            progress.mark();
-                            rejected_in_a_row = 0;
-                            // The learner answers: the next loss starts the
-                            // backoff over.
-                            reconnect = Backoff::new(Duration::from_millis(100), Duration::from_secs(5));
-                            pending.retain(|b| b.sequence > ack.sequence);
-                            metrics.pending_batches.set(pending.len() as i64);
-                            if ack.outcome != "stored" {
-                                tracing::debug!(sequence = ack.sequence, outcome = %ack.outcome, "batch not stored");
-                            }
-                        }
-                        Some(Err(status)) if status.code() == tonic::Code::InvalidArgument => {
-                            // The learner will never take this batch; drop it and go on.
-                            tracing::error!("the learner rejected a batch: {}", status.message());
-                            pending.pop_front();
-                            rejected_in_a_row += 1;
-                            if rejected_in_a_row >= REJECTIONS_TO_STOP {
-                                bail!(
-                                    "the learner rejected {rejected_in_a_row} batches in a row, the last: {} (does this actor run the learner's environment?)",
-                                    status.message()
-                                );
-                            }
-                            break;
-                        }
-                        Some(Err(status)) if is_fatal(&status) => return Err(refused(status)),
-                        Some(Err(status)) => {
-                            tracing::warn!("lost the learner: {status}");
-                            break;
-                        }
-                        None => break,
-                    },
-                }
-            }
+            Err(status) => tracing::warn!("cannot stream to the learner: {status}"),
         }
-        if worker_done && pending.is_empty() {
+        if outbox.done() {
             return Ok(());
         }
-        tokio::time::sleep(reconnect.next_delay()).await;
-        client = connect(&url, &security, deadline).await?;
+        tokio::time::sleep(outbox.reconnect.next_delay()).await;
+        client = connect(&learner, &security, deadline).await?;
         metrics.reconnects.inc();
+    }
+}
+
+/// What [`send_batches`] keeps from one stream to the next.
+struct Outbox {
+    /// Sent and not yet acknowledged, oldest first: resent on a new stream.
+    pending: VecDeque<TransitionBatch>,
+    /// The worker has closed its channel: no more batches will come.
+    worker_done: bool,
+    /// This process's key (TransitionBatch.actor_key): after a connection
+    /// that broke unnoticed, the learner knows the new one for this actor's.
+    actor_key: u64,
+    /// Batches rejected as malformed since the last one stored: a few is a
+    /// bad step (a non-finite number); many in a row is an actor that does
+    /// not fit the run (another environment), which retrying cannot mend.
+    rejected_in_a_row: usize,
+    /// Between streams: a learner that ends every stream (full, restarting)
+    /// is not hammered with reconnects.
+    reconnect: Backoff,
+}
+
+impl Outbox {
+    fn new() -> Self {
+        Outbox {
+            pending: VecDeque::new(),
+            worker_done: false,
+            actor_key: rand::random::<u64>().max(1),
+            rejected_in_a_row: 0,
+            reconnect: Backoff::new(Duration::from_millis(100), Duration::from_secs(5)),
+        }
+    }
+
+    /// Every batch the worker will hand over is acknowledged.
+    fn done(&self) -> bool {
+        self.worker_done && self.pending.is_empty()
+    }
+
+    /// One stream: the worker's batches out (at most
+    /// [`MAX_PENDING_BATCHES`] unacknowledged), acknowledgements in, until
+    /// [`Outbox::done`] or the stream ends; an error for a refusal that
+    /// retrying cannot mend.
+    async fn stream(&mut self, requests: &mpsc::Sender<TransitionBatch>, mut acks: tonic::Streaming<BatchAck>, batches: &mut mpsc::Receiver<TransitionBatch>, metrics: &ActorMetrics, progress: &Progress) -> anyhow::Result<()> {
+        loop {
+            if self.done() {
+                return Ok(());
+            }
+            tokio::select! {
+                batch = batches.recv(), if !self.worker_done && self.pending.len() < MAX_PENDING_BATCHES => match batch {
+                    Some(mut batch) => {
+                        batch.actor_key = self.actor_key;
+                        self.pending.push_back(batch.clone());
+                        metrics.pending_batches.set(self.pending.len() as i64);
+                        if requests.send(batch).await.is_err() {
+                            return Ok(());
+                        }
+                    }
+                    None => self.worker_done = true,
+                },
+                ack = acks.next() => match ack {
+                    Some(Ok(ack)) => {
+                        progress.mark();
+                        self.rejected_in_a_row = 0;
+                        // The learner answers: the next loss starts the
+                        // backoff over.
+                        self.reconnect = Backoff::new(Duration::from_millis(100), Duration::from_secs(5));
+                        self.pending.retain(|b| b.sequence > ack.sequence);
+                        metrics.pending_batches.set(self.pending.len() as i64);
+                        if ack.outcome != "stored" {
+                            tracing::debug!(sequence = ack.sequence, outcome = %ack.outcome, "batch not stored");
+                        }
+                    }
+                    Some(Err(status)) if status.code() == tonic::Code::InvalidArgument => {
+                        // The learner will never take this batch; drop it and go on.
+                        tracing::error!("the learner rejected a batch: {}", status.message());
+                        self.pending.pop_front();
+                        self.rejected_in_a_row += 1;
+                        if self.rejected_in_a_row >= REJECTIONS_TO_STOP {
+                            bail!(
+                                "the learner rejected {} batches in a row, the last: {} (does this actor run the learner's environment?)",
+                                self.rejected_in_a_row,
+                                status.message()
+                            );
+                        }
+                        return Ok(());
+                    }
+                    Some(Err(status)) if is_fatal(&status) => return Err(refused(status)),
+                    Some(Err(status)) => {
+                        tracing::warn!("lost the learner: {status}");
+                        return Ok(());
+                    }
+                    None => return Ok(()),
+                },
+            }
+        }
     }
 }
 
