@@ -46,7 +46,17 @@ struct BestConstant {
     mean_return: f64,
     success_rate: Option<f64>,
     eval_episodes: usize,
+    #[serde(default)]
+    eval_seed: u64,
     zero_action: ZeroAction,
+}
+
+/// The evaluation starts every row of the table is measured on: episodes
+/// from `seed` on (lcrl_sim::seeds), `episodes` of them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Starts {
+    seed: u64,
+    episodes: usize,
 }
 
 #[derive(Debug, Deserialize)]
@@ -57,12 +67,28 @@ struct ZeroAction {
 pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
     let bar = read_reference(&args.best_constant, "best_constant.json")?;
     let headroom = read_reference(&args.best_policy, "best_policy.json")?;
+    if let (Some(b), Some(h)) = (&bar, &headroom) {
+        if (b.eval_seed, b.eval_episodes) != (h.eval_seed, h.eval_episodes) {
+            anyhow::bail!(
+                "the best constant and the best policy were evaluated on different starts (seeds {}.. × {} and {}.. × {}); evaluate them again with one `lcrl tune ... --eval-episodes N` run each",
+                b.eval_seed, b.eval_episodes, h.eval_seed, h.eval_episodes
+            );
+        }
+    }
+    // Every row on one set of starts: the references' (lcrl tune's), or the
+    // first run's own; a run evaluated elsewhere is evaluated again here.
+    let starts = bar.as_ref().or(headroom.as_ref()).map(|r| Starts { seed: r.eval_seed, episodes: r.eval_episodes });
+    println!("{}", match starts {
+        Some(s) => format!("every row evaluated on the same {} starts (seeds {} on, those of `lcrl tune`)", s.episodes, s.seed),
+        None => "every row evaluated on the first run's evaluation starts".to_string(),
+    });
+    let mut starts = starts;
     let mut series = Vec::new();
     let mut longest: Vec<f64> = Vec::new();
     let mut lines = Vec::new();
     println!("{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11} {:>8}", "run", "episodes", "graph s", "optimization s", "total s", "final return", "eval return", "success");
     for dir in &args.runs {
-        let (label, s, rows) = read_run(dir, [(&bar, "best constant"), (&headroom, "best policy")])?;
+        let (label, s, rows) = read_run(dir, [(&bar, "best constant"), (&headroom, "best policy")], &mut starts)?;
         for line in references(&s) {
             if !lines.iter().any(|(name, _): &(String, f64)| *name == line.0) {
                 lines.push(line);
@@ -98,10 +124,16 @@ fn read_reference(path: &Option<PathBuf>, what: &str) -> anyhow::Result<Option<B
 
 /// A finished run's label, summary and episodes, checked against the
 /// references' environment; its row of the table is printed.
-fn read_run(dir: &std::path::Path, references: [(&Option<BestConstant>, &str); 2]) -> anyhow::Result<(String, RunSummary, Vec<EpisodeRow>)> {
+fn read_run(dir: &std::path::Path, references: [(&Option<BestConstant>, &str); 2], starts: &mut Option<Starts>) -> anyhow::Result<(String, RunSummary, Vec<EpisodeRow>)> {
     let path = dir.join("summary.json");
     let text = std::fs::read_to_string(&path).with_context(|| format!("{} is not a finished run (no summary.json)", dir.display()))?;
-    let s: RunSummary = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
+    let mut s: RunSummary = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
+    let own = s.evaluation.eval_episodes.zip(s.evaluation.eval_seed).map(|(episodes, seed)| Starts { seed, episodes });
+    let starts = *starts.get_or_insert(own.with_context(|| format!("{} does not record its evaluation starts; evaluate it with `lcrl sim --checkpoint {}`", dir.display(), dir.display()))?);
+    if own != Some(starts) {
+        s.evaluation.eval_return = evaluate_on(dir, &s.env, starts)?;
+        s.evaluation.eval_success_rate = None;
+    }
     for (reference, what) in references {
         if let Some(r) = reference {
             if r.env != s.env {
@@ -128,6 +160,20 @@ fn read_run(dir: &std::path::Path, references: [(&Option<BestConstant>, &str); 2
         s.evaluation.eval_success_rate.map_or("n/a".into(), |r| format!("{:.0}%", 100.0 * r)),
     );
     Ok((label, s, rows))
+}
+
+/// The run's handed-over policy (RUN/selected, else its newest checkpoint;
+/// RUN/learner/ for `lcrl run`) evaluated deterministically on `starts`.
+fn evaluate_on(dir: &std::path::Path, env_name: &str, starts: Starts) -> anyhow::Result<f64> {
+    let folder = if dir.join("learner").is_dir() { dir.join("learner") } else { dir.to_path_buf() };
+    let policy = lcrl_learner::policy::trained::Policy::load(&folder)
+        .with_context(|| format!("{} has no policy to evaluate on the common starts; compare runs evaluated on them (`lcrl train --eval-seed {} --eval-episodes {}`)", dir.display(), starts.seed, starts.episodes))?;
+    let env_name = lcrl::recorded_env::environment_to_build(env_name, None, &folder)?;
+    let mut env = lcrl_sim::make_env(&env_name)?;
+    let probe = env.fresh();
+    let (summary, _) = lcrl_sim::evaluate::evaluate(env.as_mut(), "run", starts.episodes, starts.seed, &mut |state| policy.act(probe.as_ref(), state), &mut |_| {})?;
+    eprintln!("{}: evaluated again on the common starts (its own were others)", dir.display());
+    Ok(summary.mean_return)
 }
 
 /// Returns averaged over the last `window` episodes (fewer at the start).

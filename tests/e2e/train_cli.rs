@@ -151,6 +151,16 @@ fn compare_tabulates_runs_and_refuses_bad_paths() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let mean = json(&bar)["mean_return"].as_f64().unwrap();
     assert!(stdout(&out).lines().any(|l| l.starts_with("best constant") && l.contains(&format!("{mean:.3}"))), "{}", stdout(&out));
+    // One set of starts: the runs (evaluated on their own held-out starts)
+    // are evaluated again on the best constant's, as `lcrl sim` does there.
+    assert!(stdout(&out).contains("every row evaluated on the same 2 starts (seeds 0 on"), "{}", stdout(&out));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("evaluated again on the common starts"), "{}", String::from_utf8_lossy(&out.stderr));
+    let sim_dir = work.path().join("sim-local");
+    let sim = lcrl().args(["sim", "--episodes", "2", "--seed", "0", "--out"]).arg(&sim_dir).arg("--checkpoint").arg(&local).output().unwrap();
+    assert!(sim.status.success(), "{}", String::from_utf8_lossy(&sim.stderr));
+    let on_bar_starts = json(&sim_dir.join("summary.json"))["mean_return"].as_f64().unwrap();
+    let row = stdout(&out).lines().find(|l| l.starts_with("ddpg/local")).unwrap().to_string();
+    assert!(row.contains(&format!("{on_bar_starts:.3}")), "{row} against lcrl sim's {on_bar_starts:.3}");
     let mut other = json(&bar);
     other["env"] = Value::from("peg-group1");
     let other_path = work.path().join("other.json");
