@@ -131,14 +131,7 @@ where
         let x = panel.x.as_deref().unwrap_or(x);
         let whole_numbers = x.iter().all(|v| v.fract() == 0.0);
         let (x0, x1) = range(x.iter().copied());
-        let values: Vec<f64> = panel.series.iter().flat_map(|(_, v)| v.iter().copied()).collect();
-        let band = panel.bands.iter().flat_map(|(_, lo, hi)| lo.iter().chain(hi).copied());
-        let references = panel.references.iter().map(|(_, y)| *y);
-        let curves: Vec<&[f64]> = panel.series.iter().map(|(_, v)| v.as_slice()).collect();
-        let floor = if panel.clip_low_outliers && !curves.is_empty() { robust_low(&curves) } else { None };
-        let kept = values.iter().copied().filter(|v| floor.is_none_or(|f| *v >= f));
-        let (y0, y1) = range(kept.chain(band).chain(references).chain(floor));
-        let below = floor.map_or(0, |f| panel.series.first().map_or(0, |(_, v)| v.iter().filter(|x| **x < f).count()));
+        let (y0, y1, below) = y_range(panel);
         let y_label = if below > 0 { format!("{} ({below} values below the axis)", panel.y_label) } else { panel.y_label.clone() };
         let mut chart = ChartBuilder::on(&area)
             .margin(12)
@@ -199,6 +192,21 @@ where
         draw_legend(&legend_area, &legend).map_err(|e| draw_err(&e))?;
     }
     Ok(())
+}
+
+/// A panel's y axis (y0, y1): its series, bands and reference lines,
+/// without the low outliers when the panel clips them; and how many values
+/// of its first series lie below the axis.
+fn y_range(panel: &Panel) -> (f64, f64, usize) {
+    let values: Vec<f64> = panel.series.iter().flat_map(|(_, v)| v.iter().copied()).collect();
+    let band = panel.bands.iter().flat_map(|(_, lo, hi)| lo.iter().chain(hi).copied());
+    let references = panel.references.iter().map(|(_, y)| *y);
+    let curves: Vec<&[f64]> = panel.series.iter().map(|(_, v)| v.as_slice()).collect();
+    let floor = if panel.clip_low_outliers && !curves.is_empty() { robust_low(&curves) } else { None };
+    let kept = values.iter().copied().filter(|v| floor.is_none_or(|f| *v >= f));
+    let (y0, y1) = range(kept.chain(band).chain(references).chain(floor));
+    let below = floor.map_or(0, |f| panel.series.first().map_or(0, |(_, v)| v.iter().filter(|x| **x < f).count()));
+    (y0, y1, below)
 }
 
 /// A series' points as the stretches its line is drawn in: a NaN value is

@@ -3,7 +3,6 @@
 
 use std::path::{Path, PathBuf};
 
-use indicatif::{ProgressBar, ProgressStyle};
 use tempfile::NamedTempFile;
 
 use crate::{build_graph, plot, Cs3Config, GraphError, GraphOptions, GraphReport, Rule, EXACT_TOLERANCE};
@@ -165,10 +164,8 @@ impl GraphArgs {
         }
 
         let total = env.spec().action_dim() * self.samples;
-        let bar = ProgressBar::new(total as u64).with_message("CS3 rollouts");
-        if let Ok(style) = ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} samples, {elapsed} (eta {eta})") {
-            bar.set_style(style.progress_chars("=> "));
-        }
+        let bar = crate::progress::bar(total as u64, "{msg} [{bar:30}] {pos}/{len} samples, {elapsed} (eta {eta})");
+        bar.set_message("CS3 rollouts");
         let report = build_graph(env.as_ref(), &options, &|| bar.inc(1));
         bar.finish_and_clear();
         let report = report?.with_rows(&self.rows)?.with_sweep(&sweep);
@@ -195,10 +192,8 @@ impl GraphArgs {
         let json_out = self.out.as_deref().map(|p| PendingFile::new(p, ".json")).transpose()?;
         let seeds: Vec<u64> = (0..self.choose_seeds as u64).map(|k| self.seed.wrapping_add(k)).collect();
         let total = env.spec().action_dim() * self.samples * seeds.len();
-        let bar = ProgressBar::new(total as u64).with_message("CS3 rollouts");
-        if let Ok(style) = ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} samples, {elapsed} (eta {eta})") {
-            bar.set_style(style.progress_chars("=> "));
-        }
+        let bar = crate::progress::bar(total as u64, "{msg} [{bar:30}] {pos}/{len} samples, {elapsed} (eta {eta})");
+        bar.set_message("CS3 rollouts");
         let choice = crate::choose_t::measure_and_choose(env.as_ref(), &options.cs3, &seeds, &|| bar.inc(1));
         bar.finish_and_clear();
         let choice = choice?;
@@ -217,10 +212,8 @@ impl GraphArgs {
         options.validate()?;
         let env = lcrl_sim::make_env(&self.env)?;
         let (i, j) = crate::explain::parse_pair(env.as_ref(), pair).map_err(GraphError::Explain)?;
-        let bar = ProgressBar::new(self.samples as u64).with_message("paired rollouts");
-        if let Ok(style) = ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} samples, {elapsed} (eta {eta})") {
-            bar.set_style(style.progress_chars("=> "));
-        }
+        let bar = crate::progress::bar(self.samples as u64, "{msg} [{bar:30}] {pos}/{len} samples, {elapsed} (eta {eta})");
+        bar.set_message("paired rollouts");
         let explanation = crate::explain::explain(env.as_ref(), &options.cs3, i, j, &|| bar.inc(1));
         bar.finish_and_clear();
         explanation

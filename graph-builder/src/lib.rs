@@ -19,6 +19,7 @@ pub mod given;
 pub mod graph;
 pub mod lemma1;
 pub mod plot;
+pub mod progress;
 pub mod report;
 pub mod rows;
 pub mod service;

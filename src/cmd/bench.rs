@@ -142,7 +142,7 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], python: Option
             let settings: &[bool] = if torch_device.is_cuda() { &[false, true] } else { &[false] };
             for &graphs in settings {
                 let cfg = lcrl_learner::TrainConfig { run: lcrl_learner::config::RunConfig { cuda_graphs: graphs, ..cfg.run.clone() }, ..cfg.clone() };
-                let (ddpg, ppo, params) = time_updates(&cfg, connection, &mask, m, n, updates, torch_device)?;
+                let (ddpg, ppo, params) = time_updates(&cfg, connection, &mask, updates, torch_device)?;
                 let label = if graphs { format!("{connection:?}+graphs") } else { format!("{connection:?}") };
                 println!("{t:>7} {label:<16} {params:>13} {:>16.3} {:>12.0} {ppo:>20.3}", ddpg * 1e3, 1.0 / ddpg);
                 if !graphs {
@@ -160,23 +160,17 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], python: Option
     torch_eager(python, device, threads, updates, (m, n, cfg.ddpg.batch_size), &globals)
 }
 
-/// Seconds per DDPG update and per PPO update, and the actor's parameters.
+/// Seconds per DDPG update and per PPO update, and the actor's parameters,
+/// for the graph `mask` (n × m: a row per action, a column per state).
 /// Updates are timed as a whole after a synchronizing read, so a GPU's
 /// asynchronous launches are counted when they finish, not when queued.
-fn time_updates(
-    cfg: &lcrl_learner::TrainConfig,
-    connection: lcrl_learner::Connection,
-    mask: &[Vec<u8>],
-    m: usize,
-    n: usize,
-    updates: usize,
-    device: tch::Device,
-) -> anyhow::Result<(f64, f64, usize)> {
+fn time_updates(cfg: &lcrl_learner::TrainConfig, connection: lcrl_learner::Connection, mask: &[Vec<u8>], updates: usize, device: tch::Device) -> anyhow::Result<(f64, f64, usize)> {
     use lcrl_learner::algo::agent::Transition;
     use lcrl_learner::algo::algorithms::make_agent;
     use lcrl_learner::Algo;
     use rand::{Rng, SeedableRng};
 
+    let (n, m) = (mask.len(), mask[0].len());
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     let mut random = |len: usize| -> Vec<f32> { (0..len).map(|_| rng.random_range(-1.0..1.0)).collect() };
     let sync = || {

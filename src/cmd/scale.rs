@@ -95,21 +95,7 @@ pub struct ScalePoint {
 }
 
 pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
-    use lcrl::preset::{MAX_ACTORS, MAX_ENVS_PER_ACTOR};
-    if args.actors.is_empty() || args.actors.iter().any(|a| !(1..=MAX_ACTORS).contains(a)) {
-        bail!("--actors takes counts from 1 to {MAX_ACTORS}");
-    }
-    if args.envs_per_actor.iter().any(|e| !(1..=MAX_ENVS_PER_ACTOR).contains(e)) {
-        bail!("--envs-per-actor takes counts from 1 to {MAX_ENVS_PER_ACTOR}");
-    }
-    // A day at most: longer would overflow the clock's arithmetic.
-    const DAY: f64 = 86_400.0;
-    for (flag, value, least) in [("--seconds", args.seconds, f64::MIN_POSITIVE), ("--warmup", args.warmup, 0.0), ("--threshold-timeout", args.threshold_timeout, 0.0)] {
-        if !(value.is_finite() && value >= least && value <= DAY) {
-            let lower = if least > 0.0 { "above 0" } else { "from 0" };
-            bail!("{flag} must be a number of seconds {lower} and at most {DAY}, got {value}");
-        }
-    }
+    check_args(args)?;
     let mut preset = Preset::load(&args.config)?;
     preset.set_compute(&args.compute)?;
     lcrl_learner::device::torch::resolve_device(&preset.train.run.device)?;
@@ -152,11 +138,38 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
     }
     csv.flush()?;
     plot(&points, &args.out.join("scale.png"), &preset.job.env)?;
+    print_table(&points);
+    println!("wrote {}, {}, {}", json.display(), csv_path.display(), args.out.join("scale.png").display());
+    Ok(())
+}
+
+/// The counts and durations asked for, each within its range.
+fn check_args(args: &ScaleArgs) -> anyhow::Result<()> {
+    use lcrl::preset::{MAX_ACTORS, MAX_ENVS_PER_ACTOR};
+    if args.actors.is_empty() || args.actors.iter().any(|a| !(1..=MAX_ACTORS).contains(a)) {
+        bail!("--actors takes counts from 1 to {MAX_ACTORS}");
+    }
+    if args.envs_per_actor.iter().any(|e| !(1..=MAX_ENVS_PER_ACTOR).contains(e)) {
+        bail!("--envs-per-actor takes counts from 1 to {MAX_ENVS_PER_ACTOR}");
+    }
+    // A day at most: longer would overflow the clock's arithmetic.
+    const DAY: f64 = 86_400.0;
+    for (flag, value, least) in [("--seconds", args.seconds, f64::MIN_POSITIVE), ("--warmup", args.warmup, 0.0), ("--threshold-timeout", args.threshold_timeout, 0.0)] {
+        if !(value.is_finite() && value >= least && value <= DAY) {
+            let lower = if least > 0.0 { "above 0" } else { "from 0" };
+            bail!("{flag} must be a number of seconds {lower} and at most {DAY}, got {value}");
+        }
+    }
+    Ok(())
+}
+
+/// The points as a table on stdout.
+fn print_table(points: &[ScalePoint]) {
     println!(
         "{:<24} {:>6} {:>5} {:>8} {:>12} {:>10} {:>7} {:>6} {:>8} {:>9} {:>9} {:>10}",
         "kind", "actors", "envs", "learner", "env steps/s", "updates/s", "ratio", "lag", "act p50", "cpu lrn", "cpu act", "to thr. s"
     );
-    for p in &points {
+    for p in points {
         println!(
             "{:<24} {:>6} {:>5} {:>8} {:>12.0} {:>10.0} {:>7.1} {:>6.1} {:>8} {:>9.2} {:>9.2} {:>10}",
             p.kind,
@@ -173,8 +186,6 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
             p.seconds_to_threshold.map_or("-".into(), |v| format!("{v:.0}"))
         );
     }
-    println!("wrote {}, {}, {}", json.display(), csv_path.display(), args.out.join("scale.png").display());
-    Ok(())
 }
 
 /// The single-process `lcrl train` loop on the same settings: env steps and

@@ -6,7 +6,6 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
-use indicatif::{ProgressBar, ProgressStyle};
 use lcrl_learner::policy::trained::evaluate_snapshot;
 use lcrl_sim::evaluate::{evaluate_parallel_with, EpisodeRecord, Summary};
 use lcrl_sim::Env;
@@ -95,10 +94,7 @@ pub fn run(args: &SimArgs) -> anyhow::Result<()> {
         None if args.action.is_some() => format!("constant a = {constant:?}"),
         None => "constant".to_string(),
     };
-    let bar = ProgressBar::new(args.episodes as u64);
-    if let Ok(style) = ProgressStyle::with_template("episodes [{bar:30}] {pos}/{len} {msg} ({elapsed})") {
-        bar.set_style(style.progress_chars("=> "));
-    }
+    let bar = lcrl_graph_builder::progress::bar(args.episodes as u64, "episodes [{bar:30}] {pos}/{len} {msg} ({elapsed})");
     let on_episode = |r: &EpisodeRecord| {
         bar.set_message(format!("return {:.2}", r.episode_return));
         bar.inc(1);

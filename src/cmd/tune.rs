@@ -5,7 +5,6 @@
 
 use std::path::PathBuf;
 
-use indicatif::{ProgressBar, ProgressStyle};
 use lcrl_sim::tune::feedback::{tune_policy, Family};
 use lcrl_sim::tune::{tune, TuneOptions};
 
@@ -81,10 +80,7 @@ pub fn run(args: &TuneArgs) -> anyhow::Result<()> {
         eval_episodes: args.eval_episodes,
         eval_seed: args.eval_seed,
     };
-    let bar = ProgressBar::new(opts.evaluations as u64);
-    if let Ok(style) = ProgressStyle::with_template("candidates [{bar:30}] {pos}/{len} {msg} ({elapsed}, eta {eta})") {
-        bar.set_style(style.progress_chars("=> "));
-    }
+    let bar = lcrl_graph_builder::progress::bar(opts.evaluations as u64, "candidates [{bar:30}] {pos}/{len} {msg} ({elapsed}, eta {eta})");
     let family = match args.policy {
         PolicyFamily::Constant => None,
         PolicyFamily::Affine => Some(Family::Affine),

@@ -208,18 +208,7 @@ impl Experiment {
         }
         super::hypotheses::check_designs(&names, &file.equivalence, &file.factorial)?;
         let algos: Vec<&str> = file.algorithms.iter().map(|a| algo_name(*a)).collect();
-        for algo in &algos {
-            match file.episodes.get(*algo) {
-                Some(0) => bail!("`episodes.{algo}` must be at least 1"),
-                Some(_) => {}
-                None => bail!("`episodes` gives no budget for {algo}; add e.g. `episodes = {{ {algo} = 200 }}`"),
-            }
-        }
-        for key in file.episodes.keys() {
-            if !algos.contains(&key.as_str()) {
-                bail!("`episodes.{key}`: {key} is not one of `algorithms` ({})", algos.join(", "));
-            }
-        }
+        check_episodes(&file, &algos)?;
         let mut slugs = BTreeMap::new();
         for env in &file.environments {
             lcrl_sim::make_env(env).with_context(|| format!("environment \"{env}\""))?;
@@ -227,19 +216,7 @@ impl Experiment {
                 bail!("environments \"{other}\" and \"{env}\" would share the folder {}", env_slug(env));
             }
         }
-        for (env, per_algo) in &file.reward_threshold {
-            if !file.environments.contains(env) {
-                bail!("`reward_threshold.{env}`: {env} is not one of `environments`");
-            }
-            for (algo, value) in per_algo {
-                if !algos.contains(&algo.as_str()) {
-                    bail!("`reward_threshold.{env}.{algo}`: {algo} is not one of `algorithms`");
-                }
-                if !value.is_finite() {
-                    bail!("`reward_threshold.{env}.{algo}` must be a finite number");
-                }
-            }
-        }
+        check_reward_thresholds(&file, &algos)?;
         if file.graph.samples == 0 {
             bail!("`graph.samples` must be at least 1");
         }
@@ -247,40 +224,8 @@ impl Experiment {
         if b.enabled && (b.evaluations == 0 || b.episodes == 0 || b.eval_episodes == 0) {
             bail!("`best_constant`: evaluations, episodes and eval_episodes must each be at least 1 (or set enabled = false)");
         }
-        // Every key of `[train]` is one `lcrl train` knows: a typo, or an
-        // option since removed (docs/peg.md), fails here, before any run.
-        TrainConfig::deserialize(toml::Value::Table(file.train.clone())).context("`[train]`")?;
-        if let Some(run) = file.train.get("run").and_then(|r| r.as_table()) {
-            for (key, instead) in [
-                ("episodes", "`episodes`"),
-                ("seed", "`seeds`"),
-                ("eval_episodes", "`eval_episodes`"),
-                ("eval_seed", "the best constant's evaluation starts"),
-                ("threads", "one thread per run"),
-            ] {
-                if run.contains_key(key) {
-                    bail!("`train.run.{key}` is set by the experiment ({instead}); remove it");
-                }
-            }
-        }
-        // Given graphs must fit every environment before a run starts.
-        for env in &file.environments {
-            let made = lcrl_sim::make_env(env)?;
-            for connection in &connections {
-                // A matched global needs the graph of the actor it matches.
-                let graph_of = match connection {
-                    ConnectionSpec::MatchedGlobal { to } => to.as_ref(),
-                    ConnectionSpec::RandomRows { of, .. } => of.as_ref(),
-                    other => other,
-                };
-                graph_of.given_graph(made.spec(), file.graph.seed).with_context(|| format!("connection \"{}\" on {env}", connection.label()))?;
-                if let ConnectionSpec::Local { rows, .. } = graph_of {
-                    if let Some(rule) = rows.iter().find(|r| !made.spec().action_names.contains(&r.action)) {
-                        bail!("connection \"{}\": {env} has no action {} (its actions: {})", connection.label(), rule.action, made.spec().action_names.join(", "));
-                    }
-                }
-            }
-        }
+        check_train_table(&file)?;
+        check_given_graphs(&file, &connections)?;
         let experiment = Experiment { file, connections, seeds, study_seeds, seeds_of };
         // Random rows: every draw is trained (run seed s trains draw s mod N).
         for connection in &experiment.connections {
@@ -324,6 +269,87 @@ impl Experiment {
     pub fn reward_threshold(&self, env: &str, algo: Algo) -> Option<f64> {
         self.file.reward_threshold.get(env)?.get(algo_name(algo)).copied()
     }
+}
+
+/// Every algorithm has an episode budget of at least 1, and every budget
+/// is an algorithm's.
+fn check_episodes(file: &ExperimentFile, algos: &[&str]) -> anyhow::Result<()> {
+    for algo in algos {
+        match file.episodes.get(*algo) {
+            Some(0) => bail!("`episodes.{algo}` must be at least 1"),
+            Some(_) => {}
+            None => bail!("`episodes` gives no budget for {algo}; add e.g. `episodes = {{ {algo} = 200 }}`"),
+        }
+    }
+    for key in file.episodes.keys() {
+        if !algos.contains(&key.as_str()) {
+            bail!("`episodes.{key}`: {key} is not one of `algorithms` ({})", algos.join(", "));
+        }
+    }
+    Ok(())
+}
+
+/// Every reward threshold is a finite number, for a listed environment
+/// and algorithm.
+fn check_reward_thresholds(file: &ExperimentFile, algos: &[&str]) -> anyhow::Result<()> {
+    for (env, per_algo) in &file.reward_threshold {
+        if !file.environments.contains(env) {
+            bail!("`reward_threshold.{env}`: {env} is not one of `environments`");
+        }
+        for (algo, value) in per_algo {
+            if !algos.contains(&algo.as_str()) {
+                bail!("`reward_threshold.{env}.{algo}`: {algo} is not one of `algorithms`");
+            }
+            if !value.is_finite() {
+                bail!("`reward_threshold.{env}.{algo}` must be a finite number");
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The `[train]` table: every key one `lcrl train` knows, none one the
+/// experiment sets itself.
+fn check_train_table(file: &ExperimentFile) -> anyhow::Result<()> {
+    // Every key of `[train]` is one `lcrl train` knows: a typo, or an
+    // option since removed (docs/peg.md), fails here, before any run.
+    TrainConfig::deserialize(toml::Value::Table(file.train.clone())).context("`[train]`")?;
+    if let Some(run) = file.train.get("run").and_then(|r| r.as_table()) {
+        for (key, instead) in [
+            ("episodes", "`episodes`"),
+            ("seed", "`seeds`"),
+            ("eval_episodes", "`eval_episodes`"),
+            ("eval_seed", "the best constant's evaluation starts"),
+            ("threads", "one thread per run"),
+        ] {
+            if run.contains_key(key) {
+                bail!("`train.run.{key}` is set by the experiment ({instead}); remove it");
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Given graphs fit every environment before a run starts.
+fn check_given_graphs(file: &ExperimentFile, connections: &[ConnectionSpec]) -> anyhow::Result<()> {
+    for env in &file.environments {
+        let made = lcrl_sim::make_env(env)?;
+        for connection in connections {
+            // A matched global needs the graph of the actor it matches.
+            let graph_of = match connection {
+                ConnectionSpec::MatchedGlobal { to } => to.as_ref(),
+                ConnectionSpec::RandomRows { of, .. } => of.as_ref(),
+                other => other,
+            };
+            graph_of.given_graph(made.spec(), file.graph.seed).with_context(|| format!("connection \"{}\" on {env}", connection.label()))?;
+            if let ConnectionSpec::Local { rows, .. } = graph_of {
+                if let Some(rule) = rows.iter().find(|r| !made.spec().action_names.contains(&r.action)) {
+                    bail!("connection \"{}\": {env} has no action {} (its actions: {})", connection.label(), rule.action, made.spec().action_names.join(", "));
+                }
+            }
+        }
+    }
+    Ok(())
 }
 
 /// A folder name for an environment: a registered name as is, a file path

@@ -356,101 +356,123 @@ pub fn markdown(report: &Report) -> String {
     }
     for (env, algo) in groups {
         let rows: Vec<&CellReport> = report.cells.iter().filter(|c| c.env == env && c.algo == algo).collect();
-        let threshold = rows.iter().find_map(|c| c.episodes_to_threshold.as_ref().map(|t| t.threshold));
-        let _ = writeln!(md, "## {env}, {} ({} episodes)\n", algo.to_uppercase(), rows[0].episodes);
-        let to = threshold.map_or("episodes to threshold".to_string(), |t| format!("episodes to {}", num(t)));
-        let _ = writeln!(md, "| connection | seeds | final return | eval return | success | beat best constant | diverged | {to} | AUC, first 100 | median episodes to best constant | graph s | optimization s | total s |");
-        let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
-        for c in &rows {
-            let success = c.eval_success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
-            let reach = c.episodes_to_threshold.as_ref().map_or("—".into(), |t| {
-                let ci = t.ci95.map_or(String::new(), |[lo, hi]| format!(" [{}, {}]", num(lo), num(hi)));
-                format!("{}{ci} ({} of {} censored)", num(t.mean), t.censored, t.reached + t.censored)
-            });
-            let n = c.seeds.len();
-            let beat = c.beat_best_constant.map_or("—".into(), |k| format!("{k} of {n}"));
-            let (auc, to_bar) = super::speed::columns(&c.speed);
-            let _ = writeln!(
-                md,
-                "| {} | {n} | {} | {} | {success} | {beat} | {} of {n} | {reach} | {auc} | {to_bar} | {} | {} | {} |",
-                c.connection,
-                estimate(&c.final_return),
-                estimate(&c.eval_return),
-                c.diverged,
-                num(c.graph_seconds),
-                estimate(&c.optimization_seconds),
-                estimate(&c.total_seconds)
-            );
-        }
-        if let Some(b) = report.best_constant.get(env) {
-            let success = b.success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
-            let _ = writeln!(md, "| best constant | — | — | {} | {success} | — | — | — | — | — | — | — | — |", num(b.mean_return));
-            let _ = writeln!(md, "| a = 0 | — | — | {} | — | — | — | — | {} | — | — | — | — |", num(b.zero_action_return), num(b.zero_action_return));
-        }
-        if let Some(p) = report.best_policy.get(env) {
-            let success = p.success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
-            let _ = writeln!(md, "| best feedback policy (headroom) | — | — | {} | {success} | — | — | — | — | — | — | — | — |", num(p.mean_return));
-        }
+        results_table(&mut md, report, env, algo, &rows);
         let _ = writeln!(md);
-        for c in &rows {
-            // A random-rows run names its draw: index (seed mod draws) and
-            // the draw's seed, as its graph.json and summary.json record.
-            let spec = crate::connection::ConnectionSpec::parse(&c.connection).ok();
-            let draw = |seed: u64| match spec.as_ref().and_then(|spec| spec.draw_of(seed)) {
-                Some(k) => format!(" (draw {k}, draw seed {})", lcrl_graph_builder::given::draw_seed(env, k)),
-                None => String::new(),
-            };
-            let seeds: Vec<String> = c.per_seed.iter().map(|s| format!("{}{}: {} / {}", s.seed, draw(s.seed), num(s.final_return), num(s.eval_return))).collect();
-            let _ = writeln!(md, "- {} per seed (final / eval): {}", c.connection, seeds.join("; "));
-        }
-        if let Some(b) = report.best_constant.get(env) {
-            let _ = writeln!(md, "- best constant on {} evaluation episodes, action {:?}", b.eval_episodes, b.action.iter().map(|a| num(*a)).collect::<Vec<_>>());
-        }
-        if rows.iter().any(|c| c.safety.is_some()) {
-            let _ = writeln!(md, "\n| training safety | failed training episodes | worst 10-episode mean (mean [95% CI]) | lowest seed | below the base | peak force, N | base (eval starts) |");
-            let _ = writeln!(md, "|---|---|---|---|---|---|---|");
-            for c in &rows {
-                let Some(s) = &c.safety else { continue };
-                let base = s.base.as_ref().map_or("—".into(), |b| format!("{} {}", b.controller, num(b.mean_return)));
-                let below = s.below_base.map_or("—".into(), |k| format!("{k} of {}", c.seeds.len()));
-                let peak = s.peak_force_n.map_or("—".into(), |f| format!("{f:.1}"));
-                let _ = writeln!(
-                    md,
-                    "| {} | {} of {} | {} | {} | {below} | {peak} | {base} |",
-                    c.connection,
-                    s.failed_episodes,
-                    s.episodes,
-                    estimate(&s.worst_mean_return),
-                    num(s.lowest_mean_return)
-                );
-            }
-        }
-        let comparisons: Vec<&Comparison> = report.comparisons.iter().filter(|c| c.env == env && c.algo == algo).collect();
-        if !comparisons.is_empty() {
-            let family = report.comparisons.iter().filter(|c| !c.primary).count();
-            let _ = writeln!(md, "\n| comparison | metric | difference | 95% CI | test | p | p (Holm, {family} comparisons) | reading |");
-            let _ = writeln!(md, "|---|---|---|---|---|---|---|---|");
-            for c in comparisons {
-                let _ = writeln!(
-                    md,
-                    "| {} − {} | {} | {} | [{}, {}] | {} | {} | {} | {} |",
-                    c.a,
-                    c.b,
-                    c.metric,
-                    num(c.difference),
-                    num(c.ci95[0]),
-                    num(c.ci95[1]),
-                    c.test,
-                    format_p(c.p_value),
-                    format_p(c.p_holm),
-                    c.reading
-                );
-            }
-        }
+        per_seed_lines(&mut md, report, env, &rows);
+        safety_table(&mut md, &rows);
+        comparisons_table(&mut md, report, env, algo);
         let _ = writeln!(md);
     }
     md.push_str(&super::draws::markdown(&report.random_draws));
     md
+}
+
+/// The table of one environment and algorithm: a row per connection, then
+/// the best constant, a = 0 and the best feedback policy where known.
+fn results_table(md: &mut String, report: &Report, env: &str, algo: &str, rows: &[&CellReport]) {
+    let threshold = rows.iter().find_map(|c| c.episodes_to_threshold.as_ref().map(|t| t.threshold));
+    let _ = writeln!(md, "## {env}, {} ({} episodes)\n", algo.to_uppercase(), rows[0].episodes);
+    let to = threshold.map_or("episodes to threshold".to_string(), |t| format!("episodes to {}", num(t)));
+    let _ = writeln!(md, "| connection | seeds | final return | eval return | success | beat best constant | diverged | {to} | AUC, first 100 | median episodes to best constant | graph s | optimization s | total s |");
+    let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for c in rows {
+        let success = c.eval_success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
+        let reach = c.episodes_to_threshold.as_ref().map_or("—".into(), |t| {
+            let ci = t.ci95.map_or(String::new(), |[lo, hi]| format!(" [{}, {}]", num(lo), num(hi)));
+            format!("{}{ci} ({} of {} censored)", num(t.mean), t.censored, t.reached + t.censored)
+        });
+        let n = c.seeds.len();
+        let beat = c.beat_best_constant.map_or("—".into(), |k| format!("{k} of {n}"));
+        let (auc, to_bar) = super::speed::columns(&c.speed);
+        let _ = writeln!(
+            md,
+            "| {} | {n} | {} | {} | {success} | {beat} | {} of {n} | {reach} | {auc} | {to_bar} | {} | {} | {} |",
+            c.connection,
+            estimate(&c.final_return),
+            estimate(&c.eval_return),
+            c.diverged,
+            num(c.graph_seconds),
+            estimate(&c.optimization_seconds),
+            estimate(&c.total_seconds)
+        );
+    }
+    if let Some(b) = report.best_constant.get(env) {
+        let success = b.success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
+        let _ = writeln!(md, "| best constant | — | — | {} | {success} | — | — | — | — | — | — | — | — |", num(b.mean_return));
+        let _ = writeln!(md, "| a = 0 | — | — | {} | — | — | — | — | {} | — | — | — | — |", num(b.zero_action_return), num(b.zero_action_return));
+    }
+    if let Some(p) = report.best_policy.get(env) {
+        let success = p.success_rate.map_or("—".into(), |r| format!("{:.0}%", 100.0 * r));
+        let _ = writeln!(md, "| best feedback policy (headroom) | — | — | {} | {success} | — | — | — | — | — | — | — | — |", num(p.mean_return));
+    }
+}
+
+/// Each connection's returns seed by seed, and the best constant's action.
+fn per_seed_lines(md: &mut String, report: &Report, env: &str, rows: &[&CellReport]) {
+    for c in rows {
+        // A random-rows run names its draw: index (seed mod draws) and
+        // the draw's seed, as its graph.json and summary.json record.
+        let spec = crate::connection::ConnectionSpec::parse(&c.connection).ok();
+        let draw = |seed: u64| match spec.as_ref().and_then(|spec| spec.draw_of(seed)) {
+            Some(k) => format!(" (draw {k}, draw seed {})", lcrl_graph_builder::given::draw_seed(env, k)),
+            None => String::new(),
+        };
+        let seeds: Vec<String> = c.per_seed.iter().map(|s| format!("{}{}: {} / {}", s.seed, draw(s.seed), num(s.final_return), num(s.eval_return))).collect();
+        let _ = writeln!(md, "- {} per seed (final / eval): {}", c.connection, seeds.join("; "));
+    }
+    if let Some(b) = report.best_constant.get(env) {
+        let _ = writeln!(md, "- best constant on {} evaluation episodes, action {:?}", b.eval_episodes, b.action.iter().map(|a| num(*a)).collect::<Vec<_>>());
+    }
+}
+
+/// The training-safety table, when any connection has safety records.
+fn safety_table(md: &mut String, rows: &[&CellReport]) {
+    if rows.iter().any(|c| c.safety.is_some()) {
+        let _ = writeln!(md, "\n| training safety | failed training episodes | worst 10-episode mean (mean [95% CI]) | lowest seed | below the base | peak force, N | base (eval starts) |");
+        let _ = writeln!(md, "|---|---|---|---|---|---|---|");
+        for c in rows {
+            let Some(s) = &c.safety else { continue };
+            let base = s.base.as_ref().map_or("—".into(), |b| format!("{} {}", b.controller, num(b.mean_return)));
+            let below = s.below_base.map_or("—".into(), |k| format!("{k} of {}", c.seeds.len()));
+            let peak = s.peak_force_n.map_or("—".into(), |f| format!("{f:.1}"));
+            let _ = writeln!(
+                md,
+                "| {} | {} of {} | {} | {} | {below} | {peak} | {base} |",
+                c.connection,
+                s.failed_episodes,
+                s.episodes,
+                estimate(&s.worst_mean_return),
+                num(s.lowest_mean_return)
+            );
+        }
+    }
+}
+
+/// The comparisons of one environment and algorithm, with the family's
+/// Holm-adjusted p values.
+fn comparisons_table(md: &mut String, report: &Report, env: &str, algo: &str) {
+    let comparisons: Vec<&Comparison> = report.comparisons.iter().filter(|c| c.env == env && c.algo == algo).collect();
+    if !comparisons.is_empty() {
+        let family = report.comparisons.iter().filter(|c| !c.primary).count();
+        let _ = writeln!(md, "\n| comparison | metric | difference | 95% CI | test | p | p (Holm, {family} comparisons) | reading |");
+        let _ = writeln!(md, "|---|---|---|---|---|---|---|---|");
+        for c in comparisons {
+            let _ = writeln!(
+                md,
+                "| {} − {} | {} | {} | [{}, {}] | {} | {} | {} | {} |",
+                c.a,
+                c.b,
+                c.metric,
+                num(c.difference),
+                num(c.ci95[0]),
+                num(c.ci95[1]),
+                c.test,
+                format_p(c.p_value),
+                format_p(c.p_holm),
+                c.reading
+            );
+        }
+    }
 }
 
 /// Writes report.json and report.md into `out`.

@@ -9,7 +9,7 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 
 use super::config::Experiment;
 use super::plan::{run_dir, Task};
@@ -51,10 +51,7 @@ pub fn run_tasks(e: &Experiment, tasks: &[Task], out: &Path, jobs: usize) -> any
     let index_of: BTreeMap<String, usize> = tasks.iter().enumerate().map(|(i, t)| (t.id(), i)).collect();
     let dependency: Vec<Option<usize>> = tasks.iter().map(|t| t.dependency().and_then(|d| index_of.get(&d.id()).copied())).collect();
 
-    let bar = ProgressBar::new(tasks.len() as u64 * UNITS);
-    if let Ok(style) = ProgressStyle::with_template("study [{bar:30}] {percent:>3}% {msg} ({elapsed}, eta {eta})") {
-        bar.set_style(style.progress_chars("=> "));
-    }
+    let bar = lcrl_graph_builder::progress::bar(tasks.len() as u64 * UNITS, "study [{bar:30}] {percent:>3}% {msg} ({elapsed}, eta {eta})");
     if outcome.skipped > 0 {
         say(&bar, format!("{} of {} tasks finished before; continuing the rest", outcome.skipped, tasks.len()));
     }
@@ -84,11 +81,7 @@ pub fn run_tasks(e: &Experiment, tasks: &[Task], out: &Path, jobs: usize) -> any
             let child = spawn(&exe, &tasks[i].args(e, out), &log).with_context(|| format!("starting {}", tasks[i].id()))?;
             state[i] = State::Running;
             running.insert(i, Instant::now());
-            let tx = finished_tx.clone();
-            std::thread::spawn(move || {
-                let mut child: Child = child;
-                let _ = tx.send((i, child.wait()));
-            });
+            wait_in_thread(i, child, finished_tx.clone());
         }
         bar.set_message(format!("{} done, {} running, {} left", count(&state, State::Done), running.len(), count(&state, State::Waiting)));
         if running.is_empty() {
@@ -108,11 +101,7 @@ pub fn run_tasks(e: &Experiment, tasks: &[Task], out: &Path, jobs: usize) -> any
                     }
                     result => {
                         state[i] = State::Failed;
-                        let why = match result {
-                            Ok(status) if status.success() => "exited without its result".to_string(),
-                            Ok(status) => status.to_string(),
-                            Err(e) => e.to_string(),
-                        };
+                        let why = failure(result);
                         say(&bar, format!("FAILED {} ({why}); its log: {}\n{}", tasks[i].id(), log.display(), tail(&log, 5)));
                         outcome.failed.push((tasks[i].id(), log));
                     }
@@ -129,6 +118,24 @@ pub fn run_tasks(e: &Experiment, tasks: &[Task], out: &Path, jobs: usize) -> any
     bar.finish_and_clear();
     outcome.wall_seconds = started.elapsed().as_secs_f64();
     Ok(outcome)
+}
+
+/// Waits for task `i`'s child on a thread of its own, and sends its exit
+/// to `finished`.
+fn wait_in_thread(i: usize, mut child: Child, finished: mpsc::Sender<(usize, std::io::Result<ExitStatus>)>) {
+    std::thread::spawn(move || {
+        let _ = finished.send((i, child.wait()));
+    });
+}
+
+/// Why a task that ended failed: its exit status, or that it exited
+/// successfully without its result.
+fn failure(result: std::io::Result<ExitStatus>) -> String {
+    match result {
+        Ok(status) if status.success() => "exited without its result".to_string(),
+        Ok(status) => status.to_string(),
+        Err(e) => e.to_string(),
+    }
 }
 
 fn count(state: &[State], which: State) -> usize {

@@ -7,7 +7,6 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
-use indicatif::{ProgressBar, ProgressStyle};
 use lcrl_learner::Connection;
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::GetStatusRequest;
@@ -97,6 +96,7 @@ impl Processes {
 /// Starts the graph builder (for a local actor without a given graph), the
 /// learner, and the actors, each once the one before answers its health
 /// check.
+// args: the run's paths, transport, security and id, each a different part of the local run that starts the three processes
 #[allow(clippy::too_many_arguments)]
 pub(super) async fn start_processes(
     preset: &Preset,
@@ -172,10 +172,7 @@ pub(super) async fn watch_progress(
     episodes: u64,
     logs: &Path,
 ) -> anyhow::Result<(Watched, Option<lcrl_proto::v1::LearnerStatus>)> {
-    let bar = ProgressBar::new(episodes);
-    if let Ok(style) = ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})") {
-        bar.set_style(style.progress_chars("=> "));
-    }
+    let bar = lcrl_graph_builder::progress::bar(episodes, "episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})");
     let (mut last_steps, mut last_updates, mut last_time) = (0u64, 0u64, Instant::now());
     let mut last_status = None;
     let watched = loop {

@@ -14,7 +14,6 @@ mod tests;
 use std::path::PathBuf;
 
 use anyhow::Context;
-use indicatif::{ProgressBar, ProgressStyle};
 use lcrl_learner::run::trainer::{train, TrainRequest};
 use lcrl_learner::{Algo, TrainConfig};
 
@@ -295,10 +294,7 @@ fn given_graph(args: &TrainArgs, connection: &ConnectionSpec) -> anyhow::Result<
 /// Trains with a progress bar (episode, return, its 10-episode average,
 /// steps per second).
 fn train_with_progress(request: &TrainRequest) -> anyhow::Result<lcrl_learner::run::trainer::TrainOutcome> {
-    let bar = ProgressBar::new(request.config.run.episodes as u64);
-    if let Ok(style) = ProgressStyle::with_template("episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})") {
-        bar.set_style(style.progress_chars("=> "));
-    }
+    let bar = lcrl_graph_builder::progress::bar(request.config.run.episodes as u64, "episode {pos}/{len} [{bar:25}] {msg} ({elapsed}, eta {eta})");
     let outcome = train(request, &mut |p| {
         bar.set_length(p.episodes as u64);
         bar.set_position(p.row.episode as u64);

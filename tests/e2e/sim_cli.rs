@@ -197,3 +197,25 @@ fn a_checkpoint_never_chooses_where_lcrl_connects() {
         assert!(trap.accept().is_err(), "{args:?} connected to the address the checkpoint named");
     }
 }
+
+/// A long command is never silent where stderr is a log or a pipe: `lcrl
+/// tune`'s first line of progress comes before its first candidate is
+/// evaluated (0 of them done), and more follow as it works.
+#[test]
+fn tune_shows_progress_at_once_in_a_log() {
+    use std::io::BufRead;
+    let dir = tempfile::tempdir().unwrap();
+    let mut child = lcrl()
+        .args(["tune", "--env", "peg-group1", "--evaluations", "40", "--out"])
+        .arg(dir.path())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
+    let first = lines.next().unwrap().unwrap();
+    assert!(first.starts_with("candidates [") && first.contains(" 0/40"), "{first}");
+    let rest: Vec<String> = lines.map_while(Result::ok).collect();
+    assert!(child.wait().unwrap().success(), "{rest:?}");
+    assert!(dir.path().join("best_constant.json").is_file());
+}
