@@ -26,6 +26,10 @@ pub const MAX_PENDING_BATCHES: usize = 8;
 /// Malformed batches in a row after which an actor stops.
 pub const REJECTIONS_TO_STOP: usize = 3;
 
+/// Duplicate acknowledgements in a row before the actor says so: one may
+/// be a resend after a broken stream, several mean another sender.
+const DUPLICATES_TO_SAY: usize = 3;
+
 /// Connects, retrying with exponential backoff and jitter until
 /// `deadline` (every call on the channel has lcrl_proto::limits' call
 /// deadline and keepalive, so a learner that accepts and never answers
@@ -185,6 +189,9 @@ struct Outbox {
     /// bad step (a non-finite number); many in a row is an actor that does
     /// not fit the run (another environment), which retrying cannot mend.
     rejected_in_a_row: usize,
+    /// Batches the learner took as duplicates since the last one stored:
+    /// another sender has used this actor id with later sequences.
+    duplicates_in_a_row: usize,
     /// Between streams: a learner that ends every stream (full, restarting)
     /// is not hammered with reconnects.
     reconnect: Backoff,
@@ -197,6 +204,7 @@ impl Outbox {
             worker_done: false,
             actor_key: rand::random::<u64>().max(1),
             rejected_in_a_row: 0,
+            duplicates_in_a_row: 0,
             reconnect: Backoff::new(Duration::from_millis(100), Duration::from_secs(5)),
         }
     }
@@ -238,6 +246,14 @@ impl Outbox {
                         metrics.pending_batches.set(self.pending.len() as i64);
                         if ack.outcome != "stored" {
                             tracing::debug!(sequence = ack.sequence, outcome = %ack.outcome, "batch not stored");
+                        }
+                        self.duplicates_in_a_row = if ack.outcome == "duplicate" { self.duplicates_in_a_row + 1 } else { 0 };
+                        if self.duplicates_in_a_row == DUPLICATES_TO_SAY {
+                            tracing::warn!(
+                                "the learner took the last {DUPLICATES_TO_SAY} batches as duplicates and stored none: a sender has used this actor id with later sequences; \
+                                 they pass within {} s, or give this actor another --actor-id",
+                                lcrl_learner::service::ingest::SEQUENCE_AHEAD.as_secs()
+                            );
                         }
                     }
                     Some(Err(status)) if status.code() == tonic::Code::InvalidArgument => {

@@ -175,7 +175,7 @@ impl Rollout {
             // what is not above it. Starting from the clock (µs) keeps a
             // restarted actor with the same id above everything its
             // previous life sent.
-            sequence: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64),
+            sequence: clock_micros(),
             episodes_done: 0,
             settings,
         })
@@ -318,12 +318,20 @@ impl Rollout {
             batch.transitions.append(segment);
             batch.episodes.append(episodes);
         }
-        self.sequence += 1;
+        // Rising, and with the clock: a sequence a peer sent ahead under
+        // this id (at most the learner's SEQUENCE_AHEAD) is passed once
+        // the clock gets there, not after as many batches.
+        self.sequence = (self.sequence + 1).max(clock_micros());
         batch.sequence = self.sequence;
         batch.episode_id = self.episodes_done;
         batch.policy_version = version;
         Some(batch)
     }
+}
+
+/// The wall clock in µs since the Unix epoch (0 before it).
+fn clock_micros() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64)
 }
 
 #[cfg(test)]
@@ -477,7 +485,8 @@ mod tests {
                 break batch;
             }
         };
-        assert_eq!((next.sequence, next.policy_version), (early.sequence + 1, 7));
+        assert!(next.sequence > early.sequence, "sequences rise");
+        assert_eq!(next.policy_version, 7);
         assert_eq!(metrics.env_steps.get(), (early.transitions.len() + next.transitions.len()) as u64);
     }
 
@@ -507,7 +516,7 @@ mod tests {
                 assert!(last.terminated || last.truncated || last.cut, "each batch ends a segment");
                 assert!(batch.transitions.iter().all(|t| !(t.cut && (t.terminated || t.truncated))), "a cut is not an episode end");
                 if k > 0 {
-                    assert_eq!(batch.sequence, batches[k - 1].sequence + 1);
+                    assert!(batch.sequence > batches[k - 1].sequence, "sequences rise");
                 }
             }
             let again = run(algo, 5);

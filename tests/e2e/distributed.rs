@@ -372,3 +372,36 @@ async fn a_second_writer_of_a_run_directory_is_refused_naming_the_holder() {
     let before = status(&url).await.unwrap().episodes;
     wait_for(&url, "more episodes after the refusals", |s| s.episodes > before).await;
 }
+
+/// No peer can pre-claim an actor's id (issue 82): a batch whose sequence
+/// runs far ahead of the clock is refused and not remembered, so the
+/// honest actor of that id stores at once; one just inside the bound holds
+/// the actor's batches as duplicates for seconds only, and the actor says
+/// so in its log.
+#[tokio::test]
+async fn a_pre_claimed_actor_id_stores_within_seconds() {
+    let now = || std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_micros() as u64;
+    let dir = tempfile::tempdir().unwrap();
+    let (_learner, url) = learner(&dir.path().join("run"), "r1", free_port());
+    let far = TransitionBatch { actor_id: "a1".into(), ..batch("r1", now() + 59 * 60 * 1_000_000, 3, 0.1) };
+    let refused = send(&url, far).await.unwrap_err();
+    assert_eq!(refused.code(), tonic::Code::InvalidArgument, "{refused:?}");
+    assert!(refused.message().contains("ahead of this learner's clock"), "{refused:?}");
+    let near = TransitionBatch { actor_id: "a1".into(), ..batch("r1", now() + 8_000_000, 3, 0.1) };
+    assert_eq!(send(&url, near).await.unwrap().outcome, "stored");
+    let stored_before = status(&url).await.unwrap().env_steps;
+    let log = dir.path().join("actor.log");
+    let _actor = Proc(
+        workspace_bin("lcrl-actor")
+            .args(["--learner", &url, "--run-id", "r1", "--actor-id", "a1", "--envs", "2", "--batch", "25", "--transport", "grpc"])
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap(),
+    );
+    let started = Instant::now();
+    wait_for(&url, "the honest actor's steps stored", |s| s.env_steps > stored_before + 100).await;
+    assert!(started.elapsed() < Duration::from_secs(30), "the honest actor waited {:?}", started.elapsed());
+    let said = std::fs::read_to_string(&log).unwrap();
+    assert!(said.contains("as duplicates and stored none: a sender has used this actor id"), "{said}");
+}

@@ -423,3 +423,13 @@ fn every_path_the_pages_cite_exists() {
     let out = std::process::Command::new("python3").arg(root.join("scripts/check_paths.py")).current_dir(&root).output().unwrap();
     assert!(out.status.success(), "{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
 }
+
+/// No function a newcomer must scroll (scripts/long_functions.py): every
+/// non-test function is at most 80 lines and takes at most 6 arguments,
+/// or says why in a `// long:` or `// args:` comment above it.
+#[test]
+fn no_function_is_long_without_a_reason() {
+    let root = repo();
+    let out = std::process::Command::new("python3").arg(root.join("scripts/long_functions.py")).current_dir(&root).output().unwrap();
+    assert!(out.status.success(), "{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+}

@@ -46,14 +46,25 @@ pub fn lqr_return(env: &LtiEnv, episodes: usize, seed: u64) -> Option<f64> {
     Some(total / episodes.max(1) as f64)
 }
 
-/// Expected cost Σ_t E[sᵀQs + aᵀRa] over `horizon` steps of a = −K s, for
-/// s_0 with second moment `sigma0` (clipping ignored).
-fn linear_policy_cost(e: &DMatrix<f64>, f: &DMatrix<f64>, q: &DMatrix<f64>, r: &DMatrix<f64>, k: &DMatrix<f64>, sigma0: &DMatrix<f64>, horizon: usize) -> f64 {
-    let closed = e - f * k;
-    let stage = q + k.transpose() * r * k;
-    let mut sigma = sigma0.clone();
+/// One quadratic control problem: s' = E s + F a, cost sᵀQs + aᵀRa per
+/// step over `horizon` steps, from s_0 with second moment `sigma0`.
+struct Problem {
+    e: DMatrix<f64>,
+    f: DMatrix<f64>,
+    q: DMatrix<f64>,
+    r: DMatrix<f64>,
+    sigma0: DMatrix<f64>,
+    horizon: usize,
+}
+
+/// Expected cost Σ_t E[sᵀQs + aᵀRa] of the problem under a = −K s
+/// (clipping ignored).
+fn linear_policy_cost(p: &Problem, k: &DMatrix<f64>) -> f64 {
+    let closed = &p.e - &p.f * k;
+    let stage = &p.q + k.transpose() * &p.r * k;
+    let mut sigma = p.sigma0.clone();
     let mut cost = 0.0;
-    for _ in 0..horizon {
+    for _ in 0..p.horizon {
         cost += (&stage * &sigma).trace();
         sigma = &closed * sigma * closed.transpose();
     }
@@ -84,15 +95,15 @@ pub fn masked_lqr_gain(env: &LtiEnv, mask: &[Vec<u8>]) -> Option<DMatrix<f64>> {
     for (states, actions) in independent_parts(s, mask, &sigma0) {
         let sub = |a: &DMatrix<f64>, rows: &[usize], cols: &[usize]| DMatrix::from_fn(rows.len(), cols.len(), |i, j| a[(rows[i], cols[j])]);
         let part_mask: Vec<Vec<u8>> = actions.iter().map(|&i| states.iter().map(|&j| mask[i][j]).collect()).collect();
-        let part = masked_gain_of(
-            &sub(&s.e, &states, &states),
-            &sub(&s.f, &states, &actions),
-            &sub(&s.q, &states, &states),
-            &sub(&s.r, &actions, &actions),
-            &sub(&sigma0, &states, &states),
-            &part_mask,
-            s.episode_steps,
-        )?;
+        let problem = Problem {
+            e: sub(&s.e, &states, &states),
+            f: sub(&s.f, &states, &actions),
+            q: sub(&s.q, &states, &states),
+            r: sub(&s.r, &actions, &actions),
+            sigma0: sub(&sigma0, &states, &states),
+            horizon: s.episode_steps,
+        };
+        let part = masked_gain_of(&problem, &part_mask)?;
         for (a, &i) in actions.iter().enumerate() {
             for (b, &j) in states.iter().enumerate() {
                 k[(i, j)] = part[(a, b)];
@@ -147,10 +158,10 @@ fn independent_parts(s: &lcrl_sim::lti::LtiSystem, mask: &[Vec<u8>], sigma0: &DM
 }
 
 /// [`masked_lqr_gain`] of one part, from the masked LQR gain downhill.
-fn masked_gain_of(e: &DMatrix<f64>, f: &DMatrix<f64>, q: &DMatrix<f64>, r: &DMatrix<f64>, sigma0: &DMatrix<f64>, mask: &[Vec<u8>], horizon: usize) -> Option<DMatrix<f64>> {
-    let m = e.nrows();
+fn masked_gain_of(p: &Problem, mask: &[Vec<u8>]) -> Option<DMatrix<f64>> {
+    let m = p.e.nrows();
     let free: Vec<(usize, usize)> = (0..mask.len()).flat_map(|i| (0..m).map(move |j| (i, j))).filter(|&(i, j)| mask[i][j] == 1).collect();
-    let mut k = lqr_gains(e, f, q, r, horizon)?.into_iter().next()?;
+    let mut k = lqr_gains(&p.e, &p.f, &p.q, &p.r, p.horizon)?.into_iter().next()?;
     for (i, row) in mask.iter().enumerate() {
         for (j, &g) in row.iter().enumerate() {
             if g == 0 {
@@ -158,7 +169,7 @@ fn masked_gain_of(e: &DMatrix<f64>, f: &DMatrix<f64>, q: &DMatrix<f64>, r: &DMat
             }
         }
     }
-    let cost = |k: &DMatrix<f64>| linear_policy_cost(e, f, q, r, k, sigma0, horizon);
+    let cost = |k: &DMatrix<f64>| linear_policy_cost(p, k);
     let mut step = 0.05;
     let mut best = cost(&k);
     for _ in 0..3000 {

@@ -576,3 +576,6 @@ mod validate;
 mod tests;
 #[cfg(test)]
 mod usage_table;
+// The settings the tests of every room start from.
+#[cfg(test)]
+pub(crate) mod test_config;

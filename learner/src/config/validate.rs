@@ -7,6 +7,7 @@ use crate::LearnerError;
 
 impl TrainConfig {
     /// Checks every value, naming the field.
+    // long: one flat list of checks, each naming its field, read top to bottom in the order they fail
     pub fn validate(&self) -> Result<(), LearnerError> {
         let bad = |field: &str, why: &str| Err(LearnerError::Config(format!("`{field}` {why}")));
         let positive = [

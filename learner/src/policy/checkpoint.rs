@@ -49,6 +49,7 @@ impl CheckpointMeta {
     /// The metadata of a run at its start (episode 0, nothing timed, no
     /// distributed state): what every writer fills in from.
     #[allow(clippy::too_many_arguments)]
+    // args: the ActorShape it builds, field by field, and the config; its callers (service/ among them) hold the fields, not a shape
     pub fn start(env: &str, algo: Algo, connection: Connection, state_dim: usize, action_dim: usize, mask: Vec<Vec<u8>>, config: TrainConfig) -> Self {
         CheckpointMeta {
             episode: 0,

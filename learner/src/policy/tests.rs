@@ -5,19 +5,10 @@
 use lcrl_sim::make_env;
 
 use crate::algo::algorithms::make_agent;
-use crate::config::{Algo, Connection, TrainConfig};
+use crate::config::test_config::tiny;
+use crate::config::{Algo, Connection};
 use crate::policy::checkpoint::{write_checkpoint, CheckpointMeta};
 use crate::policy::trained::Policy;
-
-/// The linear example's settings, made very small: only the mechanics are
-/// tested here.
-fn tiny() -> TrainConfig {
-    let lti_fast = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../configs/lti-fast.toml"));
-    let mut cfg = TrainConfig::load(lti_fast).unwrap();
-    (cfg.ddpg.warmup_steps, cfg.ddpg.batch_size) = (40, 16);
-    (cfg.ppo.rollout_steps, cfg.ppo.minibatch_size, cfg.ppo.epochs) = (64, 16, 2);
-    cfg
-}
 
 #[test]
 fn checkpoint_round_trip_gives_identical_actions() {

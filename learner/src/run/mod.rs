@@ -22,6 +22,10 @@ pub mod summary;
 pub mod tensorboard;
 pub mod trainer;
 
-// Training-level tests: learning quality, checkpoint round trips, resume.
+// Training-level tests of the loop: learning quality, determinism, what a
+// run records. Selection's and resume's tests are beside their rooms.
 #[cfg(test)]
 mod tests;
+// The test helpers of this room: a run of the loop, its rows.
+#[cfg(test)]
+mod test_run;

@@ -364,8 +364,13 @@ pub fn read_record(dir: &Path) -> Result<Option<SelectionRecord>, LearnerError> 
 
 #[cfg(test)]
 mod tests {
+    use lcrl_sim::make_env;
+
     use super::*;
+    use crate::config::test_config::{tiny, tiny_with_episodes};
     use crate::config::{Algo, Connection, TrainConfig};
+    use crate::policy::trained::Policy;
+    use crate::run::test_run::{run, run_until, timeless};
 
     fn meta(episode: usize) -> CheckpointMeta {
         CheckpointMeta { episode, ..CheckpointMeta::start("lti-paper", Algo::Ppo, Connection::Local, 1, 1, vec![vec![1]], TrainConfig::default()) }
@@ -406,5 +411,116 @@ mod tests {
         assert_eq!(crate::policy::checkpoint::read_meta(&dir).unwrap().episode, 10);
         let left: Vec<_> = std::fs::read_dir(run.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
         assert_eq!(left, vec![std::ffi::OsString::from("selected")]);
+    }
+
+    /// Validation every 2 episodes of 6 chooses the run's policy: the choice
+    /// is the best of the validations (the first of equals), RUN/selected/
+    /// holds exactly the policy that scored it (replayed on the validation
+    /// starts, it gives the recorded return), `Policy::load` of the run is
+    /// that policy, training is the same as without validation, and a run
+    /// interrupted at a validation resumes its selection exactly.
+    #[test]
+    fn validation_selects_the_best_policy_and_survives_resume() {
+        let mut cfg = tiny();
+        cfg.run.episodes = 6;
+        cfg.run.validation_episodes = 3;
+        cfg.run.validate_every = 2;
+        let plain_dir = tempfile::tempdir().unwrap();
+        let plain = run(Algo::Ddpg, Connection::Local, tiny_with_episodes(6), plain_dir.path(), false);
+        assert!(plain.summary.selection.is_none() && plain.summary.evaluation.last_eval_return.is_none());
+        let dir = tempfile::tempdir().unwrap();
+        let straight = run(Algo::Ddpg, Connection::Local, cfg.clone(), dir.path(), false);
+        assert_eq!(timeless(&plain.rows), timeless(&straight.rows), "validation changed training");
+        assert_eq!(straight.summary.evaluation.last_eval_return, Some(plain.summary.evaluation.eval_return), "the last policy is the plain run's");
+
+        let chosen = straight.summary.selection.clone().unwrap();
+        let episodes: Vec<usize> = chosen.history.iter().map(|v| v.episode).collect();
+        assert_eq!(episodes, [0, 2, 4, 6]);
+        let best = chosen.history.iter().fold(f64::NEG_INFINITY, |b, v| b.max(v.mean_return));
+        let first_best = chosen.history.iter().find(|v| v.mean_return == best).unwrap();
+        assert_eq!((chosen.episode, chosen.validation_return), (first_best.episode, best));
+
+        let policy = Policy::load(dir.path()).unwrap();
+        assert_eq!(policy.episode, Some(chosen.episode), "Policy::load(run) is not the selected policy");
+        let mut env = make_env("lti-paper").unwrap();
+        let probe = env.fresh();
+        let first = lcrl_sim::seeds::validation(cfg.run.seed, 0);
+        let (replayed, _) = lcrl_sim::evaluate::evaluate(env.as_mut(), "selected", 3, first, &mut |s| policy.act(probe.as_ref(), s), &mut |_| {}).unwrap();
+        assert_eq!(replayed.mean_return, chosen.validation_return);
+
+        let resumed_dir = tempfile::tempdir().unwrap();
+        run_until(Algo::Ddpg, Connection::Local, cfg.clone(), resumed_dir.path(), false, Some(2));
+        let resumed = run(Algo::Ddpg, Connection::Local, cfg, resumed_dir.path(), true);
+        assert_eq!(resumed.summary.selection, straight.summary.selection);
+        assert_eq!(resumed.summary.evaluation.eval_return, straight.summary.evaluation.eval_return);
+    }
+
+    /// `run.confirm_candidates`: at the end the best validated policies and
+    /// the starting one run the confirmation starts, and the best of them is
+    /// handed over. On 1 validation start per validation the ranking is noise,
+    /// so the confirmation, on 8 starts, can overturn it (PPO, whose policies
+    /// change gradually, so that several are close). The candidates are
+    /// the 2 best validations and the first; `RUN/candidates/` keeps exactly
+    /// them; each recorded score replays from its folder on the confirmation
+    /// starts; RUN/selected/ and the hand-over are the best score; training and
+    /// the validations are those of the run without it; and a run interrupted
+    /// at a validation confirms the same.
+    #[test]
+    fn confirmation_hands_over_the_best_candidate_on_more_starts() {
+        let mut cfg = tiny();
+        cfg.run.episodes = 10;
+        // Of run seeds 0–6 here, 3 and 5 are those whose confirmation
+        // overturns the validations' choice.
+        cfg.run.seed = 3;
+        cfg.run.validation_episodes = 1;
+        cfg.run.validate_every = 1;
+        let unconfirmed_dir = tempfile::tempdir().unwrap();
+        let unconfirmed = run(Algo::Ppo, Connection::Local, cfg.clone(), unconfirmed_dir.path(), false);
+        (cfg.run.confirm_candidates, cfg.run.confirm_episodes) = (2, 8);
+        let dir = tempfile::tempdir().unwrap();
+        let straight = run(Algo::Ppo, Connection::Local, cfg.clone(), dir.path(), false);
+        assert_eq!(timeless(&unconfirmed.rows), timeless(&straight.rows), "confirmation changed training");
+        let (plain, chosen) = (unconfirmed.summary.selection.unwrap(), straight.summary.selection.clone().unwrap());
+        assert_eq!(plain.history, chosen.history);
+        assert!(plain.confirmation.is_none() && !unconfirmed_dir.path().join("candidates").exists());
+
+        let mut ranked = chosen.history.clone();
+        ranked.sort_by(|a, b| b.mean_return.total_cmp(&a.mean_return));
+        let mut expected: Vec<usize> = ranked[..2].iter().map(|v| v.episode).collect();
+        if !expected.contains(&0) {
+            expected.push(0);
+        }
+        let confirmation = chosen.confirmation.clone().expect("the run confirms its choice");
+        let candidates: Vec<usize> = confirmation.candidates.iter().map(|c| c.episode).collect();
+        assert_eq!(candidates, expected);
+        let mut kept: Vec<String> = std::fs::read_dir(dir.path().join("candidates")).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+        kept.sort();
+        let mut sorted = expected.clone();
+        sorted.sort();
+        assert_eq!(kept, sorted.iter().map(|e| format!("episode-{e:07}")).collect::<Vec<_>>());
+
+        let mut env = make_env("lti-paper").unwrap();
+        let probe = env.fresh();
+        let first = lcrl_sim::seeds::confirmation(cfg.run.seed, 0);
+        for c in &confirmation.candidates {
+            let policy = Policy::load(&dir.path().join(format!("candidates/episode-{:07}", c.episode))).unwrap();
+            assert_eq!(policy.episode, Some(c.episode));
+            let (replayed, _) = lcrl_sim::evaluate::evaluate(env.as_mut(), "candidate", 8, first, &mut |s| policy.act(probe.as_ref(), s), &mut |_| {}).unwrap();
+            assert_eq!(replayed.mean_return, c.mean_return, "candidate after {} episodes", c.episode);
+            assert_eq!(c.validation_return, chosen.history.iter().find(|v| v.episode == c.episode).unwrap().mean_return);
+        }
+        let best = confirmation.candidates.iter().fold(f64::NEG_INFINITY, |b, c| b.max(c.mean_return));
+        let pick = confirmation.candidates.iter().find(|c| c.mean_return == best).unwrap();
+        assert_eq!(chosen.episode, pick.episode);
+        assert_ne!(chosen.episode, plain.episode, "the setting must let the confirmation overturn the validations: {chosen:?}");
+        assert_eq!(Policy::load(dir.path()).unwrap().episode, Some(pick.episode), "RUN/selected/ is not the confirmed policy");
+        assert_eq!(read_record(&dir.path().join("selected")).unwrap(), Some(chosen.clone()));
+        assert_ne!(straight.summary.evaluation.eval_return, unconfirmed.summary.evaluation.eval_return, "another policy is evaluated");
+
+        let resumed_dir = tempfile::tempdir().unwrap();
+        run_until(Algo::Ppo, Connection::Local, cfg.clone(), resumed_dir.path(), false, Some(3));
+        let resumed = run(Algo::Ppo, Connection::Local, cfg, resumed_dir.path(), true);
+        assert_eq!(resumed.summary.selection, straight.summary.selection);
+        assert_eq!(resumed.summary.evaluation.eval_return, straight.summary.evaluation.eval_return);
     }
 }

@@ -244,3 +244,105 @@ pub fn resolve_mask(connection: Connection, graph: Option<&Path>, env: &dyn Env,
     };
     Ok((report.g.clone(), Some(report)))
 }
+
+// A run's start on the single-process loop: a resume continues exactly,
+// past a checkpoint that cannot load, and a run directory or graph that
+// does not fit is refused.
+#[cfg(test)]
+mod tests {
+    use lcrl_sim::make_env;
+
+    use crate::config::test_config::{tiny, tiny_with_episodes};
+    use crate::config::{Algo, Connection};
+    use crate::run::test_run::{run, run_until, timeless};
+    use crate::run::trainer::{train, TrainRequest};
+
+    /// 4 episodes straight, or interrupted after 2 then --resume: the same rows,
+    /// counters and final policy (one thread, same seed). DDPG also with twin
+    /// critics and annealed learning rates, whose second critic, its optimizer
+    /// and the schedules must come back from the checkpoint as well.
+    #[test]
+    fn resumed_run_continues_exactly() {
+        let mut td3 = tiny();
+        td3.ddpg.twin_critics = true;
+        td3.ddpg.anneal_lr = true;
+        for (algo, cfg) in [(Algo::Ddpg, tiny()), (Algo::Ddpg, td3), (Algo::Ppo, tiny())] {
+            let straight_dir = tempfile::tempdir().unwrap();
+            let straight = run(algo, Connection::Local, cfg.clone(), straight_dir.path(), false);
+            let resumed_dir = tempfile::tempdir().unwrap();
+            run_until(algo, Connection::Local, cfg.clone(), resumed_dir.path(), false, Some(2));
+            if cfg.ddpg.twin_critics {
+                assert!(crate::policy::checkpoint::latest_checkpoint(resumed_dir.path()).unwrap().join("critic2.safetensors").is_file());
+            }
+            let resumed = run(algo, Connection::Local, cfg, resumed_dir.path(), true);
+            assert_eq!(timeless(&straight.rows), timeless(&resumed.rows), "{algo:?}");
+            assert_eq!((straight.summary.env_steps, straight.summary.updates), (resumed.summary.env_steps, resumed.summary.updates));
+            assert_eq!(straight.summary.evaluation.eval_return, resumed.summary.evaluation.eval_return, "{algo:?}: final policies differ");
+        }
+    }
+
+    /// A replay buffer damaged so that its file still matches the manifest
+    /// (a tensor renamed in place: same size, valid header) cannot be loaded:
+    /// the resume falls back to the checkpoint before it, instead of stopping
+    /// (issue 71).
+    #[test]
+    fn a_resume_falls_back_past_a_checkpoint_whose_replay_cannot_load() {
+        let dir = tempfile::tempdir().unwrap();
+        run_until(Algo::Ddpg, Connection::Global, tiny(), dir.path(), false, Some(4));
+        let newest = crate::policy::checkpoint::latest_checkpoint(dir.path()).unwrap();
+        assert!(newest.ends_with("ep000004"), "{}", newest.display());
+        let replay = newest.join("replay.safetensors");
+        let bytes = std::fs::read(&replay).unwrap();
+        let at = bytes.windows(9).position(|w| w == b"\"next_obs").expect("the header names next_obs");
+        let mut damaged = bytes.clone();
+        damaged[at + 1..at + 9].copy_from_slice(b"next_obz");
+        std::fs::write(&replay, &damaged).unwrap();
+        crate::policy::checkpoint::check_intact(&newest).expect("still consistent with its manifest");
+        let resumed = run_until(Algo::Ddpg, Connection::Global, tiny_with_episodes(6), dir.path(), true, None);
+        // Episodes 3 and 4 trained again from ep000002, then 5 and 6; the
+        // unloadable one was set aside, never to be taken for the newest.
+        assert_eq!(resumed.rows.len(), 6);
+        assert_eq!(resumed.summary.episodes, 6);
+        assert!(dir.path().join("checkpoints/.ep000004.unloadable").is_dir());
+    }
+
+    #[test]
+    fn refuses_to_overwrite_a_run_and_rejects_mismatched_graphs() {
+        let dir = tempfile::tempdir().unwrap();
+        run(Algo::Ddpg, Connection::Global, tiny(), dir.path(), false);
+        let request = TrainRequest {
+            env: "lti-paper".into(),
+            algo: Algo::Ddpg,
+            connection: Connection::Global,
+            graph: None,
+            config: tiny(),
+            settings_source: "test".into(),
+            run_dir: dir.path().into(),
+            resume: false,
+            stop_after: None,
+        };
+        let err = train(&request, &mut |_| {}).err().unwrap().to_string();
+        assert!(err.contains("--resume"), "{err}");
+        let resume_other = TrainRequest { algo: Algo::Ppo, resume: true, ..request.clone() };
+        assert!(train(&resume_other, &mut |_| {}).err().unwrap().to_string().contains("same --env, --algo"));
+
+        // A graph built for lti-paper (3×3) does not fit peg-group1 (6×12).
+        let graph = dir.path().join("graph.json");
+        let options = lcrl_graph_builder::GraphOptions {
+            cs3: lcrl_graph_builder::Cs3Config { samples: 8, seed: 0, threads: 1, start: None },
+            rule: lcrl_graph_builder::Rule::Threshold(0.1),
+            bootstrap: 0,
+        };
+        let env = make_env("lti-paper").unwrap();
+        lcrl_graph_builder::build_graph(env.as_ref(), &options, &|| {}).unwrap().write_json(&graph).unwrap();
+        let peg = TrainRequest {
+            env: "peg-group1".into(),
+            connection: Connection::Local,
+            graph: Some(graph),
+            run_dir: dir.path().join("peg"),
+            ..request
+        };
+        let err = train(&peg, &mut |_| {}).err().unwrap().to_string();
+        assert!(err.contains("3×3") && err.contains("6 actions"), "{err}");
+    }
+}

@@ -71,6 +71,7 @@ pub fn step_env(env: &mut dyn Env, actions: &ActionMap, u: &[f32]) -> Result<(lc
 
 /// Trains for `config.run.episodes` episodes (in total, counting resumed
 /// ones), writing the run directory as it goes.
+// long: the whole single-process loop (start, episodes, validation, checkpoints, end) in one place; issue 83 item 1 splits it into steps as TrainingLoop
 pub fn train(req: &TrainRequest, on_episode: &mut dyn FnMut(&Progress)) -> Result<TrainOutcome, LearnerError> {
     let started = Instant::now();
     let mut env = make_env(&req.env)?;

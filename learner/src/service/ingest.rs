@@ -511,8 +511,12 @@ fn check_episodes(batch: &TransitionBatch) -> Result<(), Door> {
 }
 
 /// How far ahead of the learner's clock (in µs, where actors start their
-/// sequences) a batch's sequence may be: room for clocks that disagree.
-pub const SEQUENCE_AHEAD: std::time::Duration = std::time::Duration::from_secs(3600);
+/// sequences) a batch's sequence may be. An actor numbers its batches from
+/// its clock and adds one a batch, so an honest sequence is ahead only by
+/// the hosts' clock skew; a forged one can make an actor's later batches
+/// duplicates for at most this long (it was an hour, issue 82: 472k
+/// transitions discarded). Hosts of one run keep their clocks within it.
+pub const SEQUENCE_AHEAD: std::time::Duration = std::time::Duration::from_secs(10);
 
 /// The longest episode a summary may claim (steps).
 pub const MAX_EPISODE_STEPS: u32 = 1_000_000;

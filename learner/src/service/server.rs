@@ -50,6 +50,7 @@ impl Learner for LearnerService {
     type StreamTransitionsStream = BoxStream<BatchAck>;
     type WatchPolicyStream = BoxStream<PolicySnapshot>;
 
+    // long: one actor stream's life in one task: receive, refuse (with its status mapping), admit, acknowledge
     async fn stream_transitions(&self, request: Request<Streaming<TransitionBatch>>) -> Result<Response<Self::StreamTransitionsStream>, Status> {
         let origin = Origin { stream: NEXT_STREAM.fetch_add(1, Ordering::Relaxed), peer: request.remote_addr().map(|addr| addr.ip()) };
         let mut inbound = request.into_inner();
