@@ -360,28 +360,7 @@ pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, r
                 tracing::debug!(%peer, "connection refused: --max-connections-per-peer reached");
                 continue;
             }
-            // Full: the least recently heard quiet connection makes room
-            // (its reader fails and tonic drops it, giving its place back
-            // at once); with none quiet the newcomer is closed, so a flood of
-            // sockets costs a file for a moment, not for ever.
-            let permit = match places.clone().try_acquire_owned() {
-                Ok(permit) => permit,
-                Err(_) if registry.evict() => {
-                    limits.refusals.evicted.fetch_add(1, Ordering::Relaxed);
-                    match tokio::time::timeout(Duration::from_millis(500), places.clone().acquire_owned()).await {
-                        Ok(Ok(permit)) => permit,
-                        _ => {
-                            limits.refusals.over_limit.fetch_add(1, Ordering::Relaxed);
-                            continue;
-                        }
-                    }
-                }
-                Err(_) => {
-                    limits.refusals.over_limit.fetch_add(1, Ordering::Relaxed);
-                    tracing::debug!(%peer, "connection refused: --max-connections reached, none quiet");
-                    continue;
-                }
-            };
+            let Some(permit) = place(&places, &registry, &limits, peer).await else { continue };
             let hush = registry.admit(limits.max_connections, peer);
             let _ = stream.set_nodelay(true);
             match &acceptor {
@@ -419,6 +398,32 @@ pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, r
         }
     });
     ReceiverStream::new(rx)
+}
+
+/// A place among `--max-connections` for a newcomer from `peer`. When
+/// full, the least recently heard quiet connection makes room (its reader
+/// fails and tonic drops it, giving its place back at once); with none
+/// quiet, None (counted): the newcomer is closed, so a flood of sockets
+/// costs a file for a moment, not for ever.
+async fn place(places: &Arc<Semaphore>, registry: &Registry, limits: &Limits, peer: SocketAddr) -> Option<OwnedSemaphorePermit> {
+    match places.clone().try_acquire_owned() {
+        Ok(permit) => Some(permit),
+        Err(_) if registry.evict() => {
+            limits.refusals.evicted.fetch_add(1, Ordering::Relaxed);
+            match tokio::time::timeout(Duration::from_millis(500), places.clone().acquire_owned()).await {
+                Ok(Ok(permit)) => Some(permit),
+                _ => {
+                    limits.refusals.over_limit.fetch_add(1, Ordering::Relaxed);
+                    None
+                }
+            }
+        }
+        Err(_) => {
+            limits.refusals.over_limit.fetch_add(1, Ordering::Relaxed);
+            tracing::debug!(%peer, "connection refused: --max-connections reached, none quiet");
+            None
+        }
+    }
 }
 
 #[cfg(test)]

@@ -10,7 +10,7 @@ use crate::preset::Preset;
 
 /// Writes the run's summary and reward curve, and says what the run did
 /// beside its reference.
-// args: the run's preset, directory, id, final status and how it ended, each from a different step of the local run
+// args: the run's preset, directory and id, and its end (the learner's last status, wall time, how it ended, whether interrupted), each from a different step of the local run
 pub(super) fn report(preset: &Preset, run_dir: &Path, s: &lcrl_proto::v1::LearnerStatus, wall: f64, end: &crate::run_summary::RunEnd, run_id: &str, interrupted: bool) -> anyhow::Result<String> {
     let job = &preset.job;
     let summary = crate::run_summary::write_run_summary(preset, run_dir, s, wall, end)?;

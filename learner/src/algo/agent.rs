@@ -148,7 +148,7 @@ pub trait Agent: Send {
 /// Builds the actor for a connection pattern. `mask` is G (n × m) for
 /// `Local`; ignored otherwise.
 /// Initial weights come from `seed` alone.
-// args: the actor shape's fields, as an AgentSetup (Ddpg::new, Ppo::new) or an ActorShape (Policy, src/export) holds them; one struct for both touches every caller
+// args: an actor shape's fields, which its callers hold in an AgentSetup (Ddpg::new, Ppo::new) or in an ActorShape (Policy, src/export): no one struct to pass yet
 pub fn build_actor(path: &nn::Path, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, cfg: &NetworkConfig, seed: u64) -> ActorNet {
     let rng = &mut ChaCha8Rng::seed_from_u64(seed);
     match connection {

@@ -362,58 +362,10 @@ impl PegConfig {
 
     /// Checks every value, naming the field of the first bad one.
     pub fn validate(&self) -> Result<(), EnvError> {
-        let g = &self.geometry;
-        positive("geometry.peg_side_mm", g.peg_side_mm)?;
-        positive("geometry.peg_length_mm", g.peg_length_mm)?;
-        positive("geometry.hole_side_mm", g.hole_side_mm)?;
-        positive("geometry.hole_depth_mm", g.hole_depth_mm)?;
-        positive("geometry.wall_mm", g.wall_mm)?;
-        positive("geometry.target_depth_mm", g.target_depth_mm)?;
-        non_negative("geometry.peg_chamfer_mm", g.peg_chamfer_mm)?;
-        non_negative("geometry.hole_chamfer_mm", g.hole_chamfer_mm)?;
-        if g.peg_side_mm >= g.hole_side_mm {
-            return Err(EnvError::invalid(
-                "geometry.peg_side_mm",
-                format!("{} mm must be smaller than hole_side_mm ({} mm) to leave a clearance", g.peg_side_mm, g.hole_side_mm),
-            ));
-        }
-        if 2.0 * g.peg_chamfer_mm >= g.peg_side_mm || g.peg_chamfer_mm >= g.peg_length_mm {
-            return Err(EnvError::invalid("geometry.peg_chamfer_mm", "must be less than half the peg side and the peg length"));
-        }
-        if g.hole_chamfer_mm >= g.wall_mm.min(g.hole_depth_mm) {
-            return Err(EnvError::invalid("geometry.hole_chamfer_mm", "must be less than the wall thickness and the hole depth"));
-        }
-        if g.target_depth_mm > g.hole_depth_mm || g.target_depth_mm > g.peg_length_mm {
-            return Err(EnvError::invalid("geometry.target_depth_mm", "cannot exceed the hole depth or the peg length"));
-        }
+        check_geometry(&self.geometry)?;
         non_negative("contact.friction", self.contact.friction)?;
-        let c = &self.coupling;
-        positive("coupling.lateral_stiffness_n_per_mm", c.lateral_stiffness_n_per_mm)?;
-        positive("coupling.axial_stiffness_n_per_mm", c.axial_stiffness_n_per_mm)?;
-        positive("coupling.rotational_stiffness_nmm_per_rad", c.rotational_stiffness_nmm_per_rad)?;
-        non_negative("coupling.damping_ratio", c.damping_ratio)?;
-        positive("coupling.moving_mass_kg", c.moving_mass_kg)?;
-        positive("coupling.moving_inertia_kg_mm2", c.moving_inertia_kg_mm2)?;
-        let k = &self.controller;
-        for (i, v) in k.compliance.iter().enumerate() {
-            non_negative(&format!("controller.compliance[{i}]"), *v)?;
-        }
-        for i in 0..6 {
-            let (lo, hi) = (k.action_low[i], k.action_high[i]);
-            finite(&format!("controller.action_low[{i}]"), lo)?;
-            finite(&format!("controller.action_high[{i}]"), hi)?;
-            // −1 switches the compliance off; below that K would flip sign.
-            if !(-1.0..=0.0).contains(&lo) || hi < 0.0 {
-                return Err(EnvError::invalid(
-                    format!("controller.action_low[{i}]/action_high[{i}]"),
-                    format!("need −1 ≤ low ≤ 0 ≤ high, got [{lo}, {hi}]"),
-                ));
-            }
-        }
-        if k.target_steps == 0 {
-            return Err(EnvError::invalid("controller.target_steps", "must be at least 1"));
-        }
-        positive("controller.control_period_s", k.control_period_s)?;
+        check_coupling(&self.coupling)?;
+        check_controller(&self.controller)?;
         let r = &self.reward;
         non_negative("reward.h_z", r.h_z)?;
         non_negative("reward.h_f", r.h_f)?;
@@ -462,6 +414,70 @@ impl PegConfig {
         }
         Ok(())
     }
+}
+
+/// The part sizes: each positive, the peg smaller than the hole, the
+/// chamfers and the target depth within the parts.
+fn check_geometry(g: &Geometry) -> Result<(), EnvError> {
+    positive("geometry.peg_side_mm", g.peg_side_mm)?;
+    positive("geometry.peg_length_mm", g.peg_length_mm)?;
+    positive("geometry.hole_side_mm", g.hole_side_mm)?;
+    positive("geometry.hole_depth_mm", g.hole_depth_mm)?;
+    positive("geometry.wall_mm", g.wall_mm)?;
+    positive("geometry.target_depth_mm", g.target_depth_mm)?;
+    non_negative("geometry.peg_chamfer_mm", g.peg_chamfer_mm)?;
+    non_negative("geometry.hole_chamfer_mm", g.hole_chamfer_mm)?;
+    if g.peg_side_mm >= g.hole_side_mm {
+        return Err(EnvError::invalid(
+            "geometry.peg_side_mm",
+            format!("{} mm must be smaller than hole_side_mm ({} mm) to leave a clearance", g.peg_side_mm, g.hole_side_mm),
+        ));
+    }
+    if 2.0 * g.peg_chamfer_mm >= g.peg_side_mm || g.peg_chamfer_mm >= g.peg_length_mm {
+        return Err(EnvError::invalid("geometry.peg_chamfer_mm", "must be less than half the peg side and the peg length"));
+    }
+    if g.hole_chamfer_mm >= g.wall_mm.min(g.hole_depth_mm) {
+        return Err(EnvError::invalid("geometry.hole_chamfer_mm", "must be less than the wall thickness and the hole depth"));
+    }
+    if g.target_depth_mm > g.hole_depth_mm || g.target_depth_mm > g.peg_length_mm {
+        return Err(EnvError::invalid("geometry.target_depth_mm", "cannot exceed the hole depth or the peg length"));
+    }
+    Ok(())
+}
+
+/// The compliant coupling's stiffnesses, damping and moving mass.
+fn check_coupling(c: &Coupling) -> Result<(), EnvError> {
+    positive("coupling.lateral_stiffness_n_per_mm", c.lateral_stiffness_n_per_mm)?;
+    positive("coupling.axial_stiffness_n_per_mm", c.axial_stiffness_n_per_mm)?;
+    positive("coupling.rotational_stiffness_nmm_per_rad", c.rotational_stiffness_nmm_per_rad)?;
+    non_negative("coupling.damping_ratio", c.damping_ratio)?;
+    positive("coupling.moving_mass_kg", c.moving_mass_kg)?;
+    positive("coupling.moving_inertia_kg_mm2", c.moving_inertia_kg_mm2)?;
+    Ok(())
+}
+
+/// The controller's compliances, action box and timing.
+fn check_controller(k: &Controller) -> Result<(), EnvError> {
+    for (i, v) in k.compliance.iter().enumerate() {
+        non_negative(&format!("controller.compliance[{i}]"), *v)?;
+    }
+    for i in 0..6 {
+        let (lo, hi) = (k.action_low[i], k.action_high[i]);
+        finite(&format!("controller.action_low[{i}]"), lo)?;
+        finite(&format!("controller.action_high[{i}]"), hi)?;
+        // −1 switches the compliance off; below that K would flip sign.
+        if !(-1.0..=0.0).contains(&lo) || hi < 0.0 {
+            return Err(EnvError::invalid(
+                format!("controller.action_low[{i}]/action_high[{i}]"),
+                format!("need −1 ≤ low ≤ 0 ≤ high, got [{lo}, {hi}]"),
+            ));
+        }
+    }
+    if k.target_steps == 0 {
+        return Err(EnvError::invalid("controller.target_steps", "must be at least 1"));
+    }
+    positive("controller.control_period_s", k.control_period_s)?;
+    Ok(())
 }
 
 fn finite(field: &str, v: f64) -> Result<(), EnvError> {

@@ -105,36 +105,40 @@ impl Clone for PegWorld {
     }
 }
 
+/// The solver settings of a world: the step, the iterations and the
+/// contact model tuned for sub-millimetre clearances.
+fn integration_parameters(cfg: &PegConfig) -> IntegrationParameters {
+    let mut params = IntegrationParameters::default();
+    params.dt = cfg.controller.control_period_s / cfg.physics.substeps as f64;
+    params.num_solver_iterations = cfg.physics.solver_iterations;
+    params.length_unit = 1.0; // see the module comment: mm, slop 5 µm
+    // Recycling would keep contacts up to 50 µm stale: the clearance.
+    params.contact_recycling = false;
+    // Motions per step are far below any shape's size: no CCD needed.
+    params.max_ccd_substeps = 0;
+    // rapier's contacts are soft constraints whose stiffness is the
+    // body mass times (2π·f)²; the default 30–60 Hz would be softer than
+    // the coupling and let the peg sink into the floor. 2 kHz is rigid
+    // at these masses.
+    params.static_contact_softness = SpringCoefficients::new(2000.0, 1.0);
+    params.contact_softness = SpringCoefficients::new(2000.0, 1.0);
+    // Speculative contacts reach 40 µm: past rapier's 20 µm default, but
+    // below both groups' clearances (50 and 25 µm per side) plus a bit,
+    // because a margin wider than the gap brakes the peg as it slides past
+    // the hole edge ("ghost" contacts; 0.5 mm did). Misses are instead
+    // kept small by 8 physics steps per control step (75 µm of travel).
+    params.normalized_prediction_distance = 0.04;
+    // Push penetration out at up to 50 mm/s rather than 3 mm/s: with the
+    // default, penetration under lateral load reached 18 µm; now 2–3 µm.
+    params.normalized_max_corrective_velocity = 50.0;
+    params
+}
+
 impl PegWorld {
     /// Builds the hole block and the peg with its tip at `tip_pose`, at rest.
     pub fn new(cfg: &PegConfig, tip_pose: Pose) -> Self {
         let g = &cfg.geometry;
-        let mut params = IntegrationParameters::default();
-        params.dt = cfg.controller.control_period_s / cfg.physics.substeps as f64;
-        params.num_solver_iterations = cfg.physics.solver_iterations;
-        params.length_unit = 1.0; // see the module comment: mm, slop 5 µm
-        // Recycling would keep contacts up to 50 µm stale: the clearance.
-        params.contact_recycling = false;
-        // Motions per step are far below any shape's size: no CCD needed.
-        params.max_ccd_substeps = 0;
-        // rapier's contacts are soft constraints whose stiffness is the
-        // body mass times (2π·f)²; the default 30–60 Hz would be softer than
-        // the coupling and let the peg sink into the floor. 2 kHz is rigid
-        // at these masses.
-        params.static_contact_softness = SpringCoefficients::new(2000.0, 1.0);
-        params.contact_softness = SpringCoefficients::new(2000.0, 1.0);
-        // Speculative contacts reach 40 µm: past rapier's 20 µm default, but
-        // below both groups' clearances (50 and 25 µm per side) plus a bit,
-        // because a margin wider than the gap brakes the peg as it slides past
-        // the hole edge ("ghost" contacts; 0.5 mm did). Misses are instead
-        // kept small by 8 physics steps per control step (75 µm of travel).
-        params.normalized_prediction_distance = 0.04;
-        // Push penetration out at up to 50 mm/s rather than 3 mm/s: with the
-        // default, penetration under lateral load reached 18 µm; now 2–3 µm.
-        params.normalized_max_corrective_velocity = 50.0;
-        
-        
-        
+        let params = integration_parameters(cfg);
 
         let mut bodies = RigidBodySet::new();
         let mut colliders = ColliderSet::new();
