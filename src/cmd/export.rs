@@ -14,8 +14,9 @@ pub struct ExportArgs {
     /// or a policy folder (RUN/selected, RUN/checkpoints/epNNNNNN).
     #[arg(value_name = "RUN_DIR")]
     pub run: PathBuf,
-    /// The file to write (default: policy.pt, or policy.onnx with
-    /// --format onnx); policy.json is written beside it, same name.
+    /// The file to write (default: RUN_DIR/policy.pt, or RUN_DIR/policy.onnx
+    /// with --format onnx, beside the run it comes from); policy.json is
+    /// written beside it, same name.
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// torchscript (libtorch, Python or C++) or onnx (ONNX Runtime; made
@@ -36,7 +37,8 @@ pub struct ExportArgs {
 }
 
 pub fn run(args: &ExportArgs) -> anyhow::Result<()> {
-    let out = args.out.clone().unwrap_or_else(|| PathBuf::from(if args.format == Format::Onnx { "policy.onnx" } else { "policy.pt" }));
+    // By default beside the run it comes from, never the working folder.
+    let out = args.out.clone().unwrap_or_else(|| args.run.join(if args.format == Format::Onnx { "policy.onnx" } else { "policy.pt" }));
     let request = Request { run: args.run.clone(), checkpoint: args.checkpoint.clone(), env: args.env.clone(), out, format: args.format };
     let outcome = export(&request)?;
     let source = &outcome.manifest.source;

@@ -354,6 +354,11 @@ fn export_says_what_is_wrong_and_takes_another_checkpoint() {
     assert!(manifest["source"]["chosen"].as_str().unwrap().starts_with("newest checkpoint"), "{manifest}");
     assert_eq!(manifest["source"]["episode"], 10);
     assert_eq!(manifest["graph"]["connection"], "global");
+    // Without --out: beside the run, never in the working folder.
+    let beside = export(&[&path(&run)]);
+    assert!(beside.status.success(), "{}", stderr(&beside));
+    assert!(run.join("policy.pt").is_file() && run.join("policy.json").is_file());
+    assert!(!root().join("policy.pt").exists(), "written into the working folder");
     let earlier = export(&[&path(&run), "--checkpoint", "ep000005", "--out", &path(&out)]);
     assert!(earlier.status.success(), "{}", stderr(&earlier));
     let manifest: Value = serde_json::from_str(&std::fs::read_to_string(out.with_extension("json")).unwrap()).unwrap();
