@@ -320,6 +320,8 @@ async fn shared_memory_actors_feed_their_own_run_only() {
     let first = actor_over(&url_a, &id_a, "shm");
     let s = wait_for(&url_a, "shared-memory transitions", |s| s.env_steps > 500 && s.updates > 0).await;
     assert_eq!(s.rejected.values().sum::<u64>(), 0);
+    // A same-host actor counts as connected (issue 85: it read 0).
+    wait_for(&url_a, "the shared-memory actor counted", |s| s.connected_actors == 1).await;
     let services = lcrl_proto::shm::services_of(&id_a);
     assert!(services.contains(&format!("lcrl/{id_a}/transitions")) && services.contains(&format!("lcrl/{id_a}/policy")), "{services:?}");
     first.signal("KILL");

@@ -188,7 +188,7 @@ impl Learner for LearnerService {
             updates: s.updates.load(Ordering::Relaxed),
             replay_size: s.replay_size.load(Ordering::Relaxed),
             policy_version: s.policy_version(),
-            connected_actors: s.connected_actors.load(Ordering::Relaxed),
+            connected_actors: s.connected_actors.load(Ordering::Relaxed) + s.shm_actors.load(Ordering::Relaxed),
             rejected,
             recent_return: s.recent_return(),
             policy_lag_min: lag.0,

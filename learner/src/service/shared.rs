@@ -41,6 +41,9 @@ pub struct Shared {
     pub replay_size: AtomicU64,
     pub episodes: AtomicU64,
     pub connected_actors: AtomicU32,
+    /// Live shared-memory publishers (same-host actors), as the shm thread
+    /// last counted them; GetStatus adds them to the gRPC streams.
+    pub shm_actors: AtomicU32,
     pub recent_returns: Mutex<VecDeque<f64>>,
     pub ingest: Mutex<Ingest>,
     pub policy: watch::Sender<Arc<PolicySnapshot>>,
@@ -100,6 +103,7 @@ impl Shared {
             replay_size: AtomicU64::new(0),
             episodes: AtomicU64::new(0),
             connected_actors: AtomicU32::new(0),
+            shm_actors: AtomicU32::new(0),
             recent_returns: Mutex::new(VecDeque::new()),
             ingest: Mutex::new(ingest),
             policy: watch::channel(Arc::new(first)).0,

@@ -80,6 +80,7 @@ fn publishers_now(shared: &Shared, subscriber: &TransitionSubscriber) -> HashSet
     }
     let live = subscriber.live_publishers();
     shared.ingest().release_streams(|stream| is_publisher(stream) && !live.contains(&stream));
+    shared.shm_actors.store(live.len() as u32, std::sync::atomic::Ordering::Relaxed);
     live
 }
 
