@@ -154,8 +154,15 @@ fn write_secret(path: &Path, text: &str) -> anyhow::Result<()> {
             .custom_flags(libc::O_NOFOLLOW)
             .open(&staging)
             .with_context(|| format!("writing {}", staging.display()))?;
-        std::io::Write::write_all(&mut file, text.as_bytes()).and_then(|()| file.sync_all()).with_context(|| format!("writing {}", staging.display()))?;
-        std::fs::rename(&staging, path).with_context(|| format!("moving {} to {}", staging.display(), path.display()))
+        let written = std::io::Write::write_all(&mut file, text.as_bytes())
+            .and_then(|()| file.sync_all())
+            .with_context(|| format!("writing {}", staging.display()))
+            .and_then(|()| std::fs::rename(&staging, path).with_context(|| format!("moving {} to {}", staging.display(), path.display())));
+        if written.is_err() {
+            // Nothing half-written is left beside the target.
+            let _ = std::fs::remove_file(&staging);
+        }
+        written
     }
     #[cfg(not(unix))]
     {

@@ -30,7 +30,8 @@ pub const RULE_THRESHOLD: f64 = 1.0;
 /// Why T_rule is what it is, in one line (printed by `lcrl graph`, the main
 /// job, and recorded in a run's config.toml).
 pub const RULE_REASON: &str = "the above-average rule: an action sees the states it moves at least as much as the average action does \
-     (eq. 7 at T = 1), the largest T at which every state some action moves keeps at least one action (docs/method.md, \"Choosing T\")";
+     (eq. 7 at T = 1), the largest T at which every state some action moves keeps at least one action whatever CS3 measures \
+     (a guarantee for every phi; a given task's table may keep every state further) (docs/method.md, \"Choosing T\")";
 
 /// Why a graph was cut at `threshold`, in one line: the rule's T, the
 /// publication's, or one a user or study named.
@@ -186,6 +187,14 @@ mod tests {
             let phi: Vec<Vec<f64>> = (0..n).map(|_| (0..m).map(|_| if rng.random_bool(0.3) { 0.0 } else { rng.random::<f64>() }).collect()).collect();
             let g = connection_graph(&phi, Rule::Threshold(RULE_THRESHOLD)).g;
             assert_eq!(unseen_states(&phi, &g), 0, "{phi:?}");
+        }
+        // Ties: every action moves the state alike, and the rounded mean
+        // (six 0.7s: 0.7000000000000001) lies above them.
+        for (n, v) in [(6, 0.7), (32, 0.1), (3, 1.0 / 3.0)] {
+            let phi = vec![vec![v]; n];
+            let g = connection_graph(&phi, Rule::Threshold(RULE_THRESHOLD)).g;
+            assert!(g.iter().all(|row| row[0] == 1), "{n} × {v}: {g:?}");
+            assert_eq!(unseen_states(&phi, &g), 0);
         }
         assert_eq!(grid().first(), Some(&0.1));
         assert_eq!(grid().len(), 20);

@@ -59,9 +59,13 @@ pub fn connection_graph(phi: &[Vec<f64>], rule: Rule) -> ConnectionGraph {
             Rule::Threshold(t) => t * column(j).sum::<f64>() / n as f64,
             Rule::Exact { tolerance } => tolerance * max_phi,
         };
+        // At T ≤ 1 a column's largest value is at least its cut; the mean,
+        // rounded, can come out above equal entries (six 0.7s: 0.70000…01),
+        // so the largest is kept as the arithmetic says.
+        let column_max = column(j).fold(0.0_f64, f64::max);
         for i in 0..n {
             let keep = match rule {
-                Rule::Threshold(_) => phi[i][j] >= cut,
+                Rule::Threshold(t) => phi[i][j] >= cut || (t <= 1.0 && phi[i][j] == column_max),
                 Rule::Exact { .. } => phi[i][j] > cut,
             };
             g[i][j] = u8::from(keep);

@@ -1,7 +1,8 @@
 //! The progress of every long command (CS3, `lcrl tune`, training,
 //! evaluation): indicatif's bar at a terminal, and where stderr is a file
-//! or a pipe (a log, CI, `| tee`) the same line written plainly, at once and
-//! then every few seconds, so a long command is never silent.
+//! or a pipe (a log, CI, `| tee`) the same line written plainly: at once,
+//! then at most every few seconds as the work moves, and the last one, so
+//! a long command is never silent.
 
 use std::io::{IsTerminal, Write};
 use std::sync::Mutex;
@@ -40,7 +41,10 @@ impl PlainLines {
             return Ok(());
         }
         let mut last = self.last.lock().unwrap_or_else(|p| p.into_inner());
-        if last.is_some_and(|t| t.elapsed() < PLAIN_EVERY) {
+        // The last frame of a bar (pos = len, "N/N") is always written, so
+        // a log ends on where the work ended.
+        let finished = text.split_whitespace().any(|w| w.split_once('/').is_some_and(|(a, b)| !a.is_empty() && a == b));
+        if last.is_some_and(|t| t.elapsed() < PLAIN_EVERY) && !finished {
             return Ok(());
         }
         *last = Some(Instant::now());

@@ -32,6 +32,12 @@ pub struct CompareArgs {
     /// shown as a row and a line beside the best constant.
     #[arg(long, value_name = "best_policy.json")]
     pub best_policy: Option<PathBuf>,
+    /// The environment to evaluate a run on again (on the common starts),
+    /// where the name it was trained on is a served environment's address
+    /// or a TOML file outside the run: a file never chooses where lcrl
+    /// connects (docs/security.md).
+    #[arg(long)]
+    pub env: Option<String>,
     /// Where to draw the reward curves (a .png file).
     #[arg(long, value_name = "FILE.png", default_value = "compare.png", value_parser = lcrl_graph_builder::plot::png_path)]
     pub out: PathBuf,
@@ -88,7 +94,7 @@ pub fn run(args: &CompareArgs) -> anyhow::Result<()> {
     let mut lines = Vec::new();
     println!("{:<34} {:>8} {:>10} {:>14} {:>10} {:>13} {:>11} {:>8}", "run", "episodes", "graph s", "optimization s", "total s", "final return", "eval return", "success");
     for dir in &args.runs {
-        let (label, s, rows) = read_run(dir, [(&bar, "best constant"), (&headroom, "best policy")], &mut starts)?;
+        let (label, s, rows) = read_run(dir, [(&bar, "best constant"), (&headroom, "best policy")], &mut starts, args.env.as_deref())?;
         for line in references(&s) {
             if !lines.iter().any(|(name, _): &(String, f64)| *name == line.0) {
                 lines.push(line);
@@ -124,14 +130,17 @@ fn read_reference(path: &Option<PathBuf>, what: &str) -> anyhow::Result<Option<B
 
 /// A finished run's label, summary and episodes, checked against the
 /// references' environment; its row of the table is printed.
-fn read_run(dir: &std::path::Path, references: [(&Option<BestConstant>, &str); 2], starts: &mut Option<Starts>) -> anyhow::Result<(String, RunSummary, Vec<EpisodeRow>)> {
+fn read_run(dir: &std::path::Path, references: [(&Option<BestConstant>, &str); 2], starts: &mut Option<Starts>, env: Option<&str>) -> anyhow::Result<(String, RunSummary, Vec<EpisodeRow>)> {
     let path = dir.join("summary.json");
     let text = std::fs::read_to_string(&path).with_context(|| format!("{} is not a finished run (no summary.json)", dir.display()))?;
     let mut s: RunSummary = serde_json::from_str(&text).with_context(|| format!("reading {}", path.display()))?;
     let own = s.evaluation.eval_episodes.zip(s.evaluation.eval_seed).map(|(episodes, seed)| Starts { seed, episodes });
-    let starts = *starts.get_or_insert(own.with_context(|| format!("{} does not record its evaluation starts; evaluate it with `lcrl sim --checkpoint {}`", dir.display(), dir.display()))?);
+    let starts = match *starts {
+        Some(s) => s,
+        None => *starts.insert(own.with_context(|| format!("{} does not record its evaluation starts; give --best-constant (its starts are then every row's) or evaluate it with `lcrl sim --checkpoint {}`", dir.display(), dir.display()))?),
+    };
     if own != Some(starts) {
-        s.evaluation.eval_return = evaluate_on(dir, &s.env, starts)?;
+        s.evaluation.eval_return = evaluate_on(dir, &s.env, env, starts)?;
         s.evaluation.eval_success_rate = None;
     }
     for (reference, what) in references {
@@ -164,11 +173,11 @@ fn read_run(dir: &std::path::Path, references: [(&Option<BestConstant>, &str); 2
 
 /// The run's handed-over policy (RUN/selected, else its newest checkpoint;
 /// RUN/learner/ for `lcrl run`) evaluated deterministically on `starts`.
-fn evaluate_on(dir: &std::path::Path, env_name: &str, starts: Starts) -> anyhow::Result<f64> {
+fn evaluate_on(dir: &std::path::Path, env_name: &str, given: Option<&str>, starts: Starts) -> anyhow::Result<f64> {
     let folder = if dir.join("learner").is_dir() { dir.join("learner") } else { dir.to_path_buf() };
     let policy = lcrl_learner::policy::trained::Policy::load(&folder)
         .with_context(|| format!("{} has no policy to evaluate on the common starts; compare runs evaluated on them (`lcrl train --eval-seed {} --eval-episodes {}`)", dir.display(), starts.seed, starts.episodes))?;
-    let env_name = lcrl::recorded_env::environment_to_build(env_name, None, &folder)?;
+    let env_name = lcrl::recorded_env::environment_to_build(env_name, given, &folder)?;
     let mut env = lcrl_sim::make_env(&env_name)?;
     let probe = env.fresh();
     let (summary, _) = lcrl_sim::evaluate::evaluate(env.as_mut(), "run", starts.episodes, starts.seed, &mut |state| policy.act(probe.as_ref(), state), &mut |_| {})?;

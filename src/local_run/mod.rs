@@ -104,6 +104,10 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let run_dir = args.run_dir.clone().unwrap_or_else(|| PathBuf::from("runs").join(name));
     let logs = run_dir.join("logs");
     fs::create_dir_all(&logs).with_context(|| format!("creating {}", logs.display()))?;
+    // One `lcrl run` per run directory, held before anything in it is
+    // written (config.toml, the token): a second one would replace a live
+    // run's token. The learner holds RUN/learner itself.
+    let _run_lock = lcrl_learner::run::lock::RunLock::acquire(&run_dir)?;
     let mut recorded = preset.text.clone();
     if preset.job.connection == lcrl_learner::Connection::Local && preset.job.graph.is_none() {
         // The graph's T and why, as `lcrl graph` prints it (docs/method.md, "Choosing T").

@@ -54,6 +54,11 @@ impl Actors {
         for k in 0..self.running.len() {
             if let Some(status) = self.running[k].as_mut().and_then(Managed::exited) {
                 self.running[k] = None;
+                // An actor stops with 0 once the learner says the budget is
+                // spent (before GetStatus says finished): not a death.
+                if status.success() {
+                    continue;
+                }
                 let log = self.logs.join(format!("actor-{k}.log"));
                 if self.restarts >= MAX_ACTOR_RESTARTS {
                     return Err(format!("actor-{k} died ({status}) after {} restarts of the run's actors; see {}", self.restarts, log.display()));

@@ -119,6 +119,12 @@ fn match_global_to_local(config: &mut TrainConfig, env: &str, path: &std::path::
 }
 
 pub fn run(args: &TrainArgs) -> anyhow::Result<()> {
+    // A run directory another process holds is refused before anything in
+    // it is written (the environment server's token among them); the
+    // trainer takes the lock for itself when it starts.
+    if args.run_dir.is_dir() {
+        drop(lcrl_learner::run::lock::RunLock::acquire(&args.run_dir)?);
+    }
     match serve_configured_env(args)? {
         // The server lives until training and the final evaluation end.
         Some((served_args, _server, _config)) => train_here(&served_args),

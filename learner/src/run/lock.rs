@@ -37,6 +37,12 @@ impl RunLock {
                     if holder.is_empty() { "a process that has not said which" } else { holder }
                 )));
             }
+            // A volume without locks (some network file systems): the run
+            // goes on unguarded, said once.
+            Err(std::fs::TryLockError::Error(e)) if matches!(e.raw_os_error(), Some(libc::ENOLCK | libc::EOPNOTSUPP)) => {
+                tracing::warn!(path = %path.display(), "this file system takes no locks ({e}): nothing stops a second writer of this run directory");
+                return Ok(RunLock { _file: file });
+            }
             Err(std::fs::TryLockError::Error(e)) => return Err(LearnerError::Io { path, source: e }),
         }
         let cmdline = std::fs::read(format!("/proc/{}/cmdline", std::process::id()))
@@ -47,11 +53,6 @@ impl RunLock {
         Ok(RunLock { _file: file })
     }
 
-    /// Holds the lock until this process exits (a learner's run directory
-    /// is its own for its whole life).
-    pub fn hold_until_exit(self) {
-        std::mem::forget(self);
-    }
 }
 
 #[cfg(test)]

@@ -233,7 +233,8 @@ pub async fn run(args: LearnerArgs, shutdown: impl Future<Output = ()>, listenin
             (crate::service::memory_budget::PEER_SHARE as u64 * batch).div_ceil(1 << 20)
         );
     }
-    let Begun { training, commands, shared, state_dim } = begin(&args, &security).await?;
+    // `_lock` holds the run directory until the training thread is joined.
+    let Begun { training, commands, shared, state_dim, lock: _lock } = begin(&args, &security).await?;
     let threads = start_threads(&args, training, &shared, &commands)?;
     // From here an error return stops the threads too (a library caller's
     // process lives on): shared memory stops polling, training ends.
@@ -284,16 +285,14 @@ struct Begun {
     commands: mpsc::Sender<Command>,
     shared: Arc<Shared>,
     state_dim: usize,
+    /// The run directory, held until the learner has stopped.
+    lock: Option<crate::run::lock::RunLock>,
 }
 
 /// The run as it stands ([`load`]), a new incarnation, the first policy,
 /// ingestion, the shared counters and the training loop.
 async fn begin(args: &LearnerArgs, security: &ServerSecurity) -> anyhow::Result<Begun> {
     let (Prepared { config, checkpoint, meta, agent, actions, lock, .. }, m) = load(args).await?;
-    // A learner's run directory is its own for its whole life.
-    if let Some(lock) = lock {
-        lock.hold_until_exit();
-    }
     let architecture = meta.architecture();
     // A fresh id per start: actors notice a restarted learner by it.
     let incarnation = crate::service::incarnation::begin(&args.run_dir, meta.episode, meta.policy_version)?;
@@ -342,7 +341,7 @@ async fn begin(args: &LearnerArgs, security: &ServerSecurity) -> anyhow::Result<
     // restored counters and the budget to the flow statistics, which
     // GetStatus reads from the first request on.
     let training = TrainingLoop::new(agent, inbox, shared.clone(), schedule);
-    Ok(Begun { training, commands, shared, state_dim: m })
+    Ok(Begun { training, commands, shared, state_dim: m, lock })
 }
 
 /// The run directory's state: its graph (asked of a graph builder only for
