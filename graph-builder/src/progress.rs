@@ -31,7 +31,8 @@ pub fn bar(len: u64, template: &str) -> ProgressBar {
 /// [`PLAIN_EVERY`].
 #[derive(Debug, Default)]
 struct PlainLines {
-    last: Mutex<Option<Instant>>,
+    /// When a line was last written, and whether a finished frame was.
+    last: Mutex<(Option<Instant>, bool)>,
 }
 
 impl PlainLines {
@@ -41,13 +42,15 @@ impl PlainLines {
             return Ok(());
         }
         let mut last = self.last.lock().unwrap_or_else(|p| p.into_inner());
-        // The last frame of a bar (pos = len, "N/N") is always written, so
-        // a log ends on where the work ended.
+        // The first frame of a finished bar (pos = len, "N/N") is written at
+        // once, so a log ends on where the work ended; later ones (a bar
+        // whose message still moves) only as often as any other.
         let finished = text.split_whitespace().any(|w| w.split_once('/').is_some_and(|(a, b)| !a.is_empty() && a == b));
-        if last.is_some_and(|t| t.elapsed() < PLAIN_EVERY) && !finished {
+        let first_finished = finished && !last.1;
+        if last.0.is_some_and(|t| t.elapsed() < PLAIN_EVERY) && !first_finished {
             return Ok(());
         }
-        *last = Some(Instant::now());
+        *last = (Some(Instant::now()), last.1 || finished);
         writeln!(std::io::stderr(), "{text}")
     }
 }
