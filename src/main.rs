@@ -26,6 +26,11 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Run graph builder, learner and actors from one preset (configs/).
+    ///
+    /// Budgets and times on 2 cores (measured this round): the peg PPO
+    /// presets train 900 episodes in about 50 s (the main job), the peg DDPG
+    /// presets 200 episodes in about 3–4 minutes, lti-paper 1,000 episodes
+    /// in about 10 s.
     Run(lcrl::local_run::RunArgs),
     /// Measure throughput against actor processes (scale.json/csv/png).
     Scale(cmd::scale::ScaleArgs),

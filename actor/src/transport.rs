@@ -262,11 +262,14 @@ impl Outbox {
                         self.pending.pop_front();
                         self.rejected_in_a_row += 1;
                         if self.rejected_in_a_row >= REJECTIONS_TO_STOP {
-                            bail!(
-                                "the learner rejected {} batches in a row, the last: {} (does this actor run the learner's environment?)",
-                                self.rejected_in_a_row,
-                                status.message()
-                            );
+                            // A sequence ahead of the learner's clock is this
+                            // host's clock running ahead, not a wrong environment.
+                            let hint = if status.message().contains("ahead of this learner's clock") {
+                                "this host's clock runs ahead of the learner's: keep the hosts' clocks within 10 s (NTP)"
+                            } else {
+                                "does this actor run the learner's environment?"
+                            };
+                            bail!("the learner rejected {} batches in a row, the last: {} ({hint})", self.rejected_in_a_row, status.message());
                         }
                         return Ok(());
                     }
