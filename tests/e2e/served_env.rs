@@ -222,6 +222,13 @@ fn graph_of_a_served_linear_system_is_the_lemma1_graph() {
     assert_eq!(g["g"], serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]]));
     assert_eq!(g["state_names"], serde_json::json!(["s1", "s2", "s3"]));
     assert_eq!(g["action_names"], serde_json::json!(["a1", "a2", "a3"]));
+    // The server names them as told (--state-names, --action-names), over
+    // the class's own names; lcrl's graph carries them.
+    let named = Served::start(&["--entry-point", &format!("{module}:Linear"), "--state-names", "x,v,w", "--action-names", "push,pull,turn"], Some(dir.path()));
+    let out = lcrl().args(["graph", "--exact", "--samples", "16", "--env", &named.url, "--out"]).arg(&json).output().unwrap();
+    assert!(out.status.success(), "{}", stderr(&out));
+    let g: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!((g["state_names"].clone(), g["action_names"].clone()), (serde_json::json!(["x", "v", "w"]), serde_json::json!(["push", "pull", "turn"])));
 }
 
 /// Returns of the episodes in a learner's metrics.csv.

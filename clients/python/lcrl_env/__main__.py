@@ -41,7 +41,8 @@ def serve_command(args) -> int:
 
     factory, env_id = _factory(args)
     probe = factory()
-    spec = describe(probe, env_id)
+    names = lambda text: [n.strip() for n in text.split(",")] if text else None  # noqa: E731
+    spec = describe(probe, env_id, names(args.state_names), names(args.action_names))
     method, fork = choose_fork(probe)
     probe.close()
     if method:
@@ -102,6 +103,8 @@ def main(argv=None) -> int:
     s.add_argument("--max-sessions", type=int, default=1024, help="most sessions open at once, forks included (default 1024)")
     s.add_argument("--idle-timeout", type=float, default=3600.0, metavar="S", help="close sessions unused for S seconds (clients that died without closing)")
     s.add_argument("--workers", type=int, default=8, help="gRPC worker threads (default 8)")
+    s.add_argument("--state-names", metavar="A,B,...", help="names of the state components, in order (default: the class's lcrl_state_names, MuJoCo's joints, else s0, s1, ...); lcrl graph and every report use them")
+    s.add_argument("--action-names", metavar="A,B,...", help="names of the action components, in order (default: lcrl_action_names, MuJoCo's actuators, else a0, a1, ...)")
     s.add_argument("--tls-cert", metavar="PEM", help="serve TLS with this certificate (with --tls-key; `lcrl certs` writes server.pem)")
     s.add_argument("--tls-key", metavar="PEM", help="the certificate's private key (server.key)")
     s.add_argument("--tls-client-ca", metavar="PEM", help="accept only clients with a certificate of this CA (mutual TLS; ca.pem)")

@@ -93,8 +93,13 @@ def _box_or_refuse(space, what: str, flag: str) -> gym.spaces.Box:
     )
 
 
-def describe(env: gym.Env, env_id: str) -> EnvSpec:
-    """The spec of `env` (a fresh instance), or SpecError for what lcrl cannot serve."""
+def describe(env: gym.Env, env_id: str, state_names=None, action_names=None) -> EnvSpec:
+    """The spec of `env` (a fresh instance), or SpecError for what lcrl cannot serve.
+
+    The components' names, in order of precedence: `state_names` and
+    `action_names` (serve's --state-names, --action-names), the class's
+    `lcrl_state_names` and `lcrl_action_names`, MuJoCo's joint names, s0… a0….
+    """
     obs_space = _box_or_refuse(env.observation_space, "observation", "Flatten the observation (gymnasium.wrappers.FlattenObservation) in your entry point.")
     act_space = _box_or_refuse(env.action_space, "action", "Discrete actions need another method.")
     if len(act_space.shape) != 1:
@@ -106,10 +111,12 @@ def describe(env: gym.Env, env_id: str) -> EnvSpec:
     m = int(np.prod(obs_space.shape))
     n = a_low.size
     u = env.unwrapped
-    state_names = list(getattr(u, "lcrl_state_names", None) or _mujoco_state_names(env, m) or [f"s{j}" for j in range(m)])
-    action_names = list(getattr(u, "lcrl_action_names", None) or _mujoco_action_names(u, n) or [f"a{i}" for i in range(n)])
+    state_names = list(state_names or getattr(u, "lcrl_state_names", None) or _mujoco_state_names(env, m) or [f"s{j}" for j in range(m)])
+    action_names = list(action_names or getattr(u, "lcrl_action_names", None) or _mujoco_action_names(u, n) or [f"a{i}" for i in range(n)])
     if len(state_names) != m or len(action_names) != n:
-        raise SpecError(f"lcrl_state_names/lcrl_action_names have {len(state_names)}/{len(action_names)} names for {m} states and {n} actions")
+        raise SpecError(f"the state and action names (--state-names/--action-names or lcrl_state_names/lcrl_action_names) are {len(state_names)} and {len(action_names)} for {m} states and {n} actions")
+    if len(set(state_names)) != m or len(set(action_names)) != n:
+        raise SpecError("state and action names must each be different from one another")
     spec = env.spec
     dt = float(getattr(u, "dt", 0.0) or 0.0)
     return EnvSpec(
