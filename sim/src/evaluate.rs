@@ -38,6 +38,10 @@ pub struct EpisodeRecord {
     /// Initial state and every step, when recording was asked for.
     pub initial_state: Vec<f64>,
     pub trace: Vec<TraceRow>,
+    /// Why the episode ended early because the environment left its
+    /// bounds (a non-finite or out-of-scale state or reward, crate::diverged):
+    /// such a state is never handed to the policy.
+    pub diverged: Option<String>,
 }
 
 /// Runs one episode from `reset(seed)` until it terminates or is truncated.
@@ -56,9 +60,29 @@ pub fn run_episode(
     let mut steps = 0;
     // The action the environment applied last step (clipped to the box).
     let (mut previous, mut max_action_jump) = (Vec::new(), 0.0f64);
+    let mut diverged = crate::state_out_of_bounds(env, &initial_state).map(|why| format!("its start: {why}"));
     loop {
+        if let Some(why) = &diverged {
+            // A served environment gone wrong ends this episode, not the run.
+            tracing::warn!(seed, steps, "the environment left its bounds ({why}): the episode ends here, failed");
+            return Ok(EpisodeRecord {
+                seed,
+                steps,
+                episode_return,
+                terminated: true,
+                metrics: env.episode_metrics(),
+                max_action_jump,
+                initial_state: if record { initial_state } else { Vec::new() },
+                trace,
+                diverged,
+            });
+        }
         let action = policy(&state);
         let step = env.step(&action)?;
+        diverged = crate::diverged(env, &step);
+        if diverged.is_some() {
+            continue;
+        }
         let applied = env.spec().clip_action(&action);
         max_action_jump = max_action_jump.max(action_jump(env.spec(), &previous, &applied));
         previous = applied;
@@ -78,6 +102,7 @@ pub fn run_episode(
                 max_action_jump,
                 initial_state: if record { initial_state } else { Vec::new() },
                 trace,
+                diverged: None,
             });
         }
     }
@@ -120,6 +145,14 @@ pub struct Summary {
     /// substeps included.
     pub control_steps_per_sec: f64,
     pub elapsed_s: f64,
+    /// Episodes ended because the environment left its bounds (a served
+    /// environment gone wrong): their returns count only the sound steps.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub diverged_episodes: usize,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// The one field of a summary that readers of other files need.
@@ -249,6 +282,7 @@ pub fn summarize(env: String, controller: &str, seed: u64, records: &[EpisodeRec
         terms: ReturnTerms::mean(records.iter().map(|r| r.metrics.return_terms.as_ref())).into(),
         control_steps_per_sec: if elapsed_s > 0.0 { total_steps as f64 / elapsed_s } else { 0.0 },
         elapsed_s,
+        diverged_episodes: records.iter().filter(|r| r.diverged.is_some()).count(),
     }
 }
 

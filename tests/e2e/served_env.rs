@@ -44,6 +44,16 @@ class Linear(gym.Env):
         return self.s.copy(), float(reward), False, self.t >= self.steps, {}
 
 
+class Wild(Linear):
+    """A served environment gone wrong: every third step a state of 1e300."""
+
+    def step(self, action):
+        s, r, term, trunc, info = super().step(action)
+        if self.t % 3 == 0:
+            s = np.full(3, 1e300)
+        return s, r, term, trunc, info
+
+
 class Unforkable(Linear):
     def __init__(self, steps=50):
         super().__init__(steps)
@@ -456,4 +466,24 @@ fn lcrl_train_serves_the_configured_environment_itself() {
     assert!(run.join("logs/env-server.log").is_file());
     assert_eq!(super::run_cli::processes_mentioning(&module), Vec::<String>::new(), "Python processes left behind");
     assert_clean_failure(&train("lti-paper", &dir.path().join("r2")), "is where it listens");
+}
+
+/// A served environment that returns states of 1e300 cannot end a run
+/// (issue 82): training ends those episodes and goes on, the final
+/// evaluation never hands such a state to the policy (its episodes end
+/// there, counted), and summary.json is written.
+#[test]
+fn a_wild_served_environment_ends_episodes_not_the_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let module = unique_module("wild");
+    write_envs(dir.path(), &module);
+    let served = Served::start(&["--entry-point", &format!("{module}:Wild")], Some(dir.path()));
+    let run = dir.path().join("run");
+    let out = lcrl().args(["train", "--algo", "ddpg", "--connection", "global", "--episodes", "4", "--eval-episodes", "3", "--env", &served.url, "--run-dir"]).arg(&run).output().unwrap();
+    assert!(out.status.success(), "{}", stderr(&out));
+    let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("summary.json")).unwrap()).unwrap();
+    assert!(summary["diverged_env"].as_u64().unwrap_or(0) >= 4, "{summary}");
+    assert!(summary["eval_return"].as_f64().is_some_and(f64::is_finite), "{summary}");
+    let references = summary["references"].as_array().unwrap();
+    assert!(references.iter().all(|r| r["diverged_episodes"] == 3), "{summary}");
 }
