@@ -175,7 +175,7 @@ impl Rollout {
             // what is not above it. Starting from the clock (µs) keeps a
             // restarted actor with the same id above everything its
             // previous life sent.
-            sequence: clock_micros(),
+            sequence: lcrl_learner::service::ingest::now_micros(),
             episodes_done: 0,
             settings,
         })
@@ -321,17 +321,12 @@ impl Rollout {
         // Rising, and with the clock: a sequence a peer sent ahead under
         // this id (at most the learner's SEQUENCE_AHEAD) is passed once
         // the clock gets there, not after as many batches.
-        self.sequence = (self.sequence + 1).max(clock_micros());
+        self.sequence = (self.sequence + 1).max(lcrl_learner::service::ingest::now_micros());
         batch.sequence = self.sequence;
         batch.episode_id = self.episodes_done;
         batch.policy_version = version;
         Some(batch)
     }
-}
-
-/// The wall clock in µs since the Unix epoch (0 before it).
-fn clock_micros() -> u64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64)
 }
 
 #[cfg(test)]

@@ -521,7 +521,9 @@ pub const SEQUENCE_AHEAD: std::time::Duration = std::time::Duration::from_secs(1
 /// The longest episode a summary may claim (steps).
 pub const MAX_EPISODE_STEPS: u32 = 1_000_000;
 
-fn now_micros() -> u64 {
+/// The wall clock in µs since the Unix epoch (0 before it): where actors
+/// number their batches from, and what SEQUENCE_AHEAD is measured against.
+pub fn now_micros() -> u64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64)
 }
 
