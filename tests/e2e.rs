@@ -20,4 +20,5 @@ mod e2e {
     mod served_env;
     mod gymnasium_face;
     mod export;
+    mod readme;
 }

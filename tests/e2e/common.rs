@@ -94,3 +94,8 @@ pub fn assert_peg_rows_measured(metrics: &Path) -> usize {
     }
     count
 }
+
+/// The repository root (README.md, scripts/, configs/).
+pub fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}

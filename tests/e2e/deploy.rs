@@ -4,15 +4,11 @@
 //! end-to-end script run on this machine's Docker engine when there is one.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use serde_yaml::Value;
 
-use super::common::{lcrl, load_docs, seq, stderr, stdout, str_of};
-
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
+use super::common::{lcrl, load_docs, repo, seq, stderr, stdout, str_of};
 
 /// `lcrl launch ARGS --dry-run` with the manifest's placeholders filled in:
 /// the command line it would run.

@@ -9,11 +9,7 @@ use std::time::{Duration, Instant, SystemTime};
 
 use serde_json::Value;
 
-use super::common::{assert_clean_failure, lcrl, load_docs, seq, stderr, stdout, str_of};
-
-fn repo() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
+use super::common::{assert_clean_failure, lcrl, load_docs, repo, seq, stderr, stdout, str_of};
 
 fn smoke() -> PathBuf {
     repo().join("experiments/smoke.toml")
