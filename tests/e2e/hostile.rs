@@ -485,3 +485,44 @@ async fn requests_share_one_memory_budget() {
         .unwrap();
     super::common::assert_clean_failure(&out, "--request-budget-mib 1 leaves one peer address a quarter");
 }
+
+/// A forged episode (issue 82): one step claiming 10⁶ steps and a return of
+/// 9.9e11 passes the door (at most 10⁶ a step it claims beyond the batch),
+/// but the record counts only the steps that arrived. metrics.csv holds it
+/// as one step with that step's reward, the recent return stays near the
+/// honest actor's, and the honest episodes recorded before it are kept.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_forged_episode_counts_only_the_steps_that_arrived() {
+    use lcrl_proto::v1::EpisodeSummary;
+    use super::distributed::{send, wait_for};
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let (_learner, url) = learner_with_args(&run, "forge", free_port(), "ddpg", &[]);
+    let _actor = actor_with_args(&url, "forge", &["--actor-id", "honest"]);
+    let before = wait_for(&url, "honest episodes", |s| s.episodes >= 4).await;
+    let rows = |run: &std::path::Path| -> Vec<(f64, u64)> {
+        let text = std::fs::read_to_string(run.join("metrics.csv")).unwrap_or_default();
+        text.lines().skip(1).filter_map(|l| {
+            let mut f = l.split(',').skip(1);
+            Some((f.next()?.parse().ok()?, f.next()?.parse().ok()?))
+        }).collect()
+    };
+    let honest = rows(&run);
+    assert!(honest.len() >= 4 && honest.iter().all(|&(r, n)| n > 1 && r.abs() < 1e6), "{honest:?}");
+    let mut forged = TransitionBatch { actor_id: "forger".into(), ..batch("forge", 1, 3, 0.1) };
+    forged.transitions.truncate(1);
+    forged.transitions[0].terminated = true;
+    forged.transitions[0].reward = -2.5;
+    forged.episodes = vec![EpisodeSummary { episode_return: 9.9e11, length: 1_000_000, ..Default::default() }];
+    send(&url, forged).await.expect("within the door's bounds: taken");
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while !rows(&run).contains(&(-2.5, 1)) {
+        assert!(std::time::Instant::now() < deadline, "the forged episode never reached metrics.csv as one step of -2.5: {:?}", rows(&run));
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let after = rows(&run);
+    assert!(after.iter().all(|&(r, n)| n < 1_000_000 && r.abs() < 1e6), "a claim was taken: {after:?}");
+    assert_eq!(&after[..honest.len()], &honest[..], "the honest episodes recorded before are kept");
+    let s = status(&url, &ClientSecurity::default()).await;
+    assert!(s.episodes > before.episodes && s.recent_return.abs() < 1e4, "recent return {} after the forgery", s.recent_return);
+}

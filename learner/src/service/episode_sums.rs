@@ -7,18 +7,22 @@
 //! its streams, ppo.rs), and so knows an episode's stored steps across its
 //! batches.
 //!
-//! A claim must agree with them as the door's check (ingest.rs,
-//! `returns_agree`) asks of one batch: at least the stored steps, and a
-//! return within [`lcrl_sim::REWARD_LIMIT`] per step it claims beyond them
-//! of their sum (exactly their sum when it claims no more). A claim that
-//! does not is a false one and is rewritten to the stored steps' sum and
-//! count. A claim that agrees is kept: where the learner stored the whole
-//! episode it is that sum to rounding (it sums the environment's f64
-//! rewards, which travel as f32), and where the episode began before what
-//! the learner stored (before this learner process, in a batch refused,
-//! stale or lost, or a part evicted) the learner cannot know more. The
-//! wire does not say where an environment's episode began, so "whole" is
-//! not something the learner can tell.
+//! An episode's return and length in the record (metrics.csv, the
+//! training curve, `final_return`, the budget's count) are those of the
+//! steps the learner received for it, never what a peer claims beyond them
+//! (issue 82: one step claiming 10⁶ steps and a return of 9.9e11 was
+//! taken). A claim is kept only where it is exactly those steps, its
+//! return their sum to rounding (the actor sums the environment's f64
+//! rewards, which travel as f32); any other claim is rewritten to the
+//! received steps' sum and count. "Received" means the steps passed the
+//! door's checks: trained on, or discarded as stale by an on-policy
+//! learner (PPO) but still this episode's steps.
+//!
+//! What this costs an honest record: an episode that began before what the
+//! learner received (before this learner process started, in a batch
+//! refused or lost, or a part evicted) is recorded as its received part.
+//! The wire does not say where an environment's episode began, so the
+//! learner cannot tell such a part from a whole episode.
 
 use std::collections::HashMap;
 
@@ -58,11 +62,17 @@ impl Stored {
         self.steps = self.steps.saturating_add(1);
     }
 
+    /// Whether a claim is exactly these steps: their number, and their
+    /// sum to rounding (rewards travel as f32, returns are f64 sums of
+    /// the f64 rewards).
+    pub fn is_exactly(&self, claimed_return: f64, claimed_length: u32) -> bool {
+        claimed_length == self.steps && (claimed_return - self.sum).abs() <= 1e-5 * (self.sum_abs + 1.0)
+    }
+
     /// Whether a claimed return and length can be those of an episode
-    /// holding these steps: at least their number, and a return within
-    /// [`lcrl_sim::REWARD_LIMIT`] per step claimed beyond them of their sum
-    /// (to rounding: rewards travel as f32, returns as f64 sums of the f64
-    /// rewards).
+    /// holding these steps and others not in view: at least their number,
+    /// and a return within [`lcrl_sim::REWARD_LIMIT`] per step claimed
+    /// beyond them of their sum (the door's check of one batch).
     pub fn admits(&self, claimed_return: f64, claimed_length: u32) -> bool {
         let tolerance = 1e-5 * (self.sum_abs + 1.0);
         let unseen = f64::from(claimed_length.saturating_sub(self.steps));
@@ -75,11 +85,11 @@ fn bits(state: &[f32]) -> Vec<u32> {
 }
 
 impl OpenEpisodes {
-    /// The summaries of an accepted `batch` (one per end, in order, as the
-    /// door checked), each claim that its stored steps do not admit
-    /// rewritten to them; the batch's unfinished parts are kept for the
-    /// actor's next batches. Returns the summaries and how many claims
-    /// were rewritten.
+    /// The summaries of a `batch` that passed the door (one per end, in
+    /// order, as the door checked), each claim that is not exactly its
+    /// received steps rewritten to them; the batch's unfinished parts are
+    /// kept for the actor's next batches. Returns the summaries and how
+    /// many claims were rewritten.
     pub fn settle(&mut self, batch: &TransitionBatch) -> (Vec<EpisodeSummary>, u64) {
         let mut summaries = batch.episodes.clone();
         let mut rewritten = 0;
@@ -95,8 +105,9 @@ impl OpenEpisodes {
             if t.terminated || t.truncated {
                 let Some(p) = part.take() else { continue };
                 let Some(claim) = ends.next() else { break };
-                if !p.admits(claim.episode_return, claim.length) {
+                if !p.is_exactly(claim.episode_return, claim.length) {
                     (claim.episode_return, claim.length) = (p.sum, p.steps);
+                    claim.return_terms = None; // a claimed split of a return not taken
                     rewritten += 1;
                 }
             } else if t.cut {
@@ -144,10 +155,10 @@ mod tests {
     }
 
     /// Two environments' episodes cut across two batches are checked
-    /// against all their stored steps: an honest claim is kept as it is, a
-    /// false one (a return the stored rewards and its claimed length cannot
-    /// give) rewritten to them; an episode whose start was not stored
-    /// keeps its bounded claim; another actor's parts are its own.
+    /// against all their received steps: an honest claim is kept as it is,
+    /// any other (a return or a length those steps do not give) rewritten
+    /// to them, also where the episode's start was not received; another
+    /// actor's parts are its own.
     #[test]
     fn returns_are_checked_against_every_batch_that_holds_them() {
         let mut open = OpenEpisodes::default();
@@ -166,12 +177,17 @@ mod tests {
         open.settle(&batch("a", vec![step(20.0, -1.0, false, true)], &[]));
         let (summaries, rewritten) = open.settle(&batch("a", vec![step(21.0, -1.0, true, false)], &[(-1.0, 1)]));
         assert_eq!((rewritten, summaries[0].episode_return, summaries[0].length), (1, -2.0, 2), "fewer steps than stored");
-        // An episode whose beginning was never stored (state 50 follows no
-        // kept part; another actor's part at 2 is not this one's) keeps
-        // its claim.
+        // An episode whose beginning was not received (state 50 follows no
+        // kept part; another actor's part at 2 is not this one's) is
+        // recorded as the steps that were: the claim of 20 is not taken.
         open.settle(&batch("b", vec![step(1.0, -1.0, false, true)], &[]));
         let (summaries, rewritten) = open.settle(&batch("a", vec![step(50.0, -2.0, false, false), step(51.0, -2.0, true, false)], &[(-40.0, 20)]));
-        assert_eq!((rewritten, summaries[0].episode_return, summaries[0].length), (0, -40.0, 20));
+        assert_eq!((rewritten, summaries[0].episode_return, summaries[0].length), (1, -4.0, 2));
+        // Issue 82: one step claiming 10⁶ steps and a return of 9.9e11
+        // (within 10⁶ per unseen step, so the door lets it in) is one step
+        // with its own reward in the record.
+        let (summaries, rewritten) = open.settle(&batch("a", vec![step(60.0, 5.0, true, false)], &[(9.9e11, 1_000_000)]));
+        assert_eq!((rewritten, summaries[0].episode_return, summaries[0].length), (1, 5.0, 1));
         let (summaries, _) = open.settle(&batch("b", vec![step(2.0, -1.0, true, false)], &[(-2.0, 2)]));
         assert_eq!((summaries[0].episode_return, summaries[0].length), (-2.0, 2));
         assert!(open.by_actor.is_empty(), "every part was finished");

@@ -310,6 +310,14 @@ impl Ingest {
             Ok(()) => {}
         }
         self.admit_sender(batch, origin);
+        // Each episode's return and length from the steps received for it,
+        // in this batch and the actor's earlier ones (what metrics.csv, the
+        // budget and the summary count, episode_sums.rs). Settled before
+        // the stale check: a stale batch's steps are still its episodes'.
+        let (episodes, rewritten) = self.open.settle(batch);
+        if rewritten > 0 {
+            tracing::debug!(actor = %batch.actor_id, rewritten, "episode claims rewritten to the steps received for them");
+        }
         // On-policy: versions of another learner process are not this
         // one's (after a restart they count from the checkpoint again), so
         // its data is stale whatever its number says.
@@ -324,13 +332,6 @@ impl Ingest {
         }
         let transitions = self.normalize(batch);
         self.accepted += transitions.len() as u64;
-        // Each claim checked against every step of its episode stored from
-        // this batch and the actor's earlier ones (what metrics.csv and the
-        // summary show); a false one is rewritten to them.
-        let (episodes, rewritten) = self.open.settle(batch);
-        if rewritten > 0 {
-            tracing::debug!(actor = %batch.actor_id, rewritten, "episode claims rewritten to the rewards stored for them");
-        }
         Verdict::Accept(Accepted { transitions, episodes, policy_version: batch.policy_version, stream: stream_of(&batch.actor_id) })
     }
 
