@@ -10,5 +10,7 @@ cargo build --workspace --bins
 if cargo nextest --version >/dev/null 2>&1; then
   cargo nextest run --workspace --no-fail-fast "$@"
 else
-  cargo test --workspace --no-fail-fast "$@"
+  # One test at a time: tests share this process, and with it their
+  # shared-memory namespace (tests/e2e/common.rs, shm_namespace).
+  cargo test --workspace --no-fail-fast "$@" -- --test-threads=1
 fi

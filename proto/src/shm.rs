@@ -178,6 +178,30 @@ pub fn service_name(run_id: &str) -> String {
     format!("lcrl/{run_id}/transitions")
 }
 
+/// The environment variable that names a namespace of this host's shared
+/// memory: processes started with different values never meet, whatever
+/// their run ids (iceoryx2's file prefix, `iox2_<namespace>_`). Unset: the
+/// host's one namespace. Letters, digits and `-` are kept, 32 at most.
+pub const NAMESPACE_ENV: &str = "LCRL_SHM_NAMESPACE";
+
+/// iceoryx2's configuration for `namespace` (None: the default one).
+fn config_in(namespace: Option<&str>) -> Config {
+    let mut config = Config::global_config().clone();
+    if let Some(ns) = namespace {
+        let ns: String = ns.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' { c } else { '-' }).take(32).collect();
+        if let Ok(prefix) = FileName::new(format!("iox2_{ns}_").as_bytes()) {
+            config.global.prefix = prefix;
+        }
+    }
+    config
+}
+
+/// This process's configuration: the namespace [`NAMESPACE_ENV`] names.
+fn shm_config() -> &'static Config {
+    static CONFIG: std::sync::OnceLock<Config> = std::sync::OnceLock::new();
+    CONFIG.get_or_init(|| config_in(std::env::var(NAMESPACE_ENV).ok().as_deref()))
+}
+
 /// iceoryx2 logs to stderr on its own; keep it to errors (the default
 /// configuration is intended, so its "no config file" warning is noise).
 pub fn quiet_iceoryx2() {
@@ -187,9 +211,13 @@ pub fn quiet_iceoryx2() {
 /// Removes what crashed peers left in shared memory (iceoryx2's dead-node
 /// cleanup); returns how many nodes were cleaned.
 pub fn remove_dead_nodes() -> usize {
+    remove_dead_nodes_in(shm_config())
+}
+
+fn remove_dead_nodes_in(config: &Config) -> usize {
     quiet_iceoryx2();
     let mut removed = 0;
-    let _ = Node::<ipc::Service>::list(Config::global_config(), |state| {
+    let _ = Node::<ipc::Service>::list(config, |state| {
         if let NodeState::Dead(view) = state {
             if view.try_remove_stale_resources().is_ok() {
                 removed += 1;
@@ -203,10 +231,19 @@ pub fn remove_dead_nodes() -> usize {
 /// The names of the shared-memory services of `run_id` that still exist
 /// (after dead-node cleanup): empty once every process of a run is gone.
 pub fn services_of(run_id: &str) -> Vec<String> {
-    remove_dead_nodes();
+    services_in(shm_config(), run_id)
+}
+
+/// [`services_of`] in another process's namespace ([`NAMESPACE_ENV`]).
+pub fn services_of_in(namespace: &str, run_id: &str) -> Vec<String> {
+    services_in(&config_in(Some(namespace)), run_id)
+}
+
+fn services_in(config: &Config, run_id: &str) -> Vec<String> {
+    remove_dead_nodes_in(config);
     let prefix = format!("lcrl/{run_id}/");
     let mut names = Vec::new();
-    let _ = <ipc::Service as iceoryx2::service::Service>::list(Config::global_config(), |service| {
+    let _ = <ipc::Service as iceoryx2::service::Service>::list(config, |service| {
         let name = service.static_details.name().to_string();
         if name.starts_with(&prefix) {
             names.push(name);
@@ -231,6 +268,10 @@ fn open_service(node: &Node<ipc::Service>, run_id: &str) -> Result<Service, Stri
         // through it.
         .subscriber_max_buffer_size(SUBSCRIBER_MAX_BUFFER)
         .max_publishers(64)
+        // One learner a run: its subscriber is the only one the service
+        // takes, so a second learner under a live one's run id cannot
+        // open it (TransitionSubscriber::open, SubscriberError::RunTaken).
+        .max_subscribers(1)
         .open_or_create()
         .map_err(|e| format!("cannot open the shared-memory service {}: {e:?}", service_name(run_id)))
 }
@@ -240,7 +281,7 @@ fn open_service(node: &Node<ipc::Service>, run_id: &str) -> Result<Service, Stri
 /// otherwise hang its opening for good: HangsInCreation).
 fn node_and<S>(run_id: &str, open: impl Fn(&Node<ipc::Service>, &str) -> Result<S, String>) -> Result<(Node<ipc::Service>, S), String> {
     remove_dead_nodes();
-    let node = NodeBuilder::new().create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
+    let node = NodeBuilder::new().config(shm_config()).create::<ipc::Service>().map_err(|e| format!("iceoryx2 node: {e:?}"))?;
     let service = open(&node, run_id)?;
     Ok((node, service))
 }
@@ -270,6 +311,31 @@ impl ShmPublisher {
     }
 }
 
+/// Why the learner's end of a run's transitions did not open.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum SubscriberError {
+    /// A live learner on this host already subscribes to the run's
+    /// transitions (the service takes one subscriber).
+    RunTaken(String),
+    /// Shared memory is unavailable here (the learner goes on over gRPC).
+    Unavailable(String),
+}
+
+impl std::fmt::Display for SubscriberError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SubscriberError::RunTaken(run_id) => write!(
+                f,
+                "another live learner on this host already serves run id '{run_id}' (it holds the shared-memory service {}); give this learner another --run-id",
+                service_name(run_id)
+            ),
+            SubscriberError::Unavailable(e) => f.write_str(e),
+        }
+    }
+}
+
+impl std::error::Error for SubscriberError {}
+
 /// The learner's end of the transitions: samples as batches, in arrival order.
 pub struct TransitionSubscriber {
     subscriber: iceoryx2::port::subscriber::Subscriber<ipc::Service, TransitionSample, ()>,
@@ -281,13 +347,12 @@ pub struct TransitionSubscriber {
 impl TransitionSubscriber {
     /// `buffer`: samples that may wait in shared memory (1 to
     /// [`SUBSCRIBER_MAX_BUFFER`]); each is policy lag.
-    pub fn open(run_id: &str, buffer: usize) -> Result<Self, String> {
-        let (node, service) = node_and(run_id, open_service)?;
-        let subscriber = service
-            .subscriber_builder()
-            .buffer_size(buffer.clamp(1, SUBSCRIBER_MAX_BUFFER))
-            .create()
-            .map_err(|e| format!("iceoryx2 subscriber: {e:?}"))?;
+    pub fn open(run_id: &str, buffer: usize) -> Result<Self, SubscriberError> {
+        let (node, service) = node_and(run_id, open_service).map_err(SubscriberError::Unavailable)?;
+        let subscriber = service.subscriber_builder().buffer_size(buffer.clamp(1, SUBSCRIBER_MAX_BUFFER)).create().map_err(|e| match e {
+            iceoryx2::port::subscriber::SubscriberCreateError::ExceedsMaxSupportedSubscribers => SubscriberError::RunTaken(run_id.to_string()),
+            e => SubscriberError::Unavailable(format!("iceoryx2 subscriber: {e:?}")),
+        })?;
         Ok(TransitionSubscriber { subscriber, run_id: run_id.into(), service, _node: node })
     }
 
@@ -463,6 +528,20 @@ mod tests {
         assert_eq!(subscriber.live_publishers(), [from_first, from_second].into_iter().collect());
         drop(first);
         assert_eq!(subscriber.live_publishers(), [from_second].into_iter().collect());
+    }
+
+    /// One learner a run id on a host: while a subscriber lives, a second
+    /// is refused as RunTaken (naming the run), and once it is gone the
+    /// run id is free again.
+    #[test]
+    fn a_run_id_takes_one_subscriber() {
+        let run_id = format!("shm-one-learner-{}", std::process::id());
+        let first = TransitionSubscriber::open(&run_id, 4).expect("subscriber");
+        let second = TransitionSubscriber::open(&run_id, 4).err().expect("a second subscriber is refused");
+        assert_eq!(second, SubscriberError::RunTaken(run_id.clone()));
+        assert!(second.to_string().contains(&format!("run id '{run_id}'")), "{second}");
+        drop(first);
+        TransitionSubscriber::open(&run_id, 4).expect("free again");
     }
 
     #[test]

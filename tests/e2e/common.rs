@@ -6,7 +6,17 @@ use std::process::{Child, Command, Output, Stdio};
 
 /// `lcrl`, built by cargo for this test binary.
 pub fn lcrl() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_lcrl"))
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_lcrl"));
+    cmd.env(lcrl_proto::shm::NAMESPACE_ENV, shm_namespace());
+    cmd
+}
+
+/// This test's shared-memory namespace (lcrl_proto::shm::NAMESPACE_ENV),
+/// given to every process it starts: tests running side by side never
+/// meet in shared memory, whatever run ids they use (one learner a run id
+/// on a host). nextest runs each test in a process of its own.
+pub fn shm_namespace() -> String {
+    format!("test-{}", std::process::id())
 }
 
 /// Another workspace binary (lcrl-graph-builder, ...). Cargo builds only this
@@ -16,7 +26,9 @@ pub fn workspace_bin(name: &str) -> Command {
     let dir = PathBuf::from(env!("CARGO_BIN_EXE_lcrl")).parent().expect("target dir").to_path_buf();
     let path = dir.join(name);
     assert!(path.is_file(), "{} is missing: run `cargo build --workspace --bins` before the tests", path.display());
-    Command::new(path)
+    let mut cmd = Command::new(path);
+    cmd.env(lcrl_proto::shm::NAMESPACE_ENV, shm_namespace());
+    cmd
 }
 
 /// Starts a server (learner, graph builder) and waits for the line it

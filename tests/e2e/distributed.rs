@@ -308,6 +308,29 @@ fn python_client_queries_the_policy() {
     assert!(String::from_utf8_lossy(&wrong.stderr).contains("INVALID_ARGUMENT"));
 }
 
+/// One learner a run id on a host (issue 82: two learners under one run id
+/// both took every transition, and the actors' policy flip-flopped between
+/// them): a second learner under a live one's run id exits at once with
+/// the run id and what to do, before it listens, and the first goes on
+/// storing its actor's steps.
+#[tokio::test]
+async fn a_second_learner_under_a_live_run_id_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let id = format!("one-learner-{}", std::process::id());
+    let (_first, url) = learner(&dir.path().join("first"), &id, free_port());
+    let _actor = actor_over(&url, &id, "shm");
+    let before = wait_for(&url, "the first learner's steps", |s| s.env_steps > 100).await;
+    let out = workspace_bin("lcrl-learner")
+        .args(["--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--run-id", &id, "--listen", "127.0.0.1:0", "--run-dir"])
+        .arg(dir.path().join("second"))
+        .output()
+        .unwrap();
+    super::common::assert_clean_failure(&out, &format!("already serves run id '{id}'"));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--run-id"), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(!String::from_utf8_lossy(&out.stdout).contains("listening on"), "it never served");
+    wait_for(&url, "the first learner storing on", |s| s.env_steps > before.env_steps + 100 && s.rejected.values().sum::<u64>() == 0).await;
+}
+
 /// Same-host actors over iceoryx2: transitions flow, a SIGKILLed actor's
 /// shared memory is cleaned up and a new one flows again, and another run's
 /// actor publishes into its own service, never this learner's.
@@ -322,7 +345,7 @@ async fn shared_memory_actors_feed_their_own_run_only() {
     assert_eq!(s.rejected.values().sum::<u64>(), 0);
     // A same-host actor counts as connected (issue 85: it read 0).
     wait_for(&url_a, "the shared-memory actor counted", |s| s.connected_actors == 1).await;
-    let services = lcrl_proto::shm::services_of(&id_a);
+    let services = lcrl_proto::shm::services_of_in(&super::common::shm_namespace(), &id_a);
     assert!(services.contains(&format!("lcrl/{id_a}/transitions")) && services.contains(&format!("lcrl/{id_a}/policy")), "{services:?}");
     first.signal("KILL");
     drop(first);

@@ -50,7 +50,7 @@ fn run_on_the_linear_preset_finishes_with_every_artifact_and_no_leftovers() {
     assert_eq!(processes_mentioning(run.to_str().unwrap()), Vec::<String>::new(), "processes left behind");
     // The run used shared memory (the default transport); none of it is left.
     let run_id = stdout(&out).split("run ").nth(1).and_then(|rest| rest.split(':').next()).expect("the run id in the summary").to_string();
-    assert_eq!(lcrl_proto::shm::services_of(&run_id), Vec::<String>::new(), "shared-memory services left behind");
+    assert_eq!(lcrl_proto::shm::services_of_in(&super::common::shm_namespace(), &run_id), Vec::<String>::new(), "shared-memory services left behind");
 }
 
 #[test]

@@ -433,6 +433,22 @@ struct Threads {
 }
 
 fn start_threads(args: &LearnerArgs, training: TrainingLoop, shared: &Arc<Shared>, commands: &mpsc::Sender<Command>) -> anyhow::Result<Threads> {
+    // Shared memory first: a run id a live learner on this host already
+    // serves is refused before anything trains (issue 82: two learners
+    // under one run id both took every transition).
+    let (shm_shared, shm_commands, shm_buffer) = (shared.clone(), commands.clone(), args.queued_batches as usize);
+    let (opened_tx, opened) = std::sync::mpsc::sync_channel(1);
+    let shm = std::thread::Builder::new()
+        .name("shm-ingest".into())
+        .spawn(move || {
+            if let Err(e) = crate::service::shm::run_subscriber(shm_shared, shm_commands, shm_buffer, opened_tx) {
+                tracing::warn!("shared-memory transport unavailable: {e}");
+            }
+        })
+        .context("cannot start the shared-memory thread")?;
+    if let Ok(Err(taken @ lcrl_proto::shm::SubscriberError::RunTaken(_))) = opened.recv_timeout(Duration::from_secs(30)) {
+        bail!("{taken}");
+    }
     let (trainer_failed, trainer_failure) = tokio::sync::oneshot::channel::<String>();
     // OpenMP's thread count is per thread: the count run.threads set on
     // this thread (crate::device::torch::apply_threads) is not the new
@@ -452,15 +468,6 @@ fn start_threads(args: &LearnerArgs, training: TrainingLoop, shared: &Arc<Shared
             result
         })
         .context("cannot start the training thread")?;
-    let (shm_shared, shm_commands, shm_buffer) = (shared.clone(), commands.clone(), args.queued_batches as usize);
-    let shm = std::thread::Builder::new()
-        .name("shm-ingest".into())
-        .spawn(move || {
-            if let Err(e) = crate::service::shm::run_subscriber(shm_shared, shm_commands, shm_buffer) {
-                tracing::warn!("shared-memory transport unavailable: {e}");
-            }
-        })
-        .context("cannot start the shared-memory thread")?;
     let publisher_shared = shared.clone();
     let policy_broadcast = std::thread::Builder::new()
         .name("shm-policy".into())

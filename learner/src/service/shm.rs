@@ -7,7 +7,7 @@ use std::collections::HashSet;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use lcrl_proto::shm::{remove_dead_nodes, service_name, PolicyPublisher, TransitionSubscriber, PUBLISHER_STREAM};
+use lcrl_proto::shm::{remove_dead_nodes, service_name, PolicyPublisher, SubscriberError, TransitionSubscriber, PUBLISHER_STREAM};
 use tokio::sync::mpsc;
 
 use crate::service::ingest::{Origin, Verdict};
@@ -18,12 +18,27 @@ use crate::service::shm_turns::PublisherTurns;
 /// gRPC batches and hands them to the training thread, until shutdown.
 /// `buffer`: samples that may wait in shared memory (1 to
 /// [`lcrl_proto::shm::SUBSCRIBER_MAX_BUFFER`]); each is policy lag.
-pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>, buffer: usize) -> Result<(), String> {
+/// `opened` is told whether the run's service opened (a live learner
+/// already serving this run id refuses it: one learner a run).
+pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>, buffer: usize, opened: std::sync::mpsc::SyncSender<Result<(), SubscriberError>>) -> Result<(), String> {
     let cleaned = remove_dead_nodes();
     if cleaned > 0 {
         tracing::info!(cleaned, "removed shared-memory resources of crashed processes");
     }
-    let subscriber = TransitionSubscriber::open(&shared.run_id, buffer)?;
+    let subscriber = match TransitionSubscriber::open(&shared.run_id, buffer) {
+        Ok(subscriber) => subscriber,
+        // The launcher reports a taken run id (and exits); shared memory
+        // that is unavailable here is this thread's warning.
+        Err(SubscriberError::RunTaken(id)) => {
+            let _ = opened.send(Err(SubscriberError::RunTaken(id)));
+            return Ok(());
+        }
+        Err(e) => {
+            let _ = opened.send(Err(e.clone()));
+            return Err(e.to_string());
+        }
+    };
+    let _ = opened.send(Ok(()));
     tracing::info!(service = %service_name(&shared.run_id), "shared-memory transport ready");
     let stop = shared.shutdown.subscribe();
     // Poll fast while data flows, back off to 2 ms when idle, and to 20 ms
