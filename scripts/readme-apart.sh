@@ -7,6 +7,7 @@
 # left to be run by hand. Hours: the study block trains experiments/paper.toml.
 #   bash scripts/readme-apart.sh            # run them
 #   bash scripts/readme-apart.sh --dry-run  # list them
+#   bash scripts/readme-apart.sh --only README.md:344   # one block (readme_blocks.py list)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh

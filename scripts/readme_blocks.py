@@ -32,7 +32,7 @@ What is substituted, and nothing else:
 Beside lti-run, the query commands `lcrl run` itself prints ("query it") are
 run as well.
 
-Usage: readme_blocks.py list | quick | apart [--dry-run]   [--file MD ...]
+Usage: readme_blocks.py list | quick | apart [--dry-run]   [--file MD ...] [--only FILE:LINE ...]
 Exits non-zero if a block has no mark, a quick block fails, or (apart) a block
 that can run here fails.
 """
@@ -290,6 +290,7 @@ def main():
     ap.add_argument("what", choices=["list", "quick", "apart"])
     ap.add_argument("--file", nargs="+", default=FILES, help="Markdown files (default: README.md docs/usage.md)")
     ap.add_argument("--dry-run", action="store_true", help="apart: list what would run")
+    ap.add_argument("--only", nargs="+", metavar="FILE:LINE", help="only these blocks (as `list` names them)")
     ap.add_argument("-v", "--verbose", action="store_true", help="quick: print every block's output, not only a failing one's")
     args = ap.parse_args()
     blocks = [b for f in args.file for b in blocks_of(f)]
@@ -303,6 +304,11 @@ def main():
         return 1 if problems else 0
     if problems:
         return 1
+    if args.only:
+        blocks = [b for b in blocks if b.where in args.only]
+        if not blocks:
+            print(f"no block at {' '.join(args.only)}; `list` names them", file=sys.stderr)
+            return 2
     failures = run_quick(blocks, args.verbose) if args.what == "quick" else run_apart(blocks, args.dry_run)
     if not args.dry_run:
         print(f"{failures} block(s) failed" if failures else "every block that could run here ran as printed")
