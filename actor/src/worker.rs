@@ -135,6 +135,27 @@ pub fn check_batch_fits(batch: usize, envs: usize, state_dim: usize, action_dim:
     Ok(())
 }
 
+/// Most unsound start states in a row before the actor gives up on its
+/// environment.
+pub const MAX_UNSOUND_RESETS: u32 = 100;
+
+/// Resets `env` at `seed`, and at the next seeds while its start state is
+/// beyond the environment's bounds (lcrl_sim::state_out_of_bounds; issue
+/// 82: a served environment's 1e30 start state ended a run): such a state
+/// is never acted on nor sent, each one is warned of and told to
+/// `on_unsound`, and after [`MAX_UNSOUND_RESETS`] in a row the actor stops
+/// with the reason.
+fn sound_reset(env: &mut dyn lcrl_sim::Env, seed: &mut u64, mut on_unsound: impl FnMut(&str)) -> anyhow::Result<Vec<f64>> {
+    for _ in 0..MAX_UNSOUND_RESETS {
+        let state = env.reset(*seed)?;
+        let Some(why) = lcrl_sim::state_out_of_bounds(env, &state) else { return Ok(state) };
+        tracing::warn!(episode_seed = *seed, "the environment's start state is unsound ({why}): that episode is skipped (diverged_env)");
+        on_unsound(&why);
+        *seed += 1;
+    }
+    anyhow::bail!("the environment gave {MAX_UNSOUND_RESETS} start states in a row beyond its bounds (lcrl_sim::STATE_LIMIT times its scale); its episodes cannot be trained on")
+}
+
 impl Rollout {
     /// K fresh environments of the policy's environment, reset.
     pub fn new(settings: RolloutSettings, policy: &Policy, explore: Exploration) -> anyhow::Result<Self> {
@@ -151,7 +172,7 @@ impl Rollout {
             .iter_mut()
             .map(|env| {
                 episode_seed += 1;
-                env.reset(episode_seed)
+                sound_reset(env.as_mut(), &mut episode_seed, |_| {})
             })
             .collect::<Result<_, _>>()?;
         let k = settings.envs;
@@ -269,7 +290,7 @@ impl Rollout {
                 metrics.episodes.inc();
                 (self.returns[k], self.lengths[k]) = (0.0, 0);
                 self.episode_seed += 1;
-                self.states[k] = self.envs[k].reset(self.episode_seed)?;
+                self.reset_sound(k, metrics)?;
             } else {
                 self.states[k] = step.state;
             }
@@ -296,7 +317,16 @@ impl Rollout {
         self.episodes_done += 1;
         (self.returns[k], self.lengths[k]) = (0.0, 0);
         self.episode_seed += 1;
-        self.states[k] = self.envs[k].reset(self.episode_seed)?;
+        self.reset_sound(k, metrics)
+    }
+
+    /// Resets environment k to a sound start ([`sound_reset`]); each
+    /// unsound one counts as a diverged episode against the budget.
+    fn reset_sound(&mut self, k: usize, metrics: &ActorMetrics) -> anyhow::Result<()> {
+        let mut unsound = 0;
+        self.states[k] = sound_reset(self.envs[k].as_mut(), &mut self.episode_seed, |_| unsound += 1)?;
+        metrics.diverged_env.inc_by(unsound);
+        self.episodes_done += unsound;
         Ok(())
     }
 
@@ -360,6 +390,42 @@ mod tests {
 
     fn settings(episodes: u64) -> RolloutSettings {
         RolloutSettings { envs: 3, batch: Some(50), noise: 0.1, seed: 4, episodes: Some(episodes), run_id: "r".into(), actor_id: "a".into() }
+    }
+
+    /// Start states beyond the bounds (issue 82: a served environment's
+    /// 1e30 start ended a run): about half of x₀ ~ U[0, 2·10⁴] lie beyond
+    /// 10⁴. Those episodes are skipped, counted as diverged_env against the
+    /// budget, and never acted on nor sent; the sound ones train. An
+    /// environment whose every start is unsound stops the actor with the
+    /// reason.
+    #[test]
+    fn unsound_start_states_are_skipped_never_sent() {
+        let path = std::env::temp_dir().join(format!("lcrl-unsound-starts-{}.toml", std::process::id()));
+        std::fs::write(&path, "kind = \"lti\"\ne = [[0.5]]\nf = [[1.0]]\ninitial_state_low = [0.0]\ninitial_state_high = [2e4]\nq = [[1e-9]]\nepisode_steps = 5\n").unwrap();
+        let env = path.to_string_lossy().to_string();
+        let policy = untrained_policy(&env, Algo::Ddpg, None, None, 1);
+        let settings = RolloutSettings { envs: 2, batch: Some(5), episodes: Some(40), ..settings(40) };
+        let mut rollout = Rollout::new(settings, &policy, Exploration { uniform: false, noise: 0.1 }).unwrap();
+        let metrics = ActorMetrics::default();
+        let mut batches = Vec::new();
+        while !rollout.finished() {
+            batches.extend(rollout.step(&policy, &metrics).unwrap());
+        }
+        batches.extend(rollout.take_batch(1));
+        let (skipped, trained) = (metrics.diverged_env.get(), metrics.episodes.get());
+        assert!(skipped >= 5 && trained >= 5 && skipped + trained >= 40, "skipped {skipped}, trained {trained}");
+        let sent: Vec<&Transition> = batches.iter().flat_map(|b| &b.transitions).collect();
+        assert!(sent.iter().all(|t| t.state[0].abs() <= 1e4), "an unsound start was acted on");
+        assert_eq!(batches.iter().map(|b| b.episodes.len() as u64).sum::<u64>(), trained);
+        std::fs::write(&path, "kind = \"lti\"\ne = [[0.5]]\nf = [[1.0]]\ninitial_state_low = [1e30]\ninitial_state_high = [1e30]\nepisode_steps = 5\n").unwrap();
+        let policy = untrained_policy(&env, Algo::Ddpg, None, None, 1);
+        let refused = Rollout::new(settings_for_one(), &policy, Exploration { uniform: false, noise: 0.1 }).err().expect("every start is unsound");
+        std::fs::remove_file(&path).ok();
+        assert!(refused.to_string().contains("start states in a row beyond its bounds"), "{refused}");
+    }
+
+    fn settings_for_one() -> RolloutSettings {
+        RolloutSettings { envs: 1, batch: Some(5), episodes: Some(10), ..settings(10) }
     }
 
     /// A simulator that blows up (x ← 30x + u): each episode ends at its first

@@ -284,7 +284,19 @@ def serve(sessions: Sessions, listen: str, workers: int, security: Security | No
     security = security or Security()
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=workers),
-        options=[("grpc.max_receive_message_length", 16 << 20), ("grpc.max_send_message_length", 16 << 20)],
+        options=[
+            ("grpc.max_receive_message_length", 16 << 20),
+            ("grpc.max_send_message_length", 16 << 20),
+            # lcrl's clients ping every 15 s, idle or not (lcrl_proto's
+            # limits.rs), and a call may take 120 s (docs/reliability.md).
+            # grpc's defaults take one ping in 5 min without data; issue 82
+            # saw "Too many pings" after about 45 s. Here a 50 s step and a
+            # 50 s idle pause both passed with and without these options,
+            # so they are a guard, not a measured fix: take a ping every
+            # 10 s, with or without a call.
+            ("grpc.http2.min_recv_ping_interval_without_data_ms", 10_000),
+            ("grpc.keepalive_permit_without_calls", 1),
+        ],
         interceptors=[TokenCheck(security)] if security.token else [],
     )
     lcrl_pb2_grpc.add_EnvironmentServicer_to_server(Servicer(sessions), server)

@@ -157,6 +157,26 @@ fn a_base_controller_is_recorded_and_is_the_first_policy() {
 /// A simulator that blows up (x ← 30x + u, from x = 1): every episode of
 /// `lcrl train` ends at its first step beyond the bounds, counted as
 /// diverged_env, and training goes on with finite weights (issue 71).
+/// A start state beyond the bounds (issue 82: a served environment's 1e30
+/// start ended `lcrl train` at episode 5) is never acted on: each such
+/// episode ends before its first step, counted as diverged_env, and the
+/// run finishes with its summary.
+#[test]
+fn unsound_start_states_end_their_episodes_and_the_run_finishes() {
+    let dir = tempfile::tempdir().unwrap();
+    let env = dir.path().join("unsound-starts.toml");
+    std::fs::write(&env, "kind = \"lti\"\ne = [[0.5]]\nf = [[1.0]]\ninitial_state_low = [1e30]\ninitial_state_high = [1e30]\nepisode_steps = 20\n").unwrap();
+    for algo in [Algo::Ddpg, Algo::Ppo] {
+        let cfg = tiny_with_episodes(6);
+        let run_dir = dir.path().join(format!("{algo:?}"));
+        let request = TrainRequest { env: env.to_string_lossy().into(), algo, connection: Connection::Global, graph: None, config: cfg, settings_source: "test".into(), run_dir: run_dir.clone(), resume: false, stop_after: None };
+        let outcome = train(&request, &mut |_| {}).unwrap();
+        assert_eq!((outcome.summary.diverged_env, outcome.summary.env_steps), (6, 0), "{algo:?}");
+        assert!(outcome.rows.iter().all(|r| r.length == 0 && r.episode_return == 0.0), "{algo:?}");
+        assert!(run_dir.join("summary.json").is_file(), "{algo:?}");
+    }
+}
+
 #[test]
 fn a_diverging_environment_ends_episodes_and_training_goes_on() {
     let dir = tempfile::tempdir().unwrap();

@@ -193,7 +193,15 @@ impl<'r> SingleProcessLoop<'r> {
         let steps_before = agent.counters().env_steps;
         let mut state = env.reset(lcrl_sim::seeds::training(self.cfg.run.seed, episode))?;
         let (mut total, mut length, mut opt_seconds) = (0.0, 0, 0.0);
-        loop {
+        // A start beyond the environment's bounds (issue 82: a served
+        // environment's 1e30 start state ended a run) is never acted on:
+        // the episode ends before its first step, as a diverged one.
+        let unsound_start = lcrl_sim::state_out_of_bounds(env, &state);
+        if let Some(why) = &unsound_start {
+            tracing::warn!("the environment's start state is unsound ({why}): the episode ends before its first step (diverged_env)");
+            agent.end_stream();
+        }
+        while unsound_start.is_none() {
             let obs = observe(env, &state);
             let u = agent.explore(&obs, episode);
             let (step, next_obs) = step_env(env, &self.actions, &u)?;
