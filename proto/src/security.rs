@@ -290,6 +290,11 @@ impl ServerSecurity {
     }
 
     /// A server reachable from other hosts without TLS is worth a warning.
+    /// Whether every call but health checks needs the bearer token.
+    pub fn requires_token(&self) -> bool {
+        self.check.token.is_some()
+    }
+
     pub fn warn_if_exposed(&self, addr: SocketAddr) {
         if self.tls.is_none() && !addr.ip().is_loopback() {
             tracing::warn!(%addr, "serving plain text on a non-loopback address: anyone who can reach it can read the traffic{}; pass --tls-cert/--tls-key (see `lcrl certs`)", if self.check.token.is_none() { " and call every RPC" } else { "" });

@@ -122,6 +122,11 @@ pub fn command_line(args: &LaunchArgs) -> anyhow::Result<(&'static str, Vec<OsSt
     if let (Some(addr), Role::Learner | Role::Actor) = (&args.metrics_listen, args.role) {
         argv.extend([OsString::from("--metrics-listen"), OsString::from(addr)]);
     }
+    // The learner serves beyond loopback without a token only when told:
+    // --insecure here says the network is nobody else's.
+    if args.insecure && matches!(args.role, Role::Learner) {
+        argv.push("--insecure".into());
+    }
     if args.log_json {
         argv.push("--log-json".into());
     }

@@ -238,3 +238,34 @@ async fn reflection_v1_lists_services_behind_the_token() {
     let refused = list(ClientSecurity::default()).await.unwrap_err();
     assert_eq!(refused.code(), tonic::Code::Unauthenticated);
 }
+
+/// A learner without a token serves loopback only (issue 82: a token-less
+/// learner was open to every peer that reached it): beyond loopback it
+/// refuses to start, naming the three ways on, unless it has a token or
+/// `--insecure` is said.
+#[test]
+fn a_learner_without_a_token_serves_loopback_only() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let learner = |extra: &[&str], run: &str| {
+        let mut cmd = workspace_bin("lcrl-learner");
+        cmd.args(["--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--run-id", run, "--listen", "0.0.0.0:0", "--run-dir"])
+            .arg(dir.path().join(run))
+            .args(extra)
+            .env_remove(lcrl_proto::security::TOKEN_FILE_ENV);
+        cmd
+    };
+    let out = learner(&[], "bare").output().unwrap();
+    super::common::assert_clean_failure(&out, "has no token");
+    for way in ["--token-file FILE", "127.0.0.1", "--insecure"] {
+        assert!(stderr(&out).contains(way), "{way}: {}", stderr(&out));
+    }
+    let token = dir.path().join("token");
+    std::fs::write(&token, "very-secret-token-0123456789").unwrap();
+    std::fs::set_permissions(&token, std::fs::Permissions::from_mode(0o600)).unwrap();
+    for (extra, run) in [(vec!["--token-file", token.to_str().unwrap()], "tokened"), (vec!["--insecure"], "insecure")] {
+        let (child, address) = super::common::spawn_listening(&mut learner(&extra, run));
+        drop(Proc(child));
+        assert!(address.starts_with("0.0.0.0:"), "{run}: {address}");
+    }
+}

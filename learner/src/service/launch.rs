@@ -68,8 +68,14 @@ pub struct LearnerArgs {
     #[arg(long, default_value = "default")]
     pub run_id: String,
     /// Address to serve on (port 0: any free port; printed as "listening on").
+    /// Beyond loopback it needs a token (--token-file) or --insecure.
     #[arg(long, default_value = "127.0.0.1:50052")]
     pub listen: SocketAddr,
+    /// Serve beyond loopback without a token (anyone who reaches the
+    /// address may send transitions and call every RPC): only on a network
+    /// nobody else joins.
+    #[arg(long)]
+    pub insecure: bool,
     /// Connection local: the graph as a graph.json file.
     #[arg(long, conflicts_with = "graph_builder")]
     pub graph: Option<PathBuf>,
@@ -241,6 +247,17 @@ pub async fn run(args: LearnerArgs, shutdown: impl Future<Output = ()>, listenin
     let _stop_threads = StopOnDrop(shared.clone());
     let listener = tokio::net::TcpListener::bind(args.listen).await.with_context(|| format!("cannot listen on {}; is another process using it?", args.listen))?;
     let addr = listener.local_addr()?;
+    // Issue 82: a token-less learner was open to every peer that reached
+    // it. Without a token it serves loopback only, unless told otherwise.
+    if !security.requires_token() && !addr.ip().is_loopback() && !args.insecure {
+        bail!(
+            "--listen {addr} is reachable from other hosts and this learner has no token, so anyone who reaches it could send transitions and call every RPC: \
+             give --token-file FILE (`lcrl certs` makes one), listen on 127.0.0.1, or add --insecure (only on a network nobody else joins)"
+        );
+    }
+    if !security.requires_token() {
+        tracing::info!(%addr, "no token: serving loopback only; every process on this host may call it (--token-file to require one)");
+    }
     listening(addr);
     security.warn_if_exposed(addr);
     tracing::info!(%addr, security = %security.describe(), "serving");
