@@ -214,6 +214,11 @@ pub fn remove_dead_nodes() -> usize {
     remove_dead_nodes_in(shm_config())
 }
 
+/// [`remove_dead_nodes`] in another process's namespace ([`NAMESPACE_ENV`]).
+pub fn remove_dead_nodes_of(namespace: &str) -> usize {
+    remove_dead_nodes_in(&config_in(Some(namespace)))
+}
+
 fn remove_dead_nodes_in(config: &Config) -> usize {
     quiet_iceoryx2();
     let mut removed = 0;

@@ -21,6 +21,9 @@ impl Drop for Proc {
     fn drop(&mut self) {
         let _ = self.0.kill();
         let _ = self.0.wait();
+        // A killed process leaves its shared memory behind, and nothing
+        // else will clean this test's namespace.
+        lcrl_proto::shm::remove_dead_nodes_of(&super::common::shm_namespace());
     }
 }
 
