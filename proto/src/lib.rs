@@ -17,6 +17,7 @@ pub mod files;
 pub mod incoming;
 pub mod limits;
 pub mod metrics_http;
+pub mod peer_rate;
 pub mod process;
 pub mod security;
 pub mod shm;

@@ -12,6 +12,8 @@ use std::sync::Arc;
 use axum::response::IntoResponse;
 use prometheus_client::registry::Registry;
 
+use crate::peer_rate::{PeerRate, METRICS_BURST, METRICS_PER_SECOND};
+
 /// The registry in the OpenMetrics text format.
 pub fn render(registry: &Registry) -> Result<String, std::fmt::Error> {
     let mut text = String::new();
@@ -26,6 +28,9 @@ pub async fn serve(
     stop: impl std::future::Future<Output = ()> + Send + 'static,
     live: impl Fn() -> Result<(), String> + Clone + Send + Sync + 'static,
 ) -> std::io::Result<()> {
+    // Scrapes per peer address (issue 82: a flood cost training more than
+    // a CPU hog did); /healthz is never limited.
+    let rate = Arc::new(PeerRate::new(METRICS_PER_SECOND, METRICS_BURST));
     let app = axum::Router::new()
         // Liveness for a supervisor (Kubernetes' livenessProbe): 200 while
         // the process makes progress, 503 with the reason when it does not.
@@ -43,9 +48,13 @@ pub async fn serve(
         )
         .route(
         "/metrics",
-        axum::routing::get(move || {
-            let registry = registry.clone();
+        axum::routing::get(move |axum::extract::ConnectInfo(Peer(peer)): axum::extract::ConnectInfo<Peer>| {
+            let (registry, rate) = (registry.clone(), rate.clone());
             async move {
+                if !rate.admit(Some(peer.ip())) {
+                    let why = format!("/metrics takes {METRICS_PER_SECOND} scrapes a second from one peer address ({METRICS_BURST} at once)\n");
+                    return (axum::http::StatusCode::TOO_MANY_REQUESTS, why).into_response();
+                }
                 match render(&registry) {
                     Ok(text) => ([(axum::http::header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")], text).into_response(),
                     Err(_) => axum::http::StatusCode::INTERNAL_SERVER_ERROR.into_response(),
@@ -53,7 +62,17 @@ pub async fn serve(
             }
         }),
     );
-    axum::serve(BoundedListener::new(listener), app).with_graceful_shutdown(stop).await
+    axum::serve(BoundedListener::new(listener), app.into_make_service_with_connect_info::<Peer>()).with_graceful_shutdown(stop).await
+}
+
+/// The address a /metrics request came from (axum's ConnectInfo).
+#[derive(Debug, Clone, Copy)]
+pub struct Peer(pub SocketAddr);
+
+impl axum::extract::connect_info::Connected<axum::serve::IncomingStream<'_, BoundedListener>> for Peer {
+    fn connect_info(stream: axum::serve::IncomingStream<'_, BoundedListener>) -> Self {
+        Peer(*stream.remote_addr())
+    }
 }
 
 /// Connections the /metrics server holds at once; more are closed on

@@ -190,6 +190,10 @@ pub(super) async fn watch_progress(
         }
         let status = match client.get_status(GetStatusRequest {}).await {
             Ok(s) => s.into_inner(),
+            // Another local process asked too often (GetStatus is rate
+            // bounded per peer address, and loopback is one): ask again
+            // at the next tick.
+            Err(e) if e.code() == tonic::Code::ResourceExhausted => continue,
             // Ctrl-C at a terminal reaches the whole process group: the
             // learner may stop before this process sees its own SIGINT.
             Err(e) => {

@@ -40,7 +40,7 @@ async fn status(url: &str) -> LearnerStatus {
 }
 
 /// GET `path` on the actor's metrics address: (status code, body).
-fn http_get(port: u16, path: &str) -> (u16, String) {
+pub(super) fn http_get(port: u16, path: &str) -> (u16, String) {
     let mut stream = std::net::TcpStream::connect(("127.0.0.1", port)).expect("metrics endpoint reachable");
     stream.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
     write!(stream, "GET {path} HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n").unwrap();
@@ -178,7 +178,8 @@ async fn actors_follow_a_restarted_learner_and_report_when_it_is_gone() {
     let deadline = Instant::now() + Duration::from_secs(60);
     while actor_version().unwrap_or(0.0) < 100.0 {
         assert!(Instant::now() < deadline, "the actor never got version 100");
-        tokio::time::sleep(Duration::from_millis(100)).await;
+        // Within /metrics' rate per peer (lcrl_proto::peer_rate).
+        tokio::time::sleep(Duration::from_millis(200)).await;
     }
     assert_eq!(http_get(actor_metrics, "/healthz").0, 200);
     learner.signal("KILL");

@@ -513,7 +513,12 @@ async fn serve(args: &LearnerArgs, security: &ServerSecurity, listener: tokio::n
     let check = security.token_check();
     let watch_budget = WatchBudget::new(args.watch_budget_mib << 20);
     let request_budget = RequestBudget::new(args.request_budget_mib << 20);
-    let learner = LearnerServer::new(LearnerService { shared: shared.clone(), commands: commands.clone(), watch_budget })
+    let learner = LearnerServer::new(LearnerService {
+        shared: shared.clone(),
+        commands: commands.clone(),
+        watch_budget,
+        status_rate: lcrl_proto::peer_rate::PeerRate::new(lcrl_proto::peer_rate::STATUS_PER_SECOND, lcrl_proto::peer_rate::STATUS_BURST),
+    })
         .max_decoding_message_size(args.max_batch_bytes as usize)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let act_latency = crate::service::metrics::act_latency_histogram();

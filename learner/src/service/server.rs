@@ -29,6 +29,8 @@ pub struct LearnerService {
     pub shared: Arc<Shared>,
     pub commands: mpsc::Sender<Command>,
     pub watch_budget: WatchBudget,
+    /// GetStatus calls per peer address (lcrl_proto::peer_rate).
+    pub status_rate: lcrl_proto::peer_rate::PeerRate,
 }
 
 /// Counts a connected actor for as long as its stream lives, and frees
@@ -173,7 +175,13 @@ impl Learner for LearnerService {
         Ok(Response::new(Box::pin(stream)))
     }
 
-    async fn get_status(&self, _request: Request<GetStatusRequest>) -> Result<Response<LearnerStatus>, Status> {
+    async fn get_status(&self, request: Request<GetStatusRequest>) -> Result<Response<LearnerStatus>, Status> {
+        use lcrl_proto::peer_rate::{STATUS_BURST, STATUS_PER_SECOND};
+        if !self.status_rate.admit(request.remote_addr().map(|addr| addr.ip())) {
+            return Err(Status::resource_exhausted(format!(
+                "GetStatus takes {STATUS_PER_SECOND} calls a second from one peer address ({STATUS_BURST} at once); ask less often"
+            )));
+        }
         let s = &self.shared;
         let rejected = s.ingest_counts().1.into_iter().collect();
         let flow = s.flow();
