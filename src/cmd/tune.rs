@@ -99,19 +99,19 @@ pub fn run(args: &TuneArgs) -> anyhow::Result<()> {
         bar.finish_and_clear();
         let mut report = report?;
         // On a linear system the optimum is known: LQR on the same starts.
-        report.lqr_return = lcrl_sim::lti::LtiEnv::of(env.as_ref()).and_then(|lti| lcrl_learner::algo::lqr::lqr_return(lti, report.eval_episodes, report.eval_seed));
+        report.lqr_return = lcrl_sim::lti::LtiEnv::of(env.as_ref()).and_then(|lti| lcrl_learner::algo::lqr::lqr_return(lti, report.record.eval_episodes, report.record.eval_seed));
         let path = args.out.join("best_policy.json");
         lcrl::output::write_atomic(&path, &(serde_json::to_string_pretty(&report)? + "\n"))?;
-        println!("best {:?} policy of {} ({} candidates, {:.1} s):", family, report.env, report.evaluations, report.elapsed_s);
-        println!("on {} evaluation episodes from seed {}:", report.eval_episodes, report.eval_seed);
+        println!("best {:?} policy of {} ({} candidates, {:.1} s):", family, report.record.env, report.record.evaluations, report.record.elapsed_s);
+        println!("on {} evaluation episodes from seed {}:", report.record.eval_episodes, report.record.eval_seed);
         println!("  {:<22} {:>12} {:>9} {:>12}", "controller", "mean return", "success", "peak force");
-        for (label, r) in [("a = 0", &report.zero_action), ("start constant", &report.start_constant), ("feedback policy", &report.best)] {
+        for (label, r) in [("a = 0", &report.record.zero_action), ("start constant", &report.start_constant), ("feedback policy", &report.record.best)] {
             println!("  {label:<22} {:>12.3} {:>9} {:>12}", r.eval.mean_return, pct(r.eval.success_rate), force(r.eval.mean_peak_force_n));
         }
         if let Some(lqr) = report.lqr_return {
             println!("  {:<22} {lqr:>12.3}", "LQR (the optimum)");
         }
-        print_terms(&report.terms);
+        print_terms(&report.record.terms);
         println!("wrote {}", path.display());
         return Ok(());
     }

@@ -20,7 +20,7 @@ use serde::Serialize;
 
 pub use super::policy::{Family, FeedbackPolicy, StoredPolicy};
 use super::{action_of, constant_return, u_of, ConstantResult, TuneError, TuneOptions};
-use crate::env::{Env, EnvError, ReturnColumns};
+use crate::env::{Env, EnvError};
 use crate::evaluate::{evaluate, run_episode};
 
 /// Millimetres below the hole entrance where the depth-switched family
@@ -61,39 +61,23 @@ fn policy_return(template: &dyn Env, policy: &FeedbackPolicy, episodes: usize, s
     Ok(total / episodes as f64)
 }
 
-/// What `lcrl tune --policy` writes (best_policy.json): the fields of
-/// best_constant.json, with the policy and the constant it started from.
+/// What `lcrl tune --policy` writes (best_policy.json): best_constant.json's
+/// record of the search ([`super::TuneReport`], its `action` the policy's
+/// at u₀ and its figures the policy's), with the state names, the policy
+/// and the constant it started from.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct PolicyReport {
-    pub env: String,
-    pub action_names: Vec<String>,
-    pub state_names: Vec<String>,
-    /// The policy's action at u₀ (its constant part).
-    pub action: Vec<f64>,
-    /// Its figures on the evaluation starts.
-    pub mean_return: f64,
-    pub success_rate: Option<f64>,
-    pub mean_peak_force_n: Option<f64>,
     #[serde(flatten)]
-    pub terms: ReturnColumns,
+    pub record: super::TuneReport,
+    pub state_names: Vec<String>,
     pub policy: FeedbackPolicy,
-    pub best: ConstantResult,
     /// The constant the search started from, on the same starts.
     pub start_constant: ConstantResult,
-    /// The constant compliance controller (a = 0) on the same starts.
-    pub zero_action: ConstantResult,
     /// On linear systems, LQR's mean return on the same evaluation starts
     /// (the known optimum the search is measured against); filled by the
     /// caller, which has the Riccati solver.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub lqr_return: Option<f64>,
-    pub tuning_episodes: usize,
-    pub tuning_seed: u64,
-    pub eval_episodes: usize,
-    pub eval_seed: u64,
-    pub evaluations: usize,
-    pub method: String,
-    pub elapsed_s: f64,
 }
 
 impl StoredPolicy {
@@ -172,32 +156,13 @@ pub fn tune_policy(template: &dyn Env, family: Family, start: &[f64], opts: &Tun
     let start_constant = super::evaluate_constant(template, start, constant_return(template, start, opts.episodes, opts.seed)?, opts)?;
     let zero = vec![0.0; n];
     let zero_action = super::evaluate_constant(template, &zero, constant_return(template, &zero, opts.episodes, opts.seed)?, opts)?;
-    Ok(PolicyReport {
-        env: spec.name.clone(),
-        action_names: spec.action_names.clone(),
-        state_names: spec.state_names.clone(),
-        action,
-        mean_return: best.eval.mean_return,
-        success_rate: best.eval.success_rate,
-        mean_peak_force_n: best.eval.mean_peak_force_n,
-        terms: best.eval.terms,
-        policy,
-        best,
-        start_constant,
-        zero_action,
-        lqr_return: None,
-        tuning_episodes: opts.episodes,
-        tuning_seed: opts.seed,
-        eval_episodes: opts.eval_episodes,
-        eval_seed: opts.eval_seed,
-        evaluations,
-        method: format!(
-            "CMA-ES (cmaes crate) over u0 and the gains of the {family:?} family on the normalized state, start at the given constant with K = 0, \
-             sigma {}, up to {} candidates of {} episodes each; the start kept if nothing beats it",
-            opts.sigma, opts.evaluations, opts.episodes
-        ),
-        elapsed_s: started.elapsed().as_secs_f64(),
-    })
+    let method = format!(
+        "CMA-ES (cmaes crate) over u0 and the gains of the {family:?} family on the normalized state, start at the given constant with K = 0, \
+         sigma {}, up to {} candidates of {} episodes each; the start kept if nothing beats it",
+        opts.sigma, opts.evaluations, opts.episodes
+    );
+    let record = super::TuneReport::of(&spec, best, zero_action, opts, evaluations, method, started);
+    Ok(PolicyReport { record, state_names: spec.state_names.clone(), policy, start_constant, lqr_return: None })
 }
 
 #[cfg(test)]
@@ -220,7 +185,7 @@ mod tests {
         let report = tune_policy(&env, Family::Affine, &[0.0], &opts, &|_| {}).unwrap();
         let gain = report.policy.gains[0][0][0];
         assert!(gain < -0.1, "the gain on s must be negative, got {gain}");
-        assert!(report.mean_return > report.start_constant.eval.mean_return + 0.1, "{} vs {}", report.mean_return, report.start_constant.eval.mean_return);
+        assert!(report.record.mean_return > report.start_constant.eval.mean_return + 0.1, "{} vs {}", report.record.mean_return, report.start_constant.eval.mean_return);
         // An environment without a depth has no depth-switched family.
         assert!(tune_policy(&env, Family::DepthSwitched, &[0.0], &opts, &|_| {}).is_err());
     }

@@ -74,12 +74,16 @@ pub struct ConstantResult {
     pub eval: Summary,
 }
 
-/// What `lcrl tune` writes: the best constant and a = 0 beside it.
+/// What `lcrl tune` writes (best_constant.json), and what its policy
+/// search's file (best_policy.json, [`feedback::PolicyReport`]) holds
+/// first: the action found, its figures on the evaluation starts, a = 0
+/// beside it, and how the search ran.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct TuneReport {
     pub env: String,
     pub action_names: Vec<String>,
-    /// The best constant action found.
+    /// The best constant action found (a policy search: the policy's
+    /// action at u₀, its constant part).
     pub action: Vec<f64>,
     /// Its figures on the evaluation starts (the bar).
     pub mean_return: f64,
@@ -98,6 +102,31 @@ pub struct TuneReport {
     pub evaluations: usize,
     pub method: String,
     pub elapsed_s: f64,
+}
+
+impl TuneReport {
+    /// The record of a search whose result is `best`: its figures are
+    /// `best`'s on the evaluation starts.
+    fn of(spec: &crate::env::EnvSpec, best: ConstantResult, zero_action: ConstantResult, opts: &TuneOptions, evaluations: usize, method: String, started: Instant) -> Self {
+        TuneReport {
+            env: spec.name.clone(),
+            action_names: spec.action_names.clone(),
+            action: best.action.clone(),
+            mean_return: best.eval.mean_return,
+            success_rate: best.eval.success_rate,
+            mean_peak_force_n: best.eval.mean_peak_force_n,
+            terms: best.eval.terms,
+            best,
+            zero_action,
+            tuning_episodes: opts.episodes,
+            tuning_seed: opts.seed,
+            eval_episodes: opts.eval_episodes,
+            eval_seed: opts.eval_seed,
+            evaluations,
+            method,
+            elapsed_s: started.elapsed().as_secs_f64(),
+        }
+    }
 }
 
 /// Mean return of a constant action over `episodes` starts from `seed`,
@@ -184,27 +213,11 @@ pub fn tune(template: &dyn Env, opts: &TuneOptions, on_candidate: &(dyn Fn(f64) 
 
     let best = evaluate_constant(template, &best_action, best_return, opts)?;
     let zero_action = evaluate_constant(template, &zero, zero_return, opts)?;
-    Ok(TuneReport {
-        env: spec.name.clone(),
-        action_names: spec.action_names.clone(),
-        action: best_action,
-        mean_return: best.eval.mean_return,
-        success_rate: best.eval.success_rate,
-        mean_peak_force_n: best.eval.mean_peak_force_n,
-        terms: best.eval.terms,
-        best,
-        zero_action,
-        tuning_episodes: opts.episodes,
-        tuning_seed: opts.seed,
-        eval_episodes: opts.eval_episodes,
-        eval_seed: opts.eval_seed,
-        evaluations,
-        method: format!(
-            "CMA-ES (cmaes crate) in the box mapped to [-1,1]^n, start a = 0, sigma {}, up to {} candidates of {} episodes each; a = 0 kept if nothing beats it",
-            opts.sigma, opts.evaluations, opts.episodes
-        ),
-        elapsed_s: started.elapsed().as_secs_f64(),
-    })
+    let method = format!(
+        "CMA-ES (cmaes crate) in the box mapped to [-1,1]^n, start a = 0, sigma {}, up to {} candidates of {} episodes each; a = 0 kept if nothing beats it",
+        opts.sigma, opts.evaluations, opts.episodes
+    );
+    Ok(TuneReport::of(&spec, best, zero_action, opts, evaluations, method, started))
 }
 
 #[derive(Debug, thiserror::Error)]
