@@ -45,7 +45,7 @@ impl Pipeline {
         let shape = &architecture.shape;
         let mut vs = nn::VarStore::new(Device::Cpu);
         // The seed is irrelevant: every weight is overwritten below.
-        let actor = build_actor(&vs.root(), shape.connection, &shape.mask, shape.state_dim, shape.action_dim, &architecture.network, 0);
+        let actor = build_actor(&vs.root(), shape.layout(), &architecture.network, 0);
         let named = decode_weights(weights)?;
         for (name, target) in vs.variables().iter_mut() {
             let source = named.iter().find(|(n, _)| n == name).map(|(_, t)| t).with_context(|| format!("actor.safetensors lacks the weights {name}"))?;

@@ -23,7 +23,7 @@ use super::file::{max_difference, run_module, TOLERANCE};
 fn weights(architecture: &Architecture, seed: u64) -> Vec<u8> {
     let vs = nn::VarStore::new(Device::Cpu);
     let s = &architecture.shape;
-    build_actor(&vs.root(), s.connection, &s.mask, s.state_dim, s.action_dim, &architecture.network, seed);
+    build_actor(&vs.root(), s.layout(), &architecture.network, seed);
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut named: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
     named.sort_by(|a, b| a.0.cmp(&b.0));

@@ -145,11 +145,35 @@ pub trait Agent: Send {
     fn actor_variables(&self) -> Vec<(String, tch::Tensor)>;
 }
 
-/// Builds the actor for a connection pattern. `mask` is G (n × m) for
-/// `Local`; ignored otherwise.
-/// Initial weights come from `seed` alone.
-// args: an actor shape's fields, which its callers hold in an AgentSetup (Ddpg::new, Ppo::new) or in an ActorShape (Policy, src/export): no one struct to pass yet
-pub fn build_actor(path: &nn::Path, connection: Connection, mask: &[Vec<u8>], m: usize, n: usize, cfg: &NetworkConfig, seed: u64) -> ActorNet {
+/// What an actor network's wiring is: its connection pattern, G (n × m,
+/// for `Local`; ignored otherwise) and its sizes. An [`AgentSetup`] and a
+/// published policy's shape (policy::snapshot::ActorShape) each give one.
+#[derive(Debug, Clone, Copy)]
+pub struct ActorLayout<'a> {
+    pub connection: Connection,
+    pub mask: &'a [Vec<u8>],
+    pub state_dim: usize,
+    pub action_dim: usize,
+}
+
+impl AgentSetup<'_> {
+    pub fn layout(&self) -> ActorLayout<'_> {
+        ActorLayout { connection: self.connection, mask: self.mask, state_dim: self.state_dim, action_dim: self.action_dim }
+    }
+
+    /// A new actor of this setup in a variable store of its own on its
+    /// device (both agents' actors, DDPG's target too, are built so).
+    pub fn new_actor(&self, cfg: &NetworkConfig) -> (nn::VarStore, ActorNet) {
+        let vs = nn::VarStore::new(self.device);
+        let actor = build_actor(&vs.root(), self.layout(), cfg, self.seed ^ 0xAC70);
+        (vs, actor)
+    }
+}
+
+/// Builds the actor of a layout (eq. 8 for `Local`). Initial weights come
+/// from `seed` alone.
+pub fn build_actor(path: &nn::Path, layout: ActorLayout, cfg: &NetworkConfig, seed: u64) -> ActorNet {
+    let ActorLayout { connection, mask, state_dim: m, action_dim: n } = layout;
     let rng = &mut ChaCha8Rng::seed_from_u64(seed);
     match connection {
         Connection::Local => ActorNet::Subnets(SubnetActor::new(path, mask, &cfg.subnet_hidden, cfg.activation, rng)),

@@ -298,8 +298,8 @@ mod tests {
         let opts = TuneOptions { evaluations: 1500, sigma: 0.1, ..TuneOptions::default() };
         let report = tune_policy(&env, Family::Affine, &[0.0; 3], &opts, &|_| {}).unwrap();
         let lqr = lqr_return(&env, opts.eval_episodes, opts.eval_seed).unwrap();
-        let zero = report.zero_action.eval.mean_return;
-        assert!((report.mean_return - lqr).abs() <= 0.10 * lqr.abs(), "affine {} vs LQR {lqr} (a = 0: {zero})", report.mean_return);
+        let zero = report.record.zero_action.eval.mean_return;
+        assert!((report.record.mean_return - lqr).abs() <= 0.10 * lqr.abs(), "affine {} vs LQR {lqr} (a = 0: {zero})", report.record.mean_return);
         // And it is a real gain: a = 0 is far from both.
         assert!(zero < lqr - 0.5 * lqr.abs(), "a = 0 {zero} vs LQR {lqr}");
     }

@@ -27,7 +27,7 @@ use tch::{nn, Device, Kind, Tensor};
 
 use crate::algo::adam::Adam;
 use crate::algo::agent::{
-    build_actor, build_critic, load_optimizers, load_vs, read_agent_state, save_optimizers, save_vs, write_agent_state, Agent, AgentSetup,
+    build_critic, load_optimizers, load_vs, read_agent_state, save_optimizers, save_vs, write_agent_state, Agent, AgentSetup,
     Counters, RngState, Transition,
 };
 use crate::config::{NetworkConfig, PpoConfig};
@@ -119,9 +119,8 @@ struct PpoState {
 
 impl Ppo {
     pub fn new(cfg: &PpoConfig, net: &NetworkConfig, setup: AgentSetup) -> Self {
-        let AgentSetup { connection, mask, state_dim: m, action_dim: n, seed, device } = setup;
-        let actor_vs = nn::VarStore::new(device);
-        let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
+        let (actor_vs, actor) = setup.new_actor(net);
+        let AgentSetup { state_dim: m, action_dim: n, seed, device, .. } = setup;
         let log_std = actor_vs.root().var("log_std", &[n as i64], nn::Init::Const(cfg.log_std_init));
         let critic_vs = nn::VarStore::new(device);
         let critic = build_critic(&critic_vs.root(), m, net, seed ^ 0xC717);

@@ -25,6 +25,13 @@ pub struct ActorShape {
     pub mask: Vec<Vec<u8>>,
 }
 
+impl ActorShape {
+    /// The actor network's wiring (algo::agent::build_actor builds it).
+    pub fn layout(&self) -> crate::algo::agent::ActorLayout<'_> {
+        crate::algo::agent::ActorLayout { connection: self.connection, mask: &self.mask, state_dim: self.state_dim, action_dim: self.action_dim }
+    }
+}
+
 /// Enough to rebuild the actor before loading its weights, and to step the
 /// environment it was trained on.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -33,7 +33,7 @@ impl Policy {
         let vs = nn::VarStore::new(tch::Device::Cpu);
         let a = &architecture;
         // The weights are overwritten right after; the seed is irrelevant.
-        let actor = build_actor(&vs.root(), a.shape.connection, &a.shape.mask, a.shape.state_dim, a.shape.action_dim, &a.network, 0);
+        let actor = build_actor(&vs.root(), a.shape.layout(), &a.network, 0);
         (vs, actor, architecture)
     }
 

@@ -182,7 +182,7 @@ fn valid_weights(poison: Option<f32>) -> Vec<u8> {
 fn weights_of(architecture: serde_json::Value, poison: Option<f32>) -> Vec<u8> {
     let arch: crate::policy::snapshot::Architecture = serde_json::from_value(architecture).expect("valid architecture");
     let vs = tch::nn::VarStore::new(tch::Device::Cpu);
-    let _actor = crate::algo::agent::build_actor(&vs.root(), arch.shape.connection, &arch.shape.mask, 3, 3, &arch.network, 0);
+    let _actor = crate::algo::agent::build_actor(&vs.root(), arch.shape.layout(), &arch.network, 0);
     let named: Vec<(String, tch::Tensor)> = vs
         .variables()
         .into_iter()

@@ -161,7 +161,7 @@ pub fn tune_policy(template: &dyn Env, family: Family, start: &[f64], opts: &Tun
          sigma {}, up to {} candidates of {} episodes each; the start kept if nothing beats it",
         opts.sigma, opts.evaluations, opts.episodes
     );
-    let record = super::TuneReport::of(&spec, best, zero_action, opts, evaluations, method, started);
+    let record = super::TuneReport::of(&spec, (best, zero_action), opts, evaluations, method, started);
     Ok(PolicyReport { record, state_names: spec.state_names.clone(), policy, start_constant, lqr_return: None })
 }
 

@@ -105,9 +105,9 @@ pub struct TuneReport {
 }
 
 impl TuneReport {
-    /// The record of a search whose result is `best`: its figures are
-    /// `best`'s on the evaluation starts.
-    fn of(spec: &crate::env::EnvSpec, best: ConstantResult, zero_action: ConstantResult, opts: &TuneOptions, evaluations: usize, method: String, started: Instant) -> Self {
+    /// The record of a search begun at `started` whose result is `best`:
+    /// its figures are `best`'s on the evaluation starts.
+    fn of(spec: &crate::env::EnvSpec, (best, zero_action): (ConstantResult, ConstantResult), opts: &TuneOptions, evaluations: usize, method: String, started: Instant) -> Self {
         TuneReport {
             env: spec.name.clone(),
             action_names: spec.action_names.clone(),
@@ -217,7 +217,7 @@ pub fn tune(template: &dyn Env, opts: &TuneOptions, on_candidate: &(dyn Fn(f64) 
         "CMA-ES (cmaes crate) in the box mapped to [-1,1]^n, start a = 0, sigma {}, up to {} candidates of {} episodes each; a = 0 kept if nothing beats it",
         opts.sigma, opts.evaluations, opts.episodes
     );
-    Ok(TuneReport::of(&spec, best, zero_action, opts, evaluations, method, started))
+    Ok(TuneReport::of(&spec, (best, zero_action), opts, evaluations, method, started))
 }
 
 #[derive(Debug, thiserror::Error)]

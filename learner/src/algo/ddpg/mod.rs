@@ -39,7 +39,7 @@ use tch::{nn, Device, Kind, Tensor};
 use crate::algo::adam::Adam;
 use crate::device::cuda_graph::CudaGraph;
 use crate::algo::agent::{
-    build_actor, build_critic, load_optimizer, load_vs, read_agent_state, read_tensors, save_optimizer, save_vs, write_agent_state, write_tensors, Agent, AgentSetup,
+    build_critic, load_optimizer, load_vs, read_agent_state, read_tensors, save_optimizer, save_vs, write_agent_state, write_tensors, Agent, AgentSetup,
     Counters, RngState, Transition,
 };
 use crate::config::{DdpgConfig, NetworkConfig};
@@ -145,11 +145,9 @@ struct DdpgState {
 
 impl Ddpg {
     pub fn new(cfg: &DdpgConfig, net: &NetworkConfig, setup: AgentSetup) -> Self {
-        let AgentSetup { connection, mask, state_dim: m, action_dim: n, seed, device } = setup;
-        let actor_vs = nn::VarStore::new(device);
-        let actor = build_actor(&actor_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
-        let mut actor_target_vs = nn::VarStore::new(device);
-        let actor_target = build_actor(&actor_target_vs.root(), connection, mask, m, n, net, seed ^ 0xAC70);
+        let (actor_vs, actor) = setup.new_actor(net);
+        let (mut actor_target_vs, actor_target) = setup.new_actor(net);
+        let AgentSetup { state_dim: m, action_dim: n, seed, device, .. } = setup;
         // The target starts as an exact copy (same variable names by construction).
         let _ = actor_target_vs.copy(&actor_vs);
         let mut critics = vec![Critic::new("critic", cfg, net, m + n, seed ^ 0xC717, device)];
