@@ -99,7 +99,7 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("lcrl: error: {}", lcrl_proto::process::error_chain(&e));
+            eprintln!("lcrl: error: {}", lcrl_runtime::process::error_chain(&e));
             ExitCode::FAILURE
         }
     }

@@ -84,13 +84,13 @@ impl RunSecurity {
             std::env::set_var(lcrl_sim::remote::TLS_CLIENT_KEY_ENV, Self::file(dir, "client.key")?);
         }
         if let Some(token) = &self.token_file {
-            std::env::set_var(lcrl_proto::security::TOKEN_FILE_ENV, token);
+            std::env::set_var(lcrl_runtime::security::TOKEN_FILE_ENV, token);
         }
         Ok(())
     }
 
     /// This process as a client of the run's servers.
-    pub fn client(&self) -> anyhow::Result<lcrl_proto::security::ClientSecurity> {
+    pub fn client(&self) -> anyhow::Result<lcrl_runtime::security::ClientSecurity> {
         let (ca, cert, key) = match &self.tls_dir {
             Some(dir) => {
                 let file = |name: &str| Self::file(dir, name).map(PathBuf::from).map(Some);
@@ -99,7 +99,7 @@ impl RunSecurity {
             None => (None, None, None),
         };
         let identity = cert.as_deref().zip(key.as_deref());
-        Ok(lcrl_proto::security::ClientSecurity::new(ca.as_deref(), identity, self.token_file.as_deref())?)
+        Ok(lcrl_runtime::security::ClientSecurity::new(ca.as_deref(), identity, self.token_file.as_deref())?)
     }
 }
 

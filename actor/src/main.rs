@@ -5,10 +5,10 @@
 
 use clap::Parser;
 use lcrl_actor::process::{run, ActorArgs};
-use lcrl_proto::process::shutdown_signal;
+use lcrl_runtime::process::shutdown_signal;
 
 fn main() -> std::process::ExitCode {
     let args = ActorArgs::parse();
     // The environments step on their own thread; the runtime only talks.
-    lcrl_proto::process::run_service("lcrl-actor", args.log_json, 1, run(args, shutdown_signal()))
+    lcrl_runtime::process::run_service("lcrl-actor", args.log_json, 1, run(args, shutdown_signal()))
 }

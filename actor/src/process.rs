@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use clap::Parser;
-use lcrl_proto::security::{AuthChannel, ClientSecurity, ClientSecurityArgs};
+use lcrl_runtime::security::{AuthChannel, ClientSecurity, ClientSecurityArgs};
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::TransitionBatch;
 use tokio::sync::{mpsc, watch};
@@ -45,7 +45,7 @@ pub struct ActorArgs {
     #[arg(long, value_enum, default_value_t = Transport::Grpc)]
     pub transport: Transport,
     /// Environment instances in this process (1 to 1024).
-    #[arg(long, default_value_t = 1, value_parser = lcrl_proto::process::count_in::<1, MAX_ENVS>)]
+    #[arg(long, default_value_t = 1, value_parser = lcrl_runtime::process::count_in::<1, MAX_ENVS>)]
     pub envs: usize,
     /// The run to join (must match the learner's --run-id).
     #[arg(long, default_value = "default")]
@@ -57,7 +57,7 @@ pub struct ActorArgs {
     /// wait for the learner together, so a smaller batch is less policy
     /// lag), 64 for PPO (each batch end cuts PPO's advantage estimates);
     /// docs/scaling.md, "Policy lag". 1 to 4096.
-    #[arg(long, value_parser = lcrl_proto::process::count_in::<1, MAX_BATCH>)]
+    #[arg(long, value_parser = lcrl_runtime::process::count_in::<1, MAX_BATCH>)]
     pub batch: Option<usize>,
     /// Exploration noise std in normalized action units (DDPG; PPO uses the
     /// policy's own std). A finite number ≥ 0.
@@ -168,7 +168,7 @@ type Envs = std::thread::JoinHandle<anyhow::Result<()>>;
 /// address as "metrics on ADDR".
 async fn serve_metrics(addr: SocketAddr, args: &ActorArgs, metrics: &ActorMetrics, progress: &Progress) -> anyhow::Result<()> {
     let registry = Arc::new(metrics.registry());
-    let (listener, bound) = lcrl_proto::metrics_http::bind(addr).await.with_context(|| format!("cannot serve metrics on {addr}; is another process using it?"))?;
+    let (listener, bound) = lcrl_runtime::metrics_http::bind(addr).await.with_context(|| format!("cannot serve metrics on {addr}; is another process using it?"))?;
     // Not println!: a launcher may have stopped reading stdout.
     let _ = std::io::Write::write_fmt(&mut std::io::stdout(), format_args!("metrics on {bound}\n"));
     // Live while the learner answers: a batch acknowledged or a policy
@@ -180,7 +180,7 @@ async fn serve_metrics(addr: SocketAddr, args: &ActorArgs, metrics: &ActorMetric
         _ => Ok(()),
     };
     tokio::spawn(async move {
-        if let Err(e) = lcrl_proto::metrics_http::serve(listener, registry, std::future::pending(), live).await {
+        if let Err(e) = lcrl_runtime::metrics_http::serve(listener, registry, std::future::pending(), live).await {
             tracing::warn!("metrics endpoint stopped: {e}");
         }
     });

@@ -9,8 +9,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use lcrl_learner::policy::trained::Policy;
-use lcrl_proto::limits::Backoff;
-use lcrl_proto::security::{AuthChannel, ClientSecurity};
+use lcrl_runtime::limits::Backoff;
+use lcrl_runtime::security::{AuthChannel, ClientSecurity};
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::{BatchAck, GetPolicyRequest, PolicySnapshot, TransitionBatch, WatchPolicyRequest};
 use tokio::sync::{mpsc, watch};
@@ -31,7 +31,7 @@ pub const REJECTIONS_TO_STOP: usize = 3;
 const DUPLICATES_TO_SAY: usize = 3;
 
 /// Connects, retrying with exponential backoff and jitter until
-/// `deadline` (every call on the channel has lcrl_proto::limits' call
+/// `deadline` (every call on the channel has lcrl_runtime::limits' call
 /// deadline and keepalive, so a learner that accepts and never answers
 /// fails calls instead of hanging them).
 pub async fn connect(url: &str, security: &ClientSecurity, deadline: Duration) -> anyhow::Result<LearnerClient<AuthChannel>> {
@@ -292,7 +292,7 @@ pub fn is_fatal(status: &tonic::Status) -> bool {
     use tonic::Code;
     matches!(status.code(), Code::Unauthenticated | Code::PermissionDenied | Code::FailedPrecondition | Code::OutOfRange)
         || (status.code() == Code::ResourceExhausted
-            && (status.message().starts_with(lcrl_proto::codec::TOO_MANY_ENTRIES) || status.message().starts_with(lcrl_proto::limits::TOO_LARGE)))
+            && (status.message().starts_with(lcrl_proto::codec::TOO_MANY_ENTRIES) || status.message().starts_with(lcrl_runtime::limits::TOO_LARGE)))
 }
 
 /// A refusal as an error that says what to do.
@@ -303,7 +303,7 @@ pub fn refused(status: tonic::Status) -> anyhow::Error {
         Code::PermissionDenied => anyhow::anyhow!("the learner refused this actor: {} (its certificate is not one the learner accepts; see `lcrl certs`)", status.message()),
         Code::FailedPrecondition => anyhow::anyhow!("the learner refused this actor: {} (give the learner's run id with --run-id)", status.message()),
         Code::OutOfRange | Code::ResourceExhausted => anyhow::anyhow!("the learner refused a batch as too large: {} (lower --batch)", status.message()),
-        Code::DeadlineExceeded | Code::Cancelled => anyhow::anyhow!("the learner did not answer within {} s: {} (is it overloaded or stuck? check its log)", lcrl_proto::limits::CALL_TIMEOUT.as_secs(), status.message()),
+        Code::DeadlineExceeded | Code::Cancelled => anyhow::anyhow!("the learner did not answer within {} s: {} (is it overloaded or stuck? check its log)", lcrl_runtime::limits::CALL_TIMEOUT.as_secs(), status.message()),
         _ => anyhow::anyhow!("{status}"),
     }
 }

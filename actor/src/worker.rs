@@ -114,12 +114,12 @@ pub struct Rollout {
 }
 
 /// Refuses a batch size the learner would refuse (its default limits,
-/// lcrl_proto::limits): said at start, with the size that fits, rather
+/// lcrl_runtime::limits): said at start, with the size that fits, rather
 /// than a batch refused in the middle of a run. A batch closes at the
 /// first whole round of the K environments at or past `batch`, so it may
 /// hold up to `batch + K − 1` transitions.
 pub fn check_batch_fits(batch: usize, envs: usize, state_dim: usize, action_dim: usize) -> anyhow::Result<()> {
-    use lcrl_proto::limits::{MAX_BATCH_BYTES, MAX_REPEATED_ENTRIES};
+    use lcrl_runtime::limits::{MAX_BATCH_BYTES, MAX_REPEATED_ENTRIES};
     // Upper bound of one encoded transition: state and next state, the
     // applied and the sampled action as f32, and its scalars and framing.
     let per_transition = 4 * (2 * state_dim + 2 * action_dim) + 64;

@@ -17,7 +17,7 @@ pub struct GraphArgs {
     pub env: String,
     /// ST: CS3 samples per action component; more samples, steadier phi
     /// (1 to 100000000).
-    #[arg(long, default_value_t = 256, value_parser = lcrl_proto::process::count_in::<1, MAX_SAMPLES>)]
+    #[arg(long, default_value_t = 256, value_parser = lcrl_runtime::process::count_in::<1, MAX_SAMPLES>)]
     pub samples: usize,
     /// T of eq. 7: keep action i for state j when phi(i,j) ≥ T × the mean
     /// effect of all actions on j [default: 0.1, the publication's value].
@@ -45,11 +45,11 @@ pub struct GraphArgs {
     pub seed: u64,
     /// Rollout threads (0: one per core, at most 1024); the result does
     /// not depend on it.
-    #[arg(long, default_value_t = 0, value_parser = lcrl_proto::process::count_in::<0, MAX_THREADS>)]
+    #[arg(long, default_value_t = 0, value_parser = lcrl_runtime::process::count_in::<0, MAX_THREADS>)]
     pub threads: usize,
     /// Bootstrap resamples for each entry's stability (0 to skip, at most
     /// 100000).
-    #[arg(long, default_value_t = crate::DEFAULT_BOOTSTRAP, value_parser = lcrl_proto::process::count_in::<0, MAX_BOOTSTRAP>)]
+    #[arg(long, default_value_t = crate::DEFAULT_BOOTSTRAP, value_parser = lcrl_runtime::process::count_in::<0, MAX_BOOTSTRAP>)]
     pub bootstrap: usize,
     /// Write the graph as JSON here (read back by `lcrl train --graph`).
     #[arg(long, value_name = "FILE.json")]
@@ -80,7 +80,7 @@ pub struct GraphArgs {
     #[arg(long, conflicts_with_all = ["threshold", "thresholds", "exact", "random", "random_rows", "explain", "rows", "plot"])]
     pub choose_t: bool,
     /// CS3 seeds of --choose-t (2 to 64).
-    #[arg(long, default_value_t = 8, requires = "choose_t", value_parser = lcrl_proto::process::count_in::<2, 64>)]
+    #[arg(long, default_value_t = 8, requires = "choose_t", value_parser = lcrl_runtime::process::count_in::<2, 64>)]
     pub choose_seeds: usize,
     /// Draw, for every action, as many states as this graph gives it (a
     /// row with none stays empty), uniformly; --seed picks the draw. The

@@ -7,10 +7,10 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use clap::Parser;
-use lcrl_proto::process::shutdown_signal;
+use lcrl_runtime::process::shutdown_signal;
 use lcrl_graph_builder::cli::GraphArgs;
 use lcrl_graph_builder::service::{self, GraphState};
-use lcrl_proto::security::{ServerSecurity, ServerSecurityArgs};
+use lcrl_runtime::security::{ServerSecurity, ServerSecurityArgs};
 use tokio::sync::watch;
 
 #[derive(Debug, Parser)]
@@ -32,7 +32,7 @@ struct Args {
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
     // CS3 runs on its own thread pool; the runtime only serves gRPC.
-    lcrl_proto::process::run_service("lcrl-graph-builder", args.log_json, 2, run(args))
+    lcrl_runtime::process::run_service("lcrl-graph-builder", args.log_json, 2, run(args))
 }
 
 async fn run(args: Args) -> anyhow::Result<()> {

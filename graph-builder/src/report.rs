@@ -164,7 +164,7 @@ impl GraphReport {
     /// Writes pretty JSON, atomically (a learner may be reading it).
     pub fn write_json(&self, path: &Path) -> Result<(), GraphError> {
         let text = serde_json::to_string_pretty(self).map_err(|e| GraphError::Json(e.to_string()))?;
-        lcrl_proto::files::write_atomically(path, (text + "\n").as_bytes()).map_err(|source| GraphError::Io { path: path.into(), source })
+        lcrl_runtime::files::write_atomically(path, (text + "\n").as_bytes()).map_err(|source| GraphError::Io { path: path.into(), source })
     }
 
     /// The rule, in words, for headings.

@@ -1,6 +1,6 @@
 //! The `lcrl.v1.Graph` gRPC service: a thin handler over the current
 //! [`GraphState`], plus health checking and server reflection
-//! ([`lcrl_proto::process::add_reflection`]).
+//! ([`lcrl_runtime::process::add_reflection`]).
 
 use std::future::Future;
 use std::sync::Arc;
@@ -11,7 +11,7 @@ use tokio_stream::wrappers::WatchStream;
 use tokio_stream::{Stream, StreamExt};
 use tokio::net::TcpListener;
 use tokio::sync::watch;
-use lcrl_proto::security::ServerSecurity;
+use lcrl_runtime::security::ServerSecurity;
 use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status};
 use tonic_health::ServingStatus;
@@ -75,7 +75,7 @@ pub async fn serve(
     security: ServerSecurity,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
-    let (health, health_service) = lcrl_proto::process::health_service();
+    let (health, health_service) = lcrl_runtime::process::health_service();
     let graph_name = <GraphServer<GraphService> as tonic::server::NamedService>::NAME;
     let mut watcher = state.clone();
     let ready = |w: &mut watch::Receiver<GraphState>| {
@@ -101,8 +101,8 @@ pub async fn serve(
         .add_service(health_service)
         .add_service(InterceptedService::new(
             // Its requests are empty messages: nothing larger is decoded.
-            GraphServer::new(GraphService::new(state)).max_decoding_message_size(lcrl_proto::process::SMALL_REQUEST_BYTES),
+            GraphServer::new(GraphService::new(state)).max_decoding_message_size(lcrl_runtime::process::SMALL_REQUEST_BYTES),
             check.clone(),
         ));
-    lcrl_proto::process::add_reflection(router, &check).serve_with_incoming_shutdown(security.incoming(listener), shutdown).await
+    lcrl_runtime::process::add_reflection(router, &check).serve_with_incoming_shutdown(security.incoming(listener), shutdown).await
 }

@@ -8,11 +8,11 @@
 
 use clap::Parser;
 use lcrl_learner::service::launch::{run, LearnerArgs};
-use lcrl_proto::process::shutdown_signal;
+use lcrl_runtime::process::shutdown_signal;
 
 fn main() -> std::process::ExitCode {
     let args = LearnerArgs::parse();
     // Training has its own thread; the runtime serves gRPC and metrics.
     // "listening on ADDR" is the first line of stdout, for launchers.
-    lcrl_proto::process::run_service("lcrl-learner", args.log_json, 2, run(args, shutdown_signal(), |addr| println!("listening on {addr}")))
+    lcrl_runtime::process::run_service("lcrl-learner", args.log_json, 2, run(args, shutdown_signal(), |addr| println!("listening on {addr}")))
 }

@@ -15,7 +15,10 @@ use tonic::codec::{Codec, DecodeBuf, Decoder};
 use tonic::Status;
 use tonic_prost::{ProstDecoder, ProstEncoder};
 
-use crate::limits::MAX_REPEATED_ENTRIES;
+/// The most entries of one repeated field a message may hold (transitions
+/// of a batch, sessions of an environment call), checked on the wire
+/// before decoding.
+pub const MAX_REPEATED_ENTRIES: usize = 4096;
 
 /// The start of a refusal's message, so servers can count it by reason.
 pub const TOO_MANY_ENTRIES: &str = "too many entries";

@@ -15,7 +15,7 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::Duration;
 
-use lcrl_proto::security::{AuthChannel, ClientSecurity};
+use lcrl_runtime::security::{AuthChannel, ClientSecurity};
 use lcrl_proto::v1::environment_client::EnvironmentClient;
 use lcrl_proto::v1::{CloseRequest, ForkRequest, GetSpecRequest, OpenRequest, ResetRequest, SessionReset, SessionStep, StepRequest};
 
@@ -179,7 +179,7 @@ impl RemoteEnv {
             .map_err(|e| {
                 unreachable(format!(
                     "cannot connect ({}); start the environment server first, e.g. `.venv/bin/python -m lcrl_env serve --env Pendulum-v1 --listen {address}`",
-                    lcrl_proto::security::error_chain(&e)
+                    lcrl_runtime::security::error_chain(&e)
                 ))
             })?;
         let channel = tonic::service::interceptor::InterceptedService::new(channel, bearer);

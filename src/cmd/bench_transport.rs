@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use lcrl::binaries::sibling;
 use anyhow::Context;
-use lcrl_proto::security::ClientSecurity;
+use lcrl_runtime::security::ClientSecurity;
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::policy_client::PolicyClient;
 use lcrl_proto::v1::{ActRequest, GetStatusRequest, Transition, TransitionBatch};

@@ -142,7 +142,7 @@ fn check_listen(listen: &str, args: &LaunchArgs) -> anyhow::Result<()> {
             "--listen {listen} is reachable from other hosts, and without TLS anyone who reaches it can read the traffic{}: \
              add --tls-dir DIR (a folder `lcrl certs` writes), or --insecure to serve plain text anyway (only on a network nobody else joins), \
              or listen on 127.0.0.1",
-            if args.security.token_file.is_some() || std::env::var_os(lcrl_proto::security::TOKEN_FILE_ENV).is_some() { ", the token included" } else { " and call every RPC" }
+            if args.security.token_file.is_some() || std::env::var_os(lcrl_runtime::security::TOKEN_FILE_ENV).is_some() { ", the token included" } else { " and call every RPC" }
         );
     }
     Ok(())

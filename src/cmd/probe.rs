@@ -5,7 +5,7 @@
 use std::time::Duration;
 
 use anyhow::bail;
-use lcrl_proto::security::{ClientSecurity, ClientSecurityArgs};
+use lcrl_runtime::security::{ClientSecurity, ClientSecurityArgs};
 use lcrl::supervise::is_serving;
 
 #[derive(Debug, clap::Args)]
@@ -92,5 +92,5 @@ pub fn status(args: &StatusArgs) -> anyhow::Result<()> {
 /// connection), which `error_chain` then names (issue 71).
 fn refused_call(url: &str, status: &tonic::Status) -> anyhow::Error {
     let causes = std::iter::successors(std::error::Error::source(status), |c| c.source());
-    anyhow::anyhow!(lcrl_proto::process::with_causes(format!("{url}: {}", status.message()), causes))
+    anyhow::anyhow!(lcrl_runtime::process::with_causes(format!("{url}: {}", status.message()), causes))
 }

@@ -8,7 +8,7 @@
 use std::net::SocketAddr;
 
 use anyhow::Context;
-use lcrl_proto::security::{ServerSecurity, ServerSecurityArgs};
+use lcrl_runtime::security::{ServerSecurity, ServerSecurityArgs};
 use lcrl_proto::v1::environment_server::EnvironmentServer;
 use lcrl_sim::serve::{EnvironmentService, ServeSettings, Sessions};
 use tonic::service::interceptor::InterceptedService;
@@ -48,7 +48,7 @@ async fn serve(args: &ServeEnvArgs, sessions: Sessions, security: ServerSecurity
     println!("listening on {addr}");
     security.warn_if_exposed(addr);
     eprintln!("serving {} over lcrl.v1.Environment ({}); Ctrl-C stops", args.env, security.describe());
-    let (health, health_service) = lcrl_proto::process::health_service();
+    let (health, health_service) = lcrl_runtime::process::health_service();
     health.set_serving::<EnvironmentServer<EnvironmentService>>().await;
     let check = security.token_check();
     // Requests carry a few actions of a few numbers each; 4 MiB holds
@@ -59,8 +59,8 @@ async fn serve(args: &ServeEnvArgs, sessions: Sessions, security: ServerSecurity
         .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
         .add_service(health_service)
         .add_service(InterceptedService::new(environment, check.clone()));
-    lcrl_proto::process::add_reflection(router, &check)
-        .serve_with_incoming_shutdown(security.incoming(listener), lcrl_proto::process::shutdown_signal())
+    lcrl_runtime::process::add_reflection(router, &check)
+        .serve_with_incoming_shutdown(security.incoming(listener), lcrl_runtime::process::shutdown_signal())
         .await
         .context("the environment server failed")
 }

@@ -93,7 +93,7 @@ pub fn install(partial: &Path, path: &Path, prepared: &Prepared, actions: &[f32]
 
 /// Where a file is written before it is checked: beside `path`, hidden.
 pub fn partial_of(path: &Path) -> anyhow::Result<std::path::PathBuf> {
-    let dir = lcrl_proto::files::folder_of(path);
+    let dir = lcrl_runtime::files::folder_of(path);
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     Ok(dir.join(format!(".{}.{}.partial", path.file_name().map(|n| n.to_string_lossy()).unwrap_or_default(), std::process::id())))
 }

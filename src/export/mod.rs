@@ -301,7 +301,7 @@ fn write_manifest(path: &Path, manifest: &Manifest, format: Format, entry: &File
     }
     manifest.files.insert(format.key().into(), entry.clone());
     let text = serde_json::to_string_pretty(&manifest)?;
-    lcrl_proto::files::write_atomically(path, format!("{text}\n").as_bytes()).with_context(|| format!("writing {}", path.display()))?;
+    lcrl_runtime::files::write_atomically(path, format!("{text}\n").as_bytes()).with_context(|| format!("writing {}", path.display()))?;
     Ok(manifest)
 }
 

@@ -45,7 +45,7 @@ pub struct RunArgs {
     pub episodes: Option<u64>,
     /// Episodes of the final policy's evaluation (overrides the preset's
     /// run.eval_episodes; 1 to 100000).
-    #[arg(long, value_parser = lcrl_proto::process::count_in::<1, 100_000>)]
+    #[arg(long, value_parser = lcrl_runtime::process::count_in::<1, 100_000>)]
     pub eval_episodes: Option<usize>,
     /// First seed of the evaluation starts (overrides run.eval_seed); 0 is
     /// `lcrl tune`'s, the starts of the best constant and a = 0.
@@ -116,7 +116,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
         recorded = format!("# graph: measured, eq. 7 at T = {t}: {}\n{recorded}", lcrl_graph_builder::choose_t::threshold_reason(t));
     }
     crate::output::write_atomic(&run_dir.join("config.toml"), &recorded)?;
-    let token_in_env = std::env::var_os(lcrl_proto::security::TOKEN_FILE_ENV).is_some();
+    let token_in_env = std::env::var_os(lcrl_runtime::security::TOKEN_FILE_ENV).is_some();
     let security = with_own_token(&args.security, token_in_env, &run_dir)?;
     // A served environment lives until the run's end: the final evaluation
     // steps it too. Dropped last, it is stopped after everything else.

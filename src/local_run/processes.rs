@@ -110,7 +110,7 @@ pub(super) async fn start_processes(
     logs: &Path,
     transport: &str,
     security: &RunSecurity,
-    client_security: &lcrl_proto::security::ClientSecurity,
+    client_security: &lcrl_runtime::security::ClientSecurity,
     run_id: &str,
 ) -> anyhow::Result<Processes> {
     let job = &preset.job;
@@ -171,7 +171,7 @@ impl Processes {
 /// Shows the learner's progress until it reports the budget spent (false)
 /// or a stop signal arrives (true); with the last status read.
 pub(super) async fn watch_progress(
-    client: &mut LearnerClient<tonic::service::interceptor::InterceptedService<tonic::transport::Channel, lcrl_proto::security::Bearer>>,
+    client: &mut LearnerClient<tonic::service::interceptor::InterceptedService<tonic::transport::Channel, lcrl_runtime::security::Bearer>>,
     stop_signals: &mut StopSignals,
     actors: &mut Actors,
     episodes: u64,

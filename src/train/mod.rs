@@ -66,7 +66,7 @@ pub struct TrainArgs {
     pub seed: Option<u64>,
     /// Episodes of the deterministic policy evaluated after training
     /// (overrides run.eval_episodes; 1 to 100000).
-    #[arg(long, value_parser = lcrl_proto::process::count_in::<1, 100_000>)]
+    #[arg(long, value_parser = lcrl_runtime::process::count_in::<1, 100_000>)]
     pub eval_episodes: Option<usize>,
     /// First seed of the evaluation starts (overrides run.eval_seed; by
     /// default the run's own held-out range). `lcrl tune`'s are 0 on: with
@@ -153,10 +153,10 @@ fn serve_configured_env(args: &TrainArgs) -> anyhow::Result<Option<(TrainArgs, c
     let mut cmd = server.command(&listen, 3, path.parent().unwrap_or(std::path::Path::new(".")))?;
     // Its own token, as `lcrl run` gives its servers (unless one is set):
     // this process, its only client, reads it from $LCRL_TOKEN_FILE.
-    if std::env::var_os(lcrl_proto::security::TOKEN_FILE_ENV).is_none() {
+    if std::env::var_os(lcrl_runtime::security::TOKEN_FILE_ENV).is_none() {
         let token = args.run_dir.join("token");
         crate::run_security::write_token(&token)?;
-        std::env::set_var(lcrl_proto::security::TOKEN_FILE_ENV, &token);
+        std::env::set_var(lcrl_runtime::security::TOKEN_FILE_ENV, &token);
     }
     crate::supervise::die_with_parent(&mut cmd);
     let (process, address) = crate::supervise::Managed::spawn("env-server", cmd, &logs, true)?;

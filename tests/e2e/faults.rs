@@ -13,7 +13,7 @@ use lcrl_proto::v1::policy_client::PolicyClient;
 use lcrl_proto::v1::{ActBatchRequest, GetStatusRequest, LearnerStatus, Transition, TransitionBatch};
 
 use super::common::{stderr, workspace_bin};
-use lcrl_proto::security::ClientSecurity;
+use lcrl_runtime::security::ClientSecurity;
 
 use super::distributed::{actor_with_args, batch, free_port, learner_with_args, wait_for};
 use super::hostile::{rss_kib, send_all};
@@ -178,7 +178,7 @@ async fn actors_follow_a_restarted_learner_and_report_when_it_is_gone() {
     let deadline = Instant::now() + Duration::from_secs(60);
     while actor_version().unwrap_or(0.0) < 100.0 {
         assert!(Instant::now() < deadline, "the actor never got version 100");
-        // Within /metrics' rate per peer (lcrl_proto::peer_rate).
+        // Within /metrics' rate per peer (lcrl_runtime::peer_rate).
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
     assert_eq!(http_get(actor_metrics, "/healthz").0, 200);
@@ -257,7 +257,7 @@ async fn an_actor_against_a_silent_server_fails_instead_of_hanging() {
         .spawn()
         .unwrap();
     let started = Instant::now();
-    let limit = lcrl_proto::limits::CALL_TIMEOUT + Duration::from_secs(20);
+    let limit = lcrl_runtime::limits::CALL_TIMEOUT + Duration::from_secs(20);
     let out = tokio::task::spawn_blocking(move || wait_output(child, limit)).await.unwrap().expect("the actor hung on a silent server");
     assert!(!out.status.success());
     let err = stderr(&out);
@@ -344,7 +344,7 @@ async fn pinging_connections_and_unfinished_metrics_requests_are_closed() {
     let addr = url.trim_start_matches("http://").to_string();
     let frame = |kind: u8, flags: u8, payload: &[u8]| [&(payload.len() as u32).to_be_bytes()[1..], &[kind, flags], &[0, 0, 0, 0], payload].concat();
     let started = Instant::now();
-    let limit = lcrl_proto::limits::CALL_DEADLINE + Duration::from_secs(10);
+    let limit = lcrl_runtime::limits::CALL_DEADLINE + Duration::from_secs(10);
     let pingers: Vec<_> = (0..3)
         .map(|_| {
             let addr = addr.clone();
@@ -382,12 +382,12 @@ async fn pinging_connections_and_unfinished_metrics_requests_are_closed() {
     for pinger in pingers {
         let closed = tokio::task::spawn_blocking(move || pinger.join().unwrap()).await.unwrap();
         let at = closed.expect("a connection that only pings was still open");
-        assert!(at >= lcrl_proto::limits::CALL_DEADLINE - Duration::from_secs(1), "closed after {at:?}, before its deadline");
+        assert!(at >= lcrl_runtime::limits::CALL_DEADLINE - Duration::from_secs(1), "closed after {at:?}, before its deadline");
     }
     assert!(status(&url).await.connections_refused["no_call"] >= 3);
     // The unfinished GETs are closed within their lifetime (and /metrics
     // answers again).
-    let deadline = Instant::now() + lcrl_proto::metrics_http::METRICS_CONNECTION_LIFETIME + Duration::from_secs(10);
+    let deadline = Instant::now() + lcrl_runtime::metrics_http::METRICS_CONNECTION_LIFETIME + Duration::from_secs(10);
     for mut s in loris {
         assert!(closed_by(&mut s, deadline), "an unfinished /metrics request was still held past its lifetime");
     }

@@ -7,7 +7,7 @@
 use std::time::Duration;
 
 use bytes::{Buf, BufMut};
-use lcrl_proto::security::ClientSecurity;
+use lcrl_runtime::security::ClientSecurity;
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::{GetPolicyRequest, GetStatusRequest, LearnerStatus, Transition, TransitionBatch, WatchPolicyRequest};
 use tonic::codec::{Codec, DecodeBuf, Decoder, EncodeBuf, Encoder};
@@ -535,7 +535,7 @@ async fn a_forged_episode_counts_only_the_steps_that_arrived() {
 /// answer again. Training goes on throughout.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn status_and_metrics_floods_are_rate_bounded_per_peer() {
-    use lcrl_proto::peer_rate::{METRICS_BURST, STATUS_BURST};
+    use lcrl_runtime::peer_rate::{METRICS_BURST, STATUS_BURST};
     use super::distributed::wait_for;
     let dir = tempfile::tempdir().unwrap();
     let metrics_port = free_port();

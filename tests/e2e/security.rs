@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use lcrl_proto::security::ClientSecurity;
+use lcrl_runtime::security::ClientSecurity;
 use lcrl_proto::v1::learner_client::LearnerClient;
 use lcrl_proto::v1::{GetStatusRequest, LearnerStatus};
 use tonic_health::pb::{health_client::HealthClient, HealthCheckRequest};
@@ -252,7 +252,7 @@ fn a_learner_without_a_token_serves_loopback_only() {
         cmd.args(["--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--run-id", run, "--listen", "0.0.0.0:0", "--run-dir"])
             .arg(dir.path().join(run))
             .args(extra)
-            .env_remove(lcrl_proto::security::TOKEN_FILE_ENV);
+            .env_remove(lcrl_runtime::security::TOKEN_FILE_ENV);
         cmd
     };
     let out = learner(&[], "bare").output().unwrap();

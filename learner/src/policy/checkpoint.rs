@@ -11,7 +11,7 @@ use std::collections::BTreeMap;
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
-use lcrl_proto::files::{folder_of, sync_dir, sync_file};
+use lcrl_runtime::files::{folder_of, sync_dir, sync_file};
 use serde::{Deserialize, Serialize};
 
 use crate::algo::agent::Agent;

@@ -197,8 +197,8 @@ impl MetricsLog {
         }
         log.file.sync_all().map_err(io(&partial))?;
         std::fs::rename(&partial, path).map_err(io(path))?;
-        let dir = lcrl_proto::files::folder_of(path);
-        lcrl_proto::files::sync_dir(dir).map_err(io(dir))?;
+        let dir = lcrl_runtime::files::folder_of(path);
+        lcrl_runtime::files::sync_dir(dir).map_err(io(dir))?;
         log.path = path.to_path_buf();
         Ok(log)
     }
@@ -268,10 +268,10 @@ impl MetricsLog {
     }
 }
 
-/// [`lcrl_proto::files::write_atomically`] (temp file, fsync, rename), the
+/// [`lcrl_runtime::files::write_atomically`] (temp file, fsync, rename), the
 /// one atomic writer of every file a run or a command writes.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), LearnerError> {
-    lcrl_proto::files::write_atomically(path, bytes).map_err(io(path))
+    lcrl_runtime::files::write_atomically(path, bytes).map_err(io(path))
 }
 
 #[cfg(test)]

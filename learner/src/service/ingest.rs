@@ -109,7 +109,7 @@ pub struct Origin {
 impl Origin {
     /// The peer whose ids count against [`MAX_ACTORS_PER_PEER`].
     fn counted_peer(&self) -> Option<std::net::IpAddr> {
-        self.peer.and_then(lcrl_proto::limits::counted_peer)
+        self.peer.and_then(lcrl_runtime::limits::counted_peer)
     }
 }
 
@@ -342,8 +342,8 @@ impl Ingest {
             return Err(Door::Reject("unknown_run", // A peer's string in the log: at most 64 characters of it.
                 format!("run id '{}' is not this learner's run ('{}')", batch.run_id.chars().take(64).collect::<String>(), self.run_id)));
         }
-        if batch.actor_id.len() > lcrl_proto::limits::MAX_ACTOR_ID_BYTES {
-            return Err(Door::Reject("actor_id", format!("actor_id is {} bytes; at most {} are kept", batch.actor_id.len(), lcrl_proto::limits::MAX_ACTOR_ID_BYTES)));
+        if batch.actor_id.len() > lcrl_runtime::limits::MAX_ACTOR_ID_BYTES {
+            return Err(Door::Reject("actor_id", format!("actor_id is {} bytes; at most {} are kept", batch.actor_id.len(), lcrl_runtime::limits::MAX_ACTOR_ID_BYTES)));
         }
         Ok(())
     }

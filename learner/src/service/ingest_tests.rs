@@ -211,7 +211,7 @@ fn batches_of_another_incarnation_are_stale_for_an_on_policy_learner() {
 #[test]
 fn actor_ids_are_bounded_in_length_and_number() {
     let mut ingest = ingest(None);
-    let long = "x".repeat(lcrl_proto::limits::MAX_ACTOR_ID_BYTES + 1);
+    let long = "x".repeat(lcrl_runtime::limits::MAX_ACTOR_ID_BYTES + 1);
     assert!(matches!(ingest.check(&batch(&long, 1, vec![0.0; 3]), 3), Verdict::Reject { reason: "actor_id", .. }));
     assert!(matches!(ingest.check(&batch(&long[1..], 1, vec![0.0; 3]), 3), Verdict::Accept(_)));
     for k in 1..MAX_ACTORS {

@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use clap::Parser;
-use lcrl_proto::security::{ClientSecurity, ServerSecurity, ServerSecurityArgs};
+use lcrl_runtime::security::{ClientSecurity, ServerSecurity, ServerSecurityArgs};
 use lcrl_proto::v1::graph_client::GraphClient;
 use lcrl_proto::v1::learner_server::LearnerServer;
 use lcrl_proto::v1::policy_server::PolicyServer;
@@ -140,7 +140,7 @@ pub struct LearnerArgs {
     /// The largest transition batch accepted, bytes: a larger one ends its
     /// stream with RESOURCE_EXHAUSTED before it is decoded (counted as
     /// "oversize"). The default holds 4096 transitions of the peg tasks.
-    #[arg(long, default_value_t = lcrl_proto::limits::MAX_BATCH_BYTES as u64, value_parser = clap::value_parser!(u64).range(1024..=(64 << 20)))]
+    #[arg(long, default_value_t = lcrl_runtime::limits::MAX_BATCH_BYTES as u64, value_parser = clap::value_parser!(u64).range(1024..=(64 << 20)))]
     pub max_batch_bytes: u64,
     /// The most states one `Policy.ActBatch` call may hold.
     #[arg(long, default_value_t = 4096, value_parser = clap::value_parser!(u64).range(1..=1_000_000))]
@@ -197,7 +197,7 @@ fn checkpoint_secs(text: &str) -> Result<f64, String> {
 /// G from a graph builder, retrying while it is unreachable or building.
 async fn fetch_graph(url: &str, security: &ClientSecurity, timeout: Duration, n: usize, m: usize) -> anyhow::Result<Vec<Vec<u8>>> {
     let deadline = Instant::now() + timeout;
-    let mut backoff = lcrl_proto::limits::Backoff::new(Duration::from_millis(200), Duration::from_secs(5));
+    let mut backoff = lcrl_runtime::limits::Backoff::new(Duration::from_millis(200), Duration::from_secs(5));
     loop {
         let attempt = async {
             let mut client = GraphClient::new(security.connect(url).await?);
@@ -507,7 +507,7 @@ struct Server {
 /// Serves gRPC on `listener` (and /metrics where asked), every service but
 /// health behind the token when there is one.
 async fn serve(args: &LearnerArgs, security: &ServerSecurity, listener: tokio::net::TcpListener, shared: &Arc<Shared>, commands: &mpsc::Sender<Command>, m: usize) -> anyhow::Result<Server> {
-    let (health, health_service) = lcrl_proto::process::health_service();
+    let (health, health_service) = lcrl_runtime::process::health_service();
     health.set_serving::<LearnerServer<LearnerService>>().await;
     health.set_serving::<PolicyServer<PolicyService>>().await;
     let check = security.token_check();
@@ -517,7 +517,7 @@ async fn serve(args: &LearnerArgs, security: &ServerSecurity, listener: tokio::n
         shared: shared.clone(),
         commands: commands.clone(),
         watch_budget,
-        status_rate: lcrl_proto::peer_rate::PeerRate::new(lcrl_proto::peer_rate::STATUS_PER_SECOND, lcrl_proto::peer_rate::STATUS_BURST),
+        status_rate: lcrl_runtime::peer_rate::PeerRate::new(lcrl_runtime::peer_rate::STATUS_PER_SECOND, lcrl_runtime::peer_rate::STATUS_BURST),
     })
         .max_decoding_message_size(args.max_batch_bytes as usize)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
@@ -546,7 +546,7 @@ async fn serve(args: &LearnerArgs, security: &ServerSecurity, listener: tokio::n
         .add_service(InterceptedService::new(Budgeted::new(learner, request_budget.clone()), check.clone()))
         .add_service(InterceptedService::new(Budgeted::new(policy, request_budget), check.clone()));
     // TLS where configured; TCP_NODELAY on accepted sockets.
-    let serving = lcrl_proto::process::add_reflection(router, &check).serve_with_incoming_shutdown(security.incoming(listener), async move {
+    let serving = lcrl_runtime::process::add_reflection(router, &check).serve_with_incoming_shutdown(security.incoming(listener), async move {
         let _ = stopped.await;
     });
     Ok(Server { task: tokio::spawn(serving), stop })
@@ -556,12 +556,12 @@ async fn serve(args: &LearnerArgs, security: &ServerSecurity, listener: tokio::n
 /// second line of stdout, after "listening on", for launchers and tests.
 async fn serve_metrics(addr: SocketAddr, shared: &Arc<Shared>, commands: &mpsc::Sender<Command>, act_latency: prometheus_client::metrics::histogram::Histogram) -> anyhow::Result<()> {
     let registry = Arc::new(crate::service::metrics::learner_registry(shared.clone(), commands.clone(), act_latency));
-    let (listener, bound) = lcrl_proto::metrics_http::bind(addr).await.with_context(|| format!("cannot serve metrics on {addr}; is another process using it?"))?;
+    let (listener, bound) = lcrl_runtime::metrics_http::bind(addr).await.with_context(|| format!("cannot serve metrics on {addr}; is another process using it?"))?;
     // Not println!: a launcher may have stopped reading stdout.
     let _ = std::io::Write::write_fmt(&mut std::io::stdout(), format_args!("metrics on {bound}\n"));
     let stopping = shared.stopping();
     tokio::spawn(async move {
-        if let Err(e) = lcrl_proto::metrics_http::serve(listener, registry, stopping, || Ok(())).await {
+        if let Err(e) = lcrl_runtime::metrics_http::serve(listener, registry, stopping, || Ok(())).await {
             tracing::warn!("metrics endpoint stopped: {e}");
         }
     });

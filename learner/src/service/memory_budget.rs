@@ -5,7 +5,7 @@
 //! for (the peer retries), and one peer address holds at most a quarter of
 //! a budget: a host that opens streams and never finishes them cannot shut
 //! out every other. Loopback addresses, where `lcrl run` starts its
-//! actors, are not counted per peer (`lcrl_proto::limits::counted_peer`).
+//! actors, are not counted per peer (`lcrl_runtime::limits::counted_peer`).
 
 use std::collections::HashMap;
 use std::net::IpAddr;
@@ -95,7 +95,7 @@ impl MemoryBudget {
 
     /// `bytes` more for `peer`, or why not.
     pub fn take(&self, bytes: usize, peer: Option<IpAddr>) -> Result<Held, Refusal> {
-        let counted = peer.and_then(lcrl_proto::limits::counted_peer);
+        let counted = peer.and_then(lcrl_runtime::limits::counted_peer);
         let mut by_peer = self.by_peer.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
         if let Some(ip) = counted {
             if by_peer.get(&ip).copied().unwrap_or(0).saturating_add(bytes) > self.peer_share() {

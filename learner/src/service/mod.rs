@@ -16,7 +16,7 @@
 //! - [`flow`]: replay ratio, waits, policy lag and the budget, as reported.
 //! - [`server`]: the `lcrl.v1.Learner` and `lcrl.v1.Policy` gRPC handlers.
 //! - [`serving_share`]: policy queries within their share of the time.
-//! - [`metrics`]: the learner's Prometheus metrics (served by `lcrl_proto::metrics_http`).
+//! - [`metrics`]: the learner's Prometheus metrics (served by `lcrl_runtime::metrics_http`).
 //! - [`shm`]: the learner's ends of the same-host transport (its format: `lcrl_proto::shm`).
 //! - [`validator`]: the run's policy chosen on held-out starts, on a thread of its own.
 //! - [`memory_budget`]: a number of bytes peers may make the learner hold, with a share per peer.

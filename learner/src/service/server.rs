@@ -29,8 +29,8 @@ pub struct LearnerService {
     pub shared: Arc<Shared>,
     pub commands: mpsc::Sender<Command>,
     pub watch_budget: WatchBudget,
-    /// GetStatus calls per peer address (lcrl_proto::peer_rate).
-    pub status_rate: lcrl_proto::peer_rate::PeerRate,
+    /// GetStatus calls per peer address (lcrl_runtime::peer_rate).
+    pub status_rate: lcrl_runtime::peer_rate::PeerRate,
 }
 
 /// Counts a connected actor for as long as its stream lives, and frees
@@ -97,7 +97,7 @@ impl Learner for LearnerService {
                                 let status = match reason {
                                     "oversize" => Status::resource_exhausted(format!(
                                         "{}: {} (this learner's --max-batch-bytes); send smaller batches (--batch)",
-                                        lcrl_proto::limits::TOO_LARGE,
+                                        lcrl_runtime::limits::TOO_LARGE,
                                         status.message()
                                     )),
                                     _ => status,
@@ -176,7 +176,7 @@ impl Learner for LearnerService {
     }
 
     async fn get_status(&self, request: Request<GetStatusRequest>) -> Result<Response<LearnerStatus>, Status> {
-        use lcrl_proto::peer_rate::{STATUS_BURST, STATUS_PER_SECOND};
+        use lcrl_runtime::peer_rate::{STATUS_BURST, STATUS_PER_SECOND};
         if !self.status_rate.admit(request.remote_addr().map(|addr| addr.ip())) {
             return Err(Status::resource_exhausted(format!(
                 "GetStatus takes {STATUS_PER_SECOND} calls a second from one peer address ({STATUS_BURST} at once); ask less often"

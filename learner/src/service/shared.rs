@@ -58,9 +58,9 @@ pub struct Shared {
     /// Replay ratio, waits, policy lag and the budget.
     pub flow: Mutex<FlowStats>,
     /// Calls refused for a missing or wrong token (GetStatus, /metrics).
-    pub auth_refusals: Arc<lcrl_proto::security::AuthRefusals>,
+    pub auth_refusals: Arc<lcrl_runtime::security::AuthRefusals>,
     /// Connections the server closed by its limits (GetStatus, /metrics).
-    pub connection_refusals: Arc<lcrl_proto::limits::ConnectionRefusals>,
+    pub connection_refusals: Arc<lcrl_runtime::limits::ConnectionRefusals>,
     /// This process's incarnation: a random non-zero id drawn at start,
     /// carried by every published policy (0 in tests that need none).
     pub incarnation: u64,
@@ -90,7 +90,7 @@ impl Shared {
         first: PolicySnapshot,
         ingest: Ingest,
         run_dir: PathBuf,
-        auth_refusals: Arc<lcrl_proto::security::AuthRefusals>,
+        auth_refusals: Arc<lcrl_runtime::security::AuthRefusals>,
     ) -> Self {
         let first_incarnation = first.incarnation;
         Shared {
@@ -119,7 +119,7 @@ impl Shared {
     }
 
     /// Counts into `refusals` the connections the server closes.
-    pub fn with_connection_refusals(mut self, refusals: Arc<lcrl_proto::limits::ConnectionRefusals>) -> Self {
+    pub fn with_connection_refusals(mut self, refusals: Arc<lcrl_runtime::limits::ConnectionRefusals>) -> Self {
         self.connection_refusals = refusals;
         self
     }

@@ -152,7 +152,7 @@ pub fn health_service() -> (tonic_health::server::HealthReporter, tonic_health::
 pub fn add_reflection<L>(router: tonic::transport::server::Router<L>, check: &TokenCheck) -> tonic::transport::server::Router<L> {
     let configure = || {
         reflection::Builder::configure()
-            .register_encoded_file_descriptor_set(crate::v1::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(lcrl_proto::v1::FILE_DESCRIPTOR_SET)
             .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
     };
     // The descriptor sets are compiled in: a failure is a build defect,

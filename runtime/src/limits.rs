@@ -3,7 +3,7 @@
 //! (docs/reliability.md).
 //!
 //! A server's memory is bounded per message (the decoding limit, and
-//! [`crate::codec`]'s cap on repeated entries, checked before a message is
+//! lcrl_proto::codec's cap on repeated entries, checked before a message is
 //! decoded: an empty `Transition` is 2 bytes on the wire and ~120 in
 //! memory), per connection (HTTP/2 streams) and per server (connections,
 //! and a timeout that closes the connections of silent peers). A client
@@ -26,10 +26,9 @@ pub const MAX_BATCH_BYTES: usize = 1 << 20;
 /// `--max-batch-bytes`), as the learner answers it (RESOURCE_EXHAUSTED).
 pub const TOO_LARGE: &str = "too large";
 
-/// The most entries of one repeated field a message may hold (transitions
-/// of a batch, sessions of an environment call), checked on the wire
-/// before decoding ([`crate::codec`]).
-pub const MAX_REPEATED_ENTRIES: usize = 4096;
+/// The most entries of one repeated field a message may hold, checked on
+/// the wire before decoding (lcrl_proto::codec, where it lives).
+pub use lcrl_proto::codec::MAX_REPEATED_ENTRIES;
 
 /// The longest actor id the learner keeps, bytes (a pod name is at most 253).
 pub const MAX_ACTOR_ID_BYTES: usize = 256;

@@ -1,0 +1,17 @@
+//! What every lcrl service process needs at start-up and at run time,
+//! beside the contract (lcrl-proto): [`process`], the start-up, logging,
+//! shutdown and reflection every process shares; [`security`], how every
+//! server and client authenticates (TLS, tokens); [`incoming`], the
+//! TLS-accepting connection stream servers are fed from; [`limits`], the
+//! bounds every server keeps against its peers and the deadlines every
+//! client keeps; [`peer_rate`], calls a second per peer address; [`files`],
+//! the one atomic writer of the files those processes hand on; and
+//! [`metrics_http`], Prometheus `/metrics` and `/healthz` over HTTP.
+
+pub mod files;
+pub mod incoming;
+pub mod limits;
+pub mod metrics_http;
+pub mod peer_rate;
+pub mod process;
+pub mod security;
