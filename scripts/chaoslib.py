@@ -43,6 +43,10 @@ class Cluster:
         config = config or self.work / "small.toml"
         cmd = [str(self.bins / "lcrl-learner"), "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--config", str(config),
                "--run-dir", str(run_dir), "--listen", f"{listen_host}:{port}", "--run-id", run_id, "--publish-every", "20", *extra]
+        # Beyond loopback a learner without a token must be told it may
+        # serve so (issue 82); these scenarios attack it on purpose.
+        if listen_host not in ("127.0.0.1", "[::1]") and "--token-file" not in extra:
+            cmd.append("--insecure")
         log = open(self.work / f"learner-{len(self.procs)}.log", "w")
         # The usual soft limit of open files (a shell's `ulimit -n`), as a
         # learner started by hand or by systemd has it.

@@ -12,5 +12,5 @@ if cargo nextest --version >/dev/null 2>&1; then
 else
   # One test at a time: tests share this process, and with it their
   # shared-memory namespace (tests/e2e/common.rs, shm_namespace).
-  cargo test --workspace --no-fail-fast "$@" -- --test-threads=1
+  RUST_TEST_THREADS=1 cargo test --workspace --no-fail-fast "$@"
 fi

@@ -111,6 +111,9 @@ pub struct Rollout {
     episodes_in_batch: Vec<Vec<EpisodeSummary>>,
     sequence: u64,
     episodes_done: u64,
+    /// Unsound starts skipped before the first step, not yet counted in
+    /// the actor's metrics (which `new` does not have).
+    unsound_starts_uncounted: u64,
 }
 
 /// Refuses a batch size the learner would refuse (its default limits,
@@ -168,11 +171,12 @@ impl Rollout {
         let action_map = policy.action_map(envs[0].as_ref())?;
         let salt = settings.salt();
         let mut episode_seed = settings.seed_before_first_episode();
+        let mut unsound = 0;
         let states = envs
             .iter_mut()
             .map(|env| {
                 episode_seed += 1;
-                sound_reset(env.as_mut(), &mut episode_seed, |_| {})
+                sound_reset(env.as_mut(), &mut episode_seed, |_| unsound += 1)
             })
             .collect::<Result<_, _>>()?;
         let k = settings.envs;
@@ -197,7 +201,8 @@ impl Rollout {
             // restarted actor with the same id above everything its
             // previous life sent.
             sequence: lcrl_learner::service::ingest::now_micros(),
-            episodes_done: 0,
+            episodes_done: unsound,
+            unsound_starts_uncounted: unsound,
             settings,
         })
     }
@@ -225,6 +230,7 @@ impl Rollout {
     /// Steps every environment once with `policy`; returns a batch when
     /// `batch` transitions are collected (or the budget ends).
     pub fn step(&mut self, policy: &Policy, metrics: &ActorMetrics) -> anyhow::Result<Option<TransitionBatch>> {
+        metrics.diverged_env.inc_by(std::mem::take(&mut self.unsound_starts_uncounted));
         let mut actions = Vec::with_capacity(self.envs.len());
         let mut sampled = Vec::with_capacity(self.envs.len());
         for (k, env) in self.envs.iter().enumerate() {
@@ -414,6 +420,7 @@ mod tests {
         batches.extend(rollout.take_batch(1));
         let (skipped, trained) = (metrics.diverged_env.get(), metrics.episodes.get());
         assert!(skipped >= 5 && trained >= 5 && skipped + trained >= 40, "skipped {skipped}, trained {trained}");
+        assert_eq!(skipped + trained, rollout.episodes_done(), "every skipped start counts, the first ones too");
         let sent: Vec<&Transition> = batches.iter().flat_map(|b| &b.transitions).collect();
         assert!(sent.iter().all(|t| t.state[0].abs() <= 1e4), "an unsound start was acted on");
         assert_eq!(batches.iter().map(|b| b.episodes.len() as u64).sum::<u64>(), trained);

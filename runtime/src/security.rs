@@ -289,12 +289,14 @@ impl ServerSecurity {
         format!("{transport}{}", if self.check.token.is_some() { " + token" } else { "" })
     }
 
-    /// A server reachable from other hosts without TLS is worth a warning.
-    /// Whether every call but health checks needs the bearer token.
-    pub fn requires_token(&self) -> bool {
-        self.check.token.is_some()
+    /// Whether the server knows who calls it: every call but health checks
+    /// needs the bearer token, or TLS accepts only clients with a
+    /// certificate of its CA (mutual TLS).
+    pub fn authenticates_peers(&self) -> bool {
+        self.check.token.is_some() || (self.tls.is_some() && self.mutual)
     }
 
+    /// A server reachable from other hosts without TLS is worth a warning.
     pub fn warn_if_exposed(&self, addr: SocketAddr) {
         if self.tls.is_none() && !addr.ip().is_loopback() {
             tracing::warn!(%addr, "serving plain text on a non-loopback address: anyone who can reach it can read the traffic{}; pass --tls-cert/--tls-key (see `lcrl certs`)", if self.check.token.is_none() { " and call every RPC" } else { "" });

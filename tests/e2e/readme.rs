@@ -8,7 +8,15 @@ use std::process::{Command, Output};
 
 fn readme_blocks(args: &[&str]) -> Output {
     let root = repo();
-    Command::new("python3").arg(root.join("scripts/readme_blocks.py")).args(args).current_dir(&root).output().unwrap()
+    // The blocks' processes get this test's shared-memory namespace, as
+    // every process the tests start does (common.rs, shm_namespace).
+    Command::new("python3")
+        .arg(root.join("scripts/readme_blocks.py"))
+        .args(args)
+        .current_dir(&root)
+        .env(lcrl_proto::shm::NAMESPACE_ENV, super::common::shm_namespace())
+        .output()
+        .unwrap()
 }
 
 fn text(out: &Output) -> String {

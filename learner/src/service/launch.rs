@@ -222,6 +222,21 @@ async fn fetch_graph(url: &str, security: &ClientSecurity, timeout: Duration, n:
 pub async fn run(args: LearnerArgs, shutdown: impl Future<Output = ()>, listening: impl FnOnce(SocketAddr)) -> anyhow::Result<()> {
     // Certificates and tokens are checked before any work.
     let security = ServerSecurity::from_args(&args.security)?;
+    // Issue 82: a token-less learner was open to every peer that reached
+    // it. Without a token (or mutual TLS) it serves loopback only, unless
+    // told otherwise; refused before anything is written.
+    if !security.authenticates_peers() && !args.listen.ip().is_loopback() && !args.insecure {
+        bail!(
+            "--listen {} is reachable from other hosts and this learner has no token, so anyone who reaches it could send transitions and call every RPC: \
+             give --token-file FILE (`lcrl certs` makes one) or mutual TLS (--tls-client-ca), listen on 127.0.0.1, or add --insecure (only on a network nobody else joins)",
+            args.listen
+        );
+    }
+    // One learner a run id on this host: refused before anything is
+    // written (the shared-memory thread checks again as it opens).
+    if let Err(taken @ lcrl_proto::shm::SubscriberError::RunTaken(_)) = lcrl_proto::shm::TransitionSubscriber::open(&args.run_id, 1).map(drop) {
+        bail!("{taken}");
+    }
     if let Some(0) = args.episodes {
         bail!("--episodes must be at least 1");
     }
@@ -247,15 +262,7 @@ pub async fn run(args: LearnerArgs, shutdown: impl Future<Output = ()>, listenin
     let _stop_threads = StopOnDrop(shared.clone());
     let listener = tokio::net::TcpListener::bind(args.listen).await.with_context(|| format!("cannot listen on {}; is another process using it?", args.listen))?;
     let addr = listener.local_addr()?;
-    // Issue 82: a token-less learner was open to every peer that reached
-    // it. Without a token it serves loopback only, unless told otherwise.
-    if !security.requires_token() && !addr.ip().is_loopback() && !args.insecure {
-        bail!(
-            "--listen {addr} is reachable from other hosts and this learner has no token, so anyone who reaches it could send transitions and call every RPC: \
-             give --token-file FILE (`lcrl certs` makes one), listen on 127.0.0.1, or add --insecure (only on a network nobody else joins)"
-        );
-    }
-    if !security.requires_token() {
+    if !security.authenticates_peers() && addr.ip().is_loopback() {
         tracing::info!(%addr, "no token: serving loopback only; every process on this host may call it (--token-file to require one)");
     }
     listening(addr);
