@@ -492,9 +492,100 @@ def id_table(c):
             "did": f"ids {codes} in {fill_s:.0f} s; refused as {dict(st.rejected)}; the new actor: {join}",
             "lost": "nothing" if "stored" in join and "none" not in join else "new actors", "codes": codes}
 
+
+def forged_claims(c):
+    """Issue 82, fault 6: one-step episodes that each claim 10^6 steps and a
+    return of 9.9e11 (within the door's 10^6 a claimed step), against a
+    300-episode budget, beside an honest actor."""
+    port = free_port()
+    c.learner(c.work / "claims", port, "--episodes", "300")
+    c.actor(port, "--actor-id", "honest")
+    wait("episodes", lambda: status(port).episodes >= 24)
+    batch = lcrl_pb2.TransitionBatch(run_id="chaos", actor_id="forger", sequence=1, transitions=[_step([0.1, 0.1, 0.1], reward=-1.0, end=True)] * 276,
+                                     episodes=[lcrl_pb2.EpisodeSummary(episode_return=9.9e11, length=1_000_000)] * 276)
+    code = _send(port, [batch])
+    time.sleep(2)
+    st = status(port)
+    rows = (c.work / "claims" / "metrics.csv").read_text().splitlines()[1:]
+    worst = max((abs(float(r.split(",")[1])) for r in rows if r), default=0.0)
+    longest = max((int(float(r.split(",")[2])) for r in rows if r), default=0)
+    return {"fault": "276 one-step episodes each claiming 10^6 steps and a return of 9.9e11, 300-episode budget, after 24 honest ones",
+            "did": f"batch {code}; 2 s later {st.episodes} episodes counted, training finished: {st.finished}, recent return {st.recent_return:.3g}; "
+                   f"metrics.csv: largest |return| {worst:.3g}, longest episode {longest} steps",
+            "lost": ("the record (claims taken)" if worst > 1e6 else "nothing of the record") + ("; the budget, ended by one-step episodes" if st.finished else ""),
+            "largest_return": worst, "longest": longest, "finished": st.finished}
+
+
+def same_run_id(c):
+    """Issue 82, fault 7: a second learner under a live learner's run id
+    (another run directory), on the same host."""
+    port = free_port()
+    c.learner(c.work / "first", port)
+    c.actor(port, "--actor-id", "honest", "--transport", "shm")
+    wait("steps", lambda: status(port).env_steps > 200)
+    p = subprocess.Popen([str(c.bins / "lcrl-learner"), "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--config", str(c.work / "small.toml"),
+                          "--run-dir", str(c.work / "second"), "--listen", f"127.0.0.1:{free_port()}", "--run-id", "chaos"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    c.procs.append(p)
+    try:
+        _, err = p.communicate(timeout=10)
+        outcome = f"exited {p.returncode}: {err.strip().splitlines()[-1][:160] if err.strip() else ''}"
+    except subprocess.TimeoutExpired:
+        outcome = "kept running beside the first"
+    before = status(port).env_steps
+    time.sleep(3)
+    stored = status(port).env_steps - before
+    return {"fault": "a second learner under a live learner's run id, same host",
+            "did": f"the second learner {outcome}; the first stored {stored} steps in the next 3 s",
+            "lost": "nothing" if "exited" in outcome and stored > 0 else "the run's transitions, shared between two learners", "second": outcome, "stored_after": stored}
+
+
+def _flood_status_and_metrics(port, metrics, stop):
+    ch = grpc.insecure_channel(f"127.0.0.1:{port}")
+    s = lcrl_pb2_grpc.LearnerStub(ch)
+    while not stop.is_set():
+        try:
+            s.GetStatus(lcrl_pb2.GetStatusRequest(), timeout=5)
+        except grpc.RpcError:
+            pass
+        try:
+            scrape(metrics)
+        except OSError:
+            pass
+
+
+def status_flood(c, threads=8, seconds=5.0):
+    """Issue 82, fault 10: unauthenticated GetStatus and /metrics floods
+    from 8 threads, against the updates of a quiet stretch of equal length."""
+    port, metrics = free_port(), free_port()
+    c.learner(c.work / "statusflood", port, "--metrics-listen", f"127.0.0.1:{metrics}")
+    c.actor(port, "--actor-id", "honest")
+    wait("updates", lambda: status(port).updates > 200)
+    quiet = _training(port, seconds)
+    stop = threading.Event()
+    workers = [threading.Thread(target=_flood_status_and_metrics, args=(port, metrics, stop)) for _ in range(threads)]
+    for w in workers:
+        w.start()
+    flooded = _training_tolerant(port, seconds)
+    stop.set()
+    for w in workers:
+        w.join()
+    kept = flooded / max(quiet, 1)
+    return {"fault": f"GetStatus and /metrics floods from {threads} threads, {seconds:.0f} s, beside an honest actor",
+            "did": f"{flooded} updates during the flood against {quiet} in as long before it: {kept:.2f} kept",
+            "lost": "nothing", "kept": kept, "quiet": quiet, "flooded": flooded}
+
+
+def _training_tolerant(port, seconds):
+    """Updates over `seconds`, asking the status as the flood lets it."""
+    before = wait("status", lambda: status(port).updates + 1) - 1
+    time.sleep(seconds)
+    return wait("status", lambda: status(port).updates + 1) - 1 - before
+
 FAULTS = {"huge-values": huge_values, "forged-returns": forged_returns, "sequence-hijack": sequence_hijack, "ping-flood": ping_flood,
           "slowloris-metrics": slowloris_metrics, "query-storm": query_storm, "slow-watchers": slow_watchers, "id-hijack": id_hijack,
-          "id-table": id_table, "frozen-connection": frozen_connection, "shm-id-hijack": shm_id_hijack, "shm-fairness": shm_fairness}
+          "id-table": id_table, "frozen-connection": frozen_connection, "shm-id-hijack": shm_id_hijack, "shm-fairness": shm_fairness,
+          "forged-claims": forged_claims, "same-run-id": same_run_id, "status-flood": status_flood}
 
 
 if __name__ == "__main__" and sys.argv[1:2] == ["--storm-clients"]:
