@@ -317,8 +317,10 @@ impl TrainingLoop {
         // newest, is the one training ended with.
         // A full disk here is waited out (disk_full.rs): the final
         // checkpoint and summary.json are the run's result.
-        let (wait, every) = (super::disk_full::WAIT_FOR_SPACE, super::disk_full::RETRY_EVERY);
-        match super::disk_full::retry_while_full("the final checkpoint", wait, every, || self.checkpoint()) {
+        let patience = (super::disk_full::WAIT_FOR_SPACE, super::disk_full::RETRY_EVERY);
+        let shared = self.shared.clone();
+        let stopped = move || *shared.shutdown.borrow();
+        match super::disk_full::retry_while_full("the final checkpoint", patience, &stopped, || self.checkpoint()) {
             // Diverged weights are never written; the run still ends with
             // its summary, serving the last finite policy (issue 71).
             Err(LearnerError::Diverged(_)) => {}
@@ -337,7 +339,7 @@ impl TrainingLoop {
         let snapshot = served.snapshot.clone();
         self.shared.serve(served);
         let record = chosen.and_then(|c| c.record);
-        super::disk_full::retry_while_full("summary.json", wait, every, || self.write_summary(&snapshot, record.clone()))?;
+        super::disk_full::retry_while_full("summary.json", patience, &stopped, || self.write_summary(&snapshot, record.clone()))?;
         self.shared.flow_mut().finished = true;
         tracing::info!(episodes = self.episodes(), "episode budget reached: training ends");
         Ok(())
