@@ -10,6 +10,8 @@
 #   bash scripts/parity.sh configs/peg-group1-ppo-local.toml 3 1 2 4
 #   LCRL_BIN_DIR=/tmp/lcrl-bin bash scripts/parity.sh ...   (binaries copied there)
 #   SEED_FROM=5 bash scripts/parity.sh PRESET 5 2   (seeds 5-9; the table covers every seed folder there)
+#   MAX_STALENESS=1 bash scripts/parity.sh PRESET 5 1 2 4   (asynchronous PPO: lcrl run --max-staleness 1;
+#                                                          runs go to runs/parity/<preset>-lag1/)
 #
 # Runs go to runs/parity/<preset>/<loop>/seed<k>; the table is printed and
 # written to runs/parity/<preset>/parity.md. A run folder that already holds
@@ -36,7 +38,11 @@ else
   lcrl=target/debug/lcrl
 fi
 name=$(basename "$preset" .toml)
-out=runs/parity/$name
+max_staleness=${MAX_STALENESS:-}
+[[ -z $max_staleness || $max_staleness =~ ^[0-9]+$ ]] || { echo "parity.sh: MAX_STALENESS must be a number of versions, not '$max_staleness'" >&2; exit 2; }
+lag_args=()
+[[ -n $max_staleness ]] && lag_args=(--max-staleness "$max_staleness")
+out=runs/parity/$name${max_staleness:+-lag$max_staleness}
 mkdir -p "$out/presets"
 read -r env algo connection episodes < <(python3 -c 'import sys, tomllib; j = tomllib.load(open(sys.argv[1], "rb"))["job"]; print(j["env"], j["algo"], j["connection"], j["episodes"])' "$preset")
 
@@ -71,7 +77,7 @@ for seed in $(seq "$seed_from" $((seed_from + seeds - 1))); do
     if [[ ! -f $dir/summary.json ]]; then
       rm -rf "$dir"
       echo "== lcrl run --actors $actors, seed $seed"
-      "$lcrl" run --config "$seeded" --actors "$actors" --run-dir "$dir" >/dev/null
+      "$lcrl" run --config "$seeded" --actors "$actors" --run-dir "$dir" "${lag_args[@]}" >/dev/null
     fi
   done
 done

@@ -46,6 +46,14 @@ pub struct Job {
     /// its own). A batch's steps all wait for the learner together.
     #[serde(default)]
     pub actor_batch: Option<u64>,
+    /// PPO: how many policy versions behind the newest a batch may be and
+    /// still be trained on (`lcrl-learner --max-staleness`; default 0,
+    /// on-policy as `lcrl train`). Above 0 the actors' steps acted by an
+    /// older policy are kept, PPO's clipped ratio taken against the
+    /// behaviour policy's probabilities they carry (docs/method.md,
+    /// "Asynchronous PPO").
+    #[serde(default)]
+    pub max_staleness: Option<u64>,
     /// T of eq. 7 for the graph builder (default 0.1, the publication's).
     #[serde(default)]
     pub graph_threshold: Option<f64>,
@@ -200,6 +208,9 @@ impl Preset {
         }
         // The learner and the actors would refuse these too, but only once
         // the run has started; a preset check should say so first.
+        if let Some(lag) = job.max_staleness.filter(|l| *l > 1_000_000) {
+            bail!("job.max_staleness must be at most 1000000, not {lag}");
+        }
         for (key, value, most) in [("publish_every", job.publish_every, 1_000_000), ("queued_batches", job.queued_batches, 1024), ("actor_batch", job.actor_batch, 4096)] {
             match value {
                 Some(0) => bail!("job.{key} must be at least 1, not 0"),
@@ -320,7 +331,12 @@ impl Preset {
         if let Some(ratio) = &self.job.replay_ratio {
             args.extend(os(&["--replay-ratio", ratio]));
         }
-        for (flag, value) in [("--publish-every", self.job.publish_every), ("--replay-slack", self.job.replay_slack), ("--queued-batches", self.job.queued_batches)] {
+        for (flag, value) in [
+            ("--publish-every", self.job.publish_every),
+            ("--replay-slack", self.job.replay_slack),
+            ("--queued-batches", self.job.queued_batches),
+            ("--max-staleness", self.job.max_staleness),
+        ] {
             if let Some(value) = value {
                 args.extend(os(&[flag, &value.to_string()]));
             }
@@ -426,7 +442,7 @@ mod tests {
     /// graph source; each actor its batch size, envs and its own seed.
     #[test]
     fn a_preset_becomes_each_processs_command_line() {
-        let p = preset("replay_ratio = \"unlimited\"\ngraph_threshold = 0.25\npublish_every = 7\nreplay_slack = 48\nqueued_batches = 2\nactor_batch = 16\n");
+        let p = preset("replay_ratio = \"unlimited\"\ngraph_threshold = 0.25\npublish_every = 7\nreplay_slack = 48\nqueued_batches = 2\nactor_batch = 16\nmax_staleness = 3\n");
         let graph = strings(&p.graph_builder_args("127.0.0.1:0", Path::new("/runs/x")));
         assert_eq!(value(&graph, "--env"), Some("lti-paper"));
         assert_eq!((value(&graph, "--samples"), value(&graph, "--seed"), value(&graph, "--threshold")), (Some("32"), Some("5"), Some("0.25")));
@@ -442,6 +458,7 @@ mod tests {
             ("--publish-every", "7"),
             ("--replay-slack", "48"),
             ("--queued-batches", "2"),
+            ("--max-staleness", "3"),
             ("--run-id", "run-a"),
             ("--config", "/t.toml"),
             ("--run-dir", "/runs/x/learner"),

@@ -43,6 +43,11 @@ pub struct RunArgs {
     /// Episode budget (overrides job.episodes).
     #[arg(long)]
     pub episodes: Option<u64>,
+    /// PPO: policy versions a batch may lag the newest and still be trained
+    /// on, its behaviour probabilities correcting the update (overrides
+    /// job.max_staleness; 0: on-policy, as `lcrl train`).
+    #[arg(long)]
+    pub max_staleness: Option<u64>,
     /// Episodes of the final policy's evaluation (overrides the preset's
     /// run.eval_episodes; 1 to 100000).
     #[arg(long, value_parser = lcrl_runtime::process::count_in::<1, 100_000>)]
@@ -81,6 +86,9 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     }
     if let Some(episodes) = args.episodes {
         preset.job.episodes = episodes;
+    }
+    if let Some(lag) = args.max_staleness {
+        preset.job.max_staleness = Some(lag);
     }
     if let Some(episodes) = args.eval_episodes {
         preset.train.run.eval_episodes = episodes;

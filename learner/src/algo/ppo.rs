@@ -194,6 +194,10 @@ impl Ppo {
                 let adv = if chunk.len() > 1 { (&adv - adv.mean(Kind::Float)) / (adv.std(true) + 1e-8) } else { adv.zeros_like() };
                 let mb_obs = obs.index_select(0, &index);
                 let log_probs = self.log_prob(&self.actor.forward(&mb_obs), &actions.index_select(0, &index));
+                // π_θ(u|s) / μ(u|s): μ is the policy that acted, whose
+                // log-probability the actor sent, so batches a few versions
+                // old are corrected by the same clipped ratio
+                // (docs/method.md §5, "Asynchronous PPO").
                 let ratio = (log_probs - old_log_probs.index_select(0, &index)).exp();
                 let clipped = ratio.clamp(1.0 - self.cfg.clip, 1.0 + self.cfg.clip);
                 let entropy = (&self.log_std + 0.5 * (2.0 * PI * std::f64::consts::E).ln()).sum(Kind::Float);

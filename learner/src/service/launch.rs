@@ -93,9 +93,10 @@ pub struct LearnerArgs {
     #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u64).range(1..=1_000_000))]
     pub publish_every: u64,
     /// PPO: discard batches more than this many versions older than the
-    /// newest. 0 (default): strictly on-policy, as `lcrl train`'s PPO; the
-    /// learner treats stored data as the current policy's, so older data
-    /// biases the update.
+    /// newest. 0 (default): strictly on-policy, as `lcrl train`'s PPO.
+    /// Above 0 (asynchronous PPO, docs/method.md §5): older batches are
+    /// trained on, PPO's clipped ratio taken against the behaviour
+    /// log-probability each transition carries.
     #[arg(long, default_value_t = 0)]
     pub max_staleness: u64,
     /// Checkpoint at this interval, seconds (and on SIGTERM/Ctrl-C); the
