@@ -409,15 +409,7 @@ mod tests {
         let path = std::env::temp_dir().join(format!("lcrl-unsound-starts-{}.toml", std::process::id()));
         std::fs::write(&path, "kind = \"lti\"\ne = [[0.5]]\nf = [[1.0]]\ninitial_state_low = [0.0]\ninitial_state_high = [2e4]\nq = [[1e-9]]\nepisode_steps = 5\n").unwrap();
         let env = path.to_string_lossy().to_string();
-        let policy = untrained_policy(&env, Algo::Ddpg, None, None, 1);
-        let settings = RolloutSettings { envs: 2, batch: Some(5), episodes: Some(40), ..settings(40) };
-        let mut rollout = Rollout::new(settings, &policy, Exploration { uniform: false, noise: 0.1 }).unwrap();
-        let metrics = ActorMetrics::default();
-        let mut batches = Vec::new();
-        while !rollout.finished() {
-            batches.extend(rollout.step(&policy, &metrics).unwrap());
-        }
-        batches.extend(rollout.take_batch(1));
+        let (batches, metrics, rollout) = roll_out(&env, 40);
         let (skipped, trained) = (metrics.diverged_env.get(), metrics.episodes.get());
         assert!(skipped >= 5 && trained >= 5 && skipped + trained >= 40, "skipped {skipped}, trained {trained}");
         assert_eq!(skipped + trained, rollout.episodes_done(), "every skipped start counts, the first ones too");
@@ -429,6 +421,21 @@ mod tests {
         let refused = Rollout::new(settings_for_one(), &policy, Exploration { uniform: false, noise: 0.1 }).err().expect("every start is unsound");
         std::fs::remove_file(&path).ok();
         assert!(refused.to_string().contains("start states in a row beyond its bounds"), "{refused}");
+    }
+
+    /// Two environments of the TOML `env`, an untrained DDPG policy with
+    /// noise 0.1, batches of 5, until `episodes` are done: every batch sent.
+    fn roll_out(env: &str, episodes: u64) -> (Vec<TransitionBatch>, ActorMetrics, Rollout) {
+        let policy = untrained_policy(env, Algo::Ddpg, None, None, 1);
+        let settings = RolloutSettings { envs: 2, batch: Some(5), episodes: Some(episodes), ..settings(episodes) };
+        let mut rollout = Rollout::new(settings, &policy, Exploration { uniform: false, noise: 0.1 }).unwrap();
+        let metrics = ActorMetrics::default();
+        let mut batches = Vec::new();
+        while !rollout.finished() {
+            batches.extend(rollout.step(&policy, &metrics).unwrap());
+        }
+        batches.extend(rollout.take_batch(1));
+        (batches, metrics, rollout)
     }
 
     fn settings_for_one() -> RolloutSettings {
@@ -443,15 +450,7 @@ mod tests {
         let path = std::env::temp_dir().join(format!("lcrl-diverging-{}.toml", std::process::id()));
         std::fs::write(&path, "kind = \"lti\"\ne = [[30.0]]\nf = [[1.0]]\ninitial_state_low = [1.0]\ninitial_state_high = [1.0]\nepisode_steps = 20\n").unwrap();
         let env = path.to_string_lossy().to_string();
-        let policy = untrained_policy(&env, Algo::Ddpg, None, None, 1);
-        let settings = RolloutSettings { envs: 2, batch: Some(5), episodes: Some(6), ..settings(6) };
-        let mut rollout = Rollout::new(settings, &policy, Exploration { uniform: false, noise: 0.1 }).unwrap();
-        let metrics = ActorMetrics::default();
-        let mut batches = Vec::new();
-        while !rollout.finished() {
-            batches.extend(rollout.step(&policy, &metrics).unwrap());
-        }
-        batches.extend(rollout.take_batch(1));
+        let (batches, metrics, _) = roll_out(&env, 6);
         std::fs::remove_file(&path).ok();
         assert_eq!((metrics.diverged_env.get(), metrics.episodes.get()), (6, 0));
         let sent: Vec<&Transition> = batches.iter().flat_map(|b| &b.transitions).collect();
