@@ -68,6 +68,7 @@ fn service_figures(status: &LearnerStatus) -> ServiceFigures {
         served_version: status.served_version,
         cuts: None,
         cuts_joined: None,
+        discarded_stale: Some(status.rejected.iter().filter(|(k, _)| k.starts_with("stale")).map(|(_, v)| v).sum()),
         actors: None,
         transport: None,
         actor_restarts: None,

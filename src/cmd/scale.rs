@@ -55,6 +55,10 @@ pub struct ScaleArgs {
     /// default: the preset's (Algorithm 2's).
     #[arg(long)]
     pub replay_ratio: Option<String>,
+    /// PPO: policy versions a batch may lag and still be trained on
+    /// (asynchronous PPO, docs/method.md §5); default: the preset's.
+    #[arg(long)]
+    pub max_staleness: Option<u64>,
     #[command(flatten)]
     pub compute: lcrl::preset::LearnerCompute,
     /// Where scale.json, scale.csv, scale.png and per-point logs go.
@@ -90,6 +94,12 @@ pub struct ScalePoint {
     /// Seconds the limiter held actors back / made the learner wait.
     pub actors_waited_s: f64,
     pub learner_waited_s: f64,
+    /// Steps the actors simulated over the window that the learner did not
+    /// train on, being more policy versions behind than PPO's lag bound
+    /// allows (`stale`), and their share of those simulated (stored +
+    /// discarded).
+    pub discarded_steps: u64,
+    pub discarded_share: f64,
     /// Wall time to reach --to-threshold, when asked and reached.
     pub seconds_to_threshold: Option<f64>,
 }
@@ -101,6 +111,9 @@ pub fn run(args: &ScaleArgs) -> anyhow::Result<()> {
     lcrl_learner::device::torch::resolve_device(&preset.train.run.device)?;
     if args.replay_ratio.is_some() {
         preset.job.replay_ratio = args.replay_ratio.clone();
+    }
+    if args.max_staleness.is_some() {
+        preset.job.max_staleness = args.max_staleness;
     }
     // Far more episodes than any window reaches: the budget never ends a point.
     preset.job.episodes = u64::MAX / 4;
@@ -166,12 +179,12 @@ fn check_args(args: &ScaleArgs) -> anyhow::Result<()> {
 /// The points as a table on stdout.
 fn print_table(points: &[ScalePoint]) {
     println!(
-        "{:<24} {:>6} {:>5} {:>8} {:>12} {:>10} {:>7} {:>6} {:>8} {:>9} {:>9} {:>10}",
-        "kind", "actors", "envs", "learner", "env steps/s", "updates/s", "ratio", "lag", "act p50", "cpu lrn", "cpu act", "to thr. s"
+        "{:<24} {:>6} {:>5} {:>8} {:>12} {:>10} {:>7} {:>6} {:>10} {:>8} {:>9} {:>9} {:>10}",
+        "kind", "actors", "envs", "learner", "env steps/s", "updates/s", "ratio", "lag", "discarded", "act p50", "cpu lrn", "cpu act", "to thr. s"
     );
     for p in points {
         println!(
-            "{:<24} {:>6} {:>5} {:>8} {:>12.0} {:>10.0} {:>7.1} {:>6.1} {:>8} {:>9.2} {:>9.2} {:>10}",
+            "{:<24} {:>6} {:>5} {:>8} {:>12.0} {:>10.0} {:>7.1} {:>6.1} {:>9.0}% {:>8} {:>9.2} {:>9.2} {:>10}",
             p.kind,
             p.actors,
             p.envs_per_actor,
@@ -180,6 +193,7 @@ fn print_table(points: &[ScalePoint]) {
             p.updates_per_s,
             p.replay_ratio,
             p.policy_lag_mean,
+            100.0 * p.discarded_share,
             p.act_p50_ms.map_or("-".into(), |v| format!("{v:.2}ms")),
             p.learner_cpu,
             p.actors_cpu,
@@ -248,6 +262,8 @@ fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<S
         actors_cpu: 0.0,
         actors_waited_s: 0.0,
         learner_waited_s: 0.0,
+        discarded_steps: 0,
+        discarded_share: 0.0,
         seconds_to_threshold: None,
     })
 }
@@ -344,6 +360,9 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
     learner.stop(Duration::from_secs(30));
     latencies.sort_by(f64::total_cmp);
     let inserted = last.inserted.saturating_sub(first.inserted);
+    let stale = |s: &LearnerStatus| s.rejected.iter().filter(|(k, _)| k.starts_with("stale")).map(|(_, v)| v).sum::<u64>();
+    let discarded_steps = stale(&last).saturating_sub(stale(&first));
+    let stored = last.env_steps.saturating_sub(first.env_steps);
     Ok(ScalePoint {
         kind: "distributed".into(),
         actors,
@@ -363,6 +382,8 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
         actors_cpu,
         actors_waited_s: last.actors_waited_s - first.actors_waited_s,
         learner_waited_s: last.learner_waited_s - first.learner_waited_s,
+        discarded_steps,
+        discarded_share: discarded_steps as f64 / (stored + discarded_steps).max(1) as f64,
         seconds_to_threshold,
     })
 }

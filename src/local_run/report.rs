@@ -36,7 +36,14 @@ pub(super) fn report(preset: &Preset, run_dir: &Path, s: &lcrl_proto::v1::Learne
         s.env_steps,
         s.updates,
         match (job.algo, service.replay_ratio_target > 0.0) {
-            (lcrl_learner::Algo::Ppo, _) => "PPO, on-policy".to_string(),
+            (lcrl_learner::Algo::Ppo, _) => {
+                let discarded = service.discarded_stale.unwrap_or(0);
+                let share = discarded as f64 / (s.env_steps + discarded).max(1) as f64;
+                match job.max_staleness.unwrap_or(0) {
+                    0 => format!("PPO, on-policy: {discarded} transitions discarded as stale, {:.0}% of those simulated", 100.0 * share),
+                    lag => format!("PPO, asynchronous, lag at most {lag}: {discarded} transitions discarded as staler, {:.0}% of those simulated", 100.0 * share),
+                }
+            }
             (_, true) => format!("replay ratio {:.1} sampled per inserted, target {:.0}", service.replay_ratio, service.replay_ratio_target),
             (_, false) => format!("replay ratio {:.1} sampled per inserted, unlimited", service.replay_ratio),
         },

@@ -26,13 +26,17 @@ fn run_on_the_linear_preset_finishes_with_every_artifact_and_no_leftovers() {
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
     let preset = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/lti-paper.toml");
-    let out = lcrl().args(["run", "--episodes", "300", "--actors", "2", "--config"]).arg(&preset).arg("--run-dir").arg(&run).output().unwrap();
+    // Asynchronous PPO (lag at most 1 version): older batches are trained
+    // on, staler ones dropped and counted.
+    let out = lcrl().args(["run", "--episodes", "300", "--actors", "2", "--max-staleness", "1", "--config"]).arg(&preset).arg("--run-dir").arg(&run).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    assert!(stdout(&out).contains("results in"), "{}", stdout(&out));
+    assert!(stdout(&out).contains("results in") && stdout(&out).contains("PPO, asynchronous, lag at most 1"), "{}", stdout(&out));
     // Actors that stop at the budget's end are not deaths: no restart.
     let summary: serde_json::Value = serde_json::from_str(&fs::read_to_string(run.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["actor_restarts"], 0, "{}", String::from_utf8_lossy(&out.stderr));
     assert!(summary.get("ended_early").is_none(), "{summary}");
+    assert!(summary["policy_lag"]["max"].as_u64().is_some_and(|lag| lag <= 1), "no batch staler than the bound is trained on: {summary}");
+    assert!(summary["discarded_stale"].is_u64(), "PPO counts what it discarded: {summary}");
     let graph: serde_json::Value = serde_json::from_str(&fs::read_to_string(run.join("graph.json")).unwrap()).unwrap();
     assert_eq!(graph["g"], serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]]));
     let metrics = fs::read_to_string(run.join("learner/metrics.csv")).unwrap();

@@ -152,6 +152,11 @@ pub struct ServiceFigures {
     pub cuts: Option<u64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cuts_joined: Option<u64>,
+    /// PPO: transitions that arrived but were not trained on, being more
+    /// policy versions behind than the lag bound allows (`stale`, and
+    /// `stale_incarnation`: acted by a previous learner process).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub discarded_stale: Option<u64>,
     /// `lcrl run`: its actor processes and their transport.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub actors: Option<usize>,
@@ -294,6 +299,7 @@ mod tests {
             served_version: 9,
             cuts: None,
             cuts_joined: None,
+            discarded_stale: None,
             actors: Some(2),
             transport: Some("shm".into()),
             actor_restarts: None,

@@ -539,6 +539,8 @@ impl TrainingLoop {
             headroom: self.schedule.headroom.as_ref(),
         };
         let evaluation = evaluate_hand_over(env.as_ref(), chosen, &last, &plan)?;
+        // Read before the flow's lock is taken (one lock at a time).
+        let discarded_stale: u64 = self.shared.ingest_counts().1.iter().filter(|(k, _)| k.starts_with("stale")).map(|(_, v)| v).sum();
         let flow = self.shared.flow();
         let (min, mean, max) = flow.lag.stats();
         let counters = self.agent.counters();
@@ -577,6 +579,7 @@ impl TrainingLoop {
                 served_version: served.version,
                 cuts: ppo.then_some(counters.cuts),
                 cuts_joined: ppo.then_some(counters.cuts_joined),
+                discarded_stale: ppo.then_some(discarded_stale),
                 actors: None,
                 transport: None,
                 actor_restarts: None,
