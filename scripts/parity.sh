@@ -10,8 +10,8 @@
 #   bash scripts/parity.sh configs/peg-group1-ppo-local.toml 3 1 2 4
 #   LCRL_BIN_DIR=/tmp/lcrl-bin bash scripts/parity.sh ...   (binaries copied there)
 #   SEED_FROM=5 bash scripts/parity.sh PRESET 5 2   (seeds 5-9; the table covers every seed folder there)
-#   MAX_STALENESS=1 bash scripts/parity.sh PRESET 5 1 2 4   (asynchronous PPO: lcrl run --max-staleness 1;
-#                                                          runs go to runs/parity/<preset>-lag1/)
+#   MAX_STALENESS=0 bash scripts/parity.sh PRESET 5 1 2 4   (PPO on-policy: lcrl run --max-staleness 0, not the
+#                                                          preset's default of 1; runs go to runs/parity/<preset>-lag0/)
 #
 # Runs go to runs/parity/<preset>/<loop>/seed<k>; the table is printed and
 # written to runs/parity/<preset>/parity.md. A run folder that already holds

@@ -47,11 +47,11 @@ pub struct Job {
     #[serde(default)]
     pub actor_batch: Option<u64>,
     /// PPO: how many policy versions behind the newest a batch may be and
-    /// still be trained on (`lcrl-learner --max-staleness`; default 0,
-    /// on-policy as `lcrl train`). Above 0 the actors' steps acted by an
-    /// older policy are kept, PPO's clipped ratio taken against the
-    /// behaviour policy's probabilities they carry (docs/method.md,
-    /// "Asynchronous PPO").
+    /// still be trained on (`lcrl-learner --max-staleness`; default
+    /// [`PPO_MAX_STALENESS`], asynchronous; 0 is on-policy, as `lcrl
+    /// train`). Above 0 the actors' steps acted by an older policy are
+    /// kept, PPO's clipped ratio taken against the behaviour policy's
+    /// probabilities they carry (docs/method.md, "Asynchronous PPO").
     #[serde(default)]
     pub max_staleness: Option<u64>,
     /// T of eq. 7 for the graph builder (default 0.1, the publication's).
@@ -161,7 +161,21 @@ pub struct Preset {
     pub text: String,
 }
 
+/// `lcrl run`'s lag bound for PPO when a preset names none: asynchronous
+/// PPO, one version. The parity study named before its runs
+/// (docs/research/2026-12-05-async-ppo-design.md) found no cell of the
+/// main job's presets at 1, 2 and 4 actors behind `lcrl train` (every
+/// paired lower bound above −0.30; docs/research/2026-12-05-async-ppo.md),
+/// which by its rule makes this the default.
+pub const PPO_MAX_STALENESS: u64 = 1;
+
 impl Preset {
+    /// The learner's lag bound for this job: the preset's, else
+    /// [`PPO_MAX_STALENESS`] for PPO (DDPG keeps none).
+    pub fn max_staleness(&self) -> Option<u64> {
+        self.job.max_staleness.or((self.job.algo == lcrl_learner::Algo::Ppo).then_some(PPO_MAX_STALENESS))
+    }
+
     /// Reads and checks a preset, its environment included.
     pub fn load(path: &Path) -> anyhow::Result<Preset> {
         let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
@@ -335,7 +349,7 @@ impl Preset {
             ("--publish-every", self.job.publish_every),
             ("--replay-slack", self.job.replay_slack),
             ("--queued-batches", self.job.queued_batches),
-            ("--max-staleness", self.job.max_staleness),
+            ("--max-staleness", self.max_staleness()),
         ] {
             if let Some(value) = value {
                 args.extend(os(&[flag, &value.to_string()]));
@@ -418,6 +432,22 @@ pub(crate) fn connection_name(connection: Connection) -> &'static str {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// PPO runs asynchronous by default (PPO_MAX_STALENESS, by the parity
+    /// study's rule); a preset's own bound wins, 0 included; DDPG has none.
+    #[test]
+    fn ppo_presets_lag_one_version_unless_they_say() {
+        let learner_lag = |p: &Preset| {
+            let args = strings(&p.learner_args("127.0.0.1:0", "r", Path::new("/t.toml"), Path::new("/l"), Some("http://g:1")).unwrap());
+            value(&args, "--max-staleness").map(str::to_string)
+        };
+        let mut ppo = preset("");
+        ppo.job.algo = lcrl_learner::Algo::Ppo;
+        assert_eq!(learner_lag(&ppo), Some(PPO_MAX_STALENESS.to_string()));
+        ppo.job.max_staleness = Some(0);
+        assert_eq!(learner_lag(&ppo).as_deref(), Some("0"), "on-policy when the preset says so");
+        assert_eq!(learner_lag(&preset("")), None, "DDPG has no lag bound");
+    }
 
     fn preset(extra: &str) -> Preset {
         let dir = tempfile::tempdir().unwrap();

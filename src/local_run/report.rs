@@ -39,7 +39,7 @@ pub(super) fn report(preset: &Preset, run_dir: &Path, s: &lcrl_proto::v1::Learne
             (lcrl_learner::Algo::Ppo, _) => {
                 let discarded = service.discarded_stale.unwrap_or(0);
                 let share = discarded as f64 / (s.env_steps + discarded).max(1) as f64;
-                match job.max_staleness.unwrap_or(0) {
+                match preset.max_staleness().unwrap_or(0) {
                     0 => format!("PPO, on-policy: {discarded} transitions discarded as stale, {:.0}% of those simulated", 100.0 * share),
                     lag => format!("PPO, asynchronous, lag at most {lag}: {discarded} transitions discarded as staler, {:.0}% of those simulated", 100.0 * share),
                 }
