@@ -9,7 +9,7 @@
 #      compliance (configs/peg.toml); then the final policy evaluated on 100
 #      starts beside a = 0, the best constant (the bar) and the headroom
 #      reference (references/peg-group1/best_policy.json) on the same starts.
-# About 50 s on 2 cores once built. Results go to runs/peg-group1/. Extra
+# About a minute on 2 cores once built. Results go to runs/peg-group1/. Extra
 # arguments go to `lcrl run`. The linear example is quicker (about 10 s):
 #   target/debug/lcrl run --config configs/lti-paper.toml
 set -euo pipefail
