@@ -164,9 +164,10 @@ pub struct Preset {
 /// `lcrl run`'s lag bound for PPO when a preset names none: asynchronous
 /// PPO, one version. The parity study named before its runs
 /// (docs/research/2026-12-05-async-ppo-design.md) found no cell of the
-/// main job's presets at 1, 2 and 4 actors behind `lcrl train` (every
-/// paired lower bound above −0.30; docs/research/2026-12-05-async-ppo.md),
-/// which by its rule makes this the default.
+/// main job's presets at 1, 2 and 4 actors more than 0.30 behind `lcrl
+/// train` (every paired lower bound above −0.30;
+/// docs/research/2026-12-05-async-ppo.md), which by its rule makes this
+/// the default. Other PPO presets inherit it untested.
 pub const PPO_MAX_STALENESS: u64 = 1;
 
 impl Preset {
