@@ -68,7 +68,7 @@ fn service_figures(status: &LearnerStatus) -> ServiceFigures {
         served_version: status.served_version,
         cuts: None,
         cuts_joined: None,
-        discarded_stale: Some(status.rejected.iter().filter(|(k, _)| k.starts_with("stale")).map(|(_, v)| v).sum()),
+        discarded_stale: Some(lcrl_learner::service::ingest::discarded_stale(&status.rejected)),
         actors: None,
         transport: None,
         actor_restarts: None,

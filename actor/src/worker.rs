@@ -230,7 +230,9 @@ impl Rollout {
     /// Steps every environment once with `policy`; returns a batch when
     /// `batch` transitions are collected (or the budget ends).
     pub fn step(&mut self, policy: &Policy, metrics: &ActorMetrics) -> anyhow::Result<Option<TransitionBatch>> {
-        metrics.diverged_env.inc_by(std::mem::take(&mut self.unsound_starts_uncounted));
+        if self.unsound_starts_uncounted > 0 {
+            metrics.diverged_env.inc_by(std::mem::take(&mut self.unsound_starts_uncounted));
+        }
         let mut actions = Vec::with_capacity(self.envs.len());
         let mut sampled = Vec::with_capacity(self.envs.len());
         for (k, env) in self.envs.iter().enumerate() {

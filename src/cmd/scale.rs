@@ -360,7 +360,7 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
     learner.stop(Duration::from_secs(30));
     latencies.sort_by(f64::total_cmp);
     let inserted = last.inserted.saturating_sub(first.inserted);
-    let stale = |s: &LearnerStatus| s.rejected.iter().filter(|(k, _)| k.starts_with("stale")).map(|(_, v)| v).sum::<u64>();
+    let stale = |s: &LearnerStatus| lcrl_learner::service::ingest::discarded_stale(&s.rejected);
     let discarded_steps = stale(&last).saturating_sub(stale(&first));
     let stored = last.env_steps.saturating_sub(first.env_steps);
     Ok(ScalePoint {

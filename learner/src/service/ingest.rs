@@ -522,6 +522,14 @@ pub const SEQUENCE_AHEAD: std::time::Duration = std::time::Duration::from_secs(1
 /// The longest episode a summary may claim (steps).
 pub const MAX_EPISODE_STEPS: u32 = 1_000_000;
 
+/// Transitions that arrived but were not trained on for being staler than
+/// PPO's lag bound, from refusal counts by reason (`stale`, and
+/// `stale_incarnation`: acted by a previous learner process). One reading
+/// for the learner's summary, `lcrl run`'s and `lcrl scale`.
+pub fn discarded_stale<'a>(counts: impl IntoIterator<Item = (&'a String, &'a u64)>) -> u64 {
+    counts.into_iter().filter(|(reason, _)| reason.starts_with("stale")).map(|(_, n)| n).sum()
+}
+
 /// The wall clock in µs since the Unix epoch (0 before it): where actors
 /// number their batches from, and what SEQUENCE_AHEAD is measured against.
 pub fn now_micros() -> u64 {

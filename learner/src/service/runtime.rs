@@ -540,7 +540,7 @@ impl TrainingLoop {
         };
         let evaluation = evaluate_hand_over(env.as_ref(), chosen, &last, &plan)?;
         // Read before the flow's lock is taken (one lock at a time).
-        let discarded_stale: u64 = self.shared.ingest_counts().1.iter().filter(|(k, _)| k.starts_with("stale")).map(|(_, v)| v).sum();
+        let discarded_stale = super::ingest::discarded_stale(&self.shared.ingest_counts().1);
         let flow = self.shared.flow();
         let (min, mean, max) = flow.lag.stats();
         let counters = self.agent.counters();
