@@ -33,16 +33,23 @@ impl Managed {
     /// Starts `command` with stderr to logs/NAME.log. A server prints
     /// "listening on ADDR" as its first line; with `server` that address is
     /// read and returned.
-    pub fn spawn(name: &str, mut command: Command, logs: &Path, server: bool) -> anyhow::Result<(Managed, Option<String>)> {
+    pub fn spawn(name: &str, command: Command, logs: &Path, server: bool) -> anyhow::Result<(Managed, Option<String>)> {
+        Self::spawn_announcing(name, command, logs, server.then_some("listening on "))
+    }
+
+    /// Starts `command` as [`Managed::spawn`] does; where `prefix` is
+    /// given, the process's first line of stdout is read and what follows
+    /// the prefix returned ("metrics on " for an actor's metrics address).
+    pub fn spawn_announcing(name: &str, mut command: Command, logs: &Path, prefix: Option<&str>) -> anyhow::Result<(Managed, Option<String>)> {
         let log = fs::File::create(logs.join(format!("{name}.log")))?;
-        let stdout = if server { Stdio::piped() } else { Stdio::null() };
+        let stdout = if prefix.is_some() { Stdio::piped() } else { Stdio::null() };
         let child = command.stdout(stdout).stderr(log).spawn().with_context(|| format!("starting {name}"))?;
         let mut managed = Managed { name: name.to_string(), child };
         let mut address = None;
-        if let Some(stdout) = managed.child.stdout.take() {
+        if let (Some(stdout), Some(prefix)) = (managed.child.stdout.take(), prefix) {
             let mut line = String::new();
             if BufReader::new(stdout).read_line(&mut line).is_ok() {
-                address = line.trim().strip_prefix("listening on ").map(|a| a.trim().to_string());
+                address = line.trim().strip_prefix(prefix).map(|a| a.trim().to_string());
             }
         }
         Ok((managed, address))

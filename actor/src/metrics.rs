@@ -3,6 +3,7 @@
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::registry::Registry;
+use std::sync::atomic::AtomicU64;
 
 /// Counters the worker thread and the sender task update as they go.
 /// Cloning shares the same counters.
@@ -19,6 +20,11 @@ pub struct ActorMetrics {
     pub policy_version: Gauge,
     /// Batches handed to the sender and not yet acknowledged (gRPC).
     pub pending_batches: Gauge,
+    /// Seconds the environment thread spent handing batches over: blocked
+    /// while the learner held actors back (its queue full, or an on-policy
+    /// learner updating). Over a window, its share of the wall time is the
+    /// actor's idle share (`lcrl scale`).
+    pub send_wait_seconds: Counter<f64, AtomicU64>,
 }
 
 impl ActorMetrics {
@@ -32,6 +38,7 @@ impl ActorMetrics {
         registry.register("diverged_env", "Episodes ended unsent because the environment diverged (non-finite or out-of-bounds state or reward)", self.diverged_env.clone());
         registry.register("policy_version", "Version of the policy acting now", self.policy_version.clone());
         registry.register("pending_batches", "Batches sent but not yet acknowledged by the learner (gRPC)", self.pending_batches.clone());
+        registry.register("send_wait_seconds", "Seconds the environment thread waited to hand batches over (the learner held actors back)", self.send_wait_seconds.clone());
         registry
     }
 }

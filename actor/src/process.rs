@@ -312,9 +312,13 @@ fn work(settings: RolloutSettings, source: PolicySource, sink: Sink, stop: Arc<A
     Ok(())
 }
 
-/// Hands a batch to the transport, counted; false when the sender is gone.
+/// Hands a batch to the transport, counted, with the time it waited;
+/// false when the sender is gone.
 fn send(out: &Out, batch: TransitionBatch, metrics: &ActorMetrics) -> anyhow::Result<bool> {
     metrics.batches_sent.inc();
     metrics.transitions_sent.inc_by(batch.transitions.len() as u64);
-    out.send(batch)
+    let started = std::time::Instant::now();
+    let sent = out.send(batch);
+    metrics.send_wait_seconds.inc_by(started.elapsed().as_secs_f64());
+    sent
 }

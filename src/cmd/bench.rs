@@ -33,6 +33,11 @@ pub enum BenchCommand {
         /// libtorch intra-op thread counts to measure.
         #[arg(long, value_delimiter = ',', default_value = "1")]
         threads: Vec<usize>,
+        /// Rounds per thread count: each round times every actor once, in
+        /// turn, and the medians are printed (a busy machine's noise falls
+        /// on all of them alike).
+        #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=50))]
+        rounds: u32,
         /// The Python whose torch times the same DDPG update eagerly
         /// (scripts/bench_torch_ddpg.py) [default: this project's .venv];
         /// `none` skips it.
@@ -95,7 +100,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Sim { episodes } => crate::cmd::bench_sim::run(episodes.max(1)),
         BenchCommand::Tune { evaluations, episodes } => crate::cmd::bench_sim::tune(evaluations.max(2), episodes.max(1)),
         BenchCommand::SimEpisodes { episodes, substeps } => crate::cmd::bench_sim::episodes(episodes, substeps),
-        BenchCommand::Learner { updates, device, threads, python } => bench_learner(updates.max(1), &device, &threads, python.as_deref()),
+        BenchCommand::Learner { updates, device, threads, rounds, python } => bench_learner(updates.max(1), &device, &threads, rounds as usize, python.as_deref()),
         BenchCommand::Transport { seconds } => {
             // At least 1 s per measurement; at most an hour (1e300 s would
             // overflow the deadline's clock arithmetic).
@@ -111,8 +116,9 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
 /// One DDPG update (batch 256, default sizes) and one PPO update (a 2048-step
 /// rollout: 10 epochs of 64-transition minibatches), local vs global actor,
 /// at the peg task's size with its CS3 graph, for each thread count on
-/// `device`; then the same DDPG update in PyTorch eager (global actor).
-fn bench_learner(updates: usize, device: &str, threads: &[usize], python: Option<&str>) -> anyhow::Result<()> {
+/// `device`, the median of `rounds` interleaved rounds; then the same DDPG
+/// update in PyTorch eager (global actor).
+fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize, python: Option<&str>) -> anyhow::Result<()> {
     if threads.is_empty() || threads.iter().any(|&t| t == 0 || t > lcrl_learner::device::torch::MAX_THREADS) {
         anyhow::bail!("--threads takes counts from 1 to {}", lcrl_learner::device::torch::MAX_THREADS);
     }
@@ -135,29 +141,52 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], python: Option
     let mut globals: Vec<(usize, f64)> = Vec::new();
     for &t in threads {
         tch::set_num_threads(t as i32);
-        let mut by_connection = Vec::new();
-        for connection in [lcrl_learner::Connection::Global, lcrl_learner::Connection::Local, lcrl_learner::Connection::FullSubnets] {
-            // On a GPU, eager updates first, then the same replayed from
-            // CUDA graphs (`run.cuda_graphs`; ignored on the CPU).
-            let settings: &[bool] = if torch_device.is_cuda() { &[false, true] } else { &[false] };
-            for &graphs in settings {
-                let cfg = lcrl_learner::TrainConfig { run: lcrl_learner::config::RunConfig { cuda_graphs: graphs, ..cfg.run.clone() }, ..cfg.clone() };
-                let (ddpg, ppo, params) = time_updates(&cfg, connection, &mask, updates, torch_device)?;
-                let label = if graphs { format!("{connection:?}+graphs") } else { format!("{connection:?}") };
-                println!("{t:>7} {label:<16} {params:>13} {:>16.3} {:>12.0} {ppo:>20.3}", ddpg * 1e3, 1.0 / ddpg);
-                if !graphs {
-                    by_connection.push((ddpg, ppo));
+        // Every setting once per round, in turn; the median of the rounds.
+        let connections = [lcrl_learner::Connection::Global, lcrl_learner::Connection::Local, lcrl_learner::Connection::FullSubnets];
+        // On a GPU, eager updates first, then the same replayed from CUDA
+        // graphs (`run.cuda_graphs`; ignored on the CPU).
+        let settings: &[bool] = if torch_device.is_cuda() { &[false, true] } else { &[false] };
+        let mut timed: Vec<(String, Vec<f64>, Vec<f64>, usize)> = Vec::new();
+        for _ in 0..rounds {
+            for connection in connections {
+                for &graphs in settings {
+                    let cfg = lcrl_learner::TrainConfig { run: lcrl_learner::config::RunConfig { cuda_graphs: graphs, ..cfg.run.clone() }, ..cfg.clone() };
+                    let (ddpg, ppo, params) = time_updates(&cfg, connection, &mask, updates, torch_device)?;
+                    let label = if graphs { format!("{connection:?}+graphs") } else { format!("{connection:?}") };
+                    match timed.iter_mut().find(|(l, ..)| *l == label) {
+                        Some((_, d, p, _)) => {
+                            d.push(ddpg);
+                            p.push(ppo);
+                        }
+                        None => timed.push((label, vec![ddpg], vec![ppo], params)),
+                    }
                 }
             }
         }
+        let mut by_connection = Vec::new();
+        for (label, ddpg, ppo, params) in &timed {
+            let (ddpg, ppo) = (median(ddpg), median(ppo));
+            println!("{t:>7} {label:<16} {params:>13} {:>16.3} {:>12.0} {ppo:>20.3}", ddpg * 1e3, 1.0 / ddpg);
+            if !label.ends_with("+graphs") {
+                by_connection.push((ddpg, ppo));
+            }
+        }
         let (global, local) = (by_connection[0], by_connection[1]);
-        println!("{t:>7} local / global: DDPG update {:.2}×, PPO update {:.2}× (target ≤ 1.3×)", local.0 / global.0, local.1 / global.1);
+        println!("{t:>7} local / global: DDPG update {:.2}×, PPO update {:.2}× (the goal: at most 1.00×)", local.0 / global.0, local.1 / global.1);
         if let Some(&(first, seconds)) = globals.first() {
             println!("{t:>7} global DDPG update: {:.2}× the speed of {first} thread(s)", seconds / global.0);
         }
         globals.push((t, global.0));
     }
     torch_eager(python, device, threads, updates, (m, n, cfg.ddpg.batch_size), &globals)
+}
+
+/// The median of `values` (not empty).
+fn median(values: &[f64]) -> f64 {
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let k = sorted.len() / 2;
+    if sorted.len() % 2 == 1 { sorted[k] } else { (sorted[k - 1] + sorted[k]) / 2.0 }
 }
 
 /// Seconds per DDPG update and per PPO update, and the actor's parameters,

@@ -100,6 +100,11 @@ pub struct ScalePoint {
     /// discarded).
     pub discarded_steps: u64,
     pub discarded_share: f64,
+    /// The share of the actors' wall time over the window their
+    /// environment threads spent waiting to hand a batch over (the learner
+    /// held them back), from each actor's `send_wait_seconds`; None where
+    /// an actor's metrics could not be read.
+    pub actor_idle_share: Option<f64>,
     /// Wall time to reach --to-threshold, when asked and reached.
     pub seconds_to_threshold: Option<f64>,
 }
@@ -179,12 +184,12 @@ fn check_args(args: &ScaleArgs) -> anyhow::Result<()> {
 /// The points as a table on stdout.
 fn print_table(points: &[ScalePoint]) {
     println!(
-        "{:<24} {:>6} {:>5} {:>8} {:>12} {:>10} {:>7} {:>6} {:>10} {:>8} {:>9} {:>9} {:>10}",
-        "kind", "actors", "envs", "learner", "env steps/s", "updates/s", "ratio", "lag", "discarded", "act p50", "cpu lrn", "cpu act", "to thr. s"
+        "{:<24} {:>6} {:>5} {:>8} {:>12} {:>10} {:>7} {:>6} {:>10} {:>6} {:>8} {:>9} {:>9} {:>10}",
+        "kind", "actors", "envs", "learner", "env steps/s", "updates/s", "ratio", "lag", "discarded", "idle", "act p50", "cpu lrn", "cpu act", "to thr. s"
     );
     for p in points {
         println!(
-            "{:<24} {:>6} {:>5} {:>8} {:>12.0} {:>10.0} {:>7.1} {:>6.1} {:>9.0}% {:>8} {:>9.2} {:>9.2} {:>10}",
+            "{:<24} {:>6} {:>5} {:>8} {:>12.0} {:>10.0} {:>7.1} {:>6.1} {:>9.0}% {:>6} {:>8} {:>9.2} {:>9.2} {:>10}",
             p.kind,
             p.actors,
             p.envs_per_actor,
@@ -194,6 +199,7 @@ fn print_table(points: &[ScalePoint]) {
             p.replay_ratio,
             p.policy_lag_mean,
             100.0 * p.discarded_share,
+            p.actor_idle_share.map_or("-".into(), |v| format!("{:.0}%", 100.0 * v)),
             p.act_p50_ms.map_or("-".into(), |v| format!("{v:.2}ms")),
             p.learner_cpu,
             p.actors_cpu,
@@ -264,8 +270,27 @@ fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<S
         learner_waited_s: 0.0,
         discarded_steps: 0,
         discarded_share: 0.0,
+        actor_idle_share: None,
         seconds_to_threshold: None,
     })
+}
+
+/// The actors' seconds waiting to hand batches over, summed, from each
+/// one's metrics (`lcrl_actor_send_wait_seconds_total`); None when any
+/// actor's cannot be read.
+fn send_wait_seconds(addresses: &[Option<String>]) -> Option<f64> {
+    addresses.iter().map(|address| address.as_deref().and_then(scrape_send_wait)).sum()
+}
+
+/// One actor's `lcrl_actor_send_wait_seconds_total`, over plain HTTP.
+fn scrape_send_wait(address: &str) -> Option<f64> {
+    use std::io::{Read, Write};
+    let mut stream = std::net::TcpStream::connect_timeout(&address.parse().ok()?, Duration::from_secs(2)).ok()?;
+    stream.set_read_timeout(Some(Duration::from_secs(5))).ok()?;
+    write!(stream, "GET /metrics HTTP/1.1\r\nHost: {address}\r\nConnection: close\r\n\r\n").ok()?;
+    let mut body = String::new();
+    stream.read_to_string(&mut body).ok()?;
+    body.lines().find_map(|line| line.strip_prefix("lcrl_actor_send_wait_seconds_total ")).and_then(|v| v.trim().parse().ok())
 }
 
 /// CPU seconds (user + system) a process has used so far.
@@ -330,17 +355,23 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
     wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120), &Default::default()).await?;
     let started = Instant::now();
     let mut workers = Vec::new();
+    let mut actor_metrics = Vec::new();
     for k in 0..actors {
         let mut cmd = Command::new(sibling("lcrl-actor")?);
         cmd.args(preset.actor_args(&url, &run_id, transport, Some(&format!("actor-{k}")), k as u64));
+        // Each actor's metrics, for its idle share (send_wait_seconds).
+        cmd.args(["--metrics-listen", "127.0.0.1:0"]);
         stop_with_parent(&mut cmd);
-        workers.push(Managed::spawn(&format!("actor-{k}"), cmd, &logs, false)?.0);
+        let (worker, metrics) = Managed::spawn_announcing(&format!("actor-{k}"), cmd, &logs, Some("metrics on "))?;
+        workers.push(worker);
+        actor_metrics.push(metrics);
     }
     let mut client = LearnerClient::connect(url.clone()).await?;
     let mut policy = PolicyClient::connect(url.clone()).await?;
     let status = |s: Result<tonic::Response<LearnerStatus>, tonic::Status>| s.map(|r| r.into_inner()).map_err(|e| anyhow::anyhow!("lost the learner: {e}"));
     tokio::time::sleep(Duration::from_secs_f64(args.warmup)).await;
     let first = status(client.get_status(GetStatusRequest {}).await)?;
+    let waited_before = send_wait_seconds(&actor_metrics);
     let cpu = |pids: &[u32]| pids.iter().map(|&p| cpu_seconds(p)).sum::<f64>();
     let actor_pids: Vec<u32> = workers.iter().map(Managed::pid).collect();
     let (learner_cpu0, actors_cpu0) = (cpu(&[learner.pid()]), cpu(&actor_pids));
@@ -349,6 +380,7 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
     let mut latencies = act_latencies(&mut policy, m, window, args.seconds).await;
     let seconds = window.elapsed().as_secs_f64();
     let last = status(client.get_status(GetStatusRequest {}).await)?;
+    let waited_after = send_wait_seconds(&actor_metrics);
     let (learner_cpu, actors_cpu) = ((cpu(&[learner.pid()]) - learner_cpu0) / seconds, (cpu(&actor_pids) - actors_cpu0) / seconds);
     let seconds_to_threshold = match args.to_threshold {
         Some(threshold) => seconds_to(&mut client, threshold, started, args.threshold_timeout).await?,
@@ -384,6 +416,7 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
         learner_waited_s: last.learner_waited_s - first.learner_waited_s,
         discarded_steps,
         discarded_share: discarded_steps as f64 / (stored + discarded_steps).max(1) as f64,
+        actor_idle_share: waited_before.zip(waited_after).map(|(before, after)| (after - before) / (actors as f64 * seconds)),
         seconds_to_threshold,
     })
 }

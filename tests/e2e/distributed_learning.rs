@@ -204,11 +204,36 @@ fn scale_with_two_points_writes_parsable_outputs() {
         assert!(point["env_steps_per_s"].as_f64().unwrap() > 0.0, "{point}");
         assert!(point["actors_cpu"].as_f64().unwrap() > 0.0, "{point}");
         assert!(point["act_p50_ms"].as_f64().unwrap() > 0.0, "{point}");
+        let idle = point["actor_idle_share"].as_f64().expect("every actor's metrics read");
+        assert!((0.0..=1.0).contains(&idle), "{point}");
     }
     let mut csv = csv::Reader::from_path(out_dir.join("scale.csv")).unwrap();
     assert!(csv.headers().unwrap().iter().any(|h| h == "env_steps_per_s"));
     assert_eq!(csv.records().count(), 3);
     assert!(fs::read(out_dir.join("scale.png")).unwrap().starts_with(b"\x89PNG"));
+}
+
+/// An actor the learner holds back (100 minibatches per inserted
+/// transition: the learner far behind) spends most of its time waiting to
+/// hand batches over, and `lcrl scale` says so as its idle share.
+#[test]
+fn scale_reports_the_idle_share_of_held_actors() {
+    let dir = tempfile::tempdir().unwrap();
+    let out_dir = dir.path().join("scale");
+    let preset = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/lti-paper.toml");
+    let out = lcrl()
+        .args(["scale", "--actors", "1", "--seconds", "3", "--warmup", "2", "--replay-ratio", "3200", "--config"])
+        .arg(&preset)
+        .arg("--out")
+        .arg(&out_dir)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let points: Vec<Value> = serde_json::from_str(&fs::read_to_string(out_dir.join("scale.json")).unwrap()).unwrap();
+    let held = &points[1];
+    assert!(held["actors_waited_s"].as_f64().unwrap() > 0.0, "the limiter held nothing: {held}");
+    let idle = held["actor_idle_share"].as_f64().expect("the actor's metrics read");
+    assert!(idle > 0.5 && idle <= 1.0, "idle share {idle} of an actor held back: {held}");
 }
 
 /// SIGTERM while the limiter holds the actors back (the command queue full,

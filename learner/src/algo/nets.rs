@@ -10,6 +10,13 @@
 //! pass. A masked weight is exactly zero in the product, so action i gets
 //! exactly zero gradient from every state j with G_ij = 0, and the result
 //! equals n separate subnetworks on the gathered inputs (tested below).
+//!
+//! Every layer, of every network here, adds its bias inside the matrix
+//! product (`addmm`, `baddbmm`) and applies its activation in place: the
+//! locally connected actor has more hidden units than the global one
+//! (n · 96 against 256 per layer at the defaults), so the passes over its
+//! activations, not its products, decide its cost (docs/scaling.md,
+//! "The sparse actor's cost").
 
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -18,12 +25,21 @@ use tch::{Device, Tensor};
 
 use crate::config::Activation;
 
-fn activate(x: Tensor, act: Activation) -> Tensor {
+/// The activation, in place: the layer's output is a fresh tensor that
+/// nothing else holds, and autograd keeps what the in-place op needs
+/// (ReLU, tanh and ELU differentiate through their output).
+fn activate(mut x: Tensor, act: Activation) -> Tensor {
     match act {
-        Activation::Relu => x.relu(),
-        Activation::Tanh => x.tanh(),
-        Activation::Elu => x.elu(),
+        Activation::Relu => x.relu_(),
+        Activation::Tanh => x.tanh_(),
+        Activation::Elu => x.elu_(),
     }
+}
+
+/// x · w + b with the bias added inside the product where x is a batch of
+/// rows (one pass over the output instead of two).
+fn linear(x: &Tensor, w: &Tensor, b: &Tensor) -> Tensor {
+    if x.dim() == 2 { b.addmm(x, w) } else { x.matmul(w) + b }
 }
 
 /// A trainable variable drawn from U(−bound, bound) per row of `bounds`
@@ -74,7 +90,7 @@ impl Mlp {
         let last = self.layers.len() - 1;
         let mut h = x.shallow_clone();
         for (k, (w, b)) in self.layers.iter().enumerate() {
-            h = h.matmul(w) + b;
+            h = linear(&h, w, b);
             if k < last {
                 h = activate(h, self.act);
             }
@@ -129,11 +145,15 @@ impl SubnetActor {
     /// The raw outputs [B, n] (before tanh).
     pub fn forward_raw(&self, x: &Tensor) -> Tensor {
         let last = self.layers.len() - 1;
-        // [1, B, m] × [n, m, h] → [n, B, h]: every subnetwork sees the batch.
-        let mut h = x.unsqueeze(0);
+        let n = self.inputs.len() as i64;
+        // [n, B, m] (the batch seen by every subnetwork, not copied) ×
+        // [n, m, h] → [n, B, h], the bias added inside the product.
+        // (-1 keeps the batch size: a traced export serves any batch.)
+        let x = if x.dim() == 1 { x.unsqueeze(0) } else { x.shallow_clone() };
+        let mut h = x.unsqueeze(0).expand([n, -1, -1], false);
         for (k, (w, b)) in self.layers.iter().enumerate() {
             let w = if k == 0 { w * &self.mask } else { w.shallow_clone() };
-            h = h.matmul(&w) + b;
+            h = b.baddbmm(&h, &w, 1.0, 1.0);
             if k < last {
                 h = activate(h, self.act);
             }
