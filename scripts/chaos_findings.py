@@ -2,7 +2,8 @@
 first finding the older rows left out: a learner with nothing to do, numbers
 on the command line beyond their range, a learner that answers no policy yet,
 and huge-but-finite values of every kind with the checkpoints on disk
-scanned afterwards. Run through scripts/chaos.sh (`--only idle-cpu`, ...);
+scanned afterwards; and issue 82's peers that made one call and then only
+ping. Run through scripts/chaos.sh (`--only idle-cpu`, ...);
 rows in docs/reliability.md.
 """
 
@@ -21,6 +22,7 @@ import numpy as np
 
 from chaoslib import free_port, status, vm, wait
 import lcrl_pb2
+import lcrl_pb2_grpc
 
 from chaos_hostile import _finite_action, _health_seconds, _health_words, _send, _step, _stored_of, _training
 
@@ -267,3 +269,53 @@ def _slow_senders_once(c, *extra, connections=16):
 
 
 FAULTS["slow-senders"] = slow_senders
+
+
+def called_ping_flood(c):
+    """510 connections that each made one GetStatus, then only send HTTP/2
+    pings (every 2 s), from one process: before issue 82 they kept every
+    place of a token-less learner."""
+    port = free_port()
+    c.learner(c.work / "called", port)
+    c.actor(port, "--actor-id", "honest")
+    wait("updates", lambda: status(port).updates > 10)
+    options = [("grpc.keepalive_time_ms", 2000), ("grpc.keepalive_permit_without_calls", 1), ("grpc.http2.max_pings_without_data", 0), ("grpc.use_local_subchannel_pool", 1)]
+    channels = [grpc.insecure_channel(f"127.0.0.1:{port}", options=options) for _ in range(510)]
+    called = 0
+    for ch in channels:
+        try:
+            lcrl_pb2_grpc.LearnerStub(ch).GetStatus(lcrl_pb2.GetStatusRequest(), timeout=5)
+            called += 1
+        except grpc.RpcError:
+            pass
+        # Under the per-peer rate of GetStatus (20 a second).
+        time.sleep(0.055)
+    time.sleep(10)
+    health = _health_seconds(c, port)
+    # A new actor over gRPC (another process): seconds until its stream is
+    # open (each status read is a new connection from this process).
+    try:
+        before = status(port).connected_actors
+    except grpc.RpcError:
+        before = 1
+    t0 = time.monotonic()
+    c.actor(port, "--actor-id", "late", "--transport", "grpc")
+    try:
+        wait("the late actor's stream", lambda: status(port).connected_actors > before, limit=60)
+        late = time.monotonic() - t0
+    except RuntimeError:
+        late = None
+    try:
+        refused = dict(status(port).connections_refused)
+    except grpc.RpcError as e:
+        refused = f"GetStatus failed ({e.code().name})"
+    for ch in channels:
+        ch.close()
+    joined = "did not join within 60 s" if late is None else f"joined in {late:.1f} s"
+    return {"fault": "510 connections from one process, each one GetStatus then HTTP/2 pings every 2 s",
+            "did": f"{called} calls answered; {_health_words(health)}; a new actor {joined}; connections closed {refused}",
+            "lost": "nothing" if None not in health and late is not None else "health or a new actor while it lasts",
+            "health_answer_worst_s": health[0], "health_process_worst_s": health[1], "late_actor_s": late}
+
+
+FAULTS["called-ping-flood"] = called_ping_flood

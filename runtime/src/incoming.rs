@@ -14,6 +14,12 @@
 //! [`CALL_DEADLINE`] is closed whatever it sends (the token check marks
 //! its connection, [`Connections::mark_called`]), and one peer address
 //! beyond loopback holds at most `--max-connections-per-peer`.
+//! When the server is full and none is quiet, the places are shared: a
+//! peer (a host, or on loopback a local process, crate::peer_process)
+//! holding more than twice its share (the places over the peers there,
+//! counting the newcomer as one more) gives up its least recently heard connection,
+//! called or not. One process's connections, however busy, cannot keep a
+//! health check or another process's actor out.
 
 use std::future::Future;
 use std::io;
@@ -36,6 +42,12 @@ use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::server::{Connected, TcpConnectInfo};
 
 use crate::limits::{ConnectionRefusals, ServerLimitsArgs, CALL_DEADLINE, FIRST_BYTE_TIMEOUT};
+use crate::peer_process::{remote_group, LocalSockets, PeerGroup};
+
+/// How often a full server reads /proc to learn which local process holds
+/// a loopback peer (crate::peer_process): a flood of newcomers costs at
+/// most this many readings a second.
+const LOCAL_SOCKETS_EVERY: Duration = Duration::from_millis(250);
 
 /// How long a client may take to finish its TLS handshake.
 const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
@@ -65,6 +77,8 @@ struct Hush {
     /// to the accept).
     heard_ms: std::sync::atomic::AtomicU64,
     evicted: AtomicBool,
+    /// Who the peer is, once known (crate::peer_process).
+    group: std::sync::OnceLock<PeerGroup>,
     /// Woken on eviction: the TLS handshake or the connection's reader.
     waker: Mutex<Option<Waker>>,
 }
@@ -103,6 +117,17 @@ struct Registry {
     /// Open connections by peer address, for the token check to mark and
     /// for the per-peer cap.
     by_peer: Mutex<HashMap<SocketAddr, std::sync::Weak<Hush>>>,
+    /// When /proc was last read for local peers' processes.
+    sockets_read: Mutex<Option<std::time::Instant>>,
+}
+
+/// Why [`Registry::evict`] closed a connection.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Eviction {
+    /// Silent since accepted, never called, or quiet for [`QUIET_TO_EVICT`].
+    Quiet,
+    /// Its peer held more than its share of a full server.
+    OverShare,
 }
 
 /// A server's connections as its token check sees them: the handle that
@@ -129,7 +154,7 @@ impl Connections {
 
 impl Registry {
     fn new() -> Self {
-        Registry { epoch: std::time::Instant::now(), open: Mutex::new(VecDeque::new()), by_peer: Mutex::new(HashMap::new()) }
+        Registry { epoch: std::time::Instant::now(), open: Mutex::new(VecDeque::new()), by_peer: Mutex::new(HashMap::new()), sockets_read: Mutex::new(None) }
     }
 
     /// Whether `ip` (not loopback) holds `cap` open connections already.
@@ -158,9 +183,11 @@ impl Registry {
     }
 
     /// Closes the open connection heard from least recently among those
-    /// that never spoke or have been quiet for [`QUIET_TO_EVICT`]; false
-    /// when there is none such.
-    fn evict(&self) -> bool {
+    /// that never spoke or have been quiet for [`QUIET_TO_EVICT`]; with
+    /// none such, the least recently heard of the peer holding the most
+    /// places if that is more than twice its share of `max_connections`; None
+    /// when neither is found.
+    fn evict(&self, max_connections: usize) -> Option<Eviction> {
         let now = self.now_ms();
         let quiet = QUIET_TO_EVICT.as_millis() as u64;
         let mut open = self.open.lock().unwrap_or_else(|p| p.into_inner());
@@ -168,9 +195,53 @@ impl Registry {
         let evictable = |h: &&Arc<Hush>| {
             !h.spoken.load(Ordering::Acquire) || !h.called.load(Ordering::Relaxed) || now.saturating_sub(h.heard_ms.load(Ordering::Relaxed)) >= quiet
         };
-        let Some(oldest) = open.iter().filter(evictable).min_by_key(|h| h.heard_ms.load(Ordering::Relaxed)) else { return false };
-        oldest.evict();
-        true
+        let heard = |h: &&Arc<Hush>| h.heard_ms.load(Ordering::Relaxed);
+        if let Some(oldest) = open.iter().filter(evictable).min_by_key(heard) {
+            oldest.evict();
+            return Some(Eviction::Quiet);
+        }
+        self.learn_groups(&open);
+        let group = |h: &Arc<Hush>| h.group.get().copied().unwrap_or(PeerGroup::Local);
+        let mut held: HashMap<PeerGroup, usize> = HashMap::new();
+        for h in open.iter() {
+            *held.entry(group(h)).or_default() += 1;
+        }
+        // The newcomer may be one more peer. Only a peer holding more than
+        // twice its share gives a place up: peers near their share do not
+        // take places from each other in turn.
+        let share = (max_connections / (held.len() + 1)).max(1);
+        let (&largest, &count) = held.iter().max_by_key(|(_, &n)| n)?;
+        if count <= 2 * share {
+            return None;
+        }
+        open.iter().filter(|h| group(h) == largest).min_by_key(heard)?.evict();
+        Some(Eviction::OverShare)
+    }
+
+    /// Sets the group of every open connection that has none yet: a host
+    /// at once, a local process from /proc (read at most every
+    /// [`LOCAL_SOCKETS_EVERY`]; one not found stays unknown until the
+    /// next reading).
+    fn learn_groups(&self, open: &VecDeque<Arc<Hush>>) {
+        let mut sockets: Option<LocalSockets> = None;
+        for h in open.iter().filter(|h| h.group.get().is_none()) {
+            let Some(peer) = h.peer else { continue };
+            if let Some(host) = remote_group(peer) {
+                let _ = h.group.set(host);
+                continue;
+            }
+            if sockets.is_none() {
+                let mut read = self.sockets_read.lock().unwrap_or_else(|p| p.into_inner());
+                if read.is_some_and(|at| at.elapsed() < LOCAL_SOCKETS_EVERY) {
+                    continue;
+                }
+                *read = Some(std::time::Instant::now());
+                sockets = Some(LocalSockets::read());
+            }
+            if let Some(PeerGroup::Process(pid)) = sockets.as_ref().map(|s| s.group(peer)) {
+                let _ = h.group.set(PeerGroup::Process(pid));
+            }
+        }
     }
 }
 
@@ -402,14 +473,19 @@ pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, r
 
 /// A place among `--max-connections` for a newcomer from `peer`. When
 /// full, the least recently heard quiet connection makes room (its reader
-/// fails and tonic drops it, giving its place back at once); with none
-/// quiet, None (counted): the newcomer is closed, so a flood of sockets
-/// costs a file for a moment, not for ever.
+/// fails and tonic drops it, giving its place back at once), or with none
+/// quiet one of a peer over its share; with neither, None (counted): the
+/// newcomer is closed, so a flood of sockets costs a file for a moment,
+/// not for ever.
 async fn place(places: &Arc<Semaphore>, registry: &Registry, limits: &Limits, peer: SocketAddr) -> Option<OwnedSemaphorePermit> {
+    let evict = || match registry.evict(limits.max_connections) {
+        Some(Eviction::Quiet) => Some(&limits.refusals.evicted),
+        Some(Eviction::OverShare) => Some(&limits.refusals.over_share),
+        None => None,
+    };
     match places.clone().try_acquire_owned() {
         Ok(permit) => Some(permit),
-        Err(_) if registry.evict() => {
-            limits.refusals.evicted.fetch_add(1, Ordering::Relaxed);
+        Err(_) if evict().map(|counter| counter.fetch_add(1, Ordering::Relaxed)).is_some() => {
             match tokio::time::timeout(Duration::from_millis(500), places.clone().acquire_owned()).await {
                 Ok(Ok(permit)) => Some(permit),
                 _ => {
@@ -427,79 +503,4 @@ async fn place(places: &Arc<Semaphore>, registry: &Registry, limits: &Limits, pe
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    use tokio_stream::StreamExt;
-
-    fn limits(call_deadline: Duration) -> Limits {
-        Limits { max_connections: 8, max_connections_per_peer: 8, idle_timeout: Duration::from_secs(60), call_deadline, refusals: Arc::default() }
-    }
-
-    /// A peer that keeps sending bytes (as pings do) but completes no
-    /// authenticated call is closed at the call deadline; one whose call
-    /// passed the token check is kept.
-    #[tokio::test]
-    async fn a_connection_without_an_authenticated_call_is_closed_whatever_it_sends() {
-        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
-        let addr = listener.local_addr().unwrap();
-        let connections = Connections::default();
-        let limits = limits(Duration::from_millis(400));
-        let mut accepted = incoming(listener, None, Arc::new(|| {}), limits.clone(), connections.clone());
-        let chatter = |mut client: TcpStream| async move {
-            // A byte every 50 ms for 1.2 s, far past the deadline.
-            for _ in 0..24 {
-                if client.write_all(b"x").await.is_err() {
-                    return;
-                }
-                tokio::time::sleep(Duration::from_millis(50)).await;
-            }
-        };
-        let read_until_closed = |mut conn: Conn| async move {
-            let started = std::time::Instant::now();
-            let mut buf = [0u8; 16];
-            loop {
-                match conn.read(&mut buf).await {
-                    Ok(0) => return (started.elapsed(), None),
-                    Ok(_) => {}
-                    Err(e) => return (started.elapsed(), Some(e.kind())),
-                }
-            }
-        };
-        // Never called: closed after about 400 ms.
-        let client = TcpStream::connect(addr).await.unwrap();
-        let talker = tokio::spawn(chatter(client));
-        let conn = accepted.next().await.unwrap().unwrap();
-        let (lived, error) = read_until_closed(conn).await;
-        assert_eq!(error, Some(io::ErrorKind::TimedOut));
-        assert!(lived >= Duration::from_millis(350) && lived < Duration::from_millis(1100), "{lived:?}");
-        assert_eq!(limits.refusals.no_call.load(Ordering::Relaxed), 1);
-        talker.abort();
-        // Called: kept until the peer hangs up.
-        let client = TcpStream::connect(addr).await.unwrap();
-        let peer = client.local_addr().unwrap();
-        let talker = tokio::spawn(chatter(client));
-        let conn = accepted.next().await.unwrap().unwrap();
-        connections.mark_called(peer);
-        let (lived, error) = read_until_closed(conn).await;
-        talker.await.unwrap();
-        assert_eq!(error, None, "closed by the peer, not the server");
-        assert!(lived >= Duration::from_millis(1000), "{lived:?}");
-        assert_eq!(limits.refusals.no_call.load(Ordering::Relaxed), 1);
-    }
-
-    /// One address beyond loopback holds at most its cap; others and
-    /// loopback are not held by it, and a closed connection frees its place.
-    #[test]
-    fn one_peer_address_holds_at_most_its_cap() {
-        let registry = Registry::new();
-        let peer = |ip: &str, port: u16| SocketAddr::new(ip.parse().unwrap(), port);
-        let held: Vec<_> = (1..=3).map(|port| registry.admit(8, peer("10.0.0.1", port))).collect();
-        assert!(registry.peer_full("10.0.0.1".parse().unwrap(), 3));
-        assert!(!registry.peer_full("10.0.0.2".parse().unwrap(), 3));
-        assert!(!registry.peer_full("127.0.0.1".parse().unwrap(), 0), "loopback is every local process");
-        assert!(!registry.peer_full("::ffff:127.0.0.1".parse().unwrap(), 0), "also on an IPv6 listener");
-        drop(held);
-        assert!(!registry.peer_full("10.0.0.1".parse().unwrap(), 3), "closed connections give their places back");
-    }
-}
+mod tests;

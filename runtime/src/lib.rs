@@ -4,7 +4,8 @@
 //! server and client authenticates (TLS, tokens); [`incoming`], the
 //! TLS-accepting connection stream servers are fed from; [`limits`], the
 //! bounds every server keeps against its peers and the deadlines every
-//! client keeps; [`peer_rate`], calls a second per peer address; [`files`],
+//! client keeps; [`peer_rate`], calls a second per peer address;
+//! [`peer_process`], which host or local process a peer is; [`files`],
 //! the one atomic writer of the files those processes hand on; and
 //! [`metrics_http`], Prometheus `/metrics` and `/healthz` over HTTP.
 
@@ -12,6 +13,7 @@ pub mod files;
 pub mod incoming;
 pub mod limits;
 pub mod metrics_http;
+pub mod peer_process;
 pub mod peer_rate;
 pub mod process;
 pub mod security;

@@ -147,16 +147,21 @@ pub struct ConnectionRefusals {
     /// Refused on accept: the peer address held
     /// `--max-connections-per-peer` already.
     pub per_peer: AtomicU64,
+    /// Closed, while the server was full and none was quiet, to make room
+    /// for a newcomer: its peer (a host, or a local process) held more
+    /// than its share of the places (crate::incoming).
+    pub over_share: AtomicU64,
 }
 
 impl ConnectionRefusals {
-    pub fn counts(&self) -> [(&'static str, u64); 5] {
+    pub fn counts(&self) -> [(&'static str, u64); 6] {
         [
             ("connections", self.over_limit.load(Ordering::Relaxed)),
             ("idle", self.idle.load(Ordering::Relaxed)),
             ("evicted", self.evicted.load(Ordering::Relaxed)),
             ("no_call", self.no_call.load(Ordering::Relaxed)),
             ("per_peer", self.per_peer.load(Ordering::Relaxed)),
+            ("over_share", self.over_share.load(Ordering::Relaxed)),
         ]
     }
 }
