@@ -51,6 +51,25 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 5.0)]
         seconds: f64,
     },
+    /// The learner's updates/s with `--threads 1` against
+    /// `OMP_NUM_THREADS=1` exported, each beside N processes busy at nice
+    /// 10 (one actor, `lcrl scale`'s distributed and single-process
+    /// points), in turn over a few rounds: threads that obey keep at least
+    /// 0.9 of what OpenMP's own setting gives.
+    Busy {
+        /// The preset measured.
+        #[arg(long, default_value = "configs/peg-group1-ddpg-local.toml")]
+        config: std::path::PathBuf,
+        /// Busy processes beside the learner.
+        #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(0..=64))]
+        busy: u32,
+        /// Seconds per measurement window.
+        #[arg(long, default_value_t = 8.0)]
+        seconds: f64,
+        /// Rounds (each runs both settings once).
+        #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=20))]
+        rounds: u32,
+    },
     /// A Gymnasium environment stepped in plain Python, against the same
     /// environment stepped through `python -m lcrl_env serve` (one
     /// instance, and K instances batched in one call).
@@ -110,6 +129,7 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
             crate::cmd::bench_transport::run(seconds.max(1.0))
         }
         BenchCommand::Env { gym, instances, steps } => crate::cmd::bench_env::run(&gym, &instances, steps.max(1)),
+        BenchCommand::Busy { config, busy, seconds, rounds } => crate::cmd::bench_busy::run(&config, busy as usize, seconds, rounds as usize),
     }
 }
 

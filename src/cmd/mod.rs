@@ -3,6 +3,7 @@
 //! and `lcrl train` are there whole, as `lcrl::local_run` and `lcrl::train`).
 
 pub mod bench;
+pub mod bench_busy;
 pub mod bench_env;
 pub mod bench_sim;
 pub mod bench_transport;

@@ -335,6 +335,16 @@ fn bad_numbers_on_the_command_line_are_refused_without_a_panic() {
             cmd.args(["run", "--config", concat!(env!("CARGO_MANIFEST_DIR"), "/configs/lti-paper.toml"), "--actors", "1000000", "--check"]);
             cmd
         }, &["job.actors", "256"]),
+        ({
+            let mut cmd = lcrl();
+            cmd.args(["bench", "busy", "--seconds", "0.5"]);
+            cmd
+        }, &["--seconds", "600"]),
+        ({
+            let mut cmd = lcrl();
+            cmd.args(["bench", "learner", "--rounds", "0"]);
+            cmd
+        }, &["--rounds", "50"]),
     ];
     for (mut cmd, needles) in cases {
         let shown = format!("{cmd:?}");
