@@ -36,6 +36,7 @@ sys.path.insert(0, str(ROOT / "scripts"))
 from chaoslib import Cluster, free_port, sample, scrape, status, stub, vm, wait  # noqa: E402
 import chaos_findings  # noqa: E402
 import chaos_hostile  # noqa: E402
+import chaos_round82  # noqa: E402
 import grpc  # noqa: E402
 import lcrl_pb2  # noqa: E402
 import lcrl_pb2_grpc  # noqa: E402
@@ -371,7 +372,7 @@ def truncated_checkpoint(c):
 
 FAULTS = {"actor-kill": actor_kill, "learner-kill": learner_kills, "restart-followed": learner_restart_followed, "run-kill": run_kill, "flood": flood,
           "silent-learner": silent_learner, "full-disk": full_disk, "full-disk-at-end": full_disk_at_end, "truncated-checkpoint": truncated_checkpoint, **chaos_hostile.FAULTS,
-          **chaos_findings.FAULTS}
+          **chaos_findings.FAULTS, **chaos_round82.FAULTS}
 
 
 def main():

@@ -1,0 +1,170 @@
+"""Chaos faults of issue 82 that are processes and files rather than
+hostile peers: an actor of `lcrl run` killed, a checkpoint whose recorded
+environment names a server, and run token files that are not owner-only
+or are links. Run through scripts/chaos.sh (`--only run-actor-kill`, ...);
+rows in docs/reliability.md ("This round's faults").
+"""
+
+import json
+import os
+import pathlib
+import socket
+import stat
+import subprocess
+import threading
+import time
+
+from chaoslib import free_port, status, wait
+import lcrl_pb2
+
+from chaos_hostile import _send, _step
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+def _children(pid):
+    """(pid, command name, state) of the direct children of `pid`."""
+    found = []
+    for proc in pathlib.Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            fields = (proc / "stat").read_text().rsplit(")", 1)
+            name = fields[0].split("(", 1)[1]
+            state, ppid = fields[1].split()[0], int(fields[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == pid:
+            found.append((int(proc.name), name, state))
+    return found
+
+
+def run_actor_kill(c):
+    """kill -9 of `lcrl run`'s only actor, mid-run."""
+    run = c.work / "run"
+    p = subprocess.Popen([str(c.bins / "lcrl"), "run", "--config", str(ROOT / "configs/lti-paper.toml"), "--episodes", "300", "--run-dir", str(run)],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    c.procs.append(p)
+    said = []
+    threading.Thread(target=lambda: said.extend(p.stderr), daemon=True).start()
+    actor = wait("the run's actor", lambda: [k for k in _children(p.pid) if k[1].startswith("lcrl-actor")], limit=120)[0]
+    wait("the run's first episodes", lambda: (run / "learner/metrics.csv").exists() and len((run / "learner/metrics.csv").read_text().splitlines()) > 5, limit=120)
+    os.kill(actor[0], 9)
+    t0 = time.monotonic()
+    replaced = wait("a new actor", lambda: [k for k in _children(p.pid) if k[1].startswith("lcrl-actor") and k[0] != actor[0] and k[2] != "Z"], limit=120)
+    restarted = time.monotonic() - t0
+    zombies = [k for k in _children(p.pid) if k[2] == "Z"]
+    code = p.wait(timeout=600)
+    summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").exists() else {}
+    noticed = next((line.strip() for line in said if "died" in line), "nothing said")
+    return {"fault": "kill -9 of `lcrl run`'s only actor (lti-paper, 300 episodes)",
+            "did": f"said \"{noticed[:140]}\"; a new actor (pid {replaced[0][0]}) {restarted:.1f} s after the kill; zombies then: {len(zombies)}; "
+                   f"the run exited {code} with summary.json ({summary.get('episodes', '?')} episodes, actor_restarts {summary.get('actor_restarts', '?')})",
+            "lost": "the dead actor's unsent steps", "restart_s": restarted, "exit": code}
+
+
+def _listener():
+    """A TCP port that records whether anything connected and what it sent."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(8)
+    heard = []
+
+    def serve():
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                return
+            conn.settimeout(2)
+            try:
+                heard.append(conn.recv(65536))
+            except OSError:
+                heard.append(b"")
+            conn.close()
+    threading.Thread(target=serve, daemon=True).start()
+    return server, heard
+
+
+def checkpoint_address(c):
+    """A checkpoint whose recorded environment is a server (grpc://) or a
+    secret local file: `lcrl sim --checkpoint` and `lcrl export` with a
+    token file in the environment."""
+    run = c.work / "trained"
+    subprocess.run([str(c.bins / "lcrl"), "train", "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--episodes", "3", "--run-dir", str(run)],
+                   capture_output=True, check=True, cwd=ROOT)
+    checkpoint = sorted((run / "checkpoints").iterdir())[-1] / "checkpoint.json"
+    original = checkpoint.read_text()
+    token = c.work / "token"
+    token.write_text("s3cret-token-of-the-user-0123456789abcdef\n")
+    token.chmod(0o600)
+    secret = c.work / "secret.toml"
+    secret.write_text("password = hunter2-not-a-config\n")
+    server, heard = _listener()
+    outcomes = []
+    for target in (f"grpc://127.0.0.1:{server.getsockname()[1]}", str(secret)):
+        checkpoint.write_text(original.replace('"env": "lti-paper"', json.dumps({"env": target})[1:-1]))
+        for cmd in (["sim", "--checkpoint", str(run), "--episodes", "2"], ["export", str(run), "--out", str(c.work / "policy.pt")]):
+            out = subprocess.run([str(c.bins / "lcrl"), *cmd], capture_output=True, text=True, cwd=ROOT, env={**os.environ, "LCRL_TOKEN_FILE": str(token)})
+            outcomes.append((cmd[0], "server" if target.startswith("grpc") else "file", out.returncode, "hunter2" in out.stderr + out.stdout))
+    time.sleep(0.5)
+    server.close()
+    captured = sum(b"s3cret" in h for h in heard)
+    refused = all(code != 0 for _, _, code, _ in outcomes)
+    echoed = sum(e for *_, e in outcomes)
+    return {"fault": "checkpoint.json's env set to a listening grpc:// address, then to a local file; `lcrl sim --checkpoint` and `lcrl export` with LCRL_TOKEN_FILE set",
+            "did": f"{len(outcomes)} commands, {'all refused (non-zero exit)' if refused else 'NOT all refused'}; connections to the address: {len(heard)}, tokens captured: {captured}; "
+                   f"the file's content echoed: {echoed} times",
+            "lost": "nothing" if captured == 0 and echoed == 0 else "the token or the file's content", "connections": len(heard), "captured": captured}
+
+
+def token_files(c):
+    """RUN/token already there with mode 0644, or a symbolic link to a
+    world-writable file elsewhere: `lcrl run` against each."""
+    rows = []
+    for kind in ("0644 file", "symlink"):
+        run = c.work / kind.replace(" ", "-")
+        run.mkdir()
+        token = run / "token"
+        outside = c.work / f"outside-{kind.replace(' ', '-')}"
+        if kind == "symlink":
+            outside.write_text("")
+            outside.chmod(0o666)
+            token.symlink_to(outside)
+        else:
+            token.write_text("old-token-0123456789abcdef0123456789\n")
+            token.chmod(0o644)
+        out = subprocess.run([str(c.bins / "lcrl"), "run", "--config", str(ROOT / "configs/lti-paper.toml"), "--episodes", "5", "--run-dir", str(run)],
+                             capture_output=True, text=True, cwd=ROOT, timeout=300)
+        last = (out.stderr.strip().splitlines() or ["(nothing)"])[-1]
+        mode = stat.S_IMODE(os.lstat(token).st_mode) if not token.is_symlink() else None
+        written = outside.read_text() if outside.exists() else ""
+        rows.append(f"{kind}: exit {out.returncode}, said \"{last[:160]}\"" + (f", mode now {mode:o}" if mode is not None else f", {len(written)} bytes written outside"))
+    return {"fault": "RUN/token already there as a 0644 file, or as a symlink to a 0666 file outside the run, then `lcrl run`",
+            "did": "; ".join(rows), "lost": "nothing"}
+
+
+def pre_claim(c):
+    """An actor's id pre-claimed while it restarts: one batch under its id
+    with a sequence 59 minutes ahead of the clock (µs, as actors number
+    them), then the honest actor back under the same id."""
+    port = free_port()
+    c.learner(c.work / "claim", port)
+    honest = c.actor(port, "--actor-id", "honest", "--transport", "grpc")
+    wait("steps", lambda: status(port).env_steps > 500)
+    honest.kill()
+    honest.wait()
+    ahead = int(time.time() * 1e6) + 59 * 60 * 1_000_000
+    code = _send(port, [lcrl_pb2.TransitionBatch(run_id="chaos", actor_id="honest", sequence=ahead, transitions=[_step([0.1, 0.1, 0.1])])])
+    stderr = open(c.work / "honest-again.log", "w")
+    c.actor(port, "--actor-id", "honest", "--transport", "grpc", stderr=stderr)
+    before = status(port).env_steps
+    time.sleep(5)
+    after = status(port)
+    stored = after.env_steps - before
+    return {"fault": "one batch under a restarting actor's id, sequence 59 min ahead of the clock, then the actor back under that id (gRPC)",
+            "did": f"the claim: {code}; the honest actor's transitions stored in its first 5 s back: {stored}; refused as {dict(after.rejected)}",
+            "lost": "nothing" if stored > 0 else "every batch of the honest actor", "stored_after": stored}
+
+
+FAULTS = {"pre-claim": pre_claim, "run-actor-kill": run_actor_kill, "checkpoint-address": checkpoint_address, "token-files": token_files}
