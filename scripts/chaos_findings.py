@@ -170,9 +170,9 @@ FAULTS = {"idle-cpu": idle_cpu, "out-of-range-options": out_of_range_options, "f
           "huge-values-everywhere": huge_values_everywhere}
 
 
-def _slow_sender(host, port, streams=32, claim=1_000_000, send=900_000):
+def _slow_sender(host, port, streams=32, claim=1_000_000, send=900_000, path="/lcrl.v1.Learner/StreamTransitions"):
     """One HTTP/2 connection (flow control kept, by the `h2` package) that
-    opens `streams` StreamTransitions streams and sends each a message
+    opens `streams` streams of `path` and sends each a message
     prefix claiming `claim` bytes, then `send` of them, and never the rest.
     Returns (socket, streams refused with RESOURCE_EXHAUSTED)."""
     import h2.config
@@ -185,7 +185,7 @@ def _slow_sender(host, port, streams=32, claim=1_000_000, send=900_000):
     pending, refused = {}, 0
     for _ in range(streams):
         sid = conn.get_next_available_stream_id()
-        conn.send_headers(sid, [(":method", "POST"), (":scheme", "http"), (":path", "/lcrl.v1.Learner/StreamTransitions"), (":authority", "x"),
+        conn.send_headers(sid, [(":method", "POST"), (":scheme", "http"), (":path", path), (":authority", "x"),
                                 ("content-type", "application/grpc"), ("te", "trailers")])
         pending[sid] = b"\x00" + claim.to_bytes(4, "big") + bytes(send)
     s.sendall(conn.data_to_send())

@@ -168,3 +168,54 @@ def pre_claim(c):
 
 
 FAULTS = {"pre-claim": pre_claim, "run-actor-kill": run_actor_kill, "checkpoint-address": checkpoint_address, "token-files": token_files}
+
+
+def _server(c, name, cmd):
+    """A server process of this run, its address read from its first line."""
+    log = open(c.work / f"{name}.log", "w")
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, cwd=ROOT)
+    c.procs.append(p)
+    line = p.stdout.readline()
+    if not line.startswith("listening on"):
+        raise RuntimeError(f"{name} said {line!r}")
+    return p, int(line.strip().rsplit(":", 1)[1])
+
+
+def unbudgeted_servers(c):
+    """16 connections × 32 streams, each 900 KB into a declared 1 MB
+    message and never finished, from loopback, against the graph builder
+    (its Graph service), `lcrl serve-env` (Environment) and the learner's
+    reflection; RSS before, while held and 3 s after they closed."""
+    from chaos_findings import _slow_sender
+    from chaoslib import vm
+    targets = [
+        ("graph builder", [str(c.bins / "lcrl-graph-builder"), "--env", "lti-paper", "--samples", "8", "--listen", "127.0.0.1:0"], "/lcrl.v1.Graph/GetGraph"),
+        ("serve-env", [str(c.bins / "lcrl"), "serve-env", "--env", "lti-paper", "--listen", "127.0.0.1:0"], "/lcrl.v1.Environment/Step"),
+        ("learner reflection", [str(c.bins / "lcrl-learner"), "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--config", str(c.work / "small.toml"),
+                                "--run-dir", str(c.work / "refl"), "--listen", "127.0.0.1:0", "--run-id", "refl"], "/grpc.reflection.v1.ServerReflection/ServerReflectionInfo"),
+    ]
+    said, figures = [], {}
+    for name, cmd, path in targets:
+        p, port = _server(c, name.replace(" ", "-"), cmd)
+        time.sleep(2)
+        start = vm(p.pid, "VmRSS")
+        socks, refused = [], 0
+        for _ in range(16):
+            sock, r = _slow_sender("127.0.0.1", port, path=path)
+            socks.append(sock)
+            refused += r
+        time.sleep(2)
+        held = vm(p.pid, "VmRSS")
+        for sock in socks:
+            sock.close()
+        time.sleep(3)
+        after = vm(p.pid, "VmRSS")
+        p.kill()
+        p.wait()
+        said.append(f"{name}: RSS {start:.0f} → {held:.0f} MiB held → {after:.0f} MiB 3 s after they closed, {refused} of 512 streams refused")
+        figures[name] = {"start": start, "held": held, "after": after, "refused": refused}
+    return {"fault": "16 connections × 32 streams from loopback, each 900 KB into a declared 1 MB message and never finished, against the graph builder, serve-env and the learner's reflection",
+            "did": "; ".join(said), "lost": "nothing", "figures": figures}
+
+
+FAULTS["unbudgeted-servers"] = unbudgeted_servers

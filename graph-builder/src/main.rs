@@ -24,6 +24,8 @@ struct Args {
     listen: SocketAddr,
     #[command(flatten)]
     security: ServerSecurityArgs,
+    #[command(flatten)]
+    budget: lcrl_runtime::request_budget::RequestBudgetArgs,
     /// Log as JSON lines instead of human-readable text (level: RUST_LOG).
     #[arg(long)]
     log_json: bool,
@@ -50,7 +52,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
 
     let (state_tx, state_rx) = watch::channel(GraphState::Building);
     let (stop_tx, mut stop_rx) = watch::channel(false);
-    let server = tokio::spawn(service::serve(listener, state_rx, security.clone(), async move {
+    let server = tokio::spawn(service::serve(listener, state_rx, security.clone(), args.budget.budget("graph builder"), async move {
         let _ = stop_rx.wait_for(|stop| *stop).await;
     }));
 

@@ -73,8 +73,10 @@ pub async fn serve(
     listener: TcpListener,
     state: watch::Receiver<GraphState>,
     security: ServerSecurity,
+    budget: lcrl_runtime::request_budget::RequestBudget,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), tonic::transport::Error> {
+    use lcrl_runtime::request_budget::Budgeted;
     let (health, health_service) = lcrl_runtime::process::health_service();
     let graph_name = <GraphServer<GraphService> as tonic::server::NamedService>::NAME;
     let mut watcher = state.clone();
@@ -98,11 +100,11 @@ pub async fn serve(
     let router = security
         .server_builder()
         .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
-        .add_service(health_service)
+        .add_service(Budgeted::new(health_service, budget.clone()))
         .add_service(InterceptedService::new(
             // Its requests are empty messages: nothing larger is decoded.
-            GraphServer::new(GraphService::new(state)).max_decoding_message_size(lcrl_runtime::process::SMALL_REQUEST_BYTES),
+            Budgeted::new(GraphServer::new(GraphService::new(state)).max_decoding_message_size(lcrl_runtime::process::SMALL_REQUEST_BYTES), budget.clone()),
             check.clone(),
         ));
-    lcrl_runtime::process::add_reflection(router, &check).serve_with_incoming_shutdown(security.incoming(listener), shutdown).await
+    lcrl_runtime::process::add_reflection(router, &check, &budget).serve_with_incoming_shutdown(security.incoming(listener), shutdown).await
 }

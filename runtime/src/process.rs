@@ -149,7 +149,7 @@ pub fn health_service() -> (tonic_health::server::HealthReporter, tonic_health::
 /// Adds server reflection of lcrl.v1 and grpc.health.v1 in both protocol
 /// versions, behind the token check: v1 (grpcurl, grpcui, newer tools) and
 /// v1alpha (grpcio's `grpcio-reflection`, Postman, older tools).
-pub fn add_reflection<L>(router: tonic::transport::server::Router<L>, check: &TokenCheck) -> tonic::transport::server::Router<L> {
+pub fn add_reflection<L>(router: tonic::transport::server::Router<L>, check: &TokenCheck, budget: &crate::request_budget::RequestBudget) -> tonic::transport::server::Router<L> {
     let configure = || {
         reflection::Builder::configure()
             .register_encoded_file_descriptor_set(lcrl_proto::v1::FILE_DESCRIPTOR_SET)
@@ -160,7 +160,13 @@ pub fn add_reflection<L>(router: tonic::transport::server::Router<L>, check: &To
     // Its requests name a symbol or a file: nothing larger is decoded.
     let v1 = configure().build_v1().expect("compiled-in descriptor sets are valid").max_decoding_message_size(SMALL_REQUEST_BYTES);
     let v1alpha = configure().build_v1alpha().expect("compiled-in descriptor sets are valid").max_decoding_message_size(SMALL_REQUEST_BYTES);
-    router.add_service(InterceptedService::new(v1, check.clone())).add_service(InterceptedService::new(v1alpha, check.clone()))
+    // Its streams take from the server's request budget, as every
+    // service's do (a flood of unfinished reflection streams once kept
+    // 661 MiB, issue 82).
+    use crate::request_budget::Budgeted;
+    router
+        .add_service(InterceptedService::new(Budgeted::new(v1, budget.clone()), check.clone()))
+        .add_service(InterceptedService::new(Budgeted::new(v1alpha, budget.clone()), check.clone()))
 }
 
 #[cfg(test)]

@@ -31,6 +31,8 @@ pub struct ServeEnvArgs {
     pub session_idle_secs: u64,
     #[command(flatten)]
     pub security: ServerSecurityArgs,
+    #[command(flatten)]
+    pub budget: lcrl_runtime::request_budget::RequestBudgetArgs,
 }
 
 pub fn run(args: &ServeEnvArgs) -> anyhow::Result<()> {
@@ -54,12 +56,16 @@ async fn serve(args: &ServeEnvArgs, sessions: Sessions, security: ServerSecurity
     // Requests carry a few actions of a few numbers each; 4 MiB holds
     // thousands of sessions' steps.
     let environment = EnvironmentServer::new(EnvironmentService::new(sessions)).max_decoding_message_size(4 << 20).max_encoding_message_size(16 << 20);
+    // Every request stream takes from one budget (issue 82: unfinished
+    // streams once held 4 MiB each, 2 GiB at 512).
+    let budget = args.budget.budget("environment server");
+    use lcrl_runtime::request_budget::Budgeted;
     let router = security
         .server_builder()
         .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
-        .add_service(health_service)
-        .add_service(InterceptedService::new(environment, check.clone()));
-    lcrl_runtime::process::add_reflection(router, &check)
+        .add_service(Budgeted::new(health_service, budget.clone()))
+        .add_service(InterceptedService::new(Budgeted::new(environment, budget.clone()), check.clone()));
+    lcrl_runtime::process::add_reflection(router, &check, &budget)
         .serve_with_incoming_shutdown(security.incoming(listener), lcrl_runtime::process::shutdown_signal())
         .await
         .context("the environment server failed")

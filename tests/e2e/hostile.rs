@@ -470,7 +470,7 @@ async fn requests_share_one_memory_budget() {
     };
     assert_eq!(open.len(), holds, "{held} bytes a stream");
     assert_eq!(refused.code(), tonic::Code::ResourceExhausted, "{refused:?}");
-    assert!(refused.message().starts_with(lcrl_learner::service::request_budget::BUDGET_SPENT) && refused.message().contains("--request-budget-mib"), "{}", refused.message());
+    assert!(refused.message().starts_with(lcrl_runtime::request_budget::BUDGET_SPENT) && refused.message().contains("--request-budget-mib"), "{}", refused.message());
     assert_eq!(status(&url, &ClientSecurity::default()).await.rejected.get("request_budget"), Some(&1));
     // An ended stream frees its share: polled, with a bound.
     drop(open.pop());

@@ -30,7 +30,7 @@ use crate::service::runtime::{Schedule, TrainingLoop};
 use crate::service::server::{LearnerService, PolicyService};
 use crate::service::shared::{Command, Shared};
 use crate::service::validator::Validator;
-use crate::service::request_budget::{Budgeted, RequestBudget};
+use lcrl_runtime::request_budget::{Budgeted, RequestBudget};
 use crate::service::watch_budget::WatchBudget;
 
 /// The largest reply a server encodes.
@@ -244,7 +244,7 @@ pub async fn run(args: LearnerArgs, shutdown: impl Future<Output = ()>, listenin
     // A remote actor's batch (and its 5-byte prefix) must fit in its
     // peer's quarter, or it could never be stored and its actor would
     // retry for ever.
-    let share = (args.request_budget_mib << 20) / crate::service::memory_budget::PEER_SHARE as u64;
+    let share = (args.request_budget_mib << 20) / lcrl_runtime::memory_budget::PEER_SHARE as u64;
     let batch = args.max_batch_bytes + 5;
     if share < batch {
         bail!(
@@ -252,7 +252,7 @@ pub async fn run(args: LearnerArgs, shutdown: impl Future<Output = ()>, listenin
             args.request_budget_mib,
             share >> 10,
             args.max_batch_bytes,
-            (crate::service::memory_budget::PEER_SHARE as u64 * batch).div_ceil(1 << 20)
+            (lcrl_runtime::memory_budget::PEER_SHARE as u64 * batch).div_ceil(1 << 20)
         );
     }
     // `_lock` holds the run directory until the training thread is joined.
@@ -520,7 +520,7 @@ async fn serve(args: &LearnerArgs, security: &ServerSecurity, listener: tokio::n
     health.set_serving::<PolicyServer<PolicyService>>().await;
     let check = security.token_check();
     let watch_budget = WatchBudget::new(args.watch_budget_mib << 20);
-    let request_budget = RequestBudget::new(args.request_budget_mib << 20);
+    let request_budget = RequestBudget::new(args.request_budget_mib << 20, "learner");
     let learner = LearnerServer::new(LearnerService {
         shared: shared.clone(),
         commands: commands.clone(),
@@ -552,9 +552,9 @@ async fn serve(args: &LearnerArgs, security: &ServerSecurity, listener: tokio::n
         .trace_fn(|req| tracing::info_span!("grpc", path = %req.uri().path()))
         .add_service(Budgeted::new(health_service, request_budget.clone()))
         .add_service(InterceptedService::new(Budgeted::new(learner, request_budget.clone()), check.clone()))
-        .add_service(InterceptedService::new(Budgeted::new(policy, request_budget), check.clone()));
+        .add_service(InterceptedService::new(Budgeted::new(policy, request_budget.clone()), check.clone()));
     // TLS where configured; TCP_NODELAY on accepted sockets.
-    let serving = lcrl_runtime::process::add_reflection(router, &check).serve_with_incoming_shutdown(security.incoming(listener), async move {
+    let serving = lcrl_runtime::process::add_reflection(router, &check, &request_budget).serve_with_incoming_shutdown(security.incoming(listener), async move {
         let _ = stopped.await;
     });
     Ok(Server { task: tokio::spawn(serving), stop })

@@ -19,9 +19,9 @@
 //! - [`metrics`]: the learner's Prometheus metrics (served by `lcrl_runtime::metrics_http`).
 //! - [`shm`]: the learner's ends of the same-host transport (its format: `lcrl_proto::shm`).
 //! - [`validator`]: the run's policy chosen on held-out starts, on a thread of its own.
-//! - [`memory_budget`]: a number of bytes peers may make the learner hold, with a share per peer.
-//! - [`watch_budget`]: the memory all `WatchPolicy` streams may hold together.
-//! - [`request_budget`]: the memory all requests may hold while their messages arrive.
+//! - [`watch_budget`]: the memory all `WatchPolicy` streams may hold together
+//!   (a `lcrl_runtime::memory_budget`; requests take from
+//!   `lcrl_runtime::request_budget`, as every server's do).
 //! - [`idle`]: the learner's own threads asleep until something happens.
 
 pub mod disk_full;
@@ -32,11 +32,9 @@ pub mod idle;
 pub mod incarnation;
 pub mod ingest;
 pub mod launch;
-pub mod memory_budget;
 pub mod metrics;
 pub mod runtime;
 pub mod server;
-pub mod request_budget;
 pub mod serving_share;
 pub mod shared;
 pub mod shm;

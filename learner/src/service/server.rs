@@ -81,7 +81,7 @@ impl Learner for LearnerService {
                         // TransitionBatch: refused and counted; the stream ends.
                         let reason = match status.code() {
                             tonic::Code::ResourceExhausted if status.message().starts_with(lcrl_proto::codec::TOO_MANY_ENTRIES) => Some("too_many_entries"),
-                            tonic::Code::ResourceExhausted if status.message().starts_with(crate::service::request_budget::BUDGET_SPENT) => Some("request_budget"),
+                            tonic::Code::ResourceExhausted if status.message().starts_with(lcrl_runtime::request_budget::BUDGET_SPENT) => Some("request_budget"),
                             tonic::Code::OutOfRange | tonic::Code::ResourceExhausted => Some("oversize"),
                             tonic::Code::Internal if status.message().contains("decode") => Some("undecodable"),
                             _ => None,

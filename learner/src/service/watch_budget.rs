@@ -12,7 +12,7 @@ use std::net::IpAddr;
 
 use tonic::Status;
 
-use crate::service::memory_budget::{Held, MemoryBudget, Refusal};
+use lcrl_runtime::memory_budget::{Held, MemoryBudget, Refusal};
 
 /// What a stream costs beside its policy: HTTP/2 stream state and the
 /// encoder's buffer.

@@ -2,8 +2,10 @@
 //! message is buffered whole before it is decoded, so a peer that starts
 //! messages of up to `--max-batch-bytes` on every stream of every
 //! connection and never finishes them once held 32 × 512 × 1 MiB = 16 GiB
-//! (issue 71). Every request body of the learner's services now takes from
-//! one budget, `--request-budget-mib`, the size of the largest message it
+//! (issue 71), and a token-less `lcrl serve-env` 2 GiB (issue 82). Every
+//! request body of every server's services (the learner, the graph builder,
+//! `lcrl serve-env`; health and reflection included) takes from its
+//! server's one budget, `--request-budget-mib`, the size of the largest message it
 //! has declared (its 5-byte prefix: a compression flag and a big-endian u32
 //! length), from the moment the prefix arrives until the stream ends:
 //! tonic reserves a message's declared size when its prefix arrives, and a
@@ -24,19 +26,39 @@ use tonic::server::NamedService;
 use tonic::transport::server::TcpConnectInfo;
 use tonic::Status;
 
-use crate::service::memory_budget::{Held, MemoryBudget, Refusal};
+use crate::memory_budget::{Held, MemoryBudget, Refusal};
 
-/// The start of the refusal's message, so the learner counts it apart from
+/// The start of the refusal's message, so a server counts it apart from
 /// a batch that is too large on its own.
 pub const BUDGET_SPENT: &str = "request memory in use";
 
-/// The budget (`--request-budget-mib`).
+/// `--request-budget-mib` of the servers whose requests are small (the
+/// graph builder, `lcrl serve-env`); the learner has its own, checked
+/// against its largest batch.
+#[derive(Debug, Clone, clap::Args)]
+pub struct RequestBudgetArgs {
+    /// MiB that all request streams together may hold while their messages
+    /// arrive (health and reflection included); one peer address beyond
+    /// loopback holds at most a quarter. A stream beyond it is refused with
+    /// RESOURCE_EXHAUSTED.
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u64).range(1..=1_048_576))]
+    pub request_budget_mib: u64,
+}
+
+impl RequestBudgetArgs {
+    pub fn budget(&self, server: &'static str) -> RequestBudget {
+        RequestBudget::new(self.request_budget_mib << 20, server)
+    }
+}
+
+/// The budget (`--request-budget-mib`) of one server, named in refusals.
 #[derive(Debug, Clone)]
-pub struct RequestBudget(MemoryBudget);
+pub struct RequestBudget(MemoryBudget, &'static str);
 
 impl RequestBudget {
-    pub fn new(bytes: u64) -> Self {
-        RequestBudget(MemoryBudget::new(bytes))
+    /// `server` names the process in refusals ("learner", "graph builder").
+    pub fn new(bytes: u64, server: &'static str) -> Self {
+        RequestBudget(MemoryBudget::new(bytes), server)
     }
 
     /// Bytes the live streams hold now.
@@ -47,8 +69,8 @@ impl RequestBudget {
     fn refusal(&self, refusal: Refusal) -> Status {
         let mib = |bytes: usize| bytes as f64 / f64::from(1 << 20);
         Status::resource_exhausted(match refusal {
-            Refusal::PeerShare(ip) => format!("{BUDGET_SPENT}: {ip} holds its quarter of the learner's memory for arriving messages, {:.0} MiB (--request-budget-mib); retry later", mib(self.0.peer_share())),
-            Refusal::Full => format!("{BUDGET_SPENT}: the learner holds {:.0} MiB of arriving messages at most (--request-budget-mib); retry later", mib(self.0.total())),
+            Refusal::PeerShare(ip) => format!("{BUDGET_SPENT}: {ip} holds its quarter of the {}'s memory for arriving messages, {:.0} MiB (--request-budget-mib); retry later", self.1, mib(self.0.peer_share())),
+            Refusal::Full => format!("{BUDGET_SPENT}: the {} holds {:.0} MiB of arriving messages at most (--request-budget-mib); retry later", self.1, mib(self.0.total())),
         })
     }
 }
@@ -224,7 +246,7 @@ mod tests {
     /// refused with RESOURCE_EXHAUSTED naming the flag.
     #[test]
     fn a_stream_holds_its_largest_declared_message_until_it_ends() {
-        let budget = RequestBudget::new(1000);
+        let budget = RequestBudget::new(1000, "learner");
         let mut a = Counted::new(Body::empty(), budget.clone(), None);
         let big = message(600);
         a.on_chunk(&big[..5]).unwrap();

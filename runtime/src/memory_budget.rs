@@ -1,15 +1,23 @@
-//! A fixed number of bytes that peers may make the learner hold, shared by
+//! A fixed number of bytes that peers may make a server hold, shared by
 //! all of them: what `WatchPolicy` streams keep for their readers
 //! (watch_budget.rs) and what requests keep while their messages arrive
 //! (request_budget.rs). A share is taken at once or refused, never waited
 //! for (the peer retries), and one peer address holds at most a quarter of
 //! a budget: a host that opens streams and never finishes them cannot shut
 //! out every other. Loopback addresses, where `lcrl run` starts its
-//! actors, are not counted per peer (`lcrl_runtime::limits::counted_peer`).
+//! actors, are not counted per peer (`crate::limits::counted_peer`).
+//!
+//! Memory freed is given back to the system: the allocator keeps what
+//! peers' buffers used (a server held 460–660 MiB after the connections
+//! that made it grow had closed, issue 82), so once a large share of a
+//! budget has come back the server trims its heap (`malloc_trim`, at most
+//! once a second; [`Trim`]).
 
 use std::collections::HashMap;
 use std::net::IpAddr;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
@@ -23,6 +31,53 @@ pub struct MemoryBudget {
     total: usize,
     /// Bytes held by each counted peer.
     by_peer: Arc<Mutex<HashMap<IpAddr, usize>>>,
+    trim: Arc<Trim>,
+}
+
+/// When the heap is trimmed: after at least [`Trim::FLOOR`] bytes were
+/// held at once and half of that peak has come back, at most once every
+/// [`Trim::EVERY`].
+#[derive(Debug)]
+struct Trim {
+    /// The most held at once since the last trim.
+    peak: AtomicUsize,
+    last: Mutex<Option<Instant>>,
+    /// Trims done (for tests and curiosity).
+    done: AtomicUsize,
+}
+
+impl Trim {
+    const FLOOR: usize = 16 << 20;
+    const EVERY: Duration = Duration::from_secs(1);
+
+    fn new() -> Trim {
+        Trim { peak: AtomicUsize::new(0), last: Mutex::new(None), done: AtomicUsize::new(0) }
+    }
+
+    /// After a share came back, with `used` bytes still held.
+    fn on_return(&self, used: usize) {
+        let peak = self.peak.load(Ordering::Relaxed);
+        if peak < Self::FLOOR || used.saturating_mul(2) > peak {
+            return;
+        }
+        let mut last = self.last.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        if last.is_some_and(|at| at.elapsed() < Self::EVERY) {
+            return;
+        }
+        *last = Some(Instant::now());
+        self.peak.store(used, Ordering::Relaxed);
+        self.done.fetch_add(1, Ordering::Relaxed);
+        trim_heap();
+    }
+}
+
+/// Gives the allocator's free memory back to the system (glibc).
+fn trim_heap() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only walks glibc's own arenas under their locks.
+    unsafe {
+        libc::malloc_trim(0);
+    }
 }
 
 /// Why a share was refused.
@@ -40,11 +95,17 @@ pub struct Held {
     /// None once merged into another share.
     permit: Option<OwnedSemaphorePermit>,
     peer: Option<(IpAddr, Arc<Mutex<HashMap<IpAddr, usize>>>)>,
+    /// The budget's semaphore, size and trim, to trim once it came back.
+    budget: (Arc<Semaphore>, usize, Arc<Trim>),
 }
 
 impl Drop for Held {
     fn drop(&mut self) {
         let bytes = self.bytes();
+        // The permits go back first, so the trim sees what is still held.
+        drop(self.permit.take());
+        let (semaphore, total, trim) = &self.budget;
+        trim.on_return(total - semaphore.available_permits());
         if let Some((peer, by_peer)) = &self.peer {
             let mut by_peer = by_peer.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
             if let Some(held) = by_peer.get_mut(peer) {
@@ -76,7 +137,7 @@ impl MemoryBudget {
     /// A budget of `bytes` (at least 1).
     pub fn new(bytes: u64) -> Self {
         let total = (bytes.max(1) as usize).min(Semaphore::MAX_PERMITS);
-        MemoryBudget { bytes: Arc::new(Semaphore::new(total)), total, by_peer: Arc::default() }
+        MemoryBudget { bytes: Arc::new(Semaphore::new(total)), total, by_peer: Arc::default(), trim: Arc::new(Trim::new()) }
     }
 
     pub fn total(&self) -> usize {
@@ -95,7 +156,7 @@ impl MemoryBudget {
 
     /// `bytes` more for `peer`, or why not.
     pub fn take(&self, bytes: usize, peer: Option<IpAddr>) -> Result<Held, Refusal> {
-        let counted = peer.and_then(lcrl_runtime::limits::counted_peer);
+        let counted = peer.and_then(crate::limits::counted_peer);
         let mut by_peer = self.by_peer.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
         if let Some(ip) = counted {
             if by_peer.get(&ip).copied().unwrap_or(0).saturating_add(bytes) > self.peer_share() {
@@ -108,7 +169,13 @@ impl MemoryBudget {
             *by_peer.entry(ip).or_insert(0) += bytes;
             (ip, self.by_peer.clone())
         });
-        Ok(Held { permit: Some(permit), peer })
+        self.trim.peak.fetch_max(self.used(), Ordering::Relaxed);
+        Ok(Held { permit: Some(permit), peer, budget: (self.bytes.clone(), self.total, self.trim.clone()) })
+    }
+
+    /// Times the heap was trimmed after shares came back.
+    pub fn trims(&self) -> usize {
+        self.trim.done.load(Ordering::Relaxed)
     }
 }
 
@@ -138,6 +205,24 @@ mod tests {
 
     /// Merged shares are one, handed back together, to the budget and to
     /// the peer's count.
+    /// The heap is trimmed once a large share has come back (half of a
+    /// peak of at least 16 MiB), not for small ones, and not twice within
+    /// a second.
+    #[test]
+    fn the_heap_is_trimmed_once_a_large_share_came_back() {
+        let budget = MemoryBudget::new(64 << 20);
+        drop(budget.take(1 << 20, None).unwrap());
+        assert_eq!(budget.trims(), 0, "a peak under 16 MiB");
+        let big: Vec<Held> = (0..4).map(|_| budget.take(8 << 20, None).unwrap()).collect();
+        let mut big = big.into_iter();
+        drop(big.next());
+        assert_eq!(budget.trims(), 0, "24 of a 32 MiB peak still held");
+        drop(big.next());
+        assert_eq!(budget.trims(), 1, "half of the peak came back");
+        drop(big);
+        assert_eq!(budget.trims(), 1, "not again within a second");
+    }
+
     #[test]
     fn merged_shares_are_one() {
         let budget = MemoryBudget::new(4000);
