@@ -14,6 +14,7 @@ import pathlib
 import socket
 import struct
 import subprocess
+import sys
 import time
 from concurrent import futures
 
@@ -273,23 +274,16 @@ FAULTS["slow-senders"] = slow_senders
 
 def called_ping_flood(c):
     """510 connections that each made one GetStatus, then only send HTTP/2
-    pings (every 2 s), from one process: before issue 82 they kept every
-    place of a token-less learner."""
+    pings (every 2 s), from one other process: before issue 82 they kept
+    every place of a token-less learner."""
     port = free_port()
     c.learner(c.work / "called", port)
     c.actor(port, "--actor-id", "honest")
     wait("updates", lambda: status(port).updates > 10)
-    options = [("grpc.keepalive_time_ms", 2000), ("grpc.keepalive_permit_without_calls", 1), ("grpc.http2.max_pings_without_data", 0), ("grpc.use_local_subchannel_pool", 1)]
-    channels = [grpc.insecure_channel(f"127.0.0.1:{port}", options=options) for _ in range(510)]
-    called = 0
-    for ch in channels:
-        try:
-            lcrl_pb2_grpc.LearnerStub(ch).GetStatus(lcrl_pb2.GetStatusRequest(), timeout=5)
-            called += 1
-        except grpc.RpcError:
-            pass
-        # Under the per-peer rate of GetStatus (20 a second).
-        time.sleep(0.055)
+    # The flood is a process of its own, as an attacker is: this one checks.
+    flood = subprocess.Popen([sys.executable, __file__, "--called-ping-flood", str(port)], stdout=subprocess.PIPE, text=True)
+    c.procs.append(flood)
+    called = int(flood.stdout.readline() or 0)
     time.sleep(10)
     health = _health_seconds(c, port)
     # A new actor over gRPC (another process): seconds until its stream is
@@ -309,8 +303,8 @@ def called_ping_flood(c):
         refused = dict(status(port).connections_refused)
     except grpc.RpcError as e:
         refused = f"GetStatus failed ({e.code().name})"
-    for ch in channels:
-        ch.close()
+    flood.kill()
+    flood.wait()
     joined = "did not join within 60 s" if late is None else f"joined in {late:.1f} s"
     return {"fault": "510 connections from one process, each one GetStatus then HTTP/2 pings every 2 s",
             "did": f"{called} calls answered; {_health_words(health)}; a new actor {joined}; connections closed {refused}",
@@ -319,3 +313,27 @@ def called_ping_flood(c):
 
 
 FAULTS["called-ping-flood"] = called_ping_flood
+
+
+def _called_ping_flood_process(port):
+    """The flood of `called_ping_flood`, in its own process: prints how many
+    calls were answered, then holds the connections until killed."""
+    options = [("grpc.keepalive_time_ms", 2000), ("grpc.keepalive_permit_without_calls", 1), ("grpc.http2.max_pings_without_data", 0), ("grpc.use_local_subchannel_pool", 1)]
+    channels = [grpc.insecure_channel(f"127.0.0.1:{port}", options=options) for _ in range(510)]
+    called = 0
+    for ch in channels:
+        try:
+            lcrl_pb2_grpc.LearnerStub(ch).GetStatus(lcrl_pb2.GetStatusRequest(), timeout=5)
+            called += 1
+        except grpc.RpcError:
+            pass
+        # Under the per-peer rate of GetStatus (20 a second).
+        time.sleep(0.055)
+    print(called, flush=True)
+    while True:
+        time.sleep(60)
+
+
+if __name__ == "__main__" and sys.argv[1:2] == ["--called-ping-flood"]:
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+    _called_ping_flood_process(int(sys.argv[2]))

@@ -14,12 +14,17 @@
 //! [`CALL_DEADLINE`] is closed whatever it sends (the token check marks
 //! its connection, [`Connections::mark_called`]), and one peer address
 //! beyond loopback holds at most `--max-connections-per-peer`.
-//! When the server is full and none is quiet, the places are shared: a
-//! peer (a host, or on loopback a local process, crate::peer_process)
-//! holding more than twice its share (the places over the peers there,
-//! counting the newcomer as one more) gives up its least recently heard connection,
-//! called or not. One process's connections, however busy, cannot keep a
-//! health check or another process's actor out.
+//! When the server is full and none is quiet, the places are shared: with
+//! k peers (a host, or on loopback a local process, crate::peer_process)
+//! among those holding places and the newcomer, the peer holding the most
+//! other than the newcomer's own gives up its least recently heard
+//! connection, called or not, if it holds more than max / k and would still
+//! hold more than the newcomer's peer afterwards. One process's
+//! connections, however busy, cannot keep a health check or another
+//! process's actor out; a newcomer never takes a place from its own peer.
+//! Many small peers (processes forked by one attacker, addresses of one
+//! IPv6 prefix) share the places as so many peers: the rule bounds one
+//! peer, not a crowd.
 
 use std::future::Future;
 use std::io;
@@ -121,15 +126,6 @@ struct Registry {
     sockets_read: Mutex<Option<std::time::Instant>>,
 }
 
-/// Why [`Registry::evict`] closed a connection.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Eviction {
-    /// Silent since accepted, never called, or quiet for [`QUIET_TO_EVICT`].
-    Quiet,
-    /// Its peer held more than its share of a full server.
-    OverShare,
-}
-
 /// A server's connections as its token check sees them: the handle that
 /// marks a connection as having completed an authenticated call.
 #[derive(Clone)]
@@ -183,11 +179,9 @@ impl Registry {
     }
 
     /// Closes the open connection heard from least recently among those
-    /// that never spoke or have been quiet for [`QUIET_TO_EVICT`]; with
-    /// none such, the least recently heard of the peer holding the most
-    /// places if that is more than twice its share of `max_connections`; None
-    /// when neither is found.
-    fn evict(&self, max_connections: usize) -> Option<Eviction> {
+    /// that never spoke, never called, or have been quiet for
+    /// [`QUIET_TO_EVICT`]; false when there is none such.
+    fn evict_quiet(&self) -> bool {
         let now = self.now_ms();
         let quiet = QUIET_TO_EVICT.as_millis() as u64;
         let mut open = self.open.lock().unwrap_or_else(|p| p.into_inner());
@@ -195,52 +189,79 @@ impl Registry {
         let evictable = |h: &&Arc<Hush>| {
             !h.spoken.load(Ordering::Acquire) || !h.called.load(Ordering::Relaxed) || now.saturating_sub(h.heard_ms.load(Ordering::Relaxed)) >= quiet
         };
-        let heard = |h: &&Arc<Hush>| h.heard_ms.load(Ordering::Relaxed);
-        if let Some(oldest) = open.iter().filter(evictable).min_by_key(heard) {
-            oldest.evict();
-            return Some(Eviction::Quiet);
+        match open.iter().filter(evictable).min_by_key(|h| h.heard_ms.load(Ordering::Relaxed)) {
+            Some(oldest) => {
+                oldest.evict();
+                true
+            }
+            None => false,
         }
-        self.learn_groups(&open);
+    }
+
+    /// The loopback peers whose process is not known yet, the newcomer's
+    /// among them, when /proc may be read again (at most every
+    /// [`LOCAL_SOCKETS_EVERY`]); empty otherwise.
+    fn local_peers_to_read(&self, newcomer: SocketAddr) -> Vec<SocketAddr> {
+        let mut read = self.sockets_read.lock().unwrap_or_else(|p| p.into_inner());
+        if read.is_some_and(|at| at.elapsed() < LOCAL_SOCKETS_EVERY) {
+            return Vec::new();
+        }
+        let open = self.open.lock().unwrap_or_else(|p| p.into_inner());
+        let mut peers: Vec<SocketAddr> = open.iter().filter(|h| h.group.get().is_none()).filter_map(|h| h.peer).filter(|p| remote_group(*p).is_none()).collect();
+        if remote_group(newcomer).is_none() {
+            peers.push(newcomer);
+        }
+        if !peers.is_empty() {
+            *read = Some(std::time::Instant::now());
+        }
+        peers
+    }
+
+    /// With none quiet: the places are shared among the peers holding them
+    /// and the newcomer's (k peers, `max_connections` / k each). The peer
+    /// holding the most, other than the newcomer's own, gives up its least
+    /// recently heard connection if it holds more than that share and would
+    /// still hold more than the newcomer's peer afterwards; a newcomer never
+    /// takes a place from its own peer (no churn among one peer's
+    /// connections). `sockets`: a reading of the local processes.
+    fn evict_over_share(&self, max_connections: usize, newcomer: SocketAddr, sockets: Option<&LocalSockets>) -> bool {
+        let mut open = self.open.lock().unwrap_or_else(|p| p.into_inner());
+        open.retain(|h| Arc::strong_count(h) > 1 && !h.evicted.load(Ordering::Acquire));
+        for h in open.iter().filter(|h| h.group.get().is_none()) {
+            let Some(peer) = h.peer else { continue };
+            match (remote_group(peer), sockets.map(|s| s.group(peer))) {
+                (Some(host), _) => {
+                    let _ = h.group.set(host);
+                }
+                (None, Some(PeerGroup::Process(pid))) => {
+                    let _ = h.group.set(PeerGroup::Process(pid));
+                }
+                // Not found (yet): counted as an unknown local peer.
+                _ => {}
+            }
+        }
         let group = |h: &Arc<Hush>| h.group.get().copied().unwrap_or(PeerGroup::Local);
+        let theirs = remote_group(newcomer).or_else(|| sockets.map(|s| s.group(newcomer))).unwrap_or(PeerGroup::Local);
         let mut held: HashMap<PeerGroup, usize> = HashMap::new();
         for h in open.iter() {
             *held.entry(group(h)).or_default() += 1;
         }
-        // The newcomer may be one more peer. Only a peer holding more than
-        // twice its share gives a place up: peers near their share do not
+        let peers = held.len() + usize::from(!held.contains_key(&theirs));
+        let share = (max_connections / peers.max(1)).max(1);
+        let Some((&largest, &count)) = held.iter().filter(|(g, _)| **g != theirs).max_by_key(|(_, &n)| n) else { return false };
+        // Over its share, and still ahead of the newcomer's peer once the
+        // place has moved (count − 1 > theirs + 1): two peers can never
         // take places from each other in turn.
-        let share = (max_connections / (held.len() + 1)).max(1);
-        let (&largest, &count) = held.iter().max_by_key(|(_, &n)| n)?;
-        if count <= 2 * share {
-            return None;
+        let newcomers = held.get(&theirs).copied().unwrap_or(0);
+        if count <= share || count <= newcomers + 2 {
+            return false;
         }
-        open.iter().filter(|h| group(h) == largest).min_by_key(heard)?.evict();
-        Some(Eviction::OverShare)
-    }
-
-    /// Sets the group of every open connection that has none yet: a host
-    /// at once, a local process from /proc (read at most every
-    /// [`LOCAL_SOCKETS_EVERY`]; one not found stays unknown until the
-    /// next reading).
-    fn learn_groups(&self, open: &VecDeque<Arc<Hush>>) {
-        let mut sockets: Option<LocalSockets> = None;
-        for h in open.iter().filter(|h| h.group.get().is_none()) {
-            let Some(peer) = h.peer else { continue };
-            if let Some(host) = remote_group(peer) {
-                let _ = h.group.set(host);
-                continue;
+        match open.iter().filter(|h| group(h) == largest).min_by_key(|h| h.heard_ms.load(Ordering::Relaxed)) {
+            Some(oldest) => {
+                oldest.evict();
+                true
             }
-            if sockets.is_none() {
-                let mut read = self.sockets_read.lock().unwrap_or_else(|p| p.into_inner());
-                if read.is_some_and(|at| at.elapsed() < LOCAL_SOCKETS_EVERY) {
-                    continue;
-                }
-                *read = Some(std::time::Instant::now());
-                sockets = Some(LocalSockets::read());
-            }
-            if let Some(PeerGroup::Process(pid)) = sockets.as_ref().map(|s| s.group(peer)) {
-                let _ = h.group.set(PeerGroup::Process(pid));
-            }
+            None => false,
         }
     }
 }
@@ -477,26 +498,33 @@ pub fn incoming(listener: TcpListener, tls: Option<Arc<rustls::ServerConfig>>, r
 /// quiet one of a peer over its share; with neither, None (counted): the
 /// newcomer is closed, so a flood of sockets costs a file for a moment,
 /// not for ever.
-async fn place(places: &Arc<Semaphore>, registry: &Registry, limits: &Limits, peer: SocketAddr) -> Option<OwnedSemaphorePermit> {
-    let evict = || match registry.evict(limits.max_connections) {
-        Some(Eviction::Quiet) => Some(&limits.refusals.evicted),
-        Some(Eviction::OverShare) => Some(&limits.refusals.over_share),
-        None => None,
-    };
-    match places.clone().try_acquire_owned() {
-        Ok(permit) => Some(permit),
-        Err(_) if evict().map(|counter| counter.fetch_add(1, Ordering::Relaxed)).is_some() => {
-            match tokio::time::timeout(Duration::from_millis(500), places.clone().acquire_owned()).await {
-                Ok(Ok(permit)) => Some(permit),
-                _ => {
-                    limits.refusals.over_limit.fetch_add(1, Ordering::Relaxed);
-                    None
-                }
-            }
+async fn place(places: &Arc<Semaphore>, registry: &Arc<Registry>, limits: &Limits, peer: SocketAddr) -> Option<OwnedSemaphorePermit> {
+    if let Ok(permit) = places.clone().try_acquire_owned() {
+        return Some(permit);
+    }
+    let made_room = if registry.evict_quiet() {
+        limits.refusals.evicted.fetch_add(1, Ordering::Relaxed);
+        true
+    } else {
+        // Who the local peers are is read from /proc off this task's
+        // thread (a few milliseconds, at most every LOCAL_SOCKETS_EVERY).
+        let wanted = registry.local_peers_to_read(peer);
+        let sockets = if wanted.is_empty() { None } else { tokio::task::spawn_blocking(move || LocalSockets::read_for(&wanted)).await.ok() };
+        let over = registry.evict_over_share(limits.max_connections, peer, sockets.as_ref());
+        if over {
+            limits.refusals.over_share.fetch_add(1, Ordering::Relaxed);
         }
-        Err(_) => {
+        over
+    };
+    if !made_room {
+        limits.refusals.over_limit.fetch_add(1, Ordering::Relaxed);
+        tracing::debug!(%peer, "connection refused: --max-connections reached, none quiet and no peer over its share");
+        return None;
+    }
+    match tokio::time::timeout(Duration::from_millis(500), places.clone().acquire_owned()).await {
+        Ok(Ok(permit)) => Some(permit),
+        _ => {
             limits.refusals.over_limit.fetch_add(1, Ordering::Relaxed);
-            tracing::debug!(%peer, "connection refused: --max-connections reached, none quiet");
             None
         }
     }

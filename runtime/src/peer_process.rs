@@ -33,9 +33,11 @@ pub struct LocalSockets {
 }
 
 impl LocalSockets {
-    /// Reads /proc (a few milliseconds on a busy host; the caller limits
-    /// how often). Whatever cannot be read is left out.
-    pub fn read() -> LocalSockets {
+    /// Reads /proc for the processes holding the sockets of `peers` (the
+    /// connecting ends of loopback connections): the TCP tables, then the
+    /// processes' descriptors until every one is found. Whatever cannot be
+    /// read is left out; the caller limits how often this runs.
+    pub fn read_for(peers: &[SocketAddr]) -> LocalSockets {
         let mut inode_of = HashMap::new();
         for table in ["/proc/net/tcp", "/proc/net/tcp6"] {
             let Ok(text) = std::fs::read_to_string(table) else { continue };
@@ -48,7 +50,8 @@ impl LocalSockets {
                 }
             }
         }
-        LocalSockets { inode_of, owner_of: socket_owners() }
+        let wanted: std::collections::HashSet<u64> = peers.iter().flat_map(|&p| proc_addresses(p)).filter_map(|a| inode_of.get(&a).copied()).collect();
+        LocalSockets { owner_of: socket_owners(&wanted), inode_of }
     }
 
     /// The local process whose socket has address `peer`: the connecting
@@ -62,10 +65,13 @@ impl LocalSockets {
     }
 }
 
-/// inode → process for every socket of every process whose descriptors
-/// this process may read.
-fn socket_owners() -> HashMap<u64, u32> {
+/// inode → process for the sockets `wanted`, from the descriptors of every
+/// process this one may read, stopping once all are found.
+fn socket_owners(wanted: &std::collections::HashSet<u64>) -> HashMap<u64, u32> {
     let mut owners = HashMap::new();
+    if wanted.is_empty() {
+        return owners;
+    }
     let Ok(processes) = std::fs::read_dir("/proc") else { return owners };
     for process in processes.flatten() {
         let Some(pid) = process.file_name().to_str().and_then(|name| name.parse::<u32>().ok()) else { continue };
@@ -73,8 +79,11 @@ fn socket_owners() -> HashMap<u64, u32> {
         for descriptor in descriptors.flatten() {
             let Ok(target) = std::fs::read_link(descriptor.path()) else { continue };
             let inode = target.to_str().and_then(|t| t.strip_prefix("socket:[")).and_then(|t| t.strip_suffix(']')).and_then(|t| t.parse::<u64>().ok());
-            if let Some(inode) = inode {
+            if let Some(inode) = inode.filter(|i| wanted.contains(i)) {
                 owners.insert(inode, pid);
+                if owners.len() == wanted.len() {
+                    return owners;
+                }
             }
         }
     }
@@ -82,11 +91,12 @@ fn socket_owners() -> HashMap<u64, u32> {
 }
 
 /// `peer` as /proc/net/tcp{,6} write a local address: each 32-bit word of
-/// the address in host (little-endian) order, in hex, then the port. An
+/// the address as the host reads it (native byte order), in hex, then the
+/// port. An
 /// IPv4 peer may be an IPv4 socket or an IPv6 one mapping it.
 fn proc_addresses(peer: SocketAddr) -> Vec<String> {
     let port = peer.port();
-    let words = |octets: &[u8]| octets.chunks(4).map(|w| format!("{:08X}", u32::from_le_bytes([w[0], w[1], w[2], w[3]]))).collect::<String>();
+    let words = |octets: &[u8]| octets.chunks(4).map(|w| format!("{:08X}", u32::from_ne_bytes([w[0], w[1], w[2], w[3]]))).collect::<String>();
     match peer.ip().to_canonical() {
         IpAddr::V4(v4) => vec![format!("{}:{port:04X}", words(&v4.octets())), format!("{}:{port:04X}", words(&v4.to_ipv6_mapped().octets()))],
         IpAddr::V6(v6) => vec![format!("{}:{port:04X}", words(&v6.octets()))],
@@ -99,7 +109,9 @@ mod tests {
     use std::io::{BufRead, BufReader, Write};
     use std::process::{Command, Stdio};
 
-    /// /proc's spelling of 127.0.0.1:8080 and of ::1.
+    /// /proc's spelling of 127.0.0.1:8080 and of ::1 (on this
+    /// little-endian machine).
+    #[cfg(target_endian = "little")]
     #[test]
     fn addresses_are_written_as_proc_writes_them() {
         assert_eq!(proc_addresses("127.0.0.1:8080".parse().unwrap())[0], "0100007F:1F90");
@@ -122,7 +134,7 @@ mod tests {
         let (_from_child, child_peer) = listener.accept().unwrap();
         let _mine = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
         let (_from_me, my_peer) = listener.accept().unwrap();
-        let sockets = LocalSockets::read();
+        let sockets = LocalSockets::read_for(&[child_peer, my_peer]);
         assert_eq!(sockets.group(child_peer), PeerGroup::Process(child.id()));
         assert_eq!(sockets.group(my_peer), PeerGroup::Process(std::process::id()));
         assert_eq!(sockets.group("127.0.0.1:1".parse().unwrap()), PeerGroup::Local, "no such socket");

@@ -60,10 +60,11 @@ async fn a_connection_without_an_authenticated_call_is_closed_whatever_it_sends(
     assert_eq!(limits.refusals.no_call.load(Ordering::Relaxed), 1);
 }
 
-/// A full server with none quiet: a peer holding more than twice its
-/// share gives up its least recently heard connection, called and
-/// busy or not; peers near their share keep theirs; a quiet one goes
-/// first.
+/// A full server with none quiet: the peer over its share, other than
+/// the newcomer's own, gives up its least recently heard connection,
+/// called and busy or not; one peer holding every place too; a newcomer
+/// takes nothing from its own peer; peers near their share keep theirs
+/// (no two take places from each other in turn); a quiet one goes first.
 #[test]
 fn a_full_server_takes_a_place_from_the_peer_over_its_share() {
     let peer = |ip: &str, port: u16| SocketAddr::new(ip.parse().unwrap(), port);
@@ -74,22 +75,31 @@ fn a_full_server_takes_a_place_from_the_peer_over_its_share() {
         hush.heard_ms.store(heard_ms, Ordering::Relaxed);
         hush
     };
+    let evicted = |hushes: &[Arc<Hush>]| hushes.iter().filter(|h| h.evicted.load(Ordering::Acquire)).count();
     let registry = Registry::new();
     let now = registry.now_ms() + 10_000;
-    // Six places of 8 held by one host (share 8 / 3 = 2), one by another.
-    let flood: Vec<_> = (0..6).map(|k| busy(&registry, peer("10.0.0.1", 100 + k), now - 10 + k as u64)).collect();
+    // Seven places of 8 held by one host, one by another.
+    let flood: Vec<_> = (0..7).map(|k| busy(&registry, peer("10.0.0.1", 100 + k), now - 10 + k as u64)).collect();
     let honest = busy(&registry, peer("10.0.0.2", 100), now - 1000);
-    assert_eq!(registry.evict(8), Some(Eviction::OverShare));
+    assert!(!registry.evict_quiet(), "none is quiet");
+    assert!(!registry.evict_over_share(8, peer("10.0.0.1", 999), None), "the flood's own newcomer takes nothing");
+    assert!(registry.evict_over_share(8, peer("10.0.0.3", 1), None), "a third host's newcomer");
     assert!(flood[0].evicted.load(Ordering::Acquire), "the flood's least recently heard goes");
-    assert!(!honest.evicted.load(Ordering::Acquire) && flood[1..].iter().all(|h| !h.evicted.load(Ordering::Acquire)));
-    // Four hosts with two places each: none is over twice its share.
+    assert_eq!((evicted(&flood), evicted(std::slice::from_ref(&honest))), (1, 0));
+    // One host holding every place: a newcomer from another takes one.
+    let registry = Registry::new();
+    let all: Vec<_> = (0..8).map(|k| busy(&registry, peer("10.0.0.1", 100 + k), now)).collect();
+    assert!(registry.evict_over_share(8, peer("10.0.0.5", 1), None));
+    assert_eq!(evicted(&all), 1);
+    // Four hosts with two places each: a fifth's newcomer takes nothing
+    // (the place would only move back and forth).
     let registry = Registry::new();
     let even: Vec<_> = (0..8).map(|k| busy(&registry, peer(&format!("10.0.0.{}", k / 2 + 1), 100 + k), now)).collect();
-    assert_eq!(registry.evict(8), None);
-    assert!(even.iter().all(|h| !h.evicted.load(Ordering::Acquire)));
+    assert!(!registry.evict_over_share(8, peer("10.0.0.9", 1), None));
+    assert_eq!(evicted(&even), 0);
     // A quiet connection goes before any share is counted.
     let quiet = registry.admit(8, peer("10.0.0.9", 1));
-    assert_eq!(registry.evict(8), Some(Eviction::Quiet));
+    assert!(registry.evict_quiet());
     assert!(quiet.evicted.load(Ordering::Acquire));
 }
 
