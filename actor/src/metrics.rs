@@ -25,6 +25,10 @@ pub struct ActorMetrics {
     /// learner updating). Over a window, its share of the wall time is the
     /// actor's idle share (`lcrl scale`).
     pub send_wait_seconds: Counter<f64, AtomicU64>,
+    /// When the wait going on now began (milliseconds since the Unix
+    /// epoch), 0 when none is: a reader adds the part of a long wait that
+    /// `send_wait_seconds` does not hold yet.
+    pub send_waiting_since_ms: Gauge,
 }
 
 impl ActorMetrics {
@@ -38,7 +42,8 @@ impl ActorMetrics {
         registry.register("diverged_env", "Episodes ended unsent because the environment diverged (non-finite or out-of-bounds state or reward)", self.diverged_env.clone());
         registry.register("policy_version", "Version of the policy acting now", self.policy_version.clone());
         registry.register("pending_batches", "Batches sent but not yet acknowledged by the learner (gRPC)", self.pending_batches.clone());
-        registry.register("send_wait_seconds", "Seconds the environment thread waited to hand batches over (the learner held actors back)", self.send_wait_seconds.clone());
+        registry.register("send_wait_seconds", "Seconds the environment thread waited to hand batches over (backpressure: the learner holding actors back, or the transport)", self.send_wait_seconds.clone());
+        registry.register("send_waiting_since_ms", "When the wait to hand a batch over going on now began, ms since the Unix epoch; 0 when none is", self.send_waiting_since_ms.clone());
         registry
     }
 }

@@ -318,7 +318,10 @@ fn send(out: &Out, batch: TransitionBatch, metrics: &ActorMetrics) -> anyhow::Re
     metrics.batches_sent.inc();
     metrics.transitions_sent.inc_by(batch.transitions.len() as u64);
     let started = std::time::Instant::now();
+    let since = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_millis() as i64);
+    metrics.send_waiting_since_ms.set(since.max(1));
     let sent = out.send(batch);
     metrics.send_wait_seconds.inc_by(started.elapsed().as_secs_f64());
+    metrics.send_waiting_since_ms.set(0);
     sent
 }

@@ -167,8 +167,11 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize,
         // graphs (`run.cuda_graphs`; ignored on the CPU).
         let settings: &[bool] = if torch_device.is_cuda() { &[false, true] } else { &[false] };
         let mut timed: Vec<(String, Vec<f64>, Vec<f64>, usize)> = Vec::new();
-        for _ in 0..rounds {
-            for connection in connections {
+        for round in 0..rounds {
+            // Each round starts with another actor: no setting is always
+            // timed first (a warmer or colder machine).
+            for k in 0..connections.len() {
+                let connection = connections[(k + round) % connections.len()];
                 for &graphs in settings {
                     let cfg = lcrl_learner::TrainConfig { run: lcrl_learner::config::RunConfig { cuda_graphs: graphs, ..cfg.run.clone() }, ..cfg.clone() };
                     let (ddpg, ppo, params) = time_updates(&cfg, connection, &mask, updates, torch_device)?;
@@ -183,16 +186,20 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize,
                 }
             }
         }
-        let mut by_connection = Vec::new();
         for (label, ddpg, ppo, params) in &timed {
             let (ddpg, ppo) = (median(ddpg), median(ppo));
             println!("{t:>7} {label:<16} {params:>13} {:>16.3} {:>12.0} {ppo:>20.3}", ddpg * 1e3, 1.0 / ddpg);
-            if !label.ends_with("+graphs") {
-                by_connection.push((ddpg, ppo));
-            }
         }
-        let (global, local) = (by_connection[0], by_connection[1]);
-        println!("{t:>7} local / global: DDPG update {:.2}×, PPO update {:.2}× (the goal: at most 1.00×)", local.0 / global.0, local.1 / global.1);
+        // The ratio within each round (the same machine state), then its
+        // median over the rounds. Round 0 timed Global first, then Local.
+        let (global, local) = (&timed[0], &timed[if torch_device.is_cuda() { 2 } else { 1 }]);
+        let ratio = |a: &[f64], b: &[f64]| median(&a.iter().zip(b).map(|(x, y)| x / y).collect::<Vec<_>>());
+        println!(
+            "{t:>7} local / global: DDPG update {:.2}×, PPO update {:.2}× (medians of the rounds' ratios; the goal: at most 1.00×)",
+            ratio(&local.1, &global.1),
+            ratio(&local.2, &global.2)
+        );
+        let global = (median(&global.1), median(&global.2));
         if let Some(&(first, seconds)) = globals.first() {
             println!("{t:>7} global DDPG update: {:.2}× the speed of {first} thread(s)", seconds / global.0);
         }

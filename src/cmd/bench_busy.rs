@@ -38,7 +38,8 @@ pub fn run(config: &Path, busy: usize, seconds: f64, rounds: usize) -> anyhow::R
     println!("{:>5} {:<28} {:>16} {:>16}", "round", "threads set by", "lcrl run upd/s", "lcrl train upd/s");
     let (mut flag, mut omp) = (Vec::new(), Vec::new());
     for round in 0..rounds {
-        for exported in [false, true] {
+        // In turn, the first setting alternating between rounds.
+        for exported in if round % 2 == 0 { [false, true] } else { [true, false] } {
             let out = work.path().join(format!("r{round}-{}", if exported { "omp" } else { "flag" }));
             let rates = scale(&lcrl, config, seconds, exported, &out)?;
             let label = if exported { "OMP_NUM_THREADS=1 exported" } else { "--threads 1" };

@@ -275,14 +275,27 @@ fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<S
     })
 }
 
-/// The actors' seconds waiting to hand batches over, summed, from each
-/// one's metrics (`lcrl_actor_send_wait_seconds_total`); None when any
-/// actor's cannot be read.
+/// The actors' seconds waiting to hand batches over until now, summed,
+/// from each one's metrics; None (said why) when any actor's cannot be
+/// read.
 fn send_wait_seconds(addresses: &[Option<String>]) -> Option<f64> {
-    addresses.iter().map(|address| address.as_deref().and_then(scrape_send_wait)).sum()
+    addresses
+        .iter()
+        .enumerate()
+        .map(|(k, address)| {
+            let waited = address.as_deref().and_then(scrape_send_wait);
+            if waited.is_none() {
+                tracing::warn!("actor-{k}'s metrics could not be read ({address:?}): no idle share for this point");
+            }
+            waited
+        })
+        .sum()
 }
 
-/// One actor's `lcrl_actor_send_wait_seconds_total`, over plain HTTP.
+/// One actor's seconds waiting until now: its finished waits
+/// (`lcrl_actor_send_wait_seconds_total`) and the part of a wait going on
+/// (`lcrl_actor_send_waiting_since_ms`), so a long wait counts in the
+/// window it falls in. Over plain HTTP.
 fn scrape_send_wait(address: &str) -> Option<f64> {
     use std::io::{Read, Write};
     let mut stream = std::net::TcpStream::connect_timeout(&address.parse().ok()?, Duration::from_secs(2)).ok()?;
@@ -290,7 +303,11 @@ fn scrape_send_wait(address: &str) -> Option<f64> {
     write!(stream, "GET /metrics HTTP/1.1\r\nHost: {address}\r\nConnection: close\r\n\r\n").ok()?;
     let mut body = String::new();
     stream.read_to_string(&mut body).ok()?;
-    body.lines().find_map(|line| line.strip_prefix("lcrl_actor_send_wait_seconds_total ")).and_then(|v| v.trim().parse().ok())
+    let now_ms = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).ok()?.as_millis() as f64;
+    let value = |name: &str| body.lines().find_map(|line| line.strip_prefix(name)).and_then(|v| v.trim().parse::<f64>().ok());
+    let finished = value("lcrl_actor_send_wait_seconds_total ")?;
+    let since = value("lcrl_actor_send_waiting_since_ms ").unwrap_or(0.0);
+    Some(finished + if since > 0.0 { ((now_ms - since) / 1e3).max(0.0) } else { 0.0 })
 }
 
 /// CPU seconds (user + system) a process has used so far.

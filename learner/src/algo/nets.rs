@@ -291,13 +291,83 @@ mod tests {
                 for (k, (w, b)) in params.iter().enumerate() {
                     h = h.matmul(w) + b;
                     if k < last {
-                        h = activate(h, net.activation());
+                        h = reference_activation(&h, net.activation());
                     }
                 }
                 h
             })
             .collect();
         Tensor::cat(&columns, 1)
+    }
+
+    /// The activation out of place, as the reference computes it (not the
+    /// in-place code under test).
+    fn reference_activation(h: &Tensor, act: Activation) -> Tensor {
+        match act {
+            Activation::Relu => h.relu(),
+            Activation::Tanh => h.tanh(),
+            Activation::Elu => h.elu(),
+        }
+    }
+
+    /// Every trainable variable's gradient after `loss.backward()`, in the
+    /// store's order, and the gradients zeroed again.
+    fn gradients(vs: &nn::VarStore, loss: Tensor) -> Vec<Tensor> {
+        loss.backward();
+        let mut variables: Vec<(String, Tensor)> = vs.variables().into_iter().collect();
+        variables.sort_by(|a, b| a.0.cmp(&b.0));
+        variables
+            .into_iter()
+            .map(|(_, v)| {
+                let g = v.grad().copy();
+                let _ = v.grad().zero_();
+                g
+            })
+            .collect()
+    }
+
+    /// For every activation: the batched actor (biases inside the products,
+    /// activations in place) gives the outputs and the weight gradients of
+    /// separate subnetworks computed out of place, and the global MLP those
+    /// of plain products and additions.
+    #[test]
+    fn in_place_layers_equal_out_of_place_ones_for_every_activation() {
+        for act in [Activation::Relu, Activation::Tanh, Activation::Elu] {
+            tch::manual_seed(3);
+            let g = graph();
+            let x = Tensor::randn([16, 5], (Kind::Float, Device::Cpu));
+            let vs = nn::VarStore::new(Device::Cpu);
+            let net = SubnetActor::new(&vs.root(), &g, &[8, 6], act, &mut rng());
+            let batched = net.forward_raw(&x);
+            let reference = separate(&net, &g, &x);
+            let diff = f64::try_from((&batched - &reference).abs().max()).unwrap();
+            assert!(diff < 1e-6, "{act:?}: outputs differ by {diff}");
+            let from_batched = gradients(&vs, (&batched * &batched).sum(Kind::Float));
+            let from_reference = gradients(&vs, (&reference * &reference).sum(Kind::Float));
+            for (a, b) in from_batched.iter().zip(&from_reference) {
+                let diff = f64::try_from((a - b).abs().max()).unwrap();
+                assert!(diff < 1e-5, "{act:?}: weight gradients differ by {diff}");
+            }
+
+            let vs = nn::VarStore::new(Device::Cpu);
+            let mlp = Mlp::new(&vs.root(), &[5, 8, 6, 3], act, &mut rng());
+            let fused = mlp.forward(&x);
+            let mut h = x.shallow_clone();
+            for (k, (w, b)) in mlp.layers.iter().enumerate() {
+                h = h.matmul(w) + b;
+                if k + 1 < mlp.layers.len() {
+                    h = reference_activation(&h, act);
+                }
+            }
+            let diff = f64::try_from((&fused - &h).abs().max()).unwrap();
+            assert!(diff < 1e-6, "{act:?}: MLP outputs differ by {diff}");
+            let from_fused = gradients(&vs, (&fused * &fused).sum(Kind::Float));
+            let from_plain = gradients(&vs, (&h * &h).sum(Kind::Float));
+            for (a, b) in from_fused.iter().zip(&from_plain) {
+                let diff = f64::try_from((a - b).abs().max()).unwrap();
+                assert!(diff < 1e-5, "{act:?}: MLP weight gradients differ by {diff}");
+            }
+        }
     }
 
     #[test]
