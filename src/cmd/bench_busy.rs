@@ -24,6 +24,10 @@ pub fn run(config: &Path, busy: usize, seconds: f64, rounds: usize) -> anyhow::R
     if !(1.0..=600.0).contains(&seconds) {
         bail!("--seconds takes 1 to 600, got {seconds}");
     }
+    // The default preset is named from the repository's root: found from
+    // elsewhere too.
+    let config = if config.is_file() { config.to_path_buf() } else { lcrl::binaries::project_file(&config.to_string_lossy())? };
+    let config = config.as_path();
     let lcrl = std::env::current_exe().context("finding this lcrl binary")?;
     let work = tempfile::tempdir()?;
     // The busy processes, stopped (and killed with this one) when dropped.
