@@ -275,6 +275,23 @@ fn baseline(preset: &Preset, args: &ScaleArgs, graph: &Path) -> anyhow::Result<S
     })
 }
 
+/// The point's actors, each serving its metrics (read for its idle share)
+/// on a port of its own choosing; their processes and metrics addresses.
+fn start_actors(preset: &Preset, url: &str, run_id: &str, transport: &str, actors: usize, logs: &Path) -> anyhow::Result<(Vec<Managed>, Vec<Option<String>>)> {
+    let mut workers = Vec::new();
+    let mut metrics = Vec::new();
+    for k in 0..actors {
+        let mut cmd = Command::new(sibling("lcrl-actor")?);
+        cmd.args(preset.actor_args(url, run_id, transport, Some(&format!("actor-{k}")), k as u64));
+        cmd.args(["--metrics-listen", "127.0.0.1:0"]);
+        stop_with_parent(&mut cmd);
+        let (worker, address) = Managed::spawn_announcing(&format!("actor-{k}"), cmd, logs, Some("metrics on "))?;
+        workers.push(worker);
+        metrics.push(address);
+    }
+    Ok((workers, metrics))
+}
+
 /// The actors' seconds waiting to hand batches over until now, summed,
 /// from each one's metrics; None (said why) when any actor's cannot be
 /// read.
@@ -371,18 +388,7 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
     let url = format!("http://{}", address.context("the learner did not start; see its log")?);
     wait_healthy(&url, "lcrl.v1.Learner", "the learner", Duration::from_secs(120), &Default::default()).await?;
     let started = Instant::now();
-    let mut workers = Vec::new();
-    let mut actor_metrics = Vec::new();
-    for k in 0..actors {
-        let mut cmd = Command::new(sibling("lcrl-actor")?);
-        cmd.args(preset.actor_args(&url, &run_id, transport, Some(&format!("actor-{k}")), k as u64));
-        // Each actor's metrics, for its idle share (send_wait_seconds).
-        cmd.args(["--metrics-listen", "127.0.0.1:0"]);
-        stop_with_parent(&mut cmd);
-        let (worker, metrics) = Managed::spawn_announcing(&format!("actor-{k}"), cmd, &logs, Some("metrics on "))?;
-        workers.push(worker);
-        actor_metrics.push(metrics);
-    }
+    let (mut workers, actor_metrics) = start_actors(&preset, &url, &run_id, transport, actors, &logs)?;
     let mut client = LearnerClient::connect(url.clone()).await?;
     let mut policy = PolicyClient::connect(url.clone()).await?;
     let status = |s: Result<tonic::Response<LearnerStatus>, tonic::Status>| s.map(|r| r.into_inner()).map_err(|e| anyhow::anyhow!("lost the learner: {e}"));
