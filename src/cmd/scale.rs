@@ -394,7 +394,7 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
     let status = |s: Result<tonic::Response<LearnerStatus>, tonic::Status>| s.map(|r| r.into_inner()).map_err(|e| anyhow::anyhow!("lost the learner: {e}"));
     tokio::time::sleep(Duration::from_secs_f64(args.warmup)).await;
     let first = status(client.get_status(GetStatusRequest {}).await)?;
-    let waited_before = send_wait_seconds(&actor_metrics);
+    let waited_before = (send_wait_seconds(&actor_metrics), Instant::now());
     let cpu = |pids: &[u32]| pids.iter().map(|&p| cpu_seconds(p)).sum::<f64>();
     let actor_pids: Vec<u32> = workers.iter().map(Managed::pid).collect();
     let (learner_cpu0, actors_cpu0) = (cpu(&[learner.pid()]), cpu(&actor_pids));
@@ -403,7 +403,7 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
     let mut latencies = act_latencies(&mut policy, m, window, args.seconds).await;
     let seconds = window.elapsed().as_secs_f64();
     let last = status(client.get_status(GetStatusRequest {}).await)?;
-    let waited_after = send_wait_seconds(&actor_metrics);
+    let waited_after = (send_wait_seconds(&actor_metrics), Instant::now());
     let (learner_cpu, actors_cpu) = ((cpu(&[learner.pid()]) - learner_cpu0) / seconds, (cpu(&actor_pids) - actors_cpu0) / seconds);
     let seconds_to_threshold = match args.to_threshold {
         Some(threshold) => seconds_to(&mut client, threshold, started, args.threshold_timeout).await?,
@@ -439,7 +439,8 @@ async fn measure(preset: &Preset, args: &ScaleArgs, graph: &Path, actors: usize,
         learner_waited_s: last.learner_waited_s - first.learner_waited_s,
         discarded_steps,
         discarded_share: discarded_steps as f64 / (stored + discarded_steps).max(1) as f64,
-        actor_idle_share: waited_before.zip(waited_after).map(|(before, after)| (after - before) / (actors as f64 * seconds)),
+        // Over the time between the two readings.
+        actor_idle_share: waited_before.0.zip(waited_after.0).map(|(before, after)| (after - before) / (actors as f64 * waited_after.1.duration_since(waited_before.1).as_secs_f64().max(1e-9))),
         seconds_to_threshold,
     })
 }
