@@ -219,3 +219,56 @@ def unbudgeted_servers(c):
 
 
 FAULTS["unbudgeted-servers"] = unbudgeted_servers
+
+
+WILD_ENV = '''
+import gymnasium as gym
+import numpy as np
+
+
+class Wild(gym.Env):
+    """A linear system gone wrong: every third step a state of 1e300."""
+    lcrl_state_names = ["s1", "s2", "s3"]
+    lcrl_action_names = ["a1", "a2", "a3"]
+
+    def __init__(self):
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (3,), np.float64)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (3,), np.float64)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.s, self.t = self.np_random.uniform(-1.0, 1.0, 3), 0
+        return self.s.copy(), {}
+
+    def step(self, action):
+        self.s = 0.9 * self.s + np.asarray(action, dtype=np.float64)
+        self.t += 1
+        s = np.full(3, 1e300) if self.t % 3 == 0 else self.s.copy()
+        return s, -float(self.s @ self.s), False, self.t >= 50, {}
+'''
+
+
+def wild_served_env(c):
+    """`lcrl train` against a served environment that returns states of
+    1e300 every third step (`python -m lcrl_env serve`)."""
+    (c.work / "chaos_wild_env.py").write_text(WILD_ENV)
+    python = ROOT / ".venv/bin/python"
+    server = subprocess.Popen([str(python), "-m", "lcrl_env", "serve", "--listen", "127.0.0.1:0", "--entry-point", "chaos_wild_env:Wild"],
+                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, cwd=c.work, env={**os.environ, "PYTHONPATH": str(c.work)})
+    c.procs.append(server)
+    line = server.stdout.readline()
+    if not line.startswith("listening on"):
+        raise RuntimeError(f"the environment server said {line!r}")
+    url = "grpc://" + line.strip().split("listening on ", 1)[1]
+    run = c.work / "run"
+    out = subprocess.run([str(c.bins / "lcrl"), "train", "--algo", "ddpg", "--connection", "global", "--episodes", "6", "--eval-episodes", "3", "--env", url, "--run-dir", str(run)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=600)
+    summary = json.loads((run / "summary.json").read_text()) if (run / "summary.json").exists() else {}
+    last = (out.stderr.strip().splitlines() or ["(nothing)"])[-1]
+    did = (f"exit {out.returncode}; summary.json written: diverged_env {summary.get('diverged_env')}, eval_return {summary.get('eval_return')}"
+           if summary else f"exit {out.returncode}, no summary.json; said \"{last[:160]}\"")
+    return {"fault": "`lcrl train` (DDPG, 6 episodes, 3 evaluation episodes) against a served environment returning states of 1e300 every third step",
+            "did": did, "lost": "nothing" if summary else "the run's record", "exit": out.returncode}
+
+
+FAULTS["wild-served-env"] = wild_served_env
