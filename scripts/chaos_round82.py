@@ -272,3 +272,33 @@ def wild_served_env(c):
 
 
 FAULTS["wild-served-env"] = wild_served_env
+
+
+def shm_without_token(c):
+    """A process of the same user, without the token, feeding a
+    token-protected learner over shared memory."""
+    port = free_port()
+    token = c.work / "token"
+    token.write_text("chaos-shm-token-0123456789abcdef0123456789\n")
+    token.chmod(0o600)
+    c.learner(c.work / "guarded", port, "--token-file", str(token))
+    env = {k: v for k, v in os.environ.items() if k != "LCRL_TOKEN_FILE"}
+    intruder = subprocess.Popen([str(c.bins / "lcrl-actor"), "--learner", f"http://127.0.0.1:{port}", "--run-id", "chaos", "--transport", "shm", "--envs", "2",
+                                 "--batch", "25", "--connect-deadline", "6"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        _, err = intruder.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        intruder.kill()
+        _, err = intruder.communicate()
+    said = next((line for line in err.splitlines() if "error" in line), "")
+    import grpc
+    import lcrl_pb2
+    import lcrl_pb2_grpc
+    channel = grpc.insecure_channel(f"127.0.0.1:{port}")
+    stored = lcrl_pb2_grpc.LearnerStub(channel).GetStatus(lcrl_pb2.GetStatusRequest(), metadata=[("authorization", "Bearer " + token.read_text().strip())], timeout=5).env_steps
+    return {"fault": "a same-user process without the token runs an actor over shared memory against a token-protected learner for its 6 s deadline",
+            "did": f"the learner stored {stored} of its steps in 10 s; the actor exited {intruder.returncode}" + (f": \"{said.strip()[:200]}\"" if said else " (killed after 10 s)"),
+            "lost": "nothing" if stored == 0 else "the record: steps of a peer without the token", "stored": stored}
+
+
+FAULTS["shm-without-token"] = shm_without_token

@@ -131,7 +131,9 @@ pub async fn run(args: ActorArgs, shutdown: impl Future<Output = ()>) -> anyhow:
             let (client, policy_source) = reach_learner(&args, &security, deadline, &progress).await?;
             (Some(client), policy_source)
         }
-        Transport::Shm => (None, PolicySource::Shm(args.run_id.clone(), deadline)),
+        // The run's shared memory goes by a name its token derives (a
+        // token-protected learner's cannot be found without it).
+        Transport::Shm => (None, PolicySource::Shm(security.shm_key(&args.run_id), deadline)),
     };
     let flags = Flags::default();
     let actor_id = args.actor_id.clone().unwrap_or_else(|| format!("{}-{}", hostname(), std::process::id()));
@@ -141,7 +143,7 @@ pub async fn run(args: ActorArgs, shutdown: impl Future<Output = ()>) -> anyhow:
             let sender = BatchSender { learner: args.learner.clone(), security, client, deadline, metrics: metrics.clone(), progress };
             (Sink::Grpc(batches_tx), Some(tokio::spawn(send_batches(sender, batches_rx))))
         }
-        None => (Sink::Shm(args.run_id.clone()), None),
+        None => (Sink::Shm(security.shm_key(&args.run_id)), None),
     };
     let settings = RolloutSettings { envs: args.envs, batch: args.batch, noise: args.noise, seed: args.seed, episodes: args.episodes, run_id: args.run_id.clone(), actor_id };
     let worker = spawn_envs(settings, policy_source, sink, &flags, metrics)?;

@@ -312,7 +312,8 @@ pub fn refused(status: tonic::Status) -> anyhow::Error {
 pub enum PolicySource {
     /// Kept current by the WatchPolicy task.
     Grpc(watch::Receiver<Arc<PolicySnapshot>>),
-    /// The run's shared-memory broadcast; wait at most this long for it.
+    /// The run's shared-memory broadcast, by its name (the run id, with a
+    /// token's digest: ClientSecurity::shm_key); wait at most this long.
     Shm(String, Duration),
 }
 
@@ -334,8 +335,8 @@ pub fn open_feed(source: PolicySource, stop: &AtomicBool) -> anyhow::Result<(Fee
             let explore = Exploration::of(&snapshot);
             Ok((Feed::Grpc { rx, current: snapshot }, policy, explore))
         }
-        PolicySource::Shm(run_id, deadline) => {
-            let subscriber = lcrl_proto::shm::PolicySubscriber::open(&run_id).map_err(anyhow::Error::msg)?;
+        PolicySource::Shm(key, deadline) => {
+            let subscriber = lcrl_proto::shm::PolicySubscriber::open(&key).map_err(anyhow::Error::msg)?;
             let started = Instant::now();
             let mut last_log = Instant::now() - Duration::from_secs(10);
             loop {
@@ -349,10 +350,14 @@ pub fn open_feed(source: PolicySource, stop: &AtomicBool) -> anyhow::Result<(Fee
                     bail!("stopped while waiting for the policy");
                 }
                 if started.elapsed() > deadline {
-                    bail!("no policy of run '{run_id}' on shared memory within {} s; is lcrl-learner running on this host with --run-id {run_id}?", deadline.as_secs());
+                    bail!(
+                        "no policy on shared memory under '{key}' within {} s; is lcrl-learner running on this host with this --run-id, and with the token this actor has \
+                         (a learner with a token names its shared memory after it: give the actor the same --token-file)?",
+                        deadline.as_secs()
+                    );
                 }
                 if last_log.elapsed() > Duration::from_secs(2) {
-                    tracing::warn!("waiting for the policy of run '{run_id}' on shared memory; retrying");
+                    tracing::warn!("waiting for the policy on shared memory under '{key}'; retrying");
                     last_log = Instant::now();
                 }
                 std::thread::sleep(Duration::from_millis(50));
@@ -365,7 +370,8 @@ pub fn open_feed(source: PolicySource, stop: &AtomicBool) -> anyhow::Result<(Fee
 pub enum Sink {
     /// To the gRPC sender task (bounded channel).
     Grpc(mpsc::Sender<TransitionBatch>),
-    /// Straight into the run's shared-memory service.
+    /// Straight into the run's shared-memory service, by its name (as
+    /// [`PolicySource::Shm`]).
     Shm(String),
 }
 

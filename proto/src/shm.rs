@@ -246,11 +246,13 @@ pub fn services_of_in(namespace: &str, run_id: &str) -> Vec<String> {
 
 fn services_in(config: &Config, run_id: &str) -> Vec<String> {
     remove_dead_nodes_in(config);
-    let prefix = format!("lcrl/{run_id}/");
+    // A token-protected run's services go by the run id and a digest
+    // (lcrl_runtime::security::shm_run_key): "lcrl/RUN.HEX/...".
+    let (prefix, keyed) = (format!("lcrl/{run_id}/"), format!("lcrl/{run_id}."));
     let mut names = Vec::new();
     let _ = <ipc::Service as iceoryx2::service::Service>::list(config, |service| {
         let name = service.static_details.name().to_string();
-        if name.starts_with(&prefix) {
+        if name.starts_with(&prefix) || name.starts_with(&keyed) {
             names.push(name);
         }
         CallbackProgression::Continue

@@ -227,6 +227,11 @@ pub struct ServerSecurity {
 }
 
 impl ServerSecurity {
+    /// The name of run `run_id`'s shared memory for this server's token.
+    pub fn shm_key(&self, run_id: &str) -> String {
+        shm_run_key(run_id, self.check.token.as_ref())
+    }
+
     pub fn from_args(args: &ServerSecurityArgs) -> Result<Self, SecurityError> {
         let tls = match (&args.tls_cert, &args.tls_key) {
             (Some(cert), Some(key)) => {
@@ -311,7 +316,28 @@ pub struct ClientSecurity {
     token: Option<Token>,
 }
 
+/// The name a run's shared-memory services go by (lcrl_proto::shm): the
+/// run id, and with a token the first 16 hex digits of a SHA-256 digest of
+/// it, so that a process without the token can neither find nor feed a
+/// token-protected run's shared memory (issue 82). Without a token, the
+/// run id itself.
+pub fn shm_run_key(run_id: &str, token: Option<&Token>) -> String {
+    match token {
+        None => run_id.to_string(),
+        Some(token) => {
+            let digest = ring::digest::digest(&ring::digest::SHA256, format!("lcrl shared memory\0{}", token.0).as_bytes());
+            let hex: String = digest.as_ref()[..8].iter().map(|b| format!("{b:02x}")).collect();
+            format!("{run_id}.{hex}")
+        }
+    }
+}
+
 impl ClientSecurity {
+    /// The name of run `run_id`'s shared memory for this client's token.
+    pub fn shm_key(&self, run_id: &str) -> String {
+        shm_run_key(run_id, self.token.as_ref())
+    }
+
     pub fn from_args(args: &ClientSecurityArgs) -> Result<Self, SecurityError> {
         let identity = args.tls_client_cert.as_deref().zip(args.tls_client_key.as_deref());
         Self::new(args.tls_ca.as_deref(), identity, args.token_file.as_deref())

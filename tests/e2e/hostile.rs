@@ -581,3 +581,32 @@ async fn status_and_metrics_floods_are_rate_bounded_per_peer() {
     assert_eq!(super::faults::http_get(metrics_port, "/metrics").0, 200, "refilled");
     wait_for(&url, "training after the floods", |s| s.updates > before.updates + 100).await;
 }
+
+/// A token-protected run's shared memory goes by a name its token derives
+/// (issue 82): an actor on this host without the token finds nothing to
+/// feed (it stops within its deadline, naming --token-file, and nothing
+/// it simulated is stored), while one with the token trains.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shared_memory_of_a_token_protected_run_needs_the_token() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let token = dir.path().join("token");
+    std::fs::write(&token, "shm-test-token-0123456789abcdef0123456789\n").unwrap();
+    std::fs::set_permissions(&token, std::fs::Permissions::from_mode(0o600)).unwrap();
+    let token_arg = token.to_str().unwrap();
+    let (_learner, url) = learner_with_args(&dir.path().join("run"), "shmtok", free_port(), "ddpg", &["--token-file", token_arg]);
+    let with_token = ClientSecurity::new(None, None, Some(&token)).unwrap();
+    let without = super::common::workspace_bin("lcrl-actor")
+        .args(["--learner", &url, "--run-id", "shmtok", "--transport", "shm", "--envs", "1", "--connect-deadline", "3"])
+        .env_remove("LCRL_TOKEN_FILE")
+        .output()
+        .unwrap();
+    super::common::assert_clean_failure(&without, "--token-file");
+    assert_eq!(status(&url, &with_token).await.env_steps, 0, "an actor without the token stored nothing");
+    let _actor = actor_with_args(&url, "shmtok", &["--transport", "shm", "--token-file", token_arg]);
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while status(&url, &with_token).await.env_steps == 0 {
+        assert!(std::time::Instant::now() < deadline, "the actor with the token stored nothing in 60 s");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}

@@ -235,7 +235,7 @@ pub async fn run(args: LearnerArgs, shutdown: impl Future<Output = ()>, listenin
     }
     // One learner a run id on this host: refused before anything is
     // written (the shared-memory thread checks again as it opens).
-    if let Err(taken @ lcrl_proto::shm::SubscriberError::RunTaken(_)) = lcrl_proto::shm::TransitionSubscriber::open(&args.run_id, 1).map(drop) {
+    if let Err(taken @ lcrl_proto::shm::SubscriberError::RunTaken(_)) = lcrl_proto::shm::TransitionSubscriber::open(&security.shm_key(&args.run_id), 1).map(drop) {
         bail!("{taken}");
     }
     if let Some(0) = args.episodes {
@@ -329,8 +329,9 @@ async fn begin(args: &LearnerArgs, security: &ServerSecurity) -> anyhow::Result<
         .with_actions(actions)
         .with_sequences(meta.actor_sequences.clone())
         .with_incarnation(incarnation);
-    let shared = Shared::new(&args.run_id, architecture, first, ingest, args.run_dir.clone(), security.refusals())
+    let mut shared = Shared::new(&args.run_id, architecture, first, ingest, args.run_dir.clone(), security.refusals())
         .with_connection_refusals(security.connection_refusals());
+    shared.shm_key = security.shm_key(&args.run_id);
     // A resumed run's counters.
     let counters = agent.counters();
     shared.env_steps.store(counters.env_steps, Ordering::Relaxed);

@@ -33,6 +33,9 @@ pub struct Served {
 /// Counters and the newest policy, shared by handlers and the training thread.
 pub struct Shared {
     pub run_id: String,
+    /// The name of the run's shared memory: the run id, and with a token a
+    /// digest of it (lcrl_runtime::security::shm_run_key).
+    pub shm_key: String,
     pub algo: Algo,
     pub connection: Connection,
     pub architecture: Architecture,
@@ -95,6 +98,7 @@ impl Shared {
         let first_incarnation = first.incarnation;
         Shared {
             run_id: run_id.to_string(),
+            shm_key: run_id.to_string(),
             algo: architecture.shape.algo,
             connection: architecture.shape.connection,
             architecture,

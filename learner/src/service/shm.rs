@@ -25,7 +25,7 @@ pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>, buff
     if cleaned > 0 {
         tracing::info!(cleaned, "removed shared-memory resources of crashed processes");
     }
-    let subscriber = match TransitionSubscriber::open(&shared.run_id, buffer) {
+    let subscriber = match TransitionSubscriber::open(&shared.shm_key, buffer) {
         Ok(subscriber) => subscriber,
         // The launcher reports a taken run id (and exits); shared memory
         // that is unavailable here is this thread's warning.
@@ -39,7 +39,7 @@ pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>, buff
         }
     };
     let _ = opened.send(Ok(()));
-    tracing::info!(service = %service_name(&shared.run_id), "shared-memory transport ready");
+    tracing::info!(service = %service_name(&shared.shm_key), "shared-memory transport ready");
     let stop = shared.shutdown.subscribe();
     // Poll fast while data flows, back off to 2 ms when idle, and to 20 ms
     // after a second of nothing, so an idle learner does not keep a core
@@ -57,13 +57,16 @@ pub fn run_subscriber(shared: Arc<Shared>, commands: mpsc::Sender<Command>, buff
         }
         // A round: every waiting actor's slots, served in turn.
         turns.fill(&subscriber, live.len().max(1) * (buffer + 2))?;
-        let Some((batch, publisher)) = turns.next() else {
+        let Some((mut batch, publisher)) = turns.next() else {
             std::thread::sleep(idle);
             let longest = if last_batch.elapsed() < Duration::from_secs(1) { Duration::from_millis(2) } else { IDLE_POLL_MAX };
             idle = (idle * 2).min(longest);
             continue;
         };
         (idle, last_batch) = (Duration::from_micros(200), Instant::now());
+        // The service's name is the run's shared-memory key (the run id
+        // and its token's digest): what arrives on it is of this run.
+        batch.run_id.clone_from(&shared.run_id);
         let version = shared.policy_version();
         // An actor id is bound to the publisher that first sent it, as to a
         // gRPC stream (docs/reliability.md): another process on this host
@@ -106,10 +109,10 @@ fn is_publisher(stream: u64) -> bool {
 /// The learner's policy broadcaster, on its own thread: publishes every new
 /// version of `shared.policy` until shutdown.
 pub fn run_policy_publisher(shared: Arc<Shared>) -> Result<(), String> {
-    let publisher = PolicyPublisher::open(&shared.run_id)?;
+    let publisher = PolicyPublisher::open(&shared.shm_key)?;
     let mut versions = shared.policy.subscribe();
     let stop = shared.shutdown.subscribe();
-    tracing::info!(service = %format!("lcrl/{}/policy", shared.run_id), "shared-memory policy broadcast ready");
+    tracing::info!(service = %format!("lcrl/{}/policy", shared.shm_key), "shared-memory policy broadcast ready");
     let mut first = true;
     while !*stop.borrow() {
         if !first && !versions.has_changed().unwrap_or(false) {
