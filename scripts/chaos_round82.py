@@ -302,3 +302,37 @@ def shm_without_token(c):
 
 
 FAULTS["shm-without-token"] = shm_without_token
+
+
+def threads_busy(c):
+    """The learner's thread count beside two busy processes: `lcrl bench
+    busy` (one round of 8 s each way)."""
+    out = subprocess.run([str(c.bins / "lcrl"), "bench", "busy", "--rounds", "1"], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    line = next((l for l in out.stdout.splitlines() if l.startswith("--threads 1 keeps")), f"no figure (exit {out.returncode})")
+    return {"fault": "`--threads 1` against `OMP_NUM_THREADS=1` exported, peg-group1 DDPG with one actor, beside two processes busy at nice 10 (`lcrl bench busy --rounds 1`)",
+            "did": line, "lost": "nothing"}
+
+
+def smaller_faults(c):
+    """Issue 82's smaller faults that are one command each: the largest
+    u64 seed, and a finished learner's checkpoint left alone."""
+    seed = subprocess.run([str(c.bins / "lcrl"), "train", "--env", "lti-paper", "--algo", "ddpg", "--connection", "global", "--episodes", "1",
+                           "--seed", "18446744073709551615", "--run-dir", str(c.work / "seed")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    said = (seed.stderr.strip().splitlines() or ["(nothing)"])[-1]
+    port = free_port()
+    run = c.work / "budget"
+    c.learner(run, port, "--episodes", "10", "--checkpoint-secs", "0.5")
+    c.actor(port, "--actor-id", "honest")
+    wait("the budget", lambda: status(port).episodes >= 10, limit=120)
+    time.sleep(1.0)
+    stamp = lambda: sorted((p.name, p.stat().st_mtime_ns) for p in (run / "checkpoints").rglob("*") if p.is_file())  # noqa: E731
+    before = stamp()
+    time.sleep(3.0)
+    rewritten = stamp() != before
+    return {"fault": "`lcrl train --seed 18446744073709551615`; a learner past its 10-episode budget with --checkpoint-secs 0.5, watched for 3 s",
+            "did": f"the seed: exit {seed.returncode}, \"{said[:150]}\"; the finished checkpoint {'REWRITTEN' if rewritten else 'left alone'} over 3 s",
+            "lost": "nothing", "checkpoint_rewritten": rewritten}
+
+
+FAULTS["threads-busy"] = threads_busy
+FAULTS["smaller-faults"] = smaller_faults
