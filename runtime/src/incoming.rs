@@ -189,13 +189,7 @@ impl Registry {
         let evictable = |h: &&Arc<Hush>| {
             !h.spoken.load(Ordering::Acquire) || !h.called.load(Ordering::Relaxed) || now.saturating_sub(h.heard_ms.load(Ordering::Relaxed)) >= quiet
         };
-        match open.iter().filter(evictable).min_by_key(|h| h.heard_ms.load(Ordering::Relaxed)) {
-            Some(oldest) => {
-                oldest.evict();
-                true
-            }
-            None => false,
-        }
+        evict_least_recently_heard(open.iter().filter(evictable))
     }
 
     /// The loopback peers whose process is not known yet, the newcomer's
@@ -227,21 +221,14 @@ impl Registry {
     fn evict_over_share(&self, max_connections: usize, newcomer: SocketAddr, sockets: Option<&LocalSockets>) -> bool {
         let mut open = self.open.lock().unwrap_or_else(|p| p.into_inner());
         open.retain(|h| Arc::strong_count(h) > 1 && !h.evicted.load(Ordering::Acquire));
+        // A peer not found (yet) counts as an unknown local peer.
         for h in open.iter().filter(|h| h.group.get().is_none()) {
-            let Some(peer) = h.peer else { continue };
-            match (remote_group(peer), sockets.map(|s| s.group(peer))) {
-                (Some(host), _) => {
-                    let _ = h.group.set(host);
-                }
-                (None, Some(PeerGroup::Process(pid))) => {
-                    let _ = h.group.set(PeerGroup::Process(pid));
-                }
-                // Not found (yet): counted as an unknown local peer.
-                _ => {}
+            if let Some(known) = h.peer.and_then(|peer| known_group(peer, sockets)) {
+                let _ = h.group.set(known);
             }
         }
         let group = |h: &Arc<Hush>| h.group.get().copied().unwrap_or(PeerGroup::Local);
-        let theirs = remote_group(newcomer).or_else(|| sockets.map(|s| s.group(newcomer))).unwrap_or(PeerGroup::Local);
+        let theirs = known_group(newcomer, sockets).unwrap_or(PeerGroup::Local);
         let mut held: HashMap<PeerGroup, usize> = HashMap::new();
         for h in open.iter() {
             *held.entry(group(h)).or_default() += 1;
@@ -256,14 +243,25 @@ impl Registry {
         if count <= share || count <= newcomers + 2 {
             return false;
         }
-        match open.iter().filter(|h| group(h) == largest).min_by_key(|h| h.heard_ms.load(Ordering::Relaxed)) {
-            Some(oldest) => {
-                oldest.evict();
-                true
-            }
-            None => false,
-        }
+        evict_least_recently_heard(open.iter().filter(|h| group(h) == largest))
     }
+}
+
+/// Closes the least recently heard of `candidates`; false when there is none.
+fn evict_least_recently_heard<'a>(candidates: impl Iterator<Item = &'a Arc<Hush>>) -> bool {
+    match candidates.min_by_key(|h| h.heard_ms.load(Ordering::Relaxed)) {
+        Some(oldest) => {
+            oldest.evict();
+            true
+        }
+        None => false,
+    }
+}
+
+/// Who `peer` is, where known: a host beyond loopback, or the local
+/// process `sockets` found holding its socket.
+fn known_group(peer: SocketAddr, sockets: Option<&LocalSockets>) -> Option<PeerGroup> {
+    remote_group(peer).or_else(|| sockets.map(|s| s.group(peer)).filter(|g| matches!(g, PeerGroup::Process(_))))
 }
 
 /// One accepted connection: its stream, its place among the server's

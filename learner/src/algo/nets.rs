@@ -326,6 +326,14 @@ mod tests {
             .collect()
     }
 
+    /// The largest difference between two lists of tensors, below `tol`.
+    fn assert_all_close(a: &[Tensor], b: &[Tensor], tol: f64, what: &str) {
+        for (a, b) in a.iter().zip(b) {
+            let diff = f64::try_from((a - b).abs().max()).unwrap();
+            assert!(diff < tol, "{what} differ by {diff}");
+        }
+    }
+
     /// For every activation: the batched actor (biases inside the products,
     /// activations in place) gives the outputs and the weight gradients of
     /// separate subnetworks computed out of place, and the global MLP those
@@ -340,14 +348,10 @@ mod tests {
             let net = SubnetActor::new(&vs.root(), &g, &[8, 6], act, &mut rng());
             let batched = net.forward_raw(&x);
             let reference = separate(&net, &g, &x);
-            let diff = f64::try_from((&batched - &reference).abs().max()).unwrap();
-            assert!(diff < 1e-6, "{act:?}: outputs differ by {diff}");
+            assert_all_close(&[batched.shallow_clone()], &[reference.shallow_clone()], 1e-6, &format!("{act:?}: outputs"));
             let from_batched = gradients(&vs, (&batched * &batched).sum(Kind::Float));
             let from_reference = gradients(&vs, (&reference * &reference).sum(Kind::Float));
-            for (a, b) in from_batched.iter().zip(&from_reference) {
-                let diff = f64::try_from((a - b).abs().max()).unwrap();
-                assert!(diff < 1e-5, "{act:?}: weight gradients differ by {diff}");
-            }
+            assert_all_close(&from_batched, &from_reference, 1e-5, &format!("{act:?}: weight gradients"));
 
             let vs = nn::VarStore::new(Device::Cpu);
             let mlp = Mlp::new(&vs.root(), &[5, 8, 6, 3], act, &mut rng());
@@ -359,14 +363,10 @@ mod tests {
                     h = reference_activation(&h, act);
                 }
             }
-            let diff = f64::try_from((&fused - &h).abs().max()).unwrap();
-            assert!(diff < 1e-6, "{act:?}: MLP outputs differ by {diff}");
+            assert_all_close(&[fused.shallow_clone()], &[h.shallow_clone()], 1e-6, &format!("{act:?}: MLP outputs"));
             let from_fused = gradients(&vs, (&fused * &fused).sum(Kind::Float));
             let from_plain = gradients(&vs, (&h * &h).sum(Kind::Float));
-            for (a, b) in from_fused.iter().zip(&from_plain) {
-                let diff = f64::try_from((a - b).abs().max()).unwrap();
-                assert!(diff < 1e-5, "{act:?}: MLP weight gradients differ by {diff}");
-            }
+            assert_all_close(&from_fused, &from_plain, 1e-5, &format!("{act:?}: MLP weight gradients"));
         }
     }
 
