@@ -52,10 +52,12 @@ if wanted gpu; then
     section "DDPG/PPO update on the GPU, baseline build" "$baseline/lcrl" bench learner --device cuda --threads 1 --updates 500 --python none
   fi
   # Eager and CUDA-graph rows per actor, then PyTorch eager.
-  section "DDPG/PPO update on the GPU, this build (and PyTorch eager)" "$bin/lcrl" bench learner --device cuda --threads 1 --updates 500 --python "${PYTHON_EAGER:-python3}"
+  # Table I's settings: what the baseline build times and PyTorch eager repeats.
+  section "DDPG/PPO update on the GPU, this build (and PyTorch eager)" "$bin/lcrl" bench learner --device cuda --threads 1 --updates 500 --settings table1 --python "${PYTHON_EAGER:-python3}"
 fi
 if wanted cpu; then
-  section "DDPG/PPO update on the CPU by threads (and PyTorch eager)" "$bin/lcrl" bench learner --device cpu --threads 1,4,16 --updates 200 --python python3
+  section "DDPG/PPO update on the CPU by threads (and PyTorch eager)" "$bin/lcrl" bench learner --device cpu --threads 1,4,16 --updates 200 --settings table1 --python python3
+  section "DDPG/PPO update on the CPU by threads, the presets' settings" "$bin/lcrl" bench learner --device cpu --threads 1,2,4,16 --updates 200 --rounds 5
 fi
 
 scale() {

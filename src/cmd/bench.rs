@@ -38,9 +38,16 @@ pub enum BenchCommand {
         /// on all of them alike).
         #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=50))]
         rounds: u32,
+        /// The training settings timed: `presets`, the peg presets' own
+        /// (configs/peg.toml with peg-group1.toml: ELU, twin critics, policy
+        /// delay 2), what configs/peg-group1-*.toml train; or `table1`,
+        /// docs/method.md Table I's (ReLU, one critic), the settings the
+        /// PyTorch-eager reference repeats.
+        #[arg(long, default_value = "presets", value_parser = ["presets", "table1"])]
+        settings: String,
         /// The Python whose torch times the same DDPG update eagerly
-        /// (scripts/bench_torch_ddpg.py) [default: this project's .venv];
-        /// `none` skips it.
+        /// (scripts/bench_torch_ddpg.py, with `--settings table1`)
+        /// [default: this project's .venv]; `none` skips it.
         #[arg(long)]
         python: Option<String>,
     },
@@ -119,7 +126,9 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
         BenchCommand::Sim { episodes } => crate::cmd::bench_sim::run(episodes.max(1)),
         BenchCommand::Tune { evaluations, episodes } => crate::cmd::bench_sim::tune(evaluations.max(2), episodes.max(1)),
         BenchCommand::SimEpisodes { episodes, substeps } => crate::cmd::bench_sim::episodes(episodes, substeps),
-        BenchCommand::Learner { updates, device, threads, rounds, python } => bench_learner(updates.max(1), &device, &threads, rounds as usize, python.as_deref()),
+        BenchCommand::Learner { updates, device, threads, rounds, settings, python } => {
+            bench_learner(updates.max(1), &device, &threads, rounds as usize, settings == "table1", python.as_deref())
+        }
         BenchCommand::Transport { seconds } => {
             // At least 1 s per measurement; at most an hour (1e300 s would
             // overflow the deadline's clock arithmetic).
@@ -133,49 +142,75 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
     }
 }
 
-/// One DDPG update (batch 256, default sizes) and one PPO update (a 2048-step
-/// rollout: 10 epochs of 64-transition minibatches), local vs global actor,
-/// at the peg task's size with its CS3 graph, for each thread count on
-/// `device`, the median of `rounds` interleaved rounds; then the same DDPG
-/// update in PyTorch eager (global actor).
-fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize, python: Option<&str>) -> anyhow::Result<()> {
+/// One DDPG update (batch 256) and one PPO update (a 2048-step rollout: 10
+/// epochs of 64-transition minibatches) on the peg presets' settings
+/// (configs/peg.toml with peg-group1.toml, what `configs/peg-group1-*.toml`
+/// train) or on Table I's, for the global actor, the local one on the
+/// presets' graph (T_rule) and on the publication's (T = 0.1), and full
+/// subnetworks, for each thread count on `device`, the median of `rounds`
+/// interleaved rounds; then, on Table I's settings, the same DDPG update in
+/// PyTorch eager (global actor).
+fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize, table1: bool, python: Option<&str>) -> anyhow::Result<()> {
+    use lcrl_graph_builder::choose_t::RULE_THRESHOLD;
+    use lcrl_learner::Connection;
     if threads.is_empty() || threads.iter().any(|&t| t == 0 || t > lcrl_learner::device::torch::MAX_THREADS) {
         anyhow::bail!("--threads takes counts from 1 to {}", lcrl_learner::device::torch::MAX_THREADS);
     }
     let torch_device = lcrl_learner::device::torch::resolve_device(device)?;
-    let env = lcrl_sim::make_env("peg-group1")?;
+    let env_name = "peg-group1";
+    let env = lcrl_sim::make_env(env_name)?;
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
-    let options = GraphOptions::paper(32, 0, 0);
-    let mask = build_graph(env.as_ref(), &options, &|| {})?.g;
-    let edges: usize = mask.iter().flatten().map(|&v| usize::from(v)).sum();
-    let mut cfg = lcrl_learner::TrainConfig::default();
+    let (mut cfg, source) = if table1 { (lcrl_learner::TrainConfig::default(), "Table I's settings") } else { lcrl_learner::TrainConfig::for_env(env_name) };
     cfg.ddpg.warmup_steps = 0;
     cfg.run.device = device.to_string();
+    // The presets' graph: CS3 with their graph_samples, cut at T_rule and
+    // at the publication's T (one measurement, two cuts).
+    let options = GraphOptions { rule: lcrl_graph_builder::Rule::Threshold(RULE_THRESHOLD), ..GraphOptions::paper(cfg.run.graph_samples, 0, 0) };
+    let report = build_graph(env.as_ref(), &options, &|| {})?;
+    let rule_mask = report.g.clone();
+    let paper_mask = lcrl_graph_builder::graph::connection_graph(&report.phi, lcrl_graph_builder::Rule::Threshold(lcrl_graph_builder::PAPER_THRESHOLD)).g;
+    let edges = |g: &[Vec<u8>]| -> usize { g.iter().flatten().map(|&v| usize::from(v)).sum() };
+    let rule_label = format!("Local@{RULE_THRESHOLD}");
+    let paper_label = format!("Local@{}", lcrl_graph_builder::PAPER_THRESHOLD);
     println!(
-        "peg-group1 ({m} states, {n} actions, {edges} of {} edges in G), DDPG batch {}, {updates} updates per setting, on {device} ({} cores here)",
-        m * n,
+        "{env_name} ({m} states, {n} actions) on {source}: {:?} activations, DDPG batch {}, twin critics {}, policy delay {}, {updates} updates per setting, on {device} ({} cores here)",
+        cfg.network.activation,
         cfg.ddpg.batch_size,
+        cfg.ddpg.twin_critics,
+        cfg.ddpg.policy_delay,
         lcrl_learner::device::torch::available_cores()
     );
+    println!(
+        "G from {} CS3 samples: {} of {} edges at T_rule = {RULE_THRESHOLD} (the presets' graph), {} at T = {} (the publication's)",
+        cfg.run.graph_samples,
+        edges(&rule_mask),
+        m * n,
+        edges(&paper_mask),
+        lcrl_graph_builder::PAPER_THRESHOLD
+    );
     println!("{:>7} {:<16} {:>13} {:>16} {:>12} {:>20}", "threads", "actor", "actor params", "DDPG update ms", "updates/s", "PPO update (10 ep) s");
+    let settings_of_actor: [(String, Connection, &[Vec<u8>]); 4] = [
+        ("Global".to_string(), Connection::Global, &rule_mask),
+        (rule_label.clone(), Connection::Local, &rule_mask),
+        (paper_label.clone(), Connection::Local, &paper_mask),
+        ("FullSubnets".to_string(), Connection::FullSubnets, &rule_mask),
+    ];
     let mut globals: Vec<(usize, f64)> = Vec::new();
     for &t in threads {
         tch::set_num_threads(t as i32);
-        // Every setting once per round, in turn; the median of the rounds.
-        let connections = [lcrl_learner::Connection::Global, lcrl_learner::Connection::Local, lcrl_learner::Connection::FullSubnets];
         // On a GPU, eager updates first, then the same replayed from CUDA
         // graphs (`run.cuda_graphs`; ignored on the CPU).
-        let settings: &[bool] = if torch_device.is_cuda() { &[false, true] } else { &[false] };
+        let graph_settings: &[bool] = if torch_device.is_cuda() { &[false, true] } else { &[false] };
         let mut timed: Vec<(String, Vec<f64>, Vec<f64>, usize)> = Vec::new();
         for round in 0..rounds {
             // Each round starts with another actor: no setting is always
             // timed first (a warmer or colder machine).
-            for k in 0..connections.len() {
-                let connection = connections[(k + round) % connections.len()];
-                for &graphs in settings {
+            for k in 0..settings_of_actor.len() {
+                let (name, connection, mask) = &settings_of_actor[(k + round) % settings_of_actor.len()];
+                for &graphs in graph_settings {
                     let cfg = lcrl_learner::TrainConfig { run: lcrl_learner::config::RunConfig { cuda_graphs: graphs, ..cfg.run.clone() }, ..cfg.clone() };
-                    let (ddpg, ppo, params) = time_updates(&cfg, connection, &mask, updates, torch_device)?;
-                    let label = if graphs { format!("{connection:?}+graphs") } else { format!("{connection:?}") };
+                    let (ddpg, ppo, params) = time_updates(&cfg, *connection, mask, updates, torch_device)?;
+                    let label = if graphs { format!("{name}+graphs") } else { name.clone() };
                     match timed.iter_mut().find(|(l, ..)| *l == label) {
                         Some((_, d, p, _)) => {
                             d.push(ddpg);
@@ -186,24 +221,33 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize,
                 }
             }
         }
+        timed.sort_by_key(|(label, ..)| settings_of_actor.iter().position(|(name, ..)| label.starts_with(name.as_str())));
         for (label, ddpg, ppo, params) in &timed {
             let (ddpg, ppo) = (median(ddpg), median(ppo));
             println!("{t:>7} {label:<16} {params:>13} {:>16.3} {:>12.0} {ppo:>20.3}", ddpg * 1e3, 1.0 / ddpg);
         }
         // The ratio within each round (the same machine state), then its
-        // median over the rounds. Round 0 timed Global first, then Local.
-        let (global, local) = (&timed[0], &timed[if torch_device.is_cuda() { 2 } else { 1 }]);
+        // median over the rounds; eager updates against eager ones.
+        let find = |name: &str| timed.iter().find(|(l, ..)| l == name).expect("every actor was timed");
+        let global = find("Global");
         let ratio = |a: &[f64], b: &[f64]| median(&a.iter().zip(b).map(|(x, y)| x / y).collect::<Vec<_>>());
-        println!(
-            "{t:>7} local / global: DDPG update {:.2}×, PPO update {:.2}× (medians of the rounds' ratios; the goal: at most 1.00×)",
-            ratio(&local.1, &global.1),
-            ratio(&local.2, &global.2)
-        );
+        for name in [&rule_label, &paper_label] {
+            let local = find(name);
+            println!(
+                "{t:>7} {name} / global: DDPG update {:.2}×, PPO update {:.2}× (medians of the rounds' ratios; the goal: at most 1.00×)",
+                ratio(&local.1, &global.1),
+                ratio(&local.2, &global.2)
+            );
+        }
         let global = (median(&global.1), median(&global.2));
         if let Some(&(first, seconds)) = globals.first() {
             println!("{t:>7} global DDPG update: {:.2}× the speed of {first} thread(s)", seconds / global.0);
         }
         globals.push((t, global.0));
+    }
+    if !table1 {
+        println!("PyTorch eager: its reference repeats Table I's update; `--settings table1` times both");
+        return Ok(());
     }
     torch_eager(python, device, threads, updates, (m, n, cfg.ddpg.batch_size), &globals)
 }
