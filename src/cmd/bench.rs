@@ -198,48 +198,25 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize,
     let mut globals: Vec<(usize, f64)> = Vec::new();
     for &t in threads {
         tch::set_num_threads(t as i32);
-        // On a GPU, eager updates first, then the same replayed from CUDA
-        // graphs (`run.cuda_graphs`; ignored on the CPU).
-        let graph_settings: &[bool] = if torch_device.is_cuda() { &[false, true] } else { &[false] };
-        let mut timed: Vec<(String, Vec<f64>, Vec<f64>, usize)> = Vec::new();
-        for round in 0..rounds {
-            // Each round starts with another actor: no setting is always
-            // timed first (a warmer or colder machine).
-            for k in 0..settings_of_actor.len() {
-                let (name, connection, mask) = &settings_of_actor[(k + round) % settings_of_actor.len()];
-                for &graphs in graph_settings {
-                    let cfg = lcrl_learner::TrainConfig { run: lcrl_learner::config::RunConfig { cuda_graphs: graphs, ..cfg.run.clone() }, ..cfg.clone() };
-                    let (ddpg, ppo, params) = time_updates(&cfg, *connection, mask, updates, torch_device)?;
-                    let label = if graphs { format!("{name}+graphs") } else { name.clone() };
-                    match timed.iter_mut().find(|(l, ..)| *l == label) {
-                        Some((_, d, p, _)) => {
-                            d.push(ddpg);
-                            p.push(ppo);
-                        }
-                        None => timed.push((label, vec![ddpg], vec![ppo], params)),
-                    }
-                }
-            }
-        }
-        timed.sort_by_key(|(label, ..)| settings_of_actor.iter().position(|(name, ..)| label.starts_with(name.as_str())));
-        for (label, ddpg, ppo, params) in &timed {
-            let (ddpg, ppo) = (median(ddpg), median(ppo));
-            println!("{t:>7} {label:<16} {params:>13} {:>16.3} {:>12.0} {ppo:>20.3}", ddpg * 1e3, 1.0 / ddpg);
+        let timed = time_rounds(&cfg, &settings_of_actor, rounds, updates, torch_device)?;
+        for actor in &timed {
+            let (ddpg, ppo) = (median(&actor.ddpg), median(&actor.ppo));
+            println!("{t:>7} {:<16} {:>13} {:>16.3} {:>12.0} {ppo:>20.3}", actor.label, actor.params, ddpg * 1e3, 1.0 / ddpg);
         }
         // The ratio within each round (the same machine state), then its
         // median over the rounds; eager updates against eager ones.
-        let find = |name: &str| timed.iter().find(|(l, ..)| l == name).expect("every actor was timed");
+        let find = |name: &str| timed.iter().find(|a| a.label == name).expect("every actor was timed");
         let global = find("Global");
         let ratio = |a: &[f64], b: &[f64]| median(&a.iter().zip(b).map(|(x, y)| x / y).collect::<Vec<_>>());
         for name in [&rule_label, &paper_label] {
             let local = find(name);
             println!(
                 "{t:>7} {name} / global: DDPG update {:.2}×, PPO update {:.2}× (medians of the rounds' ratios; the goal: at most 1.00×)",
-                ratio(&local.1, &global.1),
-                ratio(&local.2, &global.2)
+                ratio(&local.ddpg, &global.ddpg),
+                ratio(&local.ppo, &global.ppo)
             );
         }
-        let global = (median(&global.1), median(&global.2));
+        let global = (median(&global.ddpg), median(&global.ppo));
         if let Some(&(first, seconds)) = globals.first() {
             println!("{t:>7} global DDPG update: {:.2}× the speed of {first} thread(s)", seconds / global.0);
         }
@@ -250,6 +227,43 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize,
         return Ok(());
     }
     torch_eager(python, device, threads, updates, (m, n, cfg.ddpg.batch_size), &globals)
+}
+
+/// One actor's times, one per round.
+struct Timed {
+    label: String,
+    ddpg: Vec<f64>,
+    ppo: Vec<f64>,
+    params: usize,
+}
+
+/// Every actor of `actors` (label, connection, graph) timed once per round,
+/// in turn, each round starting with another (no setting is always timed
+/// first, on a warmer or colder machine); on a GPU eager updates first,
+/// then the same replayed from CUDA graphs (`run.cuda_graphs`; ignored on
+/// the CPU). In the order of `actors`.
+fn time_rounds(cfg: &lcrl_learner::TrainConfig, actors: &[(String, lcrl_learner::Connection, &[Vec<u8>])], rounds: usize, updates: usize, device: tch::Device) -> anyhow::Result<Vec<Timed>> {
+    let graph_settings: &[bool] = if device.is_cuda() { &[false, true] } else { &[false] };
+    let mut timed: Vec<Timed> = Vec::new();
+    for round in 0..rounds {
+        for k in 0..actors.len() {
+            let (name, connection, mask) = &actors[(k + round) % actors.len()];
+            for &graphs in graph_settings {
+                let cfg = lcrl_learner::TrainConfig { run: lcrl_learner::config::RunConfig { cuda_graphs: graphs, ..cfg.run.clone() }, ..cfg.clone() };
+                let (ddpg, ppo, params) = time_updates(&cfg, *connection, mask, updates, device)?;
+                let label = if graphs { format!("{name}+graphs") } else { name.clone() };
+                match timed.iter_mut().find(|a| a.label == label) {
+                    Some(actor) => {
+                        actor.ddpg.push(ddpg);
+                        actor.ppo.push(ppo);
+                    }
+                    None => timed.push(Timed { label, ddpg: vec![ddpg], ppo: vec![ppo], params }),
+                }
+            }
+        }
+    }
+    timed.sort_by_key(|a| actors.iter().position(|(name, ..)| a.label.starts_with(name.as_str())));
+    Ok(timed)
 }
 
 /// The median of `values` (not empty).
