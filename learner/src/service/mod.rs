@@ -16,6 +16,7 @@
 //! - [`flow`]: replay ratio, waits, policy lag and the budget, as reported.
 //! - [`server`]: the `lcrl.v1.Learner` and `lcrl.v1.Policy` gRPC handlers.
 //! - [`serving_share`]: policy queries within their share of the time.
+//! - [`priority`]: threads that must not take training's core run nicer.
 //! - [`metrics`]: the learner's Prometheus metrics (served by `lcrl_runtime::metrics_http`).
 //! - [`shm`]: the learner's ends of the same-host transport (its format: `lcrl_proto::shm`).
 //! - [`validator`]: the run's policy chosen on held-out starts, on a thread of its own.
@@ -33,6 +34,7 @@ pub mod incarnation;
 pub mod ingest;
 pub mod launch;
 pub mod metrics;
+pub mod priority;
 pub mod runtime;
 pub mod server;
 pub mod serving_share;

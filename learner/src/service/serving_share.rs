@@ -6,7 +6,7 @@
 //! stretch of queries they compute at most a share s of the time. Calls
 //! wait their turn holding no thread, and beyond a bounded queue are
 //! refused with RESOURCE_EXHAUSTED. And each computation runs on a thread
-//! of its own at a lower OS priority ([`below_training`]): the share
+//! of its own at a lower OS priority ([`below_training`], [`super::priority`]): the share
 //! alone left DDPG's updates at 0.76–0.88 of a quiet run on 2 cores, since
 //! it bounds the queries' time but not whose turn the kernel gives first.
 
@@ -24,13 +24,8 @@ pub const POLICY_CONCURRENCY: usize = 1;
 /// Calls that may wait for their turn; the next is refused.
 pub const MAX_QUEUED_QUERIES: usize = 64;
 
-/// How much nicer than the learner's own threads policy computations run
-/// (at most 19): where cores are short, the kernel gives a thread at nice 0
-/// about 9 times the time of one at nice 10 (CFS weights 1024 and 110), so
-/// queries take mostly what training leaves.
-pub const SERVING_NICE: i32 = 10;
-
-/// Runs `compute` on a thread of its own at [`SERVING_NICE`] and returns
+/// Runs `compute` on a thread of its own below training
+/// ([`super::priority::lower_this_thread`]) and returns
 /// its result (inline where no thread can be started). One computation
 /// runs at a time ([`POLICY_CONCURRENCY`]), so at most one such thread
 /// lives; starting it costs tens of microseconds a query.
@@ -43,7 +38,7 @@ pub fn below_training<T: Send>(compute: impl FnOnce() -> T + Send) -> T {
     std::thread::scope(|scope| {
         let started = std::thread::Builder::new().name("lcrl-serving".into()).spawn_scoped(scope, || {
             let _in_call = span.enter();
-            lower_this_thread();
+            super::priority::lower_this_thread("policy computations");
             // A query is one small forward pass: one libtorch thread, not
             // OpenMP's default team of one per core (a new thread's count).
             crate::device::torch::set_threads_here(1);
@@ -58,24 +53,6 @@ pub fn below_training<T: Send>(compute: impl FnOnce() -> T + Send) -> T {
             Err(_) => (take().expect("not taken: the thread did not start"))(),
         }
     })
-}
-
-/// Raises the calling thread's nice value alone by [`SERVING_NICE`], up
-/// to 19 (Linux: a thread id given to setpriority names that thread; a new
-/// thread starts at its creator's value). Raising one's own nice needs no
-/// privilege; never lowering it keeps serving below training even where
-/// the learner was started niced; a failure leaves the thread as it was.
-fn lower_this_thread() {
-    #[cfg(target_os = "linux")]
-    // SAFETY: gettid, getpriority and setpriority take no pointers.
-    unsafe {
-        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
-        let own = libc::getpriority(libc::PRIO_PROCESS, tid);
-        let serving = (own + SERVING_NICE).min(19);
-        if serving > own && libc::setpriority(libc::PRIO_PROCESS, tid, serving) != 0 {
-            tracing::debug!("policy computations run at the learner's own priority: setpriority failed");
-        }
-    }
 }
 
 /// The share of one core's time policy queries may take, and whose turn
@@ -180,14 +157,11 @@ mod tests {
     #[cfg(target_os = "linux")]
     #[test]
     fn computations_run_at_the_serving_nice_value() {
-        let nice_here = || unsafe {
-            let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
-            libc::getpriority(libc::PRIO_PROCESS, tid)
-        };
+        let nice_here = crate::service::priority::this_thread_nice;
         let caller = nice_here();
         let (inside, value) = below_training(|| (nice_here(), 6 * 7));
         assert_eq!(value, 42);
-        assert_eq!(inside, (caller + SERVING_NICE).min(19).max(caller), "the computing thread's nice value");
+        assert_eq!(inside, (caller + crate::service::priority::BELOW_TRAINING_NICE).min(19).max(caller), "the computing thread's nice value");
         assert_eq!(nice_here(), caller, "the caller's nice value is unchanged");
     }
 

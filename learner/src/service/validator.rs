@@ -100,9 +100,13 @@ impl Validator {
 }
 
 fn validate_jobs(mut selection: Selection, env: Box<dyn Env>, run_dir: &Path, inbox: &mpsc::Receiver<Job>, chosen: &Mutex<Chosen>) -> Result<(), LearnerError> {
-    // One thread: validation runs beside training and the actors, and
-    // must not take their cores (`lcrl train` pauses for it and validates
-    // on every core instead).
+    // One thread, below training: validation runs beside training and
+    // the actors, and must not take their cores (`lcrl train` pauses for
+    // it and validates on every core instead). Its episodes were 38% of
+    // the learner's CPU in a PPO run on 2 cores (docs/scaling.md); at nice
+    // +10 they take what training leaves, and since each validates a
+    // snapshot, when it runs changes nothing it chooses.
+    super::priority::lower_this_thread("validation");
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
@@ -219,6 +223,39 @@ mod tests {
         let last = latest_checkpoint(dir).unwrap();
         let updates = shared.updates.load(std::sync::atomic::Ordering::Relaxed);
         (std::fs::read(last.join("actor.safetensors")).unwrap(), read_record(&selected_dir(dir)).unwrap(), updates)
+    }
+
+    /// The validation thread runs below training (nice +10 over the thread
+    /// that started it, at most 19), read back from /proc as any tool
+    /// would see it, and the starter keeps its own value.
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn validation_runs_below_training() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut cfg = TrainConfig::for_env("lti-paper").0;
+        cfg.run.validation_episodes = 2;
+        let selection = Selection::new(&cfg.run, dir.path(), false).unwrap().expect("validation is on");
+        let starter = crate::service::priority::this_thread_nice();
+        let mut validator = Validator::start(selection, lcrl_sim::make_env("lti-paper").unwrap(), dir.path(), 2).unwrap();
+        let validation_nice = || -> Option<i32> {
+            std::fs::read_dir("/proc/self/task").ok()?.flatten().find_map(|task| {
+                let comm = std::fs::read_to_string(task.path().join("comm")).ok()?;
+                let stat = std::fs::read_to_string(task.path().join("stat")).ok()?;
+                // Field 19 of stat, the 17th after the command's ")".
+                (comm.trim() == "validation").then(|| stat.rsplit_once(')')?.1.split_whitespace().nth(16)?.parse().ok())?
+            })
+        };
+        let expected = (starter + crate::service::priority::BELOW_TRAINING_NICE).min(19);
+        // The thread lowers itself as it starts: wait for that, for a while.
+        let deadline = std::time::Instant::now() + Duration::from_secs(10);
+        let mut seen = validation_nice();
+        while seen != Some(expected) && std::time::Instant::now() < deadline {
+            std::thread::yield_now();
+            seen = validation_nice();
+        }
+        assert_eq!(seen, Some(expected), "the validation thread's nice value");
+        assert_eq!(crate::service::priority::this_thread_nice(), starter);
+        validator.finish().unwrap();
     }
 
     /// Validation reads snapshots on its own thread: the training thread
