@@ -40,7 +40,8 @@ pub enum BenchCommand {
         rounds: u32,
         /// The training settings timed: `presets`, the peg presets' own
         /// (configs/peg.toml with peg-group1.toml: ELU, twin critics, policy
-        /// delay 2), what configs/peg-group1-*.toml train; or `table1`,
+        /// delay 2, the trust region toward the target actor), what
+        /// configs/peg-group1-*.toml train; or `table1`,
         /// docs/method.md Table I's (ReLU, one critic), the settings the
         /// PyTorch-eager reference repeats.
         #[arg(long, default_value = "presets", value_parser = ["presets", "table1"])]
@@ -161,11 +162,14 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize,
     let env = lcrl_sim::make_env(env_name)?;
     let (m, n) = (env.spec().state_dim(), env.spec().action_dim());
     let (mut cfg, source) = if table1 { (lcrl_learner::TrainConfig::default(), "Table I's settings") } else { lcrl_learner::TrainConfig::for_env(env_name) };
+    if !table1 && source == lcrl_learner::TrainConfig::TABLE1_SOURCE {
+        anyhow::bail!("the peg presets' embedded settings did not load (a build defect): `--settings table1` times Table I's");
+    }
     cfg.ddpg.warmup_steps = 0;
     cfg.run.device = device.to_string();
     // The presets' graph: CS3 with their graph_samples, cut at T_rule and
     // at the publication's T (one measurement, two cuts).
-    let options = GraphOptions { rule: lcrl_graph_builder::Rule::Threshold(RULE_THRESHOLD), ..GraphOptions::paper(cfg.run.graph_samples, 0, 0) };
+    let options = GraphOptions { rule: lcrl_graph_builder::Rule::Threshold(RULE_THRESHOLD), ..GraphOptions::paper(cfg.run.graph_samples, cfg.run.seed, 0) };
     let report = build_graph(env.as_ref(), &options, &|| {})?;
     let rule_mask = report.g.clone();
     let paper_mask = lcrl_graph_builder::graph::connection_graph(&report.phi, lcrl_graph_builder::Rule::Threshold(lcrl_graph_builder::PAPER_THRESHOLD)).g;
@@ -173,11 +177,12 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize,
     let rule_label = format!("Local@{RULE_THRESHOLD}");
     let paper_label = format!("Local@{}", lcrl_graph_builder::PAPER_THRESHOLD);
     println!(
-        "{env_name} ({m} states, {n} actions) on {source}: {:?} activations, DDPG batch {}, twin critics {}, policy delay {}, {updates} updates per setting, on {device} ({} cores here)",
+        "{env_name} ({m} states, {n} actions) on {source}: {:?} activations, DDPG batch {}, twin critics {}, policy delay {}, proximal_l2 {}, {updates} updates per setting, on {device} ({} cores here)",
         cfg.network.activation,
         cfg.ddpg.batch_size,
         cfg.ddpg.twin_critics,
         cfg.ddpg.policy_delay,
+        cfg.ddpg.proximal_l2,
         lcrl_learner::device::torch::available_cores()
     );
     println!(
@@ -215,6 +220,11 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize,
                 ratio(&local.ddpg, &global.ddpg),
                 ratio(&local.ppo, &global.ppo)
             );
+            // On a GPU the DDPG updates train as CUDA graphs by default.
+            if torch_device.is_cuda() {
+                let (local, global) = (find(&format!("{name}+graphs")), find("Global+graphs"));
+                println!("{t:>7} {name} / global, as CUDA graphs: DDPG update {:.2}×", ratio(&local.ddpg, &global.ddpg));
+            }
         }
         let global = (median(&global.ddpg), median(&global.ppo));
         if let Some(&(first, seconds)) = globals.first() {
@@ -244,25 +254,26 @@ struct Timed {
 /// the CPU). In the order of `actors`.
 fn time_rounds(cfg: &lcrl_learner::TrainConfig, actors: &[(String, lcrl_learner::Connection, &[Vec<u8>])], rounds: usize, updates: usize, device: tch::Device) -> anyhow::Result<Vec<Timed>> {
     let graph_settings: &[bool] = if device.is_cuda() { &[false, true] } else { &[false] };
-    let mut timed: Vec<Timed> = Vec::new();
+    // One row per (actor, graphs), in the order of `actors`, eager first.
+    let mut timed: Vec<Timed> = actors
+        .iter()
+        .flat_map(|(name, ..)| graph_settings.iter().map(move |&graphs| if graphs { format!("{name}+graphs") } else { name.clone() }))
+        .map(|label| Timed { label, ddpg: Vec::new(), ppo: Vec::new(), params: 0 })
+        .collect();
     for round in 0..rounds {
         for k in 0..actors.len() {
-            let (name, connection, mask) = &actors[(k + round) % actors.len()];
-            for &graphs in graph_settings {
+            let index = (k + round) % actors.len();
+            let (_, connection, mask) = &actors[index];
+            for (g, &graphs) in graph_settings.iter().enumerate() {
                 let cfg = lcrl_learner::TrainConfig { run: lcrl_learner::config::RunConfig { cuda_graphs: graphs, ..cfg.run.clone() }, ..cfg.clone() };
                 let (ddpg, ppo, params) = time_updates(&cfg, *connection, mask, updates, device)?;
-                let label = if graphs { format!("{name}+graphs") } else { name.clone() };
-                match timed.iter_mut().find(|a| a.label == label) {
-                    Some(actor) => {
-                        actor.ddpg.push(ddpg);
-                        actor.ppo.push(ppo);
-                    }
-                    None => timed.push(Timed { label, ddpg: vec![ddpg], ppo: vec![ppo], params }),
-                }
+                let row = &mut timed[index * graph_settings.len() + g];
+                row.ddpg.push(ddpg);
+                row.ppo.push(ppo);
+                row.params = params;
             }
         }
     }
-    timed.sort_by_key(|a| actors.iter().position(|(name, ..)| a.label.starts_with(name.as_str())));
     Ok(timed)
 }
 

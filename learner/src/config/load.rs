@@ -26,6 +26,10 @@ const PEG_GROUP1: &str = include_str!("../../../configs/peg-group1.toml");
 const PEG_GROUP2: &str = include_str!("../../../configs/peg-group2.toml");
 
 impl TrainConfig {
+    /// What [`TrainConfig::for_env`] says its settings came from when an
+    /// environment has none of its own: Table I's defaults.
+    pub const TABLE1_SOURCE: &'static str = "Table I defaults";
+
     /// The training settings that work on a registered environment, used
     /// when no --config is given, and where they come from. lti-paper gets
     /// configs/lti-fast.toml and the peg presets configs/peg.toml (Table
@@ -58,7 +62,7 @@ impl TrainConfig {
         };
         match embedded.and_then(|(files, source)| Some((layered(files)?, source))) {
             Some((cfg, source)) => (cfg, source),
-            None => (TrainConfig::default(), "Table I defaults"),
+            None => (TrainConfig::default(), Self::TABLE1_SOURCE),
         }
     }
 

@@ -12,9 +12,11 @@
 //! ([`Validator::finish`]) and serves the chosen policy from then on.
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::mpsc;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::thread::JoinHandle;
+use std::time::Instant;
 
 use lcrl_proto::v1::PolicySnapshot;
 use lcrl_sim::Env;
@@ -43,6 +45,16 @@ pub struct Validator {
     every: usize,
     /// The episode count of the last validation handed over.
     last_submitted: Option<usize>,
+    progress: Arc<Progress>,
+}
+
+/// What the validation thread shows of itself.
+#[derive(Debug, Default)]
+struct Progress {
+    /// Validations handed over and not yet started.
+    pending: AtomicUsize,
+    /// The kernel id of the thread that runs the validation episodes.
+    worker: OnceLock<i64>,
 }
 
 impl std::fmt::Debug for Validator {
@@ -61,11 +73,20 @@ impl Validator {
         let (jobs, inbox) = mpsc::channel::<Job>();
         let thread_chosen = chosen.clone();
         let run_dir = run_dir.to_path_buf();
+        let progress = Arc::new(Progress::default());
+        let thread_progress = progress.clone();
         let thread = std::thread::Builder::new()
             .name("validation".into())
-            .spawn(move || validate_jobs(selection, env, &run_dir, &inbox, &thread_chosen))
+            .spawn(move || validate_jobs(selection, env, &run_dir, &inbox, &thread_chosen, thread_progress))
             .map_err(|e| LearnerError::Config(format!("cannot start the validation thread: {e}")))?;
-        Ok(Validator { jobs: Some(jobs), thread: Some(thread), chosen, every, last_submitted })
+        Ok(Validator { jobs: Some(jobs), thread: Some(thread), chosen, every, last_submitted, progress })
+    }
+
+    /// The kernel id of the thread that runs the validation episodes, once
+    /// it has started.
+    #[cfg(test)]
+    fn worker_thread(&self) -> Option<i64> {
+        self.progress.worker.get().copied()
     }
 
     /// Whether the policy after `done` of `last` episodes is to be validated.
@@ -79,7 +100,9 @@ impl Validator {
         self.last_submitted = Some(meta.episode);
         if let Some(jobs) = &self.jobs {
             // A closed channel means the thread failed: `finish` reports it.
-            let _ = jobs.send(Job { snapshot, meta });
+            if jobs.send(Job { snapshot, meta }).is_ok() {
+                self.progress.pending.fetch_add(1, Ordering::Relaxed);
+            }
         }
     }
 
@@ -92,26 +115,41 @@ impl Validator {
     /// the final choice, or the error that stopped the thread.
     pub fn finish(&mut self) -> Result<Chosen, LearnerError> {
         drop(self.jobs.take());
+        // Validation runs below training, so where cores were short it may
+        // be behind: say how far, and how long the end waited for it.
+        let (pending, started) = (self.progress.pending.load(Ordering::Relaxed), Instant::now());
         if let Some(thread) = self.thread.take() {
             thread.join().map_err(|_| LearnerError::Config("the validation thread panicked".into()))??;
+        }
+        if pending > 0 {
+            tracing::info!(pending, waited_s = started.elapsed().as_secs_f64(), "the end of training waited for the validations still queued, and the confirmation");
         }
         Ok(self.chosen())
     }
 }
 
-fn validate_jobs(mut selection: Selection, env: Box<dyn Env>, run_dir: &Path, inbox: &mpsc::Receiver<Job>, chosen: &Mutex<Chosen>) -> Result<(), LearnerError> {
+fn validate_jobs(mut selection: Selection, env: Box<dyn Env>, run_dir: &Path, inbox: &mpsc::Receiver<Job>, chosen: &Mutex<Chosen>, progress: Arc<Progress>) -> Result<(), LearnerError> {
     // One thread, below training: validation runs beside training and
     // the actors, and must not take their cores (`lcrl train` pauses for
-    // it and validates on every core instead). Its episodes were 38% of
-    // the learner's CPU in a PPO run on 2 cores (docs/scaling.md); at nice
-    // +10 they take what training leaves, and since each validates a
-    // snapshot, when it runs changes nothing it chooses.
-    super::priority::lower_this_thread("validation");
+    // it and validates on every core instead). In one measured PPO run on
+    // 2 cores its episodes were 38% of the learner's CPU (docs/scaling.md);
+    // at nice +10 they take mostly what training leaves, and since each
+    // validates a snapshot, in a run that is not interrupted when it runs
+    // changes nothing it chooses. Only the pool's worker is lowered: this
+    // thread also starts the confirmation on the global pool at the end,
+    // whose workers would inherit its value.
+    let worker = progress.clone();
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
+        .thread_name(|_| "validation-worker".into())
+        .start_handler(move |_| {
+            super::priority::lower_this_thread("validation");
+            let _ = worker.worker.set(super::priority::this_thread_id());
+        })
         .build()
         .map_err(|e| LearnerError::Config(format!("cannot start the validation thread pool: {e}")))?;
     for job in inbox {
+        progress.pending.fetch_sub(1, Ordering::Relaxed);
         let before = selection.record().map(|r| r.episode);
         let (_, selected) = pool.install(|| selection.validate_policy(env.as_ref(), &job.snapshot, run_dir, &job.meta))?;
         let moved = if selected {
@@ -225,35 +263,36 @@ mod tests {
         (std::fs::read(last.join("actor.safetensors")).unwrap(), read_record(&selected_dir(dir)).unwrap(), updates)
     }
 
-    /// The validation thread runs below training (nice +10 over the thread
-    /// that started it, at most 19), read back from /proc as any tool
-    /// would see it, and the starter keeps its own value.
+    /// The validation episodes run below training (nice +10 over the
+    /// thread that started the validator, at most 19), read back from
+    /// /proc for the validator's own worker as any tool would see it; the
+    /// starter keeps its own value.
     #[cfg(target_os = "linux")]
     #[test]
     fn validation_runs_below_training() {
+        let starter = crate::service::priority::this_thread_nice();
+        if starter >= 19 {
+            eprintln!("skipped: the tests run at nice 19, no thread can run below them");
+            return;
+        }
         let dir = tempfile::tempdir().unwrap();
         let mut cfg = TrainConfig::for_env("lti-paper").0;
         cfg.run.validation_episodes = 2;
         let selection = Selection::new(&cfg.run, dir.path(), false).unwrap().expect("validation is on");
-        let starter = crate::service::priority::this_thread_nice();
         let mut validator = Validator::start(selection, lcrl_sim::make_env("lti-paper").unwrap(), dir.path(), 2).unwrap();
-        let validation_nice = || -> Option<i32> {
-            std::fs::read_dir("/proc/self/task").ok()?.flatten().find_map(|task| {
-                let comm = std::fs::read_to_string(task.path().join("comm")).ok()?;
-                let stat = std::fs::read_to_string(task.path().join("stat")).ok()?;
-                // Field 19 of stat, the 17th after the command's ")".
-                (comm.trim() == "validation").then(|| stat.rsplit_once(')')?.1.split_whitespace().nth(16)?.parse().ok())?
-            })
-        };
-        let expected = (starter + crate::service::priority::BELOW_TRAINING_NICE).min(19);
-        // The thread lowers itself as it starts: wait for that, for a while.
+        // The worker starts with the validation thread: wait for it, for a while.
         let deadline = std::time::Instant::now() + Duration::from_secs(10);
-        let mut seen = validation_nice();
-        while seen != Some(expected) && std::time::Instant::now() < deadline {
-            std::thread::yield_now();
-            seen = validation_nice();
-        }
-        assert_eq!(seen, Some(expected), "the validation thread's nice value");
+        let worker = loop {
+            match validator.worker_thread() {
+                Some(tid) => break tid,
+                None if std::time::Instant::now() < deadline => std::thread::sleep(Duration::from_millis(10)),
+                None => panic!("the validation worker did not start in 10 s"),
+            }
+        };
+        let stat = std::fs::read_to_string(format!("/proc/self/task/{worker}/stat")).unwrap();
+        // Field 19 of stat, the 17th after the command's ")".
+        let nice: i32 = stat.rsplit_once(')').unwrap().1.split_whitespace().nth(16).unwrap().parse().unwrap();
+        assert_eq!(nice, (starter + crate::service::priority::BELOW_TRAINING_NICE).min(19), "the validation worker's nice value");
         assert_eq!(crate::service::priority::this_thread_nice(), starter);
         validator.finish().unwrap();
     }
