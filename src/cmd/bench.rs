@@ -204,39 +204,46 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize,
     for &t in threads {
         tch::set_num_threads(t as i32);
         let timed = time_rounds(&cfg, &settings_of_actor, rounds, updates, torch_device)?;
-        for actor in &timed {
-            let (ddpg, ppo) = (median(&actor.ddpg), median(&actor.ppo));
-            println!("{t:>7} {:<16} {:>13} {:>16.3} {:>12.0} {ppo:>20.3}", actor.label, actor.params, ddpg * 1e3, 1.0 / ddpg);
-        }
-        // The ratio within each round (the same machine state), then its
-        // median over the rounds; eager updates against eager ones.
-        let find = |name: &str| timed.iter().find(|a| a.label == name).expect("every actor was timed");
-        let global = find("Global");
-        let ratio = |a: &[f64], b: &[f64]| median(&a.iter().zip(b).map(|(x, y)| x / y).collect::<Vec<_>>());
-        for name in [&rule_label, &paper_label] {
-            let local = find(name);
-            println!(
-                "{t:>7} {name} / global: DDPG update {:.2}×, PPO update {:.2}× (medians of the rounds' ratios; the goal: at most 1.00×)",
-                ratio(&local.ddpg, &global.ddpg),
-                ratio(&local.ppo, &global.ppo)
-            );
-            // On a GPU the DDPG updates train as CUDA graphs by default.
-            if torch_device.is_cuda() {
-                let (local, global) = (find(&format!("{name}+graphs")), find("Global+graphs"));
-                println!("{t:>7} {name} / global, as CUDA graphs: DDPG update {:.2}×", ratio(&local.ddpg, &global.ddpg));
-            }
-        }
-        let global = (median(&global.ddpg), median(&global.ppo));
+        print_rows(t, &timed, &[&rule_label, &paper_label], torch_device.is_cuda());
+        // The first row is the global actor's, eager.
+        let global = median(&timed[0].ddpg);
         if let Some(&(first, seconds)) = globals.first() {
-            println!("{t:>7} global DDPG update: {:.2}× the speed of {first} thread(s)", seconds / global.0);
+            println!("{t:>7} global DDPG update: {:.2}× the speed of {first} thread(s)", seconds / global);
         }
-        globals.push((t, global.0));
+        globals.push((t, global));
     }
     if !table1 {
         println!("PyTorch eager: its reference repeats Table I's update; `--settings table1` times both");
         return Ok(());
     }
     torch_eager(python, device, threads, updates, (m, n, cfg.ddpg.batch_size), &globals)
+}
+
+/// Each actor's medians at `t` threads, then each local actor of `locals`
+/// against the global one (the first row): the median of the rounds'
+/// ratios (the same machine state within a round), eager against eager and,
+/// on a GPU, CUDA graphs against CUDA graphs.
+fn print_rows(t: usize, timed: &[Timed], locals: &[&str], cuda: bool) {
+    for actor in timed {
+        let (ddpg, ppo) = (median(&actor.ddpg), median(&actor.ppo));
+        println!("{t:>7} {:<16} {:>13} {:>16.3} {:>12.0} {ppo:>20.3}", actor.label, actor.params, ddpg * 1e3, 1.0 / ddpg);
+    }
+    let find = |name: &str| timed.iter().find(|a| a.label == name).expect("every actor was timed");
+    let ratio = |a: &[f64], b: &[f64]| median(&a.iter().zip(b).map(|(x, y)| x / y).collect::<Vec<_>>());
+    let global = find("Global");
+    for name in locals {
+        let local = find(name);
+        println!(
+            "{t:>7} {name} / global: DDPG update {:.2}×, PPO update {:.2}× (medians of the rounds' ratios; the goal: at most 1.00×)",
+            ratio(&local.ddpg, &global.ddpg),
+            ratio(&local.ppo, &global.ppo)
+        );
+        // On a GPU the DDPG updates train as CUDA graphs by default.
+        if cuda {
+            let (local, global) = (find(&format!("{name}+graphs")), find("Global+graphs"));
+            println!("{t:>7} {name} / global, as CUDA graphs: DDPG update {:.2}×", ratio(&local.ddpg, &global.ddpg));
+        }
+    }
 }
 
 /// One actor's times, one per round.
