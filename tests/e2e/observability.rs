@@ -47,6 +47,7 @@ async fn learner_and_actor_serve_prometheus_metrics() {
     assert!(value("lcrl_learner_replay_size") > 0.0);
     assert_eq!(value("lcrl_learner_connected_actors"), 1.0);
     assert!(value("lcrl_learner_training_queue_depth") >= 0.0);
+    assert!(value("lcrl_learner_validations_pending") >= 0.0);
     assert_eq!(value("lcrl_learner_act_latency_seconds_count"), 1.0, "one Act call so far");
     assert!(text.trim_end().ends_with("# EOF"));
 

@@ -348,7 +348,7 @@ async fn begin(args: &LearnerArgs, security: &ServerSecurity) -> anyhow::Result<
     // The run's policy is chosen on held-out starts as `lcrl train` chooses
     // it (run.validation_episodes, run.validate_every), on its own thread.
     let validator = match crate::run::selection::Selection::new(&config.run, &args.run_dir, checkpoint.is_some())? {
-        Some(selection) => Some(Validator::start(selection, lcrl_sim::make_env(&args.env)?, &args.run_dir, config.run.validate_every)?),
+        Some(selection) => Some(Validator::start(selection, lcrl_sim::make_env(&args.env)?, &args.run_dir, config.run.validate_every, shared.validations_pending.clone())?),
         None => None,
     };
     let schedule = Schedule {

@@ -77,6 +77,7 @@ impl Collector for LearnerCollector {
         gauge(&mut encoder, "policy_version", "Newest published policy version", s.policy_version() as i64)?;
         gauge(&mut encoder, "connected_actors", "Actors with an open gRPC transition stream", i64::from(s.connected_actors.load(Ordering::Relaxed)))?;
         gauge(&mut encoder, "shm_actors", "Live shared-memory publishers (same-host actors)", i64::from(s.shm_actors.load(Ordering::Relaxed)))?;
+        gauge(&mut encoder, "validations_pending", "Validations of the run's policy handed over and not yet started (they run below training and catch up where cores are free)", s.validations_pending.load(Ordering::Relaxed) as i64)?;
         let queued = self.queue.max_capacity() - self.queue.capacity();
         gauge(&mut encoder, "training_queue_depth", "Accepted batches waiting for the training thread", queued as i64)?;
         let (accepted, rejected) = s.ingest_counts();

@@ -71,6 +71,10 @@ pub struct Shared {
     /// them (0 until it starts): OpenMP keeps the count per thread, so the
     /// count set where the run starts must be set again there (GetStatus).
     pub training_threads: AtomicU32,
+    /// Validations handed to the validation thread and not yet started
+    /// (it runs below training, so where cores are short it falls behind;
+    /// /metrics).
+    pub validations_pending: Arc<AtomicU64>,
 }
 
 /// Locks `mutex` whatever happened to its last holder. The policy for a
@@ -119,6 +123,7 @@ impl Shared {
             connection_refusals: Default::default(),
             incarnation: first_incarnation,
             training_threads: AtomicU32::new(0),
+            validations_pending: Arc::new(AtomicU64::new(0)),
         }
     }
 

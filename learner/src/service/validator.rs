@@ -12,7 +12,7 @@
 //! ([`Validator::finish`]) and serves the chosen policy from then on.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex, OnceLock};
 use std::thread::JoinHandle;
@@ -49,10 +49,10 @@ pub struct Validator {
 }
 
 /// What the validation thread shows of itself.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 struct Progress {
-    /// Validations handed over and not yet started.
-    pending: AtomicUsize,
+    /// Validations handed over and not yet started (shared with /metrics).
+    pending: Arc<AtomicU64>,
     /// The kernel id of the thread that runs the validation episodes.
     worker: OnceLock<i64>,
 }
@@ -65,15 +65,16 @@ impl std::fmt::Debug for Validator {
 
 impl Validator {
     /// Starts the thread for `selection` (see [`Selection::new`]; a resumed
-    /// run's choice is read back from `RUN/selected/`), validating in `env`.
-    pub fn start(selection: Selection, env: Box<dyn Env>, run_dir: &Path, every: usize) -> Result<Self, LearnerError> {
+    /// run's choice is read back from `RUN/selected/`), validating in `env`;
+    /// `pending` counts the validations handed over and not yet started.
+    pub fn start(selection: Selection, env: Box<dyn Env>, run_dir: &Path, every: usize, pending: Arc<AtomicU64>) -> Result<Self, LearnerError> {
         let chosen = Chosen { record: selection.record(), snapshot: read_selected(run_dir)?.map(Arc::new) };
         let last_submitted = selection.last_validated();
         let chosen = Arc::new(Mutex::new(chosen));
         let (jobs, inbox) = mpsc::channel::<Job>();
         let thread_chosen = chosen.clone();
         let run_dir = run_dir.to_path_buf();
-        let progress = Arc::new(Progress::default());
+        let progress = Arc::new(Progress { pending, worker: OnceLock::new() });
         let thread_progress = progress.clone();
         let thread = std::thread::Builder::new()
             .name("validation".into())
@@ -233,7 +234,7 @@ mod tests {
         let ingest = Ingest::new("r", lcrl_sim::make_env("lti-paper").unwrap(), None);
         let shared = Arc::new(Shared::new("r", architecture, first, ingest, dir.to_path_buf(), Default::default()));
         let selection = Selection::new(&cfg.run, dir, false).unwrap();
-        let validator = selection.map(|s| Validator::start(s, lcrl_sim::make_env("lti-paper").unwrap(), dir, cfg.run.validate_every).unwrap());
+        let validator = selection.map(|s| Validator::start(s, lcrl_sim::make_env("lti-paper").unwrap(), dir, cfg.run.validate_every, shared.validations_pending.clone()).unwrap());
         let (commands, inbox) = queue::channel(128);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
         let mut row = |n: usize| (0..n).map(|_| rng.random_range(-1.0f32..1.0)).collect::<Vec<_>>();
@@ -258,6 +259,8 @@ mod tests {
             headroom: None,
         };
         TrainingLoop::new(agent, inbox, shared.clone(), schedule).run().unwrap();
+        // The end waited for every validation handed over.
+        assert_eq!(shared.validations_pending.load(std::sync::atomic::Ordering::Relaxed), 0);
         let last = latest_checkpoint(dir).unwrap();
         let updates = shared.updates.load(std::sync::atomic::Ordering::Relaxed);
         (std::fs::read(last.join("actor.safetensors")).unwrap(), read_record(&selected_dir(dir)).unwrap(), updates)
@@ -279,7 +282,7 @@ mod tests {
         let mut cfg = TrainConfig::for_env("lti-paper").0;
         cfg.run.validation_episodes = 2;
         let selection = Selection::new(&cfg.run, dir.path(), false).unwrap().expect("validation is on");
-        let mut validator = Validator::start(selection, lcrl_sim::make_env("lti-paper").unwrap(), dir.path(), 2).unwrap();
+        let mut validator = Validator::start(selection, lcrl_sim::make_env("lti-paper").unwrap(), dir.path(), 2, Default::default()).unwrap();
         // The worker starts with the validation thread: wait for it, for a while.
         let deadline = std::time::Instant::now() + Duration::from_secs(10);
         let worker = loop {
