@@ -16,12 +16,11 @@ pub const BELOW_TRAINING_NICE: i32 = 10;
 /// was, and says so at debug level.
 pub fn lower_this_thread(what: &str) {
     #[cfg(target_os = "linux")]
-    // SAFETY: gettid, getpriority and setpriority take no pointers.
-    unsafe {
-        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
-        let own = libc::getpriority(libc::PRIO_PROCESS, tid);
+    {
+        let own = this_thread_nice();
         let lowered = (own + BELOW_TRAINING_NICE).min(19);
-        if lowered > own && libc::setpriority(libc::PRIO_PROCESS, tid, lowered) != 0 {
+        // SAFETY: setpriority takes no pointers.
+        if lowered > own && unsafe { libc::setpriority(libc::PRIO_PROCESS, this_thread_id() as libc::id_t, lowered) } != 0 {
             tracing::debug!("{what} runs at the learner's own priority: setpriority failed");
         }
     }

@@ -100,9 +100,12 @@ impl Validator {
     pub fn submit(&mut self, snapshot: Arc<PolicySnapshot>, meta: CheckpointMeta) {
         self.last_submitted = Some(meta.episode);
         if let Some(jobs) = &self.jobs {
-            // A closed channel means the thread failed: `finish` reports it.
-            if jobs.send(Job { snapshot, meta }).is_ok() {
-                self.progress.pending.fetch_add(1, Ordering::Relaxed);
+            // Counted before it is sent, so the thread never counts it down
+            // first. A closed channel means the thread failed: `finish`
+            // reports it.
+            self.progress.pending.fetch_add(1, Ordering::Relaxed);
+            if jobs.send(Job { snapshot, meta }).is_err() {
+                self.progress.pending.fetch_sub(1, Ordering::Relaxed);
             }
         }
     }
