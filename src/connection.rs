@@ -30,8 +30,11 @@ use anyhow::{bail, Context};
 use lcrl_graph_builder::RowRule;
 use lcrl_learner::Connection;
 
-/// The publication's threshold T of eq. 7, used by a plain `local`.
-pub const DEFAULT_THRESHOLD: f64 = lcrl_graph_builder::PAPER_THRESHOLD;
+/// T of eq. 7 for a plain `local`: T_rule, the above-average rule
+/// (docs/method.md, "Choosing T"), as `connection = "local"` in a config
+/// (experiments/default-graph.toml's decision); `local@0.1` is the
+/// publication's.
+pub const DEFAULT_THRESHOLD: f64 = lcrl_graph_builder::choose_t::RULE_THRESHOLD;
 
 /// One parsed connection.
 #[derive(Debug, Clone, PartialEq)]
@@ -300,7 +303,7 @@ mod tests {
             assert_eq!(spec.label(), text);
             assert_eq!(ConnectionSpec::parse(&spec.label()).unwrap(), spec);
         }
-        assert_eq!(ConnectionSpec::parse("local").unwrap(), ConnectionSpec::Local { threshold: 0.1, rows: Vec::new(), per_seed: false });
+        assert_eq!(ConnectionSpec::parse("local").unwrap(), ConnectionSpec::Local { threshold: 1.0, rows: Vec::new(), per_seed: false });
         assert_eq!(ConnectionSpec::parse("random@23").unwrap().connection(), Connection::Local);
         assert_eq!(ConnectionSpec::parse("graph:g.json").unwrap().threshold(), None);
         assert_eq!(ConnectionSpec::parse("graph:references/peg-eq21/graph.json").unwrap().slug(), "graph-references-peg-eq21-graph");

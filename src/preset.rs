@@ -54,8 +54,10 @@ pub struct Job {
     /// probabilities they carry (docs/method.md, "Asynchronous PPO").
     #[serde(default)]
     pub max_staleness: Option<u64>,
-    /// T of eq. 7 for the graph builder (default 0.1, the publication's).
-    #[serde(default)]
+    /// T of eq. 7 for the graph builder: a number, or "auto" for T_rule
+    /// (the above-average rule, docs/method.md "Choosing T"); unset is
+    /// T_rule too, by experiments/default-graph.toml's decision.
+    #[serde(default, deserialize_with = "lcrl_graph_builder::choose_t::deserialize_optional_threshold")]
     pub graph_threshold: Option<f64>,
     /// A given graph instead of the graph builder's (connection local):
     /// "graph:PATH" (a graph.json, relative to the preset's folder) or
@@ -296,14 +298,18 @@ impl Preset {
         crate::output::write_atomic(path, &toml::to_string_pretty(&self.train)?)
     }
 
+    /// T of eq. 7 for a measured graph: job.graph_threshold, T_rule when
+    /// unset.
+    pub fn graph_threshold(&self) -> f64 {
+        self.job.graph_threshold.unwrap_or(lcrl_graph_builder::choose_t::RULE_THRESHOLD)
+    }
+
     /// `lcrl-graph-builder`'s arguments: CS3 samples and seed from [run];
     /// graph.json and graph.png into `run_dir`.
     pub fn graph_builder_args(&self, listen: &str, run_dir: &Path) -> Vec<OsString> {
         let mut args = os(&["--env", &self.job.env, "--listen", listen]);
         args.extend(os(&["--samples", &self.train.run.graph_samples.to_string(), "--seed", &self.train.run.seed.to_string()]));
-        if let Some(t) = self.job.graph_threshold {
-            args.extend(os(&["--threshold", &t.to_string()]));
-        }
+        args.extend(os(&["--threshold", &self.graph_threshold().to_string()]));
         args.extend([OsString::from("--out"), run_dir.join("graph.json").into(), OsString::from("--plot"), run_dir.join("graph.png").into()]);
         args
     }

@@ -19,7 +19,7 @@
 //! seeds' graphs disagree: how much the chosen graph would change under a
 //! second measurement, and where denser or sparser graphs lie.
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::graph::{connection_graph, Rule};
 use crate::{cs3, Cs3Config, GraphError};
@@ -33,13 +33,38 @@ pub const RULE_REASON: &str = "the above-average rule: an action sees the states
      (eq. 7 at T = 1), the largest T at which every state some action moves keeps at least one action whatever CS3 measures \
      (a guarantee for every phi; a given task's table may keep every state further) (docs/method.md, \"Choosing T\")";
 
+/// `graph_threshold` in a TOML config: a number (T of eq. 7) or "auto"
+/// (T_rule, [`RULE_THRESHOLD`]); serde's `deserialize_with` for an f64
+/// field. Anything else is refused with what is allowed.
+pub fn deserialize_threshold<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    #[derive(serde::Deserialize)]
+    #[serde(untagged)]
+    enum Given {
+        Number(f64),
+        Text(String),
+    }
+    match Given::deserialize(d)? {
+        Given::Number(t) => Ok(t),
+        Given::Text(text) if text == "auto" => Ok(RULE_THRESHOLD),
+        Given::Text(text) => Err(serde::de::Error::custom(format!(
+            "graph_threshold = {text:?}: give \"auto\" (T_rule = {RULE_THRESHOLD}, the above-average rule) or a number > 0 (T of eq. 7; the publication's is {})",
+            crate::PAPER_THRESHOLD
+        ))),
+    }
+}
+
+/// [`deserialize_threshold`] for an optional field (unset stays None).
+pub fn deserialize_optional_threshold<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<f64>, D::Error> {
+    deserialize_threshold(d).map(Some)
+}
+
 /// Why a graph was cut at `threshold`, in one line: the rule's T, the
 /// publication's, or one a user or study named.
 pub fn threshold_reason(threshold: f64) -> String {
     if threshold == RULE_THRESHOLD {
         format!("T_rule, {RULE_REASON}")
     } else if threshold == crate::PAPER_THRESHOLD {
-        format!("the publication's T, what `connection = \"local\"` trains by default; the rule's T_rule = {RULE_THRESHOLD} (`lcrl graph --choose-t` says why)")
+        format!("the publication's T, named by the user or study; `connection = \"local\"` trains T_rule = {RULE_THRESHOLD} by default (`lcrl graph --choose-t` says why)")
     } else {
         format!("named by the user or study (local@T, --threshold, run.graph_threshold); the rule's T_rule = {RULE_THRESHOLD}")
     }

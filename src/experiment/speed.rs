@@ -96,22 +96,31 @@ impl Study {
         if let Some(w) = welch(&xa, &xb) {
             out.push(comparison(a, b, "auc_100", "welch_t", (xa.len(), xb.len()), (w.difference, w.ci95, w.p_value)));
         }
+        out.extend(self.time_comparison(a, b));
+        out
+    }
+
+    /// The episodes to the best constant of (a, b) by log-rank, one time
+    /// per run (its difference is that of the mean episodes with censored
+    /// runs counted as the budget, a lower bound of each mean).
+    fn time_comparison(&self, a: &CellRuns, b: &CellRuns) -> Option<Comparison> {
+        let env = &a.cell.env;
         let budget = self.experiment.episodes(a.cell.algo);
         let (ta, tb): (Vec<Time>, Vec<Time>) = (a.runs.iter().filter_map(|r| self.time(env, budget, r)).collect(), b.runs.iter().filter_map(|r| self.time(env, budget, r)).collect());
         let episodes = |t: &[Time]| t.iter().map(|t| t.episodes as f64).collect::<Vec<f64>>();
-        if let (Some(lr), Some(w)) = (log_rank(&[(ta.clone(), tb.clone())]), welch(&episodes(&ta), &episodes(&tb))) {
-            let mut c = comparison(a, b, "episodes_to_best_constant", "log_rank", (ta.len(), tb.len()), (w.difference, w.ci95, lr.p_value));
-            c.observed_minus_expected = Some(lr.observed_minus_expected);
-            out.push(c);
-        }
-        out
+        let (lr, w) = (log_rank(&[(ta.clone(), tb.clone())])?, welch(&episodes(&ta), &episodes(&tb))?);
+        let mut c = comparison(a, b, "episodes_to_best_constant", "log_rank", (ta.len(), tb.len()), (w.difference, w.ci95, lr.p_value));
+        c.observed_minus_expected = Some(lr.observed_minus_expected);
+        Some(c)
     }
 
     /// A pair with a random-rows cell, with the draw as that cell's unit
     /// (the means of its draws' runs; runs of one draw share a graph, so
     /// they are not independent evidence about graphs): final and eval
-    /// return and the area under the curve, by Welch. No log-rank: a
-    /// draw's runs have no one time to the best constant.
+    /// return and the area under the curve, by Welch; and the log-rank of
+    /// the episodes to the best constant only where every draw has one run
+    /// (draw and run coincide, as edges-or-sparsity's design has it): a
+    /// draw with several runs has no one time to the best constant.
     pub fn draw_comparisons(&self, a: &CellRuns, b: &CellRuns) -> Vec<Comparison> {
         let mut out = Vec::new();
         for metric in ["final_return", "eval_return", "auc_100"] {
@@ -122,6 +131,10 @@ impl Study {
                 (c.a, c.b) = (side(a), side(b));
                 out.push(c);
             }
+        }
+        let one_run_a_draw = |cell: &CellRuns| draws(cell).is_none_or(|groups| groups.iter().all(|runs| runs.len() == 1));
+        if one_run_a_draw(a) && one_run_a_draw(b) {
+            out.extend(self.time_comparison(a, b));
         }
         out
     }
@@ -237,10 +250,38 @@ mod tests {
         let draws = find("local@0.5", "random-rows@local@0.5+draws=2 (draw means)", "eval_return");
         assert_eq!((draws.test, draws.n_a, draws.n_b), ("welch_t_draw_means", 4, 2));
         assert!((draws.difference - (-3.025 - -4.65)).abs() < 1e-12, "{}", draws.difference);
-        // Random rows are not compared with their graph run by run.
+        // Random rows are not compared with their graph run by run, nor
+        // timed: each draw here has two runs.
         assert!(!report.comparisons.iter().any(|c| c.a == "local@0.5" && c.b == "random-rows@local@0.5+draws=2"));
+        assert!(!report.comparisons.iter().any(|c| c.metric == "episodes_to_best_constant" && c.b.starts_with("random-rows")));
         let md = markdown(&report);
         assert!(md.contains("| 10 (4 of 4 reached) |") && md.contains("| not reached (0 of 4 reached) |"), "{md}");
         assert!(md.contains("welch_t_draw_means") && md.contains("log_rank"), "{md}");
+    }
+
+    /// With one run a draw (draw and run coincide) the random rows get a
+    /// log-rank of their own; with two runs a draw (above) they do not.
+    #[test]
+    fn random_rows_with_one_run_a_draw_get_a_log_rank() {
+        let text = "name = \"s\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\n\
+                    connections = [\"local@0.5\", \"random-rows@local@0.5+draws=4\"]\nseeds = [0, 1, 2, 3]\nepisodes = { ppo = 20 }\n";
+        let e = Experiment::parse(text).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path();
+        write_best_constant(out, "lti-paper", -5.0, -8.0);
+        let [local, rows] = [0, 1].map(|i| cells(&e)[i].clone());
+        for seed in 0..4u64 {
+            // local reaches −5 at episode 10 in every run, the rows never do.
+            for (cell, returns) in [(&local, [-4.0; 20].to_vec()), (&rows, [-6.0; 20].to_vec())] {
+                let dir = run_dir(out, cell, seed);
+                write_run(&dir, "local", seed, -4.0, Some(0), Some(-8.0));
+                write_returns(&dir, &returns);
+            }
+        }
+        let report = gather(&e, out).unwrap().report();
+        let timed = report.comparisons.iter().find(|c| c.metric == "episodes_to_best_constant").expect("a log-rank of local@0.5 against its random rows");
+        assert_eq!((timed.a.as_str(), timed.b.as_str(), timed.test, timed.n_a, timed.n_b), ("local@0.5", "random-rows@local@0.5+draws=4", "log_rank", 4, 4));
+        assert_eq!(timed.difference, 10.0 - 20.0);
+        assert!(timed.p_value < 0.01, "{}", timed.p_value);
     }
 }

@@ -119,7 +119,7 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let mut recorded = preset.text.clone();
     if preset.job.connection == lcrl_learner::Connection::Local && preset.job.graph.is_none() {
         // The graph's T and why, as `lcrl graph` prints it (docs/method.md, "Choosing T").
-        let t = preset.job.graph_threshold.unwrap_or(lcrl_graph_builder::PAPER_THRESHOLD);
+        let t = preset.graph_threshold();
         println!("graph: eq. 7 at T = {t}: {}", lcrl_graph_builder::choose_t::threshold_reason(t));
         recorded = format!("# graph: measured, eq. 7 at T = {t}: {}\n{recorded}", lcrl_graph_builder::choose_t::threshold_reason(t));
     }

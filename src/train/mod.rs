@@ -38,7 +38,7 @@ pub struct TrainArgs {
     /// global: the GCRL baseline; full-subnets: the ablation. (Studies
     /// also take global+match=CONNECTION: here --connection global
     /// --match-params GRAPH.) Default: local at the config's
-    /// run.graph_threshold (0.1 unless the config says otherwise).
+    /// run.graph_threshold (T_rule = 1 unless the config says otherwise).
     #[arg(long, value_name = "CONNECTION")]
     pub connection: Option<ConnectionSpec>,
     /// Use this graph.json instead of building the graph first (local

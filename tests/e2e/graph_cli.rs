@@ -188,6 +188,17 @@ fn choose_t_prints_t_rule_and_why() {
     assert_eq!((at_rule["edges"].clone(), at_rule["unseen_states"].as_u64()), (serde_json::json!([24, 24, 24]), Some(0)));
     let both = lcrl().args(["graph", "--env", "lti-paper", "--choose-t", "--threshold", "1"]).output().unwrap();
     assert_clean_failure(&both, "cannot be used with");
+    // The graph at T_rule, from the command line, is Lemma 1's entry by
+    // entry on the smallest and largest sizes the rule is held to: a_k sees
+    // x_k, y_k and its partner's x.
+    for n in [8usize, 32] {
+        let g = dir.path().join(format!("g{n}.json"));
+        let out = lcrl().args(["graph", "--env", &format!("lti-blocks-{n}"), "--samples", "16", "--threshold", "1", "--out"]).arg(&g).output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let v: Value = serde_json::from_str(&fs::read_to_string(&g).unwrap()).unwrap();
+        let lemma1: Vec<Vec<u8>> = (0..n).map(|k| (0..2 * n).map(|j| u8::from(j == 2 * k || j == 2 * k + 1 || j == 2 * (k ^ 1))).collect()).collect();
+        assert_eq!(v["g"], serde_json::json!(lemma1), "lti-blocks-{n}");
+    }
 }
 
 /// `--random-rows GRAPH` keeps every action's number of inputs and draws

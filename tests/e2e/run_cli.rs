@@ -39,6 +39,11 @@ fn run_on_the_linear_preset_finishes_with_every_artifact_and_no_leftovers() {
     assert!(summary["discarded_stale"].is_u64(), "PPO counts what it discarded: {summary}");
     let graph: serde_json::Value = serde_json::from_str(&fs::read_to_string(run.join("graph.json")).unwrap()).unwrap();
     assert_eq!(graph["g"], serde_json::json!([[1, 0, 0], [1, 1, 0], [0, 0, 1]]));
+    // A bare `connection = "local"` trains T_rule, and the run says so and why.
+    assert_eq!(graph["threshold"].as_f64(), Some(1.0));
+    let why = "graph: eq. 7 at T = 1: T_rule, the above-average rule";
+    assert!(stdout(&out).contains(why), "{}", stdout(&out));
+    assert!(fs::read_to_string(run.join("config.toml")).unwrap().starts_with(&format!("# {}", why.replace("graph: ", "graph: measured, "))));
     let metrics = fs::read_to_string(run.join("learner/metrics.csv")).unwrap();
     assert!(metrics.lines().count() > 300, "{} rows", metrics.lines().count());
     // The same columns as `lcrl train`'s metrics.csv (learner/src/run/files.rs).
@@ -73,6 +78,9 @@ fn bad_presets_fail_cleanly() {
     let peg_reference = Path::new(env!("CARGO_MANIFEST_DIR")).join("references/peg-group1/best_policy.json");
     fs::write(&preset, format!("{job}headroom = {:?}\n", peg_reference.to_str().unwrap())).unwrap();
     assert_clean_failure(&lcrl().args(["run", "--config"]).arg(&preset).output().unwrap(), "has 6 actions and 12 states; lti-paper has 3 and 3");
+    // graph_threshold is a number or "auto" (T_rule), nothing else.
+    fs::write(&preset, format!("{job}graph_threshold = \"often\"\n")).unwrap();
+    assert_clean_failure(&lcrl().args(["run", "--check", "--config"]).arg(&preset).output().unwrap(), "give \"auto\" (T_rule = 1");
     // A key measured not to help and removed (docs/peg.md) is an unknown
     // key now, in a preset and in a config given to the learner directly.
     fs::write(&preset, format!("{job}[run]\nfallback_margin = 2.0\nvalidation_episodes = 3\n")).unwrap();

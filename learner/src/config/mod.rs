@@ -423,7 +423,11 @@ pub struct RunConfig {
     /// CS3 samples when the graph is built before training.
     pub graph_samples: usize,
     /// T of eq. 7 when the graph is built before training (a `local@T`
-    /// connection sets it; the publication's 0.1 by default).
+    /// connection sets it). Default T_rule = 1, the above-average rule
+    /// (docs/method.md, "Choosing T"), by the decision of
+    /// experiments/default-graph.toml; "auto" in TOML names it; the
+    /// publication's is 0.1.
+    #[serde(deserialize_with = "lcrl_graph_builder::choose_t::deserialize_threshold")]
     pub graph_threshold: f64,
     /// Episodes of the deterministic policy evaluated at the end.
     pub eval_episodes: usize,
@@ -558,7 +562,7 @@ impl Default for RunConfig {
             checkpoint_every: 50,
             save_replay: true,
             graph_samples: 64,
-            graph_threshold: lcrl_graph_builder::PAPER_THRESHOLD,
+            graph_threshold: lcrl_graph_builder::choose_t::RULE_THRESHOLD,
             eval_episodes: 10,
             eval_seed: None,
             validation_episodes: 0,
