@@ -30,7 +30,9 @@ run_one() {
   dir="$out/$env-ddpg-$conn-s$seed"
   if [ ! -f "$dir/summary.json" ]; then
     rm -rf "$dir"
-    $lcrl train --env "$env" --algo ddpg --connection "$conn" --seed "$seed" --episodes 200 --config configs/table1-ddpg.toml --run-dir "$dir" > "$dir.log" 2>&1
+    # Table I's local is the publication's T = 0.1 (a plain `local` is T_rule).
+    spec=$conn; [ "$conn" = local ] && spec=local@0.1
+    $lcrl train --env "$env" --algo ddpg --connection "$spec" --seed "$seed" --episodes 200 --config configs/table1-ddpg.toml --run-dir "$dir" > "$dir.log" 2>&1
   fi
   $lcrl sim --checkpoint "$dir" --episodes 100 --seed 0 --out "$dir/eval100" > "$dir.eval.log" 2>&1
 }

@@ -516,14 +516,18 @@ mod tests {
         assert_eq!((value(&first, "--actor-id"), value(&third, "--actor-id")), (None, Some("actor-2")));
     }
 
-    /// Without a replay ratio or threshold the processes get none (their own
-    /// defaults: Algorithm 2's ratio, the publication's T); a global
-    /// learner gets no graph.
+    /// Without a replay ratio the processes get none (their own defaults:
+    /// Algorithm 2's ratio); without a threshold the graph builder is given
+    /// T_rule (a bare `connection = "local"`), "auto" names the same, and
+    /// a named T is passed as named; a global learner gets no graph.
     #[test]
     fn unset_settings_are_left_to_each_process() {
         let p = preset("");
         let graph = strings(&p.graph_builder_args("127.0.0.1:0", Path::new("/r")));
-        assert_eq!(value(&graph, "--threshold"), None);
+        assert_eq!(value(&graph, "--threshold"), Some("1"));
+        for (given, passed) in [("graph_threshold = \"auto\"", "1"), ("graph_threshold = 0.1", "0.1")] {
+            assert_eq!(value(&strings(&preset(given).graph_builder_args("127.0.0.1:0", Path::new("/r"))), "--threshold"), Some(passed), "{given}");
+        }
         let learner = strings(&p.learner_args("127.0.0.1:0", "r", Path::new("/t"), Path::new("/l"), Some("http://g:1")).unwrap());
         for flag in ["--replay-ratio", "--publish-every", "--replay-slack", "--queued-batches"] {
             assert_eq!(value(&learner, flag), None, "{flag}");

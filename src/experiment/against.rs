@@ -284,7 +284,7 @@ mod tests {
         let runs = study(&a, "trained", "local", &[(0, -3.3, &s0, None), (1, -3.4, &s1, None), (2, -3.0, &s2, Some(4)), (3, -3.0, &s3, None)]);
         let against = compare(&runs, &reference, &b, 1.0).unwrap();
         let c = &against.cells[0];
-        assert_eq!((c.connection.as_str(), c.reference_connection.as_str()), ("local@0.1", "global"), "the only cell of that task");
+        assert_eq!((c.connection.as_str(), c.reference_connection.as_str()), ("local@1", "global"), "the only cell of that task (a plain local is T_rule)");
         let verdicts: Vec<(u64, bool, usize)> = c.per_seed.iter().map(|s| (s.seed, s.passes, s.safety.worst_window_end)).collect();
         assert_eq!(verdicts, [(0, true, 11), (1, false, 11), (2, false, 11)]);
         assert_eq!((c.passing, c.unpaired_seeds.as_slice()), (1, &[3][..]));

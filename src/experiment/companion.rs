@@ -172,7 +172,7 @@ mod tests {
     #[test]
     fn a_companions_cells_are_compared_with_the_study_in_one_family() {
         let tmp = tempfile::tempdir().unwrap();
-        let mut main = study(&tmp.path().join("main"), "main", "\"local\", \"global\"", -4.0, Some(0));
+        let mut main = study(&tmp.path().join("main"), "main", "\"local@0.1\", \"global\"", -4.0, Some(0));
         let other = study_with(&tmp.path().join("lr"), "lr", "\"global\"", "[train.ppo]\nactor_lr = 3e-4\n", -6.0, Some(0));
         join(&mut main, other, Path::new("runs/lr")).unwrap();
         let report = main.report();
@@ -199,9 +199,9 @@ mod tests {
     #[test]
     fn a_companions_graph_cell_meets_the_studys_baselines() {
         let tmp = tempfile::tempdir().unwrap();
-        let mut main = study(&tmp.path().join("main"), "main", "\"local\", \"global\", \"random@4\"", -4.0, Some(0));
-        join(&mut main, study(&tmp.path().join("a"), "a", "\"local\"", -3.0, Some(0)), Path::new("a")).unwrap();
-        join(&mut main, study(&tmp.path().join("b"), "b", "\"local\", \"global\"", -5.0, Some(0)), Path::new("b")).unwrap();
+        let mut main = study(&tmp.path().join("main"), "main", "\"local@0.1\", \"global\", \"random@4\"", -4.0, Some(0));
+        join(&mut main, study(&tmp.path().join("a"), "a", "\"local@0.1\"", -3.0, Some(0)), Path::new("a")).unwrap();
+        join(&mut main, study(&tmp.path().join("b"), "b", "\"local@0.1\", \"global\"", -5.0, Some(0)), Path::new("b")).unwrap();
         let mut pairs: Vec<String> = eval_pairs(&main).into_iter().map(|(a, b)| format!("{a} − {b}")).collect();
         pairs.sort();
         let mut expected = vec![
@@ -229,7 +229,7 @@ mod tests {
     fn companions_leave_the_primary_contrast_and_the_draws_alone() {
         let tmp = tempfile::tempdir().unwrap();
         let primary = "[primary]\nmetric = \"eval_return\"\na = \"local@0.1\"\nb = \"global\"\nalgorithm = \"ppo\"\n";
-        let connections = "\"local\", \"global\", \"random@4+per-seed\"";
+        let connections = "\"local@0.1\", \"global\", \"random@4+per-seed\"";
         let alone = study_with(&tmp.path().join("main"), "main", connections, primary, -4.0, Some(0)).report();
         let mut main = study_with(&tmp.path().join("main"), "main", connections, primary, -4.0, Some(0));
         join(&mut main, study(&tmp.path().join("c"), "c", connections, -1.0, Some(0)), Path::new("c")).unwrap();
@@ -246,7 +246,7 @@ mod tests {
     #[test]
     fn a_companion_of_another_design_is_refused() {
         let tmp = tempfile::tempdir().unwrap();
-        let main = || study(&tmp.path().join("main"), "main", "\"local\", \"global\"", -4.0, Some(0));
+        let main = || study(&tmp.path().join("main"), "main", "\"local@0.1\", \"global\"", -4.0, Some(0));
         let err = |other: Study| join(&mut main(), other, Path::new("x")).unwrap_err().to_string();
         let parsed = |name: &str, text: String| gather(&Experiment::parse(&format!("name = \"{name}\"\nconnections = [\"global\"]\n{text}")).unwrap(), &tmp.path().join(name)).unwrap();
         assert!(err(parsed("far", STUDY.replace("lti-paper", "lti-blocks-4"))).contains("it runs lti-blocks-4"));

@@ -24,7 +24,7 @@ pub struct ExperimentFile {
     /// Registered names (peg-group1, lti-paper, …) or .toml paths.
     pub environments: Vec<String>,
     pub algorithms: Vec<Algo>,
-    /// `local` (T = 0.1), `local@T`, `graph:PATH`, `random@K`, `global`,
+    /// `local` (T_rule = 1), `local@T`, `graph:PATH`, `random@K`, `global`,
     /// `full-subnets` (crate::connection).
     pub connections: Vec<String>,
     /// A count n (seeds 0 … n−1) or an explicit list.
@@ -416,7 +416,7 @@ mod tests {
         assert_eq!(env_slug("peg-group1"), "peg-group1");
     }
 
-    const MINIMAL: &str = "name = \"t\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"local@0.25\", \"global\"]\nseeds = 3\nepisodes = { ppo = 10 }\n";
+    const MINIMAL: &str = "name = \"t\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local@0.1\", \"local@0.25\", \"global\"]\nseeds = 3\nepisodes = { ppo = 10 }\n";
 
     #[test]
     fn parses_connections_seeds_and_overlays_training_settings() {

@@ -90,7 +90,7 @@ mod tests {
     #[test]
     fn a_graph_is_placed_among_the_draws_by_its_mean() {
         let cell = |connection: &str| Cell { env: "lti-paper".into(), algo: lcrl_learner::Algo::Ppo, connection: ConnectionSpec::parse(connection).unwrap() };
-        let (local, random, global, shared) = (cell("local"), cell("random@4+per-seed"), cell("global"), cell("random@4"));
+        let (local, random, global, shared) = (cell("local@0.1"), cell("random@4+per-seed"), cell("global"), cell("random@4"));
         let cells = vec![(&local, vec![-4.0, -6.0]), (&random, vec![-2.0, -8.0, -4.0, -6.0]), (&global, vec![-1.0]), (&shared, vec![-9.0])];
         let placements = placements(&cells);
         assert_eq!(placements.len(), 1);

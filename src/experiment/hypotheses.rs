@@ -268,13 +268,13 @@ pub fn check_designs(file: &Names, equivalence: &[Equivalence], factorial: &[Fac
 mod tests {
     use super::super::config::Experiment;
 
-    const BASE: &str = "name = \"t\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"global\", \"full-subnets\"]\nseeds = 3\nepisodes = { ppo = 10 }\n";
+    const BASE: &str = "name = \"t\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local@0.1\", \"global\", \"full-subnets\"]\nseeds = 3\nepisodes = { ppo = 10 }\n";
 
     #[test]
     fn a_primary_family_parses_and_is_checked() {
         let family = format!(
-            "{BASE}[primary]\nfamily = \"holm\"\n[[primary.contrasts]]\nmetric = \"eval_return\"\na = \"local\"\nb = \"global\"\nalgorithm = \"ppo\"\n\
-             [[primary.contrasts]]\nmetric = \"episodes_to_best_constant\"\na = \"local\"\nb = \"global\"\nalgorithm = \"ppo\"\n"
+            "{BASE}[primary]\nfamily = \"holm\"\n[[primary.contrasts]]\nmetric = \"eval_return\"\na = \"local@0.1\"\nb = \"global\"\nalgorithm = \"ppo\"\n\
+             [[primary.contrasts]]\nmetric = \"episodes_to_best_constant\"\na = \"local@0.1\"\nb = \"global\"\nalgorithm = \"ppo\"\n"
         );
         let e = Experiment::parse(&family).unwrap();
         let primary = e.file.primary.as_ref().unwrap();
@@ -284,7 +284,7 @@ mod tests {
         assert!(err(family.replace("\"holm\"", "\"hope\"")).contains("must be one of holm, bonferroni"));
         assert!(err(family.replace("episodes_to_best_constant", "speed")).contains("primary contrast 2"));
         // The single form still reads as it did.
-        let one = format!("{BASE}[primary]\nmetric = \"auc_100\"\na = \"local\"\nb = \"global\"\nalgorithm = \"ppo\"\n");
+        let one = format!("{BASE}[primary]\nmetric = \"auc_100\"\na = \"local@0.1\"\nb = \"global\"\nalgorithm = \"ppo\"\n");
         assert_eq!(Experiment::parse(&one).unwrap().file.primary.unwrap().rule().0, "none");
     }
 

@@ -135,10 +135,10 @@ mod tests {
     #[test]
     fn named_tests_reach_the_report() {
         let text = "name = \"n\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\n\
-                    connections = [\"global\", \"full-subnets\", \"local@0.25\", \"local\"]\nseeds = 3\nepisodes = { ppo = 2 }\n\
+                    connections = [\"global\", \"full-subnets\", \"local@0.25\", \"local@0.1\"]\nseeds = 3\nepisodes = { ppo = 2 }\n\
                     [[equivalence]]\nmetric = \"eval_return\"\na = \"full-subnets\"\nb = \"global\"\nalgorithm = \"ppo\"\nmargin = 0.5\n\
                     [[factorial]]\nname = \"mask × T\"\nmetric = \"eval_return\"\nalgorithm = \"ppo\"\nfactors = [\"mask\", \"T\"]\n\
-                    cells = [[\"lti-paper/global\", \"lti-paper/full-subnets\"], [\"lti-paper/local@0.25\", \"lti-paper/local\"]]\n";
+                    cells = [[\"lti-paper/global\", \"lti-paper/full-subnets\"], [\"lti-paper/local@0.25\", \"lti-paper/local@0.1\"]]\n";
         let e = Experiment::parse(text).unwrap();
         let tmp = tempfile::tempdir().unwrap();
         let out = tmp.path();

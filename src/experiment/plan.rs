@@ -368,7 +368,7 @@ mod tests {
 
     #[test]
     fn graphs_come_first_and_local_runs_use_them() {
-        let text = "name = \"t\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"global\"]\nseeds = [3, 5]\nepisodes = { ppo = 7 }\n";
+        let text = "name = \"t\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local@0.1\", \"global\"]\nseeds = [3, 5]\nepisodes = { ppo = 7 }\n";
         let e = Experiment::parse(text).unwrap();
         let tasks = tasks(&e);
         let ids: Vec<String> = tasks.iter().map(Task::id).collect();
@@ -497,7 +497,7 @@ mod tests {
 
     #[test]
     fn only_keeps_the_chosen_cells_with_their_graphs_and_constants() {
-        let text = "name = \"t\"\nenvironments = [\"lti-paper\", \"peg-group1\"]\nalgorithms = [\"ppo\", \"ddpg\"]\nconnections = [\"local\", \"global\"]\nseeds = 2\nepisodes = { ppo = 7, ddpg = 3 }\n";
+        let text = "name = \"t\"\nenvironments = [\"lti-paper\", \"peg-group1\"]\nalgorithms = [\"ppo\", \"ddpg\"]\nconnections = [\"local@0.1\", \"global\"]\nseeds = 2\nepisodes = { ppo = 7, ddpg = 3 }\n";
         let e = Experiment::parse(text).unwrap();
         let ids = |patterns: &[&str]| -> Vec<String> {
             let patterns: Vec<String> = patterns.iter().map(|p| p.to_string()).collect();

@@ -183,8 +183,8 @@ mod tests {
     /// Holm's adjustment over all of them and its interval in words.
     #[test]
     fn the_primary_contrast_stands_alone_and_the_rest_are_holm_adjusted() {
-        let text = "name = \"p\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"global\", \"full-subnets\"]\nseeds = 3\nepisodes = { ppo = 2 }\n\
-                    [primary]\nmetric = \"eval_return\"\na = \"local\"\nb = \"global\"\nalgorithm = \"ppo\"\n";
+        let text = "name = \"p\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local@0.1\", \"global\", \"full-subnets\"]\nseeds = 3\nepisodes = { ppo = 2 }\n\
+                    [primary]\nmetric = \"eval_return\"\na = \"local@0.1\"\nb = \"global\"\nalgorithm = \"ppo\"\n";
         let e = Experiment::parse(text).unwrap();
         let tmp = tempfile::tempdir().unwrap();
         let out = tmp.path();
@@ -216,7 +216,7 @@ mod tests {
             assert!(c.p_holm >= c.p_value);
         }
         let md = markdown(&report);
-        assert!(md.contains("## Primary contrast") && md.contains("eval_return, local − global, PPO, stratified by environment over lti-paper"), "{md}");
+        assert!(md.contains("## Primary contrast") && md.contains("eval_return, local@0.1 − global, PPO, stratified by environment over lti-paper"), "{md}");
         assert!(md.contains("p (Holm, 3 comparisons)") && md.contains("not distinguishable, CI ["), "{md}");
         assert!(w.p_value < 0.001 && md.contains(&format!("p < 0.001 (1 environment(s)")), "p values print as < 0.001, never 0.000:\n{md}");
         // Named before the runs: a contrast of connections the study lacks is refused.
@@ -229,10 +229,10 @@ mod tests {
     /// rule adjusts both, and only the first is called.
     #[test]
     fn a_primary_family_is_adjusted_by_its_rule() {
-        let text = "name = \"p\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"global\"]\nseeds = 3\nepisodes = { ppo = 2 }\n\
+        let text = "name = \"p\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local@0.1\", \"global\"]\nseeds = 3\nepisodes = { ppo = 2 }\n\
                     [primary]\nfamily = \"holm\"\nalpha = 0.05\ndecision = \"ship local if the first is higher\"\n\
-                    [[primary.contrasts]]\nmetric = \"eval_return\"\na = \"local\"\nb = \"global\"\nalgorithm = \"ppo\"\n\
-                    [[primary.contrasts]]\nmetric = \"auc_100\"\na = \"local\"\nb = \"global\"\nalgorithm = \"ppo\"\n";
+                    [[primary.contrasts]]\nmetric = \"eval_return\"\na = \"local@0.1\"\nb = \"global\"\nalgorithm = \"ppo\"\n\
+                    [[primary.contrasts]]\nmetric = \"auc_100\"\na = \"local@0.1\"\nb = \"global\"\nalgorithm = \"ppo\"\n";
         let e = Experiment::parse(text).unwrap();
         let tmp = tempfile::tempdir().unwrap();
         let out = tmp.path();

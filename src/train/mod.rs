@@ -32,7 +32,8 @@ pub struct TrainArgs {
     #[arg(long, value_enum)]
     pub algo: Algo,
     /// local: LCRL (each action sees its connected states, eq. 8), its
-    /// graph built with CS3 at T = 0.1; local@T: at another T; graph:PATH:
+    /// graph built with CS3 at T_rule = 1 (the above-average rule;
+    /// local@0.1 is the publication's); local@T: at another T; graph:PATH:
     /// with a given graph.json (e.g. references/peg-eq21/graph.json);
     /// random@K: with K edges drawn at random (--graph-seed picks the draw);
     /// global: the GCRL baseline; full-subnets: the ablation. (Studies

@@ -11,7 +11,7 @@ use super::*;
 /// and a cell with a run evaluated elsewhere gets no beat count at all.
 #[test]
 fn bar_counts_follow_the_runs_on_the_same_starts() {
-    let text = "name = \"bars\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"global\"]\nseeds = 3\nepisodes = { ppo = 2 }\n";
+    let text = "name = \"bars\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local@0.1\", \"global\"]\nseeds = 3\nepisodes = { ppo = 2 }\n";
     let e = Experiment::parse(text).unwrap();
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path();
@@ -54,7 +54,7 @@ fn comparisons_pair_graphs_with_global_and_given_with_random() {
     let env = lcrl_sim::make_env("lti-paper").unwrap();
     lcrl_graph_builder::given::random(env.spec(), 4, 1).unwrap().write_json(&given).unwrap();
     let text = format!(
-        "name = \"c\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local\", \"graph:{}\", \"random@4\", \"global\", \"global+match=local@0.1\"]\nseeds = 2\nepisodes = {{ ppo = 2 }}\n",
+        "name = \"c\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [\"local@0.1\", \"graph:{}\", \"random@4\", \"global\", \"global+match=local@0.1\"]\nseeds = 2\nepisodes = {{ ppo = 2 }}\n",
         given.display()
     );
     let e = Experiment::parse(&text).unwrap();
