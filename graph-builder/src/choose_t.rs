@@ -64,7 +64,7 @@ pub fn threshold_reason(threshold: f64) -> String {
     if threshold == RULE_THRESHOLD {
         format!("T_rule, {RULE_REASON}")
     } else if threshold == crate::PAPER_THRESHOLD {
-        format!("the publication's T, named by the user or study; `connection = \"local\"` trains T_rule = {RULE_THRESHOLD} by default (`lcrl graph --choose-t` says why)")
+        format!("the publication's T (`lcrl graph`'s default without --threshold, or named: local@0.1, graph_threshold = 0.1); `connection = \"local\"` trains T_rule = {RULE_THRESHOLD} by default (`lcrl graph --choose-t` says why)")
     } else {
         format!("named by the user or study (local@T, --threshold, run.graph_threshold); the rule's T_rule = {RULE_THRESHOLD}")
     }
