@@ -57,8 +57,8 @@ pub struct Job {
     /// T of eq. 7 for the graph builder: a number, or "auto" for T_rule
     /// (the above-average rule, docs/method.md "Choosing T"); unset is
     /// T_rule too, by experiments/default-graph.toml's decision.
-    #[serde(default, deserialize_with = "lcrl_graph_builder::choose_t::deserialize_optional_threshold")]
-    pub graph_threshold: Option<f64>,
+    #[serde(default = "t_rule", deserialize_with = "lcrl_graph_builder::choose_t::deserialize_threshold")]
+    pub graph_threshold: f64,
     /// A given graph instead of the graph builder's (connection local):
     /// "graph:PATH" (a graph.json, relative to the preset's folder) or
     /// "random@K" (K random edges, draw seed 0, as `lcrl train`'s default
@@ -146,6 +146,11 @@ impl EnvServer {
 
 fn one() -> usize {
     1
+}
+
+/// A bare `connection = "local"` trains T_rule (experiments/default-graph.toml).
+fn t_rule() -> f64 {
+    lcrl_graph_builder::choose_t::RULE_THRESHOLD
 }
 
 /// The most actor processes a preset (or `lcrl run --actors`) may ask for.
@@ -248,10 +253,8 @@ impl Preset {
                 }
             }
         }
-        if let Some(t) = job.graph_threshold {
-            if !(t.is_finite() && t > 0.0) {
-                bail!("job.graph_threshold must be a positive number (T of eq. 7), not {t}");
-            }
+        if !(job.graph_threshold.is_finite() && job.graph_threshold > 0.0) {
+            bail!("job.graph_threshold must be a positive number (T of eq. 7), not {}", job.graph_threshold);
         }
         match &self.env_server {
             // Served by the run itself: there is nothing to reach yet.
@@ -298,18 +301,12 @@ impl Preset {
         crate::output::write_atomic(path, &toml::to_string_pretty(&self.train)?)
     }
 
-    /// T of eq. 7 for a measured graph: job.graph_threshold, T_rule when
-    /// unset.
-    pub fn graph_threshold(&self) -> f64 {
-        self.job.graph_threshold.unwrap_or(lcrl_graph_builder::choose_t::RULE_THRESHOLD)
-    }
-
     /// `lcrl-graph-builder`'s arguments: CS3 samples and seed from [run];
     /// graph.json and graph.png into `run_dir`.
     pub fn graph_builder_args(&self, listen: &str, run_dir: &Path) -> Vec<OsString> {
         let mut args = os(&["--env", &self.job.env, "--listen", listen]);
         args.extend(os(&["--samples", &self.train.run.graph_samples.to_string(), "--seed", &self.train.run.seed.to_string()]));
-        args.extend(os(&["--threshold", &self.graph_threshold().to_string()]));
+        args.extend(os(&["--threshold", &self.job.graph_threshold.to_string()]));
         args.extend([OsString::from("--out"), run_dir.join("graph.json").into(), OsString::from("--plot"), run_dir.join("graph.png").into()]);
         args
     }

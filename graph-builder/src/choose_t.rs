@@ -53,11 +53,6 @@ pub fn deserialize_threshold<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f
     }
 }
 
-/// [`deserialize_threshold`] for an optional field (unset stays None).
-pub fn deserialize_optional_threshold<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<f64>, D::Error> {
-    deserialize_threshold(d).map(Some)
-}
-
 /// Why a graph was cut at `threshold`, in one line: the rule's T, the
 /// publication's, or one a user or study named.
 pub fn threshold_reason(threshold: f64) -> String {

@@ -194,10 +194,27 @@ pub fn columns(s: &CellSpeed) -> (String, String) {
 #[cfg(test)]
 mod tests {
     use super::super::config::Experiment;
-    use super::super::plan::{cells, run_dir};
+    use super::super::plan::{cells, run_dir, Cell};
     use super::super::report::markdown;
     use super::super::study::fixtures::{write_best_constant, write_run};
     use super::super::study::gather;
+
+    /// A study folder of `connections` on lti-paper (PPO, 20 episodes,
+    /// seeds 0–3) whose best constant returns −5 and a = 0 −8.
+    fn study(connections: &str) -> (Experiment, tempfile::TempDir) {
+        let text = format!("name = \"s\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\nconnections = [{connections}]\nseeds = [0, 1, 2, 3]\nepisodes = {{ ppo = 20 }}\n");
+        let tmp = tempfile::tempdir().unwrap();
+        write_best_constant(tmp.path(), "lti-paper", -5.0, -8.0);
+        (Experiment::parse(&text).unwrap(), tmp)
+    }
+
+    /// One run of `cell` at `seed`: its summary (eval return `eval`) and
+    /// its training returns.
+    fn write_run_with_returns(out: &std::path::Path, cell: &Cell, seed: u64, eval: f64, returns: &[f64]) {
+        let dir = run_dir(out, cell, seed);
+        write_run(&dir, "local", seed, eval, Some(0), Some(-8.0));
+        write_returns(&dir, returns);
+    }
 
     /// A run's metrics.csv with these episode returns.
     fn write_returns(dir: &std::path::Path, returns: &[f64]) {
@@ -213,12 +230,8 @@ mod tests {
     /// meet local@0.5 with the draw as the unit.
     #[test]
     fn speed_and_draw_level_comparisons_on_a_hand_made_study() {
-        let text = "name = \"s\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\n\
-                    connections = [\"local@0.5\", \"global\", \"random-rows@local@0.5+draws=2\"]\nseeds = [0, 1, 2, 3]\nepisodes = { ppo = 20 }\n";
-        let e = Experiment::parse(text).unwrap();
-        let tmp = tempfile::tempdir().unwrap();
+        let (e, tmp) = study("\"local@0.5\", \"global\", \"random-rows@local@0.5+draws=2\"");
         let out = tmp.path();
-        write_best_constant(out, "lti-paper", -5.0, -8.0);
         let [local, global, rows] = [0, 1, 2].map(|i| cells(&e)[i].clone());
         let local_eval = [-3.0, -3.2, -2.8, -3.1];
         // Draw 0 (seeds 0, 2) ends at −4 and −4.2, draw 1 (seeds 1, 3) at −5 and −5.4.
@@ -230,9 +243,7 @@ mod tests {
                 (&global, -6.0 - 0.1 * seed as f64, [vec![-20.0; 5], vec![-7.0; 15]].concat()),
                 (&rows, rows_eval[s], [-6.0; 20].to_vec()),
             ] {
-                let dir = run_dir(out, cell, seed);
-                write_run(&dir, "local", seed, eval, Some(0), Some(-8.0));
-                write_returns(&dir, &returns);
+                write_run_with_returns(out, cell, seed, eval, &returns);
             }
         }
         let report = gather(&e, out).unwrap().report();
@@ -263,19 +274,13 @@ mod tests {
     /// log-rank of their own; with two runs a draw (above) they do not.
     #[test]
     fn random_rows_with_one_run_a_draw_get_a_log_rank() {
-        let text = "name = \"s\"\nenvironments = [\"lti-paper\"]\nalgorithms = [\"ppo\"]\n\
-                    connections = [\"local@0.5\", \"random-rows@local@0.5+draws=4\"]\nseeds = [0, 1, 2, 3]\nepisodes = { ppo = 20 }\n";
-        let e = Experiment::parse(text).unwrap();
-        let tmp = tempfile::tempdir().unwrap();
+        let (e, tmp) = study("\"local@0.5\", \"random-rows@local@0.5+draws=4\"");
         let out = tmp.path();
-        write_best_constant(out, "lti-paper", -5.0, -8.0);
         let [local, rows] = [0, 1].map(|i| cells(&e)[i].clone());
         for seed in 0..4u64 {
             // local reaches −5 at episode 10 in every run, the rows never do.
-            for (cell, returns) in [(&local, [-4.0; 20].to_vec()), (&rows, [-6.0; 20].to_vec())] {
-                let dir = run_dir(out, cell, seed);
-                write_run(&dir, "local", seed, -4.0, Some(0), Some(-8.0));
-                write_returns(&dir, &returns);
+            for (cell, returns) in [(&local, [-4.0; 20]), (&rows, [-6.0; 20])] {
+                write_run_with_returns(out, cell, seed, -4.0, &returns);
             }
         }
         let report = gather(&e, out).unwrap().report();

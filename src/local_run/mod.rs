@@ -119,9 +119,10 @@ pub fn run(args: &RunArgs) -> anyhow::Result<()> {
     let mut recorded = preset.text.clone();
     if preset.job.connection == lcrl_learner::Connection::Local && preset.job.graph.is_none() {
         // The graph's T and why, as `lcrl graph` prints it (docs/method.md, "Choosing T").
-        let t = preset.graph_threshold();
-        println!("graph: eq. 7 at T = {t}: {}", lcrl_graph_builder::choose_t::threshold_reason(t));
-        recorded = format!("# graph: measured, eq. 7 at T = {t}: {}\n{recorded}", lcrl_graph_builder::choose_t::threshold_reason(t));
+        let t = preset.job.graph_threshold;
+        let why = format!("eq. 7 at T = {t}: {}", lcrl_graph_builder::choose_t::threshold_reason(t));
+        println!("graph: {why}");
+        recorded = format!("# graph: measured, {why}\n{recorded}");
     }
     crate::output::write_atomic(&run_dir.join("config.toml"), &recorded)?;
     let token_in_env = std::env::var_os(lcrl_runtime::security::TOKEN_FILE_ENV).is_some();
