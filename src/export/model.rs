@@ -13,6 +13,7 @@
 
 use anyhow::{bail, Context};
 use lcrl_learner::algo::agent::build_actor;
+use lcrl_learner::algo::elu;
 use lcrl_learner::algo::nets::ActorNet;
 use lcrl_learner::policy::architecture::Architecture;
 use lcrl_learner::policy::snapshot::decode_weights;
@@ -80,8 +81,9 @@ impl Pipeline {
 
     /// The traced module: `forward(states [B, m]) -> actions [B, n]`.
     pub fn trace(&self, example: &Tensor) -> anyhow::Result<tch::CModule> {
+        // `traceable`: every activation as a libtorch op the trace records.
         let mut module = tch::no_grad(|| {
-            tch::CModule::create_by_tracing("LcrlPolicy", "forward", std::slice::from_ref(example), &mut |inputs| vec![self.forward(&inputs[0])])
+            elu::traceable(|| tch::CModule::create_by_tracing("LcrlPolicy", "forward", std::slice::from_ref(example), &mut |inputs| vec![self.forward(&inputs[0])]))
         })
         .context("tracing the policy into TorchScript")?;
         module.set_eval();

@@ -17,6 +17,7 @@ pub mod adam;
 pub mod agent;
 pub mod algorithms;
 pub mod ddpg;
+pub mod elu;
 pub mod exploration;
 pub mod flat;
 pub mod lqr;

@@ -27,12 +27,13 @@ use crate::config::Activation;
 
 /// The activation, in place: the layer's output is a fresh tensor that
 /// nothing else holds, and autograd keeps what the in-place op needs
-/// (ReLU, tanh and ELU differentiate through their output).
+/// (ReLU and tanh differentiate through their output; ELU is
+/// `super::elu`'s, an exponential instead of libtorch's costlier `expm1`).
 fn activate(mut x: Tensor, act: Activation) -> Tensor {
     match act {
         Activation::Relu => x.relu_(),
         Activation::Tanh => x.tanh_(),
-        Activation::Elu => x.elu_(),
+        Activation::Elu => super::elu::elu(x),
     }
 }
 
@@ -143,23 +144,29 @@ impl SubnetActor {
     }
 
     /// The raw outputs [B, n] (before tanh).
+    ///
+    /// Computed feature-major, [n, units, B]: the first layer is one
+    /// product for all subnetworks, (G-masked weights as [n·h, m]) × xᵀ,
+    /// whose [n·h, B] output is already [n, h, B] without a copy, and each
+    /// later layer is one grouped product of the transposed weights with
+    /// it. No activation is ever transposed, and each bias gradient sums
+    /// along contiguous memory (docs/scaling.md, "The sparse actor's cost").
     pub fn forward_raw(&self, x: &Tensor) -> Tensor {
-        let last = self.layers.len() - 1;
         let n = self.inputs.len() as i64;
-        // [n, B, m] (the batch seen by every subnetwork, not copied) ×
-        // [n, m, h] → [n, B, h], the bias added inside the product.
-        // (-1 keeps the batch size: a traced export serves any batch.)
         let x = if x.dim() == 1 { x.unsqueeze(0) } else { x.shallow_clone() };
-        let mut h = x.unsqueeze(0).expand([n, -1, -1], false);
-        for (k, (w, b)) in self.layers.iter().enumerate() {
-            let w = if k == 0 { w * &self.mask } else { w.shallow_clone() };
-            h = b.baddbmm(&h, &w, 1.0, 1.0);
-            if k < last {
-                h = activate(h, self.act);
-            }
+        // Layer 0: w [n, m, h] masked, as [n·h, m]; b [n, 1, h] as [n·h, 1].
+        // (-1 keeps the batch size: a traced export serves any batch.)
+        let (w, b) = &self.layers[0];
+        let units = w.size()[2];
+        let masked = (w * &self.mask).transpose(1, 2).reshape([n * units, -1]);
+        let mut h = b.reshape([n * units, 1]).addmm(&masked, &x.transpose(0, 1)).view([n, units, -1]);
+        // Later layers: w [n, in, out] as [n, out, in], b [n, 1, out] as [n, out, 1].
+        for (w, b) in &self.layers[1..] {
+            h = activate(h, self.act);
+            h = b.transpose(1, 2).baddbmm(&w.transpose(1, 2), &h, 1.0, 1.0);
         }
-        // [n, B, 1] → [B, n]
-        h.squeeze_dim(-1).transpose(0, 1)
+        // [n, 1, B] → [B, n]
+        h.squeeze_dim(1).transpose(0, 1)
     }
 
     /// Parameters that can be non-zero: masked first-layer weights excluded.
@@ -372,16 +379,20 @@ mod tests {
 
     #[test]
     fn batched_actor_equals_separate_subnetworks() {
-        tch::manual_seed(1);
-        let vs = nn::VarStore::new(Device::Cpu);
-        let g = graph();
-        let net = SubnetActor::new(&vs.root(), &g, &[16, 8], Activation::Tanh, &mut rng());
-        let x = Tensor::randn([32, 5], (Kind::Float, Device::Cpu));
-        let batched = net.forward_raw(&x);
-        let reference = separate(&net, &g, &x);
-        assert_eq!(batched.size(), vec![32, 4]);
-        let diff = f64::try_from((batched - reference).abs().max()).unwrap();
-        assert!(diff < 1e-6, "max difference {diff}");
+        // Every activation: ELU is computed by `super::elu`, not libtorch,
+        // and the reference below uses libtorch's.
+        for act in [Activation::Relu, Activation::Tanh, Activation::Elu] {
+            tch::manual_seed(1);
+            let vs = nn::VarStore::new(Device::Cpu);
+            let g = graph();
+            let net = SubnetActor::new(&vs.root(), &g, &[16, 8], act, &mut rng());
+            let x = Tensor::randn([32, 5], (Kind::Float, Device::Cpu));
+            let batched = net.forward_raw(&x);
+            let reference = separate(&net, &g, &x);
+            assert_eq!(batched.size(), vec![32, 4]);
+            let diff = f64::try_from((batched - reference).abs().max()).unwrap();
+            assert!(diff < 1e-6, "{act:?}: max difference {diff}");
+        }
     }
 
     #[test]

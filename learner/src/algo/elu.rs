@@ -1,0 +1,169 @@
+//! ELU (α = 1) on the CPU at the cost of an exponential, not of `expm1`.
+//!
+//!     elu(x) = x            for x > 0
+//!              eˣ − 1       for x ≤ 0
+//!
+//! (the peg presets' activation, docs/peg.md).
+//!
+//! libtorch computes the x ≤ 0 branch with a vectorized `expm1`, which on
+//! this project's CPUs costs about twice its `exp` and makes ELU the most
+//! expensive pass over a layer's activations; the locally connected actor
+//! has 2.25× the global one's hidden units, so it paid that twice over
+//! (docs/scaling.md, "The sparse actor's cost"). Here eˣ comes from
+//! `lcrl_kernels` (a vectorized polynomial, within 2 ulp) and eˣ − 1 is
+//! formed by one subtraction: for x ≤ 0, eˣ ∈ (0, 1] and the subtraction
+//! is exact, so the result is within an ulp of 1 (6e-8) of libtorch's
+//! (tested below).
+//!
+//! - **No gradient wanted** (target networks, acting, serving): the layer's
+//!   output is rewritten in place.
+//! - **A gradient wanted**: autograd must see the operation. With
+//!   d = elu′(x) (1, or eˣ) and c = elu(x) − x·d, both computed here and
+//!   constant to autograd, the output is c + x·d (`addcmul`): its value is
+//!   elu(x) and its gradient with respect to x is d, what `elu_backward`
+//!   gives. One recorded product replaces `elu_`'s kernel and its backward
+//!   pass stays one product. (At x = −∞ this gives −∞ where libtorch
+//!   gives −1: only an infinite weight or input makes a pre-activation
+//!   −∞, the learner refuses non-finite transitions at ingestion, and its
+//!   finite-weights check rewinds an update that produced one,
+//!   docs/reliability.md, "Finite weights only".)
+//!
+//! Anything else (a CUDA tensor, another dtype, a strided view, or a
+//! forward pass being traced into TorchScript by `lcrl export`, see
+//! [`traceable`]) runs libtorch's `elu_`, which a trace records.
+
+use std::cell::Cell;
+
+use lcrl_kernels::{elu_in_place, elu_slope_and_offset};
+use tch::{Device, Kind, Tensor};
+
+thread_local! {
+    /// Set while a forward pass is traced: raw-memory writes would be
+    /// invisible to the trace.
+    static TRACING: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Runs `f` with every ELU as libtorch's own op, so that tracing records
+/// it (`lcrl export`). Nested calls are fine.
+pub fn traceable<T>(f: impl FnOnce() -> T) -> T {
+    /// Puts the flag back however `f` ends, a panic included.
+    struct Restore(bool);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            TRACING.with(|t| t.set(self.0));
+        }
+    }
+    let _restore = Restore(TRACING.with(|t| t.replace(true)));
+    f()
+}
+
+/// ELU of a layer's fresh output `x` (nothing else may hold it).
+pub fn elu(mut x: Tensor) -> Tensor {
+    let fast = x.device() == Device::Cpu && x.kind() == Kind::Float && x.is_contiguous() && !TRACING.with(Cell::get);
+    if !fast {
+        return x.elu_();
+    }
+    if !x.requires_grad() {
+        // SAFETY: x is a contiguous CPU f32 tensor of x.numel() elements,
+        // fresh from the layer's product, and no other reference reads it
+        // while this runs.
+        let values = unsafe { std::slice::from_raw_parts_mut(x.data_ptr().cast::<f32>(), x.numel()) };
+        elu_in_place(values);
+        return x;
+    }
+    let slope = Tensor::empty_like(&x);
+    let mut offset = Tensor::empty_like(&x);
+    {
+        let n = x.numel();
+        // SAFETY: all three are contiguous CPU f32 tensors of n elements
+        // (empty_like keeps x's layout); x is only read, and `slope` and
+        // `offset` are fresh.
+        let (input, d, c) = unsafe {
+            (
+                std::slice::from_raw_parts(x.data_ptr().cast::<f32>().cast_const(), n),
+                std::slice::from_raw_parts_mut(slope.data_ptr().cast::<f32>(), n),
+                std::slice::from_raw_parts_mut(offset.data_ptr().cast::<f32>(), n),
+            )
+        };
+        elu_slope_and_offset(input, d, c);
+    }
+    offset.addcmul_(&x, &slope)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every regime: large and small of both signs, zero, the tails where
+    /// eˣ underflows, and ±∞; 8k + 5 values so the scalar tail runs too.
+    fn inputs() -> Vec<f32> {
+        let mut v: Vec<f32> = (0..4000).map(|i| -20.0 + 40.0 * i as f32 / 3999.0).collect();
+        v.extend((0..3000).map(|i| -1e-3 + 2e-3 * i as f32 / 2999.0));
+        v.extend([0.0, -0.0, -87.0, -103.9, -150.0, -1e30, 1e30, f32::INFINITY, f32::NEG_INFINITY, 1e-30, -1e-30, 0.5, -0.5]);
+        v
+    }
+
+    /// The largest |a − b| over the finite inputs, and the input it was at
+    /// (a NaN in `a` counts as infinitely far).
+    fn max_abs_diff(a: &Tensor, b: &Tensor, x: &[f32]) -> (f64, f32) {
+        let (a, b) = (Vec::<f32>::try_from(a).expect("f32"), Vec::<f32>::try_from(b).expect("f32"));
+        a.iter().zip(&b).zip(x).filter(|(_, x)| x.is_finite()).map(|((a, b), &x)| (if a.is_nan() { f64::INFINITY } else { f64::from((a - b).abs()) }, x)).fold((0.0, 0.0), |m, d| if d.0 > m.0 { d } else { m })
+    }
+
+    #[test]
+    fn without_gradient_equals_libtorch_elu_within_an_ulp_of_one() {
+        let x = Tensor::from_slice(&inputs());
+        let reference = x.elu();
+        let ours = elu(x.copy());
+        assert_eq!(ours.size(), reference.size());
+        let (diff, at) = max_abs_diff(&ours, &reference, &inputs());
+        assert!(diff <= 1.2e-7, "ELU off libtorch's by {diff} at x = {at}");
+        // Exactly x above zero, NaN in NaN out.
+        assert!(ours.eq_tensor(&reference).logical_or(&x.le(0.0)).all().int64_value(&[]) == 1, "x > 0 must pass through unchanged");
+        let nan = elu(Tensor::from_slice(&[f32::NAN; 9]));
+        assert!(nan.isnan().all().int64_value(&[]) == 1, "NaN must stay NaN: {nan}");
+    }
+
+    #[test]
+    fn with_gradient_value_and_gradient_equal_libtorch_elu() {
+        let values = inputs();
+        let ours_x = Tensor::from_slice(&values).set_requires_grad(true);
+        let ref_x = Tensor::from_slice(&values).set_requires_grad(true);
+        // A non-uniform upstream gradient, so the slope is checked per element.
+        let weight = Tensor::from_slice(&values.iter().enumerate().map(|(i, _)| 0.5 + (i % 7) as f32).collect::<Vec<_>>());
+        // The fresh layer output `elu` expects: x · 1 is a new tensor.
+        let ours = elu(&ours_x * 1.0);
+        let reference = (&ref_x * 1.0).elu();
+        let (diff, at) = max_abs_diff(&ours.detach(), &reference.detach(), &values);
+        assert!(diff <= 1.2e-7, "ELU with gradient off libtorch's by {diff} at x = {at}");
+        (&ours * &weight).sum(Kind::Float).backward();
+        (&reference * &weight).sum(Kind::Float).backward();
+        let (g, g_ref) = (ours_x.grad(), ref_x.grad());
+        // Every gradient, the infinite inputs' included (slope 0 at −∞, 1 at ∞).
+        let (diff, at) = max_abs_diff(&g, &g_ref, &values);
+        assert!(diff <= 1e-6, "ELU's gradient off libtorch's by {diff} at x = {at}");
+        // The infinite inputs' values: elu(∞) = ∞, and −∞ for −∞ (c + x·d
+        // is −1 + (−∞)·e⁻⁸⁷), where libtorch gives −1 (the module's note).
+        let at = |v: f32| ours.masked_select(&Tensor::from_slice(&values).eq(f64::from(v))).double_value(&[0]);
+        assert_eq!((at(f32::INFINITY), at(f32::NEG_INFINITY)), (f64::INFINITY, f64::NEG_INFINITY));
+        // NaN in, NaN out, here too.
+        let nan = elu(Tensor::from_slice(&[f32::NAN; 9]).set_requires_grad(true) * 1.0);
+        assert!(nan.isnan().all().int64_value(&[]) == 1, "NaN must stay NaN: {nan}");
+    }
+
+    #[test]
+    fn traced_or_strided_inputs_take_libtorchs_op() {
+        // Inside `traceable` the result is libtorch's elu_ bit for bit.
+        let x = Tensor::from_slice(&inputs());
+        let reference = x.elu();
+        let traced = traceable(|| elu(x.copy()));
+        assert!(traced.eq_tensor(&reference).all().int64_value(&[]) == 1);
+        // A transposed (non-contiguous) tensor too.
+        let m = Tensor::from_slice(&inputs()[..7000]).view([70, 100]).transpose(0, 1);
+        assert!(!m.is_contiguous());
+        let reference = m.elu();
+        let strided = elu(m.shallow_clone());
+        assert!(strided.eq_tensor(&reference).all().int64_value(&[]) == 1);
+        assert!(!TRACING.with(Cell::get), "traceable restores the flag");
+    }
+}
