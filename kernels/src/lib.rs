@@ -5,8 +5,10 @@
 //! Today one kernel: ELU (α = 1) and its slope, for the learner's CPU
 //! activations (learner/src/algo/elu.rs says why and how they are used).
 //!
-//!     elu(x) = x        for x > 0,   eˣ − 1   for x ≤ 0
-//!     elu′(x) = 1       for x > 0,   eˣ       for x ≤ 0
+//! ```text
+//! elu(x)  = x   for x > 0,   eˣ − 1   for x ≤ 0
+//! elu′(x) = 1   for x > 0,   eˣ       for x ≤ 0
+//! ```
 //!
 //! eˣ for x ≤ 0 is Cephes' `expf`: x = n·ln 2 + r with |r| ≤ ln 2 / 2, eʳ
 //! by a degree-7 minimax polynomial, 2ⁿ put in the exponent bits; within
@@ -23,8 +25,11 @@ const LOWEST: f32 = -87.0;
 fn exp_nonpositive(x: f32) -> f32 {
     const LOG2_E: f32 = std::f32::consts::LOG2_E;
     // ln 2 in two parts: n·LN2_HI is exact for the n that occur here.
-    const LN2_HI: f32 = 0.693_359_375;
+    const LN2_HI: f32 = 355.0 / 512.0;
     const LN2_LO: f32 = -2.121_944_4e-4;
+    // max/min, not clamp: they keep no NaN, and the callers select x
+    // itself for a NaN anyway.
+    #[allow(clippy::manual_clamp)]
     let x = x.max(LOWEST).min(0.0);
     let n = (x * LOG2_E).round_ties_even();
     let r = n.mul_add(-LN2_LO, n.mul_add(-LN2_HI, x));
@@ -33,7 +38,7 @@ fn exp_nonpositive(x: f32) -> f32 {
     p = p.mul_add(r, 8.333_452e-3);
     p = p.mul_add(r, 4.166_579_6e-2);
     p = p.mul_add(r, 1.666_666_5e-1);
-    p = p.mul_add(r, 5.000_000_1e-1);
+    p = p.mul_add(r, 0.5);
     let er = p.mul_add(r * r, r) + 1.0;
     // 2ⁿ for n in [−126, 0]: n + 127 is the biased exponent. Adding 2²³
     // puts that integer in the mantissa's low bits, and the shift moves it
@@ -80,7 +85,7 @@ mod tests {
     fn nonpositive() -> Vec<f32> {
         let mut v: Vec<f32> = (0..=90_000).map(|i| -90.0 + i as f32 * 1e-3).filter(|x| *x <= 0.0).collect();
         v.extend((1..2000).map(|i| -(i as f32) * 1e-7));
-        v.extend([0.0, -0.0, -1e-30, f32::MIN_POSITIVE * -1.0]);
+        v.extend([0.0, -0.0, -1e-30, -f32::MIN_POSITIVE]);
         v
     }
 

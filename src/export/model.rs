@@ -1,9 +1,11 @@
 //! The exported computation: raw state → applied action, as tensor
 //! operations only, so that libtorch can trace it into TorchScript.
 //!
-//!     ŝ = f32(f64(s) / scale)                       (agent::observe)
-//!     u = clip(f64(actor(ŝ)), −1, 1)                (the actor's tanh output)
-//!     a = f32(min(max(u · reach + centre, lb), ub))  (ActionMap::to_env)
+//! ```text
+//! ŝ = f32(f64(s) / scale)                       (agent::observe)
+//! u = clip(f64(actor(ŝ)), −1, 1)                (the actor's tanh output)
+//! a = f32(min(max(u · reach + centre, lb), ub))  (ActionMap::to_env)
+//! ```
 //!
 //! Each step is the served path's own arithmetic in its own precision:
 //! the state is normalized in f64 and rounded to f32 as `observe` does,

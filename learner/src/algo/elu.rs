@@ -1,7 +1,9 @@
 //! ELU (α = 1) on the CPU at the cost of an exponential, not of `expm1`.
 //!
-//!     elu(x) = x            for x > 0
-//!              eˣ − 1       for x ≤ 0
+//! ```text
+//! elu(x) = x        for x > 0
+//!          eˣ − 1   for x ≤ 0
+//! ```
 //!
 //! (the peg presets' activation, docs/peg.md).
 //!

@@ -6,7 +6,9 @@
 //! Counting in transitions, with `inserts` stored and `samples` drawn by
 //! updates, the limiter keeps
 //!
-//!     diff = inserts · SPI − samples
+//! ```text
+//! diff = inserts · SPI − samples
+//! ```
 //!
 //! inside [min_diff, max_diff], where min_diff = SPI · min_size − error and
 //! max_diff = SPI · min_size + error:

@@ -1,7 +1,9 @@
 //! Between the agent's normalized action u ∈ [−1, 1]ⁿ and the environment's
 //! action a ∈ [lb, ub] (docs/method.md eq. 15 on peg tasks), in one place.
 //!
-//!     a = clip(b + s · u ⊙ (ub − lb)/2, lb, ub)
+//! ```text
+//! a = clip(b + s · u ⊙ (ub − lb)/2, lb, ub)
+//! ```
 //!
 //! b is the base controller the agent acts around (residual RL). Without a
 //! base, b is the box centre, s = 1 and the map is the plain linear one
