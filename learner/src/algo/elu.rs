@@ -65,6 +65,10 @@ pub fn elu(mut x: Tensor) -> Tensor {
     if !fast {
         return x.elu_();
     }
+    if x.numel() == 0 {
+        // An empty tensor's data pointer may be null, which no slice may hold.
+        return x;
+    }
     if !x.requires_grad() {
         // SAFETY: x is a contiguous CPU f32 tensor of x.numel() elements,
         // fresh from the layer's product, and no other reference reads it
@@ -154,7 +158,7 @@ mod tests {
     }
 
     #[test]
-    fn traced_or_strided_inputs_take_libtorchs_op() {
+    fn traced_strided_and_empty_inputs() {
         // Inside `traceable` the result is libtorch's elu_ bit for bit.
         let x = Tensor::from_slice(&inputs());
         let reference = x.elu();
@@ -166,6 +170,10 @@ mod tests {
         let reference = m.elu();
         let strided = elu(m.shallow_clone());
         assert!(strided.eq_tensor(&reference).all().int64_value(&[]) == 1);
+        // An empty batch, with and without gradient.
+        assert_eq!(elu(Tensor::zeros([0, 4], (Kind::Float, Device::Cpu))).size(), [0, 4]);
+        let empty = Tensor::zeros([0, 4], (Kind::Float, Device::Cpu)).set_requires_grad(true);
+        assert_eq!(elu(&empty * 1.0).size(), [0, 4]);
         assert!(!TRACING.with(Cell::get), "traceable restores the flag");
     }
 }
