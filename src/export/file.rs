@@ -12,7 +12,10 @@ use super::model::Pipeline;
 
 /// The largest difference between a written file's actions and the served
 /// policy's that the command accepts (action units). The arithmetic is the
-/// same, so real differences are rounding of a different batch size.
+/// same but for ELU, which a served CPU policy computes with lcrl's kernel
+/// and the file with libtorch's op (values within 1.2e-7,
+/// learner/src/algo/elu.rs), so real differences are that and rounding of
+/// a different batch size.
 pub const TOLERANCE: f64 = 1e-5;
 
 /// A policy ready to be written: the pipeline to trace, policy.json

@@ -11,7 +11,10 @@
 //! the state is normalized in f64 and rounded to f32 as `observe` does,
 //! the actor is the learner's own network (`build_actor`, its forward
 //! pass) in f32, and the action map computes in f64 as
-//! `ActionMap::to_env` does, rounded to f32 as `Policy.Act` answers.
+//! `ActionMap::to_env` does, rounded to f32 as `Policy.Act` answers. One
+//! exception: a trace records only libtorch's ops, so ELU is libtorch's
+//! here where a served CPU policy may use lcrl's kernel (values within
+//! 1.2e-7, learner/src/algo/elu.rs; `file::TOLERANCE` allows for it).
 
 use anyhow::{bail, Context};
 use lcrl_learner::algo::agent::build_actor;

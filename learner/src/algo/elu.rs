@@ -12,10 +12,9 @@
 //! expensive pass over a layer's activations; the locally connected actor
 //! has 2.25× the global one's hidden units, so it paid that twice over
 //! (docs/scaling.md, "The sparse actor's cost"). Here eˣ comes from
-//! `lcrl_kernels` (a vectorized polynomial, within 2 ulp) and eˣ − 1 is
-//! formed by one subtraction: for x ≤ 0, eˣ ∈ (0, 1] and the subtraction
-//! is exact, so the result is within an ulp of 1 (6e-8) of libtorch's
-//! (tested below).
+//! `lcrl_kernels` (a vectorized polynomial) and eˣ − 1 is one
+//! subtraction: values within 1.2e-7 of libtorch's, gradients within
+//! 1e-6 (tested below).
 //!
 //! - **No gradient wanted** (target networks, acting, serving): the layer's
 //!   output is rewritten in place.
@@ -24,15 +23,16 @@
 //!   constant to autograd, the output is c + x·d (`addcmul`): its value is
 //!   elu(x) and its gradient with respect to x is d, what `elu_backward`
 //!   gives. One recorded product replaces `elu_`'s kernel and its backward
-//!   pass stays one product. (At x = −∞ this gives −∞ where libtorch
-//!   gives −1: only an infinite weight or input makes a pre-activation
-//!   −∞, the learner refuses non-finite transitions at ingestion, and its
-//!   finite-weights check rewinds an update that produced one,
-//!   docs/reliability.md, "Finite weights only".)
+//!   pass stays one product. (Below −87 the slope is 0 and the value −1,
+//!   as libtorch's; at x = −∞ the value is NaN (−∞ · 0) where libtorch
+//!   gives −1, and the learner's finite-weights check rewinds an update
+//!   that produced one, docs/reliability.md, "Finite weights only".)
 //!
-//! Anything else (a CUDA tensor, another dtype, a strided view, or a
-//! forward pass being traced into TorchScript by `lcrl export`, see
-//! [`traceable`]) runs libtorch's `elu_`, which a trace records.
+//! Anything else runs libtorch's `elu_`: a CUDA tensor, another dtype, a
+//! strided view, a forward pass being traced into TorchScript by `lcrl
+//! export` (see [`traceable`]; a trace records only libtorch's ops), and
+//! libtorch thread counts at which its parallel kernel is the faster
+//! (more than 2 without gradient, more than 1 with).
 
 use std::cell::Cell;
 
@@ -59,12 +59,27 @@ pub fn traceable<T>(f: impl FnOnce() -> T) -> T {
     f()
 }
 
-/// ELU of a layer's fresh output `x` (nothing else may hold it).
-pub fn elu(mut x: Tensor) -> Tensor {
-    let fast = x.device() == Device::Cpu && x.kind() == Kind::Float && x.is_contiguous() && !TRACING.with(Cell::get);
-    if !fast {
-        return x.elu_();
-    }
+/// ELU of a layer's fresh output `x`: nothing else may hold it, since
+/// without a gradient it is rewritten in place behind libtorch's back (no
+/// version counter sees it). Hence crate-private, called only by
+/// `nets::activate` on the output of a layer's product.
+pub(crate) fn elu(mut x: Tensor) -> Tensor {
+    if takes_kernels(&x, tch::get_num_threads()) { kernel_elu(x) } else { x.elu_() }
+}
+
+/// Whether `x` is computed by `lcrl_kernels` rather than libtorch's `elu_`.
+/// The kernels run on the calling thread, while libtorch splits a layer's
+/// activations over its threads. Measured (one layer of 64–256 rows ×
+/// 256–576 units; docs/research/2026-12-06-sparse-actor-cost.md): without
+/// gradient the kernels are faster at 1 and 2 threads, with gradient
+/// only at 1.
+fn takes_kernels(x: &Tensor, threads: i32) -> bool {
+    let plain = x.device() == Device::Cpu && x.kind() == Kind::Float && x.is_contiguous() && !TRACING.with(Cell::get);
+    plain && if x.requires_grad() { threads == 1 } else { threads <= 2 }
+}
+
+/// [`elu`] by the kernels: `x` is a contiguous CPU f32 tensor.
+fn kernel_elu(x: Tensor) -> Tensor {
     if x.numel() == 0 {
         // An empty tensor's data pointer may be null, which no slice may hold.
         return x;
@@ -113,20 +128,27 @@ mod tests {
     /// (a NaN in `a` counts as infinitely far).
     fn max_abs_diff(a: &Tensor, b: &Tensor, x: &[f32]) -> (f64, f32) {
         let (a, b) = (Vec::<f32>::try_from(a).expect("f32"), Vec::<f32>::try_from(b).expect("f32"));
-        a.iter().zip(&b).zip(x).filter(|(_, x)| x.is_finite()).map(|((a, b), &x)| (if a.is_nan() { f64::INFINITY } else { f64::from((a - b).abs()) }, x)).fold((0.0, 0.0), |m, d| if d.0 > m.0 { d } else { m })
+        let mut worst = (0.0, 0.0);
+        for ((a, b), &x) in a.iter().zip(&b).zip(x).filter(|(_, x)| x.is_finite()) {
+            let diff = if a.is_nan() { f64::INFINITY } else { f64::from((a - b).abs()) };
+            if diff > worst.0 {
+                worst = (diff, x);
+            }
+        }
+        worst
     }
 
     #[test]
     fn without_gradient_equals_libtorch_elu_within_an_ulp_of_one() {
         let x = Tensor::from_slice(&inputs());
         let reference = x.elu();
-        let ours = elu(x.copy());
+        let ours = kernel_elu(x.copy());
         assert_eq!(ours.size(), reference.size());
         let (diff, at) = max_abs_diff(&ours, &reference, &inputs());
         assert!(diff <= 1.2e-7, "ELU off libtorch's by {diff} at x = {at}");
         // Exactly x above zero, NaN in NaN out.
         assert!(ours.eq_tensor(&reference).logical_or(&x.le(0.0)).all().int64_value(&[]) == 1, "x > 0 must pass through unchanged");
-        let nan = elu(Tensor::from_slice(&[f32::NAN; 9]));
+        let nan = kernel_elu(Tensor::from_slice(&[f32::NAN; 9]));
         assert!(nan.isnan().all().int64_value(&[]) == 1, "NaN must stay NaN: {nan}");
     }
 
@@ -138,42 +160,49 @@ mod tests {
         // A non-uniform upstream gradient, so the slope is checked per element.
         let weight = Tensor::from_slice(&values.iter().enumerate().map(|(i, _)| 0.5 + (i % 7) as f32).collect::<Vec<_>>());
         // The fresh layer output `elu` expects: x · 1 is a new tensor.
-        let ours = elu(&ours_x * 1.0);
+        let ours = kernel_elu(&ours_x * 1.0);
         let reference = (&ref_x * 1.0).elu();
         let (diff, at) = max_abs_diff(&ours.detach(), &reference.detach(), &values);
         assert!(diff <= 1.2e-7, "ELU with gradient off libtorch's by {diff} at x = {at}");
         (&ours * &weight).sum(Kind::Float).backward();
         (&reference * &weight).sum(Kind::Float).backward();
         let (g, g_ref) = (ours_x.grad(), ref_x.grad());
-        // Every gradient, the infinite inputs' included (slope 0 at −∞, 1 at ∞).
+        // Every gradient, the infinite inputs' included (slope 0 below −87, 1 at ∞).
         let (diff, at) = max_abs_diff(&g, &g_ref, &values);
         assert!(diff <= 1e-6, "ELU's gradient off libtorch's by {diff} at x = {at}");
-        // The infinite inputs' values: elu(∞) = ∞, and −∞ for −∞ (c + x·d
-        // is −1 + (−∞)·e⁻⁸⁷), where libtorch gives −1 (the module's note).
+        // The infinite inputs' values: elu(∞) = ∞, and NaN for −∞ (c + x·d
+        // is −1 + (−∞)·0), where libtorch gives −1 (the module's note).
         let at = |v: f32| ours.masked_select(&Tensor::from_slice(&values).eq(f64::from(v))).double_value(&[0]);
-        assert_eq!((at(f32::INFINITY), at(f32::NEG_INFINITY)), (f64::INFINITY, f64::NEG_INFINITY));
+        assert_eq!(at(f32::INFINITY), f64::INFINITY);
+        assert!(at(f32::NEG_INFINITY).is_nan());
         // NaN in, NaN out, here too.
-        let nan = elu(Tensor::from_slice(&[f32::NAN; 9]).set_requires_grad(true) * 1.0);
+        let nan = kernel_elu(Tensor::from_slice(&[f32::NAN; 9]).set_requires_grad(true) * 1.0);
         assert!(nan.isnan().all().int64_value(&[]) == 1, "NaN must stay NaN: {nan}");
     }
 
     #[test]
-    fn traced_strided_and_empty_inputs() {
-        // Inside `traceable` the result is libtorch's elu_ bit for bit.
+    fn which_inputs_take_the_kernels() {
         let x = Tensor::from_slice(&inputs());
+        let with_grad = Tensor::from_slice(&inputs()).set_requires_grad(true) * 1.0;
+        // By libtorch thread count: without gradient at 1 and 2, with it at 1.
+        assert!(takes_kernels(&x, 1) && takes_kernels(&x, 2) && !takes_kernels(&x, 4));
+        assert!(takes_kernels(&with_grad, 1) && !takes_kernels(&with_grad, 2));
+        // Never while tracing, nor for a strided view or another dtype.
+        assert!(!traceable(|| takes_kernels(&x, 1)));
+        assert!(!TRACING.with(Cell::get), "traceable restores the flag");
+        let strided = Tensor::from_slice(&inputs()[..7000]).view([70, 100]).transpose(0, 1);
+        assert!(!strided.is_contiguous() && !takes_kernels(&strided, 1));
+        assert!(!takes_kernels(&x.to_kind(Kind::Double), 1));
+        // And what libtorch then computes is its elu_ bit for bit.
         let reference = x.elu();
         let traced = traceable(|| elu(x.copy()));
         assert!(traced.eq_tensor(&reference).all().int64_value(&[]) == 1);
-        // A transposed (non-contiguous) tensor too.
-        let m = Tensor::from_slice(&inputs()[..7000]).view([70, 100]).transpose(0, 1);
-        assert!(!m.is_contiguous());
-        let reference = m.elu();
-        let strided = elu(m.shallow_clone());
-        assert!(strided.eq_tensor(&reference).all().int64_value(&[]) == 1);
-        // An empty batch, with and without gradient.
-        assert_eq!(elu(Tensor::zeros([0, 4], (Kind::Float, Device::Cpu))).size(), [0, 4]);
+    }
+
+    #[test]
+    fn an_empty_batch_passes_with_and_without_gradient() {
+        assert_eq!(kernel_elu(Tensor::zeros([0, 4], (Kind::Float, Device::Cpu))).size(), [0, 4]);
         let empty = Tensor::zeros([0, 4], (Kind::Float, Device::Cpu)).set_requires_grad(true);
-        assert_eq!(elu(&empty * 1.0).size(), [0, 4]);
-        assert!(!TRACING.with(Cell::get), "traceable restores the flag");
+        assert_eq!(kernel_elu(&empty * 1.0).size(), [0, 4]);
     }
 }

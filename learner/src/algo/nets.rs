@@ -12,7 +12,8 @@
 //! equals n separate subnetworks on the gathered inputs (tested below).
 //!
 //! Every layer, of every network here, adds its bias inside the matrix
-//! product (`addmm`, `baddbmm`) and applies its activation in place: the
+//! product (`addmm`, `baddbmm`) and applies its activation in place
+//! (ELU with a gradient excepted, `super::elu`): the
 //! locally connected actor has more hidden units than the global one
 //! (n · 96 against 256 per layer at the defaults), so the passes over its
 //! activations, not its products, decide its cost (docs/scaling.md,
@@ -25,10 +26,10 @@ use tch::{Device, Tensor};
 
 use crate::config::Activation;
 
-/// The activation, in place: the layer's output is a fresh tensor that
-/// nothing else holds, and autograd keeps what the in-place op needs
-/// (ReLU and tanh differentiate through their output; ELU is
-/// `super::elu`'s, an exponential instead of libtorch's costlier `expm1`).
+/// The activation of a layer's fresh output, which nothing else holds:
+/// ReLU and tanh in place (autograd differentiates them through their
+/// output); ELU by `super::elu`, an exponential instead of libtorch's
+/// costlier `expm1` (in place without a gradient).
 fn activate(mut x: Tensor, act: Activation) -> Tensor {
     match act {
         Activation::Relu => x.relu_(),
@@ -379,8 +380,9 @@ mod tests {
 
     #[test]
     fn batched_actor_equals_separate_subnetworks() {
-        // Every activation: ELU is computed by `super::elu`, not libtorch,
-        // and the reference below uses libtorch's.
+        // Every activation: ELU is computed by `super::elu` (its kernel at
+        // one thread), not libtorch, and the reference below uses libtorch's.
+        tch::set_num_threads(1);
         for act in [Activation::Relu, Activation::Tanh, Activation::Elu] {
             tch::manual_seed(1);
             let vs = nn::VarStore::new(Device::Cpu);
@@ -397,20 +399,24 @@ mod tests {
 
     #[test]
     fn masked_states_get_exactly_zero_gradient() {
-        tch::manual_seed(2);
-        let vs = nn::VarStore::new(Device::Cpu);
-        let g = graph();
-        let net = SubnetActor::new(&vs.root(), &g, &[16, 8], Activation::Relu, &mut rng());
-        let x = Tensor::randn([7, 5], (Kind::Float, Device::Cpu)).set_requires_grad(true);
-        let out = ActorNet::Subnets(net).forward(&x);
-        for (i, row) in g.iter().enumerate() {
-            let grads = Tensor::run_backward(&[out.select(1, i as i64).sum(Kind::Float)], &[&x], true, false);
-            let grad: Vec<f32> = Vec::try_from(grads[0].abs().sum_dim_intlist(0, false, Kind::Float)).unwrap();
-            for (j, &connected) in row.iter().enumerate() {
-                if connected == 0 {
-                    assert_eq!(grad[j], 0.0, "action {i} must not see state {j}");
-                } else {
-                    assert!(grad[j] > 0.0, "action {i} must see state {j}");
+        // ReLU and ELU (lcrl's own kernel on the CPU at one thread).
+        tch::set_num_threads(1);
+        for act in [Activation::Relu, Activation::Elu] {
+            tch::manual_seed(2);
+            let vs = nn::VarStore::new(Device::Cpu);
+            let g = graph();
+            let net = SubnetActor::new(&vs.root(), &g, &[16, 8], act, &mut rng());
+            let x = Tensor::randn([7, 5], (Kind::Float, Device::Cpu)).set_requires_grad(true);
+            let out = ActorNet::Subnets(net).forward(&x);
+            for (i, row) in g.iter().enumerate() {
+                let grads = Tensor::run_backward(&[out.select(1, i as i64).sum(Kind::Float)], &[&x], true, false);
+                let grad: Vec<f32> = Vec::try_from(grads[0].abs().sum_dim_intlist(0, false, Kind::Float)).unwrap();
+                for (j, &connected) in row.iter().enumerate() {
+                    if connected == 0 {
+                        assert_eq!(grad[j], 0.0, "{act:?}: action {i} must not see state {j}");
+                    } else {
+                        assert!(grad[j] > 0.0, "{act:?}: action {i} must see state {j}");
+                    }
                 }
             }
         }

@@ -402,7 +402,7 @@ impl Ddpg {
                 // The trust region toward the target actor (`proximal_l2`).
                 // (tanh is applied again rather than shared with Q's input:
                 // the gradient then sums in the order the documented runs
-                // were measured with, so they replay bit for bit.)
+                // were measured with.)
                 let anchor = tch::no_grad(|| self.actor_target.forward(&b.obs));
                 actor_loss = actor_loss + self.cfg.proximal_l2 * (raw.tanh() - anchor).square().mean(Kind::Float);
             }
