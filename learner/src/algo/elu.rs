@@ -78,6 +78,19 @@ fn takes_kernels(x: &Tensor, threads: i32) -> bool {
     plain && if x.requires_grad() { threads == 1 } else { threads <= 2 }
 }
 
+/// The elements of a contiguous CPU f32 tensor with at least one element.
+///
+/// # Safety
+/// No other slice of `t`'s elements may be alive while this one is, and
+/// nothing may read `t` through libtorch meanwhile if the slice is written.
+#[allow(clippy::mut_from_ref)]
+unsafe fn elements(t: &Tensor) -> &mut [f32] {
+    debug_assert!(t.device() == Device::Cpu && t.kind() == Kind::Float && t.is_contiguous() && t.numel() > 0);
+    // SAFETY: the pointer is t's first element and t holds numel() f32s
+    // contiguously (the caller's promise above).
+    unsafe { std::slice::from_raw_parts_mut(t.data_ptr().cast::<f32>(), t.numel()) }
+}
+
 /// [`elu`] by the kernels: `x` is a contiguous CPU f32 tensor.
 fn kernel_elu(x: Tensor) -> Tensor {
     if x.numel() == 0 {
@@ -85,29 +98,15 @@ fn kernel_elu(x: Tensor) -> Tensor {
         return x;
     }
     if !x.requires_grad() {
-        // SAFETY: x is a contiguous CPU f32 tensor of x.numel() elements,
-        // fresh from the layer's product, and no other reference reads it
-        // while this runs.
-        let values = unsafe { std::slice::from_raw_parts_mut(x.data_ptr().cast::<f32>(), x.numel()) };
-        elu_in_place(values);
+        // SAFETY: x is fresh from the layer's product; nothing else reads it.
+        elu_in_place(unsafe { elements(&x) });
         return x;
     }
+    // empty_like keeps x's contiguous layout.
     let slope = Tensor::empty_like(&x);
     let mut offset = Tensor::empty_like(&x);
-    {
-        let n = x.numel();
-        // SAFETY: all three are contiguous CPU f32 tensors of n elements
-        // (empty_like keeps x's layout); x is only read, and `slope` and
-        // `offset` are fresh.
-        let (input, d, c) = unsafe {
-            (
-                std::slice::from_raw_parts(x.data_ptr().cast::<f32>().cast_const(), n),
-                std::slice::from_raw_parts_mut(slope.data_ptr().cast::<f32>(), n),
-                std::slice::from_raw_parts_mut(offset.data_ptr().cast::<f32>(), n),
-            )
-        };
-        elu_slope_and_offset(input, d, c);
-    }
+    // SAFETY: three distinct tensors, x only read; slope and offset fresh.
+    unsafe { elu_slope_and_offset(elements(&x), elements(&slope), elements(&offset)) };
     offset.addcmul_(&x, &slope)
 }
 
@@ -116,7 +115,8 @@ mod tests {
     use super::*;
 
     /// Every regime: large and small of both signs, zero, the tails where
-    /// eˣ underflows, and ±∞; 8k + 5 values so the scalar tail runs too.
+    /// eˣ underflows, and ±∞; 8k + 5 values so a vectorized loop's
+    /// remainder runs too.
     fn inputs() -> Vec<f32> {
         let mut v: Vec<f32> = (0..4000).map(|i| -20.0 + 40.0 * i as f32 / 3999.0).collect();
         v.extend((0..3000).map(|i| -1e-3 + 2e-3 * i as f32 / 2999.0));
