@@ -143,8 +143,8 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
     }
 }
 
-/// One DDPG update (batch 256) and one PPO update (a 2048-step rollout: 10
-/// epochs of 64-transition minibatches) on the peg presets' settings
+/// One DDPG update (batch 256) and one PPO rollout's learner work (storing
+/// 2048 steps, then the update: 10 epochs of 64-transition minibatches) on the peg presets' settings
 /// (configs/peg.toml with peg-group1.toml, what `configs/peg-group1-*.toml`
 /// train) or on Table I's, for the global actor, the local one on the
 /// presets' graph (T_rule) and on the publication's (T = 0.1), and full
@@ -193,7 +193,7 @@ fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize,
         edges(&paper_mask),
         lcrl_graph_builder::PAPER_THRESHOLD
     );
-    println!("{:>7} {:<16} {:>13} {:>16} {:>12} {:>20}", "threads", "actor", "actor params", "DDPG update ms", "updates/s", "PPO update (10 ep) s");
+    println!("{:>7} {:<16} {:>13} {:>16} {:>12} {:>20}", "threads", "actor", "actor params", "DDPG update ms", "updates/s", "PPO rollout s");
     let settings_of_actor: [(String, Connection, &[Vec<u8>]); 4] = [
         ("Global".to_string(), Connection::Global, &rule_mask),
         (rule_label.clone(), Connection::Local, &rule_mask),
@@ -234,7 +234,7 @@ fn print_rows(t: usize, timed: &[Timed], locals: &[&str], cuda: bool) {
     for name in locals {
         let local = find(name);
         println!(
-            "{t:>7} {name} / global: DDPG update {:.2}×, PPO update {:.2}× (medians of the rounds' ratios; the goal: at most 1.00×)",
+            "{t:>7} {name} / global: DDPG update {:.2}×, PPO rollout {:.2}× (medians of the rounds' ratios; the goal: at most 1.00×)",
             ratio(&local.ddpg, &global.ddpg),
             ratio(&local.ppo, &global.ppo)
         );
@@ -292,7 +292,7 @@ fn median(values: &[f64]) -> f64 {
     if sorted.len() % 2 == 1 { sorted[k] } else { (sorted[k - 1] + sorted[k]) / 2.0 }
 }
 
-/// Seconds per DDPG update and per PPO update, and the actor's parameters,
+/// Seconds per DDPG update and per PPO rollout (stored and trained on), and the actor's parameters,
 /// for the graph `mask` (n × m: a row per action, a column per state).
 /// Updates are timed as a whole after a synchronizing read, so a GPU's
 /// asynchronous launches are counted when they finish, not when queued.
@@ -327,15 +327,17 @@ fn time_updates(cfg: &lcrl_learner::TrainConfig, connection: lcrl_learner::Conne
     sync();
     let ddpg_seconds = started.elapsed().as_secs_f64() / updates as f64;
 
+    // The learner's whole work on one rollout: storing its steps (each
+    // with the log-probability an actor sends) and the update. The steps
+    // are drawn first, so acting is not timed.
     let mut ppo = make_agent(Algo::Ppo, connection, cfg, mask, m, n)?;
-    let mut ppo_seconds = 0.0;
-    for _ in 0..cfg.ppo.rollout_steps {
-        let obs = random(m);
-        let action = ppo.explore(&obs, 0);
-        let next = random(m);
-        ppo_seconds += ppo.observe(Transition { obs: &obs, action: &action, reward: -1.0, next_obs: &next, terminated: false, truncated: false, log_prob: None, ..Default::default() });
+    let steps: Vec<(Vec<f32>, Vec<f32>, Vec<f32>)> = (0..cfg.ppo.rollout_steps).map(|_| (random(m), random(n), random(m))).collect();
+    let started = Instant::now();
+    for (obs, action, next) in &steps {
+        ppo.observe(Transition { obs, action, reward: -1.0, next_obs: next, terminated: false, truncated: false, log_prob: Some(-1.0), ..Default::default() });
     }
     sync();
+    let ppo_seconds = started.elapsed().as_secs_f64();
     Ok((ddpg_seconds, ppo_seconds, ddpg.param_counts().0))
 }
 

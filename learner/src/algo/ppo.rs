@@ -41,8 +41,11 @@ struct Rollout {
     obs: Vec<f32>,
     actions: Vec<f32>,
     log_probs: Vec<f32>,
+    /// V(s_t) of the rows evaluated so far (all but the newest: see
+    /// `unvalued_next_obs`).
     values: Vec<f32>,
     rewards: Vec<f32>,
+    /// V(s_{t+1}), 0 where the step terminated, of the same rows.
     next_values: Vec<f32>,
     terminated: Vec<bool>,
     /// No step of the same stream follows in this rollout's order: an
@@ -54,6 +57,18 @@ struct Rollout {
     /// Cuts waiting for their stream's next step.
     #[serde(default)]
     open_cuts: Vec<OpenCut>,
+    /// s_{t+1} of the rows stored since the values were last evaluated
+    /// (rows `values.len()..`). The critic does not change between updates,
+    /// so their values are computed in one batch when the rollout is used
+    /// rather than two one-row forward passes per stored step.
+    #[serde(default)]
+    unvalued_next_obs: Vec<f32>,
+    /// Rows stored without the behaviour policy's log-probability
+    /// (`lcrl train`'s own steps, or a peer that sent none), NaN in
+    /// `log_probs` until the rollout is used: then the actor's, in one
+    /// batch. That actor acted them, since it too only changes in `update`.
+    #[serde(default)]
+    unscored_rows: Vec<usize>,
 }
 
 /// A cut row and where its stream stands: the next step of the same
@@ -149,15 +164,53 @@ impl Ppo {
         (z.square() * -0.5 - &self.log_std - 0.5 * (2.0 * PI).ln()).sum_dim_intlist(-1, false, Kind::Float)
     }
 
-    fn value(&self, obs: &[f32]) -> f32 {
-        tch::no_grad(|| {
-            let value = self.critic.forward(&batch(obs, self.obs_dim, self.device));
-            f32::try_from(value.flatten(0, -1).get(0).to_device(Device::Cpu)).unwrap_or(0.0)
-        })
+    /// What the rows stored since the last call lack, each in one batch:
+    /// V(s_t) and V(s_{t+1}) in one forward pass of the critic, and the
+    /// missing log-probabilities in one of the actor. Both networks only
+    /// change in `update`, after this, so every row gets what the networks
+    /// current when it was stored gave it, as a per-step evaluation did.
+    fn evaluate_pending(&mut self) {
+        self.score_unscored_rows();
+        let m = self.obs_dim;
+        let r = &mut self.rollout;
+        let from = r.values.len();
+        let rows = r.rewards.len() - from;
+        if rows == 0 {
+            return;
+        }
+        let states = [&r.obs[from * m..], &r.unvalued_next_obs[..]].concat();
+        let values = tch::no_grad(|| self.critic.forward(&batch(&states, m, self.device)).flatten(0, -1).to_device(Device::Cpu));
+        // A CPU float tensor always converts; zeros are the old fallback.
+        let values = Vec::<f32>::try_from(values).unwrap_or_else(|_| vec![0.0; 2 * rows]);
+        r.values.extend_from_slice(&values[..rows]);
+        let terminated = &r.terminated[from..];
+        r.next_values.extend(values[rows..].iter().zip(terminated).map(|(&v, &end)| if end { 0.0 } else { v }));
+        r.unvalued_next_obs.clear();
+    }
+
+    /// log π(u|s) of the rows stored without one.
+    fn score_unscored_rows(&mut self) {
+        let r = &self.rollout;
+        if r.unscored_rows.is_empty() {
+            return;
+        }
+        let rows: Vec<i64> = r.unscored_rows.iter().map(|&row| row as i64).collect();
+        let index = Tensor::from_slice(&rows).to_device(self.device);
+        let obs = batch(&r.obs, self.obs_dim, self.device).index_select(0, &index);
+        let actions = batch(&r.actions, self.action_dim, self.device).index_select(0, &index);
+        let log_probs = tch::no_grad(|| self.log_prob(&self.actor.forward(&obs), &actions).to_device(Device::Cpu));
+        // A CPU float tensor always converts; 0 was the old fallback.
+        let log_probs = Vec::<f32>::try_from(log_probs).unwrap_or_else(|_| vec![0.0; rows.len()]);
+        let r = &mut self.rollout;
+        for (&row, log_prob) in r.unscored_rows.iter().zip(log_probs) {
+            r.log_probs[row] = log_prob;
+        }
+        r.unscored_rows.clear();
     }
 
     /// GAE advantages and returns of the rollout.
-    fn advantages(&self) -> (Vec<f32>, Vec<f32>) {
+    fn advantages(&mut self) -> (Vec<f32>, Vec<f32>) {
+        self.evaluate_pending();
         let r = &self.rollout;
         let (gamma, lambda) = (self.cfg.gamma as f32, self.cfg.gae_lambda as f32);
         let mut advantages = vec![0.0f32; r.rewards.len()];
@@ -200,8 +253,13 @@ impl Ppo {
                 // (docs/method.md §5, "Asynchronous PPO").
                 let ratio = (log_probs - old_log_probs.index_select(0, &index)).exp();
                 let clipped = ratio.clamp(1.0 - self.cfg.clip, 1.0 + self.cfg.clip);
-                let entropy = (&self.log_std + 0.5 * (2.0 * PI * std::f64::consts::E).ln()).sum(Kind::Float);
-                let policy_loss = -(&ratio * &adv).minimum(&(clipped * &adv)).mean(Kind::Float) - self.cfg.entropy_coef * entropy;
+                let mut policy_loss = -(&ratio * &adv).minimum(&(clipped * &adv)).mean(Kind::Float);
+                // Without an entropy bonus (the presets') its term adds
+                // exactly 0 to the loss and its gradients: not computed.
+                if self.cfg.entropy_coef != 0.0 {
+                    let entropy = (&self.log_std + 0.5 * (2.0 * PI * std::f64::consts::E).ln()).sum(Kind::Float);
+                    policy_loss = policy_loss - self.cfg.entropy_coef * entropy;
+                }
                 let actor_stepped = guarded_step(&mut self.actor_opt, &policy_loss, self.cfg.max_grad_norm);
 
                 let values = self.critic.forward(&mb_obs).flatten(0, -1);
@@ -254,30 +312,23 @@ impl Agent for Ppo {
         })
     }
 
-    /// V(s) is evaluated here with the current critic, in both loops.
     /// log π_old(u|s) is the actor's own when it sent one (the version that
-    /// acted); otherwise it is evaluated here with the current policy, which
-    /// in one process is the policy that just acted.
+    /// acted); otherwise, as V(s) and V(s') in both loops, it is evaluated
+    /// with the current networks when the rollout is used
+    /// (`evaluate_pending`): in one process, the policy that acted.
     fn store(&mut self, t: Transition) {
-        let next_value = if t.terminated { 0.0 } else { self.value(t.next_obs) };
-        let log_prob = t.log_prob.unwrap_or_else(|| {
-            tch::no_grad(|| {
-                let mean = self.actor.forward(&batch(t.obs, self.obs_dim, self.device));
-                let sample = batch(t.action, self.action_dim, self.device);
-                f32::try_from(self.log_prob(&mean, &sample).get(0).to_device(Device::Cpu))
-            })
-            .unwrap_or(0.0)
-        });
-        let value = self.value(t.obs);
         let r = &mut self.rollout;
+        let log_prob = t.log_prob.unwrap_or_else(|| {
+            r.unscored_rows.push(r.rewards.len());
+            f32::NAN
+        });
         self.counters.cuts_joined += u64::from(r.link(&t));
         self.counters.cuts += u64::from(t.cut);
         r.obs.extend_from_slice(t.obs);
         r.actions.extend_from_slice(t.action);
         r.log_probs.push(log_prob);
-        r.values.push(value);
         r.rewards.push(t.reward);
-        r.next_values.push(next_value);
+        r.unvalued_next_obs.extend_from_slice(t.next_obs);
         r.terminated.push(t.terminated);
         r.ended.push(t.terminated || t.truncated || t.cut);
         self.counters.env_steps += 1;
@@ -375,8 +426,51 @@ mod tests {
         let t = |log_prob| Transition { obs: &obs, action: &[0.5, 0.5, 0.5], reward: -1.0, next_obs: &obs, terminated: false, truncated: false, log_prob, ..Default::default() };
         ppo.store(t(Some(-42.0)));
         ppo.store(t(None));
+        ppo.evaluate_pending();
         assert_eq!(ppo.rollout.log_probs[0], -42.0, "the actor's behaviour log-probability is kept");
         assert!((ppo.rollout.log_probs[1] - exploration::gaussian_log_prob(&ppo.act(&obs), &std, &[0.5, 0.5, 0.5])).abs() < 1e-4);
+    }
+
+    /// The values and the missing log-probabilities are evaluated in one
+    /// batch when the rollout is used: each row's V(s) and V(s') are the
+    /// critic's one-row forward passes (V(s') = 0 after a termination), a
+    /// row stored without log π gets the actor's, one sent is kept, and
+    /// rows evaluated in two goes (a
+    /// rollout that reached an update's evaluation, or a checkpoint of an
+    /// earlier build, which held every row's values) get the same.
+    #[test]
+    fn rollout_values_equal_one_row_evaluations() {
+        tch::set_num_threads(1);
+        let (m, n) = (3, 2);
+        let mask = vec![vec![1; m]; n];
+        let ppo = || Ppo::new(&PpoConfig::default(), &NetworkConfig::default(), AgentSetup { connection: Connection::Local, mask: &mask, state_dim: m, action_dim: n, seed: 4, device: Device::Cpu });
+        let state = |k: usize| vec![k as f32 * 0.3 - 1.0, (k as f32).cos(), 0.5 - (k % 3) as f32];
+        let store = |p: &mut Ppo, k: usize| {
+            let (obs, next) = (state(k), state(k + 1));
+            let log_prob = (k % 3 != 0).then_some(-1.0);
+            p.store(Transition { obs: &obs, action: &[0.2, -0.1], reward: -1.0, next_obs: &next, terminated: k == 6, truncated: false, log_prob, ..Default::default() });
+        };
+        let (mut at_once, mut in_two) = (ppo(), ppo());
+        (0..10).for_each(|k| store(&mut at_once, k));
+        at_once.advantages();
+        (0..5).for_each(|k| store(&mut in_two, k));
+        in_two.advantages();
+        assert_eq!(in_two.rollout.values.len(), 5);
+        (5..10).for_each(|k| store(&mut in_two, k));
+        in_two.advantages();
+        let one_row = |s: &[f32]| tch::no_grad(|| f32::try_from(at_once.critic.forward(&batch(s, m, Device::Cpu)).flatten(0, -1).get(0)).unwrap());
+        let log_prob = |s: &[f32]| tch::no_grad(|| f32::try_from(at_once.log_prob(&at_once.actor.forward(&batch(s, m, Device::Cpu)), &batch(&[0.2, -0.1], n, Device::Cpu)).get(0)).unwrap());
+        for p in [&at_once, &in_two] {
+            let r = &p.rollout;
+            assert_eq!((r.values.len(), r.next_values.len(), r.unvalued_next_obs.len(), r.unscored_rows.len()), (10, 10, 0, 0));
+            for k in 0..10 {
+                let sent = if k % 3 == 0 { log_prob(&state(k)) } else { -1.0 };
+                assert!((r.log_probs[k] - sent).abs() < 1e-5, "log π of row {k}: {} against {sent}", r.log_probs[k]);
+                assert!((r.values[k] - one_row(&state(k))).abs() < 1e-6, "V(s) of row {k}");
+                let next = if k == 6 { 0.0 } else { one_row(&state(k + 1)) };
+                assert!((r.next_values[k] - next).abs() < 1e-6, "V(s') of row {k}");
+            }
+        }
     }
 
     /// Two actors' episodes arriving cut into interleaved batches get the
