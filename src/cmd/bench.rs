@@ -20,8 +20,9 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 5)]
         repeats: usize,
     },
-    /// DDPG update and PPO update time, local vs global actor, per device
-    /// and libtorch thread count; with the PyTorch-eager equivalent when a
+    /// DDPG update time and a PPO rollout's learner time (storing 2,048
+    /// steps and the update), local vs global actor, per device and
+    /// libtorch thread count; with the PyTorch-eager equivalent when a
     /// Python with torch is at hand (ratios within one run).
     Learner {
         /// DDPG updates to time per setting.
