@@ -145,13 +145,13 @@ pub fn run(command: BenchCommand) -> anyhow::Result<()> {
 }
 
 /// One DDPG update (batch 256) and one PPO rollout's learner work (storing
-/// 2048 steps, then the update: 10 epochs of 64-transition minibatches) on the peg presets' settings
-/// (configs/peg.toml with peg-group1.toml, what `configs/peg-group1-*.toml`
-/// train) or on Table I's, for the global actor, the local one on the
-/// presets' graph (T_rule) and on the publication's (T = 0.1), and full
-/// subnetworks, for each thread count on `device`, the median of `rounds`
-/// interleaved rounds; then, on Table I's settings, the same DDPG update in
-/// PyTorch eager (global actor).
+/// 2048 steps, then the update: 10 epochs of 64-transition minibatches) on
+/// the peg presets' settings (configs/peg.toml with peg-group1.toml, what
+/// `configs/peg-group1-*.toml` train) or on Table I's, for the global
+/// actor, the local one on the presets' graph (T_rule) and on the
+/// publication's (T = 0.1), and full subnetworks, for each thread count on
+/// `device`, the median of `rounds` interleaved rounds; then, on Table I's
+/// settings, the same DDPG update in PyTorch eager (global actor).
 fn bench_learner(updates: usize, device: &str, threads: &[usize], rounds: usize, table1: bool, python: Option<&str>) -> anyhow::Result<()> {
     use lcrl_graph_builder::choose_t::RULE_THRESHOLD;
     use lcrl_learner::Connection;

@@ -77,7 +77,7 @@ impl Adam {
     /// Scales all gradients so their global L2 norm is at most `max_norm`,
     /// and returns the norm before scaling: NaN or ∞ when a gradient holds
     /// a non-finite number (then nothing is scaled; the caller skips the
-    /// step, ppo.rs).
+    /// step, ppo/mod.rs).
     pub fn clip_grad_norm(&mut self, max_norm: f64) -> f64 {
         let grads: Vec<Tensor> = self.params.variables().map(Tensor::grad).filter(Tensor::defined).collect();
         if grads.is_empty() {

@@ -4,7 +4,7 @@
 //! (mid-episode) and the next part begins, in a later batch of the same
 //! actor, at the state the cut's step led to. The learner keeps every
 //! actor's unfinished parts, keyed by that state (bit for bit, as PPO joins
-//! its streams, ppo.rs), and so knows an episode's stored steps across its
+//! its streams, ppo/mod.rs), and so knows an episode's stored steps across its
 //! batches.
 //!
 //! An episode's return and length in the record (metrics.csv, the
