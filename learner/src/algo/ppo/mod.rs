@@ -284,13 +284,15 @@ impl Ppo {
                 // (docs/method.md §5, "Asynchronous PPO").
                 let ratio = (log_probs - old_log_probs.index_select(0, &index)).exp();
                 let clipped = ratio.clamp(1.0 - self.cfg.clip, 1.0 + self.cfg.clip);
-                let mut policy_loss = -(&ratio * &adv).minimum(&(clipped * &adv)).mean(Kind::Float);
+                let surrogate = -(&ratio * &adv).minimum(&(clipped * &adv)).mean(Kind::Float);
                 // Without an entropy bonus (the presets') its term adds
                 // exactly 0 to the loss and its gradients: not computed.
-                if self.cfg.entropy_coef != 0.0 {
+                let policy_loss = if self.cfg.entropy_coef == 0.0 {
+                    surrogate
+                } else {
                     let entropy = (&self.log_std + 0.5 * (2.0 * PI * std::f64::consts::E).ln()).sum(Kind::Float);
-                    policy_loss = policy_loss - self.cfg.entropy_coef * entropy;
-                }
+                    surrogate - self.cfg.entropy_coef * entropy
+                };
                 let actor_stepped = guarded_step(&mut self.actor_opt, &policy_loss, self.cfg.max_grad_norm);
 
                 let values = self.critic.forward(&mb_obs).flatten(0, -1);

@@ -42,7 +42,7 @@ fn rollout_values_equal_one_row_evaluations() {
     let state = |k: usize| vec![k as f32 * 0.3 - 1.0, (k as f32).cos(), 0.5 - (k % 3) as f32];
     let store = |p: &mut Ppo, k: usize| {
         let (obs, next) = (state(k), state(k + 1));
-        let log_prob = (k % 3 != 0).then_some(-1.0);
+        let log_prob = (!k.is_multiple_of(3)).then_some(-1.0);
         p.store(Transition { obs: &obs, action: &[0.2, -0.1], reward: -1.0, next_obs: &next, terminated: k == 6, truncated: false, log_prob, ..Default::default() });
     };
     let (mut at_once, mut in_two) = (ppo(), ppo());
@@ -58,8 +58,8 @@ fn rollout_values_equal_one_row_evaluations() {
     for p in [&at_once, &in_two] {
         let r = &p.rollout;
         assert_eq!((r.values.len(), r.next_values.len(), r.unvalued_next_obs.len(), r.unscored_rows.len()), (10, 10, 0, 0));
-        for k in 0..10 {
-            let sent = if k % 3 == 0 { log_prob(&state(k)) } else { -1.0 };
+        for k in 0..10usize {
+            let sent = if k.is_multiple_of(3) { log_prob(&state(k)) } else { -1.0 };
             assert!((r.log_probs[k] - sent).abs() < 1e-5, "log π of row {k}: {} against {sent}", r.log_probs[k]);
             assert!((r.values[k] - one_row(&state(k))).abs() < 1e-6, "V(s) of row {k}");
             let next = if k == 6 { 0.0 } else { one_row(&state(k + 1)) };
