@@ -4,6 +4,12 @@
 use super::*;
 use crate::config::Connection;
 
+/// PPO with the default settings and a local actor that sees every state.
+fn local_ppo(m: usize, n: usize, seed: u64) -> Ppo {
+    let mask = vec![vec![1; m]; n];
+    Ppo::new(&PpoConfig::default(), &NetworkConfig::default(), AgentSetup { connection: Connection::Local, mask: &mask, state_dim: m, action_dim: n, seed, device: Device::Cpu })
+}
+
 /// The log-probability an actor sends (plain Rust, exploration.rs) is
 /// the one PPO computes on tensors for its ratio, and a stored
 /// transition's own log-probability is the one the rollout keeps.
@@ -37,8 +43,7 @@ fn actor_and_learner_log_probs_agree_and_a_sent_one_is_kept() {
 fn rollout_values_equal_one_row_evaluations() {
     tch::set_num_threads(1);
     let (m, n) = (3, 2);
-    let mask = vec![vec![1; m]; n];
-    let ppo = || Ppo::new(&PpoConfig::default(), &NetworkConfig::default(), AgentSetup { connection: Connection::Local, mask: &mask, state_dim: m, action_dim: n, seed: 4, device: Device::Cpu });
+    let ppo = || local_ppo(m, n, 4);
     let state = |k: usize| vec![k as f32 * 0.3 - 1.0, (k as f32).cos(), 0.5 - (k % 3) as f32];
     let store = |p: &mut Ppo, k: usize| {
         let (obs, next) = (state(k), state(k + 1));
@@ -77,8 +82,7 @@ fn rollout_values_equal_one_row_evaluations() {
 fn a_rollout_saved_mid_way_loads_back_and_a_broken_one_is_refused() {
     tch::set_num_threads(1);
     let (m, n) = (3, 2);
-    let mask = vec![vec![1; m]; n];
-    let ppo = || Ppo::new(&PpoConfig::default(), &NetworkConfig::default(), AgentSetup { connection: Connection::Local, mask: &mask, state_dim: m, action_dim: n, seed: 6, device: Device::Cpu });
+    let ppo = || local_ppo(m, n, 6);
     let mut saved = ppo();
     for k in 0..7 {
         let obs = [k as f32 * 0.1, -0.3, 0.2];
@@ -123,8 +127,7 @@ fn a_rollout_saved_mid_way_loads_back_and_a_broken_one_is_refused() {
 #[test]
 fn advantages_run_on_across_an_actors_batch_ends() {
     let (m, n) = (3, 2);
-    let mask = vec![vec![1; m]; n];
-    let ppo = || Ppo::new(&PpoConfig::default(), &NetworkConfig::default(), AgentSetup { connection: Connection::Local, mask: &mask, state_dim: m, action_dim: n, seed: 5, device: Device::Cpu });
+    let ppo = || local_ppo(m, n, 5);
     // Stream s, step k: distinct states; the episode ends at its last step.
     let len = 12;
     let state = |s: usize, k: usize| vec![(s * 31 + k) as f32 * 0.07 - 1.0, ((s + 2) * k) as f32 * 0.05, (k as f32).sin()];
