@@ -41,8 +41,8 @@ struct Rollout {
     obs: Vec<f32>,
     actions: Vec<f32>,
     log_probs: Vec<f32>,
-    /// V(s_t) of the rows evaluated so far (all but the newest: see
-    /// `unvalued_next_obs`).
+    /// V(s_t) of the rows evaluated so far (none of those stored since the
+    /// last update: see `unvalued_next_obs`).
     values: Vec<f32>,
     rewards: Vec<f32>,
     /// V(s_{t+1}), 0 where the step terminated, of the same rows.
@@ -65,8 +65,10 @@ struct Rollout {
     unvalued_next_obs: Vec<f32>,
     /// Rows stored without the behaviour policy's log-probability
     /// (`lcrl train`'s own steps, or a peer that sent none), 0 in
-    /// `log_probs` until the rollout is used: then the actor's, in one
-    /// batch. That actor acted them, since it too only changes in `update`.
+    /// `log_probs` until the rollout is used: then the learner's current
+    /// policy's, in one batch. In one process that policy acted them (it
+    /// too only changes in `update`); for a peer's steps it stands in for
+    /// the version that acted, as it did when scored on arrival.
     #[serde(default)]
     unscored_rows: Vec<usize>,
 }
@@ -81,28 +83,37 @@ struct OpenCut {
 }
 
 impl Rollout {
-    /// Its columns agree in length (a checkpoint's, before it is used).
+    /// Its columns agree with its rows, and every row it names exists and
+    /// is where it may be (a checkpoint's rollout, before it is used).
     fn check(&self, m: usize, n: usize) -> Result<(), String> {
         let rows = self.rewards.len();
         let valued = self.values.len();
-        let columns = [
-            ("obs", self.obs.len(), rows * m),
-            ("actions", self.actions.len(), rows * n),
-            ("log_probs", self.log_probs.len(), rows),
-            ("terminated", self.terminated.len(), rows),
-            ("ended", self.ended.len(), rows),
-            ("next_values", self.next_values.len(), valued),
-            ("unvalued_next_obs", self.unvalued_next_obs.len(), rows.saturating_sub(valued) * m),
-        ];
         if valued > rows {
             return Err(format!("has {valued} values for {rows} rows"));
         }
-        if let Some((name, len, expected)) = columns.iter().find(|(_, len, expected)| len != expected) {
-            return Err(format!("has {len} numbers in {name}, {expected} expected for {rows} rows"));
+        let unvalued = rows - valued;
+        let columns = [
+            ("obs", self.obs.len(), rows * m, rows),
+            ("actions", self.actions.len(), rows * n, rows),
+            ("log_probs", self.log_probs.len(), rows, rows),
+            ("terminated", self.terminated.len(), rows, rows),
+            ("ended", self.ended.len(), rows, rows),
+            ("next_values", self.next_values.len(), valued, valued),
+            ("unvalued_next_obs", self.unvalued_next_obs.len(), unvalued * m, unvalued),
+        ];
+        if let Some((name, len, expected, of)) = columns.iter().find(|(_, len, expected, _)| len != expected) {
+            return Err(format!("has {len} numbers in {name}, {expected} expected for its {of} rows"));
         }
-        let in_range = |row: &usize| *row < rows;
-        if !(self.unscored_rows.iter().all(in_range) && self.joins.iter().all(|(a, b)| in_range(a) && in_range(b)) && self.open_cuts.iter().all(|c| in_range(&c.row))) {
-            return Err(format!("names a row past its {rows}"));
+        // Rows are scored before they are valued, so an unscored row is an
+        // unvalued one; a join's next row comes after its cut.
+        if let Some(row) = self.unscored_rows.iter().find(|&&row| row < valued || row >= rows) {
+            return Err(format!("lists row {row} as unscored, outside its unvalued rows {valued}..{rows}"));
+        }
+        if let Some((cut, next)) = self.joins.iter().find(|&&(cut, next)| cut >= next || next >= rows) {
+            return Err(format!("joins row {cut} to row {next}, not a later one of its {rows}"));
+        }
+        if let Some(cut) = self.open_cuts.iter().find(|c| c.row >= rows || c.next_obs.len() != m) {
+            return Err(format!("holds an open cut at row {} with {} state numbers, not one of its {rows} rows with {m}", cut.row, cut.next_obs.len()));
         }
         Ok(())
     }
@@ -190,41 +201,33 @@ impl Ppo {
         (z.square() * -0.5 - &self.log_std - 0.5 * (2.0 * PI).ln()).sum_dim_intlist(-1, false, Kind::Float)
     }
 
-    /// What the rows stored since the last call lack, each in one batch
-    /// (`evaluate`).
+    /// Fills in what the rows stored since the last update lack: the
+    /// missing log-probabilities in one forward pass of the actor, then
+    /// V(s_t) and V(s_{t+1}) in one of the critic. Both networks only
+    /// change in `update`, after this, so every row gets (up to a
+    /// product's rounding) what the networks current when it was stored
+    /// gave it, as a per-step evaluation did.
     fn evaluate_pending(&mut self) {
-        let mut rollout = std::mem::take(&mut self.rollout);
-        self.evaluate(&mut rollout);
-        self.rollout = rollout;
-    }
-
-    /// Fills in what `r`'s pending rows lack: the missing log-probabilities
-    /// in one forward pass of the actor, then V(s_t) and V(s_{t+1}) in one
-    /// of the critic. Both networks only change in `update`, after this,
-    /// so every row gets what the networks current when it was stored gave
-    /// it, as a per-step evaluation did.
-    fn evaluate(&self, r: &mut Rollout) {
-        self.score(r);
-        let m = self.obs_dim;
+        let log_probs = self.unscored_log_probs();
+        let values = self.unvalued_values();
+        let r = &mut self.rollout;
+        for (&row, log_prob) in r.unscored_rows.iter().zip(log_probs) {
+            r.log_probs[row] = log_prob;
+        }
+        r.unscored_rows.clear();
         let from = r.values.len();
         let rows = r.rewards.len() - from;
-        if rows == 0 {
-            return;
-        }
-        let states = [&r.obs[from * m..], &r.unvalued_next_obs[..]].concat();
-        let values = tch::no_grad(|| self.critic.forward(&batch(&states, m, self.device)).flatten(0, -1).to_device(Device::Cpu));
-        // A CPU float tensor always converts; zeros are the old fallback.
-        let values = Vec::<f32>::try_from(values).unwrap_or_else(|_| vec![0.0; 2 * rows]);
         r.values.extend_from_slice(&values[..rows]);
         let terminated = &r.terminated[from..];
         r.next_values.extend(values[rows..].iter().zip(terminated).map(|(&v, &end)| if end { 0.0 } else { v }));
         r.unvalued_next_obs.clear();
     }
 
-    /// log π(u|s) of `r`'s rows stored without one.
-    fn score(&self, r: &mut Rollout) {
+    /// log π(u|s) of the rows stored without one, in their order.
+    fn unscored_log_probs(&self) -> Vec<f32> {
+        let r = &self.rollout;
         if r.unscored_rows.is_empty() {
-            return;
+            return Vec::new();
         }
         let rows: Vec<i64> = r.unscored_rows.iter().map(|&row| row as i64).collect();
         let index = Tensor::from_slice(&rows).to_device(self.device);
@@ -232,11 +235,21 @@ impl Ppo {
         let actions = batch(&r.actions, self.action_dim, self.device).index_select(0, &index);
         let log_probs = tch::no_grad(|| self.log_prob(&self.actor.forward(&obs), &actions).to_device(Device::Cpu));
         // A CPU float tensor always converts; 0 was the old fallback.
-        let log_probs = Vec::<f32>::try_from(log_probs).unwrap_or_else(|_| vec![0.0; rows.len()]);
-        for (&row, log_prob) in r.unscored_rows.iter().zip(log_probs) {
-            r.log_probs[row] = log_prob;
+        Vec::<f32>::try_from(log_probs).unwrap_or_else(|_| vec![0.0; rows.len()])
+    }
+
+    /// V(s_t) of the unvalued rows, then V(s_{t+1}) of the same rows.
+    fn unvalued_values(&self) -> Vec<f32> {
+        let (r, m) = (&self.rollout, self.obs_dim);
+        let from = r.values.len();
+        let rows = r.rewards.len() - from;
+        if rows == 0 {
+            return Vec::new();
         }
-        r.unscored_rows.clear();
+        let states = [&r.obs[from * m..], &r.unvalued_next_obs[..]].concat();
+        let values = tch::no_grad(|| self.critic.forward(&batch(&states, m, self.device)).flatten(0, -1).to_device(Device::Cpu));
+        // A CPU float tensor always converts; zeros are the old fallback.
+        Vec::<f32>::try_from(values).unwrap_or_else(|_| vec![0.0; 2 * rows])
     }
 
     /// GAE advantages and returns of the rollout.
@@ -418,11 +431,11 @@ impl Agent for Ppo {
     }
 
     fn load(&mut self, dir: &Path) -> Result<(), LearnerError> {
+        let state: PpoState = read_agent_state(dir)?;
+        state.rollout.check(self.obs_dim, self.action_dim).map_err(|e| LearnerError::Checkpoint(format!("{}: the PPO rollout {e}", dir.join("agent.json").display())))?;
         load_vs(&mut self.actor_vs, &dir.join("actor.safetensors"))?;
         load_vs(&mut self.critic_vs, &dir.join("critic.safetensors"))?;
         load_optimizers(dir, &mut self.actor_opt, &mut self.critic_opt)?;
-        let state: PpoState = read_agent_state(dir)?;
-        state.rollout.check(self.obs_dim, self.action_dim).map_err(|e| LearnerError::Checkpoint(format!("{}: PPO rollout {e}", dir.join("agent.json").display())))?;
         self.rng = state.rng.restore()?;
         self.counters = state.counters;
         if self.counters.critic_updates == 0 {

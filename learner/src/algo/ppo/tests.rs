@@ -112,11 +112,24 @@ fn a_rollout_saved_mid_way_loads_back_and_a_broken_one_is_refused() {
     earlier.evaluate_pending();
     assert_eq!(columns(&earlier), columns(&saved));
 
-    let mut state = read();
-    state["rollout"]["values"].as_array_mut().unwrap().pop();
-    std::fs::write(&path, state.to_string()).unwrap();
-    let error = ppo().load(dir.path()).unwrap_err().to_string();
-    assert!(error.contains("agent.json") && error.contains("7 numbers in next_values, 6 expected"), "{error}");
+    // Broken files, each refused with what is wrong, before anything loads.
+    let breaks: [(&str, fn(&mut serde_json::Value)); 3] = [
+        ("7 numbers in next_values, 6 expected for its 6 rows", |r| drop(r["values"].as_array_mut().unwrap().pop())),
+        ("lists row 99 as unscored", |r| r["unscored_rows"] = serde_json::json!([99])),
+        ("joins row 5 to row 2", |r| r["joins"] = serde_json::json!([[5, 2]])),
+    ];
+    let whole = read();
+    for (message, break_it) in breaks {
+        let mut state = whole.clone();
+        break_it(&mut state["rollout"]);
+        std::fs::write(&path, state.to_string()).unwrap();
+        // Another seed's weights: loading the file's would change them.
+        let mut fresh = local_ppo(m, n, 7);
+        let before: Vec<Tensor> = fresh.actor_opt.buffers().iter().map(|t| t.copy()).collect();
+        let error = fresh.load(dir.path()).unwrap_err().to_string();
+        assert!(error.contains("agent.json") && error.contains(message), "{message}: {error}");
+        assert!(fresh.actor_opt.buffers().iter().zip(&before).all(|(a, b)| a.equal(b)), "{message}: weights loaded before the refusal");
+    }
 }
 
 /// Two actors' episodes arriving cut into interleaved batches get the
