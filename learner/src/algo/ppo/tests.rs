@@ -113,7 +113,8 @@ fn a_rollout_saved_mid_way_loads_back_and_a_broken_one_is_refused() {
     assert_eq!(columns(&earlier), columns(&saved));
 
     // Broken files, each refused with what is wrong, before anything loads.
-    let breaks: [(&str, fn(&mut serde_json::Value)); 3] = [
+    type Break = fn(&mut serde_json::Value);
+    let breaks: [(&str, Break); 3] = [
         ("7 numbers in next_values, 6 expected for its 6 rows", |r| drop(r["values"].as_array_mut().unwrap().pop())),
         ("lists row 99 as unscored", |r| r["unscored_rows"] = serde_json::json!([99])),
         ("joins row 5 to row 2", |r| r["joins"] = serde_json::json!([[5, 2]])),
