@@ -9,6 +9,12 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 tag="${1:-lcrl:local}"
 bash scripts/setup.sh >/dev/null
+# Started by a test (the compose end-to-end test), this shell inherits what
+# cargo sets for a test process (CARGO_MANIFEST_DIR, CARGO_PKG_*, OUT_DIR,
+# ...). Build scripts such as ring's rerun when those change, so the build
+# below would recompile ring and the 15 crates above it (about 36 s on 2
+# cores), and the next plain `cargo build` all of them again.
+while read -r var; do unset "$var"; done < <(compgen -e | grep -E '^(CARGO_PKG_|CARGO_MANIFEST_|CARGO_CRATE_NAME$|CARGO_BIN_|CARGO_PRIMARY_PACKAGE$|CARGO_TARGET_TMPDIR$|OUT_DIR$)')
 cargo build --workspace --bins
 stage=target/image
 rm -rf "$stage"
