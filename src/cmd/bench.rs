@@ -293,8 +293,9 @@ fn median(values: &[f64]) -> f64 {
     if sorted.len() % 2 == 1 { sorted[k] } else { (sorted[k - 1] + sorted[k]) / 2.0 }
 }
 
-/// Seconds per DDPG update and per PPO rollout (stored and trained on), and the actor's parameters,
-/// for the graph `mask` (n × m: a row per action, a column per state).
+/// Seconds per DDPG update and per PPO rollout (stored and trained on),
+/// and the actor's parameters, for the graph `mask` (n × m: a row per
+/// action, a column per state).
 /// Updates are timed as a whole after a synchronizing read, so a GPU's
 /// asynchronous launches are counted when they finish, not when queued.
 fn time_updates(cfg: &lcrl_learner::TrainConfig, connection: lcrl_learner::Connection, mask: &[Vec<u8>], updates: usize, device: tch::Device) -> anyhow::Result<(f64, f64, usize)> {
